@@ -1,0 +1,5 @@
+import sys
+
+from uhrnet.cli import main
+
+sys.exit(main())

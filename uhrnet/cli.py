@@ -1,0 +1,65 @@
+"""`uhrnet` command line: git-style subcommands.
+
+Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``run(args) -> int``;
+modules are imported lazily so ``uhrnet --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS = {
+    "train": ("uhrnet.train", "train a model on real (figshare) and/or synthetic (fppsim) data"),
+    "evaluate": ("uhrnet.evaluate", "evaluate checkpoints on the test split like the paper (Table 3, figures)"),
+    "predict": ("uhrnet.predict", "predict height maps and point clouds from fringe images"),
+    "bench": ("uhrnet.bench", "parameters, forward/training-step time and peak memory per model"),
+}
+
+
+class CLIError(Exception):
+    """A user-facing error: printed as one line, exit code 1."""
+
+
+def build_parser(load=None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="uhrnet",
+        description="UHRNet and baselines for single-shot fringe projection profilometry. "
+        "Heights are in label units on disk and reported in millimetres.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_, description=help_)
+        if load is None or load == name:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    # Load only the chosen subcommand's module (argparse exits 2 on usage errors).
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    parser = build_parser(load=chosen if chosen in COMMANDS else "__none__")
+    if chosen not in COMMANDS and not any(a in ("-h", "--help") for a in argv):
+        parser.print_usage(sys.stderr)
+        print(f"uhrnet: error: choose a command from: {', '.join(COMMANDS)}", file=sys.stderr)
+        return 2
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    module = importlib.import_module(COMMANDS[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except CLIError as exc:
+        print(f"uhrnet {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("uhrnet: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
