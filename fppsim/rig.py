@@ -1,0 +1,448 @@
+"""Calibrated FPP rig: a camera and a projector as OpenCV pinholes above the reference plane z = 0.
+
+Conventions (the single reference for the whole package; see DESIGN.md §2):
+
+* Units are millimetres, angles radians.
+* World frame: the reference plane is ``z = 0`` and ``+z`` points from the plane towards the camera.
+  Height is the world ``z`` of the first surface a camera pixel sees.
+* Each device is an OpenCV pinhole: x right, y down, z forward; ``K = [[fx,0,cx],[0,fy,cy],[0,0,1]]``
+  with integer pixel centres (pixel ``(u, v)`` = column ``u``, row ``v``); ``X_dev = R @ X_world + t``;
+  distortion ``(k1, k2, p1, p2, k3)`` as in OpenCV.
+* The projector is an inverse camera; its pattern varies along projector columns ``u_p``.
+* pyrender uses OpenGL axes (y up, z backwards) and pixel centres at +0.5. The conversion lives in
+  exactly one place: :meth:`Device.gl_pose` and :meth:`Device.gl_intrinsics`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "rotation_to_plane_frame"]
+
+ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+
+class RigError(ValueError):
+    """A calibration file or rig description that cannot be used."""
+
+
+def _as_matrix(value, shape, name):
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.size != int(np.prod(shape)):
+        raise RigError(f"{name} must have {int(np.prod(shape))} numbers (shape {shape}), got shape {arr.shape}")
+    arr = arr.reshape(shape)
+    if not np.all(np.isfinite(arr)):
+        raise RigError(f"{name} contains NaN or inf")
+    return arr
+
+
+@dataclass
+class Device:
+    """One OpenCV pinhole device (camera or projector).
+
+    Attributes
+    ----------
+    K : (3, 3) float64 intrinsics in pixels (integer pixel centres).
+    R : (3, 3) float64 rotation world -> device.
+    t : (3,) float64 translation world -> device, mm.
+    width, height : int resolution in pixels.
+    dist : (5,) float64 OpenCV distortion (k1, k2, p1, p2, k3); zeros for an ideal pinhole.
+    """
+
+    K: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    width: int
+    height: int
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+
+    def __post_init__(self):
+        self.K = _as_matrix(self.K, (3, 3), "K")
+        self.R = _as_matrix(self.R, (3, 3), "R")
+        self.t = _as_matrix(self.t, (3,), "t")
+        d = np.zeros(5)
+        dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        if dist.size > 5 or not np.all(np.isfinite(dist)):
+            raise RigError(f"dist must hold at most 5 finite numbers (k1,k2,p1,p2,k3), got {dist.tolist()}")
+        d[: dist.size] = dist
+        self.dist = d
+        self.width, self.height = int(self.width), int(self.height)
+        if self.width <= 0 or self.height <= 0:
+            raise RigError(f"resolution must be positive, got {self.width} x {self.height}")
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1 or self.K[2, 0] or self.K[2, 1]:
+            raise RigError(f"K must be [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {self.K.tolist()}")
+        if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
+            raise RigError("R must be a proper rotation matrix (orthonormal, det +1)")
+
+    # ------------------------------------------------------------------ basic geometry
+    @property
+    def center(self) -> np.ndarray:
+        """(3,) optical centre in world coordinates, mm."""
+        return -self.R.T @ self.t
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0))
+
+    def world_to_device(self, X: np.ndarray) -> np.ndarray:
+        """(..., 3) world points -> (..., 3) device-frame points (mm)."""
+        X = np.asarray(X, dtype=np.float64)
+        return X @ self.R.T + self.t
+
+    def project(self, X: np.ndarray, distort: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points to pixels.
+
+        Parameters
+        ----------
+        X : (..., 3) world points, mm.
+        distort : apply the lens distortion (False gives the ideal pinhole pixel).
+
+        Returns
+        -------
+        uv : (..., 2) float64 pixel coordinates (u = column, v = row; integer = pixel centre).
+        z : (...,) float64 depth along the device's optical axis, mm (<= 0 means behind the device).
+        """
+        Xd = self.world_to_device(X)
+        z = Xd[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = Xd[..., 0] / z
+            y = Xd[..., 1] / z
+        if distort and self.has_distortion:
+            x, y = _distort(x, y, self.dist)
+        K = self.K
+        u = K[0, 0] * x + K[0, 1] * y + K[0, 2]
+        v = K[1, 1] * y + K[1, 2]
+        return np.stack([u, v], axis=-1), z
+
+    def normalized_rays(self, uv: np.ndarray) -> np.ndarray:
+        """(..., 2) pixels -> (..., 3) device-frame ray directions (x, y, 1), distortion removed."""
+        uv = np.asarray(uv, dtype=np.float64)
+        K = self.K
+        y = (uv[..., 1] - K[1, 2]) / K[1, 1]
+        x = (uv[..., 0] - K[0, 2] - K[0, 1] * y) / K[0, 0]
+        if self.has_distortion:
+            x, y = _undistort(x, y, self.dist)
+        return np.stack([x, y, np.ones_like(x)], axis=-1)
+
+    def pixel_rays(self, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Back-project pixels to world rays.
+
+        Returns ``origin`` (3,) and ``directions`` (..., 3) in world coordinates. Directions are
+        scaled so that a step of 1 along them advances 1 mm along the optical axis, i.e.
+        ``X = origin + depth * direction`` for a device-frame depth ``depth``.
+        """
+        d = self.normalized_rays(uv) @ self.R  # R^T applied to row vectors
+        return self.center, d
+
+    def backproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """(..., 2) pixels and (...,) device-frame depths (mm) -> (..., 3) world points."""
+        origin, d = self.pixel_rays(uv)
+        return origin + np.asarray(depth, dtype=np.float64)[..., None] * d
+
+    def pixel_grid(self, scale: int = 1) -> np.ndarray:
+        """(H*scale, W*scale, 2) pixel-centre coordinates of a ``scale``-times supersampled grid.
+
+        Sub-pixel centres of an odd ``scale`` include the integer pixel centres.
+        """
+        s = int(scale)
+        u = (np.arange(self.width * s) + 0.5) / s - 0.5
+        v = (np.arange(self.height * s) + 0.5) / s - 0.5
+        uu, vv = np.meshgrid(u, v)
+        return np.stack([uu, vv], axis=-1)
+
+    def plane_depth(self, uv: np.ndarray, plane_z: float = 0.0) -> np.ndarray:
+        """Device-frame depth (mm) at which pixel rays meet the world plane z = plane_z (inf if never)."""
+        origin, d = self.pixel_rays(uv)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (plane_z - origin[2]) / d[..., 2]
+        return np.where(np.isfinite(s) & (s > 0), s, np.inf)
+
+    # ------------------------------------------------------------------ OpenGL conversion (the one place)
+    def gl_pose(self) -> np.ndarray:
+        """4x4 world-from-device pose in OpenGL axes (x right, y up, z backwards), for pyrender."""
+        pose = np.eye(4)
+        pose[:3, :3] = self.R.T @ np.diag([1.0, -1.0, -1.0])
+        pose[:3, 3] = self.center
+        return pose
+
+    def gl_intrinsics(self, scale: int = 1) -> tuple[float, float, float, float, int, int]:
+        """(fx, fy, cx, cy, width, height) for pyrender.IntrinsicsCamera at ``scale``-times resolution.
+
+        OpenGL samples pixel ``i`` at window coordinate ``i + 0.5``, OpenCV at ``i``: hence the +0.5.
+        """
+        s = int(scale)
+        K = self.K
+        return (K[0, 0] * s, K[1, 1] * s, (K[0, 2] + 0.5) * s, (K[1, 2] + 0.5) * s,
+                self.width * s, self.height * s)
+
+    # ------------------------------------------------------------------ io
+    def to_dict(self) -> dict:
+        return {
+            "K": self.K.tolist(), "dist": self.dist.tolist(), "R": self.R.tolist(), "t": self.t.tolist(),
+            "width": self.width, "height": self.height,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict, name: str = "device") -> "Device":
+        missing = [k for k in ("K", "R", "t", "width", "height") if k not in d]
+        if missing:
+            raise RigError(f"{name} is missing {', '.join(missing)}")
+        try:
+            return cls(K=d["K"], R=d["R"], t=d["t"], width=d["width"], height=d["height"],
+                       dist=d.get("dist", np.zeros(5)))
+        except RigError as exc:
+            raise RigError(f"{name}: {exc}") from None
+
+    @classmethod
+    def looking_down(cls, center, fx, fy, cx, cy, width, height, dist=None) -> "Device":
+        """A device at world ``center`` whose optical axis points straight down (-z), x along world x."""
+        R = np.diag([1.0, -1.0, -1.0])
+        return cls(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], R=R, t=-R @ np.asarray(center, float),
+                   width=width, height=height, dist=np.zeros(5) if dist is None else dist)
+
+
+def _distort(x, y, dist):
+    k1, k2, p1, p2, k3 = dist
+    r2 = x * x + y * y
+    radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+    return xd, yd
+
+
+def _undistort(xd, yd, dist, iterations: int = 20):
+    """Invert :func:`_distort` by fixed-point iteration (as cv2.undistortPoints), vectorised."""
+    k1, k2, p1, p2, k3 = dist
+    x, y = np.array(xd, dtype=np.float64), np.array(yd, dtype=np.float64)
+    for _ in range(iterations):
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        x = (xd - dx) / radial
+        y = (yd - dy) / radial
+    return x, y
+
+
+def rotation_to_plane_frame(R_plane: np.ndarray, t_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera extrinsics (R, t) for a world frame on a calibrated reference plane.
+
+    ``R_plane, t_plane`` map plane-board coordinates to the camera frame (as from cv2.solvePnP on a
+    board lying on the plane, the board's z = 0 being the plane). The result keeps the board's z = 0
+    as the reference plane but flips the board frame (180 deg about x) if needed so that +z points
+    towards the camera.
+    """
+    R = np.asarray(R_plane, float).reshape(3, 3)
+    t = np.asarray(t_plane, float).reshape(3)
+    cam_center = -R.T @ t
+    if cam_center[2] < 0:
+        flip = np.diag([1.0, -1.0, -1.0])
+        R = R @ flip
+    return R, t
+
+
+@dataclass
+class Rig:
+    """Camera + projector + fringe design.
+
+    Attributes
+    ----------
+    camera, projector : :class:`Device`.
+    periods : number of fringe periods across the projector width (the single-shot frequency, 80).
+    name : free text.
+    """
+
+    camera: Device
+    projector: Device
+    periods: float = 80.0
+    name: str = "rig"
+
+    # -------------------------------------------------------------- phase <-> projector column
+    def phase_of_column(self, u_p: np.ndarray, periods: float | None = None) -> np.ndarray:
+        """Absolute projector phase (rad) of projector column ``u_p``: ``2*pi*f*u_p/W_p``."""
+        f = self.periods if periods is None else periods
+        return 2.0 * np.pi * f * np.asarray(u_p, dtype=np.float64) / self.projector.width
+
+    def column_of_phase(self, phase: np.ndarray, periods: float | None = None) -> np.ndarray:
+        """Projector column ``u_p = Phi * W_p / (2*pi*f)`` of an absolute phase (rad)."""
+        f = self.periods if periods is None else periods
+        return np.asarray(phase, dtype=np.float64) * self.projector.width / (2.0 * np.pi * f)
+
+    # -------------------------------------------------------------- io
+    def to_dict(self) -> dict:
+        return {
+            "format": "fppsim-rig/1",
+            "name": self.name,
+            "units": "mm",
+            "convention": "OpenCV pinholes, X_dev = R X_world + t; reference plane z = 0, +z towards camera",
+            "reference_plane": {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
+            "periods": float(self.periods),
+            "camera": self.camera.to_dict(),
+            "projector": self.projector.to_dict(),
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Rig":
+        if not isinstance(d, dict):
+            raise RigError("rig document must be a mapping with 'camera' and 'projector'")
+        for key in ("camera", "projector"):
+            if not isinstance(d.get(key), dict):
+                raise RigError(f"rig document has no '{key}' section")
+        plane = d.get("reference_plane")
+        if plane is not None and not (np.allclose(plane.get("point", [0, 0, 0]), 0)
+                                      and np.allclose(plane.get("normal", [0, 0, 1]), [0, 0, 1])):
+            raise RigError("reference_plane must be z = 0 with normal +z (re-express the extrinsics in that frame)")
+        periods = float(d.get("periods", 80.0))
+        if not periods > 0:
+            raise RigError(f"periods must be > 0, got {periods}")
+        rig = cls(camera=Device.from_dict(d["camera"], "camera"),
+                  projector=Device.from_dict(d["projector"], "projector"),
+                  periods=periods, name=str(d.get("name", "rig")))
+        rig.check()
+        return rig
+
+    def check(self) -> None:
+        """Raise RigError unless both devices sit above the plane and look at it."""
+        for name, dev in (("camera", self.camera), ("projector", self.projector)):
+            c = dev.center
+            if c[2] <= 0:
+                raise RigError(f"{name} centre is at z = {c[2]:.1f} mm: it must be above the reference plane (z > 0)")
+            axis = dev.R[2]  # optical axis in world coordinates
+            if axis[2] >= 0:
+                raise RigError(f"{name} looks away from the reference plane (optical axis z = {axis[2]:+.3f})")
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write JSON or YAML (by extension), atomically."""
+        path = Path(path)
+        doc = self.to_dict()
+        if path.suffix.lower() in (".yaml", ".yml"):
+            import yaml
+            text = yaml.safe_dump(doc, sort_keys=False)
+        else:
+            text = json.dumps(doc, indent=2)
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, path)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Rig":
+        """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration."""
+        path = Path(path)
+        if not path.is_file():
+            raise RigError(f"rig file not found: {path}")
+        text = path.read_text(errors="replace")
+        if text.lstrip().startswith("%YAML") or "opencv-matrix" in text:
+            return cls.from_opencv_stereo(path)
+        try:
+            if path.suffix.lower() in (".yaml", ".yml"):
+                import yaml
+                doc = yaml.safe_load(text)
+            else:
+                doc = json.loads(text)
+        except Exception as exc:  # json/yaml parse errors have long messages: keep the first line
+            raise RigError(f"{path}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
+        try:
+            return cls.from_dict(doc)
+        except RigError as exc:
+            raise RigError(f"{path}: {exc}") from None
+
+    @classmethod
+    def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
+                           periods: float = 80.0) -> "Rig":
+        """Import an OpenCV stereo calibration (cv2.FileStorage YAML/XML), camera = device 1.
+
+        Recognised nodes (first match wins): camera matrix ``M1|K1|cameraMatrix1|camera_matrix``,
+        distortion ``D1|dist1|distCoeffs1``, projector ``M2|K2|cameraMatrix2|projector_matrix``,
+        ``D2|dist2|distCoeffs2``, and ``R``, ``T`` with ``X_proj = R X_cam + T`` (cv2.stereoCalibrate).
+        Resolutions: ``camera_width/camera_height`` and ``projector_width/projector_height``, or
+        ``image_width/image_height`` (camera) — default 640 x 352 and 912 x 1140.
+        The reference plane: ``R_plane`` and ``T_plane`` (board-on-plane -> camera, as from solvePnP);
+        without them the plane is perpendicular to the camera axis at ``plane_distance`` mm
+        (node ``plane_distance``; required in that case).
+        """
+        import cv2
+
+        path = Path(path)
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        if not fs.isOpened():
+            raise RigError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
+
+        def node(*names, required=True):
+            for n in names:
+                nd = fs.getNode(n)
+                if not nd.empty():
+                    return nd.mat() if nd.isMap() or nd.isSeq() else nd.real()
+            if required:
+                raise RigError(f"{path}: no node named {' or '.join(names)}")
+            return None
+
+        try:
+            K1 = node("M1", "K1", "cameraMatrix1", "camera_matrix")
+            D1 = node("D1", "dist1", "distCoeffs1", "camera_distortion", required=False)
+            K2 = node("M2", "K2", "cameraMatrix2", "projector_matrix")
+            D2 = node("D2", "dist2", "distCoeffs2", "projector_distortion", required=False)
+            R = node("R")
+            T = node("T")
+            Rp = node("R_plane", "Rp", required=False)
+            Tp = node("T_plane", "Tp", required=False)
+            cw = node("camera_width", "image_width", required=False) or 640
+            ch = node("camera_height", "image_height", required=False) or 352
+            pw = node("projector_width", required=False) or 912
+            ph = node("projector_height", required=False) or 1140
+            if plane_distance is None:
+                plane_distance = node("plane_distance", required=False)
+        finally:
+            fs.release()
+        if R is not None and np.asarray(R).size == 3:  # Rodrigues vector
+            R = cv2.Rodrigues(np.asarray(R, float))[0]
+        if Rp is not None and np.asarray(Rp).size == 3:
+            Rp = cv2.Rodrigues(np.asarray(Rp, float))[0]
+        R = _as_matrix(R, (3, 3), "R")
+        T = _as_matrix(T, (3,), "T")
+        if Rp is not None and Tp is not None:
+            Rw, tw = rotation_to_plane_frame(Rp, Tp)
+        elif plane_distance:
+            Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
+        else:
+            raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
+        cam = Device(K=K1, dist=np.zeros(5) if D1 is None else np.ravel(D1)[:5], R=Rw, t=tw,
+                     width=int(cw), height=int(ch))
+        proj = Device(K=K2, dist=np.zeros(5) if D2 is None else np.ravel(D2)[:5], R=R @ Rw, t=R @ tw + T,
+                      width=int(pw), height=int(ph))
+        rig = cls(camera=cam, projector=proj, periods=periods, name=path.stem)
+        rig.check()
+        return rig
+
+    @classmethod
+    def default(cls) -> "Rig":
+        """The embedded default rig (assets/default_rig.json)."""
+        return cls.load(default_rig_path())
+
+
+def default_rig_path() -> Path:
+    return ASSETS / "default_rig.json"
+
+
+def load_rig(path: str | os.PathLike | None) -> Rig:
+    """Rig from a file, or the default rig when ``path`` is None."""
+    return Rig.default() if path is None else Rig.load(path)
+
+
+def make_default_rig() -> Rig:
+    """Build the default rig (what assets/default_rig.json holds).
+
+    Near-parallel axes with projector lens shift (DESIGN.md §2): camera 500 mm above the plane,
+    fx = fy = 1230 px, 640 x 352; projector 180 mm to the +x side at the same height, 912 x 1140,
+    fx = fy = 1208.8 px, principal point shifted so the scene centre lands mid-projector.
+    80 periods over 912 columns project 4.71 mm periods on the plane: 11.6 camera pixels.
+    """
+    cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
+    fp, W, H, baseline, dist = 1208.8, 912, 1140, 180.0, 500.0
+    cx_p = (W - 1) / 2 + fp * baseline / dist  # world origin -> projector column (W-1)/2
+    proj = Device.looking_down([baseline, 0.0, dist], fp, fp, cx_p, (H - 1) / 2, W, H)
+    return Rig(camera=cam, projector=proj, periods=80.0, name="default: parallel axes, projector lens shift")
