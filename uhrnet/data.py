@@ -1,0 +1,671 @@
+"""Datasets for uhrnet: the real figshare arrays, fppsim's native format, and mixtures of both.
+
+Every dataset returns the same sample dict (``torch`` tensors)::
+
+    fringe       (1, H, W) float32 in [-1, 1]   (8-bit intensity / 127.5 - 1, as in f1_80.npy)
+    height       (1, H, W) float32, label units  (as in Z.npy; millimetres = label * mm_per_unit)
+    mask         (1, H, W) float32, 1 = valid pixel (label > invalid threshold)
+    mm_per_unit  float
+    id, source   str (sample id and "real"/"synthetic")
+
+Label units are those of the public figshare dataset (DESIGN.md §5): Z = 6 * height_mm + plane offset,
+invalid (shadow) pixels exactly -105, and the reference evaluation counts Z <= -100 as invalid.
+:class:`LabelTransform` holds that preset and makes it configurable; fppsim's native heights (mm above
+the reference plane) are mapped through the same transform so real and synthetic samples mix.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch.utils.data import Dataset, Sampler
+
+
+class DataError(ValueError):
+    """A dataset problem a user must fix; the message names the offending file."""
+
+
+# --------------------------------------------------------------------------------------------------
+# Label transform
+
+
+@dataclass(frozen=True)
+class LabelTransform:
+    """How heights are stored as labels.
+
+    ``label = height_mm * units_per_mm + plane_offset`` on valid pixels, ``invalid_value`` elsewhere;
+    a label is valid when ``label > invalid_threshold``. The ``figshare`` preset (6 units per mm,
+    -105 invalid marker, -100 threshold, plane at about -97) is estimated from the public sample and
+    the reference evaluation code (DESIGN.md §5); adjust it for data labelled differently.
+    ``data_range`` is the label range used by SSIM (C1 = (0.01 L)^2, C2 = (0.03 L)^2).
+    """
+
+    name: str = "figshare"
+    units_per_mm: float = 6.0
+    invalid_value: float = -105.0
+    invalid_threshold: float = -100.0
+    plane_offset: float = -97.0
+    data_range: float = 286.0
+
+    @property
+    def mm_per_unit(self) -> float:
+        return 1.0 / self.units_per_mm
+
+    def mask(self, label):
+        """Valid-pixel mask (bool) for a numpy array or torch tensor of labels."""
+        return label > self.invalid_threshold
+
+    def to_mm(self, label):
+        """Labels in millimetres as the reference evaluation does (Z / 6): fine for differences."""
+        return label / self.units_per_mm
+
+    def height_mm(self, label):
+        """Height above the reference plane in millimetres: (Z - plane_offset) / units_per_mm."""
+        return (label - self.plane_offset) / self.units_per_mm
+
+    def from_height_mm(self, height_mm: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
+        """Height above the reference plane (mm) -> labels; invalid pixels get ``invalid_value``."""
+        h = np.asarray(height_mm, dtype=np.float64)
+        label = h * self.units_per_mm + self.plane_offset
+        bad = ~np.isfinite(label)
+        if valid is not None:
+            bad |= ~np.asarray(valid, dtype=bool)
+        label[bad] = self.invalid_value
+        return label.astype(np.float32)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LabelTransform":
+        names = {f.name for f in fields(cls)}
+        unknown = set(d) - names - {"preset"}
+        if unknown:
+            raise DataError(f"label transform: unknown keys {sorted(unknown)} (known: {sorted(names)})")
+        base = PRESETS.get(d.get("preset", d.get("name", "figshare")), PRESETS["figshare"])
+        return replace(base, **{k: (str(v) if k == "name" else float(v)) for k, v in d.items() if k in names})
+
+    @classmethod
+    def resolve(cls, spec: "LabelTransform | str | dict | None") -> "LabelTransform":
+        """A transform from a preset name, a dict (e.g. from a checkpoint) or None (figshare)."""
+        if spec is None:
+            return PRESETS["figshare"]
+        if isinstance(spec, LabelTransform):
+            return spec
+        if isinstance(spec, dict):
+            return cls.from_dict(spec)
+        if spec in PRESETS:
+            return PRESETS[spec]
+        raise DataError(f"unknown label preset {spec!r} (known: {', '.join(PRESETS)})")
+
+
+PRESETS: dict[str, LabelTransform] = {"figshare": LabelTransform()}
+
+
+# --------------------------------------------------------------------------------------------------
+# Reference split
+
+
+def _shuffle_split(n: int, test_size: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """sklearn ``train_test_split(range(n), test_size=..., random_state=seed)`` index for index."""
+    n_test = math.ceil(test_size * n)  # same float expression as sklearn's _validate_shuffle_split
+    n_train = n - n_test
+    if n_train <= 0 or n_test <= 0:
+        raise DataError(f"cannot split {n} samples with test_size={test_size}")
+    perm = np.random.RandomState(seed).permutation(n)
+    return perm[n_test:n_test + n_train], perm[:n_test]
+
+
+MIN_REFERENCE_SPLIT = 6
+
+
+def reference_split(n: int, test_size: float = 0.2, seeds: tuple[int, int] = (0, 1)) -> dict[str, np.ndarray]:
+    """The reference 80/10/10 split of the figshare data, reproduced index for index.
+
+    ``train, rest = train_test_split(idx, test_size=0.2, random_state=0)`` then
+    ``val, test = train_test_split(rest, test_size=0.5, random_state=1)``.
+    """
+    if n < MIN_REFERENCE_SPLIT:
+        raise DataError(
+            f"the reference 80/10/10 split needs at least {MIN_REFERENCE_SPLIT} samples, got {n} "
+            "(use split mode 'train' or 'all' for tiny sets)"
+        )
+    train, rest = _shuffle_split(n, test_size, seeds[0])
+    val_pos, test_pos = _shuffle_split(len(rest), 0.5, seeds[1])
+    return {"train": train, "val": rest[val_pos], "test": rest[test_pos]}
+
+
+SPLIT_MODES = ("reference", "train", "val", "test")
+
+
+def split_indices(n: int, part: str, mode: str = "reference") -> np.ndarray:
+    """Indices of split ``part`` (train/val/test/all) of ``n`` samples.
+
+    mode ``reference``: the 80/10/10 reference split; ``train``/``val``/``test``: every sample belongs
+    to that one split (e.g. a single real sample used only for testing).
+    """
+    if part == "all":
+        return np.arange(n)
+    if part not in ("train", "val", "test"):
+        raise ValueError(f"unknown split {part!r}")
+    if mode == "reference":
+        return reference_split(n)[part]
+    if mode in ("train", "val", "test"):
+        return np.arange(n) if part == mode else np.zeros(0, dtype=np.int64)
+    raise ValueError(f"unknown split mode {mode!r} (known: {', '.join(SPLIT_MODES)})")
+
+
+# --------------------------------------------------------------------------------------------------
+# Datasets
+
+
+def _sample(fringe: np.ndarray, label: np.ndarray, transform: LabelTransform, sid: str, source: str) -> dict:
+    fringe = np.array(fringe, dtype=np.float32, order="C", copy=True)  # off the memory map
+    label = np.array(label, dtype=np.float32, order="C", copy=True)
+    mask = transform.mask(label).astype(np.float32)
+    return {
+        "fringe": torch.from_numpy(fringe)[None],
+        "height": torch.from_numpy(label)[None],
+        "mask": torch.from_numpy(mask)[None],
+        "mm_per_unit": float(transform.mm_per_unit),
+        "id": sid,
+        "source": source,
+    }
+
+
+# File names of known figshare-style pairs: the full dataset and the single published sample.
+FIGSHARE_PAIRS = (("f1_80.npy", "Z.npy"), ("fringe_pattern.npy", "height_map.npy"))
+
+
+def find_figshare_pair(folder: str | os.PathLike) -> tuple[Path, Path] | None:
+    folder = Path(folder)
+    for f, z in FIGSHARE_PAIRS:
+        if (folder / f).is_file() or (folder / z).is_file():
+            return folder / f, folder / z
+    return None
+
+
+def _load_npy(path: Path, what: str) -> np.ndarray:
+    if not path.exists():
+        raise DataError(f"{path}: {what} file not found")
+    if path.is_dir():
+        raise DataError(f"{path}: is a folder, expected a .npy {what} file")
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
+    if not isinstance(arr, np.ndarray):
+        raise DataError(f"{path}: expected a single .npy array, got {type(arr).__name__}")
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise DataError(f"{path}: dtype {arr.dtype}, expected float32 ({what})")
+    if arr.ndim == 2:  # (H, W): one image
+        arr = arr[None]
+    elif arr.ndim == 3 and arr.shape[-1] == 1:  # (H, W, 1): one image
+        arr = arr[None, ..., 0]
+    elif arr.ndim == 4:
+        if arr.shape[-1] != 1:
+            raise DataError(f"{path}: shape {arr.shape}, expected (N, H, W, 1) with one channel")
+        arr = arr[..., 0]
+    elif arr.ndim != 3:
+        raise DataError(f"{path}: shape {arr.shape}, expected (N, H, W, 1), (N, H, W) or (H, W)")
+    if arr.shape[0] == 0 or arr.shape[1] == 0 or arr.shape[2] == 0:
+        raise DataError(f"{path}: empty array of shape {arr.shape}")
+    return arr
+
+
+class FigshareArrays(Dataset):
+    """The figshare layout: ``f1_80.npy`` (fringes) and ``Z.npy`` (labels), memory-mapped.
+
+    ``FigshareArrays("data/")`` opens ``data/f1_80.npy`` and ``data/Z.npy`` (or the single-sample pair
+    ``fringe_pattern.npy``/``height_map.npy``); ``FigshareArrays(fringe=path, label=path)`` opens any pair.
+    Arrays may be (N, H, W, 1), (N, H, W) or (H, W) of any float dtype; samples are converted to
+    float32 one at a time, so the full set (about 2.7 GB) is never copied into memory.
+    ``check=True`` scans the arrays once for NaN/inf and for fringes outside [-1, 1].
+    """
+
+    def __init__(self, root: str | os.PathLike | None = None, fringe: str | os.PathLike | None = None,
+                 label: str | os.PathLike | None = None, transform: LabelTransform | str | dict | None = None,
+                 check: bool = True, source: str = "real"):
+        self.transform = LabelTransform.resolve(transform)
+        self.source = source
+        if root is not None:
+            root = Path(root)
+            if not root.exists():
+                raise DataError(f"{root}: folder not found")
+            if not root.is_dir():
+                raise DataError(f"{root}: not a folder")
+            pair = find_figshare_pair(root) or (root / FIGSHARE_PAIRS[0][0], root / FIGSHARE_PAIRS[0][1])
+            fringe = root / fringe if fringe is not None else pair[0]
+            label = root / label if label is not None else pair[1]
+            if not Path(fringe).exists() and not Path(label).exists() and not any(root.iterdir()):
+                raise DataError(f"{root}: empty folder (expected f1_80.npy and Z.npy)")
+        elif fringe is None or label is None:
+            raise TypeError("FigshareArrays needs root or both fringe= and label=")
+        self.fringe_path, self.label_path = Path(fringe), Path(label)
+        self.fringes = _load_npy(self.fringe_path, "fringe")
+        self.labels = _load_npy(self.label_path, "label")
+        if self.fringes.shape[0] != self.labels.shape[0]:
+            raise DataError(
+                f"{self.label_path}: {self.labels.shape[0]} samples but {self.fringe_path.name} has "
+                f"{self.fringes.shape[0]}"
+            )
+        if self.fringes.shape[1:] != self.labels.shape[1:]:
+            raise DataError(
+                f"{self.label_path}: image size {self.labels.shape[1:]} differs from "
+                f"{self.fringe_path.name}'s {self.fringes.shape[1:]}"
+            )
+        self.ids = [f"{i:06d}" for i in range(len(self))]
+        if check:
+            self.check()
+
+    def __len__(self) -> int:
+        return int(self.labels.shape[0])
+
+    @property
+    def image_shape(self) -> tuple[int, int]:
+        return tuple(self.labels.shape[1:])
+
+    def check(self, chunk_bytes: int = 256 << 20) -> None:
+        """Scan for NaN/inf (labels and fringes) and fringe values outside [-1, 1]."""
+        n = len(self)
+        step = max(1, chunk_bytes // max(1, self.labels[0].nbytes))
+        for arr, path, name in ((self.labels, self.label_path, "label"), (self.fringes, self.fringe_path, "fringe")):
+            lo, hi = np.inf, -np.inf
+            for i in range(0, n, step):
+                block = np.asarray(arr[i:i + step])
+                finite = np.isfinite(block)
+                if not finite.all():
+                    bad = np.flatnonzero(~finite.reshape(len(block), -1).all(axis=1))[0]
+                    count = int((~finite[bad]).sum())
+                    raise DataError(f"{path}: sample {i + bad} has {count} NaN/inf {name} values")
+                lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
+            if name == "fringe" and (lo < -1.001 or hi > 1.001):
+                hint = " (looks like raw 8-bit intensities)" if hi > 2 else ""
+                raise DataError(
+                    f"{path}: fringe values span [{lo:g}, {hi:g}], expected [-1, 1] = "
+                    f"intensity / 127.5 - 1{hint}"
+                )
+
+    def __getitem__(self, i: int) -> dict:
+        i = int(i)
+        return _sample(self.fringes[i], self.labels[i], self.transform, self.ids[i], self.source)
+
+
+class FppsimDataset(Dataset):
+    """fppsim's native format (``manifest.jsonl``, ``<id>/fringe.png``, ``<id>/arrays.npz``) or a
+    figshare-format export (a folder holding ``f1_80.npy`` and ``Z.npy``), as the same sample dict.
+
+    Native heights (mm above the reference plane) are mapped to labels with ``transform`` (figshare
+    preset by default). ``label="psp"`` trains on the phase-shifting height (``height_psp``/``mask_psp``)
+    instead of the exact one. ``mask_fringe`` sets the fringe to -1 on invalid pixels, as the figshare
+    data and ``fppsim export --format figshare`` do.
+    """
+
+    def __init__(self, folder: str | os.PathLike, transform: LabelTransform | str | dict | None = None,
+                 label: str = "true", mask_fringe: bool = True, check: bool = True, source: str = "synthetic"):
+        self.root = Path(folder)
+        self.transform = LabelTransform.resolve(transform)
+        self.source = source
+        self.label = label
+        self.mask_fringe = mask_fringe
+        self.arrays: FigshareArrays | None = None
+        if label not in ("true", "psp"):
+            raise ValueError(f"label must be 'true' or 'psp', got {label!r}")
+        if not self.root.exists():
+            raise DataError(f"{self.root}: folder not found")
+        if not self.root.is_dir():
+            raise DataError(f"{self.root}: not a folder")
+        if find_figshare_pair(self.root) is not None:
+            self.arrays = FigshareArrays(self.root, transform=self.transform, check=check, source=source)
+            self.ids = self.arrays.ids
+            return
+        manifest = self.root / "manifest.jsonl"
+        if manifest.is_file():
+            self.ids = _read_manifest(manifest)
+        else:
+            self.ids = sorted(p.name for p in self.root.iterdir() if (p / "arrays.npz").is_file())
+        if not self.ids:
+            raise DataError(
+                f"{self.root}: no samples (expected manifest.jsonl with <id>/arrays.npz, or f1_80.npy and Z.npy)"
+            )
+        for sid in self.ids:
+            for name in ("fringe.png", "arrays.npz"):
+                if not (self.root / sid / name).is_file():
+                    raise DataError(f"{self.root / sid / name}: file not found (listed in {manifest.name})")
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def __getitem__(self, i: int) -> dict:
+        if self.arrays is not None:
+            return self.arrays[i]
+        sid = self.ids[int(i)]
+        d = self.root / sid
+        fringe = read_fringe_image(d / "fringe.png")
+        npz = d / "arrays.npz"
+        hkey, mkey = ("height", "mask") if self.label == "true" else ("height_psp", "mask_psp")
+        try:
+            with np.load(npz, allow_pickle=False) as z:
+                missing = [k for k in (hkey, mkey) if k not in z.files]
+                if missing:
+                    raise DataError(f"{npz}: missing array(s) {missing} (has {sorted(z.files)})")
+                height, valid = z[hkey], z[mkey]
+        except (ValueError, OSError, EOFError) as exc:
+            if isinstance(exc, DataError):
+                raise
+            raise DataError(f"{npz}: cannot read ({exc})") from None
+        if height.shape != fringe.shape or valid.shape != fringe.shape:
+            raise DataError(
+                f"{npz}: {hkey} {height.shape} / {mkey} {valid.shape} do not match fringe.png {fringe.shape}"
+            )
+        valid = valid > 0.5
+        if not np.isfinite(height[valid]).all():
+            raise DataError(f"{npz}: {hkey} has NaN/inf on {int((~np.isfinite(height[valid])).sum())} valid pixels")
+        label = self.transform.from_height_mm(height, valid)
+        if self.mask_fringe:
+            fringe = np.where(self.transform.mask(label), fringe, np.float32(-1.0))
+        return _sample(fringe, label, self.transform, sid, self.source)
+
+
+def _read_manifest(path: Path) -> list[str]:
+    ids: list[str] = []
+    seen = set()
+    lines = path.read_text().splitlines()
+    for n, line in enumerate(lines, 1):
+        if not line.strip():
+            continue
+        try:
+            rec = json.loads(line)
+            sid = str(rec["id"])
+        except (json.JSONDecodeError, KeyError, TypeError):
+            if n == len(lines):  # a half-written last line of an interrupted run
+                warnings.warn(f"{path}:{n}: ignoring unreadable last line")
+                continue
+            raise DataError(f"{path}:{n}: not a JSON object with an 'id'") from None
+        if sid not in seen:
+            seen.add(sid)
+            ids.append(sid)
+    return ids
+
+
+def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
+    """An 8-bit (or 16-bit) grey image as float32 in the dataset encoding, intensity / 127.5 - 1."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: file not found")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"{path}: cannot read as an image")
+    if img.ndim == 3:
+        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
+        img = cv2.cvtColor(img, code)
+    if img.dtype == np.uint8:
+        scale = 1.0
+    elif img.dtype == np.uint16:
+        scale = 1.0 / 257.0  # 16-bit -> 8-bit intensity scale
+    else:
+        raise DataError(f"{path}: {img.dtype} image, expected 8-bit (or 16-bit) grey")
+    return (img.astype(np.float32) * np.float32(scale) / np.float32(127.5) - np.float32(1.0)).astype(np.float32)
+
+
+def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:
+    """A figshare-layout folder or an fppsim native folder, whichever ``folder`` holds."""
+    if find_figshare_pair(folder) is not None:
+        return FigshareArrays(folder, transform=transform, source=source, check=kw.get("check", True))
+    return FppsimDataset(folder, transform=transform, source=source, **kw)
+
+
+# --------------------------------------------------------------------------------------------------
+# Subsets, mixtures, sampling, crops
+
+
+class DatasetSubset(Dataset):
+    """A subset by index that keeps ``transform``, ``ids`` and ``source`` of its parent."""
+
+    def __init__(self, dataset: Dataset, indices: Sequence[int]):
+        self.dataset = dataset
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.transform = dataset.transform
+        self.source = dataset.source
+        self.ids = [dataset.ids[i] for i in self.indices]
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> dict:
+        return self.dataset[int(self.indices[int(i)])]
+
+
+class MixedDataset(Dataset):
+    """Real and synthetic datasets side by side: indices [0, n_real) are real, the rest synthetic."""
+
+    def __init__(self, real: Iterable[Dataset] = (), synthetic: Iterable[Dataset] = ()):
+        self.real = [d for d in real if len(d)]
+        self.synthetic = [d for d in synthetic if len(d)]
+        self.parts = self.real + self.synthetic
+        self.offsets = np.cumsum([0] + [len(d) for d in self.parts])
+        self.n_real = int(sum(len(d) for d in self.real))
+        self.n_synthetic = int(sum(len(d) for d in self.synthetic))
+        transforms = {d.transform for d in self.parts}
+        if len(transforms) > 1:
+            raise DataError(f"datasets use different label transforms: {sorted(t.name for t in transforms)}")
+        self.transform = next(iter(transforms)) if transforms else PRESETS["figshare"]
+        self.ids = [sid for d in self.parts for sid in d.ids]
+        self.source = "mixed"
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getitem__(self, i: int) -> dict:
+        i = int(i)
+        if not 0 <= i < len(self):
+            raise IndexError(i)
+        k = int(np.searchsorted(self.offsets, i, side="right")) - 1
+        return self.parts[k][i - int(self.offsets[k])]
+
+
+class MixedSampler(Sampler):
+    """Epoch order over a :class:`MixedDataset`, optionally with a fixed synthetic share.
+
+    ``synthetic_ratio=None`` shuffles all samples (each seen once per epoch). With a ratio r, every draw
+    is synthetic with probability r (so a batch is r synthetic in expectation) and takes the next sample
+    of that group's own shuffled order (reshuffled when exhausted). ``num_samples`` draws per epoch
+    (default: all samples). Under DDP each rank takes every ``world_size``-th draw of the same order
+    (padded so all ranks step equally). Yields ``(index, augmentation_seed)``; the order depends only on
+    ``(seed, epoch)``, so resumed runs and any number of loader workers see the same data.
+    """
+
+    def __init__(self, n_real: int, n_synthetic: int, synthetic_ratio: float | None = None,
+                 num_samples: int | None = None, seed: int = 0, rank: int = 0, world_size: int = 1,
+                 shuffle: bool = True, pad: bool = True):
+        if synthetic_ratio is not None and not 0.0 <= synthetic_ratio <= 1.0:
+            raise ValueError(f"synthetic_ratio must be in [0, 1], got {synthetic_ratio}")
+        self.n_real, self.n_synthetic = int(n_real), int(n_synthetic)
+        self.total = self.n_real + self.n_synthetic
+        if self.total == 0:
+            raise DataError("no samples to draw from")
+        self.ratio = synthetic_ratio if (self.n_real and self.n_synthetic) else None
+        if synthetic_ratio == 0.0 and self.n_real:
+            self.ratio = 0.0
+        if synthetic_ratio == 1.0 and self.n_synthetic:
+            self.ratio = 1.0
+        self.num_samples = int(num_samples) if num_samples else self.total
+        self.seed, self.rank, self.world_size = int(seed), int(rank), int(world_size)
+        self.shuffle, self.pad = shuffle, pad
+        self.epoch = 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def order(self) -> np.ndarray:
+        """The full (all-rank) list of dataset indices for the current epoch."""
+        g = np.random.default_rng([self.seed, self.epoch, 0x5EED])
+        if not self.shuffle:
+            base = np.arange(self.total)
+            return np.resize(base, self.num_samples)
+        if self.ratio is None:
+            reps = -(-self.num_samples // self.total)
+            return np.concatenate([g.permutation(self.total) for _ in range(reps)])[: self.num_samples]
+        groups = [(0, self.n_real), (self.n_real, self.n_synthetic)]
+        queues = [[], []]
+        out = np.empty(self.num_samples, dtype=np.int64)
+        pick = g.random(self.num_samples) < self.ratio
+        for k in range(self.num_samples):
+            gi = int(pick[k])
+            if groups[gi][1] == 0:
+                gi = 1 - gi
+            if not queues[gi]:
+                start, n = groups[gi]
+                queues[gi] = list(start + g.permutation(n))[::-1]
+            out[k] = queues[gi].pop()
+        return out
+
+    def _local(self) -> tuple[np.ndarray, np.ndarray]:
+        order = self.order()
+        aug = np.random.default_rng([self.seed, self.epoch, 0xA06]).integers(0, 2**31 - 1, len(order))
+        if self.world_size > 1:
+            per = -(-len(order) // self.world_size) if self.pad else None
+            if per is not None and per * self.world_size > len(order):
+                extra = per * self.world_size - len(order)
+                order = np.concatenate([order, order[:extra]])
+                aug = np.concatenate([aug, aug[:extra]])
+            order, aug = order[self.rank::self.world_size], aug[self.rank::self.world_size]
+        return order, aug
+
+    def __iter__(self):
+        order, aug = self._local()
+        return iter([(int(i), int(s)) for i, s in zip(order, aug)])
+
+    def __len__(self) -> int:
+        if self.world_size == 1:
+            return self.num_samples
+        if self.pad:
+            return -(-self.num_samples // self.world_size)
+        return len(range(self.rank, self.num_samples, self.world_size))
+
+
+def parse_size(text: str | None) -> tuple[int, int] | None:
+    """'352x640' -> (352, 640) (height x width)."""
+    if text is None or text == "":
+        return None
+    try:
+        h, w = (int(v) for v in str(text).lower().replace("×", "x").split("x"))
+    except ValueError:
+        raise ValueError(f"expected HxW (e.g. 176x320), got {text!r}") from None
+    if h <= 0 or w <= 0:
+        raise ValueError(f"expected positive HxW, got {text!r}")
+    return h, w
+
+
+def resize_sample(sample: dict, size: tuple[int, int], invalid_value: float = -105.0) -> dict:
+    """Resize a sample: fringe by area averaging, labels by mask-weighted area averaging."""
+    h, w = size
+    if tuple(sample["fringe"].shape[-2:]) == (h, w):
+        return sample
+    out = dict(sample)
+    fr = sample["fringe"][None]
+    out["fringe"] = F.interpolate(fr, size=(h, w), mode="area")[0]
+    m = sample["mask"][None]
+    num = F.interpolate(sample["height"][None] * m, size=(h, w), mode="area")[0]
+    den = F.interpolate(m, size=(h, w), mode="area")[0]
+    valid = den > 0.5
+    height = torch.where(valid, num / den.clamp_min(1e-6), torch.zeros_like(num))
+    out["height"] = torch.where(valid, height, torch.full_like(height, invalid_value))
+    out["mask"] = valid.float()
+    return out
+
+
+def crop_sample(sample: dict, size: tuple[int, int], top: int, left: int) -> dict:
+    h, w = size
+    out = dict(sample)
+    for k in ("fringe", "height", "mask"):
+        out[k] = sample[k][..., top:top + h, left:left + w].contiguous()
+    return out
+
+
+class Prepared(Dataset):
+    """Resize and/or crop samples (``--resize HxW`` then ``--crop HxW``) for training and evaluation.
+
+    Keys may be ``(index, seed)`` pairs from :class:`MixedSampler`: the random crop position then
+    follows from the seed, so it is reproducible whatever the number of loader workers. Plain integer
+    keys (and ``random_crop=False``) take the centre crop.
+    """
+
+    def __init__(self, dataset: Dataset, crop: tuple[int, int] | None = None,
+                 resize: tuple[int, int] | None = None, random_crop: bool = True):
+        self.dataset, self.crop, self.resize, self.random_crop = dataset, crop, resize, random_crop
+        self.transform = getattr(dataset, "transform", None)
+        self.ids = getattr(dataset, "ids", None)
+
+    def __len__(self) -> int:
+        return len(self.dataset)
+
+    def __getitem__(self, key) -> dict:
+        index, seed = (key if isinstance(key, tuple) else (key, None))
+        sample = self.dataset[index]
+        if self.resize is not None:
+            sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
+        if self.crop is not None:
+            H, W = sample["fringe"].shape[-2:]
+            h, w = self.crop
+            if h > H or w > W:
+                raise DataError(f"crop {h}x{w} is larger than sample {sample['id']} ({H}x{W})")
+            if self.random_crop and seed is not None:
+                g = np.random.default_rng(seed)
+                top, left = int(g.integers(0, H - h + 1)), int(g.integers(0, W - w + 1))
+            else:
+                top, left = (H - h) // 2, (W - w) // 2
+            sample = crop_sample(sample, (h, w), top, left)
+        return sample
+
+
+# --------------------------------------------------------------------------------------------------
+# Sources -> splits
+
+
+@dataclass
+class Sources:
+    """Train/val/test datasets assembled from ``--real`` and ``--synthetic`` folders."""
+
+    train: MixedDataset
+    val: MixedDataset
+    test: MixedDataset
+    transform: LabelTransform
+    description: dict
+
+
+def load_sources(real: Sequence[str] = (), synthetic: Sequence[str] = (), transform=None,
+                 real_split: str = "reference", synthetic_split: str = "reference",
+                 synthetic_label: str = "true", check: bool = True) -> Sources:
+    """Open every folder and split each one on its own (so a real test sample never reaches training)."""
+    transform = LabelTransform.resolve(transform)
+    parts = {"train": ([], []), "val": ([], []), "test": ([], [])}
+    desc = {"real": [], "synthetic": [], "transform": transform.to_dict()}
+    for group, folders, mode in ((0, real, real_split), (1, synthetic, synthetic_split)):
+        for folder in folders:
+            source = "real" if group == 0 else "synthetic"
+            kw = {"check": check}
+            if group == 1 and find_figshare_pair(folder) is None:
+                kw["label"] = synthetic_label
+            ds = open_dataset(folder, transform=transform, source=source, **kw)
+            try:
+                idx = {p: split_indices(len(ds), p, mode) for p in ("train", "val", "test")}
+            except DataError as exc:
+                raise DataError(f"{folder}: {exc}") from None
+            for p in parts:
+                parts[p][group].append(DatasetSubset(ds, idx[p]))
+            desc[source].append({"path": str(Path(folder).resolve()), "n": len(ds), "split": mode,
+                                 **{f"n_{p}": int(len(idx[p])) for p in parts}})
+    splits = {p: MixedDataset(real=parts[p][0], synthetic=parts[p][1]) for p in parts}
+    return Sources(splits["train"], splits["val"], splits["test"], transform, desc)
