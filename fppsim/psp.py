@@ -1,0 +1,547 @@
+"""Phase-shifting profilometry (PSP): N-step phase, temporal unwrapping, phase -> 3D.
+
+Plain numpy functions over arrays (scikit-image / SciPy style); all arithmetic in float64.
+Units: radians for phases, millimetres for lengths, pixels for image coordinates.
+
+Conventions (see DESIGN.md §2 and §4, and :mod:`fppsim.rig`)
+------------------------------------------------------------
+* Projector phase: the absolute phase of a pattern with ``f`` periods across the projector width
+  ``W_p`` is ``Phi = 2*pi*f*u_p/W_p``, where ``u_p`` is the OpenCV projector column (integer =
+  pixel centre). ``Phi = 0`` at ``u_p = 0`` and it increases with ``u_p``.
+* Pattern ``n`` of an ``N``-step set: ``I_n = A + B*cos(Phi + delta_n)``, ``delta_n = 2*pi*n/N``,
+  ``n = 0 .. N-1`` (stack axis 0).
+* Phase-shifting sums (the "PSin / PCos" of real PSP data, see :mod:`fppsim.psp_io`)::
+
+      PSin = -sum_n I_n sin(delta_n) = (N/2) B sin(Phi)
+      PCos = +sum_n I_n cos(delta_n) = (N/2) B cos(Phi)
+
+  wrapped phase ``phi = atan2(PSin, PCos)`` in ``(-pi, pi]``, background ``A = mean_n I_n``,
+  modulation ``B = (2/N) sqrt(PSin^2 + PCos^2)``. Four-step: ``phi = atan2(I3 - I1, I0 - I2)``.
+* Temporal unwrapping over a ladder of frequencies ``f_0 = 1 < f_1 < ... < f_m`` (periods across the
+  projector): ``Phi_0 = phi_0`` wrapped into ``[0, 2*pi)``, then
+  ``k_i = round((f_i/f_{i-1} * Phi_{i-1} - phi_i) / (2*pi))`` and ``Phi_i = phi_i + 2*pi*k_i``.
+  The result is the absolute phase of the highest frequency, in ``[0, 2*pi*f_m)`` across the projector.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from math import erfc
+
+import numpy as np
+
+__all__ = [
+    "DEFAULT_FREQS",
+    "PhaseShift",
+    "Triangulation",
+    "Unwrapped",
+    "height_from_phase",
+    "ladder_stability_bound",
+    "order_error_probability",
+    "phase_noise_std",
+    "phase_shifts",
+    "phase_sums",
+    "quality_mask",
+    "reference_plane_height",
+    "reference_plane_parameters",
+    "synthesize_stack",
+    "triangulate",
+    "unwrap_temporal",
+    "wrap_phase",
+    "wrapped_phase",
+]
+
+DEFAULT_FREQS = (1, 8, 80)
+"""Default frequency ladder (periods across the projector width)."""
+
+TWO_PI = 2.0 * np.pi
+
+
+# ====================================================================== N-step phase shifting
+def phase_shifts(n_steps: int) -> np.ndarray:
+    """The ``N`` equally spaced phase shifts ``delta_n = 2*pi*n/N`` (rad), float64 of shape (N,)."""
+    n = int(n_steps)
+    if n != n_steps or n < 3:
+        raise ValueError(f"phase shifting needs an integer number of steps >= 3, got {n_steps!r}")
+    return TWO_PI * np.arange(n) / n
+
+
+def wrap_phase(phase: np.ndarray) -> np.ndarray:
+    """Wrap phases (rad) into ``(-pi, pi]`` (float64, NaN stays NaN)."""
+    p = np.asarray(phase, dtype=np.float64)
+    w = np.angle(np.exp(1j * p))
+    return np.where(w <= -np.pi, np.pi, w)
+
+
+def _shift_weights(shifts: np.ndarray) -> np.ndarray:
+    """(3, N) weights mapping a stack to (A, PCos, PSin) * (1, 2/N, 2/N) for arbitrary shifts.
+
+    For shifts whose first and second harmonics cancel (any full-period equal spacing, N >= 3) these
+    are the classic sums; otherwise the least-squares fit of ``A + a cos(delta) + b sin(delta)``.
+    """
+    d = np.asarray(shifts, dtype=np.float64).ravel()
+    n = d.size
+    if n < 3 or not np.all(np.isfinite(d)):
+        raise ValueError(f"phase shifting needs at least 3 finite shifts, got {d.tolist()}")
+    e1, e2 = np.exp(1j * d).sum(), np.exp(2j * d).sum()
+    if abs(e1) < 1e-9 * n and abs(e2) < 1e-9 * n:
+        return np.stack([np.full(n, 1.0 / n), 2.0 / n * np.cos(d), -2.0 / n * np.sin(d)])
+    M = np.stack([np.ones(n), np.cos(d), np.sin(d)], axis=1)  # I = A + a cos d + b sin d
+    if np.linalg.matrix_rank(M) < 3:
+        raise ValueError(f"phase shifts {d.tolist()} do not determine A, B and phi (rank < 3)")
+    P = np.linalg.pinv(M)  # (3, N): A, a = B cos(phi), b = -B sin(phi)
+    return np.stack([P[0], P[1], -P[2]])
+
+
+def _resolve_shifts(n: int, shifts) -> np.ndarray:
+    if shifts is None:
+        return phase_shifts(n)
+    d = np.asarray(shifts, dtype=np.float64).ravel()
+    if d.size != n:
+        raise ValueError(f"got {n} images but {d.size} phase shifts")
+    return d
+
+
+def phase_sums(images: np.ndarray, shifts: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Numerator and denominator of the phase-shifting arctangent.
+
+    Parameters
+    ----------
+    images : (N, ...) array, any real dtype; pattern ``n`` is ``I_n = A + B cos(Phi + delta_n)``.
+    shifts : (N,) phase shifts ``delta_n`` (rad); default ``2*pi*n/N``.
+
+    Returns
+    -------
+    psin, pcos : (...) float64, ``psin = -sum_n I_n sin(delta_n)``, ``pcos = sum_n I_n cos(delta_n)``,
+        so that ``Phi = atan2(psin, pcos)`` and ``B = (2/N) sqrt(psin^2 + pcos^2)``. For shifts that are
+        not equally spaced over a period the least-squares equivalents (same scale) are returned.
+    """
+    I = np.asarray(images, dtype=np.float64)
+    if I.ndim < 1:
+        raise ValueError("images must be a stack of shape (N, ...)")
+    w = _shift_weights(_resolve_shifts(I.shape[0], shifts)) * (I.shape[0] / 2.0)
+    return np.tensordot(w[2], I, axes=1), np.tensordot(w[1], I, axes=1)
+
+
+@dataclass
+class PhaseShift:
+    """Result of :func:`wrapped_phase` (arrays of the stack's trailing shape, float64).
+
+    phase : wrapped phase ``phi`` in ``(-pi, pi]`` (rad).
+    background : ``A`` (image units).
+    modulation : ``B`` (image units), >= 0.
+    """
+
+    phase: np.ndarray
+    background: np.ndarray
+    modulation: np.ndarray
+
+    def __iter__(self):  # allows ``phi, A, B = wrapped_phase(stack)``
+        return iter((self.phase, self.background, self.modulation))
+
+
+def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> PhaseShift:
+    """N-step phase shifting of a stack ``I_n = A + B cos(phi + delta_n)``.
+
+    Parameters
+    ----------
+    images : (N, ...) array (N >= 3), any real dtype (converted to float64), stack axis first.
+    shifts : (N,) phase shifts (rad); default ``delta_n = 2*pi*n/N``. Non-uniform shifts are solved
+        by least squares.
+
+    Returns
+    -------
+    PhaseShift(phase, background, modulation), each of shape ``images.shape[1:]``:
+    ``phase = atan2(-sum I_n sin delta_n, sum I_n cos delta_n)`` in ``(-pi, pi]``,
+    ``background = mean_n I_n``, ``modulation = (2/N) sqrt(S^2 + C^2)``.
+    Four-step: ``phase = atan2(I3 - I1, I0 - I2)``, ``modulation = 0.5 sqrt((I3-I1)^2 + (I0-I2)^2)``.
+    """
+    I = np.asarray(images, dtype=np.float64)
+    if I.ndim < 1:
+        raise ValueError("images must be a stack of shape (N, ...)")
+    n = I.shape[0]
+    w = _shift_weights(_resolve_shifts(n, shifts))
+    A = np.tensordot(w[0], I, axes=1)
+    c = np.tensordot(w[1], I, axes=1)  # B cos(phi)
+    s = np.tensordot(w[2], I, axes=1)  # B sin(phi)
+    phi = np.arctan2(s, c)
+    phi = np.where(phi <= -np.pi, np.pi, phi)  # atan2(-0.0, x<0) = -pi -> +pi
+    return PhaseShift(phase=phi, background=A, modulation=np.hypot(s, c))
+
+
+def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation: float,
+                 min_ratio: float = 0.0) -> np.ndarray:
+    """Pixels whose phase can be trusted: ``B >= min_modulation`` and ``B >= min_ratio * A``.
+
+    Parameters
+    ----------
+    background, modulation : ``A`` and ``B`` from :func:`wrapped_phase` (same units, e.g. gray levels).
+    min_modulation : absolute modulation threshold (image units). The phase noise of N-step phase
+        shifting is ``sigma_phi = sqrt(2/N) * sigma_I / B`` (:func:`phase_noise_std`), so choose it from
+        the image noise ``sigma_I`` and the noise the unwrapping ladder tolerates
+        (:func:`ladder_stability_bound`).
+    min_ratio : threshold on the fringe contrast ``B/A`` (0..1 for non-negative images); rejects
+        saturated / ambient-dominated pixels.
+
+    Returns
+    -------
+    bool array; False also where A or B is not finite.
+    """
+    A = np.asarray(background, dtype=np.float64)
+    B = np.asarray(modulation, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(A) & np.isfinite(B) & (B >= min_modulation) & (B >= min_ratio * A)
+
+
+def synthesize_stack(phase: np.ndarray, background=0.5, modulation=0.5, n_steps: int = 4,
+                     shifts: np.ndarray | None = None) -> np.ndarray:
+    """Analytic stack ``I_n = A + B cos(phase + delta_n)``, float64 of shape (N, *phase.shape).
+
+    ``background`` and ``modulation`` broadcast against ``phase``; ``shifts`` default ``2*pi*n/N``.
+    """
+    p = np.asarray(phase, dtype=np.float64)
+    d = phase_shifts(n_steps) if shifts is None else np.asarray(shifts, dtype=np.float64).ravel()
+    d = d.reshape((-1,) + (1,) * p.ndim)
+    return np.asarray(background, np.float64) + np.asarray(modulation, np.float64) * np.cos(p + d)
+
+
+def phase_noise_std(image_noise_std, modulation, n_steps: int = 4):
+    """Standard deviation (rad) of the N-step wrapped phase for additive image noise.
+
+    ``sigma_phi = sqrt(2/N) * sigma_I / B`` (independent Gaussian noise ``sigma_I`` per image,
+    small-noise limit). Broadcasts over arrays.
+    """
+    n = len(phase_shifts(n_steps))
+    return np.sqrt(2.0 / n) * np.asarray(image_noise_std, np.float64) / np.asarray(modulation, np.float64)
+
+
+# ====================================================================== temporal unwrapping
+def _check_ladder(freqs) -> np.ndarray:
+    f = np.asarray(freqs, dtype=np.float64).ravel()
+    if f.size < 1 or not np.all(np.isfinite(f)):
+        raise ValueError(f"frequency ladder must be finite numbers, got {list(freqs)}")
+    if f[0] != 1:
+        raise ValueError(f"frequency ladder must start at 1 period (unambiguous phase), got {f.tolist()}")
+    if np.any(np.diff(f) <= 0):
+        raise ValueError(f"frequency ladder must be strictly increasing, got {f.tolist()}")
+    return f
+
+
+def ladder_stability_bound(freqs=DEFAULT_FREQS) -> float:
+    """Largest wrapped-phase error (rad) per frequency for which the ladder never picks a wrong order.
+
+    Derivation: with correct orders up to step ``i-1`` the absolute phase ``Phi_{i-1}`` carries the
+    error ``e_{i-1}`` of its wrapped phase, so the rounding argument of step ``i`` is
+    ``k_true + (r_i e_{i-1} - e_i)/(2 pi)`` with ``r_i = f_i/f_{i-1}``. Rounding is right while
+    ``|r_i e_{i-1} - e_i| < pi``; with every ``|e| <= eps`` that holds for all steps iff
+    ``(1 + r_max) eps < pi``, i.e. ``eps < pi/(1 + r_max)``. (1, 8, 80): ``pi/11 = 0.286`` rad;
+    (1, 4, 16, 80): ``pi/6 = 0.524`` rad. The lowest frequency also needs ``Phi_0`` farther than
+    ``eps`` from the 0/2pi seam (the projector's edge columns): see ``seam_margin`` in
+    :func:`unwrap_temporal`. For Gaussian noise use :func:`order_error_probability`.
+    """
+    f = _check_ladder(freqs)
+    if f.size < 2:
+        return float(np.pi)  # one frequency: only the seam matters
+    return float(np.pi / (1.0 + np.max(f[1:] / f[:-1])))
+
+
+def order_error_probability(phase_noise, freqs=DEFAULT_FREQS) -> float:
+    """Expected fraction of pixels with a wrong fringe order for Gaussian phase noise.
+
+    Each frequency's wrapped phase has independent noise of standard deviation ``phase_noise`` (rad).
+    Step ``i`` fails when ``|r_i e_{i-1} - e_i| > pi``, a Gaussian of standard deviation
+    ``phase_noise * sqrt(r_i^2 + 1)``: ``p_i = erfc(pi / (sqrt(2) sigma_i))``; the ladder fails with
+    ``1 - prod(1 - p_i)`` (seam errors at the projector edges not included).
+    """
+    f = _check_ladder(freqs)
+    s = float(phase_noise)
+    if s <= 0:
+        return 0.0
+    ok = 1.0
+    for r in f[1:] / f[:-1]:
+        ok *= 1.0 - erfc(np.pi / (np.sqrt(2.0) * s * np.sqrt(r * r + 1.0)))
+    return 1.0 - ok
+
+
+@dataclass
+class Unwrapped:
+    """Result of :func:`unwrap_temporal` (arrays of the input phase shape).
+
+    phase : float64 absolute phase of the highest frequency (rad), NaN where an input is not finite.
+    order : int64 fringe order ``k`` of the highest frequency (``phase = wrapped + 2*pi*k``); 0 where
+        an input is not finite.
+    reliable : bool, False where any step's rounding residual exceeds ``max_residual``, where the
+        lowest-frequency phase is within ``seam_margin`` of its 0/2pi seam, or where an input is not finite.
+    residual : float64 largest ``|r_i Phi_{i-1} - phi_i - 2 pi k_i|`` over the steps (rad, in [0, pi]).
+    freqs : the ladder used.
+    """
+
+    phase: np.ndarray
+    order: np.ndarray
+    reliable: np.ndarray
+    residual: np.ndarray
+    freqs: tuple
+
+    def __iter__(self):  # allows ``Phi, k, ok = unwrap_temporal(...)[:3]``-style unpacking
+        return iter((self.phase, self.order, self.reliable))
+
+
+def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_margin: float | None = None,
+                    phase_origin: float = 0.0) -> Unwrapped:
+    """Hierarchical temporal phase unwrapping over a frequency ladder starting at 1 period.
+
+    Parameters
+    ----------
+    wrapped : mapping ``{f: phi_f}`` or sequence ``[phi_f0, phi_f1, ...]`` of wrapped phases (rad, any
+        range; wrapped again into ``(-pi, pi]``), all of one shape.
+    freqs : ladder (periods across the projector), strictly increasing, starting at 1. Default: the
+        sorted keys of a mapping, or :data:`DEFAULT_FREQS` ``(1, 8, 80)`` for a sequence.
+    max_residual : rounding residual (rad) above which a pixel's order is reported unreliable. A wrong
+        order means the true residual noise ``e`` had ``|e| > pi``; its observed residual is then
+        ``2 pi - |e|`` (for ``|e| < 2 pi``), so the default ``pi/2`` flags every wrong order caused by
+        ``|e| < 3 pi/2`` and also flags correct orders with ``|e| > pi/2`` (conservative).
+    seam_margin : pixels whose lowest-frequency phase lies within this distance (rad) of the seam
+        (``phase_origin`` = ``phase_origin + 2 pi``) are reported unreliable: noise may have carried
+        them across it, which shifts the absolute phase by ``2 pi f_max`` and no residual shows it.
+        Default ``max_residual / (f_1/f_0)``, the lowest-frequency noise the first step tolerates
+        (0 for a single frequency).
+    phase_origin : the lowest-frequency phase is wrapped into ``[phase_origin, phase_origin + 2 pi)``.
+        0 gives ``Phi`` in ``[0, 2 pi f_max)``, i.e. projector columns ``[0, W_p)``; pass ``-pi/W_p``
+        to accept the left half of the projector's first pixel column.
+
+    Returns
+    -------
+    :class:`Unwrapped` (phase, order, reliable, residual, freqs).
+    """
+    if isinstance(wrapped, dict):
+        if freqs is None:
+            freqs = sorted(wrapped)
+        missing = [f for f in freqs if f not in wrapped]
+        if missing:
+            raise ValueError(f"no wrapped phase for frequencies {missing} (have {sorted(wrapped)})")
+        phases = [wrapped[f] for f in freqs]
+    else:
+        phases = list(wrapped)
+        if freqs is None:
+            freqs = DEFAULT_FREQS
+        if len(phases) != len(freqs):
+            raise ValueError(f"got {len(phases)} wrapped phases for the {len(freqs)}-frequency ladder {tuple(freqs)}")
+    f = _check_ladder(freqs)
+    phases = [np.asarray(p, dtype=np.float64) for p in phases]
+    shape = phases[0].shape
+    if any(p.shape != shape for p in phases):
+        raise ValueError(f"wrapped phases differ in shape: {[p.shape for p in phases]}")
+    if seam_margin is None:
+        seam_margin = max_residual / (f[1] / f[0]) if f.size > 1 else 0.0
+
+    finite = np.ones(shape, dtype=bool)
+    for p in phases:
+        finite &= np.isfinite(p)
+    phi0 = np.where(finite, phases[0], 0.0)
+    Phi = np.mod(phi0 - phase_origin, TWO_PI)
+    reliable = finite & (Phi >= seam_margin) & (Phi <= TWO_PI - seam_margin)
+    Phi = Phi + phase_origin
+    residual = np.zeros(shape)
+    k = np.zeros(shape, dtype=np.int64)
+    for i in range(1, f.size):
+        phi = wrap_phase(np.where(finite, phases[i], 0.0))
+        pred = (f[i] / f[i - 1]) * Phi
+        kf = np.round((pred - phi) / TWO_PI)
+        Phi = phi + TWO_PI * kf
+        res = np.abs(pred - Phi)
+        residual = np.maximum(residual, res)
+        k = kf.astype(np.int64)
+        reliable &= res <= max_residual
+    if f.size == 1:  # order of the 1-period pattern relative to its wrapped phase
+        k = np.round((Phi - wrap_phase(phi0)) / TWO_PI).astype(np.int64)
+    Phi = np.where(finite, Phi, np.nan)
+    k = np.where(finite, k, 0)
+    return Unwrapped(phase=Phi, order=k, reliable=reliable, residual=residual, freqs=tuple(freqs))
+
+
+# ====================================================================== phase -> 3D
+@dataclass
+class Triangulation:
+    """Result of :func:`triangulate` (arrays of the camera pixel shape ``S``, usually (H, W)).
+
+    points : (*S, 3) float64 world points (mm), NaN where not valid.
+    height : (*S,) float64 world z (mm) = height above the reference plane, NaN where not valid.
+    depth : (*S,) float64 camera-frame depth (mm), NaN where not valid.
+    column : (*S,) float64 projector column ``u_p`` of the phase.
+    row : (*S,) float64 projector row where the camera ray meets that column, NaN where not valid.
+    valid : (*S,) bool: finite phase, inside ``mask``, the ray meets the column plane in front of both
+        devices, and (with projector distortion) the row iteration converged.
+    """
+
+    points: np.ndarray
+    height: np.ndarray
+    depth: np.ndarray
+    column: np.ndarray
+    row: np.ndarray
+    valid: np.ndarray
+
+
+def _column_plane_normal(proj, u: np.ndarray, v: np.ndarray | None) -> np.ndarray:
+    """World-frame normal of the plane through the projector centre holding column ``u`` near row ``v``.
+
+    Without distortion the column is exactly the plane ``fx x + s y + (cx - u) z = 0`` (device frame).
+    With distortion, the plane through the undistorted rays of ``(u, v)`` and ``(u, v + 1)``: it holds
+    the ray of ``(u, v)`` exactly and follows the column's local direction.
+    """
+    if v is None or not proj.has_distortion:
+        K = proj.K
+        n_dev = np.stack([np.full_like(u, K[0, 0]), np.full_like(u, K[0, 1]), K[0, 2] - u], axis=-1)
+    else:
+        r1 = proj.normalized_rays(np.stack([u, v], axis=-1))
+        r2 = proj.normalized_rays(np.stack([u, v + 1.0], axis=-1))
+        n_dev = np.cross(r1, r2)  # orientation is irrelevant to the intersection
+    return n_dev @ proj.R  # R^T n for row vectors
+
+
+def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
+                pixels: np.ndarray | None = None, max_iter: int = 20, tol: float = 1e-9) -> Triangulation:
+    """Phase -> 3D by intersecting each camera ray with the projector's plane of constant column.
+
+    Parameters
+    ----------
+    rig : :class:`fppsim.rig.Rig` (camera and projector, mm).
+    phase : absolute projector phase (rad) of the ``periods``-period pattern, ``Phi = 2 pi f u_p / W_p``,
+        shape (H, W) of the camera image (or any shape matching ``pixels``).
+    periods : fringe periods ``f`` across the projector width; default ``rig.periods``.
+    mask : optional bool array (phase shape); False pixels are left invalid.
+    pixels : optional (..., 2) camera pixel coordinates (u = column, v = row) of the phase samples;
+        default the camera's pixel-centre grid (then ``phase`` must be (H, W)).
+    max_iter, tol : projector-distortion iteration (see Notes): at most ``max_iter`` steps, stop when
+        every pixel's row moved less than ``tol`` projector pixels.
+
+    Returns
+    -------
+    :class:`Triangulation` (points, height, depth, column, row, valid).
+
+    Notes
+    -----
+    ``u_p = Phi W_p / (2 pi f)``. Camera rays come from :meth:`Device.pixel_rays` (camera distortion
+    removed). Without projector distortion the pixels of column ``u_p`` form an exact plane through the
+    projector centre and one ray-plane intersection is exact. With projector distortion the column is a
+    curved surface: start from the undistorted plane, project the intersection into the projector
+    (with distortion) to get its row ``v``, replace the plane by the one through the undistorted rays of
+    ``(u_p, v)`` and ``(u_p, v + 1)`` and intersect again, until ``v`` stops moving. At the fixed point the
+    intersection projects exactly to ``(u_p, v)``, so the result is exact up to ``tol``; the iteration
+    contracts quickly for the mild distortion of projection lenses. Pixels that have not converged after
+    ``max_iter`` steps are marked invalid.
+    """
+    cam, proj = rig.camera, rig.projector
+    Phi = np.asarray(phase, dtype=np.float64)
+    if pixels is None:
+        if Phi.shape != (cam.height, cam.width):
+            raise ValueError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
+                             "(pass pixels= for other sampling grids)")
+        pixels = cam.pixel_grid()
+    pixels = np.asarray(pixels, dtype=np.float64)
+    if pixels.shape != Phi.shape + (2,):
+        raise ValueError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
+    f = rig.periods if periods is None else float(periods)
+    u = rig.column_of_phase(Phi, f)
+    valid = np.isfinite(u)
+    if mask is not None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != Phi.shape:
+            raise ValueError(f"mask has shape {m.shape}, phase has {Phi.shape}")
+        valid &= m
+    u = np.where(valid, u, proj.K[0, 2])
+
+    origin, d = cam.pixel_rays(pixels)
+    C = proj.center
+    co = C - origin
+
+    def intersect(n):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return (n @ co) / np.einsum("...i,...i->...", n, d)
+
+    s = intersect(_column_plane_normal(proj, u, None))
+    row = np.full(Phi.shape, np.nan)
+    if proj.has_distortion:
+        good = np.isfinite(s)
+        X = origin + np.where(good, s, 0.0)[..., None] * d
+        row = proj.project(X)[0][..., 1]
+        converged = np.zeros(Phi.shape, dtype=bool)
+        for _ in range(int(max_iter)):
+            s = intersect(_column_plane_normal(proj, u, row))
+            good = np.isfinite(s)
+            X = origin + np.where(good, s, 0.0)[..., None] * d
+            new_row = proj.project(X)[0][..., 1]
+            step = np.abs(new_row - row)
+            row = new_row
+            converged = step < tol
+            if np.all(converged | ~valid | ~good):
+                break
+        valid &= converged
+    X = origin + np.where(np.isfinite(s), s, 0.0)[..., None] * d
+    uv_p, z_p = proj.project(X)
+    valid &= np.isfinite(s) & (s > 0) & (z_p > 0)
+    if not proj.has_distortion:
+        row = uv_p[..., 1]
+    X = np.where(valid[..., None], X, np.nan)
+    return Triangulation(points=X, height=X[..., 2], depth=np.where(valid, s, np.nan),
+                         column=np.where(valid, u, np.nan), row=np.where(valid, row, np.nan), valid=valid)
+
+
+def height_from_phase(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
+                      **kwargs) -> np.ndarray:
+    """Height above the reference plane (mm, float64 (H, W)) from absolute phase; NaN where invalid.
+
+    Shorthand for ``triangulate(rig, phase, periods, mask, **kwargs).height``.
+    """
+    return triangulate(rig, phase, periods=periods, mask=mask, **kwargs).height
+
+
+# ====================================================================== reference-plane formula
+def reference_plane_height(dphi, L, d, f0):
+    """Classic reference-plane phase-to-height formula ``h = L dphi / (dphi + 2 pi f0 d)``.
+
+    Parameters
+    ----------
+    dphi : phase difference (rad) between the reference plane and the object at the same camera pixel,
+        ``dphi = Phi_reference - Phi_object``; positive for points above the plane when ``d > 0``.
+    L : distance (mm) from the camera (and projector) centre to the reference plane.
+    d : baseline (mm) between camera and projector centres, measured along the direction in which the
+        projected phase increases on the plane (signed: negative if the projector sits on the other side).
+    f0 : fringe frequency on the reference plane (periods per mm).
+
+    Returns
+    -------
+    height (mm) above the plane, float64, broadcast over the inputs.
+
+    Exact for the geometry it assumes: camera and projector centres at the same height ``L``, both
+    optical axes perpendicular to the plane, fringes uniform on the plane (a parallel-axis rig with projector lens shift such as :func:`fppsim.rig.make_default_rig`). Derivation:
+    a camera ray meets the plane at ``x`` and the object at height ``h`` at ``x (L-h)/L``; the projector
+    column of that point differs from the plane's by ``-fx_p d h / (L (L-h))``, so
+    ``dphi = 2 pi f0 d h/(L - h)``, which solves to the formula.
+    """
+    dphi = np.asarray(dphi, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return L * dphi / (dphi + TWO_PI * np.asarray(f0, np.float64) * np.asarray(d, np.float64))
+
+
+def reference_plane_parameters(rig, periods: float | None = None, atol: float = 1e-9) -> tuple[float, float, float]:
+    """``(L, d, f0)`` of a parallel-axis rig for :func:`reference_plane_height`.
+
+    ``L`` = camera height above the plane (mm), ``d`` = signed baseline along world x (mm),
+    ``f0 = f fx_p / (W_p L)`` periods per mm on the plane. Raises ValueError unless both optical axes
+    point straight down, the projector columns run along world x without skew, and both centres are
+    at the same height (where the formula is exact).
+    """
+    cam, proj = rig.camera, rig.projector
+    f = rig.periods if periods is None else float(periods)
+    down = np.array([0.0, 0.0, -1.0])
+    if not (np.allclose(cam.R[2], down, atol=atol) and np.allclose(proj.R[2], down, atol=atol)):
+        raise ValueError("reference-plane formula needs both optical axes perpendicular to the plane")
+    if abs(proj.K[0, 1]) > atol or abs(abs(proj.R[0, 0]) - 1.0) > atol:
+        raise ValueError("reference-plane formula needs projector columns along world x (no skew or rotation)")
+    L, Lp = cam.center[2], proj.center[2]
+    if abs(L - Lp) > atol * max(1.0, L):
+        raise ValueError(f"reference-plane formula needs camera and projector at one height ({L} vs {Lp} mm)")
+    sx = np.sign(proj.R[0, 0])  # +1 when projector columns increase with world x
+    d = float(sx * (proj.center[0] - cam.center[0]))
+    f0 = float(f * proj.K[0, 0] / (proj.width * L))
+    return float(L), d, f0
