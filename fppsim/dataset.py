@@ -1,0 +1,293 @@
+"""On-disk formats: the native per-sample folders, the manifest, and the figshare array layout.
+
+Native layout (DESIGN.md §5)::
+
+    <out>/dataset.json          generation settings (checked on resume)
+    <out>/manifest.jsonl        one JSON line per finished sample, sorted by index
+    <out>/<id>/fringe.png       8-bit single-shot fringe image
+    <out>/<id>/psp/f{f}_s{n}.png
+    <out>/<id>/arrays.npz       float32 height, depth, phase_true, mask (+ phase_psp, height_psp, mask_psp)
+    <out>/<id>/meta.json        rig, objects, optics, seed, version, ...
+
+A sample folder appears by one atomic rename of a finished temporary folder, so a folder named like a
+sample id is always complete; the manifest is rebuilt from the folders on every start.
+
+Figshare layout: ``f1_80.npy`` (N, H, W, 1) float32 fringe = 8-bit/127.5 - 1 and ``Z.npy``
+(N, H, W, 1) float32 labels = :class:`LabelTransform` of the height.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import re
+import shutil
+import zipfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "LabelTransform", "LABEL_PRESETS", "encode_fringe", "decode_fringe", "save_npz", "atomic_write_text",
+    "atomic_write_npy", "sample_id", "reconcile", "read_manifest", "append_manifest", "write_sample_folder",
+    "load_native_sample", "export_figshare", "DatasetError", "SAMPLE_ID_RE",
+]
+
+SAMPLE_ID_RE = re.compile(r"^\d{6,}$")
+
+
+class DatasetError(ValueError):
+    """A dataset folder that cannot be read or written as asked."""
+
+
+@dataclass(frozen=True)
+class LabelTransform:
+    """Height (mm above the reference plane) <-> label units of a dataset.
+
+    ``label = height_mm * scale + offset`` on valid pixels, ``invalid`` elsewhere; a label
+    ``<= threshold`` counts as invalid when reading. Preset ``figshare`` (estimated from the public
+    sample and the reference code, not certainties): 6 label units per mm, the plane at -97 (the real
+    plane's median; the reference code masks Z <= -100, so a plane at exactly -100 would vanish),
+    shadows at -105.
+    """
+
+    scale: float = 6.0
+    offset: float = -97.0
+    invalid: float = -105.0
+    threshold: float = -100.0
+    name: str = "figshare"
+
+    def to_label(self, height_mm: np.ndarray, mask: np.ndarray) -> np.ndarray:
+        h = np.asarray(height_mm, dtype=np.float64) * self.scale + self.offset
+        return np.where(np.asarray(mask) > 0, h, self.invalid).astype(np.float32)
+
+    def to_mm(self, label: np.ndarray) -> np.ndarray:
+        return (np.asarray(label, dtype=np.float64) - self.offset) / self.scale
+
+    def valid(self, label: np.ndarray) -> np.ndarray:
+        return np.asarray(label) > self.threshold
+
+    @property
+    def mm_per_unit(self) -> float:
+        return 1.0 / self.scale
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "LabelTransform":
+        return cls(**{k: d[k] for k in ("scale", "offset", "invalid", "threshold", "name") if k in d})
+
+    def check(self) -> None:
+        if not self.scale > 0:
+            raise DatasetError(f"label scale must be > 0, got {self.scale}")
+        if not self.invalid <= self.threshold < self.offset:
+            raise DatasetError(f"label preset needs invalid ({self.invalid}) <= threshold ({self.threshold}) "
+                               f"< plane offset ({self.offset}), or the plane would count as invalid")
+
+
+LABEL_PRESETS = {"figshare": LabelTransform()}
+
+
+def encode_fringe(image_u8: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """8-bit image -> float32 in [-1, 1] (``I/127.5 - 1``); -1 on invalid pixels when ``mask`` is given."""
+    f = np.asarray(image_u8, dtype=np.float32) / 127.5 - 1.0
+    if mask is not None:
+        f = np.where(np.asarray(mask) > 0, f, -1.0).astype(np.float32)
+    return f
+
+
+def decode_fringe(fringe: np.ndarray) -> np.ndarray:
+    """float fringe in [-1, 1] -> uint8 (inverse of :func:`encode_fringe`)."""
+    return np.clip(np.rint((np.asarray(fringe, dtype=np.float64) + 1.0) * 127.5), 0, 255).astype(np.uint8)
+
+
+# ----------------------------------------------------------------------------------------- atomic io
+def _tmp_name(path: Path) -> Path:
+    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    path = Path(path)
+    tmp = _tmp_name(path)
+    with open(tmp, "w") as fh:
+        fh.write(text)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1) -> None:
+    """Write an .npz readable by ``np.load`` with fast deflate (level 1; numpy's default is slow)."""
+    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as zf:
+        for key, arr in arrays.items():
+            buf = io.BytesIO()
+            np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
+            zf.writestr(key + ".npy", buf.getvalue())
+
+
+def atomic_write_npy(path: str | os.PathLike, shape: tuple, fill) -> None:
+    """Write a float32 .npy of ``shape`` atomically, filling it with ``fill(memmap)``."""
+    path = Path(path)
+    tmp = _tmp_name(path)
+    mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=shape)
+    fill(mm)
+    mm.flush()
+    del mm
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------------------- native
+def sample_id(index: int) -> str:
+    return f"{int(index):06d}"
+
+
+def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: dict) -> None:
+    """Write one sample into ``root/sid`` atomically (temporary folder + one rename).
+
+    ``images`` maps relative PNG paths (``fringe.png``, ``psp/f8_s0.png``) to uint8 arrays.
+    """
+    import cv2
+
+    final = root / sid
+    tmp = root / ".tmp" / f"{sid}.{os.getpid()}"
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.mkdir(parents=True)
+    for rel, img in images.items():
+        p = tmp / rel
+        p.parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(p), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise OSError(f"cannot write {p}")
+    save_npz(tmp / "arrays.npz", arrays)
+    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+    if final.exists():  # an earlier run finished it meanwhile: keep the earlier one
+        shutil.rmtree(tmp)
+        return
+    os.replace(tmp, final)
+
+
+def _complete_samples(root: Path) -> dict[int, Path]:
+    out = {}
+    if root.is_dir():
+        for p in root.iterdir():
+            if p.is_dir() and SAMPLE_ID_RE.match(p.name) and (p / "meta.json").is_file():
+                out[int(p.name)] = p
+    return out
+
+
+def manifest_record(sid: str, meta: dict) -> dict:
+    return {"id": sid, "index": meta["index"], "seed": meta["seed"], "objects": len(meta["objects"]),
+            "valid_fraction": meta.get("stats", {}).get("valid_fraction")}
+
+
+def reconcile(root: str | os.PathLike) -> list[dict]:
+    """Bring ``root`` to a consistent state after any interruption and return the manifest records.
+
+    Removes temporary folders, rebuilds ``manifest.jsonl`` from the complete sample folders (sorted by
+    index; records of the old manifest are reused when they parse) and writes it atomically.
+    """
+    root = Path(root)
+    shutil.rmtree(root / ".tmp", ignore_errors=True)
+    for stale in root.glob(".*.tmp"):
+        stale.unlink(missing_ok=True)
+    old = {}
+    for rec in read_manifest(root, strict=False):
+        old[str(rec.get("id"))] = rec
+    records = []
+    for index, folder in sorted(_complete_samples(root).items()):
+        rec = old.get(folder.name)
+        if rec is None:
+            try:
+                rec = manifest_record(folder.name, json.loads((folder / "meta.json").read_text()))
+            except (ValueError, KeyError):
+                shutil.rmtree(folder)  # unreadable meta: not a finished sample of ours
+                continue
+        records.append(rec)
+    atomic_write_text(root / "manifest.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+    return records
+
+
+def read_manifest(root: str | os.PathLike, strict: bool = True) -> list[dict]:
+    """Manifest records of a native dataset (``strict``: raise on a missing or broken manifest)."""
+    path = Path(root) / "manifest.jsonl"
+    if not path.is_file():
+        if strict:
+            raise DatasetError(f"{root}: no manifest.jsonl (not an fppsim dataset folder)")
+        return []
+    records = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            records.append(json.loads(line))
+        except ValueError:
+            if strict:
+                raise DatasetError(f"{path}: line {n} is not valid JSON") from None
+    return records
+
+
+def append_manifest(root: Path, record: dict) -> None:
+    with open(root / "manifest.jsonl", "a") as fh:
+        fh.write(json.dumps(record) + "\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+
+
+def load_native_sample(folder: str | os.PathLike) -> dict:
+    """Read one native sample folder: ``fringe`` (uint8 H x W), arrays from arrays.npz, ``meta``."""
+    import cv2
+
+    folder = Path(folder)
+    img = cv2.imread(str(folder / "fringe.png"), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DatasetError(f"{folder / 'fringe.png'}: missing or unreadable")
+    with np.load(folder / "arrays.npz") as z:
+        out = {k: z[k] for k in z.files}
+    out["fringe"] = img
+    out["meta"] = json.loads((folder / "meta.json").read_text())
+    return out
+
+
+def export_figshare(root: str | os.PathLike, out: str | os.PathLike, transform: LabelTransform,
+                    folders: list[Path] | None = None, use_psp_height: bool = False) -> int:
+    """Write ``f1_80.npy`` and ``Z.npy`` (N, H, W, 1) float32 from native samples, atomically.
+
+    ``folders`` defaults to the manifest order of ``root``. Invalid pixels get ``transform.invalid``
+    in Z and -1 in the fringe. ``use_psp_height`` labels with the PSP height (as a lab would) instead
+    of the exact one. Returns N.
+    """
+    root, out = Path(root), Path(out)
+    if folders is None:
+        folders = [root / r["id"] for r in read_manifest(root)]
+    if not folders:
+        raise DatasetError(f"{root}: no finished samples to export")
+    first = load_native_sample(folders[0])
+    H, W = first["fringe"].shape
+    N = len(folders)
+    samples = iter(folders)
+
+    def fill_pair(fr, zz):
+        for i, folder in enumerate(samples):
+            s = load_native_sample(folder)
+            if s["fringe"].shape != (H, W):
+                raise DatasetError(f"{folder}: image size {s['fringe'].shape} differs from {(H, W)}")
+            if use_psp_height:
+                h, m = s["height_psp"], (s["mask_psp"] > 0) & np.isfinite(s["height_psp"])
+            else:
+                h, m = s["height"], s["mask"] > 0
+            zz[i, :, :, 0] = transform.to_label(np.nan_to_num(h), m)
+            fr[i, :, :, 0] = encode_fringe(s["fringe"], m)
+
+    out.mkdir(parents=True, exist_ok=True)
+    tmp_f, tmp_z = _tmp_name(out / "f1_80.npy"), _tmp_name(out / "Z.npy")
+    fr = np.lib.format.open_memmap(tmp_f, mode="w+", dtype=np.float32, shape=(N, H, W, 1))
+    zz = np.lib.format.open_memmap(tmp_z, mode="w+", dtype=np.float32, shape=(N, H, W, 1))
+    fill_pair(fr, zz)
+    fr.flush(), zz.flush()
+    del fr, zz
+    os.replace(tmp_f, out / "f1_80.npy")
+    os.replace(tmp_z, out / "Z.npy")
+    return N

@@ -1,0 +1,232 @@
+"""Off-screen depth rendering (pyrender on OSMesa) and exact per-pixel geometry.
+
+Only the objects are rasterised; the reference plane z = 0 is intersected analytically in float64, so
+background pixels are exact and the depth buffer range stays tight around the objects.
+
+Per camera pixel (optionally on a k x k supersampled grid, k odd so sub-pixel centres include the
+pixel centres) :func:`scene_geometry` returns the first surface seen, its world point and normal, the
+projector coordinates of that point, whether the projector lights it (inside the projector image, not
+shadowed, facing it) and the incidence cosine.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+
+import numpy as np
+
+if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
+    np.infty = np.inf
+
+__all__ = ["DepthRenderer", "Geometry", "scene_geometry", "ShadowSettings"]
+
+
+class DepthRenderer:
+    """One reusable pyrender OffscreenRenderer (one GL context per process).
+
+    ``depth(device, meshes, scale)`` returns the device-frame z-depth (mm, float64) of the first object
+    surface for every pixel of ``device`` at ``scale``-times resolution, ``inf`` where no object is hit.
+    """
+
+    def __init__(self):
+        # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
+        # so keep one renderer per resolution (camera, projector, supersampled camera).
+        self._renderers = {}
+
+    def _get(self, width: int, height: int):
+        import pyrender
+
+        key = (width, height)
+        if key not in self._renderers:
+            self._renderers[key] = pyrender.OffscreenRenderer(width, height)
+        return self._renderers[key]
+
+    def depth(self, device, meshes: list[tuple[np.ndarray, np.ndarray]], scale: int = 1) -> np.ndarray:
+        import pyrender
+
+        fx, fy, cx, cy, W, H = device.gl_intrinsics(scale)
+        if not meshes:
+            return np.full((H, W), np.inf)
+        # Tight clip range from the vertices' device-frame depths keeps the depth buffer precise.
+        zs = np.concatenate([device.world_to_device(v)[:, 2] for v, _ in meshes])
+        zs = zs[zs > 0]
+        if zs.size == 0:
+            return np.full((H, W), np.inf)
+        znear = max(float(zs.min()) * 0.9, 1e-3)
+        zfar = float(zs.max()) * 1.1 + 1.0
+        scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[0, 0, 0])
+        for v, f in meshes:
+            prim = pyrender.Primitive(positions=np.ascontiguousarray(v, dtype=np.float32),
+                                      indices=np.ascontiguousarray(f, dtype=np.uint32), mode=4)
+            scene.add(pyrender.Mesh([prim]))
+        cam = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=znear, zfar=zfar)
+        scene.add(cam, pose=device.gl_pose())
+        r = self._get(W, H)
+        d = r.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY | pyrender.RenderFlags.SKIP_CULL_FACES)
+        d = np.asarray(d, dtype=np.float64)
+        return np.where(d > 0, d, np.inf)
+
+    def close(self):
+        for r in self._renderers.values():
+            r.delete()
+        self._renderers.clear()
+
+
+@dataclass
+class ShadowSettings:
+    """Depth-comparison bias of the projector shadow test: ``bias_mm + slope_pixels * |grad D|``."""
+
+    bias_mm: float = 0.3
+    slope_pixels: float = 1.0
+
+
+@dataclass
+class Geometry:
+    """Exact geometry on the camera grid (H x W, or the supersampled grid). Units mm.
+
+    depth : device z-depth of the first surface (inf where nothing is seen)
+    points : (H, W, 3) world points; height = points[..., 2]
+    normals : (H, W, 3) unit world normals facing the camera
+    on_object : bool, the first surface is an object (not the reference plane)
+    u_p, v_p : projector pixel coordinates (with projector distortion)
+    lit : seen and lit by the projector (inside its image, not shadowed, facing it)
+    cos_incidence : cosine between normal and direction to the projector (0 where not lit)
+    falloff : projector inverse-square falloff relative to the world origin
+    """
+
+    depth: np.ndarray
+    points: np.ndarray
+    normals: np.ndarray
+    on_object: np.ndarray
+    u_p: np.ndarray
+    v_p: np.ndarray
+    lit: np.ndarray
+    cos_incidence: np.ndarray
+    falloff: np.ndarray
+
+    @property
+    def seen(self) -> np.ndarray:
+        return np.isfinite(self.depth)
+
+    @property
+    def height(self) -> np.ndarray:
+        return np.where(self.seen, self.points[..., 2], 0.0)
+
+    def at_pixel_centres(self, scale: int) -> "Geometry":
+        """Sub-sample a ``scale``-times supersampled geometry at the pixel centres (scale odd)."""
+        if scale == 1:
+            return self
+        c = scale // 2
+        return Geometry(**{k: getattr(self, k)[c::scale, c::scale] for k in self.__dataclass_fields__})
+
+
+def _normals_from_points(P: np.ndarray, camera_center: np.ndarray) -> np.ndarray:
+    """Normals of a point map from one-sided differences that do not straddle depth edges."""
+    def smaller_step(axis):
+        fwd = np.diff(P, axis=axis, append=np.take(P, [-1], axis=axis))
+        bwd = np.diff(P, axis=axis, prepend=np.take(P, [0], axis=axis))
+        fwd_n = np.linalg.norm(fwd, axis=-1)
+        bwd_n = np.linalg.norm(bwd, axis=-1)
+        fwd_n = np.where(np.isfinite(fwd_n) & (fwd_n > 0), fwd_n, np.inf)
+        bwd_n = np.where(np.isfinite(bwd_n) & (bwd_n > 0), bwd_n, np.inf)
+        return np.where((fwd_n <= bwd_n)[..., None], fwd, bwd)
+
+    du, dv = smaller_step(1), smaller_step(0)
+    n = np.cross(du, dv)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        n = n / norm
+    to_cam = camera_center - P
+    flip = np.sum(n * to_cam, axis=-1) < 0
+    n[flip] *= -1
+    bad = ~np.all(np.isfinite(n), axis=-1)
+    n[bad] = (0.0, 0.0, 1.0)
+    return n
+
+
+class _GridCache:
+    """Per-rig camera rays and plane depths (they do not change between samples)."""
+
+    def __init__(self):
+        self.key = None
+        self.value = None
+
+    def get(self, camera, scale):
+        key = (id(camera), camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.dist.tobytes(), scale)
+        if key != self.key:
+            grid = camera.pixel_grid(scale)
+            origin, dirs = camera.pixel_rays(grid)
+            self.value = (origin, dirs, camera.plane_depth(grid))
+            self.key = key
+        return self.value
+
+
+_GRID = _GridCache()
+
+
+def scene_geometry(rig, meshes: list[tuple[np.ndarray, np.ndarray]], renderer: DepthRenderer,
+                   scale: int = 1, shadow: ShadowSettings | None = None) -> Geometry:
+    """Exact camera-grid geometry of ``meshes`` (world-coordinate (V,3), (F,3) pairs) on the plane.
+
+    Two depth renders: the camera (what is seen) and the projector (shadow map).
+    """
+    if scale < 1 or scale % 2 == 0:
+        raise ValueError(f"supersampling factor must be an odd integer >= 1, got {scale}")
+    shadow = shadow or ShadowSettings()
+    cam, proj = rig.camera, rig.projector
+    origin, dirs, plane_depth = _GRID.get(cam, scale)
+    obj_depth = renderer.depth(cam, meshes, scale)
+    if cam.has_distortion:
+        obj_depth = _resample_ideal(cam, obj_depth, scale)
+    on_object = obj_depth < plane_depth
+    depth = np.where(on_object, obj_depth, plane_depth)
+    seen = np.isfinite(depth)
+    P = origin + np.where(seen, depth, 0.0)[..., None] * dirs
+    P[~seen] = np.nan
+    P[..., 2] = np.where(on_object | ~seen, P[..., 2], 0.0)  # plane points exactly on z = 0
+
+    normals = _normals_from_points(P, origin)
+    normals[seen & ~on_object] = (0.0, 0.0, 1.0)
+
+    # Projector: coordinates with distortion (pattern lookup), ideal ones for the shadow map lookup.
+    uv_p, z_p = proj.project(np.where(seen[..., None], P, 0.0))
+    uv_ideal = proj.project(np.where(seen[..., None], P, 0.0), distort=False)[0] if proj.has_distortion else uv_p
+    W, H = proj.width, proj.height
+    inside = (seen & (z_p > 0) & (uv_p[..., 0] >= -0.5) & (uv_p[..., 0] <= W - 0.5)
+              & (uv_p[..., 1] >= -0.5) & (uv_p[..., 1] <= H - 0.5))
+    shadow_depth = renderer.depth(proj, meshes, 1)
+    with np.errstate(invalid="ignore"):
+        gy, gx = np.gradient(np.where(np.isfinite(shadow_depth), shadow_depth, 1e9))
+    slope = np.nan_to_num(np.maximum(np.abs(gx), np.abs(gy)), nan=np.inf, posinf=np.inf)
+    ui = np.clip(np.rint(uv_ideal[..., 0]), 0, W - 1).astype(np.intp)
+    vi = np.clip(np.rint(uv_ideal[..., 1]), 0, H - 1).astype(np.intp)
+    occluder = shadow_depth[vi, ui]
+    tolerance = shadow.bias_mm + shadow.slope_pixels * slope[vi, ui]
+    unshadowed = ~(z_p > occluder + tolerance)
+
+    to_proj = proj.center - np.where(seen[..., None], P, 0.0)
+    dist2 = np.sum(to_proj * to_proj, axis=-1)
+    cos_inc = np.sum(normals * to_proj, axis=-1) / np.sqrt(dist2)
+    lit = inside & unshadowed & (cos_inc > 0)
+    cos_inc = np.where(lit, cos_inc, 0.0)
+    falloff = float(np.sum(proj.center ** 2)) / dist2
+    return Geometry(depth=depth, points=P, normals=normals, on_object=on_object & seen,
+                    u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
+
+
+def _resample_ideal(cam, ideal_depth: np.ndarray, scale: int) -> np.ndarray:
+    """Depth of a distorted camera from a render of its ideal pinhole (nearest sample, then exact ray)."""
+    grid = cam.pixel_grid(scale)
+    xy = cam.normalized_rays(grid)
+    K = cam.K
+    u = (K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2] + 0.5) * scale - 0.5
+    v = (K[1, 1] * xy[..., 1] + K[1, 2] + 0.5) * scale - 0.5
+    Hs, Ws = ideal_depth.shape
+    ui, vi = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
+    ok = (ui >= 0) & (ui < Ws) & (vi >= 0) & (vi < Hs)
+    out = np.full(ideal_depth.shape, np.inf)
+    out[ok] = ideal_depth[vi[ok], ui[ok]]
+    return out

@@ -1,0 +1,234 @@
+"""Scenes: meshes loaded, validated, normalised in size and posed on the reference plane.
+
+A scene is one to three objects resting on the plane z = 0, posed by a seeded sampler. Meshes arrive in
+any units (a 0.16-unit bunny, a 1000-unit alligator), so each is first normalised: its principal axes
+are aligned with x, y, z (smallest extent vertical, like a relief facing the camera), and it is later
+scaled so that its footprint and relief match the real figshare data (DESIGN.md §2).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
+    "sample_scene", "MESH_EXTENSIONS",
+]
+
+MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+
+
+class MeshError(ValueError):
+    """A mesh that cannot be used (unreadable, empty, flat, ...)."""
+
+
+@dataclass
+class MeshAsset:
+    """A validated mesh in canonical orientation.
+
+    ``vertices`` (V, 3) float64 are centred (x, y at the bounding-box centre, min z = 0) and rotated so
+    the principal axes are x (longest), y, z (shortest); ``faces`` (F, 3) int32. Units are the file's.
+    ``canonical`` is the 4x4 transform file coordinates -> these vertices.
+    """
+
+    path: str
+    vertices: np.ndarray
+    faces: np.ndarray
+    canonical: np.ndarray
+
+    @property
+    def extents(self) -> np.ndarray:
+        return self.vertices.max(0) - self.vertices.min(0)
+
+
+def find_meshes(paths) -> list[str]:
+    """Expand files and folders (recursively, by extension) into a sorted, de-duplicated list."""
+    out = []
+    for p in paths:
+        p = Path(p)
+        if p.is_dir():
+            out += [str(q) for q in sorted(p.rglob("*")) if q.suffix.lower() in MESH_EXTENSIONS and q.is_file()]
+        elif p.is_file():
+            out.append(str(p))
+        else:
+            raise MeshError(f"mesh path not found: {p}")
+    seen, unique = set(), []
+    for p in out:
+        key = os.path.realpath(p)
+        if key not in seen:
+            seen.add(key)
+            unique.append(p)
+    return unique
+
+
+def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
+    """Load any mesh trimesh reads, validate it and bring it to canonical orientation.
+
+    Raises :class:`MeshError` with the reason for: unreadable files, no triangles, non-finite vertices,
+    zero size, or a flat mesh (smallest principal extent below ``flat_ratio`` x the largest).
+    """
+    import trimesh
+
+    path = str(path)
+    try:
+        loaded = trimesh.load(path, force="mesh", process=False)
+    except Exception as exc:
+        raise MeshError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+    if not isinstance(loaded, trimesh.Trimesh):
+        raise MeshError(f"{path}: no triangle mesh found")
+    v = np.asarray(loaded.vertices, dtype=np.float64)
+    f = np.asarray(loaded.faces, dtype=np.int64)
+    if len(f) == 0 or len(v) < 3:
+        raise MeshError(f"{path}: empty mesh (no faces)")
+    if not np.all(np.isfinite(v)):
+        raise MeshError(f"{path}: vertices contain NaN or inf")
+    if f.min() < 0 or f.max() >= len(v):
+        raise MeshError(f"{path}: face indices out of range")
+    used = np.unique(f)
+    pts = v[used]
+    centre = pts.mean(0)
+    cov = np.cov((pts - centre).T)
+    evals, evecs = np.linalg.eigh(cov)  # ascending
+    axes = evecs[:, ::-1].T  # rows: longest, middle, shortest
+    if np.linalg.det(axes) < 0:
+        axes[2] *= -1
+    local = (pts - centre) @ axes.T
+    ext = local.max(0) - local.min(0)
+    if not ext[0] > 0:
+        raise MeshError(f"{path}: zero-size mesh (all vertices coincide)")
+    if ext[2] < flat_ratio * ext[0]:
+        raise MeshError(f"{path}: flat mesh (thickness {ext[2]:.3g} vs size {ext[0]:.3g}: zero volume)")
+    areas = np.linalg.norm(np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]]), axis=1)
+    if not np.any(areas > 0):
+        raise MeshError(f"{path}: all faces are degenerate (zero area)")
+    lo, hi = local.min(0), local.max(0)
+    shift = np.array([(lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2, lo[2]])
+    T = np.eye(4)
+    T[:3, :3] = axes
+    T[:3, 3] = -axes @ centre - shift
+    verts = v @ T[:3, :3].T + T[:3, 3]
+    return MeshAsset(path=path, vertices=verts, faces=f.astype(np.int32), canonical=T)
+
+
+@dataclass
+class SceneRanges:
+    """Ranges of the seeded scene sampler (mm, radians). Defaults follow the real figshare data."""
+
+    objects: tuple[int, int] = (1, 3)           # objects per scene, inclusive
+    footprint: tuple[float, float] = (60.0, 120.0)  # longest horizontal size of one object, mm
+    max_relief: tuple[float, float] = (25.0, 50.0)  # cap on an object's height above the plane, mm
+    tilt: float = np.deg2rad(10.0)              # max tilt about a random horizontal axis
+    view_margin: float = 0.15                   # keep object centres this fraction inside the view
+    overlap_probability: float = 0.35           # chance that a multi-object scene overlaps in depth
+    flip_probability: float = 0.5               # chance to flip the canonical mesh upside down
+
+    def __post_init__(self):
+        lo, hi = self.objects
+        if not (1 <= lo <= hi):
+            raise ValueError(f"objects range must satisfy 1 <= lo <= hi, got {self.objects}")
+
+
+@dataclass
+class PlacedObject:
+    """One object in a scene: ``pose`` (4x4) maps file coordinates (mm after ``scale``) to world."""
+
+    mesh: str
+    scale: float
+    pose: np.ndarray
+    vertices: np.ndarray = field(repr=False)  # (V, 3) world coordinates, mm
+    faces: np.ndarray = field(repr=False)
+
+    def to_dict(self) -> dict:
+        return {"mesh": self.mesh, "scale": float(self.scale), "pose": np.asarray(self.pose).tolist()}
+
+
+@dataclass
+class Scene:
+    objects: list[PlacedObject]
+    layout: str
+
+    def to_dict(self) -> dict:
+        return {"layout": self.layout, "objects": [o.to_dict() for o in self.objects]}
+
+
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _rot_axis(axis, a):
+    axis = np.asarray(axis, float) / np.linalg.norm(axis)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * (K @ K)
+
+
+def view_rectangle(rig, margin: float = 0.0) -> tuple[float, float, float, float]:
+    """(xmin, xmax, ymin, ymax) of the camera's view on the plane z = 0, shrunk by ``margin``."""
+    cam = rig.camera
+    corners = np.array([[0, 0], [cam.width - 1, 0], [0, cam.height - 1], [cam.width - 1, cam.height - 1]], float)
+    X = cam.backproject(corners, cam.plane_depth(corners))
+    xmin, xmax, ymin, ymax = X[:, 0].min(), X[:, 0].max(), X[:, 1].min(), X[:, 1].max()
+    dx, dy = (xmax - xmin) * margin, (ymax - ymin) * margin
+    return xmin + dx, xmax - dx, ymin + dy, ymax - dy
+
+
+def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
+                 ranges: SceneRanges | None = None) -> Scene:
+    """Draw a scene of 1-3 posed objects resting on the plane from ``rng``.
+
+    Each object: canonical mesh (optionally flipped), scaled so its longest horizontal size is drawn
+    from ``ranges.footprint`` and its relief does not exceed a draw from ``ranges.max_relief``, rotated
+    about z, tilted, then lowered onto the plane (min z = 0) and translated inside the camera view.
+    Multi-object scenes are either isolated (footprint circles apart) or overlapping in depth.
+    """
+    r = ranges or SceneRanges()
+    n = int(rng.integers(r.objects[0], r.objects[1] + 1))
+    layout = "single"
+    if n > 1:
+        layout = "overlapping" if rng.random() < r.overlap_probability else "isolated"
+    xmin, xmax, ymin, ymax = view_rectangle(rig, r.view_margin)
+    placed: list[PlacedObject] = []
+    circles: list[tuple[float, float, float]] = []
+    for _ in range(n):
+        asset = assets[int(rng.integers(len(assets)))]
+        v = asset.vertices
+        flip = rng.random() < r.flip_probability
+        R0 = _rot_axis([1, 0, 0], np.pi) if flip else np.eye(3)
+        theta = rng.uniform(0, 2 * np.pi)
+        tilt_axis = rng.normal(size=2)
+        tilt = rng.uniform(0, r.tilt)
+        R = _rot_axis([tilt_axis[0], tilt_axis[1], 0.0], tilt) @ _rot_z(theta) @ R0
+        rv = v @ R.T
+        ext = rv.max(0) - rv.min(0)
+        footprint = rng.uniform(*r.footprint)
+        relief = rng.uniform(*r.max_relief)
+        s = min(footprint / max(ext[0], ext[1]), relief / max(ext[2], 1e-12))
+        radius = 0.5 * s * np.hypot(ext[0], ext[1])
+        # position: isolated -> reject overlaps of footprint circles; overlapping -> near the previous one
+        for attempt in range(50):
+            if layout == "overlapping" and circles:
+                px, py, pr = circles[-1]
+                ang = rng.uniform(0, 2 * np.pi)
+                dist = rng.uniform(0.3, 0.8) * (pr + radius)
+                cx, cy = px + dist * np.cos(ang), py + dist * np.sin(ang)
+                cx, cy = np.clip(cx, xmin, xmax), np.clip(cy, ymin, ymax)
+            else:
+                cx, cy = rng.uniform(xmin, xmax), rng.uniform(ymin, ymax)
+            if layout != "isolated" or all(np.hypot(cx - qx, cy - qy) > qr + radius for qx, qy, qr in circles):
+                break
+        circles.append((cx, cy, radius))
+        world = rv * s
+        lo, hi = world.min(0), world.max(0)
+        offset = np.array([cx - (lo[0] + hi[0]) / 2, cy - (lo[1] + hi[1]) / 2, -lo[2]])
+        world = world + offset
+        # pose maps file coordinates scaled by s to world: X_w = R (s*(A x + a))... expressed on s*x
+        A, a = asset.canonical[:3, :3], asset.canonical[:3, 3]
+        pose = np.eye(4)
+        pose[:3, :3] = R @ A
+        pose[:3, 3] = s * (R @ a) + offset
+        placed.append(PlacedObject(mesh=asset.path, scale=float(s), pose=pose, vertices=world, faces=asset.faces))
+    return Scene(objects=placed, layout=layout)

@@ -1,0 +1,188 @@
+"""One synthetic sample: seeded scene -> exact geometry -> fringe + PSP images -> PSP decode.
+
+Every random draw of sample ``index`` comes from ``SeedSequence([seed, index, attempt])`` split into
+independent streams (scene, optics, noise), so a sample depends only on the global seed, its global
+index and the inputs: worker count, sharding and resumption do not change it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .optics import Optics, OpticsRanges, form_image, pattern_profile
+from .render import DepthRenderer, Geometry, scene_geometry
+from .rig import Rig
+from .scene import MeshAsset, SceneRanges, sample_scene
+
+__all__ = ["SynthConfig", "SampleError", "synthesize", "render_images", "psp_decode"]
+
+
+class SampleError(RuntimeError):
+    """A sample that cannot be produced (e.g. nothing lands in view after all attempts)."""
+
+
+@dataclass
+class SynthConfig:
+    """Everything that defines a dataset besides the meshes and the seed.
+
+    supersample : odd k; intensities are averaged over k x k sub-pixels, ground truth at pixel centres.
+    psp_freqs : frequency ladder (periods across the projector) for the phase-shifting images; its
+        last entry should be ``rig.periods``. Empty disables PSP.
+    min_object_fraction : a scene whose objects cover less of the image than this is redrawn.
+    """
+
+    rig: Rig
+    optics: OpticsRanges = field(default_factory=OpticsRanges)
+    scene: SceneRanges = field(default_factory=SceneRanges)
+    supersample: int = 1
+    psp_freqs: tuple[int, ...] = (1, 8, 80)
+    psp_steps: int = 4
+    min_object_fraction: float = 0.02
+    max_attempts: int = 8
+
+    def to_dict(self) -> dict:
+        return {
+            "optics_ranges": self.optics.to_dict(),
+            "scene_ranges": {k: (list(v) if isinstance(v, tuple) else v) for k, v in vars(self.scene).items()},
+            "supersample": self.supersample,
+            "psp_freqs": list(self.psp_freqs),
+            "psp_steps": self.psp_steps,
+            "min_object_fraction": self.min_object_fraction,
+            "max_attempts": self.max_attempts,
+        }
+
+
+def _irradiance_parts(geom: Geometry, optics: Optics) -> tuple[np.ndarray, np.ndarray]:
+    albedo = np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
+    seen = geom.seen
+    base = np.where(seen, optics.gain * albedo * optics.ambient, 0.0)
+    modulated = np.where(geom.lit, optics.gain * albedo * geom.cos_incidence * geom.falloff, 0.0)
+    return base, modulated
+
+
+def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple[float, float]],
+                  noise_rng: np.random.Generator | None, scale: int = 1) -> list[np.ndarray]:
+    """uint8 camera images for ``patterns`` = [(periods, phase shift rad), ...] on one geometry.
+
+    Each image gets its own noise realisation from ``noise_rng`` (None = noise-free).
+    """
+    parts = _irradiance_parts(geom, optics)
+    u_p = np.where(geom.lit, geom.u_p, 0.0)
+    out = []
+    for periods, shift in patterns:
+        u, prof = pattern_profile(rig.projector.width, periods, shift, optics)
+        out.append(form_image(parts, np.interp(u_p, u, prof), optics, noise_rng, scale))
+    return out
+
+
+def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, ...], mask: np.ndarray | None = None,
+               min_modulation: float = 3.0) -> dict[str, np.ndarray]:
+    """Decode PSP stacks ``{freq: [step images]}`` like a lab: wrapped phases, temporal unwrapping,
+    triangulation. Returns float32 ``phase_psp`` (rad, absolute, highest frequency), ``height_psp`` (mm,
+    NaN where rejected), ``mask_psp`` (1 where modulation suffices and the fringe order is reliable).
+    """
+    from . import psp
+
+    wrapped, quality = {}, None
+    for f in freqs:
+        stack = np.stack([np.asarray(im, dtype=np.float64) for im in images[f]])
+        res = psp.wrapped_phase(stack)
+        wrapped[f] = res.phase
+        q = psp.quality_mask(res.background, res.modulation, min_modulation=min_modulation)
+        quality = q if quality is None else (quality & q)
+    un = psp.unwrap_temporal([wrapped[f] for f in freqs], freqs)
+    ok = quality & un.reliable
+    if mask is not None:
+        ok &= mask
+    height = psp.height_from_phase(rig, un.phase, periods=freqs[-1], mask=ok)
+    ok &= np.isfinite(height)
+    return {
+        "phase_psp": un.phase.astype(np.float32),
+        "height_psp": np.where(ok, height, np.nan).astype(np.float32),
+        "mask_psp": ok.astype(np.float32),
+    }
+
+
+def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConfig,
+               renderer: DepthRenderer, noise_free: bool = False) -> tuple[dict, dict, dict]:
+    """Produce sample ``index``: ``(images, arrays, meta)``.
+
+    images : {"fringe.png": uint8 (H, W), "psp/f{f}_s{n}.png": ...}
+    arrays : float32 height (mm, world z; 0 where nothing is seen), depth (mm camera z-depth; 0 where
+        nothing is seen), phase_true (rad, projector phase of the single-shot frequency), mask (1 = seen
+        and lit), and with PSP phase_psp, height_psp, mask_psp.
+    meta : everything needed to reproduce the sample.
+    """
+    rig = config.rig
+    k = config.supersample
+    cam = rig.camera
+    last_reason = ""
+    for attempt in range(config.max_attempts):
+        ss = np.random.SeedSequence([int(seed), int(index), attempt])
+        scene_ss, optics_ss, noise_ss = ss.spawn(3)
+        scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
+        geom_ss = scene_geometry(rig, [(o.vertices, o.faces) for o in scene.objects], renderer, scale=k)
+        geom = geom_ss.at_pixel_centres(k)
+        frac = float(geom.on_object.mean())
+        if frac >= config.min_object_fraction:
+            break
+        last_reason = f"objects cover {100 * frac:.2f}% of the image (< {100 * config.min_object_fraction:.1f}%)"
+    else:
+        raise SampleError(f"sample {index}: nothing usable in view after {config.max_attempts} scene draws ({last_reason})")
+
+    optics = config.optics.sample(np.random.default_rng(optics_ss))
+    if noise_free:
+        optics = optics.noise_free()
+    noise_rng = None if noise_free else np.random.default_rng(noise_ss)
+    patterns = [(float(rig.periods), 0.0)]
+    names = ["fringe.png"]
+    for f in config.psp_freqs:
+        for n in range(config.psp_steps):
+            patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
+            names.append(f"psp/f{f}_s{n}.png")
+    imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k)
+    images = dict(zip(names, imgs))
+
+    seen = geom.seen
+    mask = geom.lit
+    arrays = {
+        "height": np.where(seen, geom.points[..., 2], 0.0).astype(np.float32),
+        "depth": np.where(seen, geom.depth, 0.0).astype(np.float32),
+        "phase_true": np.where(seen, rig.phase_of_column(geom.u_p), 0.0).astype(np.float32),
+        "mask": mask.astype(np.float32),
+    }
+    if config.psp_freqs:
+        stacks = {f: [images[f"psp/f{f}_s{n}.png"] for n in range(config.psp_steps)] for f in config.psp_freqs}
+        arrays.update(psp_decode(stacks, rig, tuple(config.psp_freqs)))
+
+    fringe = images["fringe.png"]
+    meta = {
+        "version": __version__,
+        "index": int(index),
+        "seed": int(seed),
+        "attempt": attempt,
+        "rig": rig.to_dict(),
+        "layout": scene.layout,
+        "objects": [o.to_dict() for o in scene.objects],
+        "optics": optics.to_dict(),
+        "noise_free": bool(noise_free),
+        "supersample": k,
+        "psp": {"freqs": list(config.psp_freqs), "steps": config.psp_steps,
+                "shifts_rad": [2.0 * np.pi * n / config.psp_steps for n in range(config.psp_steps)]}
+        if config.psp_freqs else None,
+        "image_size": [cam.width, cam.height],
+        "units": {"height": "mm (world z above the reference plane)", "depth": "mm (camera z-depth)",
+                  "phase": "rad (2*pi*f*u_p/W_p)", "pose": "4x4, file coordinates times scale -> world mm"},
+        "stats": {
+            "object_fraction": frac,
+            "valid_fraction": float(mask.mean()),
+            "shadow_fraction": float((seen & ~mask).mean()),
+            "max_height_mm": float(arrays["height"].max()),
+            "intensity_p50": float(np.percentile(fringe, 50)),
+            "intensity_p99": float(np.percentile(fringe, 99)),
+        },
+    }
+    return images, arrays, meta
