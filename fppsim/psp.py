@@ -38,6 +38,7 @@ __all__ = [
     "height_from_phase",
     "ladder_stability_bound",
     "order_error_probability",
+    "phase_from_sums",
     "phase_noise_std",
     "phase_shifts",
     "phase_sums",
@@ -67,17 +68,28 @@ def phase_shifts(n_steps: int) -> np.ndarray:
 
 
 def wrap_phase(phase: np.ndarray) -> np.ndarray:
-    """Wrap phases (rad) into ``(-pi, pi]`` (float64, NaN stays NaN)."""
+    """Wrap phases (rad) into ``(-pi, pi]`` (float64, NaN stays NaN); values already there are unchanged."""
     p = np.asarray(phase, dtype=np.float64)
-    w = np.angle(np.exp(1j * p))
-    return np.where(w <= -np.pi, np.pi, w)
+    w = p - TWO_PI * np.ceil((p - np.pi) / TWO_PI)
+    return np.where(w <= -np.pi, w + TWO_PI, np.where(w > np.pi, w - TWO_PI, w))
+
+
+def phase_from_sums(psin: np.ndarray, pcos: np.ndarray) -> np.ndarray:
+    """Wrapped phase ``atan2(psin, pcos)`` in ``(-pi, pi]`` (float64) from the sums of :func:`phase_sums`.
+
+    The one place simulated stacks (:func:`wrapped_phase`) and real PSin/PCos data
+    (:func:`fppsim.psp_io.load_psp_mat`) turn into phase.
+    """
+    phi = np.arctan2(np.asarray(psin, dtype=np.float64), np.asarray(pcos, dtype=np.float64))
+    return np.where(phi <= -np.pi, np.pi, phi)  # atan2(-0.0, x < 0) = -pi -> +pi
 
 
 def _shift_weights(shifts: np.ndarray) -> np.ndarray:
-    """(3, N) weights mapping a stack to (A, PCos, PSin) * (1, 2/N, 2/N) for arbitrary shifts.
+    """(3, N) weights mapping a stack to ``(A, PCos, PSin)``.
 
     For shifts whose first and second harmonics cancel (any full-period equal spacing, N >= 3) these
-    are the classic sums; otherwise the least-squares fit of ``A + a cos(delta) + b sin(delta)``.
+    are the classic sums ``(1/N, cos(delta_n), -sin(delta_n))``; otherwise the least-squares fit of
+    ``A + a cos(delta) + b sin(delta)`` scaled to the same ``PCos = (N/2) a``, ``PSin = -(N/2) b``.
     """
     d = np.asarray(shifts, dtype=np.float64).ravel()
     n = d.size
@@ -85,12 +97,15 @@ def _shift_weights(shifts: np.ndarray) -> np.ndarray:
         raise ValueError(f"phase shifting needs at least 3 finite shifts, got {d.tolist()}")
     e1, e2 = np.exp(1j * d).sum(), np.exp(2j * d).sum()
     if abs(e1) < 1e-9 * n and abs(e2) < 1e-9 * n:
-        return np.stack([np.full(n, 1.0 / n), 2.0 / n * np.cos(d), -2.0 / n * np.sin(d)])
+        w = np.stack([np.full(n, 1.0 / n), np.cos(d), -np.sin(d)])
+        half = np.round(w[1:] * 2.0) / 2.0  # exact 0, +-1/2, +-1 (four-step: exactly I3 - I1, I0 - I2)
+        w[1:] = np.where(np.abs(w[1:] - half) < 1e-12, half, w[1:])
+        return w
     M = np.stack([np.ones(n), np.cos(d), np.sin(d)], axis=1)  # I = A + a cos d + b sin d
     if np.linalg.matrix_rank(M) < 3:
         raise ValueError(f"phase shifts {d.tolist()} do not determine A, B and phi (rank < 3)")
     P = np.linalg.pinv(M)  # (3, N): A, a = B cos(phi), b = -B sin(phi)
-    return np.stack([P[0], P[1], -P[2]])
+    return np.stack([P[0], (n / 2.0) * P[1], -(n / 2.0) * P[2]])
 
 
 def _resolve_shifts(n: int, shifts) -> np.ndarray:
@@ -119,7 +134,7 @@ def phase_sums(images: np.ndarray, shifts: np.ndarray | None = None) -> tuple[np
     I = np.asarray(images, dtype=np.float64)
     if I.ndim < 1:
         raise ValueError("images must be a stack of shape (N, ...)")
-    w = _shift_weights(_resolve_shifts(I.shape[0], shifts)) * (I.shape[0] / 2.0)
+    w = _shift_weights(_resolve_shifts(I.shape[0], shifts))
     return np.tensordot(w[2], I, axes=1), np.tensordot(w[1], I, axes=1)
 
 
@@ -162,11 +177,9 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
     n = I.shape[0]
     w = _shift_weights(_resolve_shifts(n, shifts))
     A = np.tensordot(w[0], I, axes=1)
-    c = np.tensordot(w[1], I, axes=1)  # B cos(phi)
-    s = np.tensordot(w[2], I, axes=1)  # B sin(phi)
-    phi = np.arctan2(s, c)
-    phi = np.where(phi <= -np.pi, np.pi, phi)  # atan2(-0.0, x<0) = -pi -> +pi
-    return PhaseShift(phase=phi, background=A, modulation=np.hypot(s, c))
+    c = np.tensordot(w[1], I, axes=1)  # PCos = (N/2) B cos(phi)
+    s = np.tensordot(w[2], I, axes=1)  # PSin = (N/2) B sin(phi)
+    return PhaseShift(phase=phase_from_sums(s, c), background=A, modulation=(2.0 / n) * np.hypot(s, c))
 
 
 def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation: float,

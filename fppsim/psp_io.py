@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .psp import wrap_phase
+from .psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat"]
 
@@ -154,7 +154,7 @@ def load_psp_mat(path: str | os.PathLike, sin_key: str | None = None, cos_key: s
         first = of[bad].ravel()[0]
         raise PSPMatError(f"{path}: fringe order '{ko}' is not integer at {int(bad.sum())} pixels (e.g. {first!r})")
     order = ok.astype(np.int64)
-    wrapped = wrap_phase(np.arctan2(psin, pcos))
+    wrapped = phase_from_sums(psin, pcos)
     phase = np.where(valid, wrapped + 2.0 * np.pi * order, np.nan)
     meta = {}
     for k, v in found.items():
