@@ -295,7 +295,7 @@ class Unwrapped:
     residual: np.ndarray
     freqs: tuple
 
-    def __iter__(self):  # allows ``Phi, k, ok = unwrap_temporal(...)[:3]``-style unpacking
+    def __iter__(self):  # allows ``Phi, k, ok = unwrap_temporal(...)``
         return iter((self.phase, self.order, self.reliable))
 
 
