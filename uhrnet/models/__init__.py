@@ -42,6 +42,8 @@ ALIASES: dict[str, tuple[str, dict[str, Any]]] = {
     "model_c": ("uhrnet", {"fusion": True}),
     "model_d": ("uhrnet", {"fusion": True}),
 }
+"""alias -> (architecture, options). ``base_channels`` is only a default (so tiny test versions of an
+ablation can be built); any other option is fixed."""
 
 
 def list_models() -> list[str]:
@@ -53,13 +55,13 @@ def build_model(name: str, **options: Any) -> nn.Module:
     """Build a model by (case-insensitive) name; ``options`` go to its constructor.
 
     Raises ``ValueError`` for an unknown name, an unknown option, or an option that contradicts what an
-    alias fixes (``build_model("model_b", fusion=True)``).
+    alias fixes (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
     key = name.lower()
     if key in ALIASES:
         arch, fixed = ALIASES[key]
         for option, value in fixed.items():
-            if option in options and options[option] != value:
+            if option != "base_channels" and option in options and options[option] != value:
                 raise ValueError(f"{key} is {arch} with {option}={value!r}; got {option}={options[option]!r}")
         options = {**fixed, **options}
     elif key in ARCHITECTURES:

@@ -1,0 +1,226 @@
+"""``uhrnet bench``: parameters, forward time, training-step time and peak memory per model.
+
+For each model at batch 1 (352 x 640 by default): the trainable parameter count, the median forward
+time in eval mode without gradient (the paper's "speed"), the median time of one training step (forward,
+MSE summed over the model's outputs, backward, Adam step) and the peak memory of each. Finally the
+UHRNet / U-Net forward-time ratio, which the paper measured as 0.0224 s / 0.0081 s = 2.77 on an
+RTX 2080 Ti. Peak memory is ``torch.cuda.max_memory_allocated`` on CUDA (weights and optimizer state
+included) and the growth of the peak resident set size on CPU (roughly: activations and gradients).
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import statistics
+from pathlib import Path
+
+DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
+REFERENCE_WIDTH = 64  # the default base width of uhrnet and unet, which --base-channels replaces
+PAPER_SECONDS = {"uhrnet": 0.0224, "unet": 0.0081}  # RTX 2080 Ti, batch 1, 352 x 640
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--models",
+        nargs="+",
+        default=list(DEFAULT_MODELS),
+        metavar="NAME",
+        help=f"models to measure (any name of uhrnet.models.list_models(); default: {' '.join(DEFAULT_MODELS)})",
+    )
+    parser.add_argument("--height", type=int, default=352, help="input height, a multiple of 16 (default 352)")
+    parser.add_argument("--width", type=int, default=640, help="input width, a multiple of 16 (default 640)")
+    parser.add_argument("--batch-size", type=int, default=1, help="batch size (default 1, as in the paper)")
+    parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda if available")
+    parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
+    parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
+    parser.add_argument("--compile", action="store_true", help="wrap each model in torch.compile")
+    parser.add_argument(
+        "--base-channels",
+        type=int,
+        default=None,
+        metavar="B",
+        help="width override: uhrnet and unet get base B, the half-width models (model_a, hnet) B/2 "
+        "(for quick runs; parameter counts then differ from the paper)",
+    )
+    parser.add_argument("--no-train", action="store_true", help="skip the training-step measurement")
+    parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
+
+
+def resolve_device(name: str):
+    """``"auto"`` -> cuda if available else cpu; ``"cuda"`` without a GPU is a user error."""
+    import torch
+
+    from .cli import CLIError
+
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise CLIError("--device cuda, but torch sees no CUDA device")
+    return torch.device(name)
+
+
+def build_scaled(name: str, base_channels: int | None):
+    """``build_model(name)``, with every width scaled by ``base_channels / 64`` when given."""
+    import inspect
+
+    from .models import ALIASES, ARCHITECTURES, build_model
+
+    if base_channels is None:
+        return build_model(name)
+    arch, fixed = ALIASES.get(name.lower(), (name.lower(), {}))
+    if arch not in ARCHITECTURES:
+        return build_model(name)  # raises the registry's ValueError
+    default = fixed.get("base_channels", inspect.signature(ARCHITECTURES[arch]).parameters["base_channels"].default)
+    scaled = max(1, round(default * base_channels / REFERENCE_WIDTH))
+    return build_model(arch, **{**fixed, "base_channels": scaled})
+
+
+def measure(name: str, args, device) -> dict:
+    """Build one model and measure it; returns a JSON-ready dict."""
+    import torch
+
+    from .metrics import count_parameters, peak_memory_bytes, time_call
+
+    model = build_scaled(name, args.base_channels).to(device)
+    params = count_parameters(model)
+    memory_format = torch.channels_last if args.channels_last else torch.contiguous_format
+    model = model.to(memory_format=memory_format)
+    shape = (args.batch_size, model.config["in_channels"], args.height, args.width)
+    x = torch.randn(shape, device=device).contiguous(memory_format=memory_format)
+    target = torch.randn((args.batch_size, 1, args.height, args.width), device=device)
+    net = torch.compile(model) if args.compile else model
+
+    def forward():
+        with torch.no_grad():
+            net(x)
+
+    model.eval()
+    fwd = time_call(forward, device, args.warmup, args.repeats)
+    fwd_peak = peak_memory_bytes(forward, device)
+    result = {
+        "model": name,
+        "base_channels": model.config["base_channels"],
+        "parameters": params,
+        "forward_ms": 1000 * statistics.median(fwd),
+        "forward_peak_bytes": fwd_peak,
+        "train_step_ms": None,
+        "train_peak_bytes": None,
+    }
+    if not args.no_train:
+        optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+
+        def train_step():
+            optimizer.zero_grad(set_to_none=True)
+            out = net(x)
+            outs = out if isinstance(out, (tuple, list)) else (out,)
+            loss = sum(torch.nn.functional.mse_loss(o, target) for o in outs)
+            loss.backward()
+            optimizer.step()
+
+        model.train()
+        step = time_call(train_step, device, args.warmup, args.repeats)
+        result["train_step_ms"] = 1000 * statistics.median(step)
+        result["train_peak_bytes"] = peak_memory_bytes(train_step, device)
+    return result
+
+
+def _mib(value: int | None) -> str:
+    return "n/a" if value is None else f"{value / 2**20:.0f}"
+
+
+def _ms(value: float | None) -> str:
+    return "-" if value is None else f"{value:.1f}"
+
+
+def format_table(results: list[dict]) -> str:
+    header = ("model", "base", "parameters", "forward ms", "train-step ms", "fwd peak MiB", "train peak MiB")
+    rows = [
+        (
+            r["model"],
+            str(r["base_channels"]),
+            f"{r['parameters']:,}",
+            _ms(r["forward_ms"]),
+            _ms(r["train_step_ms"]),
+            _mib(r["forward_peak_bytes"]),
+            _mib(r["train_peak_bytes"]),
+        )
+        for r in results
+    ]
+    widths = [max(len(row[i]) for row in [header, *rows]) for i in range(len(header))]
+    lines = ["  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths))) for row in [header, *rows]]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from .cli import CLIError
+    from .models import list_models
+
+    unknown = [m for m in args.models if m.lower() not in list_models()]
+    if unknown:
+        raise CLIError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
+    if args.height % 16 or args.width % 16 or args.height < 16 or args.width < 16:
+        raise CLIError(f"--height and --width must be positive multiples of 16, got {args.height}x{args.width}")
+    if args.repeats < 1 or args.warmup < 0 or args.batch_size < 1:
+        raise CLIError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
+    device = resolve_device(args.device)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        where = torch.cuda.get_device_name(device)
+    else:
+        where = f"cpu, {torch.get_num_threads()} threads"
+    print(
+        f"uhrnet bench: {where}; input {args.batch_size}x{args.height}x{args.width}; "
+        f"median of {args.repeats} after {args.warmup} warm-up; channels_last {'on' if args.channels_last else 'off'}; "
+        f"torch.compile {'on' if args.compile else 'off'}",
+        flush=True,
+    )
+    results = []
+    for name in args.models:
+        try:
+            results.append(measure(name, args, device))
+        except ValueError as exc:
+            raise CLIError(f"{name}: {exc}") from exc
+        r = results[-1]
+        print(f"  {name}: forward {_ms(r['forward_ms'])} ms, train step {_ms(r['train_step_ms'])} ms", flush=True)
+        gc.collect()
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    print(format_table(results))
+    by_name = {r["model"].lower(): r for r in results}
+    ratio = None
+    if "uhrnet" in by_name and "unet" in by_name:
+        ratio = by_name["uhrnet"]["forward_ms"] / by_name["unet"]["forward_ms"]
+        paper = PAPER_SECONDS["uhrnet"] / PAPER_SECONDS["unet"]
+        print(
+            f"UHRNet / U-Net forward time: {ratio:.2f} (paper: {PAPER_SECONDS['uhrnet']} s / "
+            f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
+        )
+    memory_note = (
+        "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
+        if device.type == "cuda"
+        else "peak memory: growth of the process's peak RSS during one call (n/a where /proc does not allow it)"
+    )
+    print(memory_note)
+    if args.json is not None:
+        report = {
+            "device": where,
+            "input_shape": [args.batch_size, 1, args.height, args.width],
+            "repeats": args.repeats,
+            "warmup": args.warmup,
+            "channels_last": args.channels_last,
+            "compile": args.compile,
+            "torch": torch.__version__,
+            "results": results,
+            "uhrnet_unet_forward_ratio": ratio,
+            "memory": memory_note,
+        }
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+        print(f"wrote {args.json}")
+    return 0
