@@ -182,8 +182,8 @@ def form_image(irradiance_parts: tuple[np.ndarray, np.ndarray], pattern: np.ndar
         E = E.reshape(H, scale, W, scale).mean(axis=(1, 3))
     if rng is not None and (optics.noise_sigma > 0 or optics.shot_noise > 0):
         var = optics.noise_sigma ** 2 + optics.shot_noise * np.maximum(E, 0.0)
-        E = E + rng.standard_normal(E.shape) * np.sqrt(var)
-    E = np.clip(E, 0.0, 255.0)
+        E = E + rng.standard_normal(E.shape, dtype=np.float32) * np.sqrt(var)
+    E = np.clip(E, 0.0, 255.0, out=E)
     if optics.camera_gamma != 1.0:
         E = 255.0 * (E / 255.0) ** (1.0 / optics.camera_gamma)
     return np.rint(E).astype(np.uint8)

@@ -12,7 +12,7 @@ shadowed, facing it) and the incidence cosine.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
@@ -21,58 +21,102 @@ import numpy as np
 if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
     np.infty = np.inf
 
-__all__ = ["DepthRenderer", "Geometry", "scene_geometry", "ShadowSettings"]
+__all__ = ["DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One mesh placed in the world: ``X_world = transform[:3, :3] @ v + transform[:3, 3]``.
+
+    ``key`` identifies the vertex/face arrays (e.g. the mesh file) so renderers can keep them on the GL
+    side between samples; ``None`` means "upload every time".
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    key: object = None
+
+    @classmethod
+    def world(cls, vertices, faces) -> "Instance":
+        return cls(np.asarray(vertices, float), np.asarray(faces), np.eye(4), None)
+
+
+_PARK = np.eye(4)
+_PARK[2, 3] = 1e7  # far behind every device: parked nodes keep their meshes on the GL side, drawn nowhere
 
 
 class DepthRenderer:
-    """One reusable pyrender OffscreenRenderer (one GL context per process).
+    """Reusable pyrender off-screen depth renderer.
 
-    ``depth(device, meshes, scale)`` returns the device-frame z-depth (mm, float64) of the first object
-    surface for every pixel of ``device`` at ``scale``-times resolution, ``inf`` where no object is hit.
+    ``depth(device, instances, scale)`` returns the device-frame z-depth (mm, float64) of the first
+    object surface for every pixel of ``device`` at ``scale``-times resolution, ``inf`` where no object is
+    hit. Meshes with a key stay uploaded (a parked node keeps them in each scene), so a dataset's meshes
+    are sent to GL once per renderer.
     """
 
     def __init__(self):
         # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
-        # so keep one renderer per resolution (camera, projector, supersampled camera).
-        self._renderers = {}
+        # so keep one renderer (and one scene: GL buffers are per context) per resolution.
+        self._slots = {}
 
-    def _get(self, width: int, height: int):
+    def _slot(self, width: int, height: int):
         import pyrender
 
         key = (width, height)
-        if key not in self._renderers:
-            self._renderers[key] = pyrender.OffscreenRenderer(width, height)
-        return self._renderers[key]
+        if key not in self._slots:
+            scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[0, 0, 0])
+            self._slots[key] = (pyrender.OffscreenRenderer(width, height), scene, {})
+        return self._slots[key]
 
-    def depth(self, device, meshes: list[tuple[np.ndarray, np.ndarray]], scale: int = 1) -> np.ndarray:
+    @staticmethod
+    def _make_mesh(vertices, faces):
+        import pyrender
+
+        prim = pyrender.Primitive(positions=np.ascontiguousarray(vertices, dtype=np.float32),
+                                  indices=np.ascontiguousarray(faces, dtype=np.uint32), mode=4)
+        return pyrender.Mesh([prim])
+
+    def depth(self, device, instances: list[Instance], scale: int = 1) -> np.ndarray:
         import pyrender
 
         fx, fy, cx, cy, W, H = device.gl_intrinsics(scale)
-        if not meshes:
+        # Tight clip range from the transformed bounding boxes keeps the depth buffer precise.
+        zs = []
+        for inst in instances:
+            lo, hi = inst.vertices.min(0), inst.vertices.max(0)
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            world = corners @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+            zs.append(world @ device.R[2] + device.t[2])
+        zs = np.concatenate(zs) if zs else np.zeros(0)
+        if zs.size == 0 or zs.max() <= 0:
             return np.full((H, W), np.inf)
-        # Tight clip range from the vertices' device-frame depths keeps the depth buffer precise.
-        zs = np.concatenate([device.world_to_device(v)[:, 2] for v, _ in meshes])
-        zs = zs[zs > 0]
-        if zs.size == 0:
-            return np.full((H, W), np.inf)
-        znear = max(float(zs.min()) * 0.9, 1e-3)
+        znear = max(float(zs[zs > 0].min()) * 0.9, 1e-3) if np.any(zs > 0) else 1e-3
         zfar = float(zs.max()) * 1.1 + 1.0
-        scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[0, 0, 0])
-        for v, f in meshes:
-            prim = pyrender.Primitive(positions=np.ascontiguousarray(v, dtype=np.float32),
-                                      indices=np.ascontiguousarray(f, dtype=np.uint32), mode=4)
-            scene.add(pyrender.Mesh([prim]))
-        cam = pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=znear, zfar=zfar)
-        scene.add(cam, pose=device.gl_pose())
-        r = self._get(W, H)
-        d = r.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY | pyrender.RenderFlags.SKIP_CULL_FACES)
+        renderer, scene, meshes = self._slot(W, H)
+        nodes = []
+        for inst in instances:
+            if inst.key is None:
+                mesh = self._make_mesh(inst.vertices, inst.faces)
+            else:
+                if inst.key not in meshes:
+                    meshes[inst.key] = self._make_mesh(inst.vertices, inst.faces)
+                    scene.add(meshes[inst.key], pose=_PARK)
+                mesh = meshes[inst.key]
+            nodes.append(scene.add(mesh, pose=inst.transform))
+        cam = scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=znear, zfar=zfar), pose=device.gl_pose())
+        try:
+            d = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY | pyrender.RenderFlags.SKIP_CULL_FACES)
+        finally:
+            for node in nodes + [cam]:
+                scene.remove_node(node)
         d = np.asarray(d, dtype=np.float64)
         return np.where(d > 0, d, np.inf)
 
     def close(self):
-        for r in self._renderers.values():
-            r.delete()
-        self._renderers.clear()
+        for renderer, _, _ in self._slots.values():
+            renderer.delete()
+        self._slots.clear()
 
 
 @dataclass
@@ -167,9 +211,9 @@ class _GridCache:
 _GRID = _GridCache()
 
 
-def scene_geometry(rig, meshes: list[tuple[np.ndarray, np.ndarray]], renderer: DepthRenderer,
+def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
                    scale: int = 1, shadow: ShadowSettings | None = None) -> Geometry:
-    """Exact camera-grid geometry of ``meshes`` (world-coordinate (V,3), (F,3) pairs) on the plane.
+    """Exact camera-grid geometry of the mesh instances on the reference plane.
 
     Two depth renders: the camera (what is seen) and the projector (shadow map).
     """
@@ -188,7 +232,7 @@ def scene_geometry(rig, meshes: list[tuple[np.ndarray, np.ndarray]], renderer: D
     P[~seen] = np.nan
     P[..., 2] = np.where(on_object | ~seen, P[..., 2], 0.0)  # plane points exactly on z = 0
 
-    normals = _normals_from_points(P, origin)
+    normals = _normals_from_points(P.astype(np.float32), origin.astype(np.float32)).astype(np.float64)
     normals[seen & ~on_object] = (0.0, 0.0, 1.0)
 
     # Projector: coordinates with distortion (pattern lookup), ideal ones for the shadow map lookup.
@@ -199,7 +243,7 @@ def scene_geometry(rig, meshes: list[tuple[np.ndarray, np.ndarray]], renderer: D
               & (uv_p[..., 1] >= -0.5) & (uv_p[..., 1] <= H - 0.5))
     shadow_depth = renderer.depth(proj, meshes, 1)
     with np.errstate(invalid="ignore"):
-        gy, gx = np.gradient(np.where(np.isfinite(shadow_depth), shadow_depth, 1e9))
+        gy, gx = np.gradient(np.where(np.isfinite(shadow_depth), shadow_depth, 1e9).astype(np.float32))
     slope = np.nan_to_num(np.maximum(np.abs(gx), np.abs(gy)), nan=np.inf, posinf=np.inf)
     ui = np.clip(np.rint(uv_ideal[..., 0]), 0, W - 1).astype(np.intp)
     vi = np.clip(np.rint(uv_ideal[..., 1]), 0, H - 1).astype(np.intp)

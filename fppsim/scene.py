@@ -39,6 +39,16 @@ class MeshAsset:
     vertices: np.ndarray
     faces: np.ndarray
     canonical: np.ndarray
+    hull: np.ndarray = field(default=None, repr=False)  # convex-hull vertices: cheap rotated extents
+
+    def __post_init__(self):
+        if self.hull is None:
+            from scipy.spatial import ConvexHull, QhullError
+
+            try:
+                self.hull = self.vertices[ConvexHull(self.vertices).vertices]
+            except (QhullError, ValueError):
+                self.hull = self.vertices
 
     @property
     def extents(self) -> np.ndarray:
@@ -134,13 +144,31 @@ class SceneRanges:
 
 @dataclass
 class PlacedObject:
-    """One object in a scene: ``pose`` (4x4) maps file coordinates (mm after ``scale``) to world."""
+    """One object in a scene.
+
+    ``pose`` (4x4) maps file coordinates multiplied by ``scale`` (mm) to world; ``transform`` maps the
+    asset's canonical vertices to world (rotation times scale, translation).
+    """
 
     mesh: str
     scale: float
     pose: np.ndarray
-    vertices: np.ndarray = field(repr=False)  # (V, 3) world coordinates, mm
-    faces: np.ndarray = field(repr=False)
+    asset: MeshAsset = field(repr=False)
+    transform: np.ndarray = field(repr=False)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(V, 3) world vertices, mm."""
+        return self.asset.vertices @ self.transform[:3, :3].T + self.transform[:3, 3]
+
+    @property
+    def faces(self) -> np.ndarray:
+        return self.asset.faces
+
+    def instance(self):
+        from .render import Instance
+
+        return Instance(self.asset.vertices, self.asset.faces, self.transform, key=self.asset.path)
 
     def to_dict(self) -> dict:
         return {"mesh": self.mesh, "scale": float(self.scale), "pose": np.asarray(self.pose).tolist()}
@@ -195,7 +223,7 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
     circles: list[tuple[float, float, float]] = []
     for _ in range(n):
         asset = assets[int(rng.integers(len(assets)))]
-        v = asset.vertices
+        v = asset.hull
         flip = rng.random() < r.flip_probability
         R0 = _rot_axis([1, 0, 0], np.pi) if flip else np.eye(3)
         theta = rng.uniform(0, 2 * np.pi)
@@ -221,14 +249,15 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
             if layout != "isolated" or all(np.hypot(cx - qx, cy - qy) > qr + radius for qx, qy, qr in circles):
                 break
         circles.append((cx, cy, radius))
-        world = rv * s
-        lo, hi = world.min(0), world.max(0)
+        lo, hi = rv.min(0) * s, rv.max(0) * s
         offset = np.array([cx - (lo[0] + hi[0]) / 2, cy - (lo[1] + hi[1]) / 2, -lo[2]])
-        world = world + offset
-        # pose maps file coordinates scaled by s to world: X_w = R (s*(A x + a))... expressed on s*x
+        transform = np.eye(4)
+        transform[:3, :3] = s * R
+        transform[:3, 3] = offset
+        # pose: file coordinates x scaled by s -> world: R (A (s x) + s a) + offset
         A, a = asset.canonical[:3, :3], asset.canonical[:3, 3]
         pose = np.eye(4)
         pose[:3, :3] = R @ A
         pose[:3, 3] = s * (R @ a) + offset
-        placed.append(PlacedObject(mesh=asset.path, scale=float(s), pose=pose, vertices=world, faces=asset.faces))
+        placed.append(PlacedObject(mesh=asset.path, scale=float(s), pose=pose, asset=asset, transform=transform))
     return Scene(objects=placed, layout=layout)

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import __version__
-from .optics import Optics, OpticsRanges, form_image, pattern_profile
+from .optics import OVERSAMPLE, Optics, OpticsRanges, form_image, pattern_profile
 from .render import DepthRenderer, Geometry, scene_geometry
 from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
@@ -69,12 +69,17 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
 
     Each image gets its own noise realisation from ``noise_rng`` (None = noise-free).
     """
-    parts = _irradiance_parts(geom, optics)
-    u_p = np.where(geom.lit, geom.u_p, 0.0)
+    parts = tuple(a.astype(np.float32) for a in _irradiance_parts(geom, optics))
+    # Linear interpolation weights into the oversampled 1-D pattern profile, shared by all patterns.
+    x = (np.where(geom.lit, geom.u_p, 0.0) + 0.5) * OVERSAMPLE - 0.5
+    n = rig.projector.width * OVERSAMPLE
+    i0 = np.clip(np.floor(x), 0, n - 2).astype(np.intp)
+    w = np.clip(x - i0, 0.0, 1.0).astype(np.float32)
     out = []
     for periods, shift in patterns:
-        u, prof = pattern_profile(rig.projector.width, periods, shift, optics)
-        out.append(form_image(parts, np.interp(u_p, u, prof), optics, noise_rng, scale))
+        prof = pattern_profile(rig.projector.width, periods, shift, optics)[1].astype(np.float32)
+        p0 = prof[i0]
+        out.append(form_image(parts, p0 + w * (prof[i0 + 1] - p0), optics, noise_rng, scale))
     return out
 
 
@@ -124,7 +129,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         ss = np.random.SeedSequence([int(seed), int(index), attempt])
         scene_ss, optics_ss, noise_ss = ss.spawn(3)
         scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
-        geom_ss = scene_geometry(rig, [(o.vertices, o.faces) for o in scene.objects], renderer, scale=k)
+        geom_ss = scene_geometry(rig, [o.instance() for o in scene.objects], renderer, scale=k)
         geom = geom_ss.at_pixel_centres(k)
         frac = float(geom.on_object.mean())
         if frac >= config.min_object_fraction:

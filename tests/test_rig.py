@@ -1,0 +1,127 @@
+"""Rig conventions against analytic geometry and OpenCV."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from fppsim.rig import Device, Rig, RigError, make_default_rig
+
+
+@pytest.fixture
+def rig():
+    return Rig.default()
+
+
+def test_default_asset_matches_builder(rig):
+    built = make_default_rig()
+    np.testing.assert_allclose(rig.camera.K, built.camera.K)
+    np.testing.assert_allclose(rig.projector.t, built.projector.t)
+    assert rig.periods == 80 and rig.projector.width == 912 and (rig.camera.width, rig.camera.height) == (640, 352)
+
+
+def test_projection_matches_opencv(rig):
+    rng = np.random.default_rng(0)
+    X = rng.uniform([-100, -60, 0], [100, 60, 60], size=(200, 3))
+    for dev in (rig.camera, rig.projector):
+        dev = Device(K=dev.K, R=dev.R, t=dev.t, width=dev.width, height=dev.height,
+                     dist=[0.05, -0.02, 0.001, -0.002, 0.01])
+        uv, _ = dev.project(X)
+        ref, _ = cv2.projectPoints(X, cv2.Rodrigues(dev.R)[0], dev.t, dev.K, dev.dist)
+        np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-6)
+
+
+def test_backprojection_round_trip_with_distortion(rig):
+    rng = np.random.default_rng(1)
+    cam = Device(K=rig.camera.K, R=rig.camera.R, t=rig.camera.t, width=640, height=352,
+                 dist=[-0.1, 0.05, 0.001, 0.0005, 0.0])
+    X = rng.uniform([-100, -60, 0], [100, 60, 60], size=(500, 3))
+    uv, z = cam.project(X)
+    np.testing.assert_allclose(cam.backproject(uv, z), X, atol=1e-6)
+
+
+def test_world_frame_convention(rig):
+    # camera above the plane looking down; +z towards the camera; x right in both frames
+    assert rig.camera.center[2] == pytest.approx(500.0)
+    uv, z = rig.camera.project(np.array([[0.0, 0.0, 0.0], [10.0, 0.0, 0.0], [0.0, 10.0, 0.0], [0.0, 0.0, 10.0]]))
+    assert z[0] == pytest.approx(500.0) and z[3] == pytest.approx(490.0)
+    assert uv[1, 0] > uv[0, 0]  # +x world -> right in the image
+    assert uv[2, 1] < uv[0, 1]  # +y world -> up in the image (camera y points down)
+
+
+def test_default_fringe_period_uniform(rig):
+    """Period of the 80-period pattern on the plane, in camera pixels, at many image points."""
+    cam = rig.camera
+    uv = np.stack(np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 351, 5)), -1).reshape(-1, 2)
+    X = cam.backproject(uv, cam.plane_depth(uv))
+    u_p = rig.projector.project(X)[0][:, 0]
+    X2 = cam.backproject(uv + [1, 0], cam.plane_depth(uv + [1, 0]))
+    du_p = rig.projector.project(X2)[0][:, 0] - u_p  # projector columns per camera pixel
+    period = rig.projector.width / rig.periods / np.abs(du_p)
+    assert np.all(np.abs(period - 11.6) < 0.1 * 11.6), period
+    # vertical fringes: moving down a camera column does not change the projector column
+    X3 = cam.backproject(uv + [0, 1], cam.plane_depth(uv + [0, 1]))
+    assert np.max(np.abs(rig.projector.project(X3)[0][:, 0] - u_p)) < 1e-9
+    assert np.all((u_p > 0) & (u_p < rig.projector.width - 1))  # the projector covers the view
+
+
+@pytest.mark.parametrize("ext", [".json", ".yaml"])
+def test_save_load_round_trip(tmp_path, rig, ext):
+    p = tmp_path / f"rig{ext}"
+    rig.save(p)
+    back = Rig.load(p)
+    for a, b in ((rig.camera, back.camera), (rig.projector, back.projector)):
+        for k in ("K", "R", "t", "dist"):
+            np.testing.assert_allclose(getattr(a, k), getattr(b, k))
+
+
+def test_opencv_stereo_import(tmp_path, rig):
+    """A stereo calibration (camera frame as world) plus a plane pose reproduces the rig."""
+    cam, proj = rig.camera, rig.projector
+    R = proj.R @ cam.R.T  # camera -> projector
+    T = proj.t - R @ cam.t
+    p = tmp_path / "stereo.yml"
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("M1", cam.K); fs.write("D1", np.zeros((1, 5))); fs.write("M2", proj.K); fs.write("D2", np.zeros((1, 5)))
+    fs.write("R", R); fs.write("T", T.reshape(3, 1))
+    fs.write("R_plane", cam.R); fs.write("T_plane", cam.t.reshape(3, 1))
+    fs.write("projector_width", 912); fs.write("projector_height", 1140)
+    fs.release()
+    back = Rig.load(p)
+    np.testing.assert_allclose(back.projector.R, proj.R, atol=1e-9)
+    np.testing.assert_allclose(back.projector.t, proj.t, atol=1e-9)
+    np.testing.assert_allclose(back.camera.t, cam.t, atol=1e-9)
+    # plane distance variant (no plane pose)
+    fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+    fs.write("M1", cam.K); fs.write("M2", proj.K); fs.write("R", R); fs.write("T", T.reshape(3, 1))
+    fs.write("plane_distance", 500.0)
+    fs.release()
+    back = Rig.load(p)
+    np.testing.assert_allclose(back.projector.center, proj.center, atol=1e-9)
+
+
+@pytest.mark.parametrize("doc, words", [
+    ({"camera": {}}, "projector"),
+    ({"camera": {"K": [1, 2]}, "projector": {}}, "camera is missing"),
+    ("not a mapping", "mapping"),
+])
+def test_bad_rig_documents(tmp_path, rig, doc, words):
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(RigError, match=words):
+        Rig.load(p)
+
+
+def test_bad_rig_geometry(tmp_path, rig):
+    d = rig.to_dict()
+    d["camera"]["t"] = [0.0, 0.0, -500.0]  # camera below the plane
+    p = tmp_path / "below.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(RigError, match="above the reference plane"):
+        Rig.load(p)
+    p.write_text("{ not json")
+    with pytest.raises(RigError, match="not valid JSON"):
+        Rig.load(p)
+    with pytest.raises(RigError, match="not found"):
+        Rig.load(tmp_path / "missing.json")
