@@ -1,0 +1,50 @@
+"""`uhrnet bench` end to end on tiny models and inputs."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from uhrnet.cli import main
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    """Tiny models on a shared machine run 10-30x faster on one thread than on an oversubscribed pool."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def test_bench_runs_all_default_models(tmp_path, capsys):
+    out = tmp_path / "bench.json"
+    argv = ["bench", "--height", "32", "--width", "64", "--base-channels", "4", "--repeats", "1", "--warmup", "0"]
+    assert main([*argv, "--device", "cpu", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "UHRNet / U-Net forward time" in text and "2.77" in text
+    report = json.loads(out.read_text())
+    results = {r["model"]: r for r in report["results"]}
+    assert list(results) == ["uhrnet", "unet", "model_a", "model_b", "hnet"]
+    assert results["model_a"]["base_channels"] == 2 and results["uhrnet"]["base_channels"] == 4
+    for r in results.values():
+        assert r["parameters"] > 0 and r["forward_ms"] > 0 and r["train_step_ms"] > 0
+    assert report["uhrnet_unet_forward_ratio"] == pytest.approx(
+        results["uhrnet"]["forward_ms"] / results["unet"]["forward_ms"]
+    )
+
+
+def test_bench_channels_last_without_training(capsys):
+    argv = ["bench", "--models", "hnet", "--height", "32", "--width", "32", "--base-channels", "4"]
+    assert main([*argv, "--repeats", "1", "--warmup", "0", "--channels-last", "--no-train"]) == 0
+    assert "hnet" in capsys.readouterr().out
+
+
+def test_bench_user_errors(capsys):
+    assert main(["bench", "--models", "resnet"]) == 1
+    assert main(["bench", "--height", "40"]) == 1
+    if not torch.cuda.is_available():
+        assert main(["bench", "--device", "cuda"]) == 1
+    assert "error" in capsys.readouterr().err
