@@ -85,3 +85,12 @@ def test_timing_and_memory_helpers():
     assert len(time_call(lambda: calls.append(1), "cpu", warmup=2, repeats=3)) == 3 and len(calls) == 5
     peak = peak_memory_bytes(lambda: torch.ones(64, 2**20).sum(), "cpu")  # a 256 MiB temporary
     assert peak is None or peak >= 200 * 2**20
+
+
+def test_ssim_of_low_precision_inputs_is_computed_in_float32():
+    torch.manual_seed(0)
+    target = 40 * torch.rand(1, 1, 32, 32) - 120
+    pred = target + torch.randn_like(target)
+    reference = ssim(pred, target, 40.0)
+    low = ssim(pred.bfloat16(), target.bfloat16(), 40.0)
+    assert low.dtype == torch.float32 and float(low) == pytest.approx(float(reference), abs=1e-2)

@@ -36,7 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
     parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
-    parser.add_argument("--compile", action="store_true", help="wrap each model in torch.compile")
+    parser.add_argument(
+        "--compile",
+        action="store_true",
+        help="wrap each model in torch.compile (compiles during warm-up, so at least 2 warm-up calls are made)",
+    )
     parser.add_argument(
         "--base-channels",
         type=int,
@@ -169,6 +173,8 @@ def run(args: argparse.Namespace) -> int:
     if args.repeats < 1 or args.warmup < 0 or args.batch_size < 1:
         raise CLIError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
     device = resolve_device(args.device)
+    if args.compile:
+        args.warmup = max(args.warmup, 2)
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
         where = torch.cuda.get_device_name(device)

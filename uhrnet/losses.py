@@ -30,7 +30,8 @@ def _squared_error(pred: torch.Tensor, target: torch.Tensor, mask) -> tuple[torc
     if pred.shape != target.shape:
         raise ValueError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
     valid = valid_mask(mask, pred)
-    diff = pred - target
+    dtype = torch.promote_types(pred.dtype, torch.float32)  # sums of squares in at least float32
+    diff = pred.to(dtype) - target.to(dtype)
     if valid is None:
         return diff * diff, torch.ones_like(diff)
     diff = torch.where(valid, diff, torch.zeros_like(diff))
@@ -129,6 +130,8 @@ class ChunkedL2Loss(Loss):
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor, mask=None, *, update: bool | None = None) -> torch.Tensor:
         """The weighted loss; ``update`` (default: ``pred.requires_grad``) accumulates the epoch state."""
+        if self.ranks.device != pred.device:
+            self.to(pred.device)  # the state follows the data, so the loss needs no explicit .to(device)
         l2, count = self.patch_losses(pred, target, mask)
         if update is None:
             update = pred.requires_grad

@@ -65,7 +65,8 @@ def ssim_map(
     Only windows that lie fully inside the image are returned: this is exactly the part of scikit-image's
     map (``gaussian_weights=True, use_sample_covariance=False``) that its mean SSIM averages. Moments are
     taken about a per-image constant (the target's mean) so float32 stays accurate for offset data;
-    the result is mathematically unchanged.
+    the result is mathematically unchanged. Half-precision inputs are computed in float32 (also under
+    autocast).
     """
     if window % 2 == 0:
         raise ValueError(f"window must be odd, got {window}")
@@ -74,6 +75,12 @@ def ssim_map(
     n, c, h, w = pred.shape
     if h < window or w < window:
         raise ValueError(f"image {h}x{w} is smaller than the {window}x{window} SSIM window")
+    dtype = torch.promote_types(pred.dtype, torch.float32)  # never filter in half precision
+    with torch.autocast(pred.device.type, enabled=False):
+        return _ssim_map(pred.to(dtype), target.to(dtype), data_range, window, sigma, k1, k2)
+
+
+def _ssim_map(pred, target, data_range, window, sigma, k1, k2) -> torch.Tensor:
     offset = target.detach().mean(dim=(1, 2, 3), keepdim=True)
     x, y = pred - offset, target - offset
     stack = torch.cat([x, y, x * x, y * y, x * y], dim=1)
