@@ -237,3 +237,14 @@ def test_mixed_dataset_indexing(tmp_path):
     assert len(m) == 5 and m.n_real == 3 and m[4]["source"] == "synthetic"
     with pytest.raises(IndexError):
         m[5]
+
+
+def test_figshare_pickles_without_copying_arrays(tmp_path):
+    import pickle
+
+    write_figshare(tmp_path, n=4, h=32, w=64)
+    ds = FigshareArrays(tmp_path)
+    blob = pickle.dumps(ds)
+    assert len(blob) < 4 * 32 * 64 * 4  # far less than one array
+    again = pickle.loads(blob)
+    assert torch.equal(again[3]["height"], ds[3]["height"])

@@ -270,6 +270,16 @@ class FigshareArrays(Dataset):
     def __len__(self) -> int:
         return int(self.labels.shape[0])
 
+    def __getstate__(self):  # loader workers started by spawn re-open the memory maps, never copy them
+        state = dict(self.__dict__)
+        state.pop("fringes"), state.pop("labels")
+        return state
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self.fringes = _load_npy(self.fringe_path, "fringe")
+        self.labels = _load_npy(self.label_path, "label")
+
     @property
     def image_shape(self) -> tuple[int, int]:
         return tuple(self.labels.shape[1:])

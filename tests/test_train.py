@@ -1,0 +1,222 @@
+"""uhrnet train: learning, exact resume, atomic checkpoints, NaN stop, CLI errors, 2-process DDP on CPU."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from uhrnet.checkpoint import CheckpointError, atomic_save, load_checkpoint, model_from_checkpoint
+from uhrnet.cli import main
+from uhrnet.data import load_sources
+
+from _uhrnet_fixtures import write_figshare, write_native
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def one_thread():
+    """The CI machine has 2 shared cores: tiny models run faster (and steadier) on one thread."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def history(run) -> list[dict]:
+    with open(Path(run) / "history.csv") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.slow
+def test_tiny_model_beats_mean_height_predictor(tmp_path, one_thread):
+    write_native(tmp_path / "syn", n=30, h=32, w=64, seed=5)
+    src = load_sources(synthetic=[tmp_path / "syn"])
+    train = [src.train[i] for i in range(len(src.train))]
+    mean = np.mean(np.concatenate([s["height"][s["mask"] > 0].numpy() for s in train]))
+    val = [src.val[i] for i in range(len(src.val))]
+    trivial = np.mean([np.sqrt(np.mean((s["height"][s["mask"] > 0].numpy() - mean) ** 2)) / 6 for s in val])
+    run = tmp_path / "run"
+    rc = main(["train", "--synthetic", str(tmp_path / "syn"), "--model", "uhrnet", "--base-channels", "4",
+               "--epochs", "7", "--batch-size", "2", "--lr", "3e-3", "--loss", "l2", "--out", str(run),
+               "--no-progress"])
+    assert rc == 0
+    rows = history(run)
+    assert [int(r["epoch"]) for r in rows] == list(range(1, 8))
+    best = min(float(r["val_rmse_mm"]) for r in rows)
+    assert best < 0.6 * trivial, (best, trivial)
+    assert (run / "history.png").stat().st_size > 1000
+    ckpt = load_checkpoint(run / "best.pt")
+    assert ckpt["model"]["name"] == "uhrnet" and ckpt["model"]["config"]["base_channels"] == 4
+    assert ckpt["label_transform"]["units_per_mm"] == 6.0
+    assert ckpt["epoch"] == ckpt["best"]["epoch"]
+    model, transform = model_from_checkpoint(ckpt)
+    with torch.no_grad():
+        pred = model(val[0]["fringe"][None])
+    assert pred.shape == (1, 1, 32, 64)
+
+
+def _train(out, data, epochs, extra=()):
+    real, syn = data
+    return main(["train", "--real", str(real), "--synthetic", str(syn), "--synthetic-ratio", "0.5",
+                 "--model", "uhrnet", "--base-channels", "4", "--loss", "compound", "--batch-size", "2",
+                 "--crop", "16x32", "--lr", "1e-3", "--epochs", str(epochs), "--seed", "7", "--out", str(out),
+                 "--no-progress", *extra])
+
+
+def test_resume_equals_uninterrupted(tmp_path, one_thread):
+    data = (tmp_path / "real", tmp_path / "syn")
+    write_figshare(data[0], n=8, h=32, w=64, seed=1)
+    write_native(data[1], n=8, h=32, w=64, seed=2)
+    assert _train(tmp_path / "full", data, 3) == 0
+    assert _train(tmp_path / "part", data, 1) == 0
+    assert _train(tmp_path / "part", data, 3, ["--resume"]) == 0
+    a, b = load_checkpoint(tmp_path / "full" / "last.pt"), load_checkpoint(tmp_path / "part" / "last.pt")
+    assert a["epoch"] == b["epoch"] == 3
+    for k, v in a["state_dict"].items():
+        assert torch.equal(v, b["state_dict"][k]), k
+    for k, v in a["loss"].items():
+        assert torch.equal(v, b["loss"][k]), k
+    ha, hb = history(tmp_path / "full"), history(tmp_path / "part")
+    assert len(ha) == len(hb) == 3
+    for ra, rb in zip(ha, hb):
+        ra.pop("seconds"), rb.pop("seconds")
+        assert ra == rb
+
+
+def test_cli_errors(tmp_path, capsys):
+    write_figshare(tmp_path / "real", n=8, h=32, w=64)
+    write_figshare(tmp_path / "odd", n=8, h=20, w=40)
+    base = ["train", "--model", "unet", "--base-channels", "4", "--epochs", "1", "--no-progress"]
+    assert main(base + ["--out", str(tmp_path / "r0")]) == 1
+    assert "no data" in capsys.readouterr().err
+    assert main(base + ["--real", str(tmp_path / "nope"), "--out", str(tmp_path / "r1")]) == 1
+    assert "nope: folder not found" in capsys.readouterr().err
+    assert main(base + ["--real", str(tmp_path / "odd"), "--out", str(tmp_path / "r2")]) == 1
+    assert "multiples of 16" in capsys.readouterr().err
+    assert main(base + ["--real", str(tmp_path / "real"), "--crop", "16", "--out", str(tmp_path / "r3")]) == 1
+    assert "--crop" in capsys.readouterr().err
+    assert main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "ok")]) == 0
+    capsys.readouterr()
+    assert main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "ok")]) == 1
+    assert "pass --resume" in capsys.readouterr().err
+    assert main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "ok"), "--resume",
+                        "--model", "hnet"]) == 1
+    assert "--model hnet differs" in capsys.readouterr().err
+    assert main(["train", "--out", str(tmp_path / "ok"), "--resume", "--no-progress"]) == 0  # epochs reached
+    assert "already trained 1" in capsys.readouterr().out
+    assert main(["train", "--out", str(tmp_path / "ok"), "--resume", "--epochs", "2", "--no-progress"]) == 0
+    assert len(history(tmp_path / "ok")) == 2
+    with pytest.raises(SystemExit) as exc:
+        main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "x"), "--loss", "bogus"])
+    assert exc.value.code == 2
+
+
+def test_nan_loss_stops_with_clear_message(tmp_path, capsys, monkeypatch):
+    import uhrnet.losses
+
+    real_build = uhrnet.losses.build_loss
+
+    def nan_after_two(name, data_range=None, **kw):
+        loss = real_build(name, data_range=data_range, **kw)
+        calls = {"n": 0}
+        forward = loss.forward
+
+        def poisoned(pred, target, mask=None):
+            calls["n"] += 1
+            value = forward(pred, target, mask)
+            return value * float("nan") if calls["n"] > 2 else value
+
+        loss.forward = poisoned
+        return loss
+
+    monkeypatch.setattr(uhrnet.losses, "build_loss", nan_after_two)
+    write_figshare(tmp_path / "real", n=8, h=32, w=64)
+    rc = main(["train", "--real", str(tmp_path / "real"), "--model", "unet", "--base-channels", "4", "--loss",
+               "l2", "--epochs", "3", "--batch-size", "2", "--out", str(tmp_path / "run"), "--no-progress"])
+    assert rc == 1
+    err = capsys.readouterr().err
+    assert "training diverged: loss became nan at epoch 1, step 3" in err and "--lr" in err
+
+
+def test_hnet_tuple_outputs_train(tmp_path, one_thread):
+    write_figshare(tmp_path / "real", n=6, h=32, w=64)
+    rc = main(["train", "--real", str(tmp_path / "real"), "--model", "hnet", "--base-channels", "4", "--loss",
+               "chunked", "--epochs", "1", "--out", str(tmp_path / "run"), "--no-progress", "--resize", "16x32"])
+    assert rc == 0
+    ckpt = load_checkpoint(tmp_path / "run" / "last.pt")
+    assert ckpt["model"]["name"] == "hnet" and ckpt["image_shape"] == [16, 32]
+    assert ckpt["loss"]["ranks"].min() >= 1  # chunked ranks set after end_epoch()
+
+
+def test_checkpoint_kill_during_write_keeps_previous(tmp_path, monkeypatch):
+    path = tmp_path / "last.pt"
+    ckpt = {"format": "uhrnet-checkpoint", "version": 1, "model": {"name": "x", "config": {}},
+            "state_dict": {"w": torch.arange(10.0)}, "label_transform": {}, "epoch": 1}
+    atomic_save(ckpt, path)
+
+    # (1) an exception (e.g. KeyboardInterrupt) half-way through serialisation
+    import uhrnet.checkpoint as cp
+
+    def torn_save(obj, f):
+        f.write(b"PK\x03\x04 partial")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cp.torch, "save", torn_save)
+    with pytest.raises(KeyboardInterrupt):
+        atomic_save({**ckpt, "epoch": 2}, path)
+    monkeypatch.undo()
+    assert load_checkpoint(path)["epoch"] == 1
+    assert not list(tmp_path.glob(".last.pt.tmp-*"))
+
+    # (2) SIGKILL of a process that rewrites a large checkpoint in a loop
+    script = (
+        "import sys, torch; from uhrnet.checkpoint import atomic_save\n"
+        "ck = {'format': 'uhrnet-checkpoint', 'version': 1, 'model': {'name': 'x', 'config': {}},"
+        " 'label_transform': {}, 'state_dict': {'w': torch.randn(4_000_000)}}\n"
+        "e = 0\n"
+        "while True:\n"
+        "    e += 1; ck['epoch'] = e; atomic_save(ck, sys.argv[1]); print(e, flush=True)\n"
+    )
+    big = tmp_path / "big.pt"
+    for delay in (0.05, 0.2):
+        proc = subprocess.Popen([sys.executable, "-c", script, str(big)], stdout=subprocess.PIPE, text=True)
+        try:
+            assert proc.stdout.readline().strip() == "1"  # one complete checkpoint exists
+            time.sleep(delay)
+        finally:
+            proc.send_signal(signal.SIGKILL)
+            proc.wait()
+        ck = load_checkpoint(big)
+        assert ck["epoch"] >= 1 and ck["state_dict"]["w"].numel() == 4_000_000
+
+    path.write_bytes(b"garbage")
+    with pytest.raises(CheckpointError, match="last.pt: cannot load"):
+        load_checkpoint(path)
+
+
+@pytest.mark.slow
+def test_ddp_two_cpu_processes_write_one_history(tmp_path):
+    write_figshare(tmp_path / "real", n=8, h=32, w=64)
+    write_native(tmp_path / "syn", n=6, h=32, w=64)
+    run = tmp_path / "run"
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2",
+           "-m", "uhrnet", "train", "--real", str(tmp_path / "real"), "--synthetic", str(tmp_path / "syn"),
+           "--model", "uhrnet", "--base-channels", "4", "--loss", "compound", "--epochs", "2", "--batch-size", "2",
+           "--device", "cpu", "--out", str(run), "--no-progress"]
+    res = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300, cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert res.stdout.count("epoch 2/2") == 1  # only rank 0 reports
+    rows = history(run)
+    assert [r["epoch"] for r in rows] == ["1", "2"]
+    ckpt = load_checkpoint(run / "last.pt")
+    assert ckpt["world_size"] == 2 and len(ckpt["rng"]) == 2
+    assert sorted(p.name for p in run.iterdir()) == ["best.pt", "config.json", "history.csv", "history.png", "last.pt"]
