@@ -84,3 +84,13 @@ def write_native(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, ps
             mf.write(json.dumps({"id": sid}) + "\n")
             ids.append(sid)
     return ids
+
+
+def train_tiny(out, *data_args, model: str = "unet", epochs: int = 1, extra=()) -> Path:
+    """Train a tiny model through the CLI (base 4 channels); returns the run folder."""
+    from uhrnet.cli import main
+
+    rc = main(["train", *map(str, data_args), "--model", model, "--base-channels", "4", "--epochs", str(epochs),
+               "--loss", "l2", "--lr", "1e-3", "--out", str(out), "--no-progress", *map(str, extra)])
+    assert rc == 0
+    return Path(out)

@@ -1,0 +1,94 @@
+"""uhrnet evaluate: Table 3 (Markdown/CSV/JSON), per-sample metrics and comparison figures."""
+
+import csv
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.cli import main
+from uhrnet.data import load_sources
+from uhrnet.inference import predict_labels
+
+from _uhrnet_fixtures import REAL_SAMPLE, train_tiny, write_figshare, write_native
+
+
+@pytest.fixture(scope="module")
+def runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("eval")
+    write_figshare(tmp / "real", n=10, h=32, w=64, seed=1)
+    write_native(tmp / "syn", n=10, h=32, w=64, seed=2)
+    data = ("--real", tmp / "real", "--synthetic", tmp / "syn")
+    a = train_tiny(tmp / "unet", *data, model="unet")
+    b = train_tiny(tmp / "uhrnet", *data, model="uhrnet")
+    return tmp, a, b
+
+
+def test_evaluate_two_models(runs, capsys):
+    tmp, a, b = runs
+    out = tmp / "report"
+    rc = main(["evaluate", str(a / "best.pt"), str(b), "--out", str(out), "--timing-repeats", "1",
+               "--figures", "2", "--no-progress"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "| Model | RMSE (mm) | SSIM |" in printed and "report:" in printed
+    md = (out / "results.md").read_text()
+    assert "| unet |" in md and "| uhrnet |" in md and "RMSE real (mm)" in md
+    with open(out / "results.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["name"] for r in rows] == ["unet", "uhrnet"]
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["split"] == "test" and summary["images"] == 2  # 1 real + 1 synthetic test image (10 -> 8/1/1)
+    unet = summary["models"][0]
+    assert unet["parameters"] == load_checkpoint(a / "best.pt")["n_parameters"]
+    assert unet["seconds_per_image"] > 0 and unet["images_real"] == 1 and unet["images_synthetic"] == 1
+    with open(out / "per_sample.csv") as f:
+        per = list(csv.DictReader(f))
+    assert len(per) == 4
+    # The reported RMSE is the mean of per-image RMSEs over valid pixels, in mm.
+    ckpt = load_checkpoint(a / "best.pt")
+    model, transform = model_from_checkpoint(ckpt)
+    src = load_sources([tmp / "real"], [tmp / "syn"], transform)
+    errs = []
+    for i in range(len(src.test)):
+        s = src.test[i]
+        pred = predict_labels(model, s["fringe"][None])[0, 0].numpy().astype(np.float64)
+        m = s["mask"][0].numpy() > 0
+        errs.append(np.sqrt(np.mean((pred[m] - s["height"][0].numpy()[m]) ** 2)) / 6)
+    assert unet["rmse_mm"] == pytest.approx(np.mean(errs), rel=1e-5)
+    figs = sorted(p.name for p in (out / "figures").iterdir())
+    assert len(figs) == 2 and all(f.endswith(".png") for f in figs)
+
+
+def test_evaluate_options_and_errors(runs, capsys):
+    tmp, a, b = runs
+    out = tmp / "report2"
+    rc = main(["evaluate", str(a), str(a), "--synthetic", str(tmp / "syn"), "--real", "--out", str(out),
+               "--split", "all", "--samples", "000003", "#0", "--timing-repeats", "0", "--no-progress",
+               "--names", "first", "second"])
+    assert rc == 0
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["images"] == 10 and summary["models"][1]["name"] == "second"
+    assert summary["models"][0]["seconds_per_image"] is None
+    assert sorted(p.name for p in (out / "figures").iterdir()) == ["synthetic_000000.png", "synthetic_000003.png"]
+    capsys.readouterr()
+    assert main(["evaluate", str(tmp / "nope.pt"), "--out", str(out)]) == 1
+    assert "nope.pt: checkpoint not found" in capsys.readouterr().err
+    assert main(["evaluate", str(a), "--out", str(out), "--names", "x", "y"]) == 1
+    assert main(["evaluate", str(a), "--out", str(out), "--samples", "zzz", "--no-progress"]) == 1
+    assert "--samples" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (REAL_SAMPLE / "height_map.npy").exists(), reason="../shared/real-sample absent")
+def test_evaluate_on_the_real_sample(runs):
+    tmp, a, _ = runs
+    out = tmp / "real_report"
+    rc = main(["evaluate", str(a), "--real", str(REAL_SAMPLE), "--synthetic", "--split", "all", "--out", str(out),
+               "--timing-repeats", "1", "--no-progress"])
+    assert rc == 0
+    summary = json.loads((out / "results.json").read_text())
+    assert summary["images"] == 1 and summary["models"][0]["timing_shape"] == [352, 640]
+    assert np.isfinite(summary["models"][0]["rmse_mm"])
+    assert (out / "figures" / "real_000000.png").exists()

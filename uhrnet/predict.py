@@ -1,0 +1,220 @@
+"""`uhrnet predict`: fringe images -> height maps (mm), colour previews and point clouds.
+
+Inputs: 8-bit (or 16-bit) grey PNG/TIFF/BMP/JPEG images, or ``.npy`` arrays in the dataset encoding
+(intensity / 127.5 - 1, shapes (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)), or folders of them.
+For every image ``NAME`` it writes to ``--out``:
+
+* ``NAME_height.npy`` and ``NAME_height.tif``: float32 height above the reference plane in mm
+  (label transform of the checkpoint: ``(label - plane_offset) / units_per_mm``), NaN where invalid;
+* ``NAME_height.png``: colour-mapped preview (invalid pixels grey);
+* ``NAME.ply``: binary point cloud of the valid pixels, grey from the fringe. With ``--rig`` the points
+  are the camera rays of the calibrated rig (``fppsim.rig``) cut at the predicted height, in world
+  millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
+
+A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
+input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from uhrnet.checkpoint import CheckpointError, load_checkpoint, model_from_checkpoint, select_device
+from uhrnet.cli import CLIError
+from uhrnet.data import DataError, parse_size, read_fringe_image
+
+IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
+INPUT_EXTS = IMAGE_EXTS + (".npy",)
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+    p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="fringe images, .npy arrays, or folders of them")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
+                                                 "metric x, y in the point cloud")
+    p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
+                   help="x, y spacing of the point cloud without --rig")
+    p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
+    p.add_argument("--range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="colour range of the PNG in mm [1st-99th percentile]")
+    p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG")
+    p.add_argument("--no-ply", action="store_true", help="skip the point clouds")
+    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def collect_inputs(items: list[str]) -> list[Path]:
+    files: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS)
+            if not found:
+                raise CLIError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder")
+            files += found
+        elif p.is_file():
+            if p.suffix.lower() not in INPUT_EXTS:
+                raise CLIError(f"{p}: unsupported input type (use {', '.join(INPUT_EXTS)})")
+            files.append(p)
+        else:
+            raise CLIError(f"{p}: input not found")
+    return files
+
+
+def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
+    """``[(name, fringe float32 (H, W) in [-1, 1]), ...]`` for one input file."""
+    if path.suffix.lower() != ".npy":
+        return [(path.stem, read_fringe_image(path))]
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
+    if arr.ndim == 4 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    elif arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[None, ..., 0]
+    elif arr.ndim == 2:
+        arr = arr[None]
+    elif arr.ndim != 3:
+        raise DataError(f"{path}: shape {arr.shape}, expected (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)")
+    if arr.dtype == np.uint8:
+        arr = arr.astype(np.float32) / np.float32(127.5) - np.float32(1)
+    elif not np.issubdtype(arr.dtype, np.floating):
+        raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
+    out = []
+    for k in range(arr.shape[0]):
+        img = np.array(arr[k], dtype=np.float32)
+        if not np.isfinite(img).all():
+            raise DataError(f"{path}: image {k} contains NaN/inf")
+        lo, hi = float(img.min()), float(img.max())
+        if lo < -1.001 or hi > 1.001:
+            raise DataError(f"{path}: values span [{lo:g}, {hi:g}]; expected the dataset encoding "
+                            "intensity / 127.5 - 1 in [-1, 1]")
+        out.append((path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", img))
+    return out
+
+
+def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) where each camera pixel's ray reaches world z = height (mm)."""
+    cam = rig.camera
+    h, w = height_mm.shape
+    if (cam.width, cam.height) != (w, h):
+        raise CLIError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    origin, d = cam.pixel_rays(np.stack([uu, vv], axis=-1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (height_mm.astype(np.float64) - origin[2]) / d[..., 2]
+    return origin + s[..., None] * d
+
+
+def points_from_grid(height_mm: np.ndarray, pixel_size: float) -> np.ndarray:
+    h, w = height_mm.shape
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    return np.stack([uu * pixel_size, (h - 1 - vv) * pixel_size, height_mm.astype(np.float64)], axis=-1)
+
+
+def write_ply(path: Path, points: np.ndarray, grey: np.ndarray) -> int:
+    """Binary little-endian PLY with float x, y, z and uchar red, green, blue; returns the point count."""
+    ok = np.isfinite(points).all(axis=-1)
+    pts, g = points[ok].astype(np.float32), grey[ok].astype(np.uint8)
+    rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["red"] = rec["green"] = rec["blue"] = g
+    header = ("ply\nformat binary_little_endian 1.0\ncomment uhrnet predicted height, millimetres\n"
+              f"element vertex {len(rec)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    return len(rec)
+
+
+def write_tiff(path: Path, array: np.ndarray) -> None:
+    from PIL import Image
+
+    Image.fromarray(np.ascontiguousarray(array, dtype=np.float32)).save(path)
+
+
+def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    from matplotlib import colormaps
+
+    finite = height_mm[np.isfinite(height_mm)]
+    if vrange is None:
+        vrange = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
+    lo, hi = float(vrange[0]), float(vrange[1])
+    scaled = np.clip((height_mm - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    rgb = (colormaps[cmap](np.nan_to_num(scaled))[..., :3] * 255).round().astype(np.uint8)
+    rgb[~np.isfinite(height_mm)] = 128
+    import cv2
+
+    cv2.imwrite(str(path), rgb[..., ::-1])
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except (DataError, CheckpointError) as exc:
+        raise CLIError(str(exc)) from None
+
+
+def _run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from uhrnet.inference import predict_labels
+
+    files = collect_inputs(args.inputs)
+    ckpt = load_checkpoint(args.checkpoint)
+    try:
+        device = select_device(args.device)
+    except ValueError as exc:
+        raise CLIError(str(exc)) from None
+    model, transform = model_from_checkpoint(ckpt, device)
+    size = parse_size(ckpt.get("args", {}).get("resize"))
+    rig = None
+    if args.rig:
+        from fppsim.rig import Rig, RigError
+
+        try:
+            rig = Rig.load(args.rig)
+        except RigError as exc:
+            raise CLIError(str(exc)) from None
+    if args.colormap not in __import__("matplotlib").colormaps:
+        raise CLIError(f"--colormap: unknown matplotlib colour map {args.colormap!r}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    used: set[str] = set()
+    written = 0
+    for path in tqdm(files, desc="predict", unit="file", disable=args.no_progress or len(files) < 2):
+        for name, fringe in load_inputs(path):
+            base, k = name, 1
+            while name in used:  # same stem from two folders
+                k += 1
+                name = f"{base}_{k}"
+            used.add(name)
+            label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
+            height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
+            if not args.keep_all:
+                valid = transform.mask(label) & (fringe > -1 + 1e-6)
+                height = np.where(valid, height, np.float32(np.nan))
+            np.save(out / f"{name}_height.npy", height)
+            write_tiff(out / f"{name}_height.tif", height)
+            write_preview(out / f"{name}_height.png", height, args.colormap, args.range)
+            if not args.no_ply:
+                pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, args.pixel_size)
+                grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
+                write_ply(out / f"{name}.ply", pts, grey)
+            written += 1
+    print(f"predict: {written} height map(s) from {len(files)} input file(s) -> {out} "
+          f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
+          f"{', x/y from rig ' + str(args.rig) if rig is not None else ''})")
+    return 0
