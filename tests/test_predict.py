@@ -1,0 +1,109 @@
+"""uhrnet predict: images/.npy/folders -> height .npy/.tif (mm), colour PNG, PLY (pixel grid or rig rays)."""
+
+import numpy as np
+import pytest
+import torch
+
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.cli import main
+from uhrnet.inference import predict_labels
+
+from _uhrnet_fixtures import scene, train_tiny, write_figshare
+
+
+@pytest.fixture(scope="module")
+def ckpt(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("pred")
+    write_figshare(tmp / "real", n=8, h=32, w=64)
+    return train_tiny(tmp / "run", "--real", tmp / "real", model="uhrnet", epochs=3,
+                      extra=("--lr", "3e-3", "--batch-size", "2")) / "best.pt"
+
+
+def read_ply(path):
+    data = path.read_bytes()
+    head, body = data.split(b"end_header\n", 1)
+    n = int([l for l in head.decode().splitlines() if l.startswith("element vertex")][0].split()[-1])
+    rec = np.frombuffer(body, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"), ("g", "u1"), ("b", "u1")])
+    assert len(rec) == n
+    return rec
+
+
+def test_predict_png_npy_and_folder(ckpt, tmp_path, capsys):
+    import cv2
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    f8, _, valid = scene(rng, 40, 72)  # not a multiple of 16: padded and cropped back
+    (tmp_path / "in").mkdir()
+    cv2.imwrite(str(tmp_path / "in" / "a.png"), f8)
+    cv2.imwrite(str(tmp_path / "in" / "b.tif"), f8)
+    stack = np.stack([f8, f8]).astype(np.float32)[..., None] / 127.5 - 1
+    np.save(tmp_path / "stack.npy", stack)
+    out = tmp_path / "out"
+    rc = main(["predict", str(ckpt), str(tmp_path / "in"), str(tmp_path / "stack.npy"), "--out", str(out),
+               "--no-progress"])
+    assert rc == 0
+    assert "4 height map(s) from 3 input file(s)" in capsys.readouterr().out
+    for name in ("a", "b", "stack_0000", "stack_0001"):
+        for suffix in ("_height.npy", "_height.tif", "_height.png", ".ply"):
+            assert (out / f"{name}{suffix}").exists(), name + suffix
+    h = np.load(out / "a_height.npy")
+    assert h.shape == (40, 72) and h.dtype == np.float32
+    np.testing.assert_array_equal(np.array(Image.open(out / "a_height.tif")), h)
+    np.testing.assert_array_equal(np.load(out / "stack_0001_height.npy"), h)
+    assert np.isnan(h[~valid]).all()  # black (shadow) input pixels are invalid
+    assert np.isfinite(h).mean() > 0.5
+    # Height = (label - plane_offset) / 6 of the model's prediction.
+    c = load_checkpoint(ckpt)
+    model, t = model_from_checkpoint(c)
+    label = predict_labels(model, torch.from_numpy(f8.astype(np.float32) / 127.5 - 1)[None, None])[0, 0].numpy()
+    ok = np.isfinite(h)
+    np.testing.assert_allclose(h[ok], ((label + 97) / 6)[ok], rtol=1e-5, atol=1e-4)
+    ply = read_ply(out / "a.ply")
+    assert len(ply) == ok.sum()
+    np.testing.assert_allclose(np.sort(ply["z"]), np.sort(h[ok]), rtol=1e-6)
+    assert ply["x"].max() == 71 and ply["y"].max() <= 39
+
+
+def test_predict_with_rig_back_projection(ckpt, tmp_path):
+    rig_mod = pytest.importorskip("fppsim.rig")
+    try:
+        rig = rig_mod.Rig.default()
+    except Exception as exc:  # the default rig asset not there yet
+        pytest.skip(f"no default rig: {exc}")
+    import cv2
+
+    cam = rig.camera
+    f8, _, _ = scene(np.random.default_rng(1), cam.height, cam.width)
+    cv2.imwrite(str(tmp_path / "img.png"), f8)
+    rig_path = tmp_path / "rig.json"
+    rig.save(rig_path)
+    out = tmp_path / "out"
+    assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), "--rig", str(rig_path),
+                 "--no-progress"]) == 0
+    h = np.load(out / "img_height.npy")
+    ply = read_ply(out / "img.ply")
+    pts = np.stack([ply["x"], ply["y"], ply["z"]], axis=-1).astype(np.float64)
+    np.testing.assert_allclose(np.sort(pts[:, 2]), np.sort(h[np.isfinite(h)]), atol=1e-3)
+    uv, _ = cam.project(pts)  # every point lies on its own pixel's ray
+    rows, cols = np.nonzero(np.isfinite(h))
+    np.testing.assert_allclose(uv[:, 0], cols, atol=2e-2)
+    np.testing.assert_allclose(uv[:, 1], rows, atol=2e-2)
+
+
+def test_predict_errors(ckpt, tmp_path, capsys):
+    out = str(tmp_path / "out")
+    assert main(["predict", str(ckpt), str(tmp_path / "missing.png"), "--out", out]) == 1
+    assert "missing.png: input not found" in capsys.readouterr().err
+    (tmp_path / "empty").mkdir()
+    assert main(["predict", str(ckpt), str(tmp_path / "empty"), "--out", out]) == 1
+    assert "no images" in capsys.readouterr().err
+    np.save(tmp_path / "raw.npy", np.full((32, 32), 200.0, np.float32))
+    assert main(["predict", str(ckpt), str(tmp_path / "raw.npy"), "--out", out]) == 1
+    assert "raw.npy: values span" in capsys.readouterr().err
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    assert main(["predict", str(ckpt), str(tmp_path / "bad.png"), "--out", out]) == 1
+    assert "bad.png: cannot read as an image" in capsys.readouterr().err
+    np.save(tmp_path / "ok.npy", np.zeros((32, 64), np.float32))
+    assert main(["predict", str(ckpt), str(tmp_path / "ok.npy"), "--out", out, "--rig", str(tmp_path / "no.json")]) == 1
+    assert "no.json" in capsys.readouterr().err
