@@ -335,6 +335,7 @@ class FppsimDataset(Dataset):
         if not self.root.is_dir():
             raise DataError(f"{self.root}: not a folder")
         if find_figshare_pair(self.root) is not None:
+            _check_export_labels(self.root, self.transform)
             self.arrays = FigshareArrays(self.root, transform=self.transform, check=check, source=source)
             self.ids = self.arrays.ids
             return
@@ -378,12 +379,36 @@ class FppsimDataset(Dataset):
                 f"{npz}: {hkey} {height.shape} / {mkey} {valid.shape} do not match fringe.png {fringe.shape}"
             )
         valid = valid > 0.5
-        if not np.isfinite(height[valid]).all():
+        if self.label == "psp":  # PSP heights are NaN where decoding failed: invalid, as fppsim's export does
+            valid &= np.isfinite(height)
+        elif not np.isfinite(height[valid]).all():
             raise DataError(f"{npz}: {hkey} has NaN/inf on {int((~np.isfinite(height[valid])).sum())} valid pixels")
         label = self.transform.from_height_mm(height, valid)
-        if self.mask_fringe:
-            fringe = np.where(self.transform.mask(label), fringe, np.float32(-1.0))
+        if self.mask_fringe:  # as `fppsim generate --format figshare` encodes it: -1 off the mask
+            fringe = np.where(valid, fringe, np.float32(-1.0))
         return _sample(fringe, label, self.transform, sid, self.source)
+
+
+def _check_export_labels(root: Path, transform: LabelTransform) -> None:
+    """A figshare-format export by fppsim records its label transform in ``native/dataset.json``:
+    refuse to read it with a different one (the labels would be silently misinterpreted)."""
+    for meta in (root / "native" / "dataset.json", root / "dataset.json"):
+        if not meta.is_file():
+            continue
+        try:
+            label = json.loads(meta.read_text()).get("label") or {}
+        except (json.JSONDecodeError, AttributeError):
+            return
+        names = {"scale": "units_per_mm", "offset": "plane_offset", "invalid": "invalid_value",
+                 "threshold": "invalid_threshold"}
+        for theirs, ours in names.items():
+            if theirs in label and not math.isclose(float(label[theirs]), float(getattr(transform, ours)),
+                                                    rel_tol=1e-6, abs_tol=1e-6):
+                raise DataError(
+                    f"{meta}: these arrays were labelled with {theirs}={label[theirs]} but the label transform "
+                    f"has {ours}={getattr(transform, ours)} (set --label-transform {ours}={label[theirs]})"
+                )
+        return
 
 
 def _read_manifest(path: Path) -> list[str]:
