@@ -39,12 +39,14 @@ def test_predict_png_npy_and_folder(ckpt, tmp_path, capsys):
     cv2.imwrite(str(tmp_path / "in" / "b.tif"), f8)
     stack = np.stack([f8, f8]).astype(np.float32)[..., None] / 127.5 - 1
     np.save(tmp_path / "stack.npy", stack)
+    (tmp_path / "x").mkdir()
+    cv2.imwrite(str(tmp_path / "x" / "a.png"), f8)  # same stem as in/a.png
     out = tmp_path / "out"
-    rc = main(["predict", str(ckpt), str(tmp_path / "in"), str(tmp_path / "stack.npy"), "--out", str(out),
-               "--no-progress"])
+    rc = main(["predict", str(ckpt), str(tmp_path / "in"), str(tmp_path / "stack.npy"), str(tmp_path / "x" / "a.png"),
+               "--out", str(out), "--no-progress"])
     assert rc == 0
-    assert "4 height map(s) from 3 input file(s)" in capsys.readouterr().out
-    for name in ("a", "b", "stack_0000", "stack_0001"):
+    assert "5 height map(s) from 4 input file(s)" in capsys.readouterr().out
+    for name in ("a", "b", "stack_0000", "stack_0001", "x_a"):
         for suffix in ("_height.npy", "_height.tif", "_height.png", ".ply"):
             assert (out / f"{name}{suffix}").exists(), name + suffix
     h = np.load(out / "a_height.npy")

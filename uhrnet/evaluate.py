@@ -232,7 +232,7 @@ def _run(args: argparse.Namespace) -> int:
     print(md, end="")
     print(f"report: {out / 'results.md'} (also results.csv, results.json, per_sample.csv)")
     if figures:
-        print(f"figures: {out / 'figures'} ({len(figures)} images)")
+        print(f"figures: {out / 'figures'} ({len(figures)} image{'s' if len(figures) > 1 else ''})")
     return 0
 
 

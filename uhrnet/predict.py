@@ -196,8 +196,10 @@ def _run(args: argparse.Namespace) -> int:
     written = 0
     for path in tqdm(files, desc="predict", unit="file", disable=args.no_progress or len(files) < 2):
         for name, fringe in load_inputs(path):
+            if name in used:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
+                name = f"{path.parent.name}_{name}"
             base, k = name, 1
-            while name in used:  # same stem from two folders
+            while name in used:
                 k += 1
                 name = f"{base}_{k}"
             used.add(name)

@@ -300,6 +300,8 @@ class Trainer:
             self.device = select_device(self.cfg["device"], info.local_rank if info.enabled else None)
         except ValueError as exc:
             raise CLIError(str(exc)) from None
+        if self.device.type == "cuda":
+            torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
         self._build()
 
@@ -516,6 +518,8 @@ class Trainer:
                   + (f" x {info.world} processes" if info.enabled else "") + f", run folder {self.out}", flush=True)
             if self.start_epoch:
                 print(f"resuming after epoch {self.start_epoch}", flush=True)
+            if cfg["synthetic_ratio"] is not None and not (src.train.n_real and src.train.n_synthetic):
+                print("note: --synthetic-ratio has no effect with only one kind of training data", flush=True)
         if self.start_epoch >= cfg["epochs"]:
             if info.main:
                 print(f"already trained {self.start_epoch} epochs (--epochs {cfg['epochs']}); nothing to do")
