@@ -189,7 +189,8 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
             _worker_init(*init_args)
             consume(map(_worker_run, todo))
         else:
-            ctx = mp.get_context("fork")  # workers inherit the loaded meshes; GL contexts are per worker
+            # spawn, not fork: a GL (OSMesa/llvmpipe) context and its threads do not survive fork()
+            ctx = mp.get_context("spawn")
             with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=init_args) as pool:
                 consume(pool.imap_unordered(_worker_run, todo))
     finally:
