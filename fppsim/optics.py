@@ -82,10 +82,10 @@ class OpticsRanges:
     percentile about 185): bright plaster objects on a darker plane.
     """
 
-    gain: tuple[float, float] = (150.0, 230.0)
-    ambient: tuple[float, float] = (0.01, 0.06)
-    albedo_plane: tuple[float, float] = (0.30, 0.45)
-    albedo_object: tuple[float, float] = (0.75, 0.95)
+    gain: tuple[float, float] = (190.0, 270.0)
+    ambient: tuple[float, float] = (0.005, 0.04)
+    albedo_plane: tuple[float, float] = (0.25, 0.36)
+    albedo_object: tuple[float, float] = (0.80, 1.00)
     projector_gamma: tuple[float, float] = (1.0, 1.0)
     camera_gamma: tuple[float, float] = (1.0, 1.0)
     projector_blur: tuple[float, float] = (0.8, 1.6)

@@ -159,6 +159,10 @@ class Geometry:
     def height(self) -> np.ndarray:
         return np.where(self.seen, self.points[..., 2], 0.0)
 
+    def cropped(self, rows: slice, cols: slice) -> "Geometry":
+        """The geometry of an image window (e.g. without a rendering margin)."""
+        return Geometry(**{k: getattr(self, k)[rows, cols] for k in self.__dataclass_fields__})
+
     def at_pixel_centres(self, scale: int) -> "Geometry":
         """Sub-sample a ``scale``-times supersampled geometry at the pixel centres (scale odd)."""
         if scale == 1:

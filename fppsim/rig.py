@@ -162,6 +162,14 @@ class Device:
             s = (plane_z - origin[2]) / d[..., 2]
         return np.where(np.isfinite(s) & (s > 0), s, np.inf)
 
+    def expanded(self, margin: int) -> "Device":
+        """The same device with ``margin`` extra pixels on every side (pixel (u, v) becomes (u+m, v+m))."""
+        K = self.K.copy()
+        K[0, 2] += margin
+        K[1, 2] += margin
+        return Device(K=K, R=self.R, t=self.t, width=self.width + 2 * margin, height=self.height + 2 * margin,
+                      dist=self.dist)
+
     # ------------------------------------------------------------------ OpenGL conversion (the one place)
     def gl_pose(self) -> np.ndarray:
         """4x4 world-from-device pose in OpenGL axes (x right, y up, z backwards), for pyrender."""

@@ -129,8 +129,8 @@ class SceneRanges:
     """Ranges of the seeded scene sampler (mm, radians). Defaults follow the real figshare data."""
 
     objects: tuple[int, int] = (1, 3)           # objects per scene, inclusive
-    footprint: tuple[float, float] = (60.0, 120.0)  # longest horizontal size of one object, mm
-    max_relief: tuple[float, float] = (25.0, 50.0)  # cap on an object's height above the plane, mm
+    footprint: tuple[float, float] = (70.0, 140.0)  # longest horizontal size of one object, mm
+    max_relief: tuple[float, float] = (35.0, 55.0)  # cap on an object's height above the plane, mm
     tilt: float = np.deg2rad(10.0)              # max tilt about a random horizontal axis
     view_margin: float = 0.15                   # keep object centres this fraction inside the view
     overlap_probability: float = 0.35           # chance that a multi-object scene overlaps in depth

@@ -124,13 +124,18 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     rig = config.rig
     k = config.supersample
     cam = rig.camera
+    # Render a margin around the image so the camera blur sees real scene content at the borders
+    # (blurring with a clamped edge would shift the fringe phase of the outer columns); crop after.
+    m = int(np.ceil(4.0 * config.optics.camera_blur[1]))
+    render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
+    crop = (slice(m, m + cam.height), slice(m, m + cam.width))
     last_reason = ""
     for attempt in range(config.max_attempts):
         ss = np.random.SeedSequence([int(seed), int(index), attempt])
         scene_ss, optics_ss, noise_ss = ss.spawn(3)
         scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
-        geom_ss = scene_geometry(rig, [o.instance() for o in scene.objects], renderer, scale=k)
-        geom = geom_ss.at_pixel_centres(k)
+        geom_ss = scene_geometry(render_rig, [o.instance() for o in scene.objects], renderer, scale=k)
+        geom = geom_ss.at_pixel_centres(k).cropped(*crop)
         frac = float(geom.on_object.mean())
         if frac >= config.min_object_fraction:
             break
@@ -149,7 +154,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
             patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
             names.append(f"psp/f{f}_s{n}.png")
     imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k)
-    images = dict(zip(names, imgs))
+    images = {name: np.ascontiguousarray(img[crop]) for name, img in zip(names, imgs)}
 
     seen = geom.seen
     mask = geom.lit
@@ -175,6 +180,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         "optics": optics.to_dict(),
         "noise_free": bool(noise_free),
         "supersample": k,
+        "render_margin_px": m,
         "psp": {"freqs": list(config.psp_freqs), "steps": config.psp_steps,
                 "shifts_rad": [2.0 * np.pi * n / config.psp_steps for n in range(config.psp_steps)]}
         if config.psp_freqs else None,
