@@ -226,8 +226,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="store_true", help="log details (skipped meshes, failed samples)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (add, _, help_) in COMMANDS.items():
-        add(sub.add_parser(name, help=help_, description=help_,
-                           formatter_class=argparse.ArgumentDefaultsHelpFormatter))
+        add(sub.add_parser(name, help=help_, description=help_))
     return parser
 
 

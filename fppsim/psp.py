@@ -32,11 +32,14 @@ import numpy as np
 
 __all__ = [
     "DEFAULT_FREQS",
+    "Decoded",
     "PhaseShift",
     "Triangulation",
     "Unwrapped",
+    "decode_stacks",
     "height_from_phase",
     "ladder_stability_bound",
+    "order_consistency",
     "order_error_probability",
     "phase_from_sums",
     "phase_noise_std",
@@ -558,3 +561,85 @@ def reference_plane_parameters(rig, periods: float | None = None, atol: float = 
     d = float(sx * (proj.center[0] - cam.center[0]))
     f0 = float(f * proj.K[0, 0] / (proj.width * L))
     return float(L), d, f0
+
+
+# --------------------------------------------------------------------------------------------- decoding
+def order_consistency(phase: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Neighbour check of the fringe order: True where the pixel agrees with its 3 x 3 neighbourhood.
+
+    A neighbour agrees when its absolute phase differs by less than ``pi`` (half a period: on the
+    default rig 6.5 mm of height between adjacent pixels). A pixel is consistent when at least as many
+    valid neighbours agree as disagree; an isolated wrong order (all neighbours off by 2*pi*k) fails,
+    while a pixel on a genuine depth edge keeps its own surface's neighbours. (H, W) bool.
+    """
+    phase = np.asarray(phase, dtype=np.float64)
+    valid = np.asarray(valid, dtype=bool) & np.isfinite(phase)
+    H, W = phase.shape
+    pp = np.pad(np.where(valid, phase, 0.0), 1)
+    vp = np.pad(valid, 1)
+    agree = np.zeros((H, W), np.int8)
+    disagree = np.zeros((H, W), np.int8)
+    for dy in (0, 1, 2):
+        for dx in (0, 1, 2):
+            if dy == 1 and dx == 1:
+                continue
+            nv = vp[dy:dy + H, dx:dx + W]
+            close = np.abs(pp[dy:dy + H, dx:dx + W] - phase) < np.pi
+            agree += nv & close
+            disagree += nv & ~close
+    return valid & (agree >= disagree)
+
+
+@dataclass
+class Decoded:
+    """Result of :func:`decode_stacks` (all (H, W)).
+
+    phase : absolute phase of the highest frequency, rad.
+    height : triangulated height, mm (NaN where not ``valid``).
+    quality : modulation and B/A thresholds met at every frequency.
+    reliable : the temporal unwrapping residuals are small (see :func:`unwrap_temporal`).
+    consistent : the order agrees with the neighbourhood (see :func:`order_consistency`).
+    valid : all of the above and a finite triangulation.
+    """
+
+    phase: np.ndarray
+    order: np.ndarray
+    height: np.ndarray
+    quality: np.ndarray
+    reliable: np.ndarray
+    consistent: np.ndarray
+    valid: np.ndarray
+
+
+def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0, min_ratio: float = 0.0,
+                  neighbour_check: bool = True, shifts=None) -> Decoded:
+    """The whole PSP chain as a lab runs it: N-step phases per frequency, quality mask, temporal
+    unwrapping, order consistency check, triangulation with ``rig``.
+
+    Parameters
+    ----------
+    stacks : mapping ``{f: images}`` with ``images`` of shape (N, H, W) (any real dtype, e.g. uint8
+        camera images) for every frequency of ``freqs``.
+    min_modulation, min_ratio : thresholds of :func:`quality_mask` (gray levels, B/A), applied at every
+        frequency.
+    neighbour_check : also reject pixels failing :func:`order_consistency`.
+    rig : the calibrated rig for triangulation; None skips it (``height`` is then None).
+    """
+    freqs = tuple(int(f) for f in freqs)
+    quality, wrapped = None, []
+    for f in freqs:
+        res = wrapped_phase(np.asarray(stacks[f], dtype=np.float64), shifts)
+        wrapped.append(res.phase)
+        q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
+        quality = q if quality is None else (quality & q)
+    un = unwrap_temporal(wrapped, freqs)
+    ok = quality & un.reliable
+    consistent = order_consistency(un.phase, ok) if neighbour_check else ok.copy()
+    ok &= consistent
+    height = None
+    if rig is not None:
+        height = height_from_phase(rig, un.phase, periods=freqs[-1], mask=ok)
+        ok &= np.isfinite(height)
+        height = np.where(ok, height, np.nan)
+    return Decoded(phase=un.phase, order=un.order, height=height, quality=quality,
+                   reliable=un.reliable, consistent=consistent, valid=ok)

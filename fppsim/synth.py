@@ -83,31 +83,20 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
     return out
 
 
-def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, ...], mask: np.ndarray | None = None,
+def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, ...],
                min_modulation: float = 3.0) -> dict[str, np.ndarray]:
-    """Decode PSP stacks ``{freq: [step images]}`` like a lab: wrapped phases, temporal unwrapping,
-    triangulation. Returns float32 ``phase_psp`` (rad, absolute, highest frequency), ``height_psp`` (mm,
-    NaN where rejected), ``mask_psp`` (1 where modulation suffices and the fringe order is reliable).
-    """
-    from . import psp
+    """Decode PSP stacks ``{freq: [step images]}`` like a lab (:func:`fppsim.psp.decode_stacks`).
 
-    wrapped, quality = {}, None
-    for f in freqs:
-        stack = np.stack([np.asarray(im, dtype=np.float64) for im in images[f]])
-        res = psp.wrapped_phase(stack)
-        wrapped[f] = res.phase
-        q = psp.quality_mask(res.background, res.modulation, min_modulation=min_modulation)
-        quality = q if quality is None else (quality & q)
-    un = psp.unwrap_temporal([wrapped[f] for f in freqs], freqs)
-    ok = quality & un.reliable
-    if mask is not None:
-        ok &= mask
-    height = psp.height_from_phase(rig, un.phase, periods=freqs[-1], mask=ok)
-    ok &= np.isfinite(height)
+    Returns float32 ``phase_psp`` (rad, absolute, highest frequency), ``height_psp`` (mm, NaN where
+    rejected), ``mask_psp`` (1 where modulation suffices and the fringe order is reliable and consistent).
+    """
+    from .psp import decode_stacks
+
+    d = decode_stacks({f: np.stack(images[f]) for f in freqs}, rig, freqs, min_modulation=min_modulation)
     return {
-        "phase_psp": un.phase.astype(np.float32),
-        "height_psp": np.where(ok, height, np.nan).astype(np.float32),
-        "mask_psp": ok.astype(np.float32),
+        "phase_psp": d.phase.astype(np.float32),
+        "height_psp": d.height.astype(np.float32),
+        "mask_psp": d.valid.astype(np.float32),
     }
 
 

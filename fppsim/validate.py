@@ -243,21 +243,19 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
             import inspect
 
             min_modulation = inspect.signature(psp_decode).parameters["min_modulation"].default
-        quality, wrapped = np.ones(valid.shape, bool), []
-        for f in freqs:
-            res = psp.wrapped_phase(np.asarray(stacks[f], np.float64))
-            wrapped.append(res.phase)
-            quality &= psp.quality_mask(res.background, res.modulation, min_modulation=min_modulation)
-        un = psp.unwrap_temporal(wrapped, tuple(freqs))
-        low_mod = valid & ~quality
-        flagged = valid & ~un.reliable
-        other = rejected & ~low_mod & ~flagged
+        dec = psp.decode_stacks(stacks, None, tuple(freqs), min_modulation=min_modulation)
+        low_mod = valid & ~dec.quality
+        flagged = valid & ~dec.reliable
+        inconsistent = valid & dec.quality & dec.reliable & ~dec.consistent
+        other = rejected & ~low_mod & ~flagged & ~inconsistent
         out.update({
             "min_modulation": float(min_modulation),
             "n_low_modulation": int(low_mod.sum()),
             "n_flagged_unreliable": int(flagged.sum()),
             "n_flagged_unreliable_wrong": int((flagged & wrong).sum()),
             "n_flagged_unreliable_correct": int((flagged & ~wrong).sum()),
+            "n_order_inconsistent": int(inconsistent.sum()),
+            "n_order_inconsistent_wrong": int((inconsistent & wrong).sum()),
             "n_rejected_other": int(other.sum()),
         })
         out.update(_breakdown_fractions(out))
@@ -267,7 +265,7 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
 
 
 _BREAKDOWN = ("low_modulation", "flagged_unreliable", "flagged_unreliable_wrong", "flagged_unreliable_correct",
-              "rejected_other")
+              "order_inconsistent", "order_inconsistent_wrong", "rejected_other")
 
 
 def _breakdown_fractions(c: dict) -> dict:

@@ -353,3 +353,38 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
     # closed form on numbers: dphi = 2 pi f0 d h / (L - h)
     L, d, f0, hh = 400.0, 150.0, 0.1, 25.0
     assert psp.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)
+
+
+def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():
+    from fppsim.psp import order_consistency
+
+    H, W = 20, 30
+    u = np.tile(np.arange(W, dtype=float), (H, 1))
+    phase = 2 * np.pi * 80 * u / 912 + 0.0
+    phase[:, 15:] += 4 * np.pi  # a genuine depth edge: 2 periods jump between two surfaces
+    wrong = phase.copy()
+    wrong[5, 5] += 2 * np.pi  # isolated wrong fringe order
+    wrong[10, 20] -= 20 * np.pi
+    valid = np.ones((H, W), bool)
+    valid[0, :] = False
+    ok = order_consistency(wrong, valid)
+    assert not ok[5, 5] and not ok[10, 20]
+    assert ok[1:, :].sum() == (H - 1) * W - 2  # every other valid pixel, including both edge columns
+    assert not ok[0].any()  # invalid stays invalid
+
+
+def test_decode_stacks_full_chain():
+    from fppsim.psp import decode_stacks, synthesize_stack
+    from fppsim.rig import Rig
+
+    rig = Rig.default()
+    cam = rig.camera
+    uv = cam.pixel_grid()
+    X = cam.backproject(uv, cam.plane_depth(uv, plane_z=12.5))  # a plane 12.5 mm above the reference
+    u_p = rig.projector.project(X)[0][..., 0]
+    stacks = {f: np.rint(synthesize_stack(2 * np.pi * f * u_p / 912, 120.0, 100.0)).astype(np.uint8)
+              for f in (1, 8, 80)}
+    d = decode_stacks(stacks, rig)
+    assert d.valid.mean() > 0.99
+    assert np.nanmax(np.abs(d.height - 12.5)) < 0.02
+    assert decode_stacks(stacks, None).height is None

@@ -25,27 +25,26 @@ from uhrnet.data import SPLIT_MODES, DataError, LabelTransform, Prepared, load_s
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--real", nargs="*", metavar="DIR",
                    help="real figshare-layout folder(s); bare --real: none [the first checkpoint's]")
     p.add_argument("--synthetic", nargs="*", metavar="DIR",
                    help="fppsim folder(s); bare --synthetic: none [the first checkpoint's]")
     p.add_argument("--out", required=True, metavar="DIR", help="report folder")
-    p.add_argument("--split", choices=("test", "val", "train", "all"), default="test", help="which split to evaluate")
+    p.add_argument("--split", choices=("test", "val", "train", "all"), default="test", help="which split to evaluate [test]")
     p.add_argument("--real-split", choices=SPLIT_MODES, help="how real folders are split [the checkpoint's]")
     p.add_argument("--synthetic-split", choices=SPLIT_MODES, help="how synthetic folders are split [the checkpoint's]")
     p.add_argument("--synthetic-label", choices=("true", "psp"), help="ground truth of native folders [the checkpoint's]")
     p.add_argument("--names", nargs="+", metavar="NAME", help="model names in the table (one per checkpoint)")
     p.add_argument("--crop", metavar="HxW", help="evaluate a centre crop of every image")
     p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N images of the split")
-    p.add_argument("--figures", type=int, default=3, metavar="N", help="comparison figures for N evenly spaced images")
+    p.add_argument("--figures", type=int, default=3, metavar="N", help="comparison figures for N evenly spaced images [3]")
     p.add_argument("--samples", nargs="+", metavar="ID", help="figures for these sample ids (or split positions #K)")
     p.add_argument("--row", type=int, help="cross-section row [the row crossing most object pixels]")
     p.add_argument("--batch-size", type=int, default=1)
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--timing-repeats", type=int, default=5, metavar="N",
-                   help="timed forward passes per model at batch 1 (0: skip timing)")
+                   help="timed forward passes per model at batch 1 (0: skip timing) [5]")
     p.add_argument("--no-progress", action="store_true")
 
 

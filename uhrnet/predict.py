@@ -32,18 +32,17 @@ INPUT_EXTS = IMAGE_EXTS + (".npy",)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="fringe images, .npy arrays, or folders of them")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
                                                  "metric x, y in the point cloud")
     p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
-                   help="x, y spacing of the point cloud without --rig")
+                   help="x, y spacing of the point cloud without --rig [1.0]")
     p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
     p.add_argument("--range", nargs=2, type=float, metavar=("LO", "HI"),
                    help="colour range of the PNG in mm [1st-99th percentile]")
-    p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG")
+    p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG [viridis]")
     p.add_argument("--no-ply", action="store_true", help="skip the point clouds")
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     p.add_argument("--no-progress", action="store_true")

@@ -68,7 +68,6 @@ def _model_names() -> list[str]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.formatter_class = argparse.ArgumentDefaultsHelpFormatter
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
     d.add_argument("--real", nargs="+", metavar="DIR", help="figshare-layout folder(s) (f1_80.npy + Z.npy)")
     d.add_argument("--synthetic", nargs="+", metavar="DIR",
@@ -433,7 +432,7 @@ class Trainer:
             sums.add("rmse", r)
             sums.add("ssim", s)
             if self.info.main and not self.args.no_progress:
-                bar.set_postfix(loss=f"{float(loss):.4g}", rmse_mm=f"{float(r.nanmean()):.3f}", refresh=False)
+                bar.set_postfix(loss=f"{loss.item():.4g}", rmse_mm=f"{float(r.nanmean()):.3f}", refresh=False)
         bar.close()
         res = sums.reduce(self.info, self.device)
         return {"train_loss": res["loss"], "train_rmse_mm": res["rmse"], "train_ssim": res["ssim"]}
