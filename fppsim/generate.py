@@ -16,7 +16,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 
 from . import __version__
 from .dataset import (DatasetError, LabelTransform, append_manifest, atomic_write_text, export_figshare,

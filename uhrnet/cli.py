@@ -53,8 +53,14 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[args.command][0])
     try:
         return int(module.run(args) or 0)
-    except CLIError as exc:
-        print(f"uhrnet {args.command}: error: {exc}", file=sys.stderr)
+    except Exception as exc:  # user-facing errors become one line; anything else is a bug: traceback
+        from uhrnet.checkpoint import CheckpointError
+        from uhrnet.data import DataError
+
+        if not isinstance(exc, (CLIError, DataError, CheckpointError)):
+            raise
+        print(f"uhrnet {args.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
+              file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("uhrnet: interrupted", file=sys.stderr)

@@ -19,9 +19,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from uhrnet.checkpoint import CheckpointError, atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
+from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
 from uhrnet.cli import CLIError
-from uhrnet.data import SPLIT_MODES, DataError, LabelTransform, Prepared, load_sources, parse_size
+from uhrnet.data import SPLIT_MODES, LabelTransform, Prepared, load_sources, parse_size
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -101,13 +101,6 @@ def markdown_table(rows: list[dict], per_source: bool) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (DataError, CheckpointError) as exc:
-        raise CLIError(str(exc)) from None
-
-
-def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from uhrnet.inference import predict_labels

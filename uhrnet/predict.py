@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from uhrnet.checkpoint import CheckpointError, load_checkpoint, model_from_checkpoint, select_device
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
 from uhrnet.cli import CLIError
 from uhrnet.data import DataError, parse_size, read_fringe_image
 
@@ -160,13 +160,6 @@ def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        return _run(args)
-    except (DataError, CheckpointError) as exc:
-        raise CLIError(str(exc)) from None
-
-
-def _run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from uhrnet.inference import predict_labels

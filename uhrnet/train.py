@@ -581,8 +581,6 @@ def run(args: argparse.Namespace) -> int:
     info = init_distributed(args.device or "auto")
     try:
         return Trainer(args, info).fit()
-    except (DataError, CheckpointError) as exc:
-        raise CLIError(str(exc)) from None
     finally:
         if info.enabled and dist.is_initialized():
             dist.destroy_process_group()
