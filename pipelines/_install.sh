@@ -13,6 +13,10 @@ need_apt=()
 for pkg in libosmesa6 libgl1 libxrender1; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need_apt+=("$pkg")
 done
+# Debian's own python3 needs python3-venv for `python -m venv` (ensurepip); pyenv/conda builds have it.
+if [ ! -x "$VENV/bin/python" ] && ! "$PY" -c 'import ensurepip, venv' 2>/dev/null; then
+  need_apt+=("python3-venv")
+fi
 if [ ${#need_apt[@]} -gt 0 ]; then
   log "installing system packages: ${need_apt[*]}"
   SUDO=""; [ "$(id -u)" -ne 0 ] && SUDO="sudo"
@@ -42,6 +46,10 @@ if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
 fi
 
 # 5. pyrender 0.1.45 pins PyOpenGL 3.1.0, which lacks OSMesa: upgrade it in a separate command.
-python -c 'import importlib.metadata as m, sys; sys.exit(0 if m.version("PyOpenGL")=="3.1.10" else 1)' 2>/dev/null \
-  || { log "installing PyOpenGL==3.1.10 (pyrender pins 3.1.0, which lacks OSMesa)"; pipq PyOpenGL==3.1.10 2>&1 | grep -v "incompatible\|requires PyOpenGL" || true; }
+if ! python -c 'import importlib.metadata as m, sys; sys.exit(0 if m.version("PyOpenGL")=="3.1.10" else 1)' 2>/dev/null; then
+  log "installing PyOpenGL==3.1.10 (pyrender pins 3.1.0, which lacks OSMesa; pip's conflict notice is expected)"
+  pip_log="$(mktemp)"
+  if ! pipq PyOpenGL==3.1.10 >"$pip_log" 2>&1; then cat "$pip_log" >&2; rm -f "$pip_log"; exit 1; fi
+  rm -f "$pip_log"
+fi
 export PYOPENGL_PLATFORM=osmesa
