@@ -226,9 +226,8 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     shadow = shadow or ShadowSettings()
     cam, proj = rig.camera, rig.projector
     origin, dirs, plane_depth = _GRID.get(cam, scale)
-    obj_depth = renderer.depth(cam, meshes, scale)
-    if cam.has_distortion:
-        obj_depth = _resample_ideal(cam, obj_depth, scale)
+    obj_depth = _distorted_depth(cam, renderer, meshes, scale) if cam.has_distortion \
+        else renderer.depth(cam, meshes, scale)
     on_object = obj_depth < plane_depth
     depth = np.where(on_object, obj_depth, plane_depth)
     seen = np.isfinite(depth)
@@ -265,16 +264,35 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
                     u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
 
 
-def _resample_ideal(cam, ideal_depth: np.ndarray, scale: int) -> np.ndarray:
-    """Depth of a distorted camera from a render of its ideal pinhole (nearest sample, then exact ray)."""
-    grid = cam.pixel_grid(scale)
-    xy = cam.normalized_rays(grid)
+def _distorted_depth(cam, renderer: DepthRenderer, meshes: list[Instance], scale: int) -> np.ndarray:
+    """Object depth on a distorted camera's (supersampled) pixel grid.
+
+    GL renders ideal pinholes only: render the ideal camera with enough margin to hold every
+    undistorted pixel position, then interpolate 1/z bilinearly there (exact inside a planar triangle);
+    where the four neighbours straddle a depth edge or a silhouette, take the nearest sample.
+    """
+    from .rig import Device
+
+    xy = cam.normalized_rays(cam.pixel_grid(scale))
     K = cam.K
-    u = (K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2] + 0.5) * scale - 0.5
-    v = (K[1, 1] * xy[..., 1] + K[1, 2] + 0.5) * scale - 0.5
-    Hs, Ws = ideal_depth.shape
-    ui, vi = np.rint(u).astype(np.intp), np.rint(v).astype(np.intp)
-    ok = (ui >= 0) & (ui < Ws) & (vi >= 0) & (vi < Hs)
-    out = np.full(ideal_depth.shape, np.inf)
-    out[ok] = ideal_depth[vi[ok], ui[ok]]
-    return out
+    u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]
+    v = K[1, 1] * xy[..., 1] + K[1, 2]
+    m = int(np.ceil(max(0.0, -u.min(), u.max() - (cam.width - 1), -v.min(), v.max() - (cam.height - 1)))) + 1
+    ideal = Device(K=K, R=cam.R, t=cam.t, width=cam.width, height=cam.height).expanded(m)
+    D = renderer.depth(ideal, meshes, scale)
+    inv = np.where(np.isfinite(D), 1.0 / D, 0.0)
+    x = (u + m + 0.5) * scale - 0.5
+    y = (v + m + 0.5) * scale - 0.5
+    Hs, Ws = D.shape
+    x0 = np.clip(np.floor(x).astype(np.intp), 0, Ws - 2)
+    y0 = np.clip(np.floor(y).astype(np.intp), 0, Hs - 2)
+    fx, fy = np.clip(x - x0, 0, 1), np.clip(y - y0, 0, 1)
+    c00, c01, c10, c11 = inv[y0, x0], inv[y0, x0 + 1], inv[y0 + 1, x0], inv[y0 + 1, x0 + 1]
+    lerp = (c00 * (1 - fx) + c01 * fx) * (1 - fy) + (c10 * (1 - fx) + c11 * fx) * fy
+    corners = np.stack([c00, c01, c10, c11])
+    hi, lo = corners.max(0), corners.min(0)
+    smooth = (lo > 0) & (hi - lo < 0.01 * hi)  # all four on one surface (1 % depth spread)
+    nearest = inv[np.clip(np.rint(y), 0, Hs - 1).astype(np.intp), np.clip(np.rint(x), 0, Ws - 1).astype(np.intp)]
+    inv_z = np.where(smooth, lerp, nearest)
+    with np.errstate(divide="ignore"):
+        return np.where(inv_z > 0, 1.0 / inv_z, np.inf)
