@@ -235,26 +235,35 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     P[~seen] = np.nan
     P[..., 2] = np.where(on_object | ~seen, P[..., 2], 0.0)  # plane points exactly on z = 0
 
-    normals = _normals_from_points(P.astype(np.float32), origin.astype(np.float32)).astype(np.float64)
-    normals[seen & ~on_object] = (0.0, 0.0, 1.0)
+    # Plane normals are exact; object normals from the point map, only inside the objects' bounding box.
+    normals = np.zeros(P.shape)
+    normals[..., 2] = 1.0
+    rows, cols = np.flatnonzero(on_object.any(1)), np.flatnonzero(on_object.any(0))
+    if rows.size:
+        box = (slice(max(rows[0] - 1, 0), rows[-1] + 2), slice(max(cols[0] - 1, 0), cols[-1] + 2))
+        n_box = _normals_from_points(P[box].astype(np.float32), origin.astype(np.float32))
+        normals[box] = np.where(on_object[box][..., None], n_box, normals[box])
 
     # Projector: coordinates with distortion (pattern lookup), ideal ones for the shadow map lookup.
-    uv_p, z_p = proj.project(np.where(seen[..., None], P, 0.0))
-    uv_ideal = proj.project(np.where(seen[..., None], P, 0.0), distort=False)[0] if proj.has_distortion else uv_p
+    Ps = np.where(seen[..., None], P, 0.0)
+    uv_p, z_p = proj.project(Ps)
+    uv_ideal = proj.project(Ps, distort=False)[0] if proj.has_distortion else uv_p
     W, H = proj.width, proj.height
     inside = (seen & (z_p > 0) & (uv_p[..., 0] >= -0.5) & (uv_p[..., 0] <= W - 0.5)
               & (uv_p[..., 1] >= -0.5) & (uv_p[..., 1] <= H - 0.5))
     shadow_depth = renderer.depth(proj, meshes, 1)
-    with np.errstate(invalid="ignore"):
-        gy, gx = np.gradient(np.where(np.isfinite(shadow_depth), shadow_depth, 1e9).astype(np.float32))
-    slope = np.nan_to_num(np.maximum(np.abs(gx), np.abs(gy)), nan=np.inf, posinf=np.inf)
     ui = np.clip(np.rint(uv_ideal[..., 0]), 0, W - 1).astype(np.intp)
     vi = np.clip(np.rint(uv_ideal[..., 1]), 0, H - 1).astype(np.intp)
     occluder = shadow_depth[vi, ui]
-    tolerance = shadow.bias_mm + shadow.slope_pixels * slope[vi, ui]
+    # Depth slope of the shadow map at the looked-up texel (central differences, only where needed):
+    # a steep occluder surface needs a larger bias; next to its silhouette the slope is infinite (lit).
+    D = np.where(np.isfinite(shadow_depth), shadow_depth, 1e9)
+    gx = np.abs(D[vi, np.minimum(ui + 1, W - 1)] - D[vi, np.maximum(ui - 1, 0)]) / 2
+    gy = np.abs(D[np.minimum(vi + 1, H - 1), ui] - D[np.maximum(vi - 1, 0), ui]) / 2
+    tolerance = shadow.bias_mm + shadow.slope_pixels * np.maximum(gx, gy)
     unshadowed = ~(z_p > occluder + tolerance)
 
-    to_proj = proj.center - np.where(seen[..., None], P, 0.0)
+    to_proj = proj.center - Ps
     dist2 = np.sum(to_proj * to_proj, axis=-1)
     cos_inc = np.sum(normals * to_proj, axis=-1) / np.sqrt(dist2)
     lit = inside & unshadowed & (cos_inc > 0)
