@@ -198,8 +198,9 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     summary.seconds = time.perf_counter() - t0
     if summary.written + summary.existing == 0:
         raise GenerateError("nothing could be generated: " + (summary.failed[0][1] if summary.failed else "no samples"))
-    if fmt == "figshare":
-        n = export_figshare(native, out, label)
+    if fmt == "figshare":  # exactly this run's samples, in index order (a folder may hold more)
+        folders = [native / sample_id(i) for i in wanted if (native / sample_id(i) / "meta.json").is_file()]
+        n = export_figshare(native, out, label, folders=folders)
         summary.figshare = f"{out / 'f1_80.npy'} + {out / 'Z.npy'} ({n} samples)"
     return summary
 
