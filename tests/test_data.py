@@ -31,8 +31,9 @@ def test_split_modes():
     assert list(split_indices(3, "train", "train")) == [0, 1, 2]
     assert len(split_indices(3, "test", "train")) == 0
     assert list(split_indices(3, "test", "test")) == [0, 1, 2]
-    with pytest.raises(DataError, match="at least 6"):
+    with pytest.raises(DataError, match="at least 6") as err:
         split_indices(3, "train", "reference")
+    assert "--real-split/--synthetic-split train" in str(err.value) and "'all'" not in str(err.value)
 
 
 def test_figshare_round_trip(tmp_path):
@@ -172,6 +173,9 @@ def test_native_errors_name_the_file(tmp_path):
         FppsimDataset(tmp_path / "b")[0]
     with pytest.raises(DataError, match="missing array"):
         FppsimDataset(tmp_path / "b", label="psp")[1]
+    (tmp_path / "b" / "000001" / "arrays.npz").write_bytes(b"PK\x03\x04junk")  # corrupt zip: no traceback
+    with pytest.raises(DataError, match="000001/arrays.npz: cannot read"):
+        FppsimDataset(tmp_path / "b")[1]
 
 
 def test_mixed_sampler_ratio_and_ddp_partition():

@@ -79,6 +79,12 @@ def test_evaluate_options_and_errors(runs, capsys):
     assert main(["evaluate", str(a), "--out", str(out), "--names", "x", "y"]) == 1
     assert main(["evaluate", str(a), "--out", str(out), "--samples", "zzz", "--no-progress"]) == 1
     assert "--samples" in capsys.readouterr().err
+    assert main(["evaluate", str(a), "--out", str(tmp / "report3"), "--row", "100000", "--no-progress"]) == 1
+    assert "--row 100000" in capsys.readouterr().err and not (tmp / "report3").exists()
+    (tmp / "garbage.pt").write_bytes(b"garbage" * 10)
+    assert main(["evaluate", str(tmp / "garbage.pt"), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "garbage.pt: cannot load checkpoint: not a PyTorch checkpoint" in err and "weights_only" not in err
 
 
 @pytest.mark.skipif(not (REAL_SAMPLE / "height_map.npy").exists(), reason="../shared/real-sample absent")

@@ -109,3 +109,28 @@ def test_predict_errors(ckpt, tmp_path, capsys):
     np.save(tmp_path / "ok.npy", np.zeros((32, 64), np.float32))
     assert main(["predict", str(ckpt), str(tmp_path / "ok.npy"), "--out", out, "--rig", str(tmp_path / "no.json")]) == 1
     assert "no.json" in capsys.readouterr().err
+
+
+def test_predict_user_errors_are_one_line(ckpt, tmp_path, capfd):
+    import cv2
+
+    out = tmp_path / "out"
+    (tmp_path / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\nxxxx")  # PNG signature, broken header
+    assert main(["predict", str(ckpt), str(tmp_path / "corrupt.png"), "--out", str(out)]) == 1
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "corrupt.png: cannot read as an image" in err[0]  # no OpenCV log line
+    f8, _, _ = scene(np.random.default_rng(2), 32, 48)
+    cv2.imwrite(str(tmp_path / "img.png"), f8)
+    assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), "--range", "5", "1"]) == 1
+    assert "--range" in capfd.readouterr().err
+    rig_mod = pytest.importorskip("fppsim.rig")
+    try:
+        rig = rig_mod.Rig.default()
+    except Exception as exc:
+        pytest.skip(f"no default rig: {exc}")
+    rig.save(tmp_path / "rig.json")
+    assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), "--rig",
+                 str(tmp_path / "rig.json"), "--no-progress"]) == 1
+    err = capfd.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "img.png: image is 48x32 but the rig camera" in err[0]
+    assert not (out / "img_height.npy").exists()  # refused before writing anything for it

@@ -147,6 +147,18 @@ def test_cli_errors(tmp_path, capsys):
     assert exc.value.code == 2
 
 
+def test_data_error_in_loader_worker_names_the_file(tmp_path, capsys):
+    """A DataError raised in a DataLoader worker still reaches the user as one line naming the file."""
+    ids = write_native(tmp_path / "syn", n=4)
+    (tmp_path / "syn" / ids[2] / "arrays.npz").write_bytes(b"PK\x03\x04junk")
+    rc = main(["train", "--synthetic", str(tmp_path / "syn"), "--synthetic-split", "train", "--model", "unet",
+               "--base-channels", "4", "--epochs", "1", "--workers", "1", "--no-progress",
+               "--out", str(tmp_path / "run")])
+    assert rc == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{ids[2]}/arrays.npz: cannot read" in err[0], err
+
+
 def test_nan_loss_stops_with_clear_message(tmp_path, capsys, monkeypatch):
     import uhrnet.losses
 

@@ -15,6 +15,7 @@ loads with ``weights_only=True``::
 from __future__ import annotations
 
 import os
+import pickle
 import random
 from pathlib import Path
 
@@ -80,7 +81,11 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu") -> dict:
         raise CheckpointError(f"{path}: checkpoint not found")
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as exc:  # truncated file, not a torch file, unsafe pickle ...
+    except pickle.UnpicklingError:  # torch's message advises weights_only=False: wrong for a garbage file
+        raise CheckpointError(
+            f"{path}: cannot load checkpoint: not a PyTorch checkpoint (truncated or another format)"
+        ) from None
+    except Exception as exc:  # truncated file, not a torch file ...
         raise CheckpointError(f"{path}: cannot load checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a uhrnet checkpoint (no format={FORMAT!r} entry)")

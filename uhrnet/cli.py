@@ -37,6 +37,22 @@ def build_parser(load=None) -> argparse.ArgumentParser:
     return parser
 
 
+def one_line(exc: BaseException) -> str:
+    """The one-line message of a user error, also when a DataLoader worker re-raised it.
+
+    A worker's error arrives as ``Caught DataError in DataLoader worker process 0.`` followed by the
+    worker's traceback, whose last line (``uhrnet.data.DataError: <file>: ...``) names the culprit.
+    """
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    if not lines:
+        return type(exc).__name__
+    if len(lines) > 1 and lines[0].startswith("Caught ") and "worker" in lines[0]:
+        last = lines[-1].strip()
+        prefix = f"{type(exc).__module__}.{type(exc).__qualname__}: "
+        return last[len(prefix):] if last.startswith(prefix) else last
+    return lines[0]
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     # Load only the chosen subcommand's module (argparse exits 2 on usage errors).
@@ -59,8 +75,7 @@ def main(argv: list[str] | None = None) -> int:
 
         if not isinstance(exc, (CLIError, DataError, CheckpointError)):
             raise
-        print(f"uhrnet {args.command}: error: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}",
-              file=sys.stderr)
+        print(f"uhrnet {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("uhrnet: interrupted", file=sys.stderr)

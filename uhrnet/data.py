@@ -20,6 +20,8 @@ import json
 import math
 import os
 import warnings
+import zipfile
+import zlib
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -137,7 +139,7 @@ def reference_split(n: int, test_size: float = 0.2, seeds: tuple[int, int] = (0,
     if n < MIN_REFERENCE_SPLIT:
         raise DataError(
             f"the reference 80/10/10 split needs at least {MIN_REFERENCE_SPLIT} samples, got {n} "
-            "(use split mode 'train' or 'all' for tiny sets)"
+            "(for tiny sets use --real-split/--synthetic-split train, val or test)"
         )
     train, rest = _shuffle_split(n, test_size, seeds[0])
     val_pos, test_pos = _shuffle_split(len(rest), 0.5, seeds[1])
@@ -370,10 +372,10 @@ class FppsimDataset(Dataset):
                 if missing:
                     raise DataError(f"{npz}: missing array(s) {missing} (has {sorted(z.files)})")
                 height, valid = z[hkey], z[mkey]
-        except (ValueError, OSError, EOFError) as exc:
+        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             if isinstance(exc, DataError):
                 raise
-            raise DataError(f"{npz}: cannot read ({exc})") from None
+            raise DataError(f"{npz}: cannot read ({type(exc).__name__}: {exc})") from None
         if height.shape != fringe.shape or valid.shape != fringe.shape:
             raise DataError(
                 f"{npz}: {hkey} {height.shape} / {mkey} {valid.shape} do not match fringe.png {fringe.shape}"
@@ -439,7 +441,12 @@ def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: file not found")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our one-line error replaces its log line
+    try:
+        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    finally:
+        cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise DataError(f"{path}: cannot read as an image")
     if img.ndim == 3:

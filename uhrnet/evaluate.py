@@ -143,6 +143,9 @@ def run(args: argparse.Namespace) -> int:
         device = select_device(args.device)
     except ValueError as exc:
         raise CLIError(str(exc)) from None
+    image_shape = tuple(ds[0]["fringe"].shape[-2:])
+    if args.row is not None and not 0 <= args.row < image_shape[0]:
+        raise CLIError(f"--row {args.row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
 
@@ -150,7 +153,6 @@ def run(args: argparse.Namespace) -> int:
     summary: list[dict] = []
     preds: dict[int, dict[str, np.ndarray]] = {i: {} for i in figure_idx}
     loader = DataLoader(torch.utils.data.Subset(ds, indices), batch_size=args.batch_size, shuffle=False)
-    image_shape = tuple(ds[0]["fringe"].shape[-2:])
     for ck, name in zip(ckpts, names):
         model, _ = model_from_checkpoint(ck, device)
         size = parse_size(ck.get("args", {}).get("resize"))

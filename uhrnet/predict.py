@@ -180,6 +180,8 @@ def run(args: argparse.Namespace) -> int:
             rig = Rig.load(args.rig)
         except RigError as exc:
             raise CLIError(str(exc)) from None
+    if args.range is not None and not (np.isfinite(args.range).all() and args.range[0] < args.range[1]):
+        raise CLIError(f"--range: expected LO < HI (mm), got {args.range[0]:g} {args.range[1]:g}")
     if args.colormap not in __import__("matplotlib").colormaps:
         raise CLIError(f"--colormap: unknown matplotlib colour map {args.colormap!r}")
     out = Path(args.out)
@@ -195,6 +197,9 @@ def run(args: argparse.Namespace) -> int:
                 k += 1
                 name = f"{base}_{k}"
             used.add(name)
+            if rig is not None and not args.no_ply and (rig.camera.height, rig.camera.width) != fringe.shape:
+                raise CLIError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
+                               f"({args.rig}) is {rig.camera.width}x{rig.camera.height}")
             label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
             height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
             if not args.keep_all:
