@@ -49,14 +49,19 @@ def _freqs(text: str) -> tuple[int, ...]:
     return f
 
 
-def _positive_int(text: str) -> int:
-    try:
-        v = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'") from None
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected an integer >= 1, got {v}")
-    return v
+def _min_int(lowest: int):
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'") from None
+        if v < lowest:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lowest}, got {v}")
+        return v
+    return parse
+
+
+_positive_int = _min_int(1)
 
 
 def _optics_override(text: str) -> tuple[str, list[float]]:
@@ -93,7 +98,7 @@ def add_generate(p: argparse.ArgumentParser) -> None:
                         "projector_blur (projector px), camera_blur (camera px), noise_sigma (gray levels), shot_noise")
     p.add_argument("--optics-file", help="JSON/YAML mapping of optics ranges (same names as --optics)")
     p.add_argument("--noise-free", action="store_true", help="no camera noise (exactness checks)")
-    p.add_argument("--psp-steps", type=int, default=4, help="phase-shifting steps per frequency (>= 3, default 4)")
+    p.add_argument("--psp-steps", type=_min_int(3), default=4, help="phase-shifting steps per frequency (>= 3, default 4)")
     p.add_argument("--psp-freqs", type=_freqs, default=(1, 8, 80), metavar="F1,F2,...",
                    help="temporal unwrapping ladder in periods across the projector, starting at 1 (default 1,8,80)")
     p.add_argument("--no-psp", action="store_true", help="skip the phase-shifting images and PSP decoding")
@@ -123,8 +128,6 @@ def run_generate(args) -> int:
     for key, nums in args.optics:
         ranges[key] = nums[0] if len(nums) == 1 else nums
     optics = OpticsRanges.from_dict(ranges)
-    if args.psp_steps < 3:
-        raise CLIError(f"--psp-steps must be >= 3, got {args.psp_steps}")
     freqs = () if args.no_psp else tuple(args.psp_freqs)
     if freqs and freqs[-1] != rig.periods:
         raise CLIError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
@@ -173,8 +176,12 @@ def add_merge(p: argparse.ArgumentParser) -> None:
 def run_merge(args) -> int:
     from .generate import merge
 
-    n, fig = merge(args.out, args.shards, link=not args.copy)
+    n, fig, missing = merge(args.out, args.shards, link=not args.copy)
     print(f"merged {n} samples into {args.out}" + (f" (figshare arrays in {fig})" if fig else ""))
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        print(f"fppsim merge: warning: {len(missing)} sample index(es) missing (a shard not merged yet?): {shown}",
+              file=sys.stderr)
     return 0
 
 
@@ -233,8 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
-                        format="fppsim: %(levelname)s: %(message)s")
+    # only our logger gets INFO with -v: PyOpenGL logs noise at INFO on the root logger
+    logging.basicConfig(level=logging.WARNING, format="fppsim: %(levelname)s: %(message)s")
+    logging.getLogger("fppsim").setLevel(logging.INFO if args.verbose else logging.WARNING)
     if args.command is None:
         parser.print_usage(sys.stderr)
         print("fppsim: error: choose a command: " + ", ".join(COMMANDS), file=sys.stderr)

@@ -24,6 +24,7 @@ import os
 import re
 import shutil
 import zipfile
+import zlib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -244,10 +245,14 @@ def load_native_sample(folder: str | os.PathLike) -> dict:
     img = cv2.imread(str(folder / "fringe.png"), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError(f"{folder / 'fringe.png'}: missing or unreadable")
-    with np.load(folder / "arrays.npz") as z:
-        out = {k: z[k] for k in z.files}
+    try:
+        with np.load(folder / "arrays.npz") as z:
+            out = {k: z[k] for k in z.files}
+        out["meta"] = json.loads((folder / "meta.json").read_text())
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        raise DatasetError(f"{folder}: cannot read the sample ({type(exc).__name__}: "
+                           f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
     out["fringe"] = img
-    out["meta"] = json.loads((folder / "meta.json").read_text())
     return out
 
 

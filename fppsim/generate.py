@@ -205,12 +205,12 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     return summary
 
 
-def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None]:
+def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int]]:
     """Join native shard folders into ``out`` (hard links when possible) with one manifest.
 
     Shards must come from the same settings (``dataset.json``, ignoring nothing but the version).
     Figshare-format shards (a ``native`` subfolder) also get one ``f1_80.npy``/``Z.npy`` pair.
-    Returns (samples in out, figshare path or None).
+    Returns (samples in out, figshare path or None, missing indices below the largest one).
     """
     import shutil
 
@@ -251,8 +251,10 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None]:
                 shutil.copytree(src, tmp)
             os.replace(tmp, dst)
     records = reconcile(target)
+    have = {int(r["index"]) for r in records}
+    missing = sorted(set(range(max(have) + 1)) - have) if have else []
     fig = None
     if fmt == "figshare":
         export_figshare(target, out, LabelTransform.from_dict(settings["label"]))
         fig = str(out)
-    return len(records), fig
+    return len(records), fig, missing

@@ -237,6 +237,17 @@ def _undistort(xd, yd, dist, iterations: int = 20):
     return x, y
 
 
+def _five_coefficients(D, path, name) -> np.ndarray:
+    """OpenCV distortion (4, 5, 8, 12 or 14 numbers) -> (k1, k2, p1, p2, k3); refuse models we cannot render."""
+    d = np.zeros(5) if D is None else np.ravel(np.asarray(D, dtype=np.float64))
+    if d.size > 5 and np.any(d[5:] != 0):
+        raise RigError(f"{path}: {name} distortion has {d.size} coefficients with non-zero k4.. terms; "
+                       "only (k1, k2, p1, p2, k3) is supported")
+    out = np.zeros(5)
+    out[: min(d.size, 5)] = d[:5]
+    return out
+
+
 def rotation_to_plane_frame(R_plane: np.ndarray, t_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Camera extrinsics (R, t) for a world frame on a calibrated reference plane.
 
@@ -376,8 +387,13 @@ class Rig:
         import cv2
 
         path = Path(path)
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-        if not fs.isOpened():
+        try:
+            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+            opened = fs.isOpened()
+        except (cv2.error, SystemError) as exc:  # a malformed document raises from inside OpenCV
+            raise RigError(f"{path}: OpenCV cannot parse this FileStorage YAML/XML "
+                           f"({str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__})") from None
+        if not opened:
             raise RigError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
 
         def node(*names, required=True):
@@ -418,9 +434,8 @@ class Rig:
             Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
         else:
             raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
-        cam = Device(K=K1, dist=np.zeros(5) if D1 is None else np.ravel(D1)[:5], R=Rw, t=tw,
-                     width=int(cw), height=int(ch))
-        proj = Device(K=K2, dist=np.zeros(5) if D2 is None else np.ravel(D2)[:5], R=R @ Rw, t=R @ tw + T,
+        cam = Device(K=K1, dist=_five_coefficients(D1, path, "camera"), R=Rw, t=tw, width=int(cw), height=int(ch))
+        proj = Device(K=K2, dist=_five_coefficients(D2, path, "projector"), R=R @ Rw, t=R @ tw + T,
                       width=int(pw), height=int(ph))
         rig = cls(camera=cam, projector=proj, periods=periods, name=path.stem)
         rig.check()

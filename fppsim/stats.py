@@ -36,6 +36,8 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 from __future__ import annotations
 
 import json
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -187,11 +189,15 @@ def _read_native(d: Path, scale: float, offset: float, invalid: float) -> tuple[
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
     if img.dtype == np.uint16:
         img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
-    with np.load(d / "arrays.npz", allow_pickle=False) as z:
-        if "height" not in z.files:
-            raise ValueError(f"{d}: arrays.npz has no 'height'")
-        height = np.asarray(z["height"], np.float64)
-        mask = np.asarray(z["mask"]) > 0.5 if "mask" in z.files else np.isfinite(height)
+    try:
+        with np.load(d / "arrays.npz", allow_pickle=False) as z:
+            arrays = {k: np.asarray(z[k]) for k in ("height", "mask") if k in z.files}
+    except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:
+        raise ValueError(f"{d / 'arrays.npz'}: cannot read ({type(exc).__name__})") from None
+    if "height" not in arrays:
+        raise ValueError(f"{d}: arrays.npz has no 'height'")
+    height = arrays["height"].astype(np.float64)
+    mask = arrays["mask"] > 0.5 if "mask" in arrays else np.isfinite(height)
     label = np.where(mask & np.isfinite(height), height * scale + offset, invalid).astype(np.float32)
     return img.astype(np.uint8), label
 

@@ -383,7 +383,7 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     rgb = cmap(norm(np.nan_to_num(error_mm)))[..., :3]
     rgb[~valid] = (0.0, 0.0, 0.0)
     rgb[valid & ~accepted] = (0.55, 0.55, 0.55)
-    rgb[wrong] = (1.0, 0.0, 1.0)
+    rgb[wrong & accepted] = (1.0, 0.0, 1.0)  # rejected wrong orders stay grey: PSP refused them
     H, W = error_mm.shape
     iw, ih = W / 100.0, H / 100.0  # 1 image pixel = 1 PNG pixel at dpi 100
     fw, fh = iw + 1.3, ih + 0.75

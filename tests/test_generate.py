@@ -220,3 +220,24 @@ def test_bad_rig_unwritable_output_and_usage(tmp_path, meshes, capsys):
         main(["generate", "--meshes", str(meshes), "--count", "1", "--out", "o", "--shard", "3/2"])
     assert e.value.code == 2
     assert subprocess.run([sys.executable, "-m", "fppsim.cli"], capture_output=True).returncode == 2
+
+
+def test_merge_warns_about_missing_shards(tmp_path, meshes, capsys):
+    s1, merged = tmp_path / "s1", tmp_path / "m"
+    assert _gen(["--meshes", str(meshes), "--count", "3", "--seed", "8", "--no-psp", "--out", str(s1),
+                 "--shard", "1/2"]) == 0
+    assert main(["merge", str(merged), str(s1)]) == 0
+    assert "1 sample index(es) missing" in capsys.readouterr().err
+
+
+def test_corrupt_sample_is_named_not_a_traceback(tmp_path, meshes, capsys):
+    out = tmp_path / "ds"
+    assert _gen(["--meshes", str(meshes), "--count", "1", "--no-psp", "--out", str(out)]) == 0
+    (out / "000000" / "arrays.npz").write_bytes(b"junk")
+    assert main(["compare-real", str(out), str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "arrays.npz" in err[0]
+    from fppsim.dataset import DatasetError, load_native_sample
+
+    with pytest.raises(DatasetError, match="000000"):
+        load_native_sample(out / "000000")

@@ -125,3 +125,25 @@ def test_bad_rig_geometry(tmp_path, rig):
         Rig.load(p)
     with pytest.raises(RigError, match="not found"):
         Rig.load(tmp_path / "missing.json")
+
+
+def test_opencv_import_errors(tmp_path, rig):
+    p = tmp_path / "broken.yml"
+    p.write_text("%YAML:1.0\nfoo: [1,2\n")
+    with pytest.raises(RigError, match="broken.yml"):
+        Rig.load(p)
+    cam, proj = rig.camera, rig.projector
+    R = proj.R @ cam.R.T
+    T = proj.t - R @ cam.t
+    for d1, ok in ((np.array([[0.01, 0, 0, 0, 0, 0, 0, 0]]), True), (np.array([[0.01, 0, 0, 0, 0, 0.2, 0, 0]]), False),
+                   (np.array([[0.01, 0.0, 0.0, 0.0]]), True)):
+        p = tmp_path / "d.yml"
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
+        fs.write("M1", cam.K); fs.write("D1", d1); fs.write("M2", proj.K); fs.write("R", R); fs.write("T", T.reshape(3, 1))
+        fs.write("plane_distance", 500.0)
+        fs.release()
+        if ok:
+            assert Rig.load(p).camera.dist[0] == pytest.approx(0.01)
+        else:
+            with pytest.raises(RigError, match="k4"):
+                Rig.load(p)
