@@ -146,6 +146,11 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     config = config or SynthConfig(rig=Rig.default())
     label = label or LabelTransform()
     label.check()
+    assets, skipped = load_assets(mesh_paths)
+    summary = RunSummary(out=str(out), requested=0, skipped_meshes=skipped)
+    if not assets:
+        reasons = "; ".join(r for _, r in skipped) or "no mesh files found"
+        raise GenerateError(f"no usable mesh ({reasons})")
     out = Path(out)
     native = out / "native" if fmt == "figshare" else out
     try:
@@ -156,11 +161,6 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     except OSError as exc:
         raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
 
-    assets, skipped = load_assets(mesh_paths)
-    summary = RunSummary(out=str(out), requested=0, skipped_meshes=skipped)
-    if not assets:
-        reasons = "; ".join(r for _, r in skipped) or "no mesh files found"
-        raise GenerateError(f"no usable mesh ({reasons})")
     _check_settings(native / "dataset.json", _settings(config, seed, [a.path for a in assets], fmt, label, noise_free))
 
     wanted = shard_indices(count, shard)
