@@ -195,10 +195,22 @@ def _rot_axis(axis, a):
 
 
 def view_rectangle(rig, margin: float = 0.0) -> tuple[float, float, float, float]:
-    """(xmin, xmax, ymin, ymax) of the camera's view on the plane z = 0, shrunk by ``margin``."""
+    """(xmin, xmax, ymin, ymax) of the camera's view on the plane z = 0, shrunk by ``margin``.
+
+    Uses the image border rays that meet the plane (an oblique camera may see the horizon).
+    """
+    from .rig import RigError
+
     cam = rig.camera
-    corners = np.array([[0, 0], [cam.width - 1, 0], [0, cam.height - 1], [cam.width - 1, cam.height - 1]], float)
-    X = cam.backproject(corners, cam.plane_depth(corners))
+    t = np.linspace(0.0, 1.0, 17)
+    W, H = cam.width - 1, cam.height - 1
+    border = np.concatenate([np.stack([t * W, 0 * t], -1), np.stack([t * W, H + 0 * t], -1),
+                             np.stack([0 * t, t * H], -1), np.stack([W + 0 * t, t * H], -1)])
+    depth = cam.plane_depth(border)
+    ok = np.isfinite(depth)
+    if ok.sum() < 3:
+        raise RigError("the camera does not see the reference plane (z = 0): check the rig's extrinsics")
+    X = cam.backproject(border[ok], depth[ok])
     xmin, xmax, ymin, ymax = X[:, 0].min(), X[:, 0].max(), X[:, 1].min(), X[:, 1].max()
     dx, dy = (xmax - xmin) * margin, (ymax - ymin) * margin
     return xmin + dx, xmax - dx, ymin + dy, ymax - dy
