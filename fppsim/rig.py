@@ -355,7 +355,7 @@ class Rig:
         if not path.is_file():
             raise RigError(f"rig file not found: {path}")
         text = path.read_text(errors="replace")
-        if text.lstrip().startswith("%YAML") or "opencv-matrix" in text:
+        if text.lstrip().startswith("%YAML") or "opencv-matrix" in text or "<opencv_storage>" in text:
             return cls.from_opencv_stereo(path)
         try:
             if path.suffix.lower() in (".yaml", ".yml"):

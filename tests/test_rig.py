@@ -92,6 +92,14 @@ def test_opencv_stereo_import(tmp_path, rig):
     np.testing.assert_allclose(back.projector.R, proj.R, atol=1e-9)
     np.testing.assert_allclose(back.projector.t, proj.t, atol=1e-9)
     np.testing.assert_allclose(back.camera.t, cam.t, atol=1e-9)
+    # the same calibration as OpenCV XML
+    px = tmp_path / "stereo.xml"
+    fs = cv2.FileStorage(str(px), cv2.FILE_STORAGE_WRITE)
+    for key, val in (("M1", cam.K), ("M2", proj.K), ("R", R), ("T", T.reshape(3, 1)), ("R_plane", cam.R),
+                     ("T_plane", cam.t.reshape(3, 1))):
+        fs.write(key, val)
+    fs.release()
+    np.testing.assert_allclose(Rig.load(px).projector.t, proj.t, atol=1e-9)
     # plane distance variant (no plane pose)
     fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_WRITE)
     fs.write("M1", cam.K); fs.write("M2", proj.K); fs.write("R", R); fs.write("T", T.reshape(3, 1))
