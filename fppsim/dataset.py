@@ -32,7 +32,7 @@ import numpy as np
 
 __all__ = [
     "LabelTransform", "LABEL_PRESETS", "encode_fringe", "decode_fringe", "save_npz", "atomic_write_text",
-    "atomic_write_npy", "sample_id", "reconcile", "read_manifest", "append_manifest", "write_sample_folder",
+    "manifest_record", "sample_id", "reconcile", "read_manifest", "append_manifest", "write_sample_folder",
     "load_native_sample", "export_figshare", "DatasetError", "SAMPLE_ID_RE",
 ]
 
@@ -127,17 +127,6 @@ def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1) -> N
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
             zf.writestr(key + ".npy", buf.getvalue())
-
-
-def atomic_write_npy(path: str | os.PathLike, shape: tuple, fill) -> None:
-    """Write a float32 .npy of ``shape`` atomically, filling it with ``fill(memmap)``."""
-    path = Path(path)
-    tmp = _tmp_name(path)
-    mm = np.lib.format.open_memmap(tmp, mode="w+", dtype=np.float32, shape=shape)
-    fill(mm)
-    mm.flush()
-    del mm
-    os.replace(tmp, path)
 
 
 # ----------------------------------------------------------------------------------------- native
