@@ -226,21 +226,26 @@ def append_manifest(root: Path, record: dict) -> None:
         os.fsync(fh.fileno())
 
 
-def load_native_sample(folder: str | os.PathLike) -> dict:
-    """Read one native sample folder: ``fringe`` (uint8 H x W), arrays from arrays.npz, ``meta``."""
+def load_native_sample(folder: str | os.PathLike, keys: tuple[str, ...] | None = None, meta: bool = True) -> dict:
+    """Read one native sample folder: ``fringe`` (uint8 H x W), arrays from arrays.npz (all, or only
+    ``keys`` that exist) and, with ``meta``, the parsed ``meta.json``."""
     import cv2
 
     folder = Path(folder)
     img = cv2.imread(str(folder / "fringe.png"), cv2.IMREAD_UNCHANGED)
     if img is None:
         raise DatasetError(f"{folder / 'fringe.png'}: missing or unreadable")
+    bad = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
     try:
         with np.load(folder / "arrays.npz") as z:
-            out = {k: z[k] for k in z.files}
-        out["meta"] = json.loads((folder / "meta.json").read_text())
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-        raise DatasetError(f"{folder}: cannot read the sample ({type(exc).__name__}: "
-                           f"{str(exc).splitlines()[0] if str(exc) else ''})") from None
+            out = {k: z[k] for k in z.files if keys is None or k in keys}
+    except bad as exc:
+        raise DatasetError(f"{folder / 'arrays.npz'}: cannot read ({type(exc).__name__})") from None
+    try:
+        if meta:
+            out["meta"] = json.loads((folder / "meta.json").read_text())
+    except bad as exc:
+        raise DatasetError(f"{folder / 'meta.json'}: cannot read ({type(exc).__name__})") from None
     out["fringe"] = img
     return out
 

@@ -36,8 +36,6 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 from __future__ import annotations
 
 import json
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
@@ -180,25 +178,21 @@ def _native_ids(folder: Path) -> list[Path]:
 
 
 def _read_native(d: Path, scale: float, offset: float, invalid: float) -> tuple[np.ndarray, np.ndarray]:
-    import cv2
+    from .dataset import LabelTransform, load_native_sample
 
-    img = cv2.imread(str(d / "fringe.png"), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{d}: cannot read fringe.png")
+    s = load_native_sample(d, keys=("height", "mask"), meta=False)
+    img = s["fringe"]
     if img.ndim == 3:
+        import cv2
+
         img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
     if img.dtype == np.uint16:
         img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
-    try:
-        with np.load(d / "arrays.npz", allow_pickle=False) as z:
-            arrays = {k: np.asarray(z[k]) for k in ("height", "mask") if k in z.files}
-    except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:
-        raise ValueError(f"{d / 'arrays.npz'}: cannot read ({type(exc).__name__})") from None
-    if "height" not in arrays:
+    if "height" not in s:
         raise ValueError(f"{d}: arrays.npz has no 'height'")
-    height = arrays["height"].astype(np.float64)
-    mask = arrays["mask"] > 0.5 if "mask" in arrays else np.isfinite(height)
-    label = np.where(mask & np.isfinite(height), height * scale + offset, invalid).astype(np.float32)
+    height = s["height"].astype(np.float64)
+    mask = s["mask"] > 0.5 if "mask" in s else np.isfinite(height)
+    label = LabelTransform(scale=scale, offset=offset, invalid=invalid).to_label(height, mask & np.isfinite(height))
     return img.astype(np.uint8), label
 
 
