@@ -29,18 +29,23 @@ def _analytic_phase(rig, X):
     return rig.phase_of_column(rig.projector.project(X)[0][..., 0])
 
 
-def test_tilted_plane(rig, renderer):
-    # plane through p0 with normal n (tilted 20 deg about y and 10 deg about x), a 300 mm square
-    n = np.array([np.sin(np.deg2rad(20)), np.sin(np.deg2rad(10)), 1.0])
-    n /= np.linalg.norm(n)
-    p0 = np.array([0.0, 0.0, 30.0])
+def _tilted_square(rig, renderer, normal, p0, half):
+    """Render a square (2 x ``half`` mm) through ``p0`` with ``normal``; return the geometry, the
+    analytic intersection of every camera ray with its plane, and the unit normal."""
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
     e1 = np.cross(n, [0, 1, 0]); e1 /= np.linalg.norm(e1)
     e2 = np.cross(n, e1)
-    corners = np.array([p0 + 150 * (a * e1 + b * e2) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+    corners = np.array([p0 + half * (a * e1 + b * e2) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
     g = scene_geometry(rig, [Instance.world(corners, [[0, 1, 2], [0, 2, 3]])], renderer)
     origin, d = _camera_rays(rig)
     s = (p0 - origin) @ n / (d @ n)
-    X = origin + s[..., None] * d
+    return g, origin + s[..., None] * d, n
+
+
+def test_tilted_plane(rig, renderer):
+    # tilted 20 deg about y and 10 deg about x, a 300 mm square
+    g, X, n = _tilted_square(rig, renderer, [np.sin(np.deg2rad(20)), np.sin(np.deg2rad(10)), 1.0],
+                             np.array([0.0, 0.0, 30.0]), 150)
     on = g.on_object & (X[..., 2] > 0)
     assert on.mean() > 0.5
     err = np.abs(g.points[..., 2] - X[..., 2])[on]
@@ -120,16 +125,7 @@ def test_distorted_camera_tilted_plane(rig, renderer):
     cam = rig.camera
     dcam = Device(K=cam.K, R=cam.R, t=cam.t, width=cam.width, height=cam.height, dist=[-0.25, 0.08, 0.001, -0.001, 0.0])
     drig = Rig(camera=dcam, projector=rig.projector, periods=rig.periods)
-    n = np.array([np.sin(np.deg2rad(15)), 0.0, 1.0])
-    n /= np.linalg.norm(n)
-    p0 = np.array([0.0, 0.0, 25.0])
-    e1 = np.cross(n, [0, 1, 0]); e1 /= np.linalg.norm(e1)
-    e2 = np.cross(n, e1)
-    corners = np.array([p0 + 400 * (a * e1 + b * e2) for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
-    g = scene_geometry(drig, [Instance.world(corners, [[0, 1, 2], [0, 2, 3]])], renderer)
-    origin, d = dcam.pixel_rays(dcam.pixel_grid())
-    s = (p0 - origin) @ n / (d @ n)
-    X = origin + s[..., None] * d
+    g, X, _ = _tilted_square(drig, renderer, [np.sin(np.deg2rad(15)), 0.0, 1.0], np.array([0.0, 0.0, 25.0]), 400)
     on = g.on_object & (X[..., 2] > 0)
     assert on[0, 0] and on[-1, 0] and on.mean() > 0.6  # the distorted (left) corners see the plane too
     err = np.abs(g.points[..., 2] - X[..., 2])[on]
