@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 __all__ = [
-    "LabelTransform", "LABEL_PRESETS", "encode_fringe", "decode_fringe", "save_npz", "atomic_write_text",
+    "LabelTransform", "encode_fringe", "decode_fringe", "save_npz", "atomic_write_text",
     "manifest_record", "sample_id", "reconcile", "read_manifest", "append_manifest", "write_sample_folder",
     "load_native_sample", "export_figshare", "DatasetError", "SAMPLE_ID_RE",
 ]
@@ -87,9 +87,6 @@ class LabelTransform:
         if not self.invalid <= self.threshold < self.offset:
             raise DatasetError(f"label preset needs invalid ({self.invalid}) <= threshold ({self.threshold}) "
                                f"< plane offset ({self.offset}), or the plane would count as invalid")
-
-
-LABEL_PRESETS = {"figshare": LabelTransform()}
 
 
 def encode_fringe(image_u8: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
