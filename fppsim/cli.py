@@ -18,6 +18,10 @@ class CLIError(Exception):
     """Printed as one line; exit code 1."""
 
 
+class UsageError(CLIError):
+    """A bad command-line value: printed as one line; exit code 2 (like argparse's own errors)."""
+
+
 def _range_int(text: str) -> tuple[int, int]:
     try:
         parts = [int(p) for p in text.split("-")]
@@ -125,9 +129,16 @@ def run_generate(args) -> int:
     ranges = {}
     if args.optics_file:
         ranges.update(_read_mapping(args.optics_file))
+        try:
+            OpticsRanges.from_dict(ranges)
+        except ValueError as exc:
+            raise CLIError(f"{args.optics_file}: {exc}") from None
     for key, nums in args.optics:
         ranges[key] = nums[0] if len(nums) == 1 else nums
-    optics = OpticsRanges.from_dict(ranges)
+    try:
+        optics = OpticsRanges.from_dict(ranges)
+    except ValueError as exc:
+        raise UsageError(f"--optics: {exc}") from None
     freqs = () if args.no_psp else tuple(args.psp_freqs)
     if freqs and freqs[-1] != rig.periods:
         raise CLIError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
@@ -137,6 +148,10 @@ def run_generate(args) -> int:
     label = LabelTransform(scale=args.label_scale, offset=args.label_offset, invalid=args.label_invalid,
                            threshold=args.label_threshold,
                            name="figshare" if preset == (6.0, -97.0, -105.0, -100.0) else "custom")
+    try:
+        label.check()
+    except ValueError as exc:
+        raise UsageError(f"--label-*: {exc}") from None
     summary = generate(args.meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
                        fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
                        progress=not args.quiet)
@@ -247,20 +262,26 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         print("fppsim: error: choose a command: " + ", ".join(COMMANDS), file=sys.stderr)
         return 2
+    from ._fs import FolderBusy, signals_raise
     from .dataset import DatasetError
     from .generate import GenerateError
     from .rig import RigError
     from .scene import MeshError
 
     try:
-        return int(COMMANDS[args.command][1](args) or 0)
-    except (CLIError, GenerateError, DatasetError, RigError, MeshError, ValueError, OSError) as exc:
+        with signals_raise():  # SIGTERM stops like Ctrl-C (workers terminated), exit 128 + signum
+            return int(COMMANDS[args.command][1](args) or 0)
+    except (CLIError, GenerateError, DatasetError, RigError, MeshError, FolderBusy, ValueError, OSError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if isinstance(exc, OSError) and exc.filename and exc.strerror:
+            msg = f"{exc.filename}: {exc.strerror}"
         print(f"fppsim {args.command}: error: {msg}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("fppsim: interrupted (re-run the same command to resume)", file=sys.stderr)
-        return 130
+        return 2 if isinstance(exc, UsageError) else 1
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        name = "terminated" if signum == 15 else "interrupted"
+        print(f"fppsim {args.command}: {name} (re-run the same command to resume)", file=sys.stderr)
+        return 128 + signum
 
 
 if __name__ == "__main__":

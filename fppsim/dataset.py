@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._fs import clean_stale_tmp, tmp_path, write_fully
+
 __all__ = [
     "LabelTransform", "encode_fringe", "decode_fringe", "save_npz", "atomic_write_text",
     "manifest_record", "sample_id", "reconcile", "read_manifest", "append_manifest", "write_sample_folder",
@@ -82,6 +84,10 @@ class LabelTransform:
         return cls(**{k: d[k] for k in ("scale", "offset", "invalid", "threshold", "name") if k in d})
 
     def check(self) -> None:
+        for name in ("scale", "offset", "invalid", "threshold"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise DatasetError(f"label {name} must be a finite number, got {v!r}")
         if not self.scale > 0:
             raise DatasetError(f"label scale must be > 0, got {self.scale}")
         if not self.invalid <= self.threshold < self.offset:
@@ -104,26 +110,40 @@ def decode_fringe(fringe: np.ndarray) -> np.ndarray:
 
 # ----------------------------------------------------------------------------------------- atomic io
 def _tmp_name(path: Path) -> Path:
-    return path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    return tmp_path(path)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write ``text`` to a temp sibling, fsync, rename; a failure (disk full) leaves no temp file."""
     path = Path(path)
     tmp = _tmp_name(path)
-    with open(tmp, "w") as fh:
-        fh.write(text)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as fh:
+            fh.write(text)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+_ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed member timestamps: identical runs give identical bytes
 
 
 def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1) -> None:
-    """Write an .npz readable by ``np.load`` with fast deflate (level 1; numpy's default is slow)."""
+    """Write an .npz readable by ``np.load`` with fast deflate (level 1; numpy's default is slow).
+
+    Byte-reproducible: members carry a fixed timestamp and permissions, not the wall clock.
+    """
     with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as zf:
         for key, arr in arrays.items():
             buf = io.BytesIO()
             np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
-            zf.writestr(key + ".npy", buf.getvalue())
+            info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_EPOCH)
+            info.compress_type = zipfile.ZIP_DEFLATED
+            info.external_attr = 0o644 << 16
+            zf.writestr(info, buf.getvalue(), compresslevel=compresslevel)
 
 
 # ----------------------------------------------------------------------------------------- native
@@ -139,28 +159,55 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
     import cv2
 
     final = root / sid
-    tmp = root / ".tmp" / f"{sid}.{os.getpid()}"
+    tmp = tmp_path(final)  # ".fppsim-tmp-<pid>-<sid>": recognisably ours, removed on failure or re-run
     if tmp.exists():
         shutil.rmtree(tmp)
-    tmp.mkdir(parents=True)
-    for rel, img in images.items():
-        p = tmp / rel
-        p.parent.mkdir(parents=True, exist_ok=True)
-        if not cv2.imwrite(str(p), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-            raise OSError(f"cannot write {p}")
-    save_npz(tmp / "arrays.npz", arrays)
-    (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
-    if final.exists():  # an earlier run finished it meanwhile: keep the earlier one
-        shutil.rmtree(tmp)
-        return
-    os.replace(tmp, final)
+    try:
+        tmp.mkdir(parents=True)
+        for rel, img in images.items():
+            p = tmp / rel
+            p.parent.mkdir(parents=True, exist_ok=True)
+            if not cv2.imwrite(str(p), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                raise OSError(f"cannot write {p}")
+        save_npz(tmp / "arrays.npz", arrays)
+        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+        if final.exists():
+            if not is_own_sample(final):  # never replace (or count) a folder we did not write
+                raise DatasetError(f"{final} exists but is not a finished fppsim sample: move it away")
+            shutil.rmtree(tmp)  # an earlier run finished it meanwhile: keep the earlier one
+            return
+        os.replace(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+def is_own_sample(folder: Path) -> bool:
+    """True when ``folder`` is a finished fppsim sample: its meta.json parses and names this index."""
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+        return isinstance(meta, dict) and int(meta["index"]) == int(folder.name) and "seed" in meta
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+
+
+def foreign_sample_folders(root: str | os.PathLike, indices=None) -> list[Path]:
+    """Folders named like sample ids (of ``indices``, or any) that are not finished fppsim samples."""
+    root = Path(root)
+    if not root.is_dir():
+        return []
+    out = []
+    for p in sorted(root.iterdir()):
+        if SAMPLE_ID_RE.match(p.name) and (indices is None or int(p.name) in indices) and not is_own_sample(p):
+            out.append(p)
+    return out
 
 
 def _complete_samples(root: Path) -> dict[int, Path]:
     out = {}
     if root.is_dir():
         for p in root.iterdir():
-            if p.is_dir() and SAMPLE_ID_RE.match(p.name) and (p / "meta.json").is_file():
+            if p.is_dir() and SAMPLE_ID_RE.match(p.name) and is_own_sample(p):
                 out[int(p.name)] = p
     return out
 
@@ -173,13 +220,13 @@ def manifest_record(sid: str, meta: dict) -> dict:
 def reconcile(root: str | os.PathLike) -> list[dict]:
     """Bring ``root`` to a consistent state after any interruption and return the manifest records.
 
-    Removes temporary folders, rebuilds ``manifest.jsonl`` from the complete sample folders (sorted by
-    index; records of the old manifest are reused when they parse) and writes it atomically.
+    Removes fppsim's own temporary files of dead processes (``.fppsim-tmp-<pid>-*``; nothing else is
+    ever deleted), rebuilds ``manifest.jsonl`` from the finished sample folders (sorted by index;
+    records of the old manifest are reused when they parse) and writes it atomically. Folders named
+    like samples that fppsim did not finish are left alone and not counted.
     """
     root = Path(root)
-    shutil.rmtree(root / ".tmp", ignore_errors=True)
-    for stale in root.glob(".*.tmp"):
-        stale.unlink(missing_ok=True)
+    clean_stale_tmp(root)
     old = {}
     for rec in read_manifest(root, strict=False):
         old[str(rec.get("id"))] = rec
@@ -189,9 +236,8 @@ def reconcile(root: str | os.PathLike) -> list[dict]:
         if rec is None:
             try:
                 rec = manifest_record(folder.name, json.loads((folder / "meta.json").read_text()))
-            except (ValueError, KeyError):
-                shutil.rmtree(folder)  # unreadable meta: not a finished sample of ours
-                continue
+            except (ValueError, KeyError, TypeError):
+                continue  # not a finished sample of ours: not counted, never deleted
         records.append(rec)
     atomic_write_text(root / "manifest.jsonl", "".join(json.dumps(r) + "\n" for r in records))
     return records
@@ -263,27 +309,45 @@ def export_figshare(root: str | os.PathLike, out: str | os.PathLike, transform: 
     first = load_native_sample(folders[0])
     H, W = first["fringe"].shape
     N = len(folders)
-    samples = iter(folders)
 
-    def fill_pair(fr, zz):
-        for i, folder in enumerate(samples):
-            s = load_native_sample(folder)
-            if s["fringe"].shape != (H, W):
-                raise DatasetError(f"{folder}: image size {s['fringe'].shape} differs from {(H, W)}")
-            if use_psp_height:
-                h, m = s["height_psp"], (s["mask_psp"] > 0) & np.isfinite(s["height_psp"])
-            else:
-                h, m = s["height"], s["mask"] > 0
-            zz[i, :, :, 0] = transform.to_label(np.nan_to_num(h), m)
-            fr[i, :, :, 0] = encode_fringe(s["fringe"], m)
+    def fill(folder, fr, zz):
+        s = load_native_sample(folder)
+        if s["fringe"].shape != (H, W):
+            raise DatasetError(f"{folder}: image size {s['fringe'].shape} differs from {(H, W)}")
+        if use_psp_height:
+            if "height_psp" not in s:
+                raise DatasetError(f"{folder}: no PSP height (made with --no-psp)")
+            h, m = s["height_psp"], (s["mask_psp"] > 0) & np.isfinite(s["height_psp"])
+        else:
+            h, m = s["height"], s["mask"] > 0
+        zz[0, :, :, 0] = transform.to_label(np.nan_to_num(h), m)
+        fr[0, :, :, 0] = encode_fringe(s["fringe"], m)
 
     out.mkdir(parents=True, exist_ok=True)
+    clean_stale_tmp(out)
     tmp_f, tmp_z = _tmp_name(out / "f1_80.npy"), _tmp_name(out / "Z.npy")
-    fr = np.lib.format.open_memmap(tmp_f, mode="w+", dtype=np.float32, shape=(N, H, W, 1))
-    zz = np.lib.format.open_memmap(tmp_z, mode="w+", dtype=np.float32, shape=(N, H, W, 1))
-    fill_pair(fr, zz)
-    fr.flush(), zz.flush()
-    del fr, zz
-    os.replace(tmp_f, out / "f1_80.npy")
-    os.replace(tmp_z, out / "Z.npy")
+    # ordinary writes, sample by sample: a full disk raises ENOSPC here (a memmap into a sparse file
+    # would die of SIGBUS instead); the temp files are removed on any failure
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
+              "shape": (N, H, W, 1)}
+    try:
+        with open(tmp_f, "wb") as ff, open(tmp_z, "wb") as fz:
+            for fh in (ff, fz):
+                np.lib.format.write_array_header_1_0(fh, header)
+            fr1 = np.empty((1, H, W, 1), np.float32)
+            zz1 = np.empty((1, H, W, 1), np.float32)
+            for folder in folders:
+                fill(folder, fr1, zz1)
+                write_fully(ff, fr1)
+                write_fully(fz, zz1)
+            for fh in (ff, fz):
+                fh.flush()
+                os.fsync(fh.fileno())
+        os.replace(tmp_f, out / "f1_80.npy")
+        os.replace(tmp_z, out / "Z.npy")
+    except OSError as exc:
+        raise DatasetError(f"cannot write the figshare arrays in {out}: {exc.strerror or exc}") from None
+    finally:
+        tmp_f.unlink(missing_ok=True)
+        tmp_z.unlink(missing_ok=True)
     return N

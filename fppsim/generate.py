@@ -18,8 +18,9 @@ from pathlib import Path
 
 
 from . import __version__
+from ._fs import clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise, tmp_path
 from .dataset import (DatasetError, LabelTransform, append_manifest, atomic_write_text, export_figshare,
-                      manifest_record, reconcile, sample_id, write_sample_folder)
+                      foreign_sample_folders, manifest_record, reconcile, sample_id, write_sample_folder)
 from .scene import MeshAsset, MeshError, find_meshes, load_mesh
 from .synth import SampleError, SynthConfig, synthesize
 
@@ -83,9 +84,12 @@ def shard_indices(count: int, shard: tuple[int, int] | None) -> list[int]:
 _WORKER: dict = {}
 
 
-def _worker_init(assets, config, seed, out, noise_free):
+def _worker_init(assets, config, seed, out, noise_free, pool_worker=False):
     from .render import DepthRenderer
 
+    if pool_worker:  # only the parent reacts to Ctrl-C/SIGTERM (it terminates the pool); no orphans
+        ignore_sigint()
+        die_with_parent()
     _WORKER.update(assets=assets, config=config, seed=seed, out=Path(out), noise_free=noise_free,
                    renderer=DepthRenderer())
 
@@ -134,8 +138,6 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     ``fmt="figshare"`` keeps the native samples in ``out/native`` and writes ``out/f1_80.npy`` and
     ``out/Z.npy`` at the end.
     """
-    from tqdm import tqdm
-
     from .rig import Rig
 
     t0 = time.perf_counter()
@@ -146,6 +148,21 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     config = config or SynthConfig(rig=Rig.default())
     label = label or LabelTransform()
     label.check()
+    config.rig.check_usable()  # before any sample is written
+    with signals_raise():  # SIGTERM (e.g. a Slurm timeout) stops like Ctrl-C: pool terminated, exit 143
+        out_path = Path(out)
+        try:
+            out_path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
+        with folder_lock(out_path, "fppsim generate"):
+            return _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free,
+                             progress, t0)
+
+
+def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free, progress, t0):
+    from tqdm import tqdm
+
     assets, skipped = load_assets(mesh_paths)
     summary = RunSummary(out=str(out), requested=0, skipped_meshes=skipped)
     if not assets:
@@ -155,7 +172,7 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     native = out / "native" if fmt == "figshare" else out
     try:
         native.mkdir(parents=True, exist_ok=True)
-        probe = native / f".write-test.{os.getpid()}.tmp"
+        probe = tmp_path(native / "write-test")
         probe.write_text("ok")
         probe.unlink()
     except OSError as exc:
@@ -165,9 +182,15 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
 
     wanted = shard_indices(count, shard)
     summary.requested = len(wanted)
+    clean_stale_tmp(out)
     done = {r["index"] for r in reconcile(native)}
     todo = [i for i in wanted if i not in done]
     summary.existing = len(wanted) - len(todo)
+    foreign = foreign_sample_folders(native, set(todo))
+    if foreign:  # fppsim never replaces (nor counts) a folder it did not write
+        raise GenerateError(f"{foreign[0]} exists but is not a finished fppsim sample"
+                            + (f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else "")
+                            + ": move it away, or use another --out")
 
     init_args = (assets, config, seed, str(native), noise_free)
     bar = tqdm(total=len(wanted), initial=summary.existing, unit="sample", desc="generate",
@@ -190,7 +213,7 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
         else:
             # spawn, not fork: a GL (OSMesa/llvmpipe) context and its threads do not survive fork()
             ctx = mp.get_context("spawn")
-            with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=init_args) as pool:
+            with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(*init_args, True)) as pool:
                 consume(pool.imap_unordered(_worker_run, todo))
     finally:
         bar.close()
@@ -231,16 +254,24 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         raise DatasetError("no shard folders given")
     target = out / "native" if fmt == "figshare" else out
     target.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out, "fppsim merge"):
+        return _merge(out, target, natives, settings, fmt, link)
+
+
+def _merge(out, target, natives, settings, fmt, link):
+    import shutil
+
     _check_settings(target / "dataset.json", {**settings, "version": __version__})
     reconcile(target)
     for nd in natives:
         for rec in reconcile(nd):
             src, dst = nd / rec["id"], target / rec["id"]
             if dst.exists():
+                if foreign_sample_folders(target, {int(rec["index"])}):
+                    raise DatasetError(f"{dst} exists but is not a finished fppsim sample: move it away")
                 continue
-            tmp = target / ".tmp" / rec["id"]
+            tmp = tmp_path(dst)
             shutil.rmtree(tmp, ignore_errors=True)
-            tmp.parent.mkdir(parents=True, exist_ok=True)
             if link:
                 try:
                     shutil.copytree(src, tmp, copy_function=os.link)

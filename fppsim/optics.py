@@ -23,7 +23,45 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
-__all__ = ["Optics", "OpticsRanges", "pattern_profile", "projector_radiance", "form_image"]
+__all__ = ["Optics", "OpticsRanges", "pattern_profile", "projector_radiance", "form_image", "OPTICS_LIMITS"]
+
+# Physical range of every numeric parameter: (lowest, highest, lowest allowed, highest allowed) as
+# inclusive/exclusive flags. A value outside makes garbage images (negative noise variance -> NaN ->
+# zeros; gain 0 -> black), so it is refused where optics enter (from_dict / construction).
+OPTICS_LIMITS = {
+    "gain": (0.0, False, None, None),             # > 0 gray levels
+    "ambient": (0.0, True, None, None),           # >= 0
+    "albedo_plane": (0.0, False, 1.0, True),      # (0, 1]
+    "albedo_object": (0.0, False, 1.0, True),
+    "projector_gamma": (0.0, False, None, None),  # > 0
+    "camera_gamma": (0.0, False, None, None),
+    "projector_blur": (0.0, True, None, None),    # >= 0 px
+    "camera_blur": (0.0, True, None, None),
+    "noise_sigma": (0.0, True, None, None),       # >= 0 gray levels
+    "shot_noise": (0.0, True, None, None),
+}
+
+
+def _check_value(name: str, v) -> float:
+    """One optics number, validated against :data:`OPTICS_LIMITS` (ValueError names the parameter)."""
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+        raise ValueError(f"optics '{name}' must be a number, got {v!r}")
+    v = float(v)
+    lo, lo_incl, hi, hi_incl = OPTICS_LIMITS[name]
+    ok = np.isfinite(v) and (v >= lo if lo_incl else v > lo)
+    if hi is not None:
+        ok = ok and (v <= hi if hi_incl else v < hi)
+    if not ok:
+        rng = ("[" if lo_incl else "(") + f"{lo:g}, " + (f"{hi:g}" + ("]" if hi_incl else ")") if hi is not None else "inf)")
+        raise ValueError(f"optics '{name}' must be in {rng}, got {v:g}")
+    return v
+
+
+def _check_flags(pixelated, pattern_bits) -> None:
+    if not isinstance(pixelated, (bool, np.bool_)):
+        raise ValueError(f"optics 'pixelated' must be true or false, got {pixelated!r}")
+    if isinstance(pattern_bits, bool) or not isinstance(pattern_bits, (int, np.integer)) or not 0 <= pattern_bits <= 16:
+        raise ValueError(f"optics 'pattern_bits' must be an integer in 0..16, got {pattern_bits!r}")
 
 
 @dataclass
@@ -55,6 +93,11 @@ class Optics:
     shot_noise: float = 0.05
     pixelated: bool = True
     pattern_bits: int = 8
+
+    def __post_init__(self):
+        for name in OPTICS_LIMITS:
+            setattr(self, name, _check_value(name, getattr(self, name)))
+        _check_flags(self.pixelated, self.pattern_bits)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -95,6 +138,17 @@ class OpticsRanges:
     pixelated: bool = True
     pattern_bits: int = 8
 
+    def __post_init__(self):
+        for name in OPTICS_LIMITS:
+            v = getattr(self, name)
+            if not isinstance(v, (tuple, list)) or len(v) != 2:
+                raise ValueError(f"optics range '{name}' must be a number or [lo, hi], got {v!r}")
+            lo, hi = _check_value(name, v[0]), _check_value(name, v[1])
+            if lo > hi:
+                raise ValueError(f"optics range '{name}' must have lo <= hi, got [{lo:g}, {hi:g}]")
+            setattr(self, name, (lo, hi))
+        _check_flags(self.pixelated, self.pattern_bits)
+
     def sample(self, rng: np.random.Generator) -> Optics:
         """Draw one :class:`Optics` (fields in declaration order, one uniform draw each)."""
         values = {}
@@ -117,10 +171,13 @@ class OpticsRanges:
         for k, v in d.items():
             if k not in known:
                 raise ValueError(f"unknown optics parameter '{k}' (known: {', '.join(known)})")
-            if isinstance(getattr(cls(), k), tuple):
-                v = (float(v), float(v)) if np.isscalar(v) else tuple(float(x) for x in v)
-                if len(v) != 2 or v[0] > v[1]:
-                    raise ValueError(f"optics range '{k}' must be a number or [lo, hi] with lo <= hi")
+            if k in OPTICS_LIMITS:
+                if isinstance(v, (list, tuple)):
+                    if len(v) != 2:
+                        raise ValueError(f"optics range '{k}' must be a number or [lo, hi], got {list(v)}")
+                    v = (_check_value(k, v[0]), _check_value(k, v[1]))
+                else:
+                    v = (_check_value(k, v),) * 2
             out[k] = v
         return cls(**out)
 

@@ -31,8 +31,16 @@ class RigError(ValueError):
     """A calibration file or rig description that cannot be used."""
 
 
+MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
+
+
 def _as_matrix(value, shape, name):
-    arr = np.asarray(value, dtype=np.float64)
+    if isinstance(value, (dict, str, bytes)) or value is None:
+        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {type(value).__name__}")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {value!r:.80}") from None
     if arr.size != int(np.prod(shape)):
         raise RigError(f"{name} must have {int(np.prod(shape))} numbers (shape {shape}), got shape {arr.shape}")
     arr = arr.reshape(shape)
@@ -66,14 +74,15 @@ class Device:
         self.R = _as_matrix(self.R, (3, 3), "R")
         self.t = _as_matrix(self.t, (3,), "t")
         d = np.zeros(5)
-        dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        try:
+            dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        except (TypeError, ValueError):
+            raise RigError(f"dist must hold at most 5 finite numbers (k1,k2,p1,p2,k3), got {self.dist!r:.80}") from None
         if dist.size > 5 or not np.all(np.isfinite(dist)):
             raise RigError(f"dist must hold at most 5 finite numbers (k1,k2,p1,p2,k3), got {dist.tolist()}")
         d[: dist.size] = dist
         self.dist = d
-        self.width, self.height = int(self.width), int(self.height)
-        if self.width <= 0 or self.height <= 0:
-            raise RigError(f"resolution must be positive, got {self.width} x {self.height}")
+        self.width, self.height = _pixels(self.width, "width"), _pixels(self.height, "height")
         if self.K[0, 0] <= 0 or self.K[1, 1] <= 0 or self.K[2, 2] != 1 or self.K[2, 0] or self.K[2, 1]:
             raise RigError(f"K must be [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0, got {self.K.tolist()}")
         if not np.allclose(self.R @ self.R.T, np.eye(3), atol=1e-6) or np.linalg.det(self.R) < 0:
@@ -214,6 +223,16 @@ class Device:
                    width=width, height=height, dist=np.zeros(5) if dist is None else dist)
 
 
+def _pixels(value, name: str) -> int:
+    """A resolution field: a whole number of pixels in [1, MAX_PIXELS]."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float, np.integer, np.floating))
+    if ok:
+        ok = bool(np.isfinite(value)) and float(value) == int(value) and 1 <= int(value) <= MAX_PIXELS
+    if not ok:
+        raise RigError(f"{name} must be a whole number of pixels in 1..{MAX_PIXELS}, got {value!r}")
+    return int(value)
+
+
 def _distort(x, y, dist):
     k1, k2, p1, p2, k3 = dist
     r2 = x * x + y * y
@@ -313,11 +332,17 @@ class Rig:
             if not isinstance(d.get(key), dict):
                 raise RigError(f"rig document has no '{key}' section")
         plane = d.get("reference_plane")
+        if plane is not None and not isinstance(plane, dict):
+            raise RigError("reference_plane must be a mapping {point: [0,0,0], normal: [0,0,1]}, "
+                           f"got {type(plane).__name__}")
         if plane is not None and not (np.allclose(plane.get("point", [0, 0, 0]), 0)
                                       and np.allclose(plane.get("normal", [0, 0, 1]), [0, 0, 1])):
             raise RigError("reference_plane must be z = 0 with normal +z (re-express the extrinsics in that frame)")
-        periods = float(d.get("periods", 80.0))
-        if not periods > 0:
+        try:
+            periods = float(d.get("periods", 80.0))
+        except (TypeError, ValueError):
+            raise RigError(f"periods must be a number, got {d.get('periods')!r}") from None
+        if not (periods > 0 and np.isfinite(periods)):
             raise RigError(f"periods must be > 0, got {periods}")
         rig = cls(camera=Device.from_dict(d["camera"], "camera"),
                   projector=Device.from_dict(d["projector"], "projector"),
@@ -334,6 +359,41 @@ class Rig:
             axis = dev.R[2]  # optical axis in world coordinates
             if axis[2] >= 0:
                 raise RigError(f"{name} looks away from the reference plane (optical axis z = {axis[2]:+.3f})")
+
+    def check_usable(self, min_lit: float = 0.05, min_shift_px: float = 0.01) -> None:
+        """Raise RigError unless the rig can measure heights at all (checked before generating).
+
+        * the projector must light at least ``min_lit`` of the camera's view of the reference plane;
+        * a 1 mm height change at the view centre must move the seen projector column by at least
+          ``min_shift_px`` projector pixels (zero baseline, or a baseline along the fringes, gives 0:
+          the fringes would not encode height).
+        """
+        cam, proj = self.camera, self.projector
+        step = max(1, min(cam.width, cam.height) // 32)
+        uv = cam.pixel_grid()[::step, ::step].reshape(-1, 2)
+        depth = cam.plane_depth(uv)
+        hit = np.isfinite(depth)
+        if not hit.any():
+            raise RigError("the camera does not see the reference plane")
+        X = cam.backproject(uv[hit], depth[hit])
+        puv, z = proj.project(X)
+        lit = (z > 0) & (puv[:, 0] >= -0.5) & (puv[:, 0] <= proj.width - 0.5) \
+            & (puv[:, 1] >= -0.5) & (puv[:, 1] <= proj.height - 0.5)
+        frac = float(lit.mean())
+        if frac < min_lit:
+            raise RigError(f"the projector lights {100 * frac:.1f}% of the camera's view of the reference plane "
+                           f"(need >= {100 * min_lit:.0f}%): check the projector pose (R, t) and resolution")
+        centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
+        origin, d = cam.pixel_rays(centre)
+        s0 = (0.0 - origin[2]) / d[0, 2]
+        s1 = (1.0 - origin[2]) / d[0, 2]
+        u0 = proj.project(origin + s0 * d[0])[0][0]
+        u1 = proj.project(origin + s1 * d[0])[0][0]
+        shift = abs(float(u1 - u0))
+        if not shift >= min_shift_px:
+            base = float(np.linalg.norm(cam.center - proj.center))
+            raise RigError(f"fringes do not move with height ({shift:.3g} projector px per mm at the view centre; "
+                           f"baseline {base:.1f} mm): camera and projector need a baseline across the fringes")
 
     def save(self, path: str | os.PathLike) -> None:
         """Write JSON or YAML (by extension), atomically."""
@@ -400,7 +460,14 @@ class Rig:
             for n in names:
                 nd = fs.getNode(n)
                 if not nd.empty():
-                    return nd.mat() if nd.isMap() or nd.isSeq() else nd.real()
+                    if nd.isMap() or nd.isSeq():
+                        m = nd.mat()
+                        if m is None:
+                            raise RigError(f"{path}: node {n} is not a valid matrix (check rows x cols and data)")
+                        return m
+                    if not (nd.isInt() or nd.isReal()):
+                        raise RigError(f"{path}: node {n} must be a number, got {nd.string()!r}")
+                    return nd.real()
             if required:
                 raise RigError(f"{path}: no node named {' or '.join(names)}")
             return None
@@ -420,8 +487,12 @@ class Rig:
             ph = node("projector_height", required=False) or 1140
             if plane_distance is None:
                 plane_distance = node("plane_distance", required=False)
+        except cv2.error as exc:  # e.g. an opencv-matrix whose data count differs from rows x cols
+            raise RigError(f"{path}: OpenCV cannot read a node ({str(exc).strip().splitlines()[-1][:160]})") from None
         finally:
             fs.release()
+        if R is None or T is None:
+            raise RigError(f"{path}: R and T must be matrices")
         if R is not None and np.asarray(R).size == 3:  # Rodrigues vector
             R = cv2.Rodrigues(np.asarray(R, float))[0]
         if Rp is not None and np.asarray(Rp).size == 3:
@@ -434,9 +505,9 @@ class Rig:
             Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
         else:
             raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
-        cam = Device(K=K1, dist=_five_coefficients(D1, path, "camera"), R=Rw, t=tw, width=int(cw), height=int(ch))
+        cam = Device(K=K1, dist=_five_coefficients(D1, path, "camera"), R=Rw, t=tw, width=cw, height=ch)
         proj = Device(K=K2, dist=_five_coefficients(D2, path, "projector"), R=R @ Rw, t=R @ tw + T,
-                      width=int(pw), height=int(ph))
+                      width=pw, height=ph)
         rig = cls(camera=cam, projector=proj, periods=periods, name=path.stem)
         rig.check()
         return rig

@@ -83,9 +83,20 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     """
     import trimesh
 
+    from .meshio import PlyError, ply_has_tristrips, read_ply_tristrips
+
     path = str(path)
     try:
-        loaded = trimesh.load(path, force="mesh", process=False)
+        if path.lower().endswith(".ply") and ply_has_tristrips(path):  # trimesh ignores triangle strips
+            v, f = read_ply_tristrips(path)
+            loaded = trimesh.Trimesh(vertices=v, faces=f, process=False)
+        else:
+            loaded = trimesh.load(path, force="mesh", process=False)
+    except PlyError as exc:
+        raise MeshError(str(exc)) from None
+    except ImportError:  # trimesh guesses the text encoding of undecodable bytes with an optional module
+        raise MeshError(f"{path}: unreadable (not a valid {Path(path).suffix or 'mesh'} file: its content is "
+                        "binary or garbage, not mesh text)") from None
     except Exception as exc:
         raise MeshError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     if not isinstance(loaded, trimesh.Trimesh):

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from fppsim._fs import tmp_path
+
 FORMAT = "uhrnet-checkpoint"
 VERSION = 1
 
@@ -38,7 +40,7 @@ def atomic_save(obj, path: str | os.PathLike) -> Path:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp = tmp_path(path)
     try:
         with open(tmp, "wb") as f:
             torch.save(obj, f)
@@ -61,9 +63,13 @@ def atomic_save(obj, path: str | os.PathLike) -> Path:
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    tmp = tmp_path(path)
+    try:
+        tmp.write_text(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 
@@ -79,6 +85,8 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu") -> dict:
             raise CheckpointError(f"{path}: folder holds no best.pt or last.pt")
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: empty file (0 bytes), not a checkpoint")
     try:
         ckpt = torch.load(path, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError:  # torch's message advises weights_only=False: wrong for a garbage file
@@ -86,7 +94,8 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu") -> dict:
             f"{path}: cannot load checkpoint: not a PyTorch checkpoint (truncated or another format)"
         ) from None
     except Exception as exc:  # truncated file, not a torch file ...
-        raise CheckpointError(f"{path}: cannot load checkpoint ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+        first = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "no details"
+        raise CheckpointError(f"{path}: cannot load checkpoint ({type(exc).__name__}: {first})") from None
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a uhrnet checkpoint (no format={FORMAT!r} entry)")
     if int(ckpt.get("version", 0)) > VERSION:

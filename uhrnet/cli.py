@@ -23,6 +23,10 @@ class CLIError(Exception):
     """A user-facing error: printed as one line, exit code 1."""
 
 
+class UsageError(CLIError):
+    """A bad command-line value: printed as one line, exit code 2 (like argparse's own errors)."""
+
+
 def build_parser(load=None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="uhrnet",
@@ -67,19 +71,28 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     module = importlib.import_module(COMMANDS[args.command][0])
+    from fppsim._fs import FolderBusy, signals_raise
+
     try:
-        return int(module.run(args) or 0)
+        with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum, temp files removed
+            return int(module.run(args) or 0)
     except Exception as exc:  # user-facing errors become one line; anything else is a bug: traceback
         from uhrnet.checkpoint import CheckpointError
         from uhrnet.data import DataError
 
-        if not isinstance(exc, (CLIError, DataError, CheckpointError)):
+        if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, ...
+            where = f"{exc.filename}: " if exc.filename else ""
+            print(f"uhrnet {args.command}: error: {where}{exc.strerror}", file=sys.stderr)
+            return 1
+        if not isinstance(exc, (CLIError, DataError, CheckpointError, FolderBusy)):
             raise
         print(f"uhrnet {args.command}: error: {one_line(exc)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print("uhrnet: interrupted", file=sys.stderr)
-        return 130
+        return 2 if isinstance(exc, UsageError) else 1
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        print(f"uhrnet {args.command}: {'terminated' if signum == 15 else 'interrupted'}"
+              + (" (resume with --resume)" if args.command == "train" else ""), file=sys.stderr)
+        return 128 + signum
 
 
 if __name__ == "__main__":

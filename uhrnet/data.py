@@ -94,7 +94,32 @@ class LabelTransform:
         if unknown:
             raise DataError(f"label transform: unknown keys {sorted(unknown)} (known: {sorted(names)})")
         base = PRESETS.get(d.get("preset", d.get("name", "figshare")), PRESETS["figshare"])
-        return replace(base, **{k: (str(v) if k == "name" else float(v)) for k, v in d.items() if k in names})
+        values = {}
+        for k, v in d.items():
+            if k not in names:
+                continue
+            if k == "name":
+                values[k] = str(v)
+                continue
+            try:
+                values[k] = float(v)
+            except (TypeError, ValueError):
+                raise DataError(f"label transform: {k} must be a number, got {v!r}") from None
+        return replace(base, **values).checked()
+
+    def checked(self) -> "LabelTransform":
+        """Self, after refusing values that make every label meaningless (raises DataError)."""
+        for k in ("units_per_mm", "invalid_value", "invalid_threshold", "plane_offset", "data_range"):
+            if not math.isfinite(getattr(self, k)):
+                raise DataError(f"label transform: {k} must be finite, got {getattr(self, k)}")
+        if not self.units_per_mm > 0:
+            raise DataError(f"label transform: units_per_mm must be > 0, got {self.units_per_mm:g}")
+        if not self.data_range > 0:
+            raise DataError(f"label transform: data_range must be > 0, got {self.data_range:g}")
+        if not self.invalid_value <= self.invalid_threshold:
+            raise DataError(f"label transform: invalid_value ({self.invalid_value:g}) must be <= invalid_threshold "
+                            f"({self.invalid_threshold:g}), or invalid pixels would count as valid")
+        return self
 
     @classmethod
     def resolve(cls, spec: "LabelTransform | str | dict | None") -> "LabelTransform":
@@ -354,6 +379,21 @@ class FppsimDataset(Dataset):
             for name in ("fringe.png", "arrays.npz"):
                 if not (self.root / sid / name).is_file():
                     raise DataError(f"{self.root / sid / name}: file not found (listed in {manifest.name})")
+        if label == "psp":  # refuse up front, not at the first batch: a --no-psp dataset has no PSP height
+            try:
+                settings = json.loads((self.root / "dataset.json").read_text())
+                no_psp = not (settings.get("config") or {}).get("psp_freqs", True)
+            except (OSError, ValueError, AttributeError):
+                no_psp = False
+            if not no_psp:
+                try:
+                    with np.load(self.root / self.ids[0] / "arrays.npz", allow_pickle=False) as z:
+                        no_psp = "height_psp" not in z.files
+                except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error):
+                    pass  # named when the sample is read
+            if no_psp:
+                raise DataError(f"{self.root}: label 'psp' (--synthetic-label psp) but this dataset has no PSP "
+                                "height (generated with --no-psp)")
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -434,6 +474,34 @@ def _read_manifest(path: Path) -> list[str]:
     return ids
 
 
+COLOUR_TOLERANCE = 8.0  # mean |channel - grey| in 8-bit levels above which a colour image is refused
+
+
+def _colour_to_grey(img: np.ndarray, path) -> np.ndarray:
+    """BGR(A) image -> grey, the way a grey camera would have recorded the same scene.
+
+    A fringe image saved in colour (equal channels, or a colour camera's near-grey white-light image)
+    becomes its luminance ``0.299 R + 0.587 G + 0.114 B`` (OpenCV's BGR2GRAY): equal channels give
+    exactly the grey image. An image whose channels differ more than :data:`COLOUR_TOLERANCE` levels on
+    average (a colour-mapped picture, tinted light) has no grey equivalent the models were trained on,
+    so it is refused with a hint instead of giving heights off by tens of millimetres.
+    """
+    import cv2
+
+    if img.shape[2] == 4:
+        img = img[..., :3]
+    elif img.shape[2] != 3:
+        raise DataError(f"{path}: {img.shape[2]}-channel image, expected grey (or colour with equal channels)")
+    img = np.ascontiguousarray(img)
+    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    scale = 257.0 if img.dtype == np.uint16 else 1.0
+    spread = float(np.abs(img.astype(np.float32) - grey[..., None].astype(np.float32)).mean()) / scale
+    if spread > COLOUR_TOLERANCE:
+        raise DataError(f"{path}: colour image whose channels differ by {spread:.1f} gray levels on average; the "
+                        "models take grey fringe images: save the camera's grey (monochrome) image instead")
+    return grey
+
+
 def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
     """An 8-bit (or 16-bit) grey image as float32 in the dataset encoding, intensity / 127.5 - 1."""
     import cv2
@@ -449,9 +517,8 @@ def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise DataError(f"{path}: cannot read as an image")
-    if img.ndim == 3:
-        code = cv2.COLOR_BGRA2GRAY if img.shape[2] == 4 else cv2.COLOR_BGR2GRAY
-        img = cv2.cvtColor(img, code)
+    if img.ndim == 3:  # colour: only a grey scene saved in colour is accepted (see _colour_to_grey)
+        img = _colour_to_grey(img, path)
     if img.dtype == np.uint8:
         scale = 1.0
     elif img.dtype == np.uint16:
@@ -700,6 +767,9 @@ def load_sources(real: Sequence[str] = (), synthetic: Sequence[str] = (), transf
             kw = {"check": check}
             if group == 1 and find_figshare_pair(folder) is None:
                 kw["label"] = synthetic_label
+            elif group == 1 and synthetic_label == "psp":
+                raise DataError(f"{folder}: --synthetic-label psp needs native samples with PSP arrays, but this is a "
+                                "figshare-format export (its Z is the exact height); use its native/ folder")
             ds = open_dataset(folder, transform=transform, source=source, **kw)
             try:
                 idx = {p: split_indices(len(ds), p, mode) for p in ("train", "val", "test")}

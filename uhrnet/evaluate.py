@@ -20,7 +20,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.cli import CLIError
+from uhrnet.cli import CLIError, UsageError
 from uhrnet.data import SPLIT_MODES, LabelTransform, Prepared, load_sources, parse_size
 
 
@@ -108,6 +108,10 @@ def run(args: argparse.Namespace) -> int:
     from uhrnet.plots import plot_comparison
     from uhrnet.train import image_metrics
 
+    for flag, value, lowest in (("--limit", args.limit, 1), ("--batch-size", args.batch_size, 1),
+                                ("--figures", args.figures, 0), ("--timing-repeats", args.timing_repeats, 0)):
+        if value is not None and value < lowest:
+            raise UsageError(f"{flag} must be >= {lowest}, got {value}")
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = _names(ckpts, args.names)
     transform = LabelTransform.from_dict(ckpts[0]["label_transform"])

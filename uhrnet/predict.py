@@ -12,23 +12,31 @@ For every image ``NAME`` it writes to ``--out``:
   millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
 
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
-input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel.
+input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
+prediction without any valid pixel is written and reported with a warning.
+
+Inputs must be at least ``MIN_SIDE`` x ``MIN_SIDE`` pixels (the networks pool four times). Colour
+images are accepted when they show a grey scene (channels equal within a few gray levels): they are
+converted to their luminance, which for equal channels is exactly the grey image; other colour
+images are refused (see ``uhrnet.data.read_fringe_image``).
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.cli import CLIError
+from uhrnet.cli import CLIError, UsageError
 from uhrnet.data import DataError, parse_size, read_fringe_image
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 INPUT_EXTS = IMAGE_EXTS + (".npy",)
+MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -164,6 +172,8 @@ def run(args: argparse.Namespace) -> int:
 
     from uhrnet.inference import predict_labels
 
+    if not (args.pixel_size > 0 and np.isfinite(args.pixel_size)):
+        raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {args.pixel_size:g}")
     files = collect_inputs(args.inputs)
     ckpt = load_checkpoint(args.checkpoint)
     try:
@@ -197,6 +207,9 @@ def run(args: argparse.Namespace) -> int:
                 k += 1
                 name = f"{base}_{k}"
             used.add(name)
+            if min(fringe.shape) < MIN_SIDE:
+                raise CLIError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
+                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
             if rig is not None and not args.no_ply and (rig.camera.height, rig.camera.width) != fringe.shape:
                 raise CLIError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
                                f"({args.rig}) is {rig.camera.width}x{rig.camera.height}")
@@ -205,6 +218,10 @@ def run(args: argparse.Namespace) -> int:
             if not args.keep_all:
                 valid = transform.mask(label) & (fringe > -1 + 1e-6)
                 height = np.where(valid, height, np.float32(np.nan))
+            if not np.isfinite(height).any():
+                print(f"uhrnet predict: warning: {path} ({name}): no valid pixel in the prediction (every label at "
+                      f"or below {transform.invalid_threshold:g}, or a black input); is this a fringe image like "
+                      "the training data?", file=sys.stderr)
             np.save(out / f"{name}_height.npy", height)
             write_tiff(out / f"{name}_height.tif", height)
             write_preview(out / f"{name}_height.png", height, args.colormap, args.range)

@@ -28,16 +28,18 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
+from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock, tmp_path
 from uhrnet.checkpoint import (
     FORMAT, VERSION, CheckpointError, LabelHead, atomic_save, atomic_write_text, load_checkpoint, rng_state,
     select_device, set_rng_state,
 )
-from uhrnet.cli import CLIError
+from uhrnet.cli import CLIError, UsageError
 from uhrnet.data import (
     PRESETS, SPLIT_MODES, DataError, LabelTransform, MixedSampler, Prepared, load_sources, parse_size,
 )
 
 LOSS_NAMES = ("compound", "l2", "chunked", "ssim")
+RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
 # the user set; LOCKED options must match the checkpoint's, the others may change on resume.
@@ -108,6 +110,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     r.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (history, checkpoints, plots)")
     r.add_argument("--resume", nargs="?", const="auto", metavar="CKPT",
                    help="continue from RUN_DIR/last.pt (or CKPT) with the same settings")
+    r.add_argument("--overwrite", action="store_true",
+                   help="start afresh in a RUN_DIR that already holds a run (its best.pt, last.pt, history and "
+                        "config are replaced); without it such a folder is refused")
     r.add_argument("--device", choices=("auto", "cpu", "cuda"), help="[auto: cuda when available]")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -165,6 +170,12 @@ def resolve_config(args: argparse.Namespace, previous: dict | None = None) -> di
             raise CLIError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
     if not cfg["lr"] > 0:
         raise CLIError(f"--lr must be positive, got {cfg['lr']}")
+    if not math.isfinite(cfg["lr"]):
+        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
+    if cfg["grad_clip"] is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
+        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
+        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
     return cfg
 
 
@@ -287,11 +298,19 @@ class Trainer:
         self.args, self.info = args, info
         self.out = Path(args.out)
         self.ckpt = None
+        if info.main:
+            try:
+                check_writable_dir(self.out)
+            except ValueError as exc:
+                raise CLIError(str(exc)) from None
         if args.resume:
             path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
-        elif (self.out / "last.pt").exists():
-            raise CLIError(f"{self.out / 'last.pt'} exists: pass --resume to continue that run, or choose another --out")
+        elif not getattr(args, "overwrite", False):
+            existing = [n for n in RUN_FILES if (self.out / n).exists()]
+            if existing:
+                raise CLIError(f"{self.out} already holds a run ({', '.join(existing)}): pass --resume to continue "
+                               "it, --overwrite to replace it, or choose another --out")
         self.cfg = resolve_config(args, self.ckpt["args"] if self.ckpt else None)
         if not self.cfg["real"] and not self.cfg["synthetic"]:
             raise CLIError("no data: give --real DIR and/or --synthetic DIR")
@@ -560,15 +579,23 @@ class Trainer:
         if info.enabled:
             dist.barrier()
         if info.main:
-            print(f"done: {self.out / 'best.pt'} (epoch {self.best['epoch']}, {self.best['metric']} "
-                  f"{self.best['value']:.4f}), history {self.out / 'history.csv'}", flush=True)
+            if (self.out / "best.pt").is_file() and self.best["epoch"]:
+                print(f"done: {self.out / 'best.pt'} (epoch {self.best['epoch']}, {self.best['metric']} "
+                      f"{self.best['value']:.4f}), history {self.out / 'history.csv'}", flush=True)
+            else:  # every epoch's metric was NaN (e.g. no valid pixel): no best model to point to
+                print(f"done: no best.pt written (no epoch had a finite {self.best['metric']}); last epoch in "
+                      f"{self.out / 'last.pt'}, history {self.out / 'history.csv'}", flush=True)
         return 0
 
 
 def _atomic_copy(src: Path, dst: Path) -> None:
-    tmp = dst.with_name(f".{dst.name}.tmp-{os.getpid()}")
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    tmp = tmp_path(dst)
+    try:
+        shutil.copyfile(src, tmp)
+        os.replace(tmp, dst)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _version() -> str:
@@ -580,7 +607,15 @@ def _version() -> str:
 def run(args: argparse.Namespace) -> int:
     info = init_distributed(args.device or "auto")
     try:
-        return Trainer(args, info).fit()
+        if not info.main:
+            return Trainer(args, info).fit()
+        try:
+            Path(args.out).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CLIError(f"--out {args.out}: cannot create the run folder ({exc.strerror or exc})") from None
+        with folder_lock(args.out, "uhrnet train"):  # two trainings in one folder would overwrite each other
+            clean_stale_tmp(args.out)  # checkpoint temp files of a killed run
+            return Trainer(args, info).fit()
     finally:
         if info.enabled and dist.is_initialized():
             dist.destroy_process_group()

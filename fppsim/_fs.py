@@ -1,0 +1,190 @@
+"""Safe file-system machinery shared by fppsim and uhrnet: own temp names, folder locks, signals.
+
+Rules this module implements:
+
+* Our temporary files and folders are named ``.fppsim-tmp-<pid>-<name>``; only entries with that name
+  are ever deleted by a clean-up, and only when the process ``<pid>`` is gone (or is us).
+* A folder a tool writes into is locked with ``flock`` on ``<folder>/.fppsim.lock`` for the whole run,
+  so a second run on the same folder refuses instead of destroying the first one's work. The lock file
+  stays (it is empty); the kernel releases the lock when the process dies, even after kill -9.
+* SIGTERM (e.g. a Slurm timeout) is turned into :class:`Interrupted`, a ``KeyboardInterrupt``, so the
+  same clean-up path as Ctrl-C runs (worker pools terminated, temp files removed) and the command exits
+  ``128 + signum`` with one line.
+"""
+
+from __future__ import annotations
+
+import errno
+import fcntl
+import os
+import re
+import shutil
+import signal
+from contextlib import contextmanager
+from pathlib import Path
+
+__all__ = ["TMP_PREFIX", "LOCK_NAME", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
+           "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
+           "check_writable_dir", "write_fully"]
+
+TMP_PREFIX = ".fppsim-tmp-"
+LOCK_NAME = ".fppsim.lock"
+_TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
+# temp names written by earlier versions (".f1_80.npy.1234.tmp", ".best.pt.tmp-1234", ...): also ours
+_LEGACY_RE = re.compile(r"^\.(?:f1_80\.npy|Z\.npy|manifest\.jsonl|dataset\.json)\.(\d+)\.tmp$"
+                        r"|^\.(?:best|last)\.pt\.tmp-(\d+)$")
+
+
+class FolderBusy(RuntimeError):
+    """Another process holds the folder's lock (one line, names the folder and the holder)."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """SIGTERM/SIGINT received; ``signum`` says which (exit status ``128 + signum``)."""
+
+    def __init__(self, signum: int = signal.SIGINT):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = int(signum)
+
+
+def tmp_path(final: str | os.PathLike, pid: int | None = None) -> Path:
+    """The temporary sibling of ``final`` this process writes before renaming it into place."""
+    final = Path(final)
+    return final.with_name(f"{TMP_PREFIX}{os.getpid() if pid is None else pid}-{final.name}")
+
+
+def _owner_pid(name: str) -> int | None:
+    m = _TMP_RE.match(name) or _LEGACY_RE.match(name)
+    if not m:
+        return None
+    return int(next(g for g in m.groups() if g is not None))
+
+
+def is_own_tmp(name: str) -> bool:
+    """True for names this package gives its temporary files and folders."""
+    return _owner_pid(name) is not None
+
+
+def pid_alive(pid: int) -> bool:
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+def clean_stale_tmp(folder: str | os.PathLike) -> list[Path]:
+    """Remove our temp files/folders in ``folder`` whose writer is dead (or is this process).
+
+    Nothing else is touched: foreign dot-files, ``.tmp`` folders of other tools, unknown folders stay.
+    Returns what was removed.
+    """
+    folder = Path(folder)
+    removed = []
+    try:
+        entries = list(folder.iterdir())
+    except (FileNotFoundError, NotADirectoryError):
+        return removed
+    me = os.getpid()
+    for p in entries:
+        pid = _owner_pid(p.name)
+        if pid is None or (pid != me and pid_alive(pid)):
+            continue
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+        removed.append(p)
+    return removed
+
+
+@contextmanager
+def folder_lock(folder: str | os.PathLike, what: str = "fppsim"):
+    """Hold an exclusive ``flock`` on ``folder/.fppsim.lock``; raise :class:`FolderBusy` if taken.
+
+    The holder's pid is written into the lock file for the message; the lock itself is the flock, so a
+    killed holder never leaves a stale lock behind.
+    """
+    folder = Path(folder)
+    path = folder / LOCK_NAME
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                raise
+            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
+            raise FolderBusy(f"{folder} is in use by another {what} run (pid {holder}); wait for it to finish "
+                             "or use another output folder") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield path
+    finally:
+        os.close(fd)  # releases the flock
+
+
+def _raise_interrupted(signum, frame):
+    raise Interrupted(signum)
+
+
+@contextmanager
+def signals_raise(signums=(signal.SIGTERM, signal.SIGINT)):
+    """Inside the block, SIGTERM/SIGINT raise :class:`Interrupted` in the main thread."""
+    old = {}
+    for s in signums:
+        try:
+            old[s] = signal.signal(s, _raise_interrupted)
+        except ValueError:  # not the main thread: leave signals alone
+            pass
+    try:
+        yield
+    finally:
+        for s, h in old.items():
+            signal.signal(s, h)
+
+
+def ignore_sigint() -> None:
+    """For pool workers: Ctrl-C goes to the whole process group; only the parent should react to it
+    (it terminates the pool), so workers print no KeyboardInterrupt/BrokenPipeError tracebacks."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+
+
+def die_with_parent() -> None:
+    """Linux: SIGKILL this worker when its parent dies (kill -9 of the parent leaves no orphans)."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        PR_SET_PDEATHSIG = 1
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+    except (OSError, AttributeError):  # not Linux: the parent's pool.terminate() still stops workers
+        pass
+
+
+def check_writable_dir(folder: str | os.PathLike, flag: str = "--out") -> Path:
+    """Create ``folder`` if needed and prove it is a writable directory; ``OSError`` -> one-line ValueError."""
+    folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{flag} {folder} is a file, not a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe = tmp_path(folder / "write-test")
+        probe.write_bytes(b"ok")
+        probe.unlink()
+    except OSError as exc:
+        raise ValueError(f"{flag} {folder}: cannot write there ({exc.strerror or exc})") from None
+    return folder
+
+
+def write_fully(fh, data) -> None:
+    """``fh.write`` of a bytes-like object; a short write or ENOSPC raises ``OSError`` (never SIGBUS)."""
+    view = memoryview(data).cast("B")
+    n = fh.write(view)
+    if n is not None and n != len(view):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
