@@ -4,9 +4,9 @@ Rules this module implements:
 
 * Our temporary files and folders are named ``.fppsim-tmp-<pid>-<name>``; only entries with that name
   are ever deleted by a clean-up, and only when the process ``<pid>`` is gone (or is us).
-* A folder a tool writes into is locked with ``flock`` on ``<folder>/.fppsim.lock`` for the whole run,
-  so a second run on the same folder refuses instead of destroying the first one's work. The lock file
-  stays (it is empty); the kernel releases the lock when the process dies, even after kill -9.
+* A folder a tool writes into is locked with ``flock`` on the folder itself for the whole run, so a
+  second run on the same folder refuses instead of destroying the first one's work; the kernel
+  releases the lock when the process dies, even after kill -9.
 * SIGTERM (e.g. a Slurm timeout) is turned into :class:`Interrupted`, a ``KeyboardInterrupt``, so the
   same clean-up path as Ctrl-C runs (worker pools terminated, temp files removed) and the command exits
   ``128 + signum`` with one line.
@@ -23,12 +23,11 @@ import signal
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["TMP_PREFIX", "LOCK_NAME", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
+__all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
            "check_writable_dir", "write_fully"]
 
 TMP_PREFIX = ".fppsim-tmp-"
-LOCK_NAME = ".fppsim.lock"
 _TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
 # temp names written by earlier versions (".f1_80.npy.1234.tmp", ".best.pt.tmp-1234", ...): also ours
 _LEGACY_RE = re.compile(r"^\.(?:f1_80\.npy|Z\.npy|manifest\.jsonl|dataset\.json)\.(\d+)\.tmp$"
@@ -104,26 +103,22 @@ def clean_stale_tmp(folder: str | os.PathLike) -> list[Path]:
 
 @contextmanager
 def folder_lock(folder: str | os.PathLike, what: str = "fppsim"):
-    """Hold an exclusive ``flock`` on ``folder/.fppsim.lock``; raise :class:`FolderBusy` if taken.
+    """Hold an exclusive ``flock`` on the folder itself; raise :class:`FolderBusy` if another process has it.
 
-    The holder's pid is written into the lock file for the message; the lock itself is the flock, so a
-    killed holder never leaves a stale lock behind.
+    Locking the directory's own file descriptor leaves no lock file behind, and the kernel drops the
+    lock when the holder dies (even by kill -9), so a stale lock cannot block a re-run.
     """
     folder = Path(folder)
-    path = folder / LOCK_NAME
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0))
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             if exc.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                 raise
-            holder = os.pread(fd, 32, 0).decode(errors="replace").strip() or "?"
-            raise FolderBusy(f"{folder} is in use by another {what} run (pid {holder}); wait for it to finish "
+            raise FolderBusy(f"{folder} is in use by another {what} run; wait for it to finish "
                              "or use another output folder") from None
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
-        yield path
+        yield folder
     finally:
         os.close(fd)  # releases the flock
 

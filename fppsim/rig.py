@@ -488,7 +488,9 @@ class Rig:
             if plane_distance is None:
                 plane_distance = node("plane_distance", required=False)
         except cv2.error as exc:  # e.g. an opencv-matrix whose data count differs from rows x cols
-            raise RigError(f"{path}: OpenCV cannot read a node ({str(exc).strip().splitlines()[-1][:160]})") from None
+            detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
+            detail = detail.split(" error: ", 1)[-1][:160]  # drop OpenCV's source path and line
+            raise RigError(f"{path}: OpenCV cannot read a matrix node (data count must be rows x cols): {detail}") from None
         finally:
             fs.release()
         if R is None or T is None:

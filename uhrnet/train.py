@@ -298,12 +298,11 @@ class Trainer:
         self.args, self.info = args, info
         self.out = Path(args.out)
         self.ckpt = None
-        if info.main:
-            try:
-                check_writable_dir(self.out)
-            except ValueError as exc:
-                raise CLIError(str(exc)) from None
-        if args.resume:
+        fresh = (args.resume == "auto" and not (self.out / "last.pt").exists()
+                 and not any((self.out / n).exists() for n in ("best.pt", "history.csv")))
+        if fresh:  # killed before its first checkpoint: nothing trained yet, so start the run afresh
+            print(f"note: {self.out} has no last.pt yet; starting the run from epoch 1", file=sys.stderr)
+        elif args.resume:
             path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
         elif not getattr(args, "overwrite", False):
@@ -609,10 +608,12 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not info.main:
             return Trainer(args, info).fit()
+        if not args.resume:  # refuse bad options before the run folder is created
+            label_transform_from(resolve_config(args))
         try:
-            Path(args.out).mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise CLIError(f"--out {args.out}: cannot create the run folder ({exc.strerror or exc})") from None
+            check_writable_dir(args.out)
+        except ValueError as exc:
+            raise CLIError(str(exc)) from None
         with folder_lock(args.out, "uhrnet train"):  # two trainings in one folder would overwrite each other
             clean_stale_tmp(args.out)  # checkpoint temp files of a killed run
             return Trainer(args, info).fit()
