@@ -186,7 +186,7 @@ def test_uhrnet_bad_files_and_folders(tmp_path, tiny_run, capsys):
     cv2.imwrite(str(img), np.full((32, 64), 100, np.uint8))
     assert uhrnet_main(["predict", str(empty / "last.pt"), str(img), "--out", str(tmp_path / "p")]) == 1
     _one_error_line(capsys, "last.pt", "empty file")
-    assert uhrnet_main(base + ["--label-transform", "units_per_mm=0", "--out", str(tmp_path / "u")]) == 1
+    assert uhrnet_main(base + ["--label-transform", "units_per_mm=0", "--out", str(tmp_path / "u")]) == 2
     _one_error_line(capsys, "units_per_mm must be > 0")
     a_file = tmp_path / "a_file"
     a_file.write_text("x")

@@ -184,7 +184,7 @@ def label_transform_from(cfg: dict) -> LabelTransform:
     try:
         return LabelTransform.from_dict({"preset": cfg["preset"], "name": cfg["preset"], **overrides})
     except DataError as exc:
-        raise CLIError(f"--label-transform: {exc}") from None
+        raise UsageError(f"--label-transform: {exc}") from None
 
 
 # --------------------------------------------------------------------------------------------------
