@@ -35,7 +35,7 @@ _LEGACY_RE = re.compile(r"^\.(?:f1_80\.npy|Z\.npy|manifest\.jsonl|dataset\.json)
 
 
 class FolderBusy(RuntimeError):
-    """Another process holds the folder's lock (one line, names the folder and the holder)."""
+    """Another process holds the folder's lock (one line naming the folder)."""
 
 
 class Interrupted(KeyboardInterrupt):

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ._fs import tmp_path
 from .psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat"]
@@ -204,7 +205,7 @@ def save_psp_mat(path: str | os.PathLike, psin: np.ndarray, pcos: np.ndarray, or
     import scipy.io
 
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp = tmp_path(path)
     try:
         with open(tmp, "wb") as fh:
             scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")

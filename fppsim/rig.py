@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._fs import tmp_path
+
 __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "rotation_to_plane_frame"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
@@ -404,9 +406,13 @@ class Rig:
             text = yaml.safe_dump(doc, sort_keys=False)
         else:
             text = json.dumps(doc, indent=2)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, path)
+        tmp = tmp_path(path)
+        try:
+            tmp.write_text(text)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":

@@ -7,7 +7,6 @@ SIGTERM/SIGINT with worker processes (item 9).
 """
 
 import errno
-import json
 import os
 import signal
 import subprocess
