@@ -487,10 +487,14 @@ class Rig:
             T = node("T")
             Rp = node("R_plane", "Rp", required=False)
             Tp = node("T_plane", "Tp", required=False)
-            cw = node("camera_width", "image_width", required=False) or 640
-            ch = node("camera_height", "image_height", required=False) or 352
-            pw = node("projector_width", required=False) or 912
-            ph = node("projector_height", required=False) or 1140
+            def size(default, *names):  # an explicit 0 must be refused, not replaced by the default
+                v = node(*names, required=False)
+                return default if v is None else v
+
+            cw = size(640, "camera_width", "image_width")
+            ch = size(352, "camera_height", "image_height")
+            pw = size(912, "projector_width")
+            ph = size(1140, "projector_height")
             if plane_distance is None:
                 plane_distance = node("plane_distance", required=False)
         except cv2.error as exc:  # e.g. an opencv-matrix whose data count differs from rows x cols
@@ -513,9 +517,15 @@ class Rig:
             Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
         else:
             raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
-        cam = Device(K=K1, dist=_five_coefficients(D1, path, "camera"), R=Rw, t=tw, width=cw, height=ch)
-        proj = Device(K=K2, dist=_five_coefficients(D2, path, "projector"), R=R @ Rw, t=R @ tw + T,
-                      width=pw, height=ph)
+        d1, d2 = _five_coefficients(D1, path, "camera"), _five_coefficients(D2, path, "projector")
+        try:
+            cam = Device(K=K1, dist=d1, R=Rw, t=tw, width=cw, height=ch)
+        except RigError as exc:
+            raise RigError(f"{path}: camera: {exc}") from None
+        try:
+            proj = Device(K=K2, dist=d2, R=R @ Rw, t=R @ tw + T, width=pw, height=ph)
+        except RigError as exc:
+            raise RigError(f"{path}: projector: {exc}") from None
         rig = cls(camera=cam, projector=proj, periods=periods, name=path.stem)
         rig.check()
         return rig
