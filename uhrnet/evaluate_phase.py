@@ -34,6 +34,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data) [default]; "
                         "fppsim: atan2(PSin, PCos) + 2 pi Order")
     p.add_argument("--negate-sin", action="store_true", help="the files store PSin with the opposite sign")
+    p.add_argument("--mask-predicted-invalid", action="store_true",
+                   help="leave out pixels the model labels invalid (default: keep them: real phase exists there, so "
+                        "a predicted shadow is a prediction error)")
     p.add_argument("--names", nargs="+", metavar="NAME", help="model names (one per checkpoint)")
     p.add_argument("--ids", nargs="+", metavar="ID", help="evaluate only these ids [all]")
     p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N ids")
@@ -148,13 +151,17 @@ def run(args: argparse.Namespace) -> int:
         for (model, transform, size), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
             h = transform.height_mm(label)
-            ok = s.valid & np.asarray(transform.mask(label)) & (img > 0)
+            pred_valid = np.asarray(transform.mask(label))
+            ok = s.valid & (img > 0)
+            if args.mask_predicted_invalid:
+                ok &= pred_valid
             try:
                 res = evaluate_phase(s.phase, h, ok, **fit_kw)
             except ValueError as exc:
                 raise CLIError(f"{s.path}: {name}: {exc}") from None
             record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"],
-                                      "pixel_fraction": float(ok.mean())}
+                                      "pixel_fraction": float(ok.mean()),
+                                      "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
             heights[name] = np.where(ok, h, np.nan)
             residuals[name] = res["residual"]
         per_image.append(record)
@@ -174,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
             "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
             "flat_explained": _mean(r["flat"]["explained"] for r in rows),
             "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
+            "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
         })
     md = markdown(summary, len(ids), args.phase_root, args.degree, args.robust)
     atomic_write_text(out / "phase_results.md", md)
