@@ -20,9 +20,11 @@ Per image, on plane pixels:
   default range's centre), unless even zero blur cannot reach the measured contrast, in which case the
   blur is 0 and ambient is solved for;
 * gain and albedos: only ``gain * albedo`` is visible. ``albedo_plane`` keeps the default centre and
-  ``gain = g / albedo_plane``; object pixels (from labels or real phase) give
-  ``albedo_object = p95(A + B) / (gain (ambient + (1 + c)/2))`` (a surface facing the projector), and
-  gain rises if that exceeds 0.95.
+  ``gain = g / albedo_plane``; object pixels give ``albedo_object``: with height labels from
+  ``A = gain albedo (ambient + k/2)`` with ``k`` of each surface point from the rig and the heights
+  (:func:`object_shading`); with only real phase from the brightest object pixels,
+  ``p95(A + B) / (gain (ambient + (1 + c)/2))`` (a surface facing the projector, rough). Gain rises if
+  the albedo would exceed 0.95.
 
 The ranges are [min, max] of the per-image estimates, widened to at least +-10 % around their median.
 """
@@ -61,6 +63,26 @@ def plane_model(rig: Rig) -> dict:
     falloff = float(np.sum(proj.center ** 2)) / dist2
     lit = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) & (cos_inc > 0)
     return {"u_p": uvp[..., 0], "k": np.where(lit, cos_inc * falloff, 0.0), "lit": lit}
+
+
+def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
+    """``k = cos_incidence * falloff`` of surfaces of known height (mm, (H, W), NaN = unknown), as
+    :mod:`fppsim.render` computes it: each camera ray cut at its height, normals from the neighbours."""
+    cam, proj = rig.camera, rig.projector
+    uv = cam.pixel_grid()
+    h = np.where(np.isfinite(height_mm), height_mm, 0.0)
+    origin, d = cam.pixel_rays(uv)
+    s = (h - origin[2]) / d[..., 2]
+    P = origin + s[..., None] * d
+    du = np.gradient(P, axis=1)
+    dv = np.gradient(P, axis=0)
+    n = np.cross(du, dv)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n *= np.sign(n[..., 2:3]) + (n[..., 2:3] == 0)  # towards +z (the camera side)
+    to_proj = proj.center - P
+    dist2 = np.sum(to_proj ** 2, axis=-1)
+    k = np.sum(n * to_proj, axis=-1) / np.sqrt(dist2) * float(np.sum(proj.center ** 2)) / dist2
+    return np.where(np.isfinite(height_mm), np.maximum(k, 0.0), np.nan)
 
 
 def _split(sigma_eff: float, ratio: tuple[float, float]) -> tuple[float, float]:
@@ -194,10 +216,19 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
     ap = albedo_plane
     ao = float("nan")
     if obj is not None:
-        okobj = obj & (a > 1) & im.valid
-        if okobj.sum() > 500:
-            peak = float(np.percentile((a + b)[okobj], 95))
-            go = peak / (amb + 0.5 * (1.0 + c))
+        okobj = obj & (a > 1) & im.valid & (im.gray < 255)
+        go = float("nan")
+        if getattr(im, "height_mm", None) is not None and okobj.sum() > 500:
+            # heights known: the shading k of every object pixel follows from the rig, A = g_o (amb + k/2)
+            ko = object_shading(rig, im.height_mm)
+            from scipy.ndimage import binary_erosion
+
+            inner = okobj & binary_erosion(okobj, iterations=3) & (ko > 0.3)
+            if inner.sum() > 300:
+                go = float(np.median(a[inner] / (amb + 0.5 * ko[inner])))
+        elif okobj.sum() > 500:  # heights unknown: the brightest object pixels face the projector (k ~ 1)
+            go = float(np.percentile((a + b)[okobj], 95)) / (amb + 0.5 * (1.0 + c))
+        if np.isfinite(go):
             ao = go / gain
             if ao > 0.95:  # albedo cannot exceed 1: the light is brighter, the plane darker
                 gain = go / 0.95

@@ -187,6 +187,7 @@ class FringeImage:
     name: str = ""
     plane: np.ndarray | None = None
     obj: np.ndarray | None = None
+    height_mm: np.ndarray | None = None
 
     @property
     def plane_or_valid(self) -> np.ndarray:
@@ -277,11 +278,14 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
         marker = np.isclose(label, ds.invalid, atol=1e-4) | ~np.isfinite(label)
         valid = ~marker & (gray > 0)
         plane = obj = np.zeros_like(valid)
-        if valid.any():
+        if valid.any():  # noqa: SIM108
             level = stats.plane_level(label, valid)
             plane = valid & (np.abs(label - level) <= plane_mm * ds.scale)
             obj = valid & (label > level + plane_mm * ds.scale)
-        out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj))
+            height = np.where(valid, (label - level) / ds.scale, np.nan)
+        else:
+            height = np.full(label.shape, np.nan)
+        out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj, height))
     return out, ds.layout
 
 
