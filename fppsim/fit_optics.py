@@ -26,7 +26,8 @@ Per image, on plane pixels:
   ``p95(A + B) / (gain (ambient + (1 + c)/2))`` (a surface facing the projector, rough). Gain rises if
   the albedo would exceed 0.95.
 
-The ranges are [min, max] of the per-image estimates, widened to at least +-10 % around their median.
+The ranges are [min, max] of the per-image estimates, widened to at least +-10 % around their median
+(``albedo_object`` also to the 25th-75th percentile of its per-pixel estimates: real plaster varies).
 """
 
 from __future__ import annotations
@@ -217,7 +218,7 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
     ao = float("nan")
     if obj is not None:
         okobj = obj & (a > 1) & im.valid & (im.gray < 255)
-        go = float("nan")
+        go, go_spread = float("nan"), None
         if getattr(im, "height_mm", None) is not None and okobj.sum() > 500:
             # heights known: the shading k of every object pixel follows from the rig, A = g_o (amb + k/2)
             ko = object_shading(rig, im.height_mm)
@@ -225,7 +226,9 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
 
             inner = okobj & binary_erosion(okobj, iterations=3) & (ko > 0.3)
             if inner.sum() > 300:
-                go = float(np.median(a[inner] / (amb + 0.5 * ko[inner])))
+                ratio = a[inner] / (amb + 0.5 * ko[inner])
+                go = float(np.median(ratio))
+                go_spread = np.percentile(ratio, [25, 75])
         elif okobj.sum() > 500:  # heights unknown: the brightest object pixels face the projector (k ~ 1)
             go = float(np.percentile((a + b)[okobj], 95)) / (amb + 0.5 * (1.0 + c))
         if np.isfinite(go):
@@ -234,8 +237,10 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
                 gain = go / 0.95
                 ap = gp / gain
                 ao = 0.95
+    ao_spread = [float(v) / gain for v in go_spread] if go_spread is not None and np.isfinite(ao) else [ao, ao]
     noise, shot = _noise_fit(im.gray, im.valid & model["lit"], _centre(OpticsRanges().shot_noise))
-    return {"gain": gain, "ambient": amb, "albedo_plane": ap, "albedo_object": ao, "projector_blur": pb,
+    return {"gain": gain, "ambient": amb, "albedo_plane": ap, "albedo_object": ao,
+            "albedo_object_p25": ao_spread[0], "albedo_object_p75": ao_spread[1], "projector_blur": pb,
             "camera_blur": cb, "noise_sigma": noise, "shot_noise": shot, "contrast": contrast, "background": A,
             "plane_pixels": int(ok.sum()), "period_px": period}
 
@@ -292,6 +297,10 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
             continue
         c = float(np.median(v))
         lo, hi = float(v.min()), float(v.max())
+        if k == "albedo_object":  # the spread over an object's pixels is albedo variation to sample from
+            q = np.array([[p.get(k + "_p25", np.nan), p.get(k + "_p75", np.nan)] for p in per], float)
+            if np.isfinite(q).any():
+                lo, hi = min(lo, float(np.nanmin(q))), max(hi, float(np.nanmax(q)))
         half = max(min_width * abs(c), 0.5 * (hi - lo))
         lo, hi = min(lo, c - half), max(hi, c + half)
         if k in ("ambient", "noise_sigma", "shot_noise", "projector_blur", "camera_blur"):
