@@ -16,7 +16,8 @@ path. Data written with the opposite sine sign (``PSin = +sum I_n sin delta_n``)
 A second layout, one folder per quantity and one variable per file (``<root>/PSin/<id>.mat``,
 ``PCos/``, ``Fringe/`` holding ``Order``, ``iPattern/`` holding the uint8 single-shot image), is how the
 public benchmarks republish the figshare rig's frames: :func:`list_psp_ids`, :func:`load_psp_folder_sample`,
-:func:`iter_psp_folder` read it, :func:`save_psp_folder_sample` writes it (see :data:`CONVENTIONS` for
+:func:`iter_psp_folder` read it, :func:`save_psp_folder_sample` writes it and :func:`export_psp_folders`
+converts a native fppsim dataset to it (see :data:`CONVENTIONS` for
 how wrapped phase and order combine there).
 
 MATLAB v4/v5/v7 files are read with :func:`scipy.io.loadmat`; v7.3 (HDF5) files need ``h5py``.
@@ -34,7 +35,7 @@ from .psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat",
            "FOLDERS", "CONVENTIONS", "is_psp_folder", "list_psp_ids", "load_psp_folder_sample", "iter_psp_folder",
-           "save_psp_folder_sample", "sums_from_phase", "wrapped_from_sums"]
+           "save_psp_folder_sample", "sums_from_phase", "wrapped_from_sums", "export_psp_folders"]
 
 SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numerator", "sin_sum", "SinSum")
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
@@ -455,3 +456,34 @@ def save_psp_folder_sample(root: str | os.PathLike, sid: str, psin: np.ndarray, 
         _savemat_atomic(path, {var: value}, compress)
         written.append(path)
     return written
+
+
+def export_psp_folders(native_root: str | os.PathLike, out_root: str | os.PathLike, source: str = "psp",
+                       convention: str = "benchmark", modulation: float = 100.0) -> list[str]:
+    """Write a native fppsim dataset in the folder layout (e.g. a synthetic held-out set for
+    ``uhrnet evaluate-phase``); returns the ids written (the native sample ids).
+
+    ``source``: ``"psp"`` uses the decoded phase ``phase_psp`` and ``mask_psp`` (what a lab measures;
+    needs samples generated with PSP), ``"true"`` the exact ``phase_true`` and ``mask``. The iPattern is
+    the sample's ``fringe.png``; pixels outside the mask get ``PSin = PCos = 0``.
+    """
+    from .dataset import load_native_sample, read_manifest
+
+    if source not in ("psp", "true"):
+        raise PSPMatError(f"source must be 'psp' or 'true', got {source!r}")
+    keys = ("phase_psp", "mask_psp") if source == "psp" else ("phase_true", "mask")
+    ids = []
+    for rec in read_manifest(native_root):
+        sid = str(rec.get("id"))
+        s = load_native_sample(Path(native_root) / sid, keys=keys, meta=False)
+        missing = [k for k in keys if k not in s]
+        if missing:
+            raise PSPMatError(f"{Path(native_root) / sid / 'arrays.npz'}: no {', '.join(missing)} "
+                              f"({'generate with PSP, or use source=true' if source == 'psp' else 'not a native sample'})")
+        img = s["fringe"]
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise PSPMatError(f"{Path(native_root) / sid / 'fringe.png'}: expected an 8-bit gray image")
+        phase, mask = s[keys[0]].astype(np.float64), s[keys[1]] > 0.5
+        save_psp_folder_sample(out_root, sid, *sums_from_phase(phase, mask, modulation, convention), img)
+        ids.append(sid)
+    return ids

@@ -142,3 +142,28 @@ def test_matlab_v73_without_h5py_is_one_line(tmp_path, monkeypatch):
     (tmp_path / "PSin" / "1.mat").write_bytes(_v73_header().ljust(512, b"\x00") + b"\x89HDF\r\n\x1a\n" + b"\x00" * 64)
     with pytest.raises(PSPMatError, match=r"PSin/1\.mat: MATLAB v7\.3 \(HDF5\) file; install h5py"):
         load_psp_folder_sample(tmp_path, "1")
+
+
+def test_export_native_dataset(tmp_path):
+    from _uhrnet_fixtures import write_native
+
+    from fppsim.dataset import load_native_sample
+    from fppsim.psp_io import export_psp_folders
+
+    ids = write_native(tmp_path / "nat", n=3, h=16, w=24, seed=0)
+    for sid in ids:  # give the samples a real projector phase
+        d = tmp_path / "nat" / sid
+        z = dict(np.load(d / "arrays.npz"))
+        z["phase_true"] = (0.4 + TWO_PI * 80 * np.arange(24)[None, :] / 912 * np.ones((16, 1))).astype(np.float32)
+        np.savez_compressed(d / "arrays.npz", **z)
+    with pytest.raises(PSPMatError, match="no phase_psp, mask_psp"):
+        export_psp_folders(tmp_path / "nat", tmp_path / "out")
+    assert export_psp_folders(tmp_path / "nat", tmp_path / "out", source="true") == ids
+    assert list_psp_ids(tmp_path / "out") == ids
+    for sid in ids:
+        s = load_psp_folder_sample(tmp_path / "out", sid)
+        n = load_native_sample(tmp_path / "nat" / sid, meta=False)
+        valid = n["mask"] > 0.5
+        np.testing.assert_array_equal(s.valid, valid)
+        np.testing.assert_allclose(s.phase[valid], n["phase_true"][valid], atol=1e-5)
+        np.testing.assert_array_equal(s.image, n["fringe"])
