@@ -32,7 +32,7 @@ The ranges are [min, max] of the per-image estimates, widened to at least +-10 %
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -215,10 +215,10 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
     gp = A / (amb + 0.5 * k)
     gain = gp / albedo_plane
     ap = albedo_plane
-    ao = float("nan")
+    ao, go_spread = float("nan"), None
     if obj is not None:
         okobj = obj & (a > 1) & im.valid & (im.gray < 255)
-        go, go_spread = float("nan"), None
+        go = float("nan")
         if getattr(im, "height_mm", None) is not None and okobj.sum() > 500:
             # heights known: the shading k of every object pixel follows from the rig, A = g_o (amb + k/2)
             ko = object_shading(rig, im.height_mm)
@@ -355,7 +355,6 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     import tempfile
 
     from .generate import generate
-    from .scene import SceneRanges  # noqa: F401  (default scenes)
     from .stats import STAT_ROWS, _fmt, dataset_stats
     from .synth import SynthConfig
 

@@ -278,7 +278,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
         marker = np.isclose(label, ds.invalid, atol=1e-4) | ~np.isfinite(label)
         valid = ~marker & (gray > 0)
         plane = obj = np.zeros_like(valid)
-        if valid.any():  # noqa: SIM108
+        if valid.any():
             level = stats.plane_level(label, valid)
             plane = valid & (np.abs(label - level) <= plane_mm * ds.scale)
             obj = valid & (label > level + plane_mm * ds.scale)

@@ -20,7 +20,7 @@ import torch
 
 from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
 from uhrnet.cli import CLIError
-from uhrnet.data import LabelTransform, parse_size
+from uhrnet.data import parse_size
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -129,7 +129,7 @@ def run(args: argparse.Namespace) -> int:
     models = []
     for ck in ckpts:
         model, transform = model_from_checkpoint(ck, device)
-        models.append((model, LabelTransform.from_dict(ck["label_transform"]), parse_size(ck.get("args", {}).get("resize"))))
+        models.append((model, transform, parse_size(ck.get("args", {}).get("resize"))))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     fit_kw = dict(degree=args.degree, robust=args.robust)
