@@ -233,6 +233,12 @@ COMMANDS = {
 
 
 def _register_optional():
+    from .cli_fit import add_fit_optics, add_fit_rig, run_fit_optics, run_fit_rig
+
+    COMMANDS.setdefault("fit-rig", (add_fit_rig, run_fit_rig,
+                                    "fit the projector pose / fringe period of a rig to real fringe images"))
+    COMMANDS.setdefault("fit-optics", (add_fit_optics, run_fit_optics,
+                                       "fit the optics ranges (gain, albedo, blur, noise) to real fringe images"))
     try:
         from .validate import add_arguments, run
     except ImportError:

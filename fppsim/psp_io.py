@@ -13,6 +13,13 @@ with ``I_n = A + B cos(Phi + delta_n)`` and ``delta_n = 2 pi n / N``. Then
 path. Data written with the opposite sine sign (``PSin = +sum I_n sin delta_n``) loads correctly with
 ``negate_sin=True``.
 
+A second layout, one folder per quantity and one variable per file (``<root>/PSin/<id>.mat``,
+``PCos/``, ``Fringe/`` holding ``Order``, ``iPattern/`` holding the uint8 single-shot image), is how the
+public benchmarks republish the figshare rig's frames: :func:`list_psp_ids`, :func:`load_psp_folder_sample`,
+:func:`iter_psp_folder` read it, :func:`save_psp_folder_sample` writes it and :func:`export_psp_folders`
+converts a native fppsim dataset to it (see :data:`CONVENTIONS` for
+how wrapped phase and order combine there).
+
 MATLAB v4/v5/v7 files are read with :func:`scipy.io.loadmat`; v7.3 (HDF5) files need ``h5py``.
 """
 
@@ -27,7 +34,9 @@ import numpy as np
 from ._fs import tmp_path
 from .psp import phase_from_sums
 
-__all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat"]
+__all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat",
+           "FOLDERS", "CONVENTIONS", "is_psp_folder", "list_psp_ids", "load_psp_folder_sample", "iter_psp_folder",
+           "save_psp_folder_sample", "sums_from_phase", "wrapped_from_sums", "export_psp_folders"]
 
 SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numerator", "sin_sum", "SinSum")
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
@@ -50,8 +59,10 @@ class PspMat:
     valid : bool, all three inputs finite.
     modulation : float64 ``B = (2/N) sqrt(psin^2 + pcos^2)`` when the file stores ``n_steps``, else None.
     keys : the variable names used, ``{"sin": ..., "cos": ..., "order": ...}``.
-    meta : other scalar variables found in the file (e.g. ``n_steps``, ``periods``).
-    path : the file.
+    meta : other scalar variables found in the file (e.g. ``n_steps``, ``periods``); for the folder
+        layout ``id``, ``convention`` and ``root``.
+    path : the file (the PSin file of the folder layout).
+    image : uint8 (H, W) single-shot image (iPattern of the folder layout), else None.
     """
 
     psin: np.ndarray
@@ -64,6 +75,7 @@ class PspMat:
     keys: dict
     meta: dict = field(default_factory=dict)
     path: str = ""
+    image: np.ndarray | None = None
 
 
 def _pick(found: dict, wanted: str | None, candidates: tuple, role: str, path: Path) -> str:
@@ -213,3 +225,266 @@ def save_psp_mat(path: str | os.PathLike, psin: np.ndarray, pcos: np.ndarray, or
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+# ====================================================================== one folder per quantity
+# The layout the public phase-retrieval benchmarks use for the figshare rig's frames:
+#   <root>/PSin/<id>.mat (PSin), <root>/PCos/<id>.mat (PCos), <root>/Fringe/<id>.mat (Order),
+#   <root>/iPattern/<id>.mat (iPattern, uint8 single-shot image).
+
+FOLDERS = {"sin": ("PSin", "PSin"), "cos": ("PCos", "PCos"), "order": ("Fringe", "Order"),
+           "image": ("iPattern", "iPattern")}
+"""role -> (sub-folder, variable name) of the folder layout."""
+
+CONVENTIONS = ("benchmark", "fppsim")
+"""How wrapped phase and fringe order combine.
+
+``benchmark``: ``Phi = atan2(-PSin, -PCos) + pi + 2 pi Order`` (wrapped in ``(0, 2 pi]``: the order counts
+periods starting at the phase zero), as the public benchmark data store it; ``fppsim``:
+``Phi = atan2(PSin, PCos) + 2 pi Order`` (wrapped in ``(-pi, pi]``), what :func:`fppsim.psp.unwrap_temporal`
+produces. Both read ``PSin`` as proportional to ``+sin Phi``; ``negate_sin=True`` flips it.
+"""
+
+
+def _check_convention(convention: str) -> str:
+    if convention not in CONVENTIONS:
+        raise PSPMatError(f"unknown phase convention {convention!r} (known: {', '.join(CONVENTIONS)})")
+    return convention
+
+
+def wrapped_from_sums(psin: np.ndarray, pcos: np.ndarray, convention: str = "benchmark") -> np.ndarray:
+    """Wrapped phase (rad, float64) of the sums: ``(0, 2 pi]`` for 'benchmark', ``(-pi, pi]`` for 'fppsim'."""
+    _check_convention(convention)
+    s = np.asarray(psin, dtype=np.float64)
+    c = np.asarray(pcos, dtype=np.float64)
+    if convention == "benchmark":
+        return np.arctan2(-s, -c) + np.pi
+    return phase_from_sums(s, c)
+
+
+def sums_from_phase(phase: np.ndarray, valid: np.ndarray | None = None, modulation=1.0,
+                    convention: str = "benchmark") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Absolute phase (rad) -> ``(PSin, PCos, Order)`` that the folder reader turns back into ``phase``.
+
+    ``modulation`` scales the sums (``(N/2) B`` of real data; any positive value keeps the phase);
+    pixels where ``valid`` is False (or the phase is not finite) get ``PSin = PCos = 0, Order = 0``,
+    the benchmark's invalid marker. Orders are int32.
+    """
+    _check_convention(convention)
+    phi = np.asarray(phase, dtype=np.float64)
+    ok = np.isfinite(phi) if valid is None else (np.asarray(valid, bool) & np.isfinite(phi))
+    p = np.where(ok, phi, 0.0)
+    if convention == "benchmark":
+        # wrapped in (0, 2 pi]: order = ceil(phi / 2 pi) - 1
+        order = np.ceil(p / (2 * np.pi)) - 1
+    else:
+        order = np.round(p / (2 * np.pi))
+    m = np.broadcast_to(np.asarray(modulation, dtype=np.float64), phi.shape)
+    psin = np.where(ok, m * np.sin(p), 0.0)
+    pcos = np.where(ok, m * np.cos(p), 0.0)
+    return psin, pcos, np.where(ok, order, 0).astype(np.int32)
+
+
+def is_psp_folder(root: str | os.PathLike) -> bool:
+    """True when ``root`` holds at least the PSin and PCos sub-folders of the folder layout."""
+    root = Path(root)
+    return (root / "PSin").is_dir() and (root / "PCos").is_dir()
+
+
+def _short(items, n: int = 8) -> str:
+    items = list(items)
+    return ", ".join(items[:n]) + (f", ... ({len(items)} in all)" if len(items) > n else "")
+
+
+def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos", "order", "image")) -> list[str]:
+    """Sample ids present in every sub-folder of ``roles`` (sorted; numeric names in numeric order).
+
+    Raises :class:`PSPMatError` (one line naming ``root``) when a sub-folder is missing, when one holds
+    no ``.mat`` file, or when the ids differ between sub-folders (listing which ids are missing where).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise PSPMatError(f"{root}: not a folder")
+    missing = [FOLDERS[r][0] for r in roles if not (root / FOLDERS[r][0]).is_dir()]
+    if missing:
+        found = sorted(p.name for p in root.iterdir() if p.is_dir())
+        raise PSPMatError(f"{root}: missing folder(s) {', '.join(missing)} (found: {', '.join(found) or 'none'}); "
+                          "expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each")
+    ids = {}
+    for r in roles:
+        sub = FOLDERS[r][0]
+        ids[sub] = {p.stem for p in (root / sub).iterdir() if p.is_file() and p.suffix.lower() == ".mat"}
+        if not ids[sub]:
+            raise PSPMatError(f"{root / sub}: no .mat files")
+    every = set.union(*ids.values())
+    common = set.intersection(*ids.values())
+    if every != common:
+        parts = [f"{sub} lacks {_short(sorted(every - s, key=_id_key))}" for sub, s in ids.items() if every - s]
+        raise PSPMatError(f"{root}: ids differ between folders: " + "; ".join(parts))
+    return sorted(common, key=_id_key)
+
+
+def _id_key(sid: str):
+    return (0, int(sid), sid) if sid.isdigit() else (1, 0, sid)
+
+
+def _read_var(path: Path, name: str) -> np.ndarray:
+    if not path.is_file():
+        raise PSPMatError(f"{path}: no such file")
+    found = _read_mat(path)
+    names = [k for k in found if not k.startswith("__")]
+    key = name if name in found else next((k for k in names if k.lower() == name.lower()), None)
+    if key is None:
+        raise PSPMatError(f"{path}: no variable '{name}' (variables: {', '.join(names) or 'none'})")
+    a = np.asarray(found[key])
+    if a.dtype.kind not in "biuf":
+        raise PSPMatError(f"{path}: variable '{key}' is not a real numeric array (dtype {a.dtype})")
+    return np.squeeze(a)
+
+
+def _image_u8(a: np.ndarray, path: Path) -> np.ndarray:
+    if a.dtype == np.uint8:
+        return a
+    f = a.astype(np.float64)
+    if not np.all(np.isfinite(f)):
+        raise PSPMatError(f"{path}: iPattern holds NaN or inf")
+    if a.dtype.kind == "f" and f.max(initial=0) <= 1.0:
+        f = f * 255.0  # a [0, 1] image (im2double)
+    if f.min(initial=0) < 0 or f.max(initial=0) > 255.5:
+        raise PSPMatError(f"{path}: iPattern values {f.min():g}..{f.max():g} are not 8-bit gray levels")
+    return np.rint(f).astype(np.uint8)
+
+
+def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = "benchmark",
+                           negate_sin: bool = False, image: bool = True, order_tol: float = 1e-6) -> PspMat:
+    """One id of the folder layout as a :class:`PspMat` (``image`` = the uint8 iPattern, or None).
+
+    Invalid pixels: ``PSin = PCos = 0`` (the benchmark's marker) or any input not finite; their
+    ``phase`` is NaN. ``convention``: see :data:`CONVENTIONS`. Raises :class:`PSPMatError` naming the
+    file for a missing file or variable (listing the variables found), non-numeric data, non-integer
+    orders, or a shape that differs from PSin's.
+    """
+    _check_convention(convention)
+    root = Path(root)
+    roles = ("sin", "cos", "order") + (("image",) if image else ())
+    arrays, paths = {}, {}
+    for r in roles:
+        sub, var = FOLDERS[r]
+        paths[r] = root / sub / f"{sid}.mat"
+        arrays[r] = _read_var(paths[r], var)
+    shape = arrays["sin"].shape
+    if len(shape) != 2:
+        raise PSPMatError(f"{paths['sin']}: PSin must be a 2-D image, got shape {shape}")
+    for r in roles[1:]:
+        if arrays[r].shape != shape:
+            raise PSPMatError(f"{paths[r]}: shape {arrays[r].shape} differs from PSin's {shape} ({paths['sin']})")
+    psin = arrays["sin"].astype(np.float64)
+    pcos = arrays["cos"].astype(np.float64)
+    if negate_sin:
+        psin = -psin
+    of = arrays["order"].astype(np.float64)
+    valid = np.isfinite(psin) & np.isfinite(pcos) & np.isfinite(of) & ~((psin == 0) & (pcos == 0))
+    of = np.where(np.isfinite(of), of, 0.0)
+    ok = np.rint(of)
+    bad = valid & (np.abs(of - ok) > order_tol)
+    if np.any(bad):
+        raise PSPMatError(f"{paths['order']}: fringe order is not integer at {int(bad.sum())} pixels "
+                          f"(e.g. {of[bad].ravel()[0]!r})")
+    order = ok.astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        wrapped = wrapped_from_sums(np.where(valid, psin, 0.0), np.where(valid, pcos, 0.0), convention)
+    phase = np.where(valid, wrapped + 2.0 * np.pi * order, np.nan)
+    img = _image_u8(arrays["image"], paths["image"]) if image else None
+    return PspMat(psin=psin, pcos=pcos, order=order, wrapped=wrapped, phase=phase, valid=valid,
+                  modulation=None, keys={"sin": "PSin", "cos": "PCos", "order": "Order"},
+                  meta={"id": sid, "convention": convention, "root": str(root)}, path=str(paths["sin"]),
+                  image=img)
+
+
+def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw):
+    """Yield ``(id, PspMat)`` for every id of the folder layout (or the given ``ids``), in order."""
+    image = kw.get("image", True)
+    roles = ("sin", "cos", "order") + (("image",) if image else ())
+    for sid in (list_psp_ids(root, roles) if ids is None else ids):
+        yield sid, load_psp_folder_sample(root, sid, **kw)
+
+
+def _savemat_atomic(path: Path, data: dict, compress: bool = True) -> None:
+    import scipy.io
+
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(tmp, "wb") as fh:
+            scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def save_psp_folder_sample(root: str | os.PathLike, sid: str, psin: np.ndarray, pcos: np.ndarray,
+                           order: np.ndarray, image: np.ndarray | None = None, compress: bool = True) -> list[Path]:
+    """Write one id in the folder layout (MATLAB v5 files, each written atomically); returns the paths.
+
+    ``psin, pcos`` float (stored float64), ``order`` integer (stored as MATLAB double, as the public
+    data do), ``image`` uint8 (H, W) iPattern. Use :func:`sums_from_phase` to make the three from an
+    absolute phase. Sub-folders are created; existing files of other ids are left alone.
+    """
+    root = Path(root)
+    sid = str(sid)
+    if not sid or "/" in sid or "\\" in sid or sid.startswith("."):
+        raise PSPMatError(f"{root}: invalid sample id {sid!r}")
+    psin = np.asarray(psin, dtype=np.float64)
+    pcos = np.asarray(pcos, dtype=np.float64)
+    order = np.asarray(order)
+    arrays = {"sin": psin, "cos": pcos, "order": order}
+    if image is not None:
+        arrays["image"] = np.asarray(image)
+    for r, a in arrays.items():
+        if a.shape != psin.shape or a.ndim != 2:
+            raise PSPMatError(f"{root}/{FOLDERS[r][0]}/{sid}.mat: shape {a.shape} differs from PSin's {psin.shape} "
+                              "(all must be the same 2-D shape)")
+    if order.dtype.kind == "f" and (not np.all(np.isfinite(order)) or np.any(order != np.rint(order))):
+        raise PSPMatError(f"{root}/Fringe/{sid}.mat: fringe orders must be finite integers")
+    if image is not None and arrays["image"].dtype != np.uint8:
+        raise PSPMatError(f"{root}/iPattern/{sid}.mat: iPattern must be uint8, got {arrays['image'].dtype}")
+    written = []
+    for r, a in arrays.items():
+        sub, var = FOLDERS[r]
+        (root / sub).mkdir(parents=True, exist_ok=True)
+        value = a.astype(np.float64) if r == "order" else a
+        path = root / sub / f"{sid}.mat"
+        _savemat_atomic(path, {var: value}, compress)
+        written.append(path)
+    return written
+
+
+def export_psp_folders(native_root: str | os.PathLike, out_root: str | os.PathLike, source: str = "psp",
+                       convention: str = "benchmark", modulation: float = 100.0) -> list[str]:
+    """Write a native fppsim dataset in the folder layout (e.g. a synthetic held-out set for
+    ``uhrnet evaluate-phase``); returns the ids written (the native sample ids).
+
+    ``source``: ``"psp"`` uses the decoded phase ``phase_psp`` and ``mask_psp`` (what a lab measures;
+    needs samples generated with PSP), ``"true"`` the exact ``phase_true`` and ``mask``. The iPattern is
+    the sample's ``fringe.png``; pixels outside the mask get ``PSin = PCos = 0``.
+    """
+    from .dataset import load_native_sample, read_manifest
+
+    if source not in ("psp", "true"):
+        raise PSPMatError(f"source must be 'psp' or 'true', got {source!r}")
+    keys = ("phase_psp", "mask_psp") if source == "psp" else ("phase_true", "mask")
+    ids = []
+    for rec in read_manifest(native_root):
+        sid = str(rec.get("id"))
+        s = load_native_sample(Path(native_root) / sid, keys=keys, meta=False)
+        missing = [k for k in keys if k not in s]
+        if missing:
+            raise PSPMatError(f"{Path(native_root) / sid / 'arrays.npz'}: no {', '.join(missing)} "
+                              f"({'generate with PSP, or use source=true' if source == 'psp' else 'not a native sample'})")
+        img = s["fringe"]
+        if img.ndim != 2 or img.dtype != np.uint8:
+            raise PSPMatError(f"{Path(native_root) / sid / 'fringe.png'}: expected an 8-bit gray image")
+        phase, mask = s[keys[0]].astype(np.float64), s[keys[1]] > 0.5
+        save_psp_folder_sample(out_root, sid, *sums_from_phase(phase, mask, modulation, convention), img)
+        ids.append(sid)
+    return ids

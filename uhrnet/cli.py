@@ -14,6 +14,8 @@ import sys
 COMMANDS = {
     "train": ("uhrnet.train", "train a model on real (figshare) and/or synthetic (fppsim) data"),
     "evaluate": ("uhrnet.evaluate", "evaluate checkpoints on the test split like the paper (Table 3, figures)"),
+    "evaluate-phase": ("uhrnet.evaluate_phase", "evaluate checkpoints on real phase-shifting data without height "
+                       "labels (PSin/PCos/Fringe/iPattern folders): calibration-free phase residual"),
     "predict": ("uhrnet.predict", "predict height maps and point clouds from fringe images"),
     "bench": ("uhrnet.bench", "parameters, forward/training-step time and peak memory per model"),
 }

@@ -1,0 +1,464 @@
+"""Fit a rig's projector pose and fringe period to real fringe images (``fppsim fit-rig``).
+
+The fringe period a camera sees on the reference plane follows from the rig alone: a camera pixel
+``(u, v)`` sees the plane point ``X(u, v)``, which the projector sees at column ``u_p(X)``; the pattern
+``cos(2 pi f u_p / W_p)`` therefore has the horizontal period (camera pixels)
+
+    T(u, v) = W_p / (f |d u_p / d u|)
+
+(:func:`period_map`; no rendering). A projector whose axis is not exactly parallel to the camera's
+shows a period that drifts across the image, as the real figshare rig does (about 11.96 px in the left
+half, 11.49 px in the right). :func:`measure_bands` measures the period per column band and per row band
+of real images (plane pixels only where labels exist) with :func:`fppsim.stats.estimate_period`, and
+:func:`fit_rig` adjusts a few projector parameters (yaw / pitch / roll about the projector's centre,
+baseline, periods across the projector, projector focal length) with :func:`scipy.optimize.least_squares`
+until the band periods of :func:`period_map` match. The camera stays fixed; after every change the
+projector's principal point is re-centred (lens shift) so the camera's view of the plane stays lit.
+
+Units: mm, radians, camera pixels for periods.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .rig import Device, Rig, RigError
+
+__all__ = ["PARAMETERS", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
+           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "format_fit"]
+
+PARAMETERS = {
+    "yaw": "rotation of the projector about its own y axis (rad); tilts the pattern's depth left to right",
+    "pitch": "rotation of the projector about its own x axis (rad); period trend top to bottom",
+    "roll": "rotation of the projector about its optical axis (rad); tilts the fringes",
+    "baseline": "distance between camera and projector centres along world x (mm)",
+    "periods": "fringe periods across the projector width",
+    "focal": "projector focal length fx = fy (px)",
+}
+"""Parameters :func:`fit_rig` can adjust (name -> meaning)."""
+
+# typical scales: keep the optimiser's steps comparable and the weak prior meaningful
+_SCALE = {"yaw": np.radians(2.0), "pitch": np.radians(2.0), "roll": np.radians(2.0), "baseline": 20.0,
+          "periods": 2.0, "focal": 30.0}
+
+
+# ====================================================================== the analytic period map
+def _plane_points(cam: Device, uv: np.ndarray) -> np.ndarray:
+    return cam.backproject(uv, cam.plane_depth(uv))
+
+
+def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Horizontal fringe period (camera px) of the rig's pattern on its reference plane.
+
+    Parameters
+    ----------
+    rig : the rig (distortion of both devices included).
+    step : evaluate every ``step``-th camera pixel in u and v.
+
+    Returns
+    -------
+    ``(u, v, period)``: column and row coordinates (1-D, camera px) and the (len(v), len(u)) float64
+    period ``W_p / (f |du_p/du|)``; NaN where the plane point is outside the projector or behind it.
+    """
+    cam, proj = rig.camera, rig.projector
+    u = np.arange(0, cam.width, step, dtype=np.float64)
+    v = np.arange(0, cam.height, step, dtype=np.float64)
+    uu, vv = np.meshgrid(u, v)
+    h = 0.5
+    up = []
+    for du in (-h, h):
+        X = _plane_points(cam, np.stack([uu + du, vv], axis=-1))
+        uvp, z = proj.project(X)
+        up.append(np.where(z > 0, uvp[..., 0], np.nan))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        deriv = np.abs(up[1] - up[0]) / (2 * h)
+        period = proj.width / (rig.periods * deriv)
+    X = _plane_points(cam, np.stack([uu, vv], axis=-1))
+    uvp, z = proj.project(X)
+    inside = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) \
+        & (uvp[..., 1] >= -0.5) & (uvp[..., 1] <= proj.height - 0.5)
+    return u, v, np.where(inside, period, np.nan)
+
+
+def _band_edges(n: int, bands: int) -> np.ndarray:
+    return np.linspace(0, n, bands + 1).round().astype(int)
+
+
+def band_model(rig: Rig, col_bands: int = 4, row_bands: int = 3, step: int = 4) -> dict:
+    """Periods of :func:`period_map` per column band and per row band (the mean frequency of a band,
+    what an FFT of the band measures), plus the left and right halves. Keys: ``columns`` (col_bands,),
+    ``rows`` (row_bands,), ``halves`` (2,), all camera px."""
+    u, v, T = period_map(rig, step)
+    freq = 1.0 / T
+
+    def mean_period(mask2d):
+        f = freq[mask2d]
+        f = f[np.isfinite(f)]
+        return float(1.0 / f.mean()) if f.size else float("nan")
+
+    W, H = rig.camera.width, rig.camera.height
+    ce, re = _band_edges(W, col_bands), _band_edges(H, row_bands)
+    uu, vv = np.meshgrid(u, v)
+    cols = [mean_period((uu >= a) & (uu < b)) for a, b in zip(ce[:-1], ce[1:])]
+    rows = [mean_period((vv >= a) & (vv < b)) for a, b in zip(re[:-1], re[1:])]
+    halves = [mean_period(uu < W // 2), mean_period(uu >= W // 2)]
+    return {"columns": np.array(cols), "rows": np.array(rows), "halves": np.array(halves)}
+
+
+# ====================================================================== changing the rig
+def _rot(axis: str, angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    if axis == "x":
+        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _recentre(rig: Rig, proj: Device) -> Device:
+    """Shift the projector's principal point so the plane point seen at the camera's image centre lands
+    at the projector's centre (lens shift keeps the camera view lit)."""
+    cam = rig.camera
+    centre = np.array([(cam.width - 1) / 2.0, (cam.height - 1) / 2.0])
+    X = _plane_points(cam, centre)
+    uv, _ = proj.project(X)
+    K = proj.K.copy()
+    K[0, 2] += (proj.width - 1) / 2.0 - uv[0]
+    K[1, 2] += (proj.height - 1) / 2.0 - uv[1]
+    return Device(K=K, R=proj.R, t=proj.t, width=proj.width, height=proj.height, dist=proj.dist)
+
+
+def base_values(rig: Rig) -> dict:
+    """Current values of :data:`PARAMETERS` (angles relative to the rig itself, hence 0)."""
+    return {"yaw": 0.0, "pitch": 0.0, "roll": 0.0,
+            "baseline": float(rig.projector.center[0] - rig.camera.center[0]),
+            "periods": float(rig.periods), "focal": float(rig.projector.K[0, 0])}
+
+
+def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
+    """A copy of ``rig`` with the projector changed by ``values`` (names of :data:`PARAMETERS`).
+
+    Angles rotate the projector about its own centre (device-frame axes), ``baseline`` moves it along
+    world x relative to the camera, ``periods`` and ``focal`` replace the rig's values. The camera is
+    unchanged. With ``recentre`` the projector's principal point follows (see :func:`_recentre`).
+    """
+    unknown = set(values) - set(PARAMETERS)
+    if unknown:
+        raise RigError(f"unknown rig parameter(s) {', '.join(sorted(unknown))} (known: {', '.join(PARAMETERS)})")
+    p = rig.projector
+    R = p.R.copy()
+    for name, axis in (("roll", "z"), ("pitch", "x"), ("yaw", "y")):
+        if values.get(name):
+            R = _rot(axis, float(values[name])) @ R
+    c = p.center.copy()
+    if "baseline" in values:
+        c[0] = rig.camera.center[0] + float(values["baseline"])
+    K = p.K.copy()
+    if "focal" in values:
+        K[0, 0] = K[1, 1] = float(values["focal"])
+    proj = Device(K=K, R=R, t=-R @ c, width=p.width, height=p.height, dist=p.dist)
+    out = Rig(camera=rig.camera, projector=proj, periods=float(values.get("periods", rig.periods)), name=rig.name)
+    if recentre:
+        out.projector = _recentre(out, proj)
+    return out
+
+
+def plane_coverage(rig: Rig, step: int = 8) -> float:
+    """Fraction of the camera's view of the reference plane that falls inside the projector image."""
+    _, _, T = period_map(rig, step)
+    return float(np.isfinite(T).mean())
+
+
+# ====================================================================== measuring real images
+@dataclass
+class FringeImage:
+    """One real fringe image.
+
+    gray : uint8 (H, W). valid : bool (H, W), pixels with a fringe (not the black shadow marker, phase
+    present). plane, obj : bool (H, W) reference-plane and object pixels when the source tells them
+    apart (height labels, or real phase), else None. name : for messages.
+    """
+
+    gray: np.ndarray
+    valid: np.ndarray
+    name: str = ""
+    plane: np.ndarray | None = None
+    obj: np.ndarray | None = None
+    height_mm: np.ndarray | None = None
+
+    @property
+    def plane_or_valid(self) -> np.ndarray:
+        return self.valid if self.plane is None else self.plane
+
+
+IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
+
+
+def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
+                      object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
+
+    The plane's phase is smooth: fit a ``degree`` polynomial in (x, y) to the valid phase, refit on
+    the pixels within 3 robust sigmas, ``iterations`` times; plane = residual within ``plane_rad``,
+    object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
+    """
+    h, w = phase.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
+    A = np.stack([x ** i * y ** j for t in range(degree + 1) for j in range(t + 1) for i in [t - j]], axis=1)
+    b = phase.ravel()
+    use = valid.ravel() & np.isfinite(b)
+    if use.sum() < 4 * A.shape[1]:
+        return np.zeros_like(valid), np.zeros_like(valid)
+    sel = use.copy()
+    for _ in range(iterations):
+        idx = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // 50_000)]
+        coef = np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
+        r = np.where(use, b - A @ coef, np.inf)
+        s = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
+        sel = use & (np.abs(r) <= max(3 * s, plane_rad))
+    r = r.reshape(h, w)
+    return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)
+
+
+def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0) -> tuple[list[FringeImage], str]:
+    """Real fringe images from a folder: figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair,
+    native fppsim, the PSin/PCos/Fringe/iPattern layout (or just ``iPattern/``), or a folder of 8-bit
+    images (or one image file).
+
+    ``valid`` drops black pixels (the datasets' shadow marker) and pixels without phase. Plane and
+    object pixels come from the height labels (within / beyond ``plane_mm`` of the plane level) or from
+    the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
+    evenly spaced images. Returns ``(images, layout)``; ValueError if nothing is readable.
+    """
+    from . import stats
+
+    path = Path(path)
+    if path.is_file() and path.suffix.lower() in IMAGE_EXTS:
+        return [_read_image(path)], "image"
+    if not path.is_dir():
+        raise ValueError(f"{path}: not a folder or image file")
+    from .psp_io import PSPMatError, _image_u8, _read_var, is_psp_folder, list_psp_ids, load_psp_folder_sample
+
+    if is_psp_folder(path) or (path / "iPattern").is_dir():
+        full = is_psp_folder(path)
+        try:
+            ids = list_psp_ids(path, ("sin", "cos", "order", "image") if full else ("image",))
+            out = []
+            for i in stats._pick(len(ids), max_images):
+                sid = ids[int(i)]
+                if full:
+                    s = load_psp_folder_sample(path, sid)
+                    valid = s.valid & (s.image > 0)
+                    plane, obj = phase_plane_masks(s.phase, valid)
+                    out.append(FringeImage(s.image, valid, sid, plane, obj))
+                else:
+                    f = path / "iPattern" / f"{sid}.mat"
+                    img = _image_u8(_read_var(f, "iPattern"), f)
+                    out.append(FringeImage(img, img > 0, sid))
+        except PSPMatError as exc:
+            raise ValueError(str(exc)) from None
+        return out, "psp-folders" if full else "ipattern"
+    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS)
+    try:
+        ds = stats.open_dataset(path)
+    except ValueError:
+        if not files:
+            raise ValueError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
+                             "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
+                             f"{'/'.join(IMAGE_EXTS)} files)") from None
+        files = [files[i] for i in stats._pick(len(files), max_images)]
+        return [_read_image(f) for f in files], "images"
+    out = []
+    for i in stats._pick(len(ds), max_images):
+        gray, label = ds.sample(int(i))
+        marker = np.isclose(label, ds.invalid, atol=1e-4) | ~np.isfinite(label)
+        valid = ~marker & (gray > 0)
+        plane = obj = np.zeros_like(valid)
+        if valid.any():
+            level = stats.plane_level(label, valid)
+            plane = valid & (np.abs(label - level) <= plane_mm * ds.scale)
+            obj = valid & (label > level + plane_mm * ds.scale)
+            height = np.where(valid, (label - level) / ds.scale, np.nan)
+        else:
+            height = np.full(label.shape, np.nan)
+        out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj, height))
+    return out, ds.layout
+
+
+def _read_image(path: Path) -> FringeImage:
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise ValueError(f"{path}: cannot read this image")
+    if img.ndim == 3:
+        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
+    if img.dtype == np.uint16:
+        img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
+    if img.dtype != np.uint8:
+        raise ValueError(f"{path}: expected an 8- or 16-bit gray image, got {img.dtype}")
+    return FringeImage(img, img > 0, path.name)
+
+
+@dataclass
+class BandPeriods:
+    """Measured periods (camera px): per column band, per row band and per half; medians over images.
+    ``spread`` holds [min, max] over images for each entry; ``n_images`` how many gave a value."""
+
+    columns: np.ndarray
+    rows: np.ndarray
+    halves: np.ndarray
+    spread: dict = field(default_factory=dict)
+    n_images: int = 0
+    shape: tuple = ()
+
+    def to_dict(self) -> dict:
+        return {"columns": self.columns.tolist(), "rows": self.rows.tolist(), "halves": self.halves.tolist(),
+                "spread": {k: np.asarray(v).tolist() for k, v in self.spread.items()}, "n_images": self.n_images,
+                "shape": list(self.shape)}
+
+
+def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int = 3) -> BandPeriods:
+    """Fringe period of every column band, row band and half of each image (plane pixels), median over images."""
+    from .stats import estimate_period
+
+    if not images:
+        raise ValueError("no images to measure")
+    shape = images[0].gray.shape
+    per = {"columns": [], "rows": [], "halves": []}
+    for im in images:
+        if im.gray.shape != shape:
+            raise ValueError(f"{im.name}: image shape {im.gray.shape} differs from the first image's {shape}")
+        g = im.gray.astype(np.float64)
+        H, W = shape
+        ce, re = _band_edges(W, col_bands), _band_edges(H, row_bands)
+        m = im.plane_or_valid
+        per["columns"].append([estimate_period(g[:, a:b], m[:, a:b]) for a, b in zip(ce[:-1], ce[1:])])
+        per["rows"].append([estimate_period(g[a:b], m[a:b]) for a, b in zip(re[:-1], re[1:])])
+        per["halves"].append([estimate_period(g[:, : W // 2], m[:, : W // 2]),
+                              estimate_period(g[:, W // 2:], m[:, W // 2:])])
+    import warnings
+
+    med, spread = {}, {}
+    for k, rows in per.items():
+        a = np.array(rows, dtype=np.float64)
+        with warnings.catch_warnings():  # an all-NaN band (no plane there) stays NaN and is ignored
+            warnings.simplefilter("ignore", RuntimeWarning)
+            med[k] = np.nanmedian(a, axis=0)
+            spread[k] = np.stack([np.nanmin(a, axis=0), np.nanmax(a, axis=0)], axis=1)
+    n = int(np.isfinite(np.array(per["halves"])).all(axis=1).sum())
+    if not np.isfinite(med["columns"]).any():
+        raise ValueError("no fringe period could be measured in any image (no vertical fringes on the plane?)")
+    return BandPeriods(med["columns"], med["rows"], med["halves"], spread, n, tuple(shape))
+
+
+# ====================================================================== fitting
+@dataclass
+class RigFit:
+    """Result of :func:`fit_rig`: the fitted rig, parameter values, band periods (measured, base and
+    fitted rig) and the RMS residual over the bands (camera px)."""
+
+    rig: Rig
+    params: dict
+    base_params: dict
+    measured: BandPeriods
+    base_model: dict
+    fitted_model: dict
+    rms_base: float
+    rms_fitted: float
+    coverage: float
+    success: bool
+    message: str
+
+    def to_dict(self) -> dict:
+        return {"params": self.params, "base_params": self.base_params, "measured": self.measured.to_dict(),
+                "base_model": {k: v.tolist() for k, v in self.base_model.items()},
+                "fitted_model": {k: v.tolist() for k, v in self.fitted_model.items()},
+                "rms_base_px": self.rms_base, "rms_fitted_px": self.rms_fitted, "plane_coverage": self.coverage,
+                "success": self.success, "message": self.message}
+
+
+def _residual(model: dict, measured: BandPeriods) -> np.ndarray:
+    r = np.concatenate([model["columns"] - measured.columns, model["rows"] - measured.rows])
+    return np.where(np.isfinite(r), r, 0.0)
+
+
+def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", "pitch", "periods"),
+            prior: float = 0.02, step: int = 4) -> RigFit:
+    """Adjust ``params`` of ``base`` so its band periods (:func:`band_model`) match ``measured``.
+
+    ``prior``: weight (camera px per typical parameter step) of a pull towards the base values, which
+    keeps directions the period map cannot see (e.g. baseline vs periods) at the base rig. The camera
+    image size of ``measured`` must match the rig's camera. Raises RigError if the fitted projector
+    no longer lights the camera's whole view of the plane.
+    """
+    from scipy.optimize import least_squares
+
+    unknown = [p for p in params if p not in PARAMETERS]
+    if unknown or not params:
+        raise RigError(f"unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                       f"(known: {', '.join(PARAMETERS)})")
+    if measured.shape and tuple(measured.shape) != (base.camera.height, base.camera.width):
+        raise RigError(f"the images are {measured.shape[1]} x {measured.shape[0]} px but the rig's camera is "
+                       f"{base.camera.width} x {base.camera.height}")
+    col_bands, row_bands = len(measured.columns), len(measured.rows)
+    b0 = base_values(base)
+    x0 = np.array([b0[p] for p in params])
+    scale = np.array([_SCALE[p] for p in params])
+
+    def make(x):
+        return adjust_rig(base, **dict(zip(params, x * scale + x0)))
+
+    def fun(x):
+        try:
+            model = band_model(make(x), col_bands, row_bands, step)
+        except RigError:
+            return np.full(col_bands + row_bands + len(params), 1e3)
+        return np.concatenate([_residual(model, measured), prior * x])
+
+    sol = least_squares(fun, np.zeros(len(params)), method="trf", x_scale=1.0, diff_step=1e-4, xtol=1e-10,
+                        ftol=1e-12, gtol=1e-12, max_nfev=200)
+    rig = make(sol.x)
+    rig.name = f"{base.name} (fit-rig: {', '.join(params)})"
+    rig.check()
+    coverage = plane_coverage(rig)
+    if coverage < 0.999:
+        raise RigError(f"the fitted projector lights only {coverage:.1%} of the camera's view of the plane; "
+                       "fit fewer parameters or start from a closer --base rig")
+    base_model = band_model(base, col_bands, row_bands, step)
+    fitted_model = band_model(rig, col_bands, row_bands, step)
+    rms = lambda m: float(np.sqrt(np.mean(_residual(m, measured) ** 2)))  # noqa: E731
+    values = {p: float(v) for p, v in zip(params, sol.x * scale + x0)}
+    return RigFit(rig=rig, params=values, base_params={p: b0[p] for p in params}, measured=measured,
+                  base_model=base_model, fitted_model=fitted_model, rms_base=rms(base_model),
+                  rms_fitted=rms(fitted_model), coverage=coverage, success=bool(sol.success), message=str(sol.message))
+
+
+def format_fit(fit: RigFit) -> str:
+    """Plain-text table: band | measured | base rig | fitted rig (periods in camera px) and the parameters."""
+    m = fit.measured
+    H, W = m.shape if m.shape else (fit.rig.camera.height, fit.rig.camera.width)
+    lines = [f"fringe period on the reference plane (camera px), median of {m.n_images} image(s)",
+             f"{'band':<22}{'measured':>10}{'base rig':>10}{'fitted':>10}"]
+
+    def rows(kind, edges, label):
+        for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
+            lines.append(f"{label} {a:>4}-{b:<4}      "[:22].ljust(22)
+                         + f"{m.__dict__[kind][i]:>10.3f}{fit.base_model[kind][i]:>10.3f}{fit.fitted_model[kind][i]:>10.3f}")
+
+    rows("columns", _band_edges(W, len(m.columns)), "columns")
+    rows("rows", _band_edges(H, len(m.rows)), "rows")
+    for i, name in enumerate(("left half", "right half")):
+        lines.append(f"{name:<22}{m.halves[i]:>10.3f}{fit.base_model['halves'][i]:>10.3f}{fit.fitted_model['halves'][i]:>10.3f}")
+    lines.append(f"{'RMS residual (bands)':<22}{'':>10}{fit.rms_base:>10.3f}{fit.rms_fitted:>10.3f}")
+    lines.append("")
+    for p, v in fit.params.items():
+        b = fit.base_params[p]
+        shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") else (lambda x: f"{x:.3f}")
+        lines.append(f"{p:<10} {shown(b):>14} -> {shown(v):>14}   ({PARAMETERS[p].split(';')[0]})")
+    lines.append(f"plane coverage by the projector: {fit.coverage:.1%}; optimiser: {fit.message}")
+    return "\n".join(lines)

@@ -1,0 +1,109 @@
+"""fppsim.fit_optics: optics ranges fitted to fringe images made with known optics."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fppsim import fit_optics as fo
+from fppsim import fit_rig as fr
+from fppsim.optics import Optics, OpticsRanges
+from fppsim.rig import Rig
+
+ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
+
+
+def _eff_blur(rig, period, pb, cb):
+    """Projector blur (projector px) and camera blur (camera px) combined, in camera px."""
+    px = period / (rig.projector.width / rig.periods)
+    return float(np.hypot(pb * px, cb))
+
+
+TRUTH = Optics(gain=210.0, ambient=0.0225, albedo_plane=0.33, albedo_object=0.85, projector_blur=1.3,
+               camera_blur=0.6, noise_sigma=1.2, shot_noise=0.05)
+
+
+def test_plane_images_with_known_optics(tmp_path):
+    """Tolerances: gain x albedo_plane 3 %, combined blur 0.1 px, noise sigma 20 % (the shot term is
+    not measurable over the plane's narrow intensity range and stays at the default centre, 0.05)."""
+    rig = Rig.default()
+    model = fo.plane_model(rig)
+    images = []
+    for i in range(2):
+        g = fo.render_plane(rig, TRUTH, model, np.random.default_rng(i))
+        images.append(fr.FringeImage(g, g > 0, str(i)))
+        cv2.imwrite(str(tmp_path / f"{i}.png"), g)
+    fit = fo.fit_optics(images, rig)
+    c = fit.centre
+    assert c["gain"] * c["albedo_plane"] == pytest.approx(TRUTH.gain * TRUTH.albedo_plane, rel=0.03)
+    assert _eff_blur(rig, 11.6, c["projector_blur"], c["camera_blur"]) == pytest.approx(
+        _eff_blur(rig, 11.6, TRUTH.projector_blur, TRUTH.camera_blur), abs=0.1)
+    assert c["noise_sigma"] == pytest.approx(TRUTH.noise_sigma, rel=0.2)
+    assert "albedo_object" not in c  # no object pixels to measure
+    assert fit.fixed["ambient"] == pytest.approx(0.0225)
+    for k, v in fit.ranges.to_dict().items():
+        if k in c:
+            assert v[0] <= c[k] <= v[1]
+
+    # the CLI on a folder of PNGs writes a YAML that the --optics-file path reads
+    from fppsim.cli import _read_mapping, main
+
+    out = tmp_path / "optics.yaml"
+    assert main(["fit-optics", str(tmp_path), "--out", str(out), "--compare", "0"]) == 0
+    ranges = OpticsRanges.from_dict(_read_mapping(str(out)))
+    assert ranges.gain[0] < c["gain"] < ranges.gain[1]
+    assert ranges.albedo_object == OpticsRanges().albedo_object  # not fitted: the default stays
+    assert main(["fit-optics", str(tmp_path), "--out", str(out), "--compare", "0"]) == 1  # no overwrite
+
+
+def test_brighter_and_sharper_contrast_than_the_table_solves_ambient():
+    rig = Rig.default()
+    sharp = Optics(**{**TRUTH.to_dict(), "projector_blur": 0.0, "camera_blur": 0.0, "ambient": 0.008})
+    g = fo.render_plane(rig, sharp, rng=np.random.default_rng(0))
+    fit = fo.fit_optics([fr.FringeImage(g, np.ones(g.shape, bool), "x")], rig)  # troughs reach 0: not shadow
+    assert fit.centre["projector_blur"] == 0.0 and fit.centre["camera_blur"] == 0.0
+    assert fit.centre["ambient"] == pytest.approx(0.008, abs=0.006)
+    assert "ambient" not in fit.fixed
+    with pytest.raises(ValueError, match="640 x 352"):
+        fo.fit_optics([fr.FringeImage(g[:100], g[:100] > 0, "small")], rig)
+
+
+@pytest.mark.slow
+def test_rendered_scenes_with_known_optics(tmp_path, capsys):
+    """Rendered samples (pyrender) with fixed optics, figshare layout (labels tell plane from objects).
+    Tolerances: gain x albedo (plane and object) 5 %, combined blur 0.1 px, noise sigma 25 %, shot 35 %."""
+    from fppsim.cli import main
+    from fppsim.generate import generate
+    from fppsim.synth import SynthConfig
+
+    rig = Rig.default()
+    generate([str(ASSETS)], tmp_path / "syn", 3, seed=3, config=SynthConfig(
+        rig=rig, optics=OpticsRanges.fixed(TRUTH), psp_freqs=()), fmt="figshare", progress=False)
+    images, layout = fr.load_fringe_images(tmp_path / "syn")
+    assert layout == "figshare"
+    fit = fo.fit_optics(images, rig)
+    c = fit.centre
+    assert c["gain"] * c["albedo_plane"] == pytest.approx(TRUTH.gain * TRUTH.albedo_plane, rel=0.05)
+    assert c["gain"] * c["albedo_object"] == pytest.approx(TRUTH.gain * TRUTH.albedo_object, rel=0.05)
+    assert _eff_blur(rig, 11.6, c["projector_blur"], c["camera_blur"]) == pytest.approx(
+        _eff_blur(rig, 11.6, TRUTH.projector_blur, TRUTH.camera_blur), abs=0.1)
+    assert c["noise_sigma"] == pytest.approx(TRUTH.noise_sigma, rel=0.25)
+    assert c["shot_noise"] == pytest.approx(TRUTH.shot_noise, rel=0.35)
+
+    out = tmp_path / "optics.yaml"
+    assert main(["fit-optics", str(tmp_path / "syn"), "--out", str(out), "--compare", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "default" in text and "fitted" in text and "fringe contrast B/A" in text
+    # the YAML drives `fppsim generate --optics-file`: the sample's optics lie in the fitted ranges
+    assert main(["generate", "--meshes", str(ASSETS), "--out", str(tmp_path / "gen"), "--count", "1", "--no-psp",
+                 "--optics-file", str(out), "--no-preview", "-q"]) == 0
+    import json
+
+    meta = json.loads(next((tmp_path / "gen").glob("*/meta.json")).read_text())
+    from fppsim.cli import _read_mapping
+
+    ranges = OpticsRanges.from_dict(_read_mapping(str(out)))
+    for k, v in ranges.to_dict().items():
+        if isinstance(v, list):
+            assert v[0] - 1e-9 <= meta["optics"][k] <= v[1] + 1e-9, k

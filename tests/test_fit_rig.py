@@ -1,0 +1,142 @@
+"""fppsim.fit_rig: analytic period map of a rig, band measurement of fringe images, fitting the projector."""
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from fppsim import fit_rig as fr
+from fppsim.rig import Rig, RigError
+from fppsim.stats import estimate_period
+
+REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real-sample"
+
+
+def _plane_images(rig, n=2, noise=1.5, seed=0):
+    """Fringe images of the bare plane: I = 60 + 45 cos(2 pi f u_p / W_p + shift) at every pixel centre."""
+    cam = rig.camera
+    uv = cam.pixel_grid()
+    X = cam.backproject(uv, cam.plane_depth(uv))
+    up = rig.projector.project(X)[0][..., 0]
+    rng = np.random.default_rng(seed)
+    out = []
+    for k in range(n):
+        img = 60 + 45 * np.cos(2 * np.pi * rig.periods * up / rig.projector.width + 1.3 * k)
+        img = np.clip(np.rint(img + rng.normal(0, noise, img.shape)), 0, 255).astype(np.uint8)
+        out.append(img)
+    return out
+
+
+def test_parallel_rig_has_the_textbook_period():
+    # parallel axes at equal heights: u_p = fp (X - b) / Z + cx_p and u = fc X / Z + cx, so the
+    # period is (W_p / f) (fc / fp) everywhere: 912 / 80 * 1230 / 1208.8
+    rig = Rig.default()
+    _, _, T = fr.period_map(rig, step=8)
+    assert np.isfinite(T).all()
+    np.testing.assert_allclose(T, 912 / 80 * 1230 / 1208.8, rtol=1e-9)
+    bands = fr.band_model(rig)
+    np.testing.assert_allclose(bands["halves"], 912 / 80 * 1230 / 1208.8, rtol=1e-9)
+    assert fr.plane_coverage(rig) == 1.0
+
+
+def test_period_map_matches_the_measured_fft_period():
+    """The analytic map against an independent measurement: the FFT period of synthesised images."""
+    rig = fr.adjust_rig(Rig.default(), yaw=np.radians(3.0), pitch=np.radians(-2.0))
+    img = _plane_images(rig, 1, noise=0.0)[0]
+    model = fr.band_model(rig, 4, 3)
+    H, W = img.shape
+    for i, (a, b) in enumerate(zip(fr._band_edges(W, 4)[:-1], fr._band_edges(W, 4)[1:])):
+        assert estimate_period(img[:, a:b].astype(float)) == pytest.approx(model["columns"][i], abs=0.02)
+    for i, (a, b) in enumerate(zip(fr._band_edges(H, 3)[:-1], fr._band_edges(H, 3)[1:])):
+        assert estimate_period(img[a:b].astype(float)) == pytest.approx(model["rows"][i], abs=0.02)
+    # yaw makes a left-right trend, pitch a top-bottom one
+    assert model["columns"][0] - model["columns"][-1] > 0.2
+    assert abs(model["rows"][0] - model["rows"][-1]) > 0.05
+
+
+def test_adjust_rig_keeps_camera_and_lights_the_view():
+    base = Rig.default()
+    r = fr.adjust_rig(base, yaw=0.05, pitch=-0.03, roll=0.01, baseline=200.0, periods=78.0, focal=1250.0)
+    np.testing.assert_array_equal(r.camera.K, base.camera.K)
+    np.testing.assert_array_equal(r.camera.R, base.camera.R)
+    np.testing.assert_allclose(r.projector.center, [200.0, 0.0, 500.0], atol=1e-9)  # rotation about its centre
+    assert r.periods == 78.0 and r.projector.K[0, 0] == 1250.0
+    assert fr.plane_coverage(r) == 1.0
+    with pytest.raises(RigError, match="unknown rig parameter"):
+        fr.adjust_rig(base, twist=1.0)
+
+
+def test_fit_recovers_a_perturbed_rig():
+    base = Rig.default()
+    truth = fr.adjust_rig(base, yaw=np.radians(-2.5), pitch=np.radians(1.5), periods=78.5)
+    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 3))]
+    measured = fr.measure_bands(images)
+    fit = fr.fit_rig(measured, base, ("yaw", "pitch", "periods"))
+    _, _, t_true = fr.period_map(truth)
+    _, _, t_fit = fr.period_map(fit.rig)
+    assert np.nanmax(np.abs(t_fit - t_true)) < 0.05
+    assert fit.rms_fitted < 0.02 < 0.1 < fit.rms_base
+    assert fit.params["yaw"] == pytest.approx(np.radians(-2.5), abs=np.radians(0.3))
+    assert fit.params["periods"] == pytest.approx(78.5, abs=0.3)
+    np.testing.assert_array_equal(fit.rig.camera.K, base.camera.K)
+    text = fr.format_fit(fit)
+    assert "columns    0-160" in text and "right half" in text and "yaw" in text
+
+
+@pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")
+def test_fit_reproduces_the_real_trend():
+    images, layout = fr.load_fringe_images(REAL)
+    assert layout == "real-sample"
+    fit = fr.fit_rig(fr.measure_bands(images), Rig.default())
+    left, right = fit.fitted_model["halves"]
+    assert left == pytest.approx(11.96, abs=0.1) and right == pytest.approx(11.49, abs=0.1)
+    assert left - right > 0.35
+
+
+def test_cli(tmp_path, capsys):
+    from fppsim.cli import main
+
+    truth = fr.adjust_rig(Rig.default(), yaw=np.radians(2.0), periods=81.0)
+    for i, img in enumerate(_plane_images(truth, 2)):
+        cv2.imwrite(str(tmp_path / f"frame_{i}.png"), img)
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path), "--out", str(out), "--params", "yaw,periods", "--json",
+                 str(tmp_path / "fit.json")]) == 0
+    text = capsys.readouterr().out
+    assert "measured" in text and "fitted" in text and "RMS residual" in text
+    rig = Rig.load(out)
+    _, _, a = fr.period_map(rig)
+    _, _, b = fr.period_map(truth)
+    assert np.nanmax(np.abs(a - b)) < 0.05
+    # an existing output is not replaced without --force; bad inputs are one line
+    assert main(["fit-rig", str(tmp_path), "--out", str(out)]) == 1
+    assert "exists; pass --force" in capsys.readouterr().err
+    assert main(["fit-rig", str(tmp_path / "nope"), "--out", str(tmp_path / "r2.json")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "nope: not a folder" in err
+    with pytest.raises(SystemExit) as e:
+        main(["fit-rig", str(tmp_path), "--out", str(tmp_path / "r3.json"), "--params", "twist"])
+    assert e.value.code == 2
+    assert not (tmp_path / "r2.json").exists()
+
+
+def test_phase_folders_give_plane_and_object_masks(tmp_path):
+    from fppsim.psp_io import save_psp_folder_sample, sums_from_phase
+
+    rig = Rig.default()
+    img = _plane_images(rig, 1)[0]
+    h, w = img.shape
+    yy, xx = np.mgrid[0:h, 0:w]
+    bump = 30.0 * np.clip(1 - ((xx - 300) ** 2 + (yy - 170) ** 2) / 60.0 ** 2, 0, None)  # mm
+    phase = 2 * np.pi * (5 + xx / 11.6) + 0.002 * yy ** 1.5 - 0.5 * bump
+    valid = np.ones((h, w), bool)
+    valid[100:140, 200:230] = False  # a shadow
+    save_psp_folder_sample(tmp_path, "1", *sums_from_phase(phase, valid), img)
+    images, layout = fr.load_fringe_images(tmp_path)
+    assert layout == "psp-folders"
+    im = images[0]
+    np.testing.assert_array_equal(im.valid, valid & (img > 0))
+    assert not (im.plane & (bump > 1)).any()
+    assert (im.obj == (im.valid & (0.5 * bump > 1.0))).mean() > 0.999
+    assert im.plane.sum() > 0.9 * (im.valid & (bump == 0)).sum()

@@ -1,0 +1,91 @@
+"""uhrnet.phase_eval: calibration-free fit of real phase = plane(x, y) + a h + b h^2."""
+
+import numpy as np
+import pytest
+
+from uhrnet.phase_eval import evaluate_phase, fit_phase, plane_terms
+
+
+def _scene(h=60, w=100, seed=0):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(float)
+    x, y = xx / (w - 1) * 2 - 1, yy / (h - 1) * 2 - 1  # the [-1, 1] grid the model uses
+    plane = 150.0 + 170.0 * x + 3.0 * y - 2.5 * x * x + 0.7 * x * y + 1.1 * y ** 3 - 0.4 * x ** 3
+    height = np.zeros((h, w))
+    for _ in range(3):
+        cx, cy, r, p = rng.uniform(-0.6, 0.6), rng.uniform(-0.5, 0.5), rng.uniform(0.2, 0.4), rng.uniform(10, 45)
+        height = np.maximum(height, p * np.clip(1 - ((x - cx) ** 2 + (y - cy) ** 2) / r ** 2, 0, None))
+    valid = np.ones((h, w), bool)
+    valid[10:20, 5:15] = False
+    return plane, height, valid, (x, y)
+
+
+def test_exact_model_recovers_coefficients():
+    plane, height, valid, _ = _scene()
+    a, b = -0.48, 0.0021
+    phase = plane + a * height + b * height ** 2
+    phase[~valid] = np.nan
+    fit = fit_phase(phase, height, valid, degree=3)
+    assert fit.rmse_rad < 1e-8
+    assert fit.explained == pytest.approx(1.0, abs=1e-12)
+    assert fit.a_rad_per_mm == pytest.approx(a, rel=1e-7)
+    assert fit.b_rad_per_mm2 == pytest.approx(b, rel=1e-6)
+    coef = dict(zip(fit.plane_terms, fit.plane_coefficients))
+    for name, value in {"1": 150.0, "x": 170.0, "y": 3.0, "x^2": -2.5, "xy": 0.7, "y^3": 1.1, "x^3": -0.4,
+                        "y^2": 0.0, "x^2y": 0.0, "xy^2": 0.0}.items():
+        assert coef[name] == pytest.approx(value, abs=1e-6), name
+    assert fit.pixels == valid.sum()
+    assert fit.rmse_mm_equiv < 1e-7
+    # relief = what the plane-only least-squares fit leaves, checked with an independent solver
+    from sklearn.linear_model import LinearRegression
+
+    P, _ = plane_terms(phase.shape, 3)
+    X = P.reshape(len(P), -1).T[valid.ravel()][:, 1:]
+    lr = LinearRegression().fit(X, phase[valid])
+    relief = phase[valid] - lr.predict(X)
+    assert fit.relief_rms_rad == pytest.approx(np.sqrt(np.mean(relief ** 2)), rel=1e-6)
+
+
+def test_flat_predictor_explains_nothing_and_noise_is_the_residual():
+    plane, height, valid, _ = _scene(seed=1)
+    rng = np.random.default_rng(5)
+    noise = 0.05
+    phase = plane - 0.5 * height + rng.normal(0, noise, plane.shape)
+    res = evaluate_phase(phase, height, valid)
+    pred, flat = res["prediction"], res["flat"]
+    assert flat["explained"] == pytest.approx(0.0, abs=1e-9)
+    assert flat["rmse_rad"] == pytest.approx(flat["relief_rms_rad"], rel=1e-9)
+    assert pred["rmse_rad"] == pytest.approx(noise, rel=0.05)
+    assert pred["explained"] > 0.99
+    assert pred["a_rad_per_mm"] == pytest.approx(-0.5, abs=0.005)
+    assert np.isnan(res["residual"][~valid]).all()
+    # a prediction with a 20% scale error is still explained (a absorbs the scale) ...
+    assert fit_phase(phase, 0.8 * height, valid).a_rad_per_mm == pytest.approx(-0.625, abs=0.01)
+    # ... but a wrong shape is not: half the objects missing
+    wrong = np.where(np.arange(height.shape[1])[None, :] < 50, height, 0.0)
+    w = fit_phase(phase, wrong, valid)
+    assert 0.0 < w.explained < 0.8 and w.rmse_rad > 5 * noise
+
+
+def test_robust_fit_ignores_order_errors():
+    plane, height, valid, _ = _scene(seed=2)
+    rng = np.random.default_rng(0)
+    phase = plane - 0.5 * height + rng.normal(0, 0.02, plane.shape)
+    bad = rng.random(plane.shape) < 0.03
+    phase[bad] += 2 * np.pi * rng.choice([-1, 1], bad.sum())  # wrong fringe orders
+    ls = fit_phase(phase, height, valid)
+    rob = fit_phase(phase, height, valid, robust=True)
+    assert abs(rob.a_rad_per_mm + 0.5) < abs(ls.a_rad_per_mm + 0.5) + 1e-9
+    assert rob.a_rad_per_mm == pytest.approx(-0.5, abs=0.002)
+    assert rob.robust and not ls.robust
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="same 2-D shape"):
+        fit_phase(np.zeros((4, 4)), np.zeros((4, 5)))
+    with pytest.raises(ValueError, match="only 3 valid pixels"):
+        v = np.zeros((10, 10), bool)
+        v[0, :3] = True
+        fit_phase(np.ones((10, 10)), np.ones((10, 10)), v)
+    with pytest.raises(ValueError, match="degree"):
+        plane_terms((4, 4), -1)
