@@ -59,6 +59,18 @@ class DepthRenderer:
         # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
         # so keep one renderer (and one scene: GL buffers are per context) per resolution.
         self._slots = {}
+        self._bounds = {}
+
+    def _corners(self, inst: Instance) -> np.ndarray:
+        """(8, 3) bounding-box corners of the instance's vertices (kept per key: a min/max over a large
+        mesh costs as much as a small render)."""
+        if inst.key is not None and inst.key in self._bounds:
+            return self._bounds[inst.key]
+        lo, hi = inst.vertices.min(0), inst.vertices.max(0)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        if inst.key is not None:
+            self._bounds[inst.key] = corners
+        return corners
 
     def _slot(self, width: int, height: int):
         import pyrender
@@ -84,9 +96,7 @@ class DepthRenderer:
         # Tight clip range from the transformed bounding boxes keeps the depth buffer precise.
         zs = []
         for inst in instances:
-            lo, hi = inst.vertices.min(0), inst.vertices.max(0)
-            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-            world = corners @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+            world = self._corners(inst) @ inst.transform[:3, :3].T + inst.transform[:3, 3]
             zs.append(world @ device.R[2] + device.t[2])
         zs = np.concatenate(zs) if zs else np.zeros(0)
         if zs.size == 0 or zs.max() <= 0:
@@ -172,27 +182,58 @@ class Geometry:
 
 
 def _normals_from_points(P: np.ndarray, camera_center: np.ndarray) -> np.ndarray:
-    """Normals of a point map from one-sided differences that do not straddle depth edges."""
+    """Normals of a point map from one-sided differences that do not straddle depth edges.
+
+    ``P`` (h, w, 3) float32 world points (NaN where nothing is seen); returns (h, w, 3) unit normals
+    facing ``camera_center`` ((0, 0, 1) where undefined). Works on the three coordinate planes
+    separately (contiguous arrays, no (h, w, 3) reductions); the arithmetic per element is the
+    textbook ``(x*x + y*y) + z*z`` and cross product, in P's dtype.
+    """
+    X = [np.ascontiguousarray(P[..., i]) for i in range(3)]
+
+    def steps(axis):
+        """Forward and backward differences along ``axis``; the edge step is P - P (0, or NaN)."""
+        fwd, bwd = [], []
+        for c in X:
+            d = np.diff(c, axis=axis)
+            f, b = np.empty_like(c), np.empty_like(c)
+            if axis == 1:
+                f[:, :-1], b[:, 1:] = d, d
+                f[:, -1] = c[:, -1] - c[:, -1]
+                b[:, 0] = c[:, 0] - c[:, 0]
+            else:
+                f[:-1], b[1:] = d, d
+                f[-1] = c[-1] - c[-1]
+                b[0] = c[0] - c[0]
+            fwd.append(f)
+            bwd.append(b)
+        return fwd, bwd
+
+    def length(v):
+        return np.sqrt((v[0] * v[0] + v[1] * v[1]) + v[2] * v[2])
+
     def smaller_step(axis):
-        fwd = np.diff(P, axis=axis, append=np.take(P, [-1], axis=axis))
-        bwd = np.diff(P, axis=axis, prepend=np.take(P, [0], axis=axis))
-        fwd_n = np.linalg.norm(fwd, axis=-1)
-        bwd_n = np.linalg.norm(bwd, axis=-1)
+        fwd, bwd = steps(axis)
+        fwd_n, bwd_n = length(fwd), length(bwd)
         fwd_n = np.where(np.isfinite(fwd_n) & (fwd_n > 0), fwd_n, np.inf)
         bwd_n = np.where(np.isfinite(bwd_n) & (bwd_n > 0), bwd_n, np.inf)
-        return np.where((fwd_n <= bwd_n)[..., None], fwd, bwd)
+        take_fwd = fwd_n <= bwd_n
+        return [np.where(take_fwd, f, b) for f, b in zip(fwd, bwd)]
 
     du, dv = smaller_step(1), smaller_step(0)
-    n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    norm = length(n)
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = n / norm
-    to_cam = camera_center - P
-    flip = np.sum(n * to_cam, axis=-1) < 0
-    n[flip] *= -1
-    bad = ~np.all(np.isfinite(n), axis=-1)
-    n[bad] = (0.0, 0.0, 1.0)
-    return n
+        n = [c / norm for c in n]
+    to_cam = [camera_center[i] - X[i] for i in range(3)]
+    flip = ((n[0] * to_cam[0] + n[1] * to_cam[1]) + n[2] * to_cam[2]) < 0
+    out = np.empty(P.shape, dtype=n[0].dtype)
+    for i, c in enumerate(n):
+        np.negative(c, out=c, where=flip)
+        out[..., i] = c
+    bad = ~(np.isfinite(n[0]) & np.isfinite(n[1]) & np.isfinite(n[2]))
+    out[bad] = (0.0, 0.0, 1.0)
+    return out
 
 
 class _GridCache:
@@ -263,9 +304,10 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     tolerance = shadow.bias_mm + shadow.slope_pixels * np.maximum(gx, gy)
     unshadowed = ~(z_p > occluder + tolerance)
 
-    to_proj = proj.center - Ps
-    dist2 = np.sum(to_proj * to_proj, axis=-1)
-    cos_inc = np.sum(normals * to_proj, axis=-1) / np.sqrt(dist2)
+    # Dot products per coordinate plane: the same (x + y) + z sums as np.sum(..., axis=-1), faster.
+    tp = [proj.center[i] - Ps[..., i] for i in range(3)]
+    dist2 = (tp[0] * tp[0] + tp[1] * tp[1]) + tp[2] * tp[2]
+    cos_inc = ((normals[..., 0] * tp[0] + normals[..., 1] * tp[1]) + normals[..., 2] * tp[2]) / np.sqrt(dist2)
     lit = inside & unshadowed & (cos_inc > 0)
     cos_inc = np.where(lit, cos_inc, 0.0)
     falloff = float(np.sum(proj.center ** 2)) / dist2
