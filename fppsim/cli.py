@@ -110,6 +110,9 @@ def add_generate(p: argparse.ArgumentParser) -> None:
                    help="labels <= this count as invalid when read back (reference code: -100)")
     p.add_argument("--preview", action=argparse.BooleanOptionalAction, default=True,
                    help="write preview.png (fringe | height | mask) of the first samples (default on)")
+    p.add_argument("--backend", choices=["osmesa", "egl"], default=None,
+                   help="off-screen GL: osmesa (software, default) or egl (headless GPU; Mesa's software "
+                        "device without one); default $PYOPENGL_PLATFORM, else osmesa")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
@@ -139,7 +142,7 @@ def run_generate(args) -> int:
                            name="figshare" if preset == (6.0, -97.0, -105.0, -100.0) else "custom")
     summary = generate(args.meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
                        fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
-                       progress=not args.quiet)
+                       progress=not args.quiet, backend=args.backend)
     for line in summary.lines():
         print(line)
     if args.preview:
@@ -249,12 +252,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     from .dataset import DatasetError
     from .generate import GenerateError
+    from .render import BackendError
     from .rig import RigError
     from .scene import MeshError
 
     try:
         return int(COMMANDS[args.command][1](args) or 0)
-    except (CLIError, GenerateError, DatasetError, RigError, MeshError, ValueError, OSError) as exc:
+    except (CLIError, GenerateError, DatasetError, RigError, MeshError, BackendError, ValueError, OSError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         print(f"fppsim {args.command}: error: {msg}", file=sys.stderr)
         return 1

@@ -15,13 +15,14 @@ import os
 from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
 if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
     np.infty = np.inf
 
-__all__ = ["DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
+__all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,54 @@ class Instance:
 
 
 _PARK = np.eye(4)
-_PARK[2, 3] = 1e7  # far behind every device: parked nodes keep their meshes on the GL side, drawn nowhere
+_PARK[2, 3] = 1e7  # far behind every device: a parked (hidden) node keeps its mesh on the GL side
+
+
+class BackendError(RuntimeError):
+    """The requested GL backend cannot be used in this process (one-line reason)."""
+
+
+def select_backend(backend: str | None = None) -> str:
+    """Choose the process's GL platform (``osmesa`` or ``egl``) before OpenGL is imported.
+
+    ``None`` keeps ``$PYOPENGL_PLATFORM`` (osmesa unless set). PyOpenGL binds its platform once per
+    process, so asking for another one after the first render raises :class:`BackendError`.
+    """
+    import sys
+
+    current = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
+    backend = current if backend is None else backend
+    if backend not in BACKENDS:
+        raise BackendError(f"unknown GL backend '{backend}' (choose {' or '.join(BACKENDS)})")
+    if backend != current and "OpenGL.GL" in sys.modules:
+        raise BackendError(f"GL backend '{current}' is already in use in this process; "
+                           f"choose --backend before anything renders")
+    os.environ["PYOPENGL_PLATFORM"] = backend
+    return backend
+
+
+def _single_sample_framebuffer(offscreen) -> None:
+    """Make pyrender's off-screen framebuffer single-sampled (EGL path).
+
+    With framebuffer objects pyrender renders into a 4x multisampled buffer and blits its depth,
+    which returns the depth of one sub-sample position instead of the pixel centre (up to a third of
+    a pixel's depth slope off). Depth ground truth needs the pixel centre, as OSMesa's single-sampled
+    window buffer gives, so allocate the "multisampled" buffers with 0 samples.
+    """
+    import pyrender.renderer as prr
+
+    inner = offscreen._renderer
+    configure = type(inner)._configure_main_framebuffer
+
+    def single_sampled():
+        original = prr.glRenderbufferStorageMultisample
+        prr.glRenderbufferStorageMultisample = lambda target, samples, fmt, w, h: original(target, 0, fmt, w, h)
+        try:
+            configure(inner)
+        finally:
+            prr.glRenderbufferStorageMultisample = original
+
+    inner._configure_main_framebuffer = single_sampled
 
 
 class DepthRenderer:
@@ -53,9 +101,14 @@ class DepthRenderer:
     object surface for every pixel of ``device`` at ``scale``-times resolution, ``inf`` where no object is
     hit. Meshes with a key stay uploaded (a parked node keeps them in each scene), so a dataset's meshes
     are sent to GL once per renderer.
+
+    ``backend``: ``osmesa`` (software, no display; the default) or ``egl`` (headless GPU rendering,
+    or Mesa's software device where no GPU exists); None keeps ``$PYOPENGL_PLATFORM``. One backend
+    per process (see :func:`select_backend`).
     """
 
-    def __init__(self):
+    def __init__(self, backend: str | None = None):
+        self.backend = select_backend(backend)
         # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
         # so keep one renderer (and one scene: GL buffers are per context) per resolution.
         self._slots = {}
@@ -78,7 +131,17 @@ class DepthRenderer:
         key = (width, height)
         if key not in self._slots:
             scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[0, 0, 0])
-            self._slots[key] = (pyrender.OffscreenRenderer(width, height), scene, {})
+            try:
+                offscreen = pyrender.OffscreenRenderer(width, height)
+            except Exception as exc:
+                reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                hint = ("needs libEGL with a GPU driver or Mesa's EGL (apt libegl1 libegl-mesa0 libgbm1)"
+                        if self.backend == "egl" else "needs libOSMesa (apt libosmesa6)")
+                raise BackendError(f"GL backend '{self.backend}' unavailable: {reason} ({hint}; "
+                                   f"or try --backend {'osmesa' if self.backend == 'egl' else 'egl'})") from None
+            if self.backend == "egl":
+                _single_sample_framebuffer(offscreen)
+            self._slots[key] = (offscreen, scene, {})
         return self._slots[key]
 
     @staticmethod
@@ -104,22 +167,33 @@ class DepthRenderer:
         znear = max(float(zs[zs > 0].min()) * 0.9, 1e-3) if np.any(zs > 0) else 1e-3
         zfar = float(zs.max()) * 1.1 + 1.0
         renderer, scene, meshes = self._slot(W, H)
-        nodes = []
+        # A keyed mesh lives in the scene on one parked, invisible node (so its GL buffers stay);
+        # this render moves that node into place and shows it. Hidden meshes cost no draw call and no
+        # vertex processing, however many meshes the dataset has.
+        nodes, shown = [], []
         for inst in instances:
             if inst.key is None:
+                nodes.append(scene.add(self._make_mesh(inst.vertices, inst.faces), pose=inst.transform))
+                continue
+            if inst.key not in meshes:
                 mesh = self._make_mesh(inst.vertices, inst.faces)
+                mesh.is_visible = False
+                meshes[inst.key] = (mesh, scene.add(mesh, pose=_PARK))
+            mesh, parked = meshes[inst.key]
+            if mesh.is_visible:  # the same mesh twice in one scene: a second node
+                nodes.append(scene.add(mesh, pose=inst.transform))
             else:
-                if inst.key not in meshes:
-                    meshes[inst.key] = self._make_mesh(inst.vertices, inst.faces)
-                    scene.add(meshes[inst.key], pose=_PARK)
-                mesh = meshes[inst.key]
-            nodes.append(scene.add(mesh, pose=inst.transform))
+                scene.set_pose(parked, inst.transform)
+                mesh.is_visible = True
+                shown.append(mesh)
         cam = scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=znear, zfar=zfar), pose=device.gl_pose())
         try:
             d = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY | pyrender.RenderFlags.SKIP_CULL_FACES)
         finally:
             for node in nodes + [cam]:
                 scene.remove_node(node)
+            for mesh in shown:
+                mesh.is_visible = False
         d = np.asarray(d, dtype=np.float64)
         return np.where(d > 0, d, np.inf)
 
