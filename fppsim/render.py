@@ -318,11 +318,15 @@ class _GridCache:
         self.value = None
 
     def get(self, camera, scale):
-        key = (id(camera), camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.dist.tobytes(), scale)
+        # by value: every sample builds its margin-expanded camera anew
+        key = (camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.dist.tobytes(),
+               camera.width, camera.height, scale)
         if key != self.key:
             grid = camera.pixel_grid(scale)
             origin, dirs = camera.pixel_rays(grid)
             self.value = (origin, dirs, camera.plane_depth(grid))
+            for a in self.value:
+                a.setflags(write=False)  # shared between samples
             self.key = key
         return self.value
 
