@@ -124,7 +124,7 @@ def main(argv=None) -> int:
         return 1
     rig = Rig.default()
     config = SynthConfig(rig=rig, supersample=args.supersample, psp_freqs=() if args.no_psp else (1, 8, 80))
-    renderer = DepthRenderer(backend=args.backend)
+    renderer = DepthRenderer(backend=args.backend) if args.backend else DepthRenderer()
     writer = BackgroundWriter()
     faces = sum(len(a.faces) for a in assets)
     tmp = Path(tempfile.mkdtemp(prefix="bench_generate_"))
@@ -144,14 +144,14 @@ def main(argv=None) -> int:
     f = statistics.median(b[2] for b in blocks)
     result = {
         "mesh": args.mesh, "faces": faces, "samples": args.samples, "block": args.block, "psp": not args.no_psp,
-        "write": not args.no_write, "supersample": args.supersample, "backend": renderer.backend,
+        "write": not args.no_write, "supersample": args.supersample, "backend": getattr(renderer, "backend", "osmesa"),
         "sample_s_median": s, "samples_per_s": 1.0 / s, "two_depth_renders_s_median": f,
         "cost_over_floor": statistics.median(b[0] / b[2] for b in blocks),
         "cpu_cost_over_floor": statistics.median(b[1] / b[3] for b in blocks),
         "blocks": [dict(zip(("sample_s", "sample_cpu_s", "floor_s", "floor_cpu_s"), b)) for b in blocks],
     }
     print(f"mesh: {args.mesh} ({faces} faces), 640 x 352, psp={'on' if result['psp'] else 'off'}, "
-          f"write={'on' if result['write'] else 'off'}, supersample={args.supersample}, backend={renderer.backend}")
+          f"write={'on' if result['write'] else 'off'}, supersample={args.supersample}, backend={result['backend']}")
     print(f"sample:              {1000 * s:8.1f} ms median  ({result['samples_per_s']:.2f} samples/s, one process)")
     print(f"two bare depth renders: {1000 * f:5.1f} ms median  (camera + projector)")
     print(f"cost over the rendering floor: {result['cost_over_floor']:.2f} x wall, "
