@@ -114,6 +114,9 @@ def add_generate(p: argparse.ArgumentParser) -> None:
                    help="labels <= this count as invalid when read back (reference code: -100)")
     p.add_argument("--preview", action=argparse.BooleanOptionalAction, default=True,
                    help="write preview.png (fringe | height | mask) of the first samples (default on)")
+    p.add_argument("--backend", choices=["osmesa", "egl"], default=None,
+                   help="off-screen GL: osmesa (software, default) or egl (headless GPU; Mesa's software "
+                        "device without one); default $PYOPENGL_PLATFORM, else osmesa")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
@@ -154,7 +157,7 @@ def run_generate(args) -> int:
         raise UsageError(f"--label-*: {exc}") from None
     summary = generate(args.meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
                        fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
-                       progress=not args.quiet)
+                       progress=not args.quiet, backend=args.backend)
     for line in summary.lines():
         print(line)
     if args.preview:
@@ -271,13 +274,15 @@ def main(argv: list[str] | None = None) -> int:
     from ._fs import FolderBusy, signals_raise
     from .dataset import DatasetError
     from .generate import GenerateError
+    from .render import BackendError
     from .rig import RigError
     from .scene import MeshError
 
     try:
         with signals_raise():  # SIGTERM stops like Ctrl-C (workers terminated), exit 128 + signum
             return int(COMMANDS[args.command][1](args) or 0)
-    except (CLIError, GenerateError, DatasetError, RigError, MeshError, FolderBusy, ValueError, OSError) as exc:
+    except (CLIError, GenerateError, DatasetError, RigError, MeshError, FolderBusy, BackendError, ValueError,
+            OSError) as exc:
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if isinstance(exc, OSError) and exc.filename and exc.strerror:
             msg = f"{exc.filename}: {exc.strerror}"

@@ -131,19 +131,32 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 _ZIP_EPOCH = (1980, 1, 1, 0, 0, 0)  # fixed member timestamps: identical runs give identical bytes
 
 
-def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1) -> None:
+def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1, min_gain: float = 0.25) -> None:
     """Write an .npz readable by ``np.load`` with fast deflate (level 1; numpy's default is slow).
 
-    Byte-reproducible: members carry a fixed timestamp and permissions, not the wall clock.
+    An array whose sampled rows deflate by less than ``min_gain`` (noisy float mantissas such as
+    ``phase_psp``) is stored uncompressed: deflating it would cost most of the write for a few percent.
+    Entries carry a fixed timestamp, so the same arrays give the same bytes.
     """
-    with zipfile.ZipFile(path, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=compresslevel) as zf:
+    with zipfile.ZipFile(path, "w") as zf:
         for key, arr in arrays.items():
+            arr = np.ascontiguousarray(arr)
             buf = io.BytesIO()
-            np.lib.format.write_array(buf, np.ascontiguousarray(arr), allow_pickle=False)
+            np.lib.format.write_array(buf, arr, allow_pickle=False)
             info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_EPOCH)
-            info.compress_type = zipfile.ZIP_DEFLATED
+            info.compress_type = zipfile.ZIP_DEFLATED if _deflate_pays(arr, compresslevel, min_gain) \
+                else zipfile.ZIP_STORED
             info.external_attr = 0o644 << 16
-            zf.writestr(info, buf.getvalue(), compresslevel=compresslevel)
+            zf.writestr(info, buf.getvalue(), compress_type=info.compress_type, compresslevel=compresslevel)
+
+
+def _deflate_pays(arr: np.ndarray, level: int, min_gain: float, rows: int = 16) -> bool:
+    """Deflate a few evenly spaced rows: does compression save at least ``min_gain`` of the bytes?"""
+    if arr.nbytes < 65536 or arr.ndim < 1:
+        return True
+    step = max(1, arr.shape[0] // rows)
+    sample = arr[::step].tobytes()
+    return len(zlib.compress(sample, level)) <= (1.0 - min_gain) * len(sample)
 
 
 # ----------------------------------------------------------------------------------------- native
@@ -158,6 +171,9 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
     """
     import cv2
 
+    # Huffman-only deflate: noisy 8-bit camera images gain nothing from string matching; skipping it
+    # makes the PNGs faster to write and smaller than zlib's default strategy (same pixels).
+    png_flags = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
     final = root / sid
     tmp = tmp_path(final)  # ".fppsim-tmp-<pid>-<sid>": recognisably ours, removed on failure or re-run
     if tmp.exists():
@@ -167,7 +183,7 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
         for rel, img in images.items():
             p = tmp / rel
             p.parent.mkdir(parents=True, exist_ok=True)
-            if not cv2.imwrite(str(p), img, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            if not cv2.imwrite(str(p), img, png_flags):
                 raise OSError(f"cannot write {p}")
         save_npz(tmp / "arrays.npz", arrays)
         (tmp / "meta.json").write_text(json.dumps(meta, indent=1))

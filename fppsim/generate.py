@@ -84,14 +84,15 @@ def shard_indices(count: int, shard: tuple[int, int] | None) -> list[int]:
 _WORKER: dict = {}
 
 
-def _worker_init(assets, config, seed, out, noise_free, pool_worker=False):
+def _worker_init(assets, config, seed, out, noise_free, label=None, backend=None, pool_worker=False):
+    from .pipeline import BackgroundWriter
     from .render import DepthRenderer
 
     if pool_worker:  # only the parent reacts to Ctrl-C/SIGTERM (it terminates the pool); no orphans
         ignore_sigint()
         die_with_parent()
     _WORKER.update(assets=assets, config=config, seed=seed, out=Path(out), noise_free=noise_free,
-                   renderer=DepthRenderer())
+                   renderer=DepthRenderer(backend), label=label, writer=BackgroundWriter())
 
 
 def _worker_run(index: int):
@@ -104,6 +105,37 @@ def _worker_run(index: int):
         return index, None, str(exc)
     write_sample_folder(w["out"], sid, images, arrays, meta)
     return index, manifest_record(sid, meta), None
+
+
+def _worker_run_chunk(indices: list[int]) -> list[tuple]:
+    """Produce ``indices``, writing each sample on the background thread while the next one renders.
+
+    Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
+    chunk is complete on disk, so the manifest never lists a sample still being written.
+    """
+    from .pipeline import figshare_rows
+
+    w = _WORKER
+    out = []
+    for index in indices:
+        sid = sample_id(index)
+        try:
+            images, arrays, meta = synthesize(index, w["seed"], w["assets"], w["config"], w["renderer"],
+                                              noise_free=w["noise_free"])
+        except SampleError as exc:
+            out.append((index, None, str(exc), None))
+            continue
+        w["writer"].submit(write_sample_folder, w["out"], sid, images, arrays, meta)
+        rows = figshare_rows(images["fringe.png"], arrays, w["label"]) if w["label"] is not None else None
+        out.append((index, manifest_record(sid, meta), None, rows))
+    w["writer"].flush()
+    return out
+
+
+def _chunks(todo: list[int], workers: int, size: int = 8) -> list[list[int]]:
+    """Consecutive chunks of at most ``size`` indices, small enough to keep every worker busy."""
+    size = max(1, min(size, len(todo) // (4 * max(1, workers)) or 1))
+    return [todo[i:i + size] for i in range(0, len(todo), size)]
 
 
 # --------------------------------------------------------------------------- run
@@ -132,8 +164,12 @@ def _check_settings(path: Path, settings: dict) -> None:
 
 def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
              workers: int = 1, fmt: str = "native", shard: tuple[int, int] | None = None,
-             label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True) -> RunSummary:
+             label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True,
+             backend: str | None = None) -> RunSummary:
     """Generate (or complete) a dataset. See the module docstring; returns a :class:`RunSummary`.
+
+    ``backend``: GL platform ``osmesa`` or ``egl`` (None: ``$PYOPENGL_PLATFORM``, else osmesa); it does
+    not change the samples beyond rasteriser rounding (depth within about 1e-3 mm).
 
     ``fmt="figshare"`` keeps the native samples in ``out/native`` and writes ``out/f1_80.npy`` and
     ``out/Z.npy`` at the end.
@@ -145,6 +181,9 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
         raise GenerateError(f"--count must be >= 1, got {count}")
     if fmt not in ("native", "figshare"):
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
+    from .render import select_backend
+
+    backend = select_backend(backend)  # before the workers spawn: they inherit the platform
     config = config or SynthConfig(rig=Rig.default())
     label = label or LabelTransform()
     label.check()
@@ -192,29 +231,46 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
                             + (f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else "")
                             + ": move it away, or use another --out")
 
-    init_args = (assets, config, seed, str(native), noise_free)
+    # figshare rows come back with the samples when this run produces all of them (else: read back)
+    rows = None
+    if fmt == "figshare" and todo and not summary.existing:
+        from .pipeline import FigshareRows
+
+        rows = FigshareRows(out, len(wanted), config.rig.camera.height, config.rig.camera.width)
+    position = {index: k for k, index in enumerate(wanted)}
+    init_args = (assets, config, seed, str(native), noise_free, label if rows is not None else None, backend)
     bar = tqdm(total=len(wanted), initial=summary.existing, unit="sample", desc="generate",
                disable=not progress, dynamic_ncols=True)
 
-    def consume(results):
-        for index, record, error in results:
-            if error is None:
-                append_manifest(native, record)
-                summary.written += 1
-            else:
-                summary.failed.append((index, error))
-                log.warning("%s", error)
-            bar.update(1)
+    def consume(chunks):
+        for chunk in chunks:
+            for index, record, error, row in chunk:
+                if error is None:
+                    append_manifest(native, record)
+                    summary.written += 1
+                    if rows is not None:
+                        rows.put(position[index], *row)
+                else:
+                    summary.failed.append((index, error))
+                    log.warning("%s", error)
+                bar.update(1)
 
     try:
         if workers <= 1 or len(todo) <= 1:
             _worker_init(*init_args)
-            consume(map(_worker_run, todo))
+            try:
+                consume(map(_worker_run_chunk, _chunks(todo, 1)))
+            finally:
+                _WORKER["writer"].close()
         else:
             # spawn, not fork: a GL (OSMesa/llvmpipe) context and its threads do not survive fork()
             ctx = mp.get_context("spawn")
             with ctx.Pool(min(workers, len(todo)), initializer=_worker_init, initargs=(*init_args, True)) as pool:
-                consume(pool.imap_unordered(_worker_run, todo))
+                consume(pool.imap_unordered(_worker_run_chunk, _chunks(todo, workers)))
+    except BaseException:
+        if rows is not None:
+            rows.discard()
+        raise
     finally:
         bar.close()
     reconcile(native)  # manifest sorted by index
@@ -222,8 +278,13 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     if summary.written + summary.existing == 0:
         raise GenerateError("nothing could be generated: " + (summary.failed[0][1] if summary.failed else "no samples"))
     if fmt == "figshare":  # exactly this run's samples, in index order (a folder may hold more)
-        folders = [native / sample_id(i) for i in wanted if (native / sample_id(i) / "meta.json").is_file()]
-        n = export_figshare(native, out, label, folders=folders)
+        if rows is not None and rows.complete:
+            n = rows.commit()
+        else:
+            if rows is not None:
+                rows.discard()
+            folders = [native / sample_id(i) for i in wanted if (native / sample_id(i) / "meta.json").is_file()]
+            n = export_figshare(native, out, label, folders=folders)
         summary.figshare = f"{out / 'f1_80.npy'} + {out / 'Z.npy'} ({n} samples)"
     return summary
 

@@ -231,16 +231,21 @@ def form_image(irradiance_parts: tuple[np.ndarray, np.ndarray], pattern: np.ndar
     scale : supersampling factor of the grid; blocks of scale x scale are averaged.
     """
     base, modulated = irradiance_parts
-    E = base + modulated * pattern
+    # In-place steps below compute exactly E = base + modulated * pattern etc. without temporaries.
+    E = modulated * pattern
+    E += base
     if optics.camera_blur > 0:
         E = gaussian_filter(E, optics.camera_blur * scale, mode="nearest")
     if scale > 1:
         H, W = E.shape[0] // scale, E.shape[1] // scale
         E = E.reshape(H, scale, W, scale).mean(axis=(1, 3))
     if rng is not None and (optics.noise_sigma > 0 or optics.shot_noise > 0):
-        var = optics.noise_sigma ** 2 + optics.shot_noise * np.maximum(E, 0.0)
-        E = E + rng.standard_normal(E.shape, dtype=np.float32) * np.sqrt(var)
+        sd = np.maximum(E, 0.0)
+        sd *= optics.shot_noise
+        sd += optics.noise_sigma ** 2
+        np.sqrt(sd, out=sd)  # sqrt(noise_sigma**2 + shot_noise * max(E, 0))
+        E += rng.standard_normal(E.shape, dtype=np.float32) * sd
     E = np.clip(E, 0.0, 255.0, out=E)
     if optics.camera_gamma != 1.0:
         E = 255.0 * (E / 255.0) ** (1.0 / optics.camera_gamma)
-    return np.rint(E).astype(np.uint8)
+    return np.rint(E, out=E).astype(np.uint8)

@@ -174,15 +174,56 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
     ``background = mean_n I_n``, ``modulation = (2/N) sqrt(S^2 + C^2)``.
     Four-step: ``phase = atan2(I3 - I1, I0 - I2)``, ``modulation = 0.5 sqrt((I3-I1)^2 + (I0-I2)^2)``.
     """
-    I = np.asarray(images, dtype=np.float64)
+    I = np.asarray(images)
     if I.ndim < 1:
         raise ValueError("images must be a stack of shape (N, ...)")
     n = I.shape[0]
     w = _shift_weights(_resolve_shifts(n, shifts))
-    A = np.tensordot(w[0], I, axes=1)
-    c = np.tensordot(w[1], I, axes=1)  # PCos = (N/2) B cos(phi)
-    s = np.tensordot(w[2], I, axes=1)  # PSin = (N/2) B sin(phi)
+    exact = _exact_sums(I, w)
+    if exact is not None:
+        A, c, s = exact
+    else:
+        I = np.asarray(I, dtype=np.float64)
+        A = np.tensordot(w[0], I, axes=1)
+        c = np.tensordot(w[1], I, axes=1)  # PCos = (N/2) B cos(phi)
+        s = np.tensordot(w[2], I, axes=1)  # PSin = (N/2) B sin(phi)
     return PhaseShift(phase=phase_from_sums(s, c), background=A, modulation=(2.0 / n) * np.hypot(s, c))
+
+
+def _exact_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
+    """``(A, PCos, PSin)`` of an unsigned-integer stack by integer arithmetic, or None.
+
+    When every weight is ``k / 2**m`` (``m <= max_bits``; the four-step weights 1/4, 0, +-1 are) and the
+    images are unsigned integers of at most 16 bits, every product and partial sum of the float64
+    weighted sum is exactly representable, so the float result does not depend on the summation order:
+    summing ``k * I`` in int64 and scaling by ``2**-m`` gives the very same float64 bits, several times
+    faster than converting the stack to float64. Each row needs a positive weight so that a zero sum is
+    +0.0 on both paths (non-negative images).
+    """
+    if I.dtype.kind != "u" or I.dtype.itemsize > 2 or I.shape[0] > 256:
+        return None
+    for m in range(max_bits + 1):
+        k = w * float(2 ** m)
+        if np.all(k == np.round(k)):
+            break
+    else:
+        return None
+    if not np.all(np.max(w, axis=1) > 0):
+        return None
+    k = np.round(k).astype(np.int64)
+    acc_type = np.int32 if I.dtype.itemsize == 1 else np.int64
+    out = []
+    for row in k:
+        acc = np.zeros(I.shape[1:], dtype=acc_type)
+        for weight, img in zip(row.tolist(), I):
+            if weight == 1:
+                acc += img
+            elif weight == -1:
+                acc -= img
+            elif weight:
+                acc += weight * img.astype(acc_type)
+        out.append(acc * (1.0 / 2 ** m))
+    return tuple(out)
 
 
 def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation: float,
@@ -414,6 +455,25 @@ def _column_plane_normal(proj, u: np.ndarray, v: np.ndarray | None) -> np.ndarra
     return n_dev @ proj.R  # R^T n for row vectors
 
 
+_RAYS: dict = {}
+
+
+def _camera_rays(cam) -> tuple[np.ndarray, np.ndarray]:
+    """``cam.pixel_rays(cam.pixel_grid())``, kept for the last few cameras (they rarely change).
+
+    The arrays are read-only: callers must not modify them.
+    """
+    key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.dist.tobytes(), cam.width, cam.height)
+    if key not in _RAYS:
+        if len(_RAYS) >= 4:
+            _RAYS.pop(next(iter(_RAYS)))
+        origin, d = cam.pixel_rays(cam.pixel_grid())
+        origin.setflags(write=False)
+        d.setflags(write=False)
+        _RAYS[key] = (origin, d)
+    return _RAYS[key]
+
+
 def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
                 pixels: np.ndarray | None = None, max_iter: int = 20, tol: float = 1e-9) -> Triangulation:
     """Phase -> 3D by intersecting each camera ray with the projector's plane of constant column.
@@ -452,10 +512,12 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
         if Phi.shape != (cam.height, cam.width):
             raise ValueError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
                              "(pass pixels= for other sampling grids)")
-        pixels = cam.pixel_grid()
-    pixels = np.asarray(pixels, dtype=np.float64)
-    if pixels.shape != Phi.shape + (2,):
-        raise ValueError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
+        origin, d = _camera_rays(cam)
+    else:
+        pixels = np.asarray(pixels, dtype=np.float64)
+        if pixels.shape != Phi.shape + (2,):
+            raise ValueError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
+        origin, d = cam.pixel_rays(pixels)
     f = rig.periods if periods is None else float(periods)
     u = rig.column_of_phase(Phi, f)
     valid = np.isfinite(u)
@@ -466,7 +528,6 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
         valid &= m
     u = np.where(valid, u, proj.K[0, 2])
 
-    origin, d = cam.pixel_rays(pixels)
     C = proj.center
     co = C - origin
 
@@ -628,7 +689,7 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
     freqs = tuple(int(f) for f in freqs)
     quality, wrapped = None, []
     for f in freqs:
-        res = wrapped_phase(np.asarray(stacks[f], dtype=np.float64), shifts)
+        res = wrapped_phase(np.asarray(stacks[f]), shifts)  # uint8 stacks take the exact integer path
         wrapped.append(res.phase)
         q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
         quality = q if quality is None else (quality & q)

@@ -15,13 +15,14 @@ import os
 from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
+BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
 if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
     np.infty = np.inf
 
-__all__ = ["DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
+__all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
 
 
 @dataclass(frozen=True)
@@ -43,7 +44,54 @@ class Instance:
 
 
 _PARK = np.eye(4)
-_PARK[2, 3] = 1e7  # far behind every device: parked nodes keep their meshes on the GL side, drawn nowhere
+_PARK[2, 3] = 1e7  # far behind every device: a parked (hidden) node keeps its mesh on the GL side
+
+
+class BackendError(RuntimeError):
+    """The requested GL backend cannot be used in this process (one-line reason)."""
+
+
+def select_backend(backend: str | None = None) -> str:
+    """Choose the process's GL platform (``osmesa`` or ``egl``) before OpenGL is imported.
+
+    ``None`` keeps ``$PYOPENGL_PLATFORM`` (osmesa unless set). PyOpenGL binds its platform once per
+    process, so asking for another one after the first render raises :class:`BackendError`.
+    """
+    import sys
+
+    current = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
+    backend = current if backend is None else backend
+    if backend not in BACKENDS:
+        raise BackendError(f"unknown GL backend '{backend}' (choose {' or '.join(BACKENDS)})")
+    if backend != current and "OpenGL.GL" in sys.modules:
+        raise BackendError(f"GL backend '{current}' is already in use in this process; "
+                           f"choose --backend before anything renders")
+    os.environ["PYOPENGL_PLATFORM"] = backend
+    return backend
+
+
+def _single_sample_framebuffer(offscreen) -> None:
+    """Make pyrender's off-screen framebuffer single-sampled (EGL path).
+
+    With framebuffer objects pyrender renders into a 4x multisampled buffer and blits its depth,
+    which returns the depth of one sub-sample position instead of the pixel centre (up to a third of
+    a pixel's depth slope off). Depth ground truth needs the pixel centre, as OSMesa's single-sampled
+    window buffer gives, so allocate the "multisampled" buffers with 0 samples.
+    """
+    import pyrender.renderer as prr
+
+    inner = offscreen._renderer
+    configure = type(inner)._configure_main_framebuffer
+
+    def single_sampled():
+        original = prr.glRenderbufferStorageMultisample
+        prr.glRenderbufferStorageMultisample = lambda target, samples, fmt, w, h: original(target, 0, fmt, w, h)
+        try:
+            configure(inner)
+        finally:
+            prr.glRenderbufferStorageMultisample = original
+
+    inner._configure_main_framebuffer = single_sampled
 
 
 class DepthRenderer:
@@ -53,12 +101,29 @@ class DepthRenderer:
     object surface for every pixel of ``device`` at ``scale``-times resolution, ``inf`` where no object is
     hit. Meshes with a key stay uploaded (a parked node keeps them in each scene), so a dataset's meshes
     are sent to GL once per renderer.
+
+    ``backend``: ``osmesa`` (software, no display; the default) or ``egl`` (headless GPU rendering,
+    or Mesa's software device where no GPU exists); None keeps ``$PYOPENGL_PLATFORM``. One backend
+    per process (see :func:`select_backend`).
     """
 
-    def __init__(self):
+    def __init__(self, backend: str | None = None):
+        self.backend = select_backend(backend)
         # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
         # so keep one renderer (and one scene: GL buffers are per context) per resolution.
         self._slots = {}
+        self._bounds = {}
+
+    def _corners(self, inst: Instance) -> np.ndarray:
+        """(8, 3) bounding-box corners of the instance's vertices (kept per key: a min/max over a large
+        mesh costs as much as a small render)."""
+        if inst.key is not None and inst.key in self._bounds:
+            return self._bounds[inst.key]
+        lo, hi = inst.vertices.min(0), inst.vertices.max(0)
+        corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        if inst.key is not None:
+            self._bounds[inst.key] = corners
+        return corners
 
     def _slot(self, width: int, height: int):
         import pyrender
@@ -66,7 +131,17 @@ class DepthRenderer:
         key = (width, height)
         if key not in self._slots:
             scene = pyrender.Scene(bg_color=[0, 0, 0, 0], ambient_light=[0, 0, 0])
-            self._slots[key] = (pyrender.OffscreenRenderer(width, height), scene, {})
+            try:
+                offscreen = pyrender.OffscreenRenderer(width, height)
+            except Exception as exc:
+                reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+                hint = ("needs libEGL with a GPU driver or Mesa's EGL (apt libegl1 libegl-mesa0 libgbm1)"
+                        if self.backend == "egl" else "needs libOSMesa (apt libosmesa6)")
+                raise BackendError(f"GL backend '{self.backend}' unavailable: {reason} ({hint}; "
+                                   f"or try --backend {'osmesa' if self.backend == 'egl' else 'egl'})") from None
+            if self.backend == "egl":
+                _single_sample_framebuffer(offscreen)
+            self._slots[key] = (offscreen, scene, {})
         return self._slots[key]
 
     @staticmethod
@@ -84,9 +159,7 @@ class DepthRenderer:
         # Tight clip range from the transformed bounding boxes keeps the depth buffer precise.
         zs = []
         for inst in instances:
-            lo, hi = inst.vertices.min(0), inst.vertices.max(0)
-            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-            world = corners @ inst.transform[:3, :3].T + inst.transform[:3, 3]
+            world = self._corners(inst) @ inst.transform[:3, :3].T + inst.transform[:3, 3]
             zs.append(world @ device.R[2] + device.t[2])
         zs = np.concatenate(zs) if zs else np.zeros(0)
         if zs.size == 0 or zs.max() <= 0:
@@ -94,22 +167,33 @@ class DepthRenderer:
         znear = max(float(zs[zs > 0].min()) * 0.9, 1e-3) if np.any(zs > 0) else 1e-3
         zfar = float(zs.max()) * 1.1 + 1.0
         renderer, scene, meshes = self._slot(W, H)
-        nodes = []
+        # A keyed mesh lives in the scene on one parked, invisible node (so its GL buffers stay);
+        # this render moves that node into place and shows it. Hidden meshes cost no draw call and no
+        # vertex processing, however many meshes the dataset has.
+        nodes, shown = [], []
         for inst in instances:
             if inst.key is None:
+                nodes.append(scene.add(self._make_mesh(inst.vertices, inst.faces), pose=inst.transform))
+                continue
+            if inst.key not in meshes:
                 mesh = self._make_mesh(inst.vertices, inst.faces)
+                mesh.is_visible = False
+                meshes[inst.key] = (mesh, scene.add(mesh, pose=_PARK))
+            mesh, parked = meshes[inst.key]
+            if mesh.is_visible:  # the same mesh twice in one scene: a second node
+                nodes.append(scene.add(mesh, pose=inst.transform))
             else:
-                if inst.key not in meshes:
-                    meshes[inst.key] = self._make_mesh(inst.vertices, inst.faces)
-                    scene.add(meshes[inst.key], pose=_PARK)
-                mesh = meshes[inst.key]
-            nodes.append(scene.add(mesh, pose=inst.transform))
+                scene.set_pose(parked, inst.transform)
+                mesh.is_visible = True
+                shown.append(mesh)
         cam = scene.add(pyrender.IntrinsicsCamera(fx, fy, cx, cy, znear=znear, zfar=zfar), pose=device.gl_pose())
         try:
             d = renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY | pyrender.RenderFlags.SKIP_CULL_FACES)
         finally:
             for node in nodes + [cam]:
                 scene.remove_node(node)
+            for mesh in shown:
+                mesh.is_visible = False
         d = np.asarray(d, dtype=np.float64)
         return np.where(d > 0, d, np.inf)
 
@@ -172,27 +256,58 @@ class Geometry:
 
 
 def _normals_from_points(P: np.ndarray, camera_center: np.ndarray) -> np.ndarray:
-    """Normals of a point map from one-sided differences that do not straddle depth edges."""
+    """Normals of a point map from one-sided differences that do not straddle depth edges.
+
+    ``P`` (h, w, 3) float32 world points (NaN where nothing is seen); returns (h, w, 3) unit normals
+    facing ``camera_center`` ((0, 0, 1) where undefined). Works on the three coordinate planes
+    separately (contiguous arrays, no (h, w, 3) reductions); the arithmetic per element is the
+    textbook ``(x*x + y*y) + z*z`` and cross product, in P's dtype.
+    """
+    X = [np.ascontiguousarray(P[..., i]) for i in range(3)]
+
+    def steps(axis):
+        """Forward and backward differences along ``axis``; the edge step is P - P (0, or NaN)."""
+        fwd, bwd = [], []
+        for c in X:
+            d = np.diff(c, axis=axis)
+            f, b = np.empty_like(c), np.empty_like(c)
+            if axis == 1:
+                f[:, :-1], b[:, 1:] = d, d
+                f[:, -1] = c[:, -1] - c[:, -1]
+                b[:, 0] = c[:, 0] - c[:, 0]
+            else:
+                f[:-1], b[1:] = d, d
+                f[-1] = c[-1] - c[-1]
+                b[0] = c[0] - c[0]
+            fwd.append(f)
+            bwd.append(b)
+        return fwd, bwd
+
+    def length(v):
+        return np.sqrt((v[0] * v[0] + v[1] * v[1]) + v[2] * v[2])
+
     def smaller_step(axis):
-        fwd = np.diff(P, axis=axis, append=np.take(P, [-1], axis=axis))
-        bwd = np.diff(P, axis=axis, prepend=np.take(P, [0], axis=axis))
-        fwd_n = np.linalg.norm(fwd, axis=-1)
-        bwd_n = np.linalg.norm(bwd, axis=-1)
+        fwd, bwd = steps(axis)
+        fwd_n, bwd_n = length(fwd), length(bwd)
         fwd_n = np.where(np.isfinite(fwd_n) & (fwd_n > 0), fwd_n, np.inf)
         bwd_n = np.where(np.isfinite(bwd_n) & (bwd_n > 0), bwd_n, np.inf)
-        return np.where((fwd_n <= bwd_n)[..., None], fwd, bwd)
+        take_fwd = fwd_n <= bwd_n
+        return [np.where(take_fwd, f, b) for f, b in zip(fwd, bwd)]
 
     du, dv = smaller_step(1), smaller_step(0)
-    n = np.cross(du, dv)
-    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    n = [du[1] * dv[2] - du[2] * dv[1], du[2] * dv[0] - du[0] * dv[2], du[0] * dv[1] - du[1] * dv[0]]
+    norm = length(n)
     with np.errstate(invalid="ignore", divide="ignore"):
-        n = n / norm
-    to_cam = camera_center - P
-    flip = np.sum(n * to_cam, axis=-1) < 0
-    n[flip] *= -1
-    bad = ~np.all(np.isfinite(n), axis=-1)
-    n[bad] = (0.0, 0.0, 1.0)
-    return n
+        n = [c / norm for c in n]
+    to_cam = [camera_center[i] - X[i] for i in range(3)]
+    flip = ((n[0] * to_cam[0] + n[1] * to_cam[1]) + n[2] * to_cam[2]) < 0
+    out = np.empty(P.shape, dtype=n[0].dtype)
+    for i, c in enumerate(n):
+        np.negative(c, out=c, where=flip)
+        out[..., i] = c
+    bad = ~(np.isfinite(n[0]) & np.isfinite(n[1]) & np.isfinite(n[2]))
+    out[bad] = (0.0, 0.0, 1.0)
+    return out
 
 
 class _GridCache:
@@ -203,11 +318,15 @@ class _GridCache:
         self.value = None
 
     def get(self, camera, scale):
-        key = (id(camera), camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.dist.tobytes(), scale)
+        # by value: every sample builds its margin-expanded camera anew
+        key = (camera.K.tobytes(), camera.R.tobytes(), camera.t.tobytes(), camera.dist.tobytes(),
+               camera.width, camera.height, scale)
         if key != self.key:
             grid = camera.pixel_grid(scale)
             origin, dirs = camera.pixel_rays(grid)
             self.value = (origin, dirs, camera.plane_depth(grid))
+            for a in self.value:
+                a.setflags(write=False)  # shared between samples
             self.key = key
         return self.value
 
@@ -263,9 +382,10 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     tolerance = shadow.bias_mm + shadow.slope_pixels * np.maximum(gx, gy)
     unshadowed = ~(z_p > occluder + tolerance)
 
-    to_proj = proj.center - Ps
-    dist2 = np.sum(to_proj * to_proj, axis=-1)
-    cos_inc = np.sum(normals * to_proj, axis=-1) / np.sqrt(dist2)
+    # Dot products per coordinate plane: the same (x + y) + z sums as np.sum(..., axis=-1), faster.
+    tp = [proj.center[i] - Ps[..., i] for i in range(3)]
+    dist2 = (tp[0] * tp[0] + tp[1] * tp[1]) + tp[2] * tp[2]
+    cos_inc = ((normals[..., 0] * tp[0] + normals[..., 1] * tp[1]) + normals[..., 2] * tp[2]) / np.sqrt(dist2)
     lit = inside & unshadowed & (cos_inc > 0)
     cos_inc = np.where(lit, cos_inc, 0.0)
     falloff = float(np.sum(proj.center ** 2)) / dist2

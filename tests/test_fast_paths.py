@@ -1,0 +1,168 @@
+"""The generator's fast paths give the same bits as the plain computations they replace."""
+
+from __future__ import annotations
+
+import zipfile
+
+import numpy as np
+import pytest
+
+from fppsim import psp
+from fppsim.dataset import LabelTransform, export_figshare, save_npz, write_sample_folder
+from fppsim.pipeline import BackgroundWriter, FigshareRows, figshare_rows
+
+
+def _float_path(stack, shifts=None):
+    """wrapped_phase's float64 tensordot reference, spelled out."""
+    I = np.asarray(stack, dtype=np.float64)
+    w = psp._shift_weights(psp._resolve_shifts(I.shape[0], shifts))
+    A, c, s = (np.tensordot(w[k], I, axes=1) for k in range(3))
+    return psp.phase_from_sums(s, c), A, (2.0 / I.shape[0]) * np.hypot(s, c)
+
+
+@pytest.mark.parametrize("steps", [3, 4, 5, 6, 8])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_integer_phase_sums_equal_float_path_bitwise(steps, dtype):
+    rng = np.random.default_rng(steps)
+    hi = 256 if dtype == np.uint8 else 4096
+    stack = rng.integers(0, hi, size=(steps, 37, 53)).astype(dtype)
+    stack[:, :3] = 0  # zero sums: +0.0 on both paths
+    stack[:, 3:6] = stack[:1, 3:6]  # no modulation
+    got = psp.wrapped_phase(stack)
+    for a, b in zip(got, _float_path(stack)):
+        assert a.dtype == np.float64 and np.array_equal(a, b) and np.array_equal(np.signbit(a), np.signbit(b))
+
+
+def test_integer_path_only_for_exact_cases():
+    w4 = psp._shift_weights(psp.phase_shifts(4))
+    assert psp._exact_sums(np.zeros((4, 2, 2), np.uint8), w4) is not None
+    assert psp._exact_sums(np.zeros((4, 2, 2), np.float32), w4) is None  # floats: tensordot
+    assert psp._exact_sums(np.zeros((4, 2, 2), np.int16), w4) is None  # signed: -0.0 possible
+    w3 = psp._shift_weights(psp.phase_shifts(3))
+    assert psp._exact_sums(np.zeros((3, 2, 2), np.uint8), w3) is None  # sin(2 pi/3) is not dyadic
+
+
+def test_camera_rays_cache_matches_and_is_read_only():
+    from fppsim.rig import Rig
+
+    cam = Rig.default().camera
+    o, d = psp._camera_rays(cam)
+    o2, d2 = cam.pixel_rays(cam.pixel_grid())
+    assert np.array_equal(o, o2) and np.array_equal(d, d2)
+    assert psp._camera_rays(cam)[1] is d
+    with pytest.raises(ValueError):
+        d[0, 0, 0] = 1.0
+
+
+def test_normals_per_plane_match_stacked_formula():
+    from fppsim.render import _normals_from_points
+
+    def reference(P, c):  # the (H, W, 3) formulation
+        def smaller_step(axis):
+            fwd = np.diff(P, axis=axis, append=np.take(P, [-1], axis=axis))
+            bwd = np.diff(P, axis=axis, prepend=np.take(P, [0], axis=axis))
+            fn, bn = np.linalg.norm(fwd, axis=-1), np.linalg.norm(bwd, axis=-1)
+            fn = np.where(np.isfinite(fn) & (fn > 0), fn, np.inf)
+            bn = np.where(np.isfinite(bn) & (bn > 0), bn, np.inf)
+            return np.where((fn <= bn)[..., None], fwd, bwd)
+
+        n = np.cross(smaller_step(1), smaller_step(0))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            n = n / np.linalg.norm(n, axis=-1, keepdims=True)
+        n[np.sum(n * (c - P), axis=-1) < 0] *= -1
+        n[~np.all(np.isfinite(n), axis=-1)] = (0.0, 0.0, 1.0)
+        return n
+
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:80, 0:120].astype(float)
+    z = 20 * np.sin(xx / 9) * np.cos(yy / 7) + 30 * (xx > 60) + rng.normal(0, 0.01, xx.shape)
+    P = np.stack([0.5 * xx, 0.5 * yy, z], -1).astype(np.float32)
+    P[rng.random(xx.shape) < 0.05] = np.nan
+    P[:, :2] = np.nan
+    c = np.array([10.0, -20.0, 900.0], np.float32)
+    with np.errstate(invalid="ignore"):
+        ref = reference(P, c)
+    assert np.array_equal(_normals_from_points(P, c), ref)
+
+
+def test_save_npz_round_trip_fixed_bytes_and_stored_noise(tmp_path):
+    rng = np.random.default_rng(0)
+    arrays = {"noise": rng.standard_normal((200, 300)).astype(np.float32),
+              "smooth": np.zeros((200, 300), np.float32), "small": np.arange(5, dtype=np.float32)}
+    save_npz(tmp_path / "a.npz", arrays)
+    save_npz(tmp_path / "b.npz", arrays)
+    assert (tmp_path / "a.npz").read_bytes() == (tmp_path / "b.npz").read_bytes()
+    with np.load(tmp_path / "a.npz") as z:
+        assert all(np.array_equal(z[k], arrays[k]) for k in arrays)
+    info = {i.filename: i for i in zipfile.ZipFile(tmp_path / "a.npz").infolist()}
+    assert info["noise.npy"].compress_type == zipfile.ZIP_STORED  # deflate would not pay
+    assert info["smooth.npy"].compress_type == zipfile.ZIP_DEFLATED
+    assert all(i.date_time == (1980, 1, 1, 0, 0, 0) for i in info.values())
+
+
+def test_background_writer_runs_in_order_and_reraises():
+    done = []
+    w = BackgroundWriter()
+    for k in range(5):
+        w.submit(done.append, k)
+    w.flush()
+    assert done == list(range(5))
+
+    def boom():
+        raise OSError("disk full")
+
+    w.submit(boom)
+    w.submit(done.append, 99)  # may be skipped: an earlier job failed
+    with pytest.raises(OSError, match="disk full"):
+        w.flush()
+    w.close()
+    assert 99 not in done
+
+
+def test_streamed_figshare_rows_equal_export(tmp_path):
+    rng = np.random.default_rng(1)
+    t = LabelTransform()
+    rows = FigshareRows(tmp_path / "stream", 3, 12, 16)
+    for k in range(3):
+        fringe = rng.integers(0, 256, (12, 16)).astype(np.uint8)
+        arrays = {"height": rng.uniform(0, 40, (12, 16)).astype(np.float32),
+                  "mask": (rng.random((12, 16)) > 0.3).astype(np.float32)}
+        write_sample_folder(tmp_path / "native", f"{k:06d}", {"fringe.png": fringe}, arrays, {"index": k})
+        rows.put(k, *figshare_rows(fringe, arrays, t))
+    assert not (tmp_path / "stream" / "Z.npy").exists()
+    assert rows.commit() == 3
+    export_figshare(tmp_path / "native", tmp_path / "export", t,
+                    folders=[tmp_path / "native" / f"{k:06d}" for k in range(3)])
+    for name in ("f1_80.npy", "Z.npy"):
+        assert (tmp_path / "stream" / name).read_bytes() == (tmp_path / "export" / name).read_bytes()
+    incomplete = FigshareRows(tmp_path / "partial", 2, 12, 16)
+    with pytest.raises(ValueError, match="missing"):
+        incomplete.commit()
+    incomplete.discard()
+    assert not list((tmp_path / "partial").iterdir())
+
+
+def test_keyed_meshes_render_like_unkeyed_ones_and_hide_afterwards():
+    import trimesh
+
+    from fppsim.render import DepthRenderer, Instance
+    from fppsim.rig import Rig
+
+    rig = Rig.default()
+    s = trimesh.creation.icosphere(3, radius=20.0)
+    b = trimesh.creation.box(extents=(30.0, 20.0, 10.0))
+    poses = []
+    for x in (-60.0, 0.0, 60.0):
+        T = np.eye(4)
+        T[:3, 3] = (x, 10.0, 20.0)
+        poses.append(T)
+    r = DepthRenderer()
+    plain = r.depth(rig.camera, [Instance(s.vertices, s.faces, poses[0]), Instance(s.vertices, s.faces, poses[1]),
+                                 Instance(b.vertices, b.faces, poses[2])])
+    keyed = [Instance(s.vertices, s.faces, poses[0], "s"), Instance(s.vertices, s.faces, poses[1], "s"),
+             Instance(b.vertices, b.faces, poses[2], "b")]
+    assert np.array_equal(r.depth(rig.camera, keyed), plain)  # the same mesh twice in one scene
+    only_box = r.depth(rig.camera, keyed[2:])  # the spheres stay uploaded but hidden
+    alone = DepthRenderer().depth(rig.camera, [Instance(b.vertices, b.faces, poses[2])])
+    assert np.array_equal(only_box, alone)
+    r.close()
