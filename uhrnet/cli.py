@@ -16,6 +16,7 @@ COMMANDS = {
     "evaluate": ("uhrnet.evaluate", "evaluate checkpoints on the test split like the paper (Table 3, figures)"),
     "predict": ("uhrnet.predict", "predict height maps and point clouds from fringe images"),
     "bench": ("uhrnet.bench", "parameters, forward/training-step time and peak memory per model"),
+    "export": ("uhrnet.export", "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
 }
 
 
