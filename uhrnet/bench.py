@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda if available")
     parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
+    parser.add_argument("--amp", choices=["off", "fp16", "bf16"], default="off",
+                        help="forward and training step under torch.autocast with this dtype (default off)")
     parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
     parser.add_argument(
         "--compile",
@@ -114,9 +116,15 @@ def measure(name: str, args, device) -> dict:
     x = torch.randn(shape, device=device).contiguous(memory_format=memory_format)
     target = torch.randn((args.batch_size, 1, args.height, args.width), device=device)
     net = torch.compile(model) if args.compile else model
+    amp = getattr(args, "amp", "off")
+
+    def autocast():
+        if amp == "off":
+            return torch.autocast(device.type, enabled=False)
+        return torch.autocast(device.type, dtype=torch.float16 if amp == "fp16" else torch.bfloat16)
 
     def forward():
-        with torch.no_grad():
+        with torch.no_grad(), autocast():
             net(x)
 
     model.eval()
@@ -151,9 +159,10 @@ def measure(name: str, args, device) -> dict:
 
         def train_step():
             optimizer.zero_grad(set_to_none=True)
-            out = net(x)
-            outs = out if isinstance(out, (tuple, list)) else (out,)
-            loss = sum(torch.nn.functional.mse_loss(o, target) for o in outs)
+            with autocast():
+                out = net(x)
+                outs = out if isinstance(out, (tuple, list)) else (out,)
+                loss = sum(torch.nn.functional.mse_loss(o.float(), target) for o in outs)
             loss.backward()
             optimizer.step()
 
@@ -342,6 +351,8 @@ def run(args: argparse.Namespace) -> int:
             "repeats": args.repeats,
             "warmup": args.warmup,
             "channels_last": args.channels_last,
+            "amp": getattr(args, "amp", "off"),
+            "batch_size": args.batch_size,
             "compile": args.compile,
             "torch": torch.__version__,
             "results": results,
