@@ -48,3 +48,24 @@ def test_bench_user_errors(capsys):
     if not torch.cuda.is_available():
         assert main(["bench", "--device", "cuda"]) == 1
     assert "error" in capsys.readouterr().err
+
+
+def test_bench_optimize_json_keys(tmp_path, capsys):
+    pytest.importorskip("onnxruntime")
+    out = tmp_path / "opt.json"
+    argv = ["bench", "--models", "uhrnet", "unet", "--height", "16", "--width", "32", "--base-channels", "4",
+            "--repeats", "1", "--warmup", "0", "--no-train", "--optimize", "--variants", "fold_cl", "onnxruntime"]
+    assert main([*argv, "--device", "cpu", "--json", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["optimize"] is True
+    for r in report["results"]:
+        assert set(r["optimized"]) == {"fold_cl", "onnxruntime"}
+        for form in r["optimized"].values():
+            assert form["ok"] and form["max_rel_diff"] <= 1e-4 and form["forward_ms"] > 0
+        assert r["best_form"] in ("eager", "fold_cl")
+        assert r["forward_ms"] <= r["eager_forward_ms"] and r["onnxruntime_ms"] > 0
+    by = {r["model"]: r for r in report["results"]}
+    assert report["uhrnet_unet_forward_ratio"] == pytest.approx(by["uhrnet"]["forward_ms"] / by["unet"]["forward_ms"])
+    assert report["uhrnet_unet_onnxruntime_ratio"] == pytest.approx(
+        by["uhrnet"]["onnxruntime_ms"] / by["unet"]["onnxruntime_ms"])
+    assert "deployable forms" in capsys.readouterr().out

@@ -19,6 +19,8 @@ from pathlib import Path
 DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
 REFERENCE_WIDTH = 64  # the default base width of uhrnet and unet, which --base-channels replaces
 PAPER_SECONDS = {"uhrnet": 0.0224, "unet": 0.0081}  # RTX 2080 Ti, batch 1, 352 x 640
+OPT_VARIANTS = ("fold", "fold_cl", "compile", "onnxruntime")
+OPT_RTOL = 1e-4  # a deployable form must match the eager model within this fraction of the output range
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda if available")
     parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
     parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
+    parser.add_argument("--amp", choices=["off", "fp16", "bf16"], default="off",
+                        help="forward and training step under torch.autocast with this dtype (default off)")
     parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
     parser.add_argument(
         "--compile",
@@ -50,6 +54,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "(for quick runs; parameter counts then differ from the paper)",
     )
     parser.add_argument("--no-train", action="store_true", help="skip the training-step measurement")
+    parser.add_argument(
+        "--optimize",
+        action="store_true",
+        help="also time each model in its deployable forms (see --variants; every form is checked to give the "
+        "eager model's output within 1e-4 x its range) and report the fastest torch form as forward ms",
+    )
+    parser.add_argument(
+        "--variants",
+        nargs="+",
+        default=list(OPT_VARIANTS),
+        choices=list(OPT_VARIANTS),
+        metavar="V",
+        help="forms tried by --optimize: fold (batch norms folded, UHRNet blocks merged, inference_mode), "
+        "fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime (ONNX export of fold run "
+        f"by onnxruntime; a column of its own) (default: {' '.join(OPT_VARIANTS)})",
+    )
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
 
 
@@ -96,9 +116,15 @@ def measure(name: str, args, device) -> dict:
     x = torch.randn(shape, device=device).contiguous(memory_format=memory_format)
     target = torch.randn((args.batch_size, 1, args.height, args.width), device=device)
     net = torch.compile(model) if args.compile else model
+    amp = getattr(args, "amp", "off")
+
+    def autocast():
+        if amp == "off":
+            return torch.autocast(device.type, enabled=False)
+        return torch.autocast(device.type, dtype=torch.float16 if amp == "fp16" else torch.bfloat16)
 
     def forward():
-        with torch.no_grad():
+        with torch.no_grad(), autocast():
             net(x)
 
     model.eval()
@@ -113,14 +139,30 @@ def measure(name: str, args, device) -> dict:
         "train_step_ms": None,
         "train_peak_bytes": None,
     }
+    if getattr(args, "optimize", False):
+        with torch.no_grad():
+            reference = model(x)
+        result["eager_forward_ms"] = result["forward_ms"]
+        result["optimized"] = optimize_variants(model, x, reference, args, device)
+        torch_forms = {k: v for k, v in result["optimized"].items() if k != "onnxruntime" and v.get("ok")}
+        best = min(torch_forms, key=lambda k: torch_forms[k]["forward_ms"], default=None)
+        if best is not None and torch_forms[best]["forward_ms"] < result["forward_ms"]:
+            result["forward_ms"] = torch_forms[best]["forward_ms"]
+            result["best_form"] = best
+        else:
+            result["best_form"] = "eager"
+        ort = result["optimized"].get("onnxruntime", {})
+        result["onnxruntime_ms"] = ort.get("forward_ms") if ort.get("ok") else None
+        model = model.to(memory_format=memory_format)
     if not args.no_train:
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
 
         def train_step():
             optimizer.zero_grad(set_to_none=True)
-            out = net(x)
-            outs = out if isinstance(out, (tuple, list)) else (out,)
-            loss = sum(torch.nn.functional.mse_loss(o, target) for o in outs)
+            with autocast():
+                out = net(x)
+                outs = out if isinstance(out, (tuple, list)) else (out,)
+                loss = sum(torch.nn.functional.mse_loss(o.float(), target) for o in outs)
             loss.backward()
             optimizer.step()
 
@@ -129,6 +171,67 @@ def measure(name: str, args, device) -> dict:
         result["train_step_ms"] = 1000 * statistics.median(step)
         result["train_peak_bytes"] = peak_memory_bytes(train_step, device)
     return result
+
+
+def _rel_diff(out, reference) -> float:
+    import torch
+
+    out = out[0] if isinstance(out, (tuple, list)) else out
+    ref = reference[0] if isinstance(reference, (tuple, list)) else reference
+    span = float(ref.max() - ref.min())
+    return float((torch.as_tensor(out).float() - ref.float()).abs().max()) / max(span, 1e-12)
+
+
+def optimize_variants(model, x, reference, args, device) -> dict:
+    """Time the deployable forms of ``model`` (eval mode) named in ``args.variants`` on ``x``.
+
+    Returns ``{form: {"forward_ms", "max_rel_diff", "ok"}}`` (``max_rel_diff``: max |form - eager| /
+    range of the eager output; ``ok`` when within :data:`OPT_RTOL`), or ``{"error": ...}`` for a form
+    that cannot be made here (no C++ compiler for torch.compile, no onnxruntime ...).
+    """
+    import statistics
+    import tempfile
+
+    import torch
+
+    from .metrics import time_call
+    from .optimize import prepare_for_inference
+
+    out = {}
+    for form in args.variants:
+        try:
+            if form == "onnxruntime":
+                import onnxruntime as ort
+
+                from .export import export_model
+
+                with tempfile.TemporaryDirectory() as tmp:
+                    path = export_model(model, f"{tmp}/m.onnx", "onnx", tuple(x.shape))
+                    opts = ort.SessionOptions()
+                    opts.intra_op_num_threads = torch.get_num_threads()
+                    session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
+                feed = {"fringe": x.detach().cpu().contiguous().numpy()}
+                y = torch.from_numpy(session.run(None, feed)[0])
+                fn = lambda: session.run(None, feed)  # noqa: E731
+                times = time_call(fn, "cpu", args.warmup, args.repeats)
+            else:
+                cl = form in ("fold_cl", "compile")
+                net = prepare_for_inference(model, channels_last=cl).to(device)
+                xin = x.contiguous(memory_format=torch.channels_last if cl else torch.contiguous_format)
+                if form == "compile":
+                    net = torch.compile(net)
+
+                def fn(net=net, xin=xin):
+                    with torch.inference_mode():
+                        return net(xin)
+
+                y = fn()
+                times = time_call(fn, device, max(args.warmup, 1 if form == "compile" else 0), args.repeats)
+            diff = _rel_diff(y.to(reference.device) if hasattr(y, "to") else y, reference)
+            out[form] = {"forward_ms": 1000 * statistics.median(times), "max_rel_diff": diff, "ok": diff <= OPT_RTOL}
+        except Exception as exc:  # a form that cannot be built here is reported, not fatal
+            out[form] = {"error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"}
+    return out
 
 
 def _mib(value: int | None) -> str:
@@ -159,6 +262,20 @@ def format_table(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def format_optimized(results: list[dict]) -> str:
+    """One line per model: eager and each deployable form's forward ms (x: failed its check)."""
+    lines = ["deployable forms (forward ms; best torch form is reported above):"]
+    for r in results:
+        parts = [f"eager {_ms(r.get('eager_forward_ms'))}"]
+        for form, v in r.get("optimized", {}).items():
+            if "error" in v:
+                parts.append(f"{form} n/a ({v['error'][:60]})")
+            else:
+                parts.append(f"{form} {_ms(v['forward_ms'])}{'' if v['ok'] else ' (x: differs)'}")
+        lines.append(f"  {r['model']}: " + ", ".join(parts) + f" -> {r.get('best_form')}")
+    return "\n".join(lines)
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
@@ -175,6 +292,11 @@ def run(args: argparse.Namespace) -> int:
     device = resolve_device(args.device)
     if args.compile:
         args.warmup = max(args.warmup, 2)
+    if getattr(args, "optimize", False) and "compile" in args.variants and device.type == "cpu":
+        import shutil
+
+        if shutil.which("g++") is None and shutil.which("c++") is None:
+            args.variants = [v for v in args.variants if v != "compile"]  # inductor needs a C++ compiler on CPU
     if device.type == "cuda":
         torch.backends.cudnn.benchmark = True
         where = torch.cuda.get_device_name(device)
@@ -183,7 +305,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"uhrnet bench: {where}; input {args.batch_size}x{args.height}x{args.width}; "
         f"median of {args.repeats} after {args.warmup} warm-up; channels_last {'on' if args.channels_last else 'off'}; "
-        f"torch.compile {'on' if args.compile else 'off'}",
+        f"torch.compile {'on' if args.compile else 'off'}"
+        + (f"; --optimize: {' '.join(args.variants)}" if getattr(args, "optimize", False) else ""),
         flush=True,
     )
     results = []
@@ -198,6 +321,8 @@ def run(args: argparse.Namespace) -> int:
         if device.type == "cuda":
             torch.cuda.empty_cache()
     print(format_table(results))
+    if getattr(args, "optimize", False):
+        print(format_optimized(results))
     by_name = {r["model"].lower(): r for r in results}
     ratio = None
     if "uhrnet" in by_name and "unet" in by_name:
@@ -207,6 +332,12 @@ def run(args: argparse.Namespace) -> int:
             f"UHRNet / U-Net forward time: {ratio:.2f} (paper: {PAPER_SECONDS['uhrnet']} s / "
             f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
         )
+    ort_ratio = None
+    if getattr(args, "optimize", False) and "uhrnet" in by_name and "unet" in by_name:
+        a, b = by_name["uhrnet"].get("onnxruntime_ms"), by_name["unet"].get("onnxruntime_ms")
+        ort_ratio = a / b if a and b else None
+        if ort_ratio is not None:
+            print(f"UHRNet / U-Net forward time under onnxruntime: {ort_ratio:.2f}")
     memory_note = (
         "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
         if device.type == "cuda"
@@ -220,10 +351,14 @@ def run(args: argparse.Namespace) -> int:
             "repeats": args.repeats,
             "warmup": args.warmup,
             "channels_last": args.channels_last,
+            "amp": getattr(args, "amp", "off"),
+            "batch_size": args.batch_size,
             "compile": args.compile,
             "torch": torch.__version__,
             "results": results,
+            "optimize": bool(getattr(args, "optimize", False)),
             "uhrnet_unet_forward_ratio": ratio,
+            "uhrnet_unet_onnxruntime_ratio": ort_ratio,
             "memory": memory_note,
         }
         args.json.parent.mkdir(parents=True, exist_ok=True)

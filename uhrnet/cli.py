@@ -18,6 +18,7 @@ COMMANDS = {
                        "labels (PSin/PCos/Fringe/iPattern folders): calibration-free phase residual"),
     "predict": ("uhrnet.predict", "predict height maps and point clouds from fringe images"),
     "bench": ("uhrnet.bench", "parameters, forward/training-step time and peak memory per model"),
+    "export": ("uhrnet.export", "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
 }
 
 

@@ -1,0 +1,186 @@
+"""BN folding, UHRNet block merging and `uhrnet export` (ONNX via onnxruntime, TorchScript) on tiny models."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch import nn
+
+from uhrnet.checkpoint import FORMAT, VERSION
+from uhrnet.cli import main
+from uhrnet.data import LabelTransform
+from uhrnet.models import build_model, list_models
+from uhrnet.optimize import fold_batchnorm, fold_conv_bn, merge_multilevel_blocks, prepare_for_inference
+
+TINY = {"uhrnet": 8, "unet": 4, "hnet": 2, "model_a": 2, "model_b": 8, "model_c": 8, "model_d": 8}
+
+
+@pytest.fixture(autouse=True)
+def single_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+def randomise_bn(model: nn.Module, seed: int = 0) -> nn.Module:
+    """Non-trivial running statistics and affine parameters (fresh BNs are the identity in eval mode)."""
+    g = torch.Generator().manual_seed(seed)
+    for m in model.modules():
+        if isinstance(m, nn.BatchNorm2d):
+            n = m.num_features
+            m.running_mean.copy_(torch.rand(n, generator=g) - 0.5)
+            m.running_var.copy_(torch.rand(n, generator=g) * 1.5 + 0.5)
+            m.weight.data.copy_(torch.rand(n, generator=g) + 0.5)
+            m.bias.data.copy_(torch.rand(n, generator=g) * 0.4 - 0.2)
+    return model.eval()
+
+
+def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a - b).abs().max() / (b.max() - b.min()))
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+@pytest.mark.parametrize("groups", [1, 2])
+def test_fold_conv_bn_matches_conv_then_bn(transpose, groups):
+    torch.manual_seed(0)
+    conv = (nn.ConvTranspose2d(4, 6, 3, stride=2, padding=1, output_padding=1, groups=groups) if transpose
+            else nn.Conv2d(4, 6, 3, padding=2, dilation=2, groups=groups))
+    bn = randomise_bn(nn.BatchNorm2d(6))
+    x = torch.randn(2, 4, 9, 11)
+    with torch.no_grad():
+        expected = bn(conv(x))
+        got = fold_conv_bn(conv, bn)(x)
+    assert rel_err(got, expected) < 1e-5
+
+
+def test_fold_conv_bn_without_bias_and_refuses_batch_statistics():
+    conv = nn.Conv2d(3, 5, 1, bias=False)
+    bn = randomise_bn(nn.BatchNorm2d(5))
+    x = torch.randn(1, 3, 4, 4)
+    with torch.no_grad():
+        assert rel_err(fold_conv_bn(conv, bn)(x), bn(conv(x))) < 1e-5
+    with pytest.raises(ValueError, match="running statistics"):
+        fold_conv_bn(conv, nn.BatchNorm2d(5, track_running_stats=False))
+
+
+@pytest.mark.parametrize("name", list_models())
+def test_folded_and_merged_models_equal_the_original(name):
+    torch.manual_seed(1)
+    model = randomise_bn(build_model(name, base_channels=TINY[name]))
+    x = torch.randn(2, 1, 32, 48)
+    with torch.no_grad():
+        expected = model(x)
+        folded = fold_batchnorm(model)
+        assert not any(isinstance(m, nn.BatchNorm2d) for m in folded.modules())
+        assert rel_err(folded(x), expected) < 1e-5
+        fast = prepare_for_inference(model, channels_last=True)
+        assert rel_err(fast(x.contiguous(memory_format=torch.channels_last)), expected) < 1e-5
+    # the original is untouched (copies by default)
+    assert any(isinstance(m, nn.BatchNorm2d) for m in model.modules()) == (name not in ("unet", "hnet", "model_a"))
+
+
+def test_merge_reduces_uhrnet_block_convolutions():
+    model = build_model("uhrnet", base_channels=8)
+    merged = merge_multilevel_blocks(model)
+    count = lambda m: sum(isinstance(x, nn.Conv2d) for x in m.modules())  # noqa: E731
+    assert count(merged) == count(model) - 9 * 6  # 9 blocks, 11 convs -> 5 each
+
+
+def write_checkpoint(path, name: str, seed: int = 0):
+    torch.manual_seed(seed)
+    net = randomise_bn(build_model(name, base_channels=TINY[name]), seed)
+    torch.save({
+        "format": FORMAT, "version": VERSION,
+        "model": {"name": net.config["name"], "config": dict(net.config)},
+        "state_dict": net.state_dict(),
+        "output": {"scale": 6.0, "shift": -90.0},
+        "label_transform": LabelTransform().to_dict(),
+        "epoch": 1,
+    }, path)
+    return path
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["uhrnet", "unet", "hnet", "model_a", "model_b", "model_c", "model_d"])
+def test_export_onnx_round_trip_every_model(tmp_path, name, capsys):
+    pytest.importorskip("onnxruntime")
+    ckpt = write_checkpoint(tmp_path / "m.pt", name)
+    out = tmp_path / f"{name}.onnx"
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "32", "--width", "48"]) == 0
+    assert "check passed" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_export_dynamic_onnx_matches_torch_at_other_sizes(tmp_path):
+    import onnxruntime as ort
+
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", "uhrnet")
+    out = tmp_path / "u.onnx"
+    assert main(["export", str(ckpt), "--out", str(out), "--height", "32", "--width", "32", "--dynamic"]) == 0
+    model, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    x = torch.rand(2, 1, 48, 64) * 2 - 1
+    with torch.no_grad():
+        expected = model(x)
+    session = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    got = torch.from_numpy(session.run(None, {"fringe": x.numpy()})[0])
+    assert rel_err(got, expected) < 1e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["uhrnet", "hnet"])
+def test_export_torchscript_round_trip(tmp_path, name, capsys):
+    ckpt = write_checkpoint(tmp_path / "m.pt", name)
+    out = tmp_path / "m.ts"
+    assert main(["export", str(ckpt), "--format", "torchscript", "--out", str(out), "--check",
+                 "--height", "32", "--width", "48"]) == 0
+    loaded = torch.jit.load(str(out))
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+
+    model, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    x = torch.rand(1, 1, 64, 32) * 2 - 1  # another size than the trace's
+    with torch.no_grad():
+        assert rel_err(loaded(x), model(x)) < 1e-4
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("fmt", ["onnx", "torchscript"])
+def test_check_fails_on_a_tampered_export(tmp_path, fmt, capsys):
+    """An export of other weights must fail the check against the checkpoint: exit 1, one line."""
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.export import check_export, export_model
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", "uhrnet")
+    model, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    tampered, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    with torch.no_grad():  # a small change of one weight
+        conv = tampered.net.head
+        conv.weight[0, 0, 0, 0] += 0.05 * conv.weight.abs().max()
+    out = tmp_path / "m.bin"
+    export_model(tampered, out, fmt, (1, 1, 32, 48))
+    result = check_export(out, fmt, model, (1, 1, 32, 48))
+    assert not result["passed"] and result["max_abs_diff"] > result["tolerance"] > 0
+    assert check_export(out, fmt, tampered, (1, 1, 32, 48))["passed"]
+
+
+def test_export_cli_check_failure_exit_code(tmp_path, capsys, monkeypatch):
+    import uhrnet.export as export
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    real = export.run_exported
+    monkeypatch.setattr(export, "run_exported", lambda *a: real(*a) + 1.0)  # a broken runtime
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "u.onnx"), "--check", "--height", "16",
+                 "--width", "16", "--format", "torchscript"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "check failed" in err[0]
+
+
+def test_export_user_errors(tmp_path, capsys):
+    assert main(["export", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "x.onnx")]) == 1
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "x.onnx"), "--height", "30"]) == 1
+    err = capsys.readouterr().err
+    assert "checkpoint not found" in err and "multiples of 16" in err
+    assert not (tmp_path / "x.onnx").exists()

@@ -1,0 +1,217 @@
+"""``uhrnet export``: a checkpoint's model as ONNX or TorchScript, batch norms folded, checked.
+
+The exported model is the checkpoint's network in eval mode, batch norms folded into the convolutions
+(and, for UHRNet, each Multi-Level conv Block merged into five convolutions; see
+:mod:`uhrnet.optimize`), with the label head: input ``fringe`` ``(N, in_channels, H, W)`` float32,
+the fringe normalised to [-1, 1] as in training; output ``label`` ``(N, out_channels, H, W)`` float32
+in label units (what ``uhrnet predict`` converts to millimetres). H and W must be multiples of 16;
+with ``dynamic=True`` the ONNX batch, height and width are free (TorchScript traces are always
+shape-generic for these models).
+
+Check (``check=True``): both the exported file (onnxruntime for ONNX, ``torch.jit.load`` for
+TorchScript) and the checkpoint's unmodified model run a seeded input (uniform in [-1, 1], seed 0,
+batch 1 at the export size); the export passes when ``max |exported - reference| <= CHECK_RTOL *
+(max - min of the reference output)``, with ``CHECK_RTOL = 1e-4`` (a floor of 1e-6 on the range).
+"""
+
+from __future__ import annotations
+
+import argparse
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+CHECK_RTOL = 1e-4
+FORMATS = ("onnx", "torchscript")
+DEFAULT_OPSET = 17
+
+
+class ExportError(ValueError):
+    """An export that cannot be made or that fails its check; the message is one line."""
+
+
+@dataclass
+class ExportConfig:
+    checkpoint: Path
+    out: Path
+    format: str = "onnx"
+    height: int = 352
+    width: int = 640
+    opset: int = DEFAULT_OPSET
+    dynamic: bool = False
+    check: bool = False
+    optimize: bool = True
+
+
+def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> torch.Tensor:
+    """The seeded check input: ``(1, in_channels, height, width)`` float32 uniform in [-1, 1]."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand((1, in_channels, height, width), generator=g) * 2 - 1
+
+
+def deployable(model: nn.Module) -> nn.Module:
+    """``model`` (e.g. a LabelHead) with batch norms folded and UHRNet blocks merged, eval mode."""
+    from .optimize import prepare_for_inference
+
+    return prepare_for_inference(model)
+
+
+def export_model(
+    model: nn.Module,
+    out: str | Path,
+    format: str = "onnx",
+    input_shape: tuple[int, int, int, int] = (1, 1, 352, 640),
+    opset: int = DEFAULT_OPSET,
+    dynamic: bool = False,
+    optimize: bool = True,
+) -> Path:
+    """Write ``model`` (eval mode, single-tensor output) to ``out`` as ONNX or TorchScript.
+
+    ``optimize``: fold batch norms and merge UHRNet blocks first (same function). The file is written
+    next to ``out`` under a temporary name and renamed, so an existing file is replaced only by a
+    complete export. Returns ``out``.
+    """
+    if format not in FORMATS:
+        raise ExportError(f"unknown format {format!r}; choose from {', '.join(FORMATS)}")
+    n, c, h, w = input_shape
+    if h % 16 or w % 16 or h < 16 or w < 16:
+        raise ExportError(f"height and width must be positive multiples of 16, got {h}x{w}")
+    model = model.eval()
+    net = deployable(model) if optimize else model
+    x = check_input(c, h, w).expand(n, c, h, w).contiguous()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp")
+    try:
+        with warnings.catch_warnings(), torch.no_grad():
+            warnings.simplefilter("ignore")  # tracer notes on the shape check, legacy-exporter notice
+            if format == "onnx":
+                axes = {"fringe": {0: "batch", 2: "height", 3: "width"},
+                        "label": {0: "batch", 2: "height", 3: "width"}} if dynamic else None
+                torch.onnx.export(net, (x,), str(tmp), dynamo=False, opset_version=opset,
+                                  input_names=["fringe"], output_names=["label"], dynamic_axes=axes,
+                                  do_constant_folding=True)
+            else:
+                traced = torch.jit.trace(net, (x,), check_trace=False)
+                traced = torch.jit.freeze(traced)
+                traced.save(str(tmp))
+        tmp.replace(out)
+    except ExportError:
+        raise
+    except Exception as exc:
+        tmp.unlink(missing_ok=True)
+        raise ExportError(f"{out}: {format} export failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+    return out
+
+
+def run_exported(path: str | Path, format: str, x: torch.Tensor) -> np.ndarray:
+    """Run an exported file on ``x`` (onnxruntime on the CPU for ONNX, ``torch.jit.load`` for TorchScript)."""
+    path = Path(path)
+    if format == "onnx":
+        try:
+            import onnxruntime as ort
+        except ImportError:
+            raise ExportError("checking an ONNX export needs onnxruntime (pip install onnxruntime)") from None
+        try:
+            session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+            return session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+        except Exception as exc:
+            raise ExportError(f"{path}: onnxruntime cannot run it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+    try:
+        module = torch.jit.load(str(path), map_location="cpu")
+        with torch.no_grad():
+            return module(x).numpy()
+    except Exception as exc:
+        raise ExportError(f"{path}: torch.jit.load cannot run it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+
+
+def check_export(path: str | Path, format: str, reference: nn.Module, input_shape: tuple[int, int, int, int],
+                 rtol: float = CHECK_RTOL) -> dict:
+    """Compare the exported file with ``reference`` on the seeded check input.
+
+    Returns ``{"max_abs_diff", "output_range", "tolerance", "passed"}``; tolerance is
+    ``rtol * max(output range, 1e-6)``.
+    """
+    _, c, h, w = input_shape
+    x = check_input(c, h, w)
+    with torch.no_grad():
+        ref = reference.eval()(x)
+    ref = (ref[0] if isinstance(ref, (tuple, list)) else ref).float().numpy()
+    got = run_exported(path, format, x)
+    if got.shape != ref.shape:
+        return {"max_abs_diff": float("inf"), "output_range": float(np.ptp(ref)), "tolerance": 0.0, "passed": False,
+                "shape": list(got.shape)}
+    diff = float(np.max(np.abs(got.astype(np.float64) - ref)))
+    span = float(np.ptp(ref))
+    tol = rtol * max(span, 1e-6)
+    return {"max_abs_diff": diff, "output_range": span, "tolerance": tol, "passed": bool(diff <= tol)}
+
+
+def export_checkpoint(config: ExportConfig) -> dict:
+    """Export a checkpoint (file or run folder) as ``config`` says; with ``config.check``, raise
+    :class:`ExportError` when the export differs from the checkpoint's model beyond the tolerance.
+    Returns a summary dict (path, format, check result)."""
+    from .checkpoint import load_checkpoint, model_from_checkpoint
+
+    ckpt = load_checkpoint(config.checkpoint)
+    model, _ = model_from_checkpoint(ckpt)
+    in_channels = int(ckpt["model"]["config"].get("in_channels", 1))
+    shape = (1, in_channels, config.height, config.width)
+    path = export_model(model, config.out, config.format, shape, config.opset, config.dynamic, config.optimize)
+    summary = {"path": str(path), "format": config.format, "model": ckpt["model"]["config"].get("name"),
+               "input_shape": list(shape), "check": None}
+    if config.check:
+        result = check_export(path, config.format, model, shape)
+        summary["check"] = result
+        if not result["passed"]:
+            raise ExportError(
+                f"{path}: check failed: max |exported - checkpoint| = {result['max_abs_diff']:.3g} > "
+                f"{result['tolerance']:.3g} (= {CHECK_RTOL:g} x output range {result['output_range']:.3g})"
+            )
+    return summary
+
+
+# --------------------------------------------------------------------------------------------------
+# CLI
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = (
+        "Export a checkpoint's model (batch norms folded, UHRNet blocks merged: the same function) as ONNX or "
+        "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
+        f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
+        f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
+        "(max - min) of the checkpoint model's output."
+    )
+    parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
+    parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
+    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt)")
+    parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
+    parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
+    parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
+    parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (no folding/merging)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .cli import CLIError
+
+    if args.height % 16 or args.width % 16 or args.height < 16 or args.width < 16:
+        raise CLIError(f"--height and --width must be positive multiples of 16, got {args.height}x{args.width}")
+    config = ExportConfig(checkpoint=args.checkpoint, out=args.out, format=args.format, height=args.height,
+                          width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
+                          optimize=not args.no_optimize)
+    try:
+        summary = export_checkpoint(config)
+    except ExportError as exc:
+        raise CLIError(str(exc)) from None
+    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
+    if summary["check"] is not None:
+        r = summary["check"]
+        print(f"check passed: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
+    return 0
