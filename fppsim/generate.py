@@ -196,10 +196,10 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
             raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
         with folder_lock(out_path, "fppsim generate"):
             return _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free,
-                             progress, t0)
+                             progress, t0, backend)
 
 
-def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free, progress, t0):
+def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free, progress, t0, backend):
     from tqdm import tqdm
 
     assets, skipped = load_assets(mesh_paths)
