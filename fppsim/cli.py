@@ -114,7 +114,7 @@ def add_generate(p: argparse.ArgumentParser) -> None:
 
 
 def run_generate(args) -> int:
-    from .dataset import LabelTransform
+    from .formats import LabelTransform
     from .generate import generate
     from .optics import OpticsRanges
     from .rig import load_rig
@@ -134,8 +134,8 @@ def run_generate(args) -> int:
     config = SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(args.objects)),
                          supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps)
     preset = (args.label_scale, args.label_offset, args.label_invalid, args.label_threshold)
-    label = LabelTransform(scale=args.label_scale, offset=args.label_offset, invalid=args.label_invalid,
-                           threshold=args.label_threshold,
+    label = LabelTransform(units_per_mm=args.label_scale, plane_offset=args.label_offset,
+                           invalid_value=args.label_invalid, invalid_threshold=args.label_threshold,
                            name="figshare" if preset == (6.0, -97.0, -105.0, -100.0) else "custom")
     summary = generate(args.meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
                        fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
@@ -196,7 +196,7 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 def run_compare_real(args) -> int:
     import json
 
-    from .dataset import atomic_write_text
+    from .formats import atomic_write_text
     from .stats import compare_real, format_comparison
 
     try:
@@ -247,7 +247,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_usage(sys.stderr)
         print("fppsim: error: choose a command: " + ", ".join(COMMANDS), file=sys.stderr)
         return 2
-    from .dataset import DatasetError
+    from .formats import DatasetError
     from .generate import GenerateError
     from .rig import RigError
     from .scene import MeshError

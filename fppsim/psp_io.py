@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import PSPMatError
 from .psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat"]
@@ -32,10 +33,6 @@ SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numer
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
 ORDER_KEYS = ("Order", "order", "k", "K", "FringeOrder", "fringe_order", "fringeorder", "kmap", "KMap",
               "n_order", "ord")
-
-
-class PSPMatError(ValueError):
-    """A .mat file that does not hold usable PSin / PCos / order data."""
 
 
 @dataclass
@@ -204,11 +201,7 @@ def save_psp_mat(path: str | os.PathLike, psin: np.ndarray, pcos: np.ndarray, or
     import scipy.io
 
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    from .formats import atomic_path
+
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")

@@ -22,13 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import RigError
+
 __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "rotation_to_plane_frame"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
-
-
-class RigError(ValueError):
-    """A calibration file or rig description that cannot be used."""
 
 
 def _as_matrix(value, shape, name):
@@ -344,9 +342,9 @@ class Rig:
             text = yaml.safe_dump(doc, sort_keys=False)
         else:
             text = json.dumps(doc, indent=2)
-        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, path)
+        from .formats import atomic_write_text
+
+        atomic_write_text(path, text)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":

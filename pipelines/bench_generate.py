@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def main(argv=None) -> int:
-    from fppsim.dataset import write_sample_folder
+    from fppsim.formats import write_sample_folder
     from fppsim.generate import load_assets
     from fppsim.render import DepthRenderer
     from fppsim.rig import Rig

@@ -214,7 +214,7 @@ def test_checkpoint_kill_during_write_keeps_previous(tmp_path, monkeypatch):
         atomic_save({**ckpt, "epoch": 2}, path)
     monkeypatch.undo()
     assert load_checkpoint(path)["epoch"] == 1
-    assert not list(tmp_path.glob(".last.pt.tmp-*"))
+    assert not list(tmp_path.glob(".last.pt.*.tmp*"))
 
     # (2) SIGKILL of a process that rewrites a large checkpoint in a loop
     script = (

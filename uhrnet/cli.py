@@ -19,8 +19,7 @@ COMMANDS = {
 }
 
 
-class CLIError(Exception):
-    """A user-facing error: printed as one line, exit code 1."""
+from uhrnet.errors import ConfigError as CLIError  # noqa: E402  (kept name for subcommand modules)
 
 
 def build_parser(load=None) -> argparse.ArgumentParser:
@@ -70,10 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except Exception as exc:  # user-facing errors become one line; anything else is a bug: traceback
-        from uhrnet.checkpoint import CheckpointError
-        from uhrnet.data import DataError
+        from uhrnet.errors import CheckpointError, ConfigError, DataError
 
-        if not isinstance(exc, (CLIError, DataError, CheckpointError)):
+        if not isinstance(exc, (ConfigError, DataError, CheckpointError)):
             raise
         print(f"uhrnet {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 1

@@ -28,14 +28,12 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
+from fppsim.formats import PRESETS, LabelTransform, atomic_path, atomic_write_text
 from uhrnet.checkpoint import (
-    FORMAT, VERSION, CheckpointError, LabelHead, atomic_save, atomic_write_text, load_checkpoint, rng_state,
-    select_device, set_rng_state,
+    FORMAT, VERSION, LabelHead, atomic_save, load_checkpoint, rng_state, select_device, set_rng_state,
 )
-from uhrnet.cli import CLIError
-from uhrnet.data import (
-    PRESETS, SPLIT_MODES, DataError, LabelTransform, MixedSampler, Prepared, load_sources, parse_size,
-)
+from uhrnet.data import SPLIT_MODES, MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.errors import CheckpointError, ConfigError as CLIError, DataError
 
 LOSS_NAMES = ("compound", "l2", "chunked", "ssim")
 
@@ -566,9 +564,8 @@ class Trainer:
 
 
 def _atomic_copy(src: Path, dst: Path) -> None:
-    tmp = dst.with_name(f".{dst.name}.tmp-{os.getpid()}")
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
 
 
 def _version() -> str:
