@@ -23,7 +23,10 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
-__all__ = ["Optics", "OpticsRanges", "pattern_profile", "projector_radiance", "form_image"]
+__all__ = ["Optics", "OpticsRanges", "OPTICS_UNITS", "pattern_profile", "projector_radiance", "form_image"]
+
+# Units of the optics ranges that have one (help texts list the names from OpticsRanges itself).
+OPTICS_UNITS = {"projector_blur": "projector px", "camera_blur": "camera px", "noise_sigma": "gray levels"}
 
 
 @dataclass
@@ -109,6 +112,11 @@ class OpticsRanges:
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def range_names(cls) -> list[str]:
+        """Names of the (lo, hi) range fields, in declaration order (what --optics/--sweep accept)."""
+        return [f.name for f in fields(cls) if isinstance(f.default, tuple)]
 
     @classmethod
     def from_dict(cls, d: dict) -> "OpticsRanges":

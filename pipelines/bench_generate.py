@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def main(argv=None) -> int:
     from fppsim.formats import write_sample_folder
-    from fppsim.generate import load_assets
+    from fppsim.generation import load_assets
     from fppsim.render import DepthRenderer
     from fppsim.rig import Rig
     from fppsim.scene import sample_scene

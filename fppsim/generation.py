@@ -1,5 +1,9 @@
 """Dataset generation run: mesh loading, sharding, worker pool, resumable writing, summary.
 
+``fppsim.generate(GenerateConfig(meshes=[...], out=..., count=N))`` is the whole run as the command
+line does it (rig file, optics overrides, label preset, preview); :func:`generate_dataset` is the
+same run over an already-built :class:`fppsim.synth.SynthConfig`.
+
 A run owns an output folder. ``dataset.json`` records the settings; re-running the same command on
 the same folder first reconciles it (temporary folders removed, manifest rebuilt from the complete
 sample folders) and then produces only the missing samples, so an interrupted run completes without
@@ -15,10 +19,11 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 
 from . import __version__
-from .errors import DatasetError, GenerateError, MeshError, SampleError
+from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError
 from .formats import (LabelTransform, append_manifest, atomic_write_text, export_figshare, manifest_record,
                       read_settings, reconcile, sample_id, write_sample_folder)
 from .scene import MeshAsset, find_meshes, load_mesh
@@ -26,7 +31,11 @@ from .synth import SynthConfig, synthesize
 
 log = logging.getLogger("fppsim")
 
-__all__ = ["GenerateError", "RunSummary", "load_assets", "generate", "shard_indices", "merge"]
+__all__ = ["GenerateConfig", "GenerateError", "RunSummary", "load_assets", "generate", "generate_dataset",
+           "shard_indices", "merge", "read_optics_file", "FORMATS", "SUPERSAMPLE"]
+
+FORMATS = ("native", "figshare")  # on-disk layouts generate writes
+SUPERSAMPLE = (1, 3, 5)  # odd sub-pixel factors (ground truth stays at pixel centres)
 
 
 @dataclass
@@ -39,6 +48,7 @@ class RunSummary:
     skipped_meshes: list = field(default_factory=list)  # (path, reason)
     seconds: float = 0.0
     figshare: str | None = None
+    preview: str | None = None
 
     def lines(self) -> list[str]:
         out = [f"samples: {self.written} written, {self.existing} already there, {len(self.failed)} failed "
@@ -51,7 +61,115 @@ class RunSummary:
             out.append(f"... and {len(self.failed) - 10} more failed samples")
         if self.figshare:
             out.append(f"figshare arrays: {self.figshare}")
+        if self.preview:
+            out.append(f"preview: {self.preview}")
         return out
+
+
+@dataclass
+class GenerateConfig:
+    """Everything ``fppsim generate`` needs; checks itself on construction (:class:`ConfigError`).
+
+    meshes : mesh files or folders. out : output folder (re-running resumes it). count : samples in
+    the whole dataset; sample i depends only on (seed, i). rig : calibration file, a :class:`Rig`, or
+    None for the packaged default rig. objects : (lo, hi) objects per scene. format : one of
+    :data:`FORMATS`. shard : (i, n) to generate only every n-th sample from i. supersample : one of
+    :data:`SUPERSAMPLE`. optics : optics range overrides ``{name: value or [lo, hi]}`` (names of
+    :class:`fppsim.optics.OpticsRanges`). psp_freqs : unwrapping ladder starting at 1 and ending at
+    the rig's frequency; () skips the phase-shifting images. label : figshare label transform.
+    preview : also write ``out/preview.png``.
+    """
+
+    meshes: Sequence[str]
+    out: str | os.PathLike
+    count: int
+    seed: int = 0
+    rig: "str | os.PathLike | Rig | None" = None  # noqa: F821
+    objects: tuple[int, int] = (1, 3)
+    workers: int = 1
+    format: str = "native"
+    shard: tuple[int, int] | None = None
+    supersample: int = 1
+    optics: dict = field(default_factory=dict)
+    noise_free: bool = False
+    psp_steps: int = 4
+    psp_freqs: tuple[int, ...] = (1, 8, 80)
+    label: LabelTransform = field(default_factory=LabelTransform)
+    preview: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        if isinstance(self.meshes, (str, os.PathLike)):
+            self.meshes = [self.meshes]
+        if not self.meshes:
+            raise ConfigError("no meshes given")
+        if int(self.count) < 1:
+            raise ConfigError(f"--count must be >= 1, got {self.count}")
+        if self.format not in FORMATS:
+            raise ConfigError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
+        if self.supersample not in SUPERSAMPLE:
+            raise ConfigError(f"supersample must be one of {SUPERSAMPLE}, got {self.supersample}")
+        if int(self.workers) < 1:
+            raise ConfigError(f"workers must be >= 1, got {self.workers}")
+        lo, hi = self.objects
+        if not 1 <= lo <= hi:
+            raise ConfigError(f"objects must be LO-HI with 1 <= LO <= HI, got {lo}-{hi}")
+        if self.shard is not None:
+            shard_indices(1, self.shard)  # raises on a bad shard
+        if self.psp_freqs:
+            f = tuple(int(v) for v in self.psp_freqs)
+            if f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
+                raise ConfigError(f"--psp-freqs ladder must start at 1 and increase, got {list(f)}")
+            if self.psp_steps < 3:
+                raise ConfigError(f"--psp-steps must be >= 3, got {self.psp_steps}")
+        try:
+            self.label.check()
+        except DatasetError as exc:
+            raise ConfigError(str(exc)) from None
+
+    def synth_config(self) -> SynthConfig:
+        """The renderer's configuration: loads the rig and checks the ladder against it."""
+        from .optics import OpticsRanges
+        from .rig import Rig, load_rig
+        from .scene import SceneRanges
+
+        rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig)
+        optics = OpticsRanges.from_dict(dict(self.optics))
+        freqs = tuple(int(f) for f in self.psp_freqs)
+        if freqs and freqs[-1] != rig.periods:
+            raise ConfigError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
+        return SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(self.objects)),
+                           supersample=self.supersample, psp_freqs=freqs, psp_steps=self.psp_steps)
+
+
+def read_optics_file(path: str | os.PathLike) -> dict:
+    """Optics range overrides from a JSON/YAML mapping ``{name: value or [lo, hi]}``."""
+    import yaml
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"file not found: {p}")
+    try:
+        doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
+    except Exception as exc:
+        raise ConfigError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: expected a mapping of name -> value or [lo, hi]")
+    return doc
+
+
+def generate(config: GenerateConfig) -> RunSummary:
+    """Generate (or complete) the dataset ``config`` describes; returns a :class:`RunSummary`."""
+    summary = generate_dataset(config.meshes, config.out, config.count, seed=config.seed,
+                               config=config.synth_config(), workers=config.workers, fmt=config.format,
+                               shard=config.shard, label=config.label, noise_free=config.noise_free,
+                               progress=config.progress)
+    if config.preview:
+        from .preview import write_preview
+
+        root = Path(config.out) / ("native" if config.format == "figshare" else "")
+        summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
+    return summary
 
 
 def load_assets(paths) -> tuple[list[MeshAsset], list[tuple[str, str]]]:
@@ -123,7 +241,7 @@ def _check_settings(path: Path, settings: dict) -> None:
                             "use a new --out (or the same options) to resume")
 
 
-def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
+def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
              workers: int = 1, fmt: str = "native", shard: tuple[int, int] | None = None,
              label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True) -> RunSummary:
     """Generate (or complete) a dataset. See the module docstring; returns a :class:`RunSummary`.
