@@ -1,6 +1,6 @@
 """Calibrated FPP rig: a camera and a projector as OpenCV pinholes above the reference plane z = 0.
 
-Conventions (the single reference for the whole package; see DESIGN.md §2):
+Conventions (the single reference for the whole package):
 
 * Units are millimetres, angles radians.
 * World frame: the reference plane is ``z = 0`` and ``+z`` points from the plane towards the camera.
@@ -26,7 +26,14 @@ from .errors import RigError
 
 __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "rotation_to_plane_frame"]
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+
+def data_path(*parts: str) -> Path:
+    """A file shipped inside the package (``fppsim/data/...``: the default rig, the asset meshes),
+    found through importlib.resources so it works from a wheel as from a checkout."""
+    from importlib.resources import files
+
+    return Path(str(files("fppsim").joinpath("data", *parts)))
 
 
 def _as_matrix(value, shape, name):
@@ -441,12 +448,12 @@ class Rig:
 
     @classmethod
     def default(cls) -> "Rig":
-        """The embedded default rig (assets/default_rig.json)."""
+        """The packaged default rig (``fppsim/data/default_rig.json``)."""
         return cls.load(default_rig_path())
 
 
 def default_rig_path() -> Path:
-    return ASSETS / "default_rig.json"
+    return data_path("default_rig.json")
 
 
 def load_rig(path: str | os.PathLike | None) -> Rig:
@@ -455,9 +462,9 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 
 
 def make_default_rig() -> Rig:
-    """Build the default rig (what assets/default_rig.json holds).
+    """Build the default rig (what fppsim/data/default_rig.json holds).
 
-    Near-parallel axes with projector lens shift (DESIGN.md §2): camera 500 mm above the plane,
+    Near-parallel axes with projector lens shift: camera 500 mm above the plane,
     fx = fy = 1230 px, 640 x 352; projector 180 mm to the +x side at the same height, 912 x 1140,
     fx = fy = 1208.8 px, principal point shifted so the scene centre lands mid-projector.
     80 periods over 912 columns project 4.71 mm periods on the plane: 11.6 camera pixels.

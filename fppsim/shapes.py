@@ -504,7 +504,7 @@ def make_shape(kind: str, seed: int = 0, size_mm=DEFAULT_SIZE_MM) -> trimesh.Tri
     return fn(int(seed), size_mm=size_mm)
 
 
-# The meshes shipped in assets/meshes (written by pipelines/make_assets.py): (kind, seed) pairs.
+# The meshes shipped in fppsim/data/meshes (written by pipelines/make_assets.py): (kind, seed) pairs.
 ASSETS: tuple[tuple[str, int], ...] = (
     ("bust", 0),
     ("figurine", 0),

@@ -3,7 +3,7 @@
 
 The floor is the two bare depth renders every sample needs (camera and projector shadow map) of the
 same scene; the ratio "sample time / floor" is the cost of everything else (geometry, 13 images,
-PSP decode, PNG + npz writing). Uses ../shared/meshes/ogre.obj when present, else assets/meshes.
+PSP decode, PNG + npz writing). Uses ../shared/meshes/ogre.obj when present, else fppsim/data/meshes.
 
     python pipelines/bench_generate.py [--mesh PATH] [--samples 10] [--no-psp] [--no-write]
 """
@@ -31,8 +31,8 @@ def main(argv=None) -> int:
 
     default_mesh = ROOT.parent / "shared" / "meshes" / "ogre.obj"
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--mesh", default=str(default_mesh if default_mesh.is_file() else ROOT / "assets" / "meshes"),
-                   help="mesh file or folder (default: ../shared/meshes/ogre.obj, else assets/meshes)")
+    p.add_argument("--mesh", default=str(default_mesh if default_mesh.is_file() else ROOT / "fppsim" / "data" / "meshes"),
+                   help="mesh file or folder (default: ../shared/meshes/ogre.obj, else fppsim/data/meshes)")
     p.add_argument("--samples", type=int, default=10, help="timed samples (after one warm-up)")
     p.add_argument("--no-psp", action="store_true", help="single-shot image only")
     p.add_argument("--no-write", action="store_true", help="do not write the sample folders")
