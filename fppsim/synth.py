@@ -14,6 +14,7 @@ import numpy as np
 from . import __version__
 from .optics import OVERSAMPLE, Optics, OpticsRanges, form_image, pattern_profile
 from .render import DepthRenderer, Geometry, scene_geometry
+from .jitter import RigJitter, jitter_rig
 from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
 
@@ -42,6 +43,7 @@ class SynthConfig:
     psp_steps: int = 4
     min_object_fraction: float = 0.02
     max_attempts: int = 8
+    rig_jitter: RigJitter = field(default_factory=RigJitter)
 
     def to_dict(self) -> dict:
         return {
@@ -52,6 +54,7 @@ class SynthConfig:
             "psp_steps": self.psp_steps,
             "min_object_fraction": self.min_object_fraction,
             "max_attempts": self.max_attempts,
+            "rig_jitter": self.rig_jitter.to_dict(),
         }
 
 
@@ -114,18 +117,18 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         and lit), and with PSP phase_psp, height_psp, mask_psp.
     meta : everything needed to reproduce the sample.
     """
-    rig = config.rig
     k = config.supersample
-    cam = rig.camera
+    cam = config.rig.camera
     # Render a margin around the image so the camera blur sees real scene content at the borders
     # (blurring with a clamped edge would shift the fringe phase of the outer columns); crop after.
     m = int(np.ceil(4.0 * config.optics.camera_blur[1]))
-    render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
     crop = (slice(m, m + cam.height), slice(m, m + cam.width))
     last_reason = ""
     for attempt in range(config.max_attempts):
         ss = np.random.SeedSequence([int(seed), int(index), attempt])
-        scene_ss, optics_ss, noise_ss = ss.spawn(3)
+        scene_ss, optics_ss, noise_ss, rig_ss = ss.spawn(4)  # the first three as before the rig stream
+        rig = jitter_rig(config.rig, np.random.default_rng(rig_ss), config.rig_jitter)
+        render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
         scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
         geom_ss = scene_geometry(render_rig, [o.instance() for o in scene.objects], renderer, scale=k)
         geom = geom_ss.at_pixel_centres(k).cropped(*crop)
