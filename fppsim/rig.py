@@ -548,10 +548,15 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 
 # The real figshare rig is close to, but not exactly, parallel: its fringe period falls steadily from
 # left to right (12.06 -> 11.39 px over four column bands, 11.96 | 11.49 px between halves, nothing
-# top to bottom). A projector turned 4.53 deg about its y axis towards the scene reproduces that trend;
+# top to bottom). A projector turned 4.63 deg about its y axis towards the scene reproduces that trend;
 # the focal length is then refitted so the halves measure 11.96 and 11.49 px on the plane.
-DEFAULT_PROJECTOR_YAW = 0.0790829  # rad
-DEFAULT_PROJECTOR_FOCAL = 1257.389  # px
+# Its fringes also shift 0.855 rad per mm of labelled height (label / 6) on the real pair (local fringe
+# frequency against the label slope on smooth object regions, the same estimator giving 0.49 rad/mm on
+# the 180 mm parallel rig whose exact value is 0.476): the real triangulation angle is larger. A 315 mm
+# baseline (32 deg at the centre) gives 0.832 rad/mm, and larger shadows, as the real data has.
+DEFAULT_BASELINE = 315.0  # mm
+DEFAULT_PROJECTOR_YAW = 0.0808046  # rad
+DEFAULT_PROJECTOR_FOCAL = 1312.613  # px
 
 
 def _rot_y(a: float) -> np.ndarray:
@@ -584,13 +589,14 @@ def make_parallel_rig() -> Rig:
 def make_default_rig() -> Rig:
     """Build the default rig (what assets/default_rig.json holds).
 
-    The parallel rig of :func:`make_parallel_rig` with the projector turned by
-    ``DEFAULT_PROJECTOR_YAW`` (4.53 deg) towards the scene and ``fx = fy = DEFAULT_PROJECTOR_FOCAL``,
-    as the real figshare rig: the plane's fringe period falls from 12.08 px (left quarter) to
-    11.37 px (right quarter), 11.96 px in the left half and 11.49 px in the right half, 11.72 px in
-    the middle, and is constant down a column (vertical fringes).
+    Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (315 mm) to the +x side at the
+    camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.63 deg) towards the scene, ``fx = fy =
+    DEFAULT_PROJECTOR_FOCAL``, lens shift so the scene centre lands mid-projector. The plane's fringe
+    period falls from 12.08 px (left quarter) to 11.37 px (right quarter), 11.96 px in the left half
+    and 11.49 px in the right half, and is constant down a column (vertical fringes); a raised surface
+    shifts the phase by about -0.83 rad per mm at the image centre (one period per 7.6 mm).
     """
     cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
-    proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL)
+    proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL, baseline=DEFAULT_BASELINE)
     return Rig(camera=cam, projector=proj, periods=80.0,
-               name="default: near-parallel axes (projector yawed 4.53 deg), projector lens shift")
+               name="default: like the figshare rig (315 mm baseline, projector yawed 4.63 deg), lens shift")
