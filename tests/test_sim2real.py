@@ -152,3 +152,16 @@ def test_real_sample_object_pixels_reproduce_the_issue_numbers():
     assert m["true_object_mean_mm"] == pytest.approx(39.7, abs=0.1)
     assert m["flat_object_rmse_mm"] == pytest.approx(39.9, abs=0.5)
     assert m["object_fraction"] == pytest.approx(0.148, abs=0.002)
+
+
+def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("s2r", Path(__file__).resolve().parents[1] / "pipelines" / "sim2real.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rc = mod.main(["--real", str(tmp_path), "--out", str(tmp_path / "o"), "--variant", "a: | --no-augment"])
+    assert rc == 1 and "no figshare-format pair" in capsys.readouterr().err
+    abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")
+    assert abl[0].name == "defaults" and abl[0].generate == abl[0].train == []
+    assert {"no-augment", "no-rig-jitter", "files-only", "parallel-rig"} <= {v.name for v in abl}

@@ -420,8 +420,8 @@ def run_sim2real(cfg: Sim2RealConfig, log=print) -> dict:
     Returns the report document. Stages already done (same folder) are skipped.
     """
     out = Path(cfg.out)
+    find_real_pairs(cfg.real)  # fail early on bad real folders, before anything is written
     out.mkdir(parents=True, exist_ok=True)
-    find_real_pairs(cfg.real)  # fail early on bad real folders
     report = {"config": {k: v for k, v in asdict(cfg).items() if k not in ("variants", "python")},
               "recipe": {}, "variants": []}
     for var in cfg.variants:
@@ -436,7 +436,7 @@ def run_sim2real(cfg: Sim2RealConfig, log=print) -> dict:
             timing["generate_s"] = _run(gcmd, data.parent / f"{data.name}.log")
         if not _run_done(run, cfg.epochs):
             log(f"[{var.name}] train -> {run}")
-            if (run / "last.pt").is_file():
+            if run.is_dir() and any(run.iterdir()):  # an interrupted run: continue it (or restart it)
                 tcmd = tcmd + ["--resume"]
             timing["train_s"] = _run(tcmd, out / var.name / "train.log")
         done = ev / "real_metrics.json"
