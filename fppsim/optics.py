@@ -39,6 +39,11 @@ OPTICS_LIMITS = {
     "camera_blur": (0.0, True, None, None),
     "noise_sigma": (0.0, True, None, None),       # >= 0 gray levels
     "shot_noise": (0.0, True, None, None),
+    "albedo_texture": (0.0, True, None, None),    # >= 0, relative std
+    "dirt": (0.0, True, 1.0, True),               # [0, 1] stained fraction
+    "specular": (0.0, True, None, None),          # >= 0, relative to diffuse
+    "subsurface": (0.0, True, None, None),        # >= 0 camera px
+    "vignetting": (0.0, True, 1.0, False),        # [0, 1) relative fall-off at the corners
 }
 
 
