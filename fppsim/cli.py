@@ -112,12 +112,61 @@ def add_generate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--label-invalid", type=float, default=-105.0, help="figshare label of invalid pixels (default -105)")
     p.add_argument("--label-threshold", type=float, default=-100.0,
                    help="labels <= this count as invalid when read back (reference code: -100)")
+    add_realism_arguments(p)
     p.add_argument("--preview", action=argparse.BooleanOptionalAction, default=True,
                    help="write preview.png (fringe | height | mask) of the first samples (default on)")
     p.add_argument("--backend", choices=["osmesa", "egl"], default=None,
                    help="off-screen GL: osmesa (software, default) or egl (headless GPU; Mesa's software "
                         "device without one); default $PYOPENGL_PLATFORM, else osmesa")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def _fraction(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got '{text}'") from None
+    if not 0.0 <= v <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {v}")
+    return v
+
+
+def _jitter(text: str) -> tuple[float, float]:
+    try:
+        nums = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected YAW,FOCAL (e.g. 0.02,0.03) or 0, got '{text}'") from None
+    if len(nums) == 1 and nums[0] == 0:
+        nums = [0.0, 0.0]
+    if len(nums) != 2 or not (0 <= nums[0] < 0.5 and 0 <= nums[1] < 0.5):
+        raise argparse.ArgumentTypeError(f"expected YAW,FOCAL with 0 <= YAW, FOCAL < 0.5, got '{text}'")
+    return nums[0], nums[1]
+
+
+def add_realism_arguments(p: argparse.ArgumentParser) -> None:
+    """Options of the sim-to-real defaults: procedural sculptures and per-sample rig jitter."""
+    p.add_argument("--procedural-share", type=_fraction, default=None, metavar="P",
+                   help="chance that each object is a procedural sculpture (fppsim.shapes.procedural: busts, "
+                        "masks, figurines, animals, reliefs, vases with multi-scale surface detail) instead of "
+                        "one of --meshes (default 0.5; 1 when --meshes is just 'procedural')")
+    p.add_argument("--procedural-pool", type=_positive_int, default=96, metavar="N",
+                   help="number of distinct procedural sculptures (seeds 0..N-1; any N) (default 96)")
+    p.add_argument("--rig-jitter", type=_jitter, default=(0.02, 0.03), metavar="YAW,FOCAL",
+                   help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
+                        "fringe period map varies like real rigs (default 0.02,0.03; 0 = off)")
+
+
+def realism_config(args) -> tuple[list[str], dict, object]:
+    """(mesh paths without the 'procedural' token, SceneRanges procedural options, RigJitter)."""
+    from .jitter import RigJitter
+
+    meshes = [m for m in args.meshes if m != "procedural"]
+    share = args.procedural_share
+    if share is None:
+        share = 1.0 if not meshes else 0.5
+    if not meshes and share < 1.0:
+        raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
+    return meshes, {"procedural_share": share, "procedural_pool": args.procedural_pool}, RigJitter(*args.rig_jitter)
 
 
 def run_generate(args) -> int:
@@ -145,8 +194,10 @@ def run_generate(args) -> int:
     freqs = () if args.no_psp else tuple(args.psp_freqs)
     if freqs and freqs[-1] != rig.periods:
         raise CLIError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
-    config = SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(args.objects)),
-                         supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps)
+    meshes, procedural, jitter = realism_config(args)
+    config = SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(args.objects), **procedural),
+                         supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps,
+                         rig_jitter=jitter)
     preset = (args.label_scale, args.label_offset, args.label_invalid, args.label_threshold)
     label = LabelTransform(scale=args.label_scale, offset=args.label_offset, invalid=args.label_invalid,
                            threshold=args.label_threshold,
@@ -155,7 +206,7 @@ def run_generate(args) -> int:
         label.check()
     except ValueError as exc:
         raise UsageError(f"--label-*: {exc}") from None
-    summary = generate(args.meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
+    summary = generate(meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
                        fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
                        progress=not args.quiet, backend=args.backend)
     for line in summary.lines():

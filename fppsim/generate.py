@@ -202,9 +202,9 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
 def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free, progress, t0, backend):
     from tqdm import tqdm
 
-    assets, skipped = load_assets(mesh_paths)
+    assets, skipped = load_assets(mesh_paths) if mesh_paths else ([], [])
     summary = RunSummary(out=str(out), requested=0, skipped_meshes=skipped)
-    if not assets:
+    if not assets and not (config.scene.procedural_share >= 1.0 and not skipped):
         reasons = "; ".join(r for _, r in skipped) or "no mesh files found"
         raise GenerateError(f"no usable mesh ({reasons})")
     out = Path(out)

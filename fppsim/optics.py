@@ -39,6 +39,11 @@ OPTICS_LIMITS = {
     "camera_blur": (0.0, True, None, None),
     "noise_sigma": (0.0, True, None, None),       # >= 0 gray levels
     "shot_noise": (0.0, True, None, None),
+    "albedo_texture": (0.0, True, None, None),    # >= 0, relative std
+    "dirt": (0.0, True, 1.0, True),               # [0, 1] stained fraction
+    "specular": (0.0, True, None, None),          # >= 0, relative to diffuse
+    "subsurface": (0.0, True, None, None),        # >= 0 camera px
+    "vignetting": (0.0, True, 1.0, False),        # [0, 1) relative fall-off at the corners
 }
 
 
@@ -79,6 +84,9 @@ class Optics:
     shot_noise : shot-noise variance per gray level of signal (gray levels).
     pixelated : the projector shows one constant value per DMD column (True) or an ideal continuous cosine.
     pattern_bits : bit depth of the projected pattern (8 for a DLP projector; 0 = no quantisation).
+    albedo_texture, dirt, specular, subsurface, vignetting : appearance effects, see :mod:`fppsim.appearance`
+        (relative albedo std, stained fraction, specular lobe strength, fringe blur sigma on objects in camera
+        px, relative fall-off at the corners); 0 = off.
     """
 
     gain: float = 150.0
@@ -93,6 +101,12 @@ class Optics:
     shot_noise: float = 0.05
     pixelated: bool = True
     pattern_bits: int = 8
+    # appearance beyond the Lambertian model (fppsim.appearance); 0 = off
+    albedo_texture: float = 0.0
+    dirt: float = 0.0
+    specular: float = 0.0
+    subsurface: float = 0.0
+    vignetting: float = 0.0
 
     def __post_init__(self):
         for name in OPTICS_LIMITS:
@@ -137,6 +151,12 @@ class OpticsRanges:
     shot_noise: tuple[float, float] = (0.02, 0.08)
     pixelated: bool = True
     pattern_bits: int = 8
+    # appearance (fppsim.appearance), off by default: not yet measured on real data
+    albedo_texture: tuple[float, float] = (0.0, 0.0)
+    dirt: tuple[float, float] = (0.0, 0.0)
+    specular: tuple[float, float] = (0.0, 0.0)
+    subsurface: tuple[float, float] = (0.0, 0.0)
+    vignetting: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         for name in OPTICS_LIMITS:

@@ -24,7 +24,8 @@ import numpy as np
 
 from ._fs import tmp_path
 
-__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "rotation_to_plane_frame"]
+__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_parallel_rig", "projector_for",
+           "rotation_to_plane_frame"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
 
@@ -545,16 +546,57 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
     return Rig.default() if path is None else Rig.load(path)
 
 
+# The real figshare rig is close to, but not exactly, parallel: its fringe period falls steadily from
+# left to right (12.06 -> 11.39 px over four column bands, 11.96 | 11.49 px between halves, nothing
+# top to bottom). A projector turned 4.63 deg about its y axis towards the scene reproduces that trend;
+# the focal length is then refitted so the halves measure 11.96 and 11.49 px on the plane.
+# Its fringes also shift 0.855 rad per mm of labelled height (label / 6) on the real pair (local fringe
+# frequency against the label slope on smooth object regions, the same estimator giving 0.49 rad/mm on
+# the 180 mm parallel rig whose exact value is 0.476): the real triangulation angle is larger. A 315 mm
+# baseline (32 deg at the centre) gives 0.832 rad/mm, and larger shadows, as the real data has.
+DEFAULT_BASELINE = 315.0  # mm
+DEFAULT_PROJECTOR_YAW = 0.0808046  # rad
+DEFAULT_PROJECTOR_FOCAL = 1312.613  # px
+
+
+def _rot_y(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, baseline: float = 180.0,
+                  height: float = 500.0, width: int = 912, rows: int = 1140) -> Device:
+    """A projector at ``(baseline, 0, height)`` mm looking down, turned ``yaw`` rad about its own y axis
+    (positive: its axis leans towards -x, the scene), principal point shifted so the world origin lands
+    in the middle of the DMD (lens shift, as DLP projectors have)."""
+    R = _rot_y(float(yaw)) @ np.diag([1.0, -1.0, -1.0])
+    t = -R @ np.array([float(baseline), 0.0, float(height)])
+    z = t[2]  # the world origin in the projector frame is t
+    cx = (width - 1) / 2 - focal * t[0] / z
+    cy = (rows - 1) / 2 - focal * t[1] / z
+    return Device(K=[[focal, 0, cx], [0, focal, cy], [0, 0, 1]], R=R, t=t, width=width, height=rows)
+
+
+def make_parallel_rig() -> Rig:
+    """The ideal parallel-axis rig: camera 500 mm above the plane, fx = fy = 1230 px, 640 x 352;
+    projector 180 mm to the +x side at the same height, 912 x 1140, fx = fy = 1208.8 px, lens shift so
+    the scene centre lands mid-projector. 80 periods give a uniform 11.6 px period on the plane (the
+    classic reference-plane formula is exact for it)."""
+    cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
+    return Rig(camera=cam, projector=projector_for(cam), periods=80.0, name="parallel axes, projector lens shift")
+
+
 def make_default_rig() -> Rig:
     """Build the default rig (what assets/default_rig.json holds).
 
-    Near-parallel axes with projector lens shift (DESIGN.md §2): camera 500 mm above the plane,
-    fx = fy = 1230 px, 640 x 352; projector 180 mm to the +x side at the same height, 912 x 1140,
-    fx = fy = 1208.8 px, principal point shifted so the scene centre lands mid-projector.
-    80 periods over 912 columns project 4.71 mm periods on the plane: 11.6 camera pixels.
+    Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (315 mm) to the +x side at the
+    camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.63 deg) towards the scene, ``fx = fy =
+    DEFAULT_PROJECTOR_FOCAL``, lens shift so the scene centre lands mid-projector. The plane's fringe
+    period falls from 12.08 px (left quarter) to 11.37 px (right quarter), 11.96 px in the left half
+    and 11.49 px in the right half, and is constant down a column (vertical fringes); a raised surface
+    shifts the phase by about -0.83 rad per mm at the image centre (one period per 7.6 mm).
     """
     cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
-    fp, W, H, baseline, dist = 1208.8, 912, 1140, 180.0, 500.0
-    cx_p = (W - 1) / 2 + fp * baseline / dist  # world origin -> projector column (W-1)/2
-    proj = Device.looking_down([baseline, 0.0, dist], fp, fp, cx_p, (H - 1) / 2, W, H)
-    return Rig(camera=cam, projector=proj, periods=80.0, name="default: parallel axes, projector lens shift")
+    proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL, baseline=DEFAULT_BASELINE)
+    return Rig(camera=cam, projector=proj, periods=80.0,
+               name="default: like the figshare rig (315 mm baseline, projector yawed 4.63 deg), lens shift")

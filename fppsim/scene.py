@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
-    "sample_scene", "MESH_EXTENSIONS",
+    "sample_scene", "MESH_EXTENSIONS", "asset_from_arrays", "procedural_asset", "PROCEDURAL_PREFIX",
 ]
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -101,8 +102,13 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
         raise MeshError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path}: no triangle mesh found")
-    v = np.asarray(loaded.vertices, dtype=np.float64)
-    f = np.asarray(loaded.faces, dtype=np.int64)
+    return asset_from_arrays(loaded.vertices, loaded.faces, path, flat_ratio)
+
+
+def asset_from_arrays(vertices, faces, path: str, flat_ratio: float = 1e-3) -> MeshAsset:
+    """Validate (V, 3) vertices and (F, 3) faces and bring them to canonical orientation (see load_mesh)."""
+    v = np.asarray(vertices, dtype=np.float64)
+    f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0 or len(v) < 3:
         raise MeshError(f"{path}: empty mesh (no faces)")
     if not np.all(np.isfinite(v)):
@@ -140,17 +146,24 @@ class SceneRanges:
     """Ranges of the seeded scene sampler (mm, radians). Defaults follow the real figshare data."""
 
     objects: tuple[int, int] = (1, 3)           # objects per scene, inclusive
-    footprint: tuple[float, float] = (70.0, 140.0)  # longest horizontal size of one object, mm
-    max_relief: tuple[float, float] = (35.0, 55.0)  # cap on an object's height above the plane, mm
+    footprint: tuple[float, float] = (70.0, 160.0)  # longest horizontal size of one object, mm
+    max_relief: tuple[float, float] = (35.0, 60.0)  # cap on an object's height above the plane, mm
     tilt: float = np.deg2rad(10.0)              # max tilt about a random horizontal axis
-    view_margin: float = 0.15                   # keep object centres this fraction inside the view
+    view_margin: float = 0.05                   # keep object centres this fraction inside the view (small:
+                                                # objects are often partly out of view, as in the real data)
     overlap_probability: float = 0.35           # chance that a multi-object scene overlaps in depth
     flip_probability: float = 0.5               # chance to flip the canonical mesh upside down
+    procedural_share: float = 0.5               # chance that an object is a procedural sculpture
+    procedural_pool: int = 96                   # procedural shapes are fppsim.shapes.procedural(0..pool-1)
 
     def __post_init__(self):
         lo, hi = self.objects
         if not (1 <= lo <= hi):
             raise ValueError(f"objects range must satisfy 1 <= lo <= hi, got {self.objects}")
+        if not 0.0 <= self.procedural_share <= 1.0:
+            raise ValueError(f"procedural_share must be in [0, 1], got {self.procedural_share}")
+        if self.procedural_pool < 1:
+            raise ValueError(f"procedural_pool must be >= 1, got {self.procedural_pool}")
 
 
 @dataclass
@@ -179,7 +192,9 @@ class PlacedObject:
     def instance(self):
         from .render import Instance
 
-        return Instance(self.asset.vertices, self.asset.faces, self.transform, key=self.asset.path)
+        # procedural shapes are many and short-lived: do not keep them uploaded in the renderer
+        key = None if self.asset.path.startswith(PROCEDURAL_PREFIX) else self.asset.path
+        return Instance(self.asset.vertices, self.asset.faces, self.transform, key=key)
 
     def to_dict(self) -> dict:
         return {"mesh": self.mesh, "scale": float(self.scale), "pose": np.asarray(self.pose).tolist()}
@@ -192,6 +207,19 @@ class Scene:
 
     def to_dict(self) -> dict:
         return {"layout": self.layout, "objects": [o.to_dict() for o in self.objects]}
+
+
+PROCEDURAL_PREFIX = "procedural:"
+
+
+@lru_cache(maxsize=256)
+def procedural_asset(seed: int) -> MeshAsset:
+    """Procedural sculpture ``seed`` (:func:`fppsim.shapes.procedural`) as a canonical asset, cached per
+    process; its ``path`` is ``procedural:<kind>:<seed>``."""
+    from .shapes import procedural
+
+    kind, mesh = procedural(int(seed))
+    return asset_from_arrays(mesh.vertices, mesh.faces, f"{PROCEDURAL_PREFIX}{kind}:{int(seed)}")
 
 
 def _rot_z(a):
@@ -245,7 +273,12 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
     placed: list[PlacedObject] = []
     circles: list[tuple[float, float, float]] = []
     for _ in range(n):
-        asset = assets[int(rng.integers(len(assets)))]
+        if r.procedural_share > 0 and (not assets or rng.random() < r.procedural_share):
+            asset = procedural_asset(int(rng.integers(r.procedural_pool)))
+        elif not assets:
+            raise MeshError("no meshes to draw from (give mesh files or a procedural share > 0)")
+        else:
+            asset = assets[int(rng.integers(len(assets)))]
         v = asset.hull
         flip = rng.random() < r.flip_probability
         R0 = _rot_axis([1, 0, 0], np.pi) if flip else np.eye(3)

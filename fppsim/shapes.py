@@ -26,7 +26,7 @@ from typing import Callable
 import numpy as np
 import trimesh
 
-__all__ = ["SHAPES", "make_shape", "bust", "figurine", "animal", "mask", "blob", "relief", "vase"]
+__all__ = ["SHAPES", "make_shape", "procedural", "add_detail", "PROCEDURAL_KINDS", "bust", "figurine", "animal", "mask", "blob", "relief", "vase"]
 
 DEFAULT_SIZE_MM = (70.0, 110.0)
 TARGET_FACES = 16000
@@ -502,6 +502,75 @@ def make_shape(kind: str, seed: int = 0, size_mm=DEFAULT_SIZE_MM) -> trimesh.Tri
     if int(seed) < 0:
         raise ValueError(f"seed must be non-negative, got {seed}")
     return fn(int(seed), size_mm=size_mm)
+
+
+# --------------------------------------------------------------------------- unlimited procedural source
+
+# Kinds drawn by :func:`procedural` and their weights: busts dominate, as in the real figshare data.
+PROCEDURAL_KINDS: tuple[tuple[str, float], ...] = (
+    ("bust", 0.30), ("mask", 0.10), ("figurine", 0.10), ("animal", 0.15), ("relief", 0.10), ("vase", 0.10),
+    ("blob", 0.15),
+)
+# Surface detail: (wavelength mm, amplitude mm) of band-limited noise displacing the surface along its
+# normals (folds, tool marks, hair and cloth texture), each amplitude drawn from [0.3, 1] x this.
+DETAIL_SCALES: tuple[tuple[float, float], ...] = ((12.0, 1.2), (5.0, 0.5), (2.0, 0.15))
+
+
+def _noise_field(rng: np.random.Generator, lo: np.ndarray, hi: np.ndarray, wavelength: float):
+    """A smooth zero-mean, unit-std random field on the box [lo, hi] (mm) with the given wavelength,
+    returned as a function of (N, 3) points (trilinear interpolation of a filtered white-noise grid)."""
+    from scipy.ndimage import gaussian_filter, map_coordinates
+
+    step = wavelength / 4.0
+    n = np.maximum(np.ceil((hi - lo) / step).astype(int) + 9, 9)
+    g = gaussian_filter(rng.standard_normal(tuple(n)), sigma=wavelength / (2.0 * np.pi * step) * 2.0, mode="wrap")
+    g = (g - g.mean()) / (g.std() + 1e-12)
+    origin = lo - 4 * step
+
+    def field(points: np.ndarray) -> np.ndarray:
+        idx = ((points - origin) / step).T
+        return map_coordinates(g, idx, order=1, mode="nearest")
+
+    return field
+
+
+def add_detail(mesh: trimesh.Trimesh, rng: np.random.Generator,
+               scales: tuple[tuple[float, float], ...] = DETAIL_SCALES) -> trimesh.Trimesh:
+    """Displace the vertices along their normals by multi-scale band-limited noise (mm).
+
+    Only the part of the surface facing up (normal z > -0.2) is displaced, so the flat base on the
+    plane stays flat; the displacement fades out near the base. Topology (and watertightness) is kept.
+    """
+    v = np.asarray(mesh.vertices, float)
+    nrm = np.asarray(mesh.vertex_normals, float)
+    lo, hi = v.min(0), v.max(0)
+    disp = np.zeros(len(v))
+    for wavelength, amp in scales:
+        a = amp * float(rng.uniform(0.3, 1.0))
+        disp += a * _noise_field(rng, lo, hi, wavelength)(v)
+    fade = np.clip((v[:, 2] - lo[2]) / 3.0, 0.0, 1.0) * np.clip((nrm[:, 2] + 0.2) / 0.4, 0.0, 1.0)
+    out = trimesh.Trimesh(v + (disp * fade)[:, None] * nrm, np.asarray(mesh.faces), process=False)
+    return out
+
+
+def procedural(seed: int, size_mm=DEFAULT_SIZE_MM, detail: bool = True) -> tuple[str, trimesh.Trimesh]:
+    """One sculpture of an unlimited seeded family: ``(kind, mesh)``.
+
+    The seed picks a kind (weights :data:`PROCEDURAL_KINDS`), that kind's own seed, a non-uniform
+    stretch of its proportions (x, y by 0.8-1.25, z by 0.8-1.45: taller sculptures too) and, with
+    ``detail``, surface detail at three scales (:func:`add_detail`). Deterministic in ``seed``.
+    """
+    if int(seed) < 0:
+        raise ValueError(f"seed must be non-negative, got {seed}")
+    rng = np.random.default_rng([int(seed), 99])
+    kinds, weights = zip(*PROCEDURAL_KINDS)
+    kind = kinds[int(rng.choice(len(kinds), p=np.asarray(weights) / np.sum(weights)))]
+    mesh = _REGISTRY[kind](int(rng.integers(0, 2**31 - 1)), size_mm=100.0)
+    stretch = np.array([rng.uniform(0.8, 1.25), rng.uniform(0.8, 1.25), rng.uniform(0.8, 1.45)])
+    mesh = trimesh.Trimesh(np.asarray(mesh.vertices) * stretch, np.asarray(mesh.faces), process=False)
+    if detail:
+        mesh = add_detail(mesh, rng)
+    return kind, _finish(mesh, rng, size_mm)
 
 
 # The meshes shipped in assets/meshes (written by pipelines/make_assets.py): (kind, seed) pairs.

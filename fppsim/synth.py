@@ -14,6 +14,7 @@ import numpy as np
 from . import __version__
 from .optics import OVERSAMPLE, Optics, OpticsRanges, form_image, pattern_profile
 from .render import DepthRenderer, Geometry, scene_geometry
+from .jitter import RigJitter, jitter_rig
 from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
 
@@ -42,6 +43,7 @@ class SynthConfig:
     psp_steps: int = 4
     min_object_fraction: float = 0.02
     max_attempts: int = 8
+    rig_jitter: RigJitter = field(default_factory=RigJitter)
 
     def to_dict(self) -> dict:
         return {
@@ -52,6 +54,7 @@ class SynthConfig:
             "psp_steps": self.psp_steps,
             "min_object_fraction": self.min_object_fraction,
             "max_attempts": self.max_attempts,
+            "rig_jitter": self.rig_jitter.to_dict(),
         }
 
 
@@ -64,12 +67,15 @@ def _irradiance_parts(geom: Geometry, optics: Optics) -> tuple[np.ndarray, np.nd
 
 
 def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple[float, float]],
-                  noise_rng: np.random.Generator | None, scale: int = 1) -> list[np.ndarray]:
+                  noise_rng: np.random.Generator | None, scale: int = 1,
+                  appearance_rng: np.random.Generator | None = None) -> list[np.ndarray]:
     """uint8 camera images for ``patterns`` = [(periods, phase shift rad), ...] on one geometry.
 
-    Each image gets its own noise realisation from ``noise_rng`` (None = noise-free).
+    Each image gets its own noise realisation from ``noise_rng`` (None = noise-free); the appearance
+    effects of ``optics`` (texture, dirt, ...; :mod:`fppsim.appearance`) draw from ``appearance_rng``.
     """
     parts = tuple(a.astype(np.float32) for a in _irradiance_parts(geom, optics))
+    parts = _appearance(parts, geom, rig, optics, appearance_rng, scale)
     # Linear interpolation weights into the oversampled 1-D pattern profile, shared by all patterns.
     x = (np.where(geom.lit, geom.u_p, 0.0) + 0.5) * OVERSAMPLE - 0.5
     n = rig.projector.width * OVERSAMPLE
@@ -83,8 +89,21 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
         pattern = prof[i1] - p0
         pattern *= w
         pattern += p0  # p0 + w * (prof[i1] - p0), in place
+        if getattr(optics, "subsurface", 0.0) > 0:
+            from .appearance import subsurface_pattern
+
+            pattern = subsurface_pattern(pattern, geom.on_object, optics.subsurface * scale)
         out.append(form_image(parts, pattern, optics, noise_rng, scale))
     return out
+
+
+def _appearance(parts, geom, rig, optics, rng, scale):
+    """Texture, dirt, specular and vignetting (fppsim.appearance) when any is on; else ``parts``."""
+    if not any(getattr(optics, k, 0.0) > 0 for k in ("albedo_texture", "dirt", "specular", "vignetting")):
+        return parts
+    from .appearance import apply_appearance
+
+    return apply_appearance(parts, geom, rig, optics, rng if rng is not None else np.random.default_rng(0), scale)
 
 
 def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, ...],
@@ -114,18 +133,18 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         and lit), and with PSP phase_psp, height_psp, mask_psp.
     meta : everything needed to reproduce the sample.
     """
-    rig = config.rig
     k = config.supersample
-    cam = rig.camera
+    cam = config.rig.camera
     # Render a margin around the image so the camera blur sees real scene content at the borders
     # (blurring with a clamped edge would shift the fringe phase of the outer columns); crop after.
     m = int(np.ceil(4.0 * config.optics.camera_blur[1]))
-    render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
     crop = (slice(m, m + cam.height), slice(m, m + cam.width))
     last_reason = ""
     for attempt in range(config.max_attempts):
         ss = np.random.SeedSequence([int(seed), int(index), attempt])
-        scene_ss, optics_ss, noise_ss = ss.spawn(3)
+        scene_ss, optics_ss, noise_ss, rig_ss, look_ss = ss.spawn(5)  # the first three as before
+        rig = jitter_rig(config.rig, np.random.default_rng(rig_ss), config.rig_jitter)
+        render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
         scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
         geom_ss = scene_geometry(render_rig, [o.instance() for o in scene.objects], renderer, scale=k)
         geom = geom_ss.at_pixel_centres(k).cropped(*crop)
@@ -146,7 +165,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         for n in range(config.psp_steps):
             patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
             names.append(f"psp/f{f}_s{n}.png")
-    imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k)
+    imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k, np.random.default_rng(look_ss))
     images = {name: np.ascontiguousarray(img[crop]) for name, img in zip(names, imgs)}
 
     seen = geom.seen

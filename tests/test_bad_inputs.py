@@ -97,6 +97,7 @@ def test_unusable_rigs_are_refused_before_any_sample(tmp_path, mesh, capsys):
 
     def zero_baseline(d):
         d["projector"]["t"], d["projector"]["K"] = d["camera"]["t"], d["camera"]["K"]
+        d["projector"]["R"] = d["camera"]["R"]  # the default projector is turned a little
     zero = _rig_file(tmp_path, "zero.json", zero_baseline)
     assert _gen(mesh, tmp_path / "o2", "--rig", zero) == 1
     _one_error_line(capsys, "fringes do not move with height", "baseline 0.0 mm")

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from fppsim import fit_rig as fr
-from fppsim.rig import Rig, RigError
+from fppsim.rig import Rig, RigError, make_parallel_rig
 from fppsim.stats import estimate_period
 
 REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real-sample"
@@ -31,7 +31,7 @@ def _plane_images(rig, n=2, noise=1.5, seed=0):
 def test_parallel_rig_has_the_textbook_period():
     # parallel axes at equal heights: u_p = fp (X - b) / Z + cx_p and u = fc X / Z + cx, so the
     # period is (W_p / f) (fc / fp) everywhere: 912 / 80 * 1230 / 1208.8
-    rig = Rig.default()
+    rig = make_parallel_rig()
     _, _, T = fr.period_map(rig, step=8)
     assert np.isfinite(T).all()
     np.testing.assert_allclose(T, 912 / 80 * 1230 / 1208.8, rtol=1e-9)
@@ -42,7 +42,7 @@ def test_parallel_rig_has_the_textbook_period():
 
 def test_period_map_matches_the_measured_fft_period():
     """The analytic map against an independent measurement: the FFT period of synthesised images."""
-    rig = fr.adjust_rig(Rig.default(), yaw=np.radians(3.0), pitch=np.radians(-2.0))
+    rig = fr.adjust_rig(make_parallel_rig(), yaw=np.radians(3.0), pitch=np.radians(-2.0))
     img = _plane_images(rig, 1, noise=0.0)[0]
     model = fr.band_model(rig, 4, 3)
     H, W = img.shape
@@ -56,7 +56,7 @@ def test_period_map_matches_the_measured_fft_period():
 
 
 def test_adjust_rig_keeps_camera_and_lights_the_view():
-    base = Rig.default()
+    base = make_parallel_rig()
     r = fr.adjust_rig(base, yaw=0.05, pitch=-0.03, roll=0.01, baseline=200.0, periods=78.0, focal=1250.0)
     np.testing.assert_array_equal(r.camera.K, base.camera.K)
     np.testing.assert_array_equal(r.camera.R, base.camera.R)
@@ -68,7 +68,7 @@ def test_adjust_rig_keeps_camera_and_lights_the_view():
 
 
 def test_fit_recovers_a_perturbed_rig():
-    base = Rig.default()
+    base = make_parallel_rig()
     truth = fr.adjust_rig(base, yaw=np.radians(-2.5), pitch=np.radians(1.5), periods=78.5)
     images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 3))]
     measured = fr.measure_bands(images)
@@ -88,7 +88,7 @@ def test_fit_recovers_a_perturbed_rig():
 def test_fit_reproduces_the_real_trend():
     images, layout = fr.load_fringe_images(REAL)
     assert layout == "real-sample"
-    fit = fr.fit_rig(fr.measure_bands(images), Rig.default())
+    fit = fr.fit_rig(fr.measure_bands(images), make_parallel_rig())
     left, right = fit.fitted_model["halves"]
     assert left == pytest.approx(11.96, abs=0.1) and right == pytest.approx(11.49, abs=0.1)
     assert left - right > 0.35
@@ -97,7 +97,7 @@ def test_fit_reproduces_the_real_trend():
 def test_cli(tmp_path, capsys):
     from fppsim.cli import main
 
-    truth = fr.adjust_rig(Rig.default(), yaw=np.radians(2.0), periods=81.0)
+    truth = fr.adjust_rig(make_parallel_rig(), yaw=np.radians(2.0), periods=81.0)
     for i, img in enumerate(_plane_images(truth, 2)):
         cv2.imwrite(str(tmp_path / f"frame_{i}.png"), img)
     out = tmp_path / "rig.json"
@@ -124,7 +124,7 @@ def test_cli(tmp_path, capsys):
 def test_phase_folders_give_plane_and_object_masks(tmp_path):
     from fppsim.psp_io import save_psp_folder_sample, sums_from_phase
 
-    rig = Rig.default()
+    rig = make_parallel_rig()
     img = _plane_images(rig, 1)[0]
     h, w = img.shape
     yy, xx = np.mgrid[0:h, 0:w]

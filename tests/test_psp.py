@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp
-from fppsim.rig import Device, Rig, make_default_rig
+from fppsim.rig import Device, Rig, make_default_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
 
@@ -322,7 +322,7 @@ def test_triangulate_full_grid_mask_and_height_from_phase():
 def test_reference_plane_formula_matches_triangulation(h):
     """The classic formula is exact for the default parallel-axis rig (same-height centres, axes normal
     to the plane); float64 agreement to 1e-9 mm."""
-    rig = make_default_rig()
+    rig = make_parallel_rig()
     L, d, f0 = psp.reference_plane_parameters(rig)
     assert (L, d) == (500.0, 180.0)
     assert f0 == pytest.approx(80 * 1208.8 / (912 * 500))
@@ -340,7 +340,7 @@ def test_reference_plane_formula_matches_triangulation(h):
 
 
 def test_reference_plane_formula_on_curved_surface_and_other_rigs():
-    rig = make_default_rig()
+    rig = make_parallel_rig()
     pixels = rig.camera.pixel_grid()[::8, ::8]
     X, _ = _scene_points(rig, pixels)
     ref = rig.camera.backproject(pixels, rig.camera.plane_depth(pixels, 0.0))
@@ -350,6 +350,8 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
                                X[..., 2], atol=1e-9)
     with pytest.raises(ValueError, match="perpendicular"):
         psp.reference_plane_parameters(_converging_rig())
+    with pytest.raises(ValueError, match="perpendicular"):  # the default rig's projector is yawed a little
+        psp.reference_plane_parameters(make_default_rig())
     # closed form on numbers: dphi = 2 pi f0 d h / (L - h)
     L, d, f0, hh = 400.0, 150.0, 0.1, 25.0
     assert psp.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fppsim.rig import Device, Rig, RigError, make_default_rig
+from fppsim.rig import Device, Rig, RigError, make_default_rig, make_parallel_rig
 
 
 @pytest.fixture
@@ -50,20 +50,56 @@ def test_world_frame_convention(rig):
     assert uv[2, 1] < uv[0, 1]  # +y world -> up in the image (camera y points down)
 
 
-def test_default_fringe_period_uniform(rig):
-    """Period of the 80-period pattern on the plane, in camera pixels, at many image points."""
+def _plane_periods(rig, uv):
+    """Period of the pattern on the plane, in camera pixels, at camera pixels ``uv`` (analytic)."""
+    cam = rig.camera
+    X = cam.backproject(uv, cam.plane_depth(uv))
+    u_p = rig.projector.project(X)[0][..., 0]
+    X2 = cam.backproject(uv + [1, 0], cam.plane_depth(uv + [1, 0]))
+    du_p = rig.projector.project(X2)[0][..., 0] - u_p  # projector columns per camera pixel
+    return rig.projector.width / rig.periods / np.abs(du_p), u_p
+
+
+def test_parallel_rig_fringe_period_uniform():
+    rig = make_parallel_rig()
+    uv = np.stack(np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 351, 5)), -1).reshape(-1, 2)
+    period, _ = _plane_periods(rig, uv)
+    np.testing.assert_allclose(period, 11.6, rtol=1e-3)
+
+
+def test_default_fringe_period_falls_left_to_right(rig):
+    """The real figshare rig: 12.06 -> 11.39 px over four column bands, no trend down a column."""
     cam = rig.camera
     uv = np.stack(np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 351, 5)), -1).reshape(-1, 2)
-    X = cam.backproject(uv, cam.plane_depth(uv))
-    u_p = rig.projector.project(X)[0][:, 0]
-    X2 = cam.backproject(uv + [1, 0], cam.plane_depth(uv + [1, 0]))
-    du_p = rig.projector.project(X2)[0][:, 0] - u_p  # projector columns per camera pixel
-    period = rig.projector.width / rig.periods / np.abs(du_p)
-    assert np.all(np.abs(period - 11.6) < 0.1 * 11.6), period
+    period, u_p = _plane_periods(rig, uv)
+    grid = period.reshape(5, 9)
+    assert np.all(np.diff(grid, axis=1) < 0)  # falls steadily left to right
+    np.testing.assert_allclose(grid, np.broadcast_to(grid[:1], grid.shape), rtol=2e-3)  # nothing top to bottom
+    assert grid[0, 0] == pytest.approx(12.2, abs=0.1) and grid[0, -1] == pytest.approx(11.25, abs=0.1)
     # vertical fringes: moving down a camera column does not change the projector column
     X3 = cam.backproject(uv + [0, 1], cam.plane_depth(uv + [0, 1]))
     assert np.max(np.abs(rig.projector.project(X3)[0][:, 0] - u_p)) < 1e-9
     assert np.all((u_p > 0) & (u_p < rig.projector.width - 1))  # the projector covers the view
+
+
+@pytest.mark.slow
+def test_default_rig_rendered_plane_period_trend(rig):
+    """A rendered plane measured like compare-real: halves ~11.96 | 11.49 px, bands ~12.06 -> 11.39."""
+    from fppsim.optics import Optics
+    from fppsim.stats import estimate_period, quarter_periods
+    from fppsim.synth import render_images
+
+    pytest.importorskip("pyrender")
+    from fppsim.render import DepthRenderer, scene_geometry
+
+    geom = scene_geometry(rig, [], DepthRenderer(), scale=1)
+    img = render_images(geom, rig, Optics(), [(80.0, 0.0)], None, 1)[0].astype(float)
+    left, right = estimate_period(img[:, :320]), estimate_period(img[:, 320:])
+    assert left == pytest.approx(11.96, abs=0.08) and right == pytest.approx(11.49, abs=0.08)
+    bands = [estimate_period(img[:, i * 160:(i + 1) * 160]) for i in range(4)]
+    assert bands[0] == pytest.approx(12.06, abs=0.1) and bands[-1] == pytest.approx(11.39, abs=0.1)
+    q = quarter_periods(img)  # top-left, top-right, bottom-left, bottom-right: no vertical trend
+    assert abs(q[0] - q[2]) < 0.05 and abs(q[1] - q[3]) < 0.05 and q[0] > q[1] + 0.3
 
 
 @pytest.mark.parametrize("ext", [".json", ".yaml"])

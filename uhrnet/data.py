@@ -712,8 +712,9 @@ class Prepared(Dataset):
     """
 
     def __init__(self, dataset: Dataset, crop: tuple[int, int] | None = None,
-                 resize: tuple[int, int] | None = None, random_crop: bool = True):
+                 resize: tuple[int, int] | None = None, random_crop: bool = True, augment=None):
         self.dataset, self.crop, self.resize, self.random_crop = dataset, crop, resize, random_crop
+        self.augment = augment  # uhrnet.augment.AugmentConfig: photometric jitter of synthetic samples
         self.transform = getattr(dataset, "transform", None)
         self.ids = getattr(dataset, "ids", None)
 
@@ -725,6 +726,10 @@ class Prepared(Dataset):
         sample = self.dataset[index]
         if self.resize is not None:
             sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
+        if self.augment is not None and seed is not None and sample.get("source") == "synthetic":
+            from uhrnet.augment import augment_sample
+
+            sample = augment_sample(sample, seed, self.augment)
         if self.crop is not None:
             H, W = sample["fringe"].shape[-2:]
             h, w = self.crop

@@ -49,11 +49,11 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None,
+    "raw_output": False, "grad_clip": None, "augment": True,
 }
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output")
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment")
 
 HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
                    "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
@@ -91,6 +91,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
     d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
+    d.add_argument("--no-augment", dest="augment", action="store_const", const=False,
+                   help="no photometric augmentation of synthetic samples (gain, gamma, contrast, blur, noise; "
+                        "uhrnet.augment) [on for synthetic data]")
     m = p.add_argument_group("model and optimisation")
     m.add_argument("--model", choices=_model_names(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
@@ -329,7 +332,10 @@ class Trainer:
                                cfg["synthetic_split"], cfg["synthetic_label"])
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
-        self.train_set = Prepared(sources.train, crop, resize, random_crop=True)
+        from uhrnet.augment import AugmentConfig
+
+        self.train_set = Prepared(sources.train, crop, resize, random_crop=True,
+                                  augment=AugmentConfig() if cfg["augment"] else None)
         self.val_set = Prepared(sources.val, crop, resize, random_crop=False)
         if len(self.train_set) == 0:
             raise CLIError("no training samples: every sample is in the val/test split "

@@ -1,0 +1,167 @@
+"""uhrnet.sim2real: object mask, metrics on real data, variants/ablation parsing, report, evaluation."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from uhrnet.sim2real import (
+    SCALES, Sim2RealConfig, Sim2RealError, Variant, evaluate_real, generate_command, load_variants,
+    markdown_report, object_mask, parse_variant, plane_level, real_metrics, train_command,
+)
+
+from _uhrnet_fixtures import REAL_SAMPLE, train_tiny, write_figshare
+
+
+def _scene(h=60, w=80, plane=-97.0, bump_mm=30.0):
+    """A plane label with noise +-0.5 units, a disc 'object' of bump_mm and a shadow of -105."""
+    rng = np.random.default_rng(0)
+    label = plane + rng.uniform(-0.5, 0.5, (h, w))
+    yy, xx = np.mgrid[0:h, 0:w]
+    disc = (yy - 30) ** 2 + (xx - 40) ** 2 < 15 ** 2
+    label[disc] = plane + 6.0 * bump_mm
+    shadow = (yy - 30) ** 2 + (xx - 20) ** 2 < 5 ** 2
+    label[shadow & ~disc] = -105.0
+    return label, label > -100, disc, shadow & ~disc
+
+
+def test_plane_level_and_object_mask_against_construction():
+    label, valid, disc, _ = _scene()
+    assert plane_level(label, valid) == pytest.approx(-97.0, abs=0.2)
+    obj, plane = object_mask(label, valid, 6.0, 1.0)
+    np.testing.assert_array_equal(obj, disc)
+    # a bump lower than object_mm is not an object
+    low, v, _, _ = _scene(bump_mm=0.5)
+    assert not object_mask(low, v, 6.0, 1.0)[0].any()
+
+
+def test_real_metrics_perfect_flat_and_offset_predictions():
+    label, valid, disc, _ = _scene(bump_mm=30.0)
+    m = real_metrics(label, label, valid)
+    assert m["object_rmse_mm"] == 0 and m["valid_rmse_mm"] == 0
+    assert m["true_object_mean_mm"] == pytest.approx(30.0, abs=0.1)
+    assert m["object_fraction"] == pytest.approx(disc.mean())
+    flat = np.full_like(label, -97.0)
+    m = real_metrics(flat, label, valid)
+    assert m["object_rmse_mm"] == pytest.approx(30.0, abs=0.1) == m["flat_object_rmse_mm"]
+    assert m["pred_object_mean_mm"] == pytest.approx(0.0, abs=0.1)
+    expected_valid = np.sqrt(np.mean(((flat - label)[valid] / 6.0) ** 2))
+    assert m["valid_rmse_mm"] == pytest.approx(expected_valid)
+    half = label + np.where(disc, -6.0 * 15.0, 0.0)  # objects predicted 15 mm too low
+    m = real_metrics(half, label, valid)
+    assert m["object_rmse_mm"] == pytest.approx(15.0) and m["object_bias_mm"] == pytest.approx(-15.0)
+    assert m["background_rmse_mm"] == 0
+
+
+def test_parse_variant_forms():
+    assert parse_variant("base") == Variant("base")
+    v = parse_variant("aug-off: | --no-augment")
+    assert v.generate == [] and v.train == ["--no-augment"]
+    v = parse_variant("rig: --rig-jitter 0 --optics 'gain=200,210'")
+    assert v.generate == ["--rig-jitter", "0", "--optics", "gain=200,210"] and v.train == []
+    v = parse_variant("both: --procedural-share 0 | --no-augment --lr 1e-3")
+    assert v.generate == ["--procedural-share", "0"] and v.train == ["--no-augment", "--lr", "1e-3"]
+    with pytest.raises(Sim2RealError, match="variant name"):
+        parse_variant("a/b")
+    with pytest.raises(Sim2RealError, match="quotation"):
+        parse_variant("x: --optics 'gain=1")
+
+
+def test_load_variants_yaml(tmp_path):
+    p = tmp_path / "abl.yaml"
+    p.write_text("- name: base\n- name: no-aug\n  train: --no-augment\n"
+                 "- name: parallel\n  generate: [--rig, assets/parallel.json]\n- 'x: --count 3 | --lr 1'\n")
+    vs = load_variants(p)
+    assert [v.name for v in vs] == ["base", "no-aug", "parallel", "x"]
+    assert vs[1].train == ["--no-augment"] and vs[2].generate == ["--rig", "assets/parallel.json"]
+    p.write_text("- name: a\n  bogus: 1\n")
+    with pytest.raises(Sim2RealError, match="unknown keys"):
+        load_variants(p)
+    p.write_text("{}")
+    with pytest.raises(Sim2RealError, match="non-empty list"):
+        load_variants(p)
+    with pytest.raises(Sim2RealError, match="not found"):
+        load_variants(tmp_path / "nope.yaml")
+
+
+def test_config_scales_and_commands(tmp_path):
+    cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
+    assert (cfg.count, cfg.seed, cfg.epochs, cfg.model, cfg.base_channels) == (400, 100, 10, "unet", 16)
+    g = generate_command(cfg, Variant("v", ["--rig-jitter", "0"]), tmp_path / "syn")
+    tail = g[3:]
+    assert tail[:3] == ["generate", "--meshes", "../shared/meshes"]
+    for a, b in (("--count", "400"), ("--seed", "100"), ("--workers", "2"), ("--format", "figshare")):
+        assert tail[tail.index(a) + 1] == b
+    assert "--no-psp" in tail and tail[-2:] == ["--rig-jitter", "0"]
+    t = train_command(cfg, Variant("v", [], ["--no-augment"]), tmp_path / "syn", tmp_path / "run")
+    for a, b in (("--model", "unet"), ("--base-channels", "16"), ("--loss", "compound"), ("--epochs", "10"),
+                 ("--batch-size", "2"), ("--lr", "0.0005"), ("--device", "cpu")):
+        assert t[t.index(a) + 1] == b
+    assert t[-1] == "--no-augment"
+    gpu = Sim2RealConfig(out=str(tmp_path), real=["r"], scale="gpu")
+    assert gpu.model == "uhrnet" and gpu.count >= 2000 and "--base-channels" not in train_command(
+        gpu, Variant("v"), tmp_path, tmp_path)
+    with pytest.raises(Sim2RealError, match="unknown scale"):
+        Sim2RealConfig(out="o", real=["r"], scale="tpu")
+    with pytest.raises(Sim2RealError, match="unique"):
+        Sim2RealConfig(out="o", real=["r"], variants=[Variant("a"), Variant("a")])
+    with pytest.raises(Sim2RealError, match="no real data"):
+        Sim2RealConfig(out="o", real=[])
+    assert set(SCALES) == {"cpu", "gpu"}
+
+
+def test_markdown_report_rows():
+    real = {"object_rmse_mm": 12.3456, "valid_rmse_mm": 5.0, "flat_object_rmse_mm": 39.9,
+            "true_object_mean_mm": 39.7, "pred_object_mean_mm": 25.7}
+    report = {"config": {"scale": "cpu", "count": 400, "seed": 100, "model": "unet", "base_channels": 16,
+                         "epochs": 10, "batch_size": 2, "lr": 5e-4, "loss": "compound", "object_mm": 1.0},
+              "variants": [{"name": "base", "generate": [], "train": ["--no-augment"], "real": real,
+                            "synthetic_val_rmse_mm": 3.9, "timing": {"train_s": 600.0}}]}
+    md = markdown_report(report)
+    row = [line for line in md.splitlines() if line.startswith("| base")][0]
+    assert "12.35" in row and "39.7 / 25.7" in row and "--no-augment" in row and "(defaults)" in row
+    assert "| 10.0 |" in row
+
+
+def test_evaluate_real_writes_metrics_predictions_and_figure(tmp_path):
+    write_figshare(tmp_path / "syn", n=8, h=32, w=64, seed=1)
+    real = tmp_path / "real"
+    fr, z = write_figshare(real, n=2, h=32, w=64, seed=2)
+    run = train_tiny(tmp_path / "run", "--synthetic", tmp_path / "syn", "--synthetic-split", "train",
+                     extra=["--no-augment"])
+    doc = evaluate_real(run / "last.pt", [str(real)], tmp_path / "ev", figures=True)
+    assert doc["images"] == 2 and len(doc["per_image"]) == 2
+    preds = np.load(tmp_path / "ev" / "predictions.npz")
+    assert sorted(preds.files) == ["0_000000", "0_000001"]
+    # the stored metrics are those of the stored predictions
+    for row in doc["per_image"]:
+        label = z[row["index"], ..., 0]
+        m = real_metrics(preds[row["key"]], label, label > -100)
+        assert m["valid_rmse_mm"] == pytest.approx(row["valid_rmse_mm"])
+    assert (tmp_path / "ev" / "real_0_000000.png").stat().st_size > 1000
+    assert (tmp_path / "ev" / "real_metrics.json").is_file()
+    with pytest.raises(Sim2RealError, match="no figshare-format pair"):
+        evaluate_real(run / "last.pt", [str(tmp_path)], tmp_path / "ev2")
+
+
+@pytest.mark.skipif(not (REAL_SAMPLE / "height_map.npy").is_file(), reason="../shared/real-sample absent")
+def test_real_sample_object_pixels_reproduce_the_issue_numbers():
+    """Object pixels of the published pair: 14.8% of the image, true mean 39.7 mm above the plane."""
+    z = np.load(REAL_SAMPLE / "height_map.npy")
+    m = real_metrics(np.full_like(z, -97.0), z, z > -100)
+    assert m["true_object_mean_mm"] == pytest.approx(39.7, abs=0.1)
+    assert m["flat_object_rmse_mm"] == pytest.approx(39.9, abs=0.5)
+    assert m["object_fraction"] == pytest.approx(0.148, abs=0.002)
+
+
+def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, capsys):
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("s2r", Path(__file__).resolve().parents[1] / "pipelines" / "sim2real.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    rc = mod.main(["--real", str(tmp_path), "--out", str(tmp_path / "o"), "--variant", "a: | --no-augment"])
+    assert rc == 1 and "no figshare-format pair" in capsys.readouterr().err
+    abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")
+    assert abl[0].name == "defaults" and abl[0].generate == abl[0].train == []
+    assert {"no-augment", "no-rig-jitter", "files-only", "parallel-rig"} <= {v.name for v in abl}

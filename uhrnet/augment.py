@@ -1,0 +1,116 @@
+"""Training-time photometric augmentation of synthetic fringe images.
+
+A network learns as a constant whatever it never sees varied: one gain, one gamma, one blur, one noise
+level of the simulator. Real cameras differ in all of them, and real plaster lit at grazing angles
+shows very dark, low-contrast fringes next to bright ones. Each synthetic training sample is therefore
+re-exposed with a seeded random draw of:
+
+- gain: a global factor times a smooth low-frequency gain field (uneven lighting, albedo);
+- gamma: ``I' = 255 (I/255)^gamma`` (camera/projector response);
+- contrast: the fringe modulation around a local (blurred) background is scaled;
+- blur: a Gaussian of random width (focus);
+- noise: Gaussian read noise plus shot noise, then 8-bit quantisation (the data are 8-bit).
+
+The fringe arrives in the dataset encoding (8-bit intensity / 127.5 - 1, in [-1, 1]); invalid pixels
+(mask 0) are exactly -1 before and after. Same sample and seed -> identical output.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["AugmentConfig", "augment_fringe", "augment_sample"]
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Ranges of the photometric jitter (uniform draws; ``gamma`` log-uniform).
+
+    probability : chance that a sample is augmented at all (the rest are shown unchanged).
+    gain : global intensity factor. field : amplitude of the smooth gain field (relative, +-).
+    gamma : response exponent range. contrast : factor on the fringe modulation around the local mean.
+    blur : Gaussian sigma range, pixels. noise : read-noise sigma range, gray levels.
+    shot : shot-noise variance per gray level range.
+    """
+
+    probability: float = 0.8
+    gain: tuple[float, float] = (0.6, 1.4)
+    field: float = 0.35
+    gamma: tuple[float, float] = (0.6, 1.5)
+    contrast: tuple[float, float] = (0.6, 1.2)
+    blur: tuple[float, float] = (0.0, 1.2)
+    noise: tuple[float, float] = (0.0, 3.0)
+    shot: tuple[float, float] = (0.0, 0.1)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy.ndimage import gaussian_filter
+
+    return gaussian_filter(x, sigma, mode="nearest") if sigma > 0 else x
+
+
+def _smooth_field(shape, rng: np.random.Generator, scale: float = 0.25) -> np.ndarray:
+    """Zero-mean smooth random field in [-1, 1] varying over about ``scale`` of the image width."""
+    h, w = shape
+    gh, gw = max(2, int(round(1 / scale)) + 1), max(2, int(round(w / h / scale)) + 1)
+    coarse = rng.uniform(-1.0, 1.0, (gh, gw))
+    import torch.nn.functional as F
+
+    t = torch.from_numpy(coarse)[None, None]
+    return F.interpolate(t, size=(h, w), mode="bicubic", align_corners=True)[0, 0].clamp(-1, 1).numpy()
+
+
+def augment_fringe(fringe: np.ndarray, valid: np.ndarray, rng: np.random.Generator,
+                   cfg: AugmentConfig = AugmentConfig()) -> np.ndarray:
+    """Augmented copy of one fringe image.
+
+    Parameters
+    ----------
+    fringe : (H, W) float in [-1, 1] (8-bit intensity / 127.5 - 1).
+    valid : (H, W) bool, False where the label is invalid; those pixels come back exactly -1.
+    rng : the sample's generator (all draws come from it).
+
+    Returns (H, W) float32 in [-1, 1], quantised to the 8-bit grid.
+    """
+    x = np.asarray(fringe, np.float64)
+    valid = np.asarray(valid, bool)
+    if rng.random() >= cfg.probability:
+        out = x.astype(np.float32)
+        out[~valid] = -1.0
+        return out
+    gain = rng.uniform(*cfg.gain)
+    field_amp = rng.uniform(0.0, cfg.field)
+    gamma = float(np.exp(rng.uniform(np.log(cfg.gamma[0]), np.log(cfg.gamma[1]))))
+    contrast = rng.uniform(*cfg.contrast)
+    blur = rng.uniform(*cfg.blur)
+    noise = rng.uniform(*cfg.noise)
+    shot = rng.uniform(*cfg.shot)
+    I = (x + 1.0) * 127.5
+    if contrast != 1.0:  # scale the fringe around its local background (about two periods wide)
+        background = _gauss(I, 6.0)
+        I = background + contrast * (I - background)
+    I = I * gain * (1.0 + field_amp * _smooth_field(I.shape, rng))
+    I = 255.0 * (np.clip(I, 0.0, None) / 255.0) ** gamma
+    I = _gauss(I, blur)
+    var = noise ** 2 + shot * np.clip(I, 0.0, None)
+    I = I + rng.standard_normal(I.shape) * np.sqrt(var)
+    I = np.rint(np.clip(I, 0.0, 255.0))
+    out = (I / 127.5 - 1.0).astype(np.float32)
+    out[~valid] = -1.0
+    return out
+
+
+def augment_sample(sample: dict, seed: int, cfg: AugmentConfig = AugmentConfig()) -> dict:
+    """The uhrnet sample dict with its ``fringe`` (1, H, W) augmented from ``seed``; other keys shared."""
+    rng = np.random.default_rng([int(seed), 0xA467])
+    fringe = sample["fringe"][0].numpy()
+    valid = sample["mask"][0].numpy() > 0.5
+    out = dict(sample)
+    out["fringe"] = torch.from_numpy(augment_fringe(fringe, valid, rng, cfg))[None]
+    return out
