@@ -144,16 +144,16 @@ def _jitter(text: str) -> tuple[float, float]:
 
 
 def add_realism_arguments(p: argparse.ArgumentParser) -> None:
-    """Options of the sim-to-real defaults: procedural sculptures and per-sample rig jitter."""
+    """Sim-to-real options (opt-in until measured on real data): procedural sculptures, per-sample rig jitter."""
     p.add_argument("--procedural-share", type=_fraction, default=None, metavar="P",
                    help="chance that each object is a procedural sculpture (fppsim.shapes.procedural: busts, "
                         "masks, figurines, animals, reliefs, vases with multi-scale surface detail) instead of "
-                        "one of --meshes (default 0.5; 1 when --meshes is just 'procedural')")
+                        "one of --meshes (default 0; 1 when --meshes is just 'procedural')")
     p.add_argument("--procedural-pool", type=_positive_int, default=96, metavar="N",
                    help="number of distinct procedural sculptures (seeds 0..N-1; any N) (default 96)")
-    p.add_argument("--rig-jitter", type=_jitter, default=(0.02, 0.03), metavar="YAW,FOCAL",
+    p.add_argument("--rig-jitter", type=_jitter, default=(0.0, 0.0), metavar="YAW,FOCAL",
                    help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
-                        "fringe period map varies like real rigs (default 0.02,0.03; 0 = off)")
+                        "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
 
 
 def realism_config(args) -> tuple[list[str], dict, object]:
@@ -163,7 +163,7 @@ def realism_config(args) -> tuple[list[str], dict, object]:
     meshes = [m for m in args.meshes if m != "procedural"]
     share = args.procedural_share
     if share is None:
-        share = 1.0 if not meshes else 0.5
+        share = 1.0 if not meshes else 0.0
     if not meshes and share < 1.0:
         raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
     return meshes, {"procedural_share": share, "procedural_pool": args.procedural_pool}, RigJitter(*args.rig_jitter)

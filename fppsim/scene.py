@@ -146,14 +146,14 @@ class SceneRanges:
     """Ranges of the seeded scene sampler (mm, radians). Defaults follow the real figshare data."""
 
     objects: tuple[int, int] = (1, 3)           # objects per scene, inclusive
-    footprint: tuple[float, float] = (70.0, 160.0)  # longest horizontal size of one object, mm
-    max_relief: tuple[float, float] = (35.0, 60.0)  # cap on an object's height above the plane, mm
+    footprint: tuple[float, float] = (70.0, 140.0)  # longest horizontal size of one object, mm
+    max_relief: tuple[float, float] = (35.0, 55.0)  # cap on an object's height above the plane, mm
     tilt: float = np.deg2rad(10.0)              # max tilt about a random horizontal axis
-    view_margin: float = 0.05                   # keep object centres this fraction inside the view (small:
-                                                # objects are often partly out of view, as in the real data)
+    view_margin: float = 0.15                   # keep object centres this fraction inside the view (0.05: often
+                                                # partly out of view, as in the real data; opt-in, unmeasured)
     overlap_probability: float = 0.35           # chance that a multi-object scene overlaps in depth
     flip_probability: float = 0.5               # chance to flip the canonical mesh upside down
-    procedural_share: float = 0.5               # chance that an object is a procedural sculpture
+    procedural_share: float = 0.0               # chance that an object is a procedural sculpture (opt-in)
     procedural_pool: int = 96                   # procedural shapes are fppsim.shapes.procedural(0..pool-1)
 
     def __post_init__(self):

@@ -43,7 +43,7 @@ class SynthConfig:
     psp_steps: int = 4
     min_object_fraction: float = 0.02
     max_attempts: int = 8
-    rig_jitter: RigJitter = field(default_factory=RigJitter)
+    rig_jitter: RigJitter = field(default_factory=lambda: RigJitter(0.0, 0.0))  # opt-in
 
     def to_dict(self) -> dict:
         return {

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim.jitter import RigJitter, jitter_rig
-from fppsim.rig import make_default_rig
+from fppsim.rig import make_figshare_like_rig as make_default_rig  # the rig with the real trend
 from fppsim.scene import PROCEDURAL_PREFIX, SceneRanges, procedural_asset, sample_scene
 from fppsim.shapes import PROCEDURAL_KINDS, add_detail, make_shape, procedural
 

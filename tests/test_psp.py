@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp
-from fppsim.rig import Device, Rig, make_default_rig, make_parallel_rig
+from fppsim.rig import Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
 
@@ -350,8 +350,8 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
                                X[..., 2], atol=1e-9)
     with pytest.raises(ValueError, match="perpendicular"):
         psp.reference_plane_parameters(_converging_rig())
-    with pytest.raises(ValueError, match="perpendicular"):  # the default rig's projector is yawed a little
-        psp.reference_plane_parameters(make_default_rig())
+    with pytest.raises(ValueError, match="perpendicular"):  # the figshare-like rig's projector is yawed
+        psp.reference_plane_parameters(make_figshare_like_rig())
     # closed form on numbers: dphi = 2 pi f0 d h / (L - h)
     L, d, f0, hh = 400.0, 150.0, 0.1, 25.0
     assert psp.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)

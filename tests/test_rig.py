@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fppsim.rig import Device, Rig, RigError, make_default_rig, make_parallel_rig
+from fppsim.rig import Device, Rig, RigError, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 
 @pytest.fixture
@@ -14,9 +14,15 @@ def rig():
     return Rig.default()
 
 
-def test_default_asset_matches_builder(rig):
-    built = make_default_rig()
+@pytest.mark.parametrize("asset,builder", [("default_rig.json", make_default_rig),
+                                           ("figshare_like_rig.json", make_figshare_like_rig)])
+def test_assets_match_builders(asset, builder):
+    from fppsim.rig import ASSETS
+
+    rig, built = Rig.load(ASSETS / asset), builder()
     np.testing.assert_allclose(rig.camera.K, built.camera.K)
+    np.testing.assert_allclose(rig.projector.K, built.projector.K)
+    np.testing.assert_allclose(rig.projector.R, built.projector.R, atol=1e-12)
     np.testing.assert_allclose(rig.projector.t, built.projector.t)
     assert rig.periods == 80 and rig.projector.width == 912 and (rig.camera.width, rig.camera.height) == (640, 352)
 
@@ -67,8 +73,14 @@ def test_parallel_rig_fringe_period_uniform():
     np.testing.assert_allclose(period, 11.6, rtol=1e-3)
 
 
-def test_default_fringe_period_falls_left_to_right(rig):
+@pytest.fixture
+def figshare_rig():
+    return make_figshare_like_rig()
+
+
+def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
     """The real figshare rig: 12.06 -> 11.39 px over four column bands, no trend down a column."""
+    rig = figshare_rig
     cam = rig.camera
     uv = np.stack(np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 351, 5)), -1).reshape(-1, 2)
     period, u_p = _plane_periods(rig, uv)
@@ -83,7 +95,7 @@ def test_default_fringe_period_falls_left_to_right(rig):
 
 
 @pytest.mark.slow
-def test_default_rig_rendered_plane_period_trend(rig):
+def test_figshare_like_rig_rendered_plane_period_trend(figshare_rig):
     """A rendered plane measured like compare-real: halves ~11.96 | 11.49 px, bands ~12.06 -> 11.39."""
     from fppsim.optics import Optics
     from fppsim.stats import estimate_period, quarter_periods
@@ -92,6 +104,7 @@ def test_default_rig_rendered_plane_period_trend(rig):
     pytest.importorskip("pyrender")
     from fppsim.render import DepthRenderer, scene_geometry
 
+    rig = figshare_rig
     geom = scene_geometry(rig, [], DepthRenderer(), scale=1)
     img = render_images(geom, rig, Optics(), [(80.0, 0.0)], None, 1)[0].astype(float)
     left, right = estimate_period(img[:, :320]), estimate_period(img[:, 320:])
