@@ -164,4 +164,5 @@ def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, 
     assert rc == 1 and "no figshare-format pair" in capsys.readouterr().err
     abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")
     assert abl[0].name == "defaults" and abl[0].generate == abl[0].train == []
-    assert {"no-augment", "no-rig-jitter", "files-only", "parallel-rig"} <= {v.name for v in abl}
+    assert {"augment", "figshare-like-rig", "figshare-like-rig-jitter", "procedural", "all-realism"} <= {v.name for v in abl}
+    assert all(v.generate or v.train for v in abl[1:])  # every other row turns an option on
