@@ -548,15 +548,17 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 
 # The real figshare rig is close to, but not exactly, parallel: its fringe period falls steadily from
 # left to right (12.06 -> 11.39 px over four column bands, 11.96 | 11.49 px between halves, nothing
-# top to bottom). A projector turned 4.63 deg about its y axis towards the scene reproduces that trend;
-# the focal length is then refitted so the halves measure 11.96 and 11.49 px on the plane.
-# Its fringes also shift 0.855 rad per mm of labelled height (label / 6) on the real pair (local fringe
-# frequency against the label slope on smooth object regions, the same estimator giving 0.49 rad/mm on
-# the 180 mm parallel rig whose exact value is 0.476): the real triangulation angle is larger. A 315 mm
-# baseline (32 deg at the centre) gives 0.832 rad/mm, and larger shadows, as the real data has.
-DEFAULT_BASELINE = 315.0  # mm
-DEFAULT_PROJECTOR_YAW = 0.0808046  # rad
-DEFAULT_PROJECTOR_FOCAL = 1312.613  # px
+# top to bottom). A projector turned about its y axis towards the scene reproduces that trend; the
+# focal length is then refitted so the four column bands match (band RMS 0.008 px).
+# Its height sensitivity was measured by re-projecting the real pair's labelled surface (label / 6 mm
+# above the plane) through candidate rigs and demodulating the real fringe with the phase each rig
+# predicts (fppsim.fit_rig.sensitivity_fit): the residual phase on the object is flat in height and
+# coherent (R = 0.988) only near a 330 mm baseline, 0.87 rad per mm at the image centre; the former
+# 180 mm parallel rig had 0.48 rad/mm (R = 0.20), i.e. it taught networks 1.8x too little fringe
+# shift per mm.
+DEFAULT_BASELINE = 330.0  # mm
+DEFAULT_PROJECTOR_YAW = 0.07499517978544548  # rad (4.30 deg)
+DEFAULT_PROJECTOR_FOCAL = 1309.7183169905145  # px
 
 
 def _rot_y(a: float) -> np.ndarray:
@@ -587,25 +589,25 @@ def make_parallel_rig() -> Rig:
 
 
 def make_default_rig() -> Rig:
-    """Build the default rig (what assets/default_rig.json holds): :func:`make_parallel_rig`, the rig
-    the project was measured with. The figshare-like rig below stays opt-in until it is shown to
-    transfer better to real images."""
-    rig = make_parallel_rig()
-    rig.name = "default: parallel axes, projector lens shift"
+    """Build the default rig (what assets/default_rig.json holds): :func:`make_figshare_like_rig`, the
+    rig fitted to the real figshare data (period trend and height sensitivity). The former default,
+    :func:`make_parallel_rig`, is ``assets/parallel_rig.json``."""
+    rig = make_figshare_like_rig()
+    rig.name = "default: " + rig.name
     return rig
 
 
 def make_figshare_like_rig() -> Rig:
     """Build the figshare-like rig (what assets/figshare_like_rig.json holds; ``--rig`` it).
 
-    Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (315 mm) to the +x side at the
-    camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.63 deg) towards the scene, ``fx = fy =
+    Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (330 mm) to the +x side at the
+    camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.30 deg) towards the scene, ``fx = fy =
     DEFAULT_PROJECTOR_FOCAL``, lens shift so the scene centre lands mid-projector. The plane's fringe
-    period falls from 12.08 px (left quarter) to 11.37 px (right quarter), 11.96 px in the left half
-    and 11.49 px in the right half, and is constant down a column (vertical fringes); a raised surface
-    shifts the phase by about -0.83 rad per mm at the image centre (one period per 7.6 mm).
+    period falls from 12.06 px (left quarter) to 11.40 px (right quarter), 11.95 px in the left half
+    and 11.51 px in the right half, and is constant down a column (vertical fringes); a raised surface
+    shifts the phase by about -0.87 rad per mm at the image centre (one period per 7.2 mm).
     """
     cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
     proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL, baseline=DEFAULT_BASELINE)
     return Rig(camera=cam, projector=proj, periods=80.0,
-               name="figshare-like (315 mm baseline, projector yawed 4.63 deg), lens shift")
+               name="figshare-like (330 mm baseline, projector yawed 4.30 deg), lens shift")

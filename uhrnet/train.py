@@ -49,7 +49,7 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": False,
+    "raw_output": False, "grad_clip": None, "augment": True,
 }
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
@@ -93,9 +93,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
     d.add_argument("--augment", dest="augment", action="store_const", const=True,
                    help="photometric augmentation of synthetic samples (gain, gamma, contrast, blur, noise; "
-                        "uhrnet.augment) [off: not yet shown to help on real images]")
+                        "uhrnet.augment; real samples are never augmented) [on]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const=False,
-                   help="no photometric augmentation (the default)")
+                   help="no photometric augmentation")
     m = p.add_argument_group("model and optimisation")
     m.add_argument("--model", choices=_model_names(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
