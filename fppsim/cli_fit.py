@@ -45,13 +45,17 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
     p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
+    p.add_argument("--sensitivity", choices=("auto", "off"), default="auto",
+                   help="auto: when the images have height labels, first choose the baseline whose fringe shift "
+                        "per mm matches them (re-projected labels vs the real fringes; fppsim.fit_rig.fit_baseline), "
+                        "then fit --params at that baseline; off: keep the base rig's baseline [auto]")
     p.add_argument("--json", metavar="FILE", help="also write measured / base / fitted band periods as JSON")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
 
 
 def run_fit_rig(args) -> int:
     from .dataset import atomic_write_text
-    from .fit_rig import fit_rig, format_fit, load_fringe_images, measure_bands
+    from .fit_rig import adjust_rig, fit_baseline, fit_rig, format_baseline_fit, format_fit, load_fringe_images, measure_bands
     from .rig import load_rig
 
     if args.col_bands < 1 or args.row_bands < 1 or args.max_images < 1:
@@ -60,13 +64,27 @@ def run_fit_rig(args) -> int:
     base = load_rig(args.base)
     images, layout = load_fringe_images(args.real, args.max_images)
     measured = measure_bands(images, args.col_bands, args.row_bands)
-    fit = fit_rig(measured, base, args.params)
     print(f"{args.real}: {len(images)} image(s), layout {layout}")
+    params, bfit = args.params, None
+    if args.sensitivity == "auto":
+        rest = tuple(p for p in params if p != "baseline")
+        bfit = fit_baseline(images, measured, base, rest or ("yaw",))
+        if bfit is None:
+            print("height sensitivity: no labelled images with enough object pixels; baseline kept")
+        else:
+            print(format_baseline_fit(bfit))
+            print()
+            base = adjust_rig(base, baseline=bfit.baseline)
+            params = rest
+    fit = fit_rig(measured, base, params or ("yaw",))
     print(format_fit(fit))
     fit.rig.save(out)
     print(f"rig: {out}")
     if args.json:
-        atomic_write_text(args.json, json.dumps(fit.to_dict(), indent=1))
+        doc = fit.to_dict()
+        if bfit is not None:
+            doc["sensitivity"] = bfit.to_dict()
+        atomic_write_text(args.json, json.dumps(doc, indent=1))
     return 0
 
 

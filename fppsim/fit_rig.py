@@ -28,7 +28,9 @@ import numpy as np
 from .rig import Device, Rig, RigError
 
 __all__ = ["PARAMETERS", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
-           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "format_fit"]
+           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "format_fit", "surface_phase",
+           "centre_sensitivity", "SensitivityCheck", "sensitivity_check", "BaselineFit", "fit_baseline",
+           "format_baseline_fit"]
 
 PARAMETERS = {
     "yaw": "rotation of the projector about its own y axis (rad); tilts the pattern's depth left to right",
@@ -461,4 +463,174 @@ def format_fit(fit: RigFit) -> str:
         shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") else (lambda x: f"{x:.3f}")
         lines.append(f"{p:<10} {shown(b):>14} -> {shown(v):>14}   ({PARAMETERS[p].split(';')[0]})")
     lines.append(f"plane coverage by the projector: {fit.coverage:.1%}; optimiser: {fit.message}")
+    return "\n".join(lines)
+
+
+# ====================================================================== height sensitivity from labels
+def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
+    """Projector phase (rad, ``2 pi f u_p / W_p``) the rig predicts at every camera pixel for the surface
+    ``height_mm`` (H, W) mm above the reference plane (NaN -> 0).
+
+    Exact for a height field: the point a pixel sees at height h is where its camera ray meets z = h.
+    """
+    cam = rig.camera
+    h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
+    if h.shape != (cam.height, cam.width):
+        raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
+    origin, d = cam.pixel_rays(cam.pixel_grid())
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (h - origin[2]) / d[..., 2]
+    uv, _ = rig.projector.project(origin + s[..., None] * d)
+    return rig.phase_of_column(uv[..., 0])
+
+
+def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
+    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
+    cam = rig.camera
+    H, W = cam.height, cam.width
+    lo = surface_phase(rig, np.zeros((H, W)))[H // 2, W // 2]
+    hi = surface_phase(rig, np.full((H, W), dh))[H // 2, W // 2]
+    return float((hi - lo) / dh)
+
+
+@dataclass
+class SensitivityCheck:
+    """How well a rig's height sensitivity matches one labelled real image (:func:`sensitivity_check`).
+
+    coherence : |mean phasor| of the residual phase on object pixels (1 = the rig predicts how the real
+    fringes shift with height everywhere on the object; low = the shift per mm differs).
+    slope : residual phase per mm of height on the object (rad/mm; 0 when the sensitivity matches).
+    offset : circular mean of the object residual (rad). plane_std : residual std on the plane (rad).
+    n_object : object pixels used.
+    """
+
+    coherence: float
+    slope: float
+    offset: float
+    plane_std: float
+    n_object: int
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree: int = 3,
+                      object_mm: float = 2.0) -> SensitivityCheck | None:
+    """Compare the fringe shift a rig predicts for a labelled real image with the real fringes.
+
+    The labelled surface is re-projected through ``rig`` (:func:`surface_phase`, phase ``phi``); the real
+    fringe, less its local mean, is demodulated with ``exp(-i phi)`` and low-passed (Gaussian ``smooth``
+    px), leaving the phase the rig does NOT explain. On the plane that is the carrier mismatch, a
+    smooth field: a ``degree`` polynomial in (x, y) fitted to it (unwrapped) is removed everywhere. On
+    the object, what remains is flat in height only when the rig's phase shift per mm matches the real
+    one. Returns None when the image has no labels or too few object pixels.
+    """
+    from scipy import ndimage as ndi
+    from skimage.restoration import unwrap_phase
+
+    if image.height_mm is None or image.plane is None:
+        return None
+    h = np.where(image.valid, np.nan_to_num(image.height_mm), 0.0)
+    inner = ndi.binary_erosion(image.valid, iterations=int(np.ceil(1.5 * smooth)))
+    plane = inner & image.plane
+    obj = inner & (h > object_mm)
+    if plane.sum() < 1000 or obj.sum() < 200:
+        return None
+    g = image.gray.astype(np.float64)
+    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
+    c = g * np.exp(-1j * surface_phase(rig, h))
+    w = image.valid.astype(np.float64)
+    cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
+    d = np.angle(cs)
+    du = unwrap_phase(np.ma.array(d, mask=~plane))
+    H, W = d.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    x, y = xx / max(W - 1, 1) * 2 - 1, yy / max(H - 1, 1) * 2 - 1
+    A = np.stack([x ** i * y ** (t - i) for t in range(degree + 1) for i in range(t + 1)], axis=-1)
+    coef = np.linalg.lstsq(A[plane], np.asarray(du)[plane], rcond=None)[0]
+    r = np.angle(np.exp(1j * (d - A @ coef)))
+    ro, ho = r[obj], h[obj]
+    phasor = np.mean(np.exp(1j * ro))
+    offset = float(np.angle(phasor))
+    centred = np.angle(np.exp(1j * (ro - offset)))  # unwrapped around the mean: slope is then meaningful
+    slope = float(np.polyfit(ho, centred, 1)[0]) if np.ptp(ho) > 1.0 else float("nan")
+    return SensitivityCheck(float(np.abs(phasor)), slope, offset, float(np.std(r[plane])), int(obj.sum()))
+
+
+@dataclass
+class BaselineFit:
+    """Result of :func:`fit_baseline`: the chosen baseline (mm), the rig fitted at it, the scan
+    (baseline, mean coherence) and the per-image checks at the chosen baseline."""
+
+    baseline: float
+    rig: Rig
+    scan: list
+    checks: list
+    sensitivity: float
+
+    def to_dict(self) -> dict:
+        return {"baseline_mm": self.baseline, "centre_sensitivity_rad_per_mm": self.sensitivity,
+                "scan": [{"baseline_mm": b, "coherence": c} for b, c in self.scan],
+                "checks": [c.to_dict() for c in self.checks]}
+
+
+def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
+                 params: tuple[str, ...] = ("yaw", "focal"), baselines=None, refine: float = 2.0,
+                 smooth: float = 4.0) -> BaselineFit | None:
+    """Choose the camera-projector baseline whose height sensitivity matches labelled real images.
+
+    For each candidate baseline (mm, default 120..480 in steps of 15) the rig's other ``params`` are
+    refitted to the measured band periods (:func:`fit_rig`, so the plane's period map stays the real
+    one), then :func:`sensitivity_check` scores every labelled image; the score is the object-pixel
+    weighted mean coherence. The best grid point is refined in steps of ``refine`` mm. Returns None when
+    no image has height labels with enough object pixels (plain images, phase-only folders).
+    """
+    labelled = [im for im in images if im.height_mm is not None]
+    if not labelled:
+        return None
+    params = tuple(p for p in params if p != "baseline")
+    grid = np.arange(120.0, 481.0, 15.0) if baselines is None else np.asarray(baselines, dtype=np.float64)
+
+    cache: dict = {}
+
+    def score(b: float):
+        b = round(float(b), 3)
+        if b not in cache:
+            try:
+                rig = fit_rig(measured, adjust_rig(base, baseline=b), params).rig if params else adjust_rig(base, baseline=b)
+            except RigError:
+                cache[b] = (-1.0, None, [])
+                return cache[b]
+            checks = [c for c in (sensitivity_check(rig, im, smooth) for im in labelled) if c is not None]
+            if not checks:
+                cache[b] = (float("nan"), rig, [])
+            else:
+                wts = np.array([c.n_object for c in checks], dtype=np.float64)
+                cache[b] = (float(np.sum(wts * [c.coherence for c in checks]) / wts.sum()), rig, checks)
+        return cache[b]
+
+    coarse = [(float(b), score(b)[0]) for b in grid]
+    if all(not np.isfinite(c) for _, c in coarse):
+        return None
+    best = max((c, b) for b, c in coarse if np.isfinite(c))[1]
+    step = float(np.min(np.diff(np.sort(grid)))) if len(grid) > 1 else 0.0
+    if refine and step > refine:
+        for b in np.arange(best - step + refine, best + step, refine):
+            if b > 0:
+                score(b)
+    scan = sorted((b, v[0]) for b, v in cache.items() if np.isfinite(v[0]) and v[1] is not None)
+    best = max(scan, key=lambda t: t[1])[0]
+    _, rig, checks = cache[round(best, 3)]
+    return BaselineFit(float(best), rig, scan, checks, centre_sensitivity(rig))
+
+
+def format_baseline_fit(fit: BaselineFit) -> str:
+    """Plain-text summary of :func:`fit_baseline`: the coherence scan and the chosen baseline."""
+    lines = ["height sensitivity from the labels (re-projected surface vs real fringes; 1 = matches)",
+             f"{'baseline mm':>12}{'coherence':>11}"]
+    lines += [f"{b:>12.1f}{c:>11.3f}" for b, c in fit.scan]
+    slopes = [c.slope for c in fit.checks if np.isfinite(c.slope)]
+    lines.append(f"chosen baseline {fit.baseline:.1f} mm: {abs(fit.sensitivity):.3f} rad of fringe shift per mm "
+                 f"at the image centre; residual slope {np.median(slopes) if slopes else float('nan'):+.4f} rad/mm "
+                 f"over {len(fit.checks)} labelled image(s)")
     return "\n".join(lines)

@@ -140,3 +140,63 @@ def test_phase_folders_give_plane_and_object_masks(tmp_path):
     assert not (im.plane & (bump > 1)).any()
     assert (im.obj == (im.valid & (0.5 * bump > 1.0))).mean() > 0.999
     assert im.plane.sum() > 0.9 * (im.valid & (bump == 0)).sum()
+
+
+# ---------------------------------------------------------------- height sensitivity from labels
+def _rendered(tmp_path, rig, count=2, seed=5):
+    """Samples rendered by pyrender (independent of fit_rig's re-projection) with the given rig."""
+    from fppsim.generate import generate
+    from fppsim.optics import OpticsRanges
+    from fppsim.synth import SynthConfig
+
+    ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
+    out = tmp_path / f"syn{seed}"
+    generate([str(ASSETS)], out, count, seed=seed, config=SynthConfig(rig=rig, optics=OpticsRanges(), psp_freqs=()),
+             fmt="figshare", progress=False)
+    return out
+
+
+def test_surface_phase_equals_the_rendered_projector_phase(tmp_path):
+    """Re-projecting the exact rendered height through the rig gives the renderer's projector phase."""
+    from fppsim.rig import make_default_rig
+
+    rig = make_default_rig()
+    out = _rendered(tmp_path, rig, count=1)
+    a = np.load(out / "native" / "000000" / "arrays.npz")
+    valid = a["mask"] > 0
+    phi = fr.surface_phase(rig, np.where(valid, a["height"], 0.0))
+    err = np.abs(phi - a["phase_true"])[valid]
+    # float32 storage of the height (and of a phase of up to ~500 rad) limits the agreement
+    assert np.median(err) < 2e-3 and np.percentile(err, 99) < 2e-2
+    # a 1 mm step shifts the phase by the centre sensitivity; the default rig's is about -0.87 rad/mm
+    assert fr.centre_sensitivity(rig) == pytest.approx(-0.87, abs=0.01)
+    assert fr.centre_sensitivity(make_parallel_rig()) == pytest.approx(-0.48, abs=0.01)
+
+
+@pytest.mark.slow
+def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
+    """Images rendered with a 260 mm baseline, fitted from the 180 mm parallel rig: the scan peaks there."""
+    true = fr.adjust_rig(make_parallel_rig(), baseline=260.0)
+    out = _rendered(tmp_path, true, count=3)
+    images, _ = fr.load_fringe_images(out)
+    measured = fr.measure_bands(images)
+    fit = fr.fit_baseline(images, measured, make_parallel_rig(), params=("yaw",),
+                          baselines=np.arange(150.0, 400.0, 20.0), refine=5.0)
+    assert fit is not None
+    assert fit.baseline == pytest.approx(260.0, abs=10.0)
+    assert max(c for _, c in fit.scan) > 0.9
+    assert fit.sensitivity == pytest.approx(fr.centre_sensitivity(true), rel=0.05)
+    # plain images have no labels: nothing to fit
+    plain = [fr.FringeImage(im.gray, im.valid, im.name) for im in images]
+    assert fr.fit_baseline(plain, measured, make_parallel_rig()) is None
+
+
+@pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real-sample not present")
+def test_real_pair_sensitivity_matches_the_default_rig_not_the_parallel_one():
+    from fppsim.rig import make_default_rig
+
+    images, _ = fr.load_fringe_images(REAL)
+    good = fr.sensitivity_check(make_default_rig(), images[0])
+    bad = fr.sensitivity_check(make_parallel_rig(), images[0])
+    assert good.coherence > 0.95 and abs(good.slope) < 0.05
+    assert bad.coherence < 0.5
