@@ -7,6 +7,9 @@ Rules this module implements:
 * A folder a tool writes into is locked with ``flock`` on the folder itself for the whole run, so a
   second run on the same folder refuses instead of destroying the first one's work; the kernel
   releases the lock when the process dies, even after kill -9.
+* Every file either package writes goes through :func:`atomic_path` (or :func:`atomic_write_text` /
+  :func:`atomic_write_bytes` on top of it): temp sibling, fsync, one rename, fsync of the folder; a
+  failure (disk full, Ctrl-C) removes the temp file and leaves the previous file untouched.
 * SIGTERM (e.g. a Slurm timeout) is turned into :class:`Interrupted`, a ``KeyboardInterrupt``, so the
   same clean-up path as Ctrl-C runs (worker pools terminated, temp files removed) and the command exits
   ``128 + signum`` with one line.
@@ -22,20 +25,20 @@ import shutil
 import signal
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
+
+from .errors import FolderBusy
 
 __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
-           "check_writable_dir", "write_fully"]
+           "check_writable_dir", "write_fully", "atomic_path", "atomic_write_text", "atomic_write_bytes",
+           "fsync_dir"]
 
 TMP_PREFIX = ".fppsim-tmp-"
 _TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
 # temp names written by earlier versions (".f1_80.npy.1234.tmp", ".best.pt.tmp-1234", ...): also ours
 _LEGACY_RE = re.compile(r"^\.(?:f1_80\.npy|Z\.npy|manifest\.jsonl|dataset\.json)\.(\d+)\.tmp$"
                         r"|^\.(?:best|last)\.pt\.tmp-(\d+)$")
-
-
-class FolderBusy(RuntimeError):
-    """Another process holds the folder's lock (one line naming the folder)."""
 
 
 class Interrupted(KeyboardInterrupt):
@@ -50,6 +53,54 @@ def tmp_path(final: str | os.PathLike, pid: int | None = None) -> Path:
     """The temporary sibling of ``final`` this process writes before renaming it into place."""
     final = Path(final)
     return final.with_name(f"{TMP_PREFIX}{os.getpid() if pid is None else pid}-{final.name}")
+
+
+def fsync_dir(folder: str | os.PathLike) -> None:
+    """Make a rename in ``folder`` durable; silently skipped where a folder cannot be opened."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+    except OSError:
+        pass
+
+
+@contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield the temporary path (:func:`tmp_path`) to write ``path`` through; on success fsync it and
+    rename it over ``path``.
+
+    The one write helper of both packages (text, bytes, .mat, PNG figures, checkpoints): a crash or
+    kill at any moment leaves either the previous file or the new one, never a torn file; on an
+    exception (disk full, Ctrl-C) the temporary file is removed and ``path`` is untouched. A temp file
+    left by kill -9 is ours by name and removed by :func:`clean_stale_tmp` once its process is gone.
+    The suffix of ``path`` ends the temp name too, so writers that pick the format from it still work.
+    """
+    path = Path(path)
+    tmp = tmp_path(path)
+    try:
+        yield tmp
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_dir(path.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` through :func:`atomic_path`."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        write_fully(fh, data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` through :func:`atomic_path`."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 def _owner_pid(name: str) -> int | None:

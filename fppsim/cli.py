@@ -170,7 +170,7 @@ def realism_config(args) -> tuple[list[str], dict, object]:
 
 
 def run_generate(args) -> int:
-    from .dataset import LabelTransform
+    from .formats import LabelTransform
     from .generate import generate
     from .optics import OpticsRanges
     from .rig import load_rig
@@ -199,8 +199,8 @@ def run_generate(args) -> int:
                          supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps,
                          rig_jitter=jitter)
     preset = (args.label_scale, args.label_offset, args.label_invalid, args.label_threshold)
-    label = LabelTransform(scale=args.label_scale, offset=args.label_offset, invalid=args.label_invalid,
-                           threshold=args.label_threshold,
+    label = LabelTransform(units_per_mm=args.label_scale, plane_offset=args.label_offset,
+                           invalid_value=args.label_invalid, invalid_threshold=args.label_threshold,
                            name="figshare" if preset == (6.0, -97.0, -105.0, -100.0) else "custom")
     try:
         label.check()
@@ -265,7 +265,7 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 def run_compare_real(args) -> int:
     import json
 
-    from .dataset import atomic_write_text
+    from .formats import atomic_write_text
     from .stats import compare_real, format_comparison
 
     try:
@@ -323,7 +323,7 @@ def main(argv: list[str] | None = None) -> int:
         print("fppsim: error: choose a command: " + ", ".join(COMMANDS), file=sys.stderr)
         return 2
     from ._fs import FolderBusy, signals_raise
-    from .dataset import DatasetError
+    from .formats import DatasetError
     from .generate import GenerateError
     from .render import BackendError
     from .rig import RigError

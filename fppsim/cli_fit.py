@@ -54,7 +54,7 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_rig(args) -> int:
-    from .dataset import atomic_write_text
+    from .formats import atomic_write_text
     from .fit_rig import adjust_rig, fit_baseline, fit_rig, format_baseline_fit, format_fit, load_fringe_images, measure_bands
     from .rig import load_rig
 
@@ -105,7 +105,7 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_optics(args) -> int:
-    from .dataset import atomic_write_text
+    from .formats import atomic_write_text
     from .fit_optics import compare_before_after, fit_optics, format_optics_fit, ranges_yaml
     from .fit_rig import load_fringe_images
     from .rig import load_rig

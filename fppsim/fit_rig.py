@@ -277,14 +277,14 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
     out = []
     for i in stats._pick(len(ds), max_images):
         gray, label = ds.sample(int(i))
-        marker = np.isclose(label, ds.invalid, atol=1e-4) | ~np.isfinite(label)
+        marker = np.isclose(label, ds.label.invalid_value, atol=1e-4) | ~np.isfinite(label)
         valid = ~marker & (gray > 0)
         plane = obj = np.zeros_like(valid)
         if valid.any():
             level = stats.plane_level(label, valid)
-            plane = valid & (np.abs(label - level) <= plane_mm * ds.scale)
-            obj = valid & (label > level + plane_mm * ds.scale)
-            height = np.where(valid, (label - level) / ds.scale, np.nan)
+            plane = valid & (np.abs(label - level) <= plane_mm * ds.label.units_per_mm)
+            obj = valid & (label > level + plane_mm * ds.label.units_per_mm)
+            height = np.where(valid, (label - level) / ds.label.units_per_mm, np.nan)
         else:
             height = np.full(label.shape, np.nan)
         out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj, height))

@@ -19,18 +19,15 @@ from pathlib import Path
 
 from . import __version__
 from ._fs import clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise, tmp_path
-from .dataset import (DatasetError, LabelTransform, append_manifest, atomic_write_text, export_figshare,
-                      foreign_sample_folders, manifest_record, reconcile, sample_id, write_sample_folder)
-from .scene import MeshAsset, MeshError, find_meshes, load_mesh
-from .synth import SampleError, SynthConfig, synthesize
+from .errors import DatasetError, GenerateError, MeshError, SampleError
+from .formats import (LabelTransform, append_manifest, atomic_write_text, export_figshare, foreign_sample_folders,
+                      manifest_record, read_settings, reconcile, sample_id, write_sample_folder)
+from .scene import MeshAsset, find_meshes, load_mesh
+from .synth import SynthConfig, synthesize
 
 log = logging.getLogger("fppsim")
 
 __all__ = ["GenerateError", "RunSummary", "load_assets", "generate", "shard_indices", "merge"]
-
-
-class GenerateError(RuntimeError):
-    """The run cannot produce anything (one-line reason)."""
 
 
 @dataclass
@@ -153,8 +150,8 @@ def _check_settings(path: Path, settings: dict) -> None:
         atomic_write_text(path, json.dumps(settings, indent=1))
         return
     try:
-        old = json.loads(path.read_text())
-    except ValueError:
+        old = read_settings(path.parent)
+    except DatasetError:
         raise GenerateError(f"{path} is corrupt: remove it or use a new --out") from None
     diff = [k for k in settings if k != "version" and old.get(k) != json.loads(json.dumps(settings[k]))]
     if diff:
@@ -304,7 +301,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         nd = d / "native" if (d / "native" / "dataset.json").is_file() else d
         if not (nd / "dataset.json").is_file():
             raise DatasetError(f"{d}: not an fppsim dataset folder (no dataset.json)")
-        s = json.loads((nd / "dataset.json").read_text())
+        s = read_settings(nd)
         s.pop("version", None)
         if settings is None:
             settings, fmt = s, s.get("format", "native")

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import PlyError
+
 __all__ = ["PlyError", "ply_has_tristrips", "read_ply_tristrips", "strips_to_triangles"]
 
 _PLY_TYPES = {
@@ -20,10 +22,6 @@ _PLY_TYPES = {
     "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
-
-
-class PlyError(ValueError):
-    """A PLY file that cannot be parsed (one line)."""
 
 
 def _header(data: bytes, path) -> tuple[str, list, int]:

@@ -3,8 +3,8 @@
 :class:`BackgroundWriter` runs sample writes (PNG encoding, deflate, file IO: all release the GIL) on
 one thread while the caller synthesises the next sample. :class:`FigshareRows` fills ``f1_80.npy`` and
 ``Z.npy`` from the in-memory arrays as samples finish, so a figshare run need not read every native
-sample back at the end; the rows are computed by the very functions :func:`fppsim.dataset.export_figshare`
-uses, so the files are identical.
+sample back at the end; the rows are computed by the very functions :func:`fppsim.formats.export_figshare`
+uses (:func:`fppsim.formats.figshare_rows`), so the files are identical.
 """
 
 from __future__ import annotations
@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from ._fs import tmp_path
-from .dataset import DatasetError, LabelTransform, encode_fringe
+from .errors import DatasetError
+from .formats import figshare_rows  # noqa: F401  (re-exported: the rows export_figshare writes)
 
 __all__ = ["BackgroundWriter", "FigshareRows", "figshare_rows"]
 
@@ -71,16 +72,6 @@ class BackgroundWriter:
             self._queue.put(None)
             self._thread.join()
         self._reraise()
-
-
-def figshare_rows(fringe: np.ndarray, arrays: dict, transform: LabelTransform,
-                  use_psp_height: bool = False) -> tuple[np.ndarray, np.ndarray]:
-    """One sample's figshare ``(fringe, label)`` rows, float32 (H, W), exactly as ``export_figshare``."""
-    if use_psp_height:
-        h, m = arrays["height_psp"], (arrays["mask_psp"] > 0) & np.isfinite(arrays["height_psp"])
-    else:
-        h, m = arrays["height"], arrays["mask"] > 0
-    return encode_fringe(fringe, m), transform.to_label(np.nan_to_num(h), m)
 
 
 class FigshareRows:

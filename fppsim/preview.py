@@ -7,8 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fs import tmp_path
-from .dataset import load_native_sample, read_manifest
+from .formats import atomic_path, load_native_sample, read_manifest
 
 __all__ = ["write_preview"]
 
@@ -39,8 +38,7 @@ def write_preview(root: str | os.PathLike, path: str | os.PathLike, max_samples:
         for ax in row:
             ax.set_axis_off()
     fig.tight_layout()
-    tmp = tmp_path(path)  # ".fppsim-tmp-<pid>-preview.png": the suffix picks the format
-    fig.savefig(tmp, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
-    os.replace(tmp, path)
     return path

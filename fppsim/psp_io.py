@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fs import tmp_path
+from ._fs import atomic_path
+from .errors import PSPMatError
 from .psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat",
@@ -42,10 +43,6 @@ SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numer
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
 ORDER_KEYS = ("Order", "order", "k", "K", "FringeOrder", "fringe_order", "fringeorder", "kmap", "KMap",
               "n_order", "ord")
-
-
-class PSPMatError(ValueError):
-    """A .mat file that does not hold usable PSin / PCos / order data."""
 
 
 @dataclass
@@ -217,14 +214,8 @@ def save_psp_mat(path: str | os.PathLike, psin: np.ndarray, pcos: np.ndarray, or
     import scipy.io
 
     path = Path(path)
-    tmp = tmp_path(path)
-    try:
-        with open(tmp, "wb") as fh:
-            scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
 
 
 # ====================================================================== one folder per quantity
@@ -412,14 +403,8 @@ def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw)
 def _savemat_atomic(path: Path, data: dict, compress: bool = True) -> None:
     import scipy.io
 
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as fh:
-            scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
 
 
 def save_psp_folder_sample(root: str | os.PathLike, sid: str, psin: np.ndarray, pcos: np.ndarray,
@@ -468,7 +453,7 @@ def export_psp_folders(native_root: str | os.PathLike, out_root: str | os.PathLi
     needs samples generated with PSP), ``"true"`` the exact ``phase_true`` and ``mask``. The iPattern is
     the sample's ``fringe.png``; pixels outside the mask get ``PSin = PCos = 0``.
     """
-    from .dataset import load_native_sample, read_manifest
+    from .formats import load_native_sample, read_manifest
 
     if source not in ("psp", "true"):
         raise PSPMatError(f"source must be 'psp' or 'true', got {source!r}")

@@ -19,6 +19,8 @@ BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
+from .errors import BackendError
+
 if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
     np.infty = np.inf
 
@@ -45,10 +47,6 @@ class Instance:
 
 _PARK = np.eye(4)
 _PARK[2, 3] = 1e7  # far behind every device: a parked (hidden) node keeps its mesh on the GL side
-
-
-class BackendError(RuntimeError):
-    """The requested GL backend cannot be used in this process (one-line reason)."""
 
 
 def select_backend(backend: str | None = None) -> str:

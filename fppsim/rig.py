@@ -22,16 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fs import tmp_path
+from ._fs import atomic_write_text
+from .errors import RigError
 
 __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_figshare_like_rig", "make_parallel_rig", "projector_for",
            "rotation_to_plane_frame"]
 
 ASSETS = Path(__file__).resolve().parent.parent / "assets"
-
-
-class RigError(ValueError):
-    """A calibration file or rig description that cannot be used."""
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
@@ -407,13 +404,7 @@ class Rig:
             text = yaml.safe_dump(doc, sort_keys=False)
         else:
             text = json.dumps(doc, indent=2)
-        tmp = tmp_path(path)
-        try:
-            tmp.write_text(text)
-            os.replace(tmp, path)
-        except BaseException:
-            tmp.unlink(missing_ok=True)
-            raise
+        atomic_write_text(path, text)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":

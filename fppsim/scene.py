@@ -15,16 +15,14 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import MeshError
+
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
     "sample_scene", "MESH_EXTENSIONS", "asset_from_arrays", "procedural_asset", "PROCEDURAL_PREFIX",
 ]
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
-
-
-class MeshError(ValueError):
-    """A mesh that cannot be used (unreadable, empty, flat, ...)."""
 
 
 @dataclass

@@ -11,8 +11,10 @@ Folder layouts (detected in this order):
     (N, H, W, 1), (N, H, W) or (H, W); memory-mapped, so large files are cheap to sample;
 (b) one real sample: ``fringe_pattern.npy`` + ``height_map.npy`` (2-D, same encoding);
 (c) native fppsim: ``manifest.jsonl`` + ``<id>/fringe.png`` (8-bit gray) + ``<id>/arrays.npz``
-    (``height`` mm world z, ``mask`` 1 = valid); heights become labels with the figshare preset
-    ``label = height_mm * scale + offset`` and ``invalid`` where mask == 0.
+    (``height`` mm world z, ``mask`` 1 = valid); heights become labels through a
+    :class:`fppsim.formats.LabelTransform` (the figshare preset by default).
+
+All three are read by :class:`fppsim.formats.SampleReader`.
 
 Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 
@@ -29,24 +31,21 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
   evaluation's invalid rule);
 - ``height_p1/p50/p99``: label percentiles over pixels that are not the invalid marker;
 - ``plane_level``: label of the reference plane (histogram mode, refined by a local median);
-  ``object_fraction``: pixels with label > plane + object_mm * scale; ``relief_p99_mm``: 99th percentile
+  ``object_fraction``: pixels with label > plane + object_mm * units_per_mm; ``relief_p99_mm``: 99th percentile
   of the object pixels' height above the plane, in mm.
 """
 
 from __future__ import annotations
 
-import json
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from .formats import PRESETS, LabelTransform, SampleReader
+
 __all__ = [
-    "Dataset",
     "open_dataset",
     "iter_samples",
-    "fringe_to_gray",
     "estimate_period",
     "quarter_periods",
     "fringe_modulation",
@@ -58,10 +57,7 @@ __all__ = [
     "STAT_ROWS",
 ]
 
-SCALE = 6.0  # label units per mm (figshare preset)
-OFFSET = -97.0  # label of the reference plane (height 0)
-INVALID = -105.0  # invalid (shadow) marker
-THRESHOLD = -100.0  # reference evaluation: label <= -100 is invalid
+FIGSHARE = PRESETS["figshare"]
 
 # (key, label in the table, number format)
 STAT_ROWS: list[tuple[str, str, str]] = [
@@ -90,133 +86,12 @@ STAT_ROWS: list[tuple[str, str, str]] = [
 # --------------------------------------------------------------------------- readers
 
 
-@dataclass
-class Dataset:
-    """A readable folder: ``layout`` in {'figshare', 'real-sample', 'native'}, ``len`` samples."""
+def open_dataset(folder, label: LabelTransform = FIGSHARE) -> SampleReader:
+    """Detect the layout of ``folder`` and open it (arrays memory-mapped); ValueError if unreadable.
 
-    path: Path
-    layout: str
-    n: int
-    _fringe: object = None  # figshare / real-sample arrays (memmap), native: list of sample dirs
-    _label: object = None
-    scale: float = SCALE
-    offset: float = OFFSET
-    invalid: float = INVALID
-
-    def __len__(self) -> int:
-        return self.n
-
-    def sample(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(gray uint8 (H, W), label float32 (H, W)) of sample i."""
-        if self.layout in ("figshare", "real-sample"):
-            gray = fringe_to_gray(_slice(self._fringe, i))
-            label = np.asarray(_slice(self._label, i), dtype=np.float32)
-        else:
-            gray, label = _read_native(self._fringe[i], self.scale, self.offset, self.invalid)
-        if gray.shape != label.shape:
-            raise ValueError(f"{self.path}: sample {i}: fringe {gray.shape} and height {label.shape} differ in shape")
-        return gray, label
-
-
-def _as_stack(arr: np.ndarray, name: Path) -> np.ndarray:
-    """View an array as (N, H, W): accepts (N, H, W, 1), (N, H, W), (H, W, 1) and (H, W)."""
-    if arr.ndim == 4 and arr.shape[-1] == 1:
-        return arr[..., 0]
-    if arr.ndim == 3 and arr.shape[-1] == 1:
-        return arr[None, :, :, 0]
-    if arr.ndim == 3:
-        return arr
-    if arr.ndim == 2:
-        return arr[None]
-    raise ValueError(f"{name}: expected shape (N,H,W,1), (N,H,W) or (H,W), got {arr.shape}")
-
-
-def _slice(stack: np.ndarray, i: int) -> np.ndarray:
-    return np.asarray(stack[i], dtype=np.float32)
-
-
-def fringe_to_gray(fringe: np.ndarray) -> np.ndarray:
-    """Figshare fringe encoding (8-bit / 127.5 - 1, in [-1, 1]) back to uint8 gray levels."""
-    return np.clip(np.rint((np.asarray(fringe, np.float64) + 1.0) * 127.5), 0, 255).astype(np.uint8)
-
-
-def _load_pair(folder: Path, fringe_name: str, label_name: str) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        f = np.load(folder / fringe_name, mmap_mode="r", allow_pickle=False)
-        z = np.load(folder / label_name, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{folder}: cannot read {fringe_name}/{label_name}: {e}") from None
-    f, z = _as_stack(f, folder / fringe_name), _as_stack(z, folder / label_name)
-    if f.shape != z.shape:
-        raise ValueError(f"{folder}: {fringe_name} {f.shape} and {label_name} {z.shape} differ in shape")
-    return f, z
-
-
-def _native_ids(folder: Path) -> list[Path]:
-    """Sample folders listed in manifest.jsonl (keys id/sample/name/dir/path, or plain strings)."""
-    dirs: list[Path] = []
-    seen = set()
-    for n, line in enumerate((folder / "manifest.jsonl").read_text().splitlines(), 1):
-        line = line.strip()
-        if not line:
-            continue
-        try:
-            rec = json.loads(line)
-        except json.JSONDecodeError:
-            rec = line  # a bare id per line
-        if isinstance(rec, dict):
-            key = next((rec[k] for k in ("id", "sample", "sample_id", "name", "dir", "path") if k in rec), None)
-        else:
-            key = rec
-        if key is None:
-            raise ValueError(f"{folder}/manifest.jsonl line {n}: no sample id")
-        d = folder / str(key)
-        if d not in seen and (d / "fringe.png").is_file() and (d / "arrays.npz").is_file():
-            seen.add(d)
-            dirs.append(d)
-    return dirs
-
-
-def _read_native(d: Path, scale: float, offset: float, invalid: float) -> tuple[np.ndarray, np.ndarray]:
-    from .dataset import LabelTransform, load_native_sample
-
-    s = load_native_sample(d, keys=("height", "mask"), meta=False)
-    img = s["fringe"]
-    if img.ndim == 3:
-        import cv2
-
-        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
-    if "height" not in s:
-        raise ValueError(f"{d}: arrays.npz has no 'height'")
-    height = s["height"].astype(np.float64)
-    mask = s["mask"] > 0.5 if "mask" in s else np.isfinite(height)
-    label = LabelTransform(scale=scale, offset=offset, invalid=invalid).to_label(height, mask & np.isfinite(height))
-    return img.astype(np.uint8), label
-
-
-def open_dataset(folder, scale: float = SCALE, offset: float = OFFSET, invalid: float = INVALID) -> Dataset:
-    """Detect the layout of ``folder`` and open it (arrays memory-mapped); ValueError if unreadable."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise ValueError(f"{folder}: not a folder")
-    kw = dict(scale=scale, offset=offset, invalid=invalid)
-    if (folder / "f1_80.npy").is_file() and (folder / "Z.npy").is_file():
-        f, z = _load_pair(folder, "f1_80.npy", "Z.npy")
-        return Dataset(folder, "figshare", len(f), f, z, **kw)
-    if (folder / "fringe_pattern.npy").is_file() and (folder / "height_map.npy").is_file():
-        f, z = _load_pair(folder, "fringe_pattern.npy", "height_map.npy")
-        return Dataset(folder, "real-sample", len(f), f, z, **kw)
-    if (folder / "manifest.jsonl").is_file():
-        dirs = _native_ids(folder)
-        if not dirs:
-            raise ValueError(f"{folder}: manifest.jsonl lists no sample with fringe.png and arrays.npz")
-        return Dataset(folder, "native", len(dirs), dirs, None, **kw)
-    raise ValueError(
-        f"{folder}: no dataset found (expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, "
-        "or manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)"
-    )
+    ``label`` turns native heights (mm) into labels; figshare-format folders already hold labels.
+    """
+    return SampleReader(folder, label)
 
 
 def _pick(n: int, max_samples: int | None) -> np.ndarray:
@@ -228,9 +103,10 @@ def _pick(n: int, max_samples: int | None) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))
 
 
-def iter_samples(folder, max_samples: int | None = None, **preset) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+def iter_samples(folder, max_samples: int | None = None,
+                 label: LabelTransform = FIGSHARE) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Yield (gray uint8 (H, W), label float32 (H, W)) for up to max_samples evenly spaced samples."""
-    ds = folder if isinstance(folder, Dataset) else open_dataset(folder, **preset)
+    ds = folder if isinstance(folder, SampleReader) else open_dataset(folder, label)
     for i in _pick(len(ds), max_samples):
         yield ds.sample(int(i))
 
@@ -336,11 +212,12 @@ def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, wi
     return float(np.median(near)) if near.size else float(mode)
 
 
-def sample_stats(gray: np.ndarray, label: np.ndarray, scale: float = SCALE, invalid: float = INVALID,
-                 threshold: float = THRESHOLD, object_mm: float = 2.0) -> dict:
+def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform = FIGSHARE,
+                 object_mm: float = 2.0) -> dict:
     """All statistics of one sample (gray uint8 (H, W), label float (H, W)); see the module docstring."""
     gray = np.asarray(gray)
     label = np.asarray(label, np.float32)
+    scale, invalid, threshold = transform.units_per_mm, transform.invalid_value, transform.invalid_threshold
     marker = np.isclose(label, invalid, atol=1e-4, rtol=0) | ~np.isfinite(label)
     valid = ~marker
     g = gray.astype(np.float64)
@@ -383,19 +260,18 @@ def sample_stats(gray: np.ndarray, label: np.ndarray, scale: float = SCALE, inva
 # --------------------------------------------------------------------------- datasets
 
 
-def dataset_stats(folder, max_samples: int | None = 50, scale: float = SCALE, offset: float = OFFSET,
-                  invalid: float = INVALID, threshold: float = THRESHOLD, object_mm: float = 2.0) -> dict:
+def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = FIGSHARE,
+                  object_mm: float = 2.0) -> dict:
     """Per-sample statistics of up to max_samples evenly spaced samples, aggregated by the median.
 
     Returns {'path', 'layout', 'n_total', 'n_samples', 'shape', 'stats': {key: median},
     'spread': {key: [min, max] over samples}, 'per_sample': [dict, ...]}.
     """
-    ds = open_dataset(folder, scale=scale, offset=offset, invalid=invalid)
+    ds = open_dataset(folder, label)
     per, shape = [], None
-    for gray, label in iter_samples(ds, max_samples):
+    for gray, lab in iter_samples(ds, max_samples):
         shape = list(gray.shape)
-        per.append(sample_stats(gray, label, scale=scale, invalid=invalid, threshold=threshold,
-                                object_mm=object_mm))
+        per.append(sample_stats(gray, lab, label, object_mm=object_mm))
     if not per:
         raise ValueError(f"{folder}: the dataset is empty")
     keys = list(per[0])
@@ -409,22 +285,20 @@ def dataset_stats(folder, max_samples: int | None = 50, scale: float = SCALE, of
             "shape": shape, "stats": stats, "spread": spread, "per_sample": per}
 
 
-def compare_real(real_dir, syn_dir, max_samples: int | None = 50, scale: float = SCALE, offset: float = OFFSET,
-                 invalid: float = INVALID, threshold: float = THRESHOLD, object_mm: float = 2.0) -> dict:
+def compare_real(real_dir, syn_dir, max_samples: int | None = 50, label: LabelTransform = FIGSHARE,
+                 object_mm: float = 2.0) -> dict:
     """Statistics of a real and a synthetic dataset, side by side.
 
-    The preset (scale, offset, invalid) converts native fppsim heights (mm) to labels; figshare-format
+    ``label`` converts native fppsim heights (mm) to labels; figshare-format
     folders already hold labels.  Returns {'real': dataset_stats(...), 'synthetic': dataset_stats(...),
     'difference': {key: synthetic - real}}.
     """
-    kw = dict(max_samples=max_samples, scale=scale, offset=offset, invalid=invalid, threshold=threshold,
-              object_mm=object_mm)
+    kw = dict(max_samples=max_samples, label=label, object_mm=object_mm)
     real = dataset_stats(real_dir, **kw)
     syn = dataset_stats(syn_dir, **kw)
     diff = {k: syn["stats"][k] - real["stats"][k] for k in real["stats"]}
     return {"real": real, "synthetic": syn, "difference": diff,
-            "preset": {"scale": scale, "offset": offset, "invalid": invalid, "threshold": threshold,
-                       "object_mm": object_mm}}
+            "preset": {**label.to_dict(), "object_mm": object_mm}}
 
 
 def _fmt(fmt: str, v) -> str:

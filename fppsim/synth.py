@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import __version__
+from .errors import SampleError
 from .optics import OVERSAMPLE, Optics, OpticsRanges, form_image, pattern_profile
 from .render import DepthRenderer, Geometry, scene_geometry
 from .jitter import RigJitter, jitter_rig
@@ -19,10 +20,6 @@ from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
 
 __all__ = ["SynthConfig", "SampleError", "synthesize", "render_images", "psp_decode"]
-
-
-class SampleError(RuntimeError):
-    """A sample that cannot be produced (e.g. nothing lands in view after all attempts)."""
 
 
 @dataclass
@@ -56,6 +53,20 @@ class SynthConfig:
             "max_attempts": self.max_attempts,
             "rig_jitter": self.rig_jitter.to_dict(),
         }
+
+    @classmethod
+    def from_dict(cls, d: dict, rig: Rig) -> "SynthConfig":
+        """Inverse of :meth:`to_dict` (the rig is stored beside it, see :meth:`from_settings`)."""
+        scene = {k: tuple(v) if isinstance(v, list) else v for k, v in d["scene_ranges"].items()}
+        return cls(rig=rig, optics=OpticsRanges.from_dict(d["optics_ranges"]), scene=SceneRanges(**scene),
+                   supersample=int(d["supersample"]), psp_freqs=tuple(d["psp_freqs"]), psp_steps=int(d["psp_steps"]),
+                   min_object_fraction=float(d["min_object_fraction"]), max_attempts=int(d["max_attempts"]))
+
+    @classmethod
+    def from_settings(cls, settings: dict) -> "SynthConfig":
+        """The configuration a dataset was generated with, from its ``dataset.json``
+        (:func:`fppsim.formats.read_settings`); KeyError/TypeError/ValueError when incomplete."""
+        return cls.from_dict(settings["config"], Rig.from_dict(settings["rig"]))
 
 
 def _irradiance_parts(geom: Geometry, optics: Optics) -> tuple[np.ndarray, np.ndarray]:

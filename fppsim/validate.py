@@ -56,7 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import DatasetError, atomic_write_text, load_native_sample, read_manifest
+from .errors import DatasetError, ValidateError
+from .formats import atomic_path, atomic_write_text, json_default, load_native_sample, read_manifest, read_settings
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ValidateError", "resolve_dataset", "evaluate_sample", "validate_dataset",
@@ -68,10 +69,6 @@ SWEEP_ALIASES = {"noise": "noise_sigma", "gamma": "projector_gamma", "blur": "pr
 DEFAULT_SWEEP = ("noise=0,0.5,1,2", "gamma=1,2.2")
 ORDER_ERROR_RAD = math.pi
 _HIST_EDGES = np.concatenate([[0.0], np.logspace(-6, 4, 4001)])  # |error| in mm, 0.58 % per bin
-
-
-class ValidateError(ValueError):
-    """Input that cannot be validated (one-line reason)."""
 
 
 # ====================================================================== input
@@ -105,13 +102,10 @@ def _records(root: Path) -> list[dict]:
 
 
 def _settings(root: Path) -> dict | None:
-    path = root / "dataset.json"
-    if not path.is_file():
-        return None
     try:
-        return json.loads(path.read_text())
-    except ValueError:
-        raise ValidateError(f"{path}: not valid JSON") from None
+        return read_settings(root)
+    except DatasetError as exc:
+        raise ValidateError(str(exc)) from None
 
 
 def _load(root: Path, rec: dict) -> tuple[dict, dict | None]:
@@ -363,8 +357,6 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     errors); order-error pixels magenta, exact-valid pixels PSP rejected grey, pixels outside the exact
     mask (shadow, outside the projector) black.
     """
-    import os
-
     import matplotlib
 
     matplotlib.use("Agg")
@@ -400,9 +392,8 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
                         Patch(color=(0.55, 0.55, 0.55), label="PSP rejected"),
                         Patch(color=(0, 0, 0), label="not valid (exact mask)")],
                loc="lower left", bbox_to_anchor=(0.1 / fw, 0.0), ncol=3, fontsize=7, frameon=False)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp.png")
-    fig.savefig(tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp)
     return path
 
 
@@ -461,18 +452,8 @@ def validate_dataset(dataset, out, maps: bool = True, progress: bool = True, edg
         "samples": samples,
         "aggregate": pool.result(len(samples)),
     }
-    atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=_json_default))
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=json_default))
     return report
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
 
 
 # ====================================================================== tables
@@ -597,18 +578,10 @@ def _ranges_with(ranges, fixed: dict):
 # ====================================================================== sources
 def _config_from_settings(settings: dict):
     """SynthConfig, meshes, seed, noise_free of a dataset's ``dataset.json`` (to re-render its scenes)."""
-    from .optics import OpticsRanges
-    from .rig import Rig
-    from .scene import SceneRanges
     from .synth import SynthConfig
 
     try:
-        c = settings["config"]
-        scene = {k: tuple(v) if isinstance(v, list) else v for k, v in c["scene_ranges"].items()}
-        config = SynthConfig(rig=Rig.from_dict(settings["rig"]), optics=OpticsRanges.from_dict(c["optics_ranges"]),
-                             scene=SceneRanges(**scene), supersample=int(c["supersample"]),
-                             psp_freqs=tuple(c["psp_freqs"]), psp_steps=int(c["psp_steps"]),
-                             min_object_fraction=float(c["min_object_fraction"]), max_attempts=int(c["max_attempts"]))
+        config = SynthConfig.from_settings(settings)
         return config, list(settings["meshes"]), int(settings["seed"]), bool(settings.get("noise_free", False))
     except (KeyError, TypeError, ValueError) as exc:
         raise ValidateError(f"dataset.json cannot be turned back into generation settings ({exc})") from None
@@ -767,7 +740,7 @@ def _run(args) -> int:
             "config": config.to_dict(), "rig": config.rig.to_dict(),
             "rows": rows,
         }
-        atomic_write_text(out / "report.json", json.dumps(sweep_report, indent=1, default=_json_default))
+        atomic_write_text(out / "report.json", json.dumps(sweep_report, indent=1, default=json_default))
         print(format_sweep_table(rows))
         print(f"report: {out / 'report.json'} (per setting: {out / 'sweep'}/<setting>/report.json)")
         return 0

@@ -37,7 +37,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _pipeline_block(indices, assets, config, renderer, writer, tmp, write):
     """Wall and CPU seconds to produce (and write, on the writer thread) the samples ``indices``."""
-    from fppsim.dataset import write_sample_folder
+    from fppsim.formats import write_sample_folder
     from fppsim.synth import synthesize
 
     attempts = {}

@@ -64,10 +64,10 @@ def test_figshare_explicit_names_and_shapes(tmp_path):
 def test_label_transform():
     t = LabelTransform.resolve("figshare")
     h = np.array([0.0, 10.0, np.nan, 5.0], np.float32)
-    lab = t.from_height_mm(h, valid=np.array([1, 1, 1, 0], bool))
+    lab = t.label_from_height_mm(h, np.array([1, 1, 1, 0], bool))
     np.testing.assert_allclose(lab, [-97, -37, -105, -105])
     np.testing.assert_allclose(t.height_mm(lab[:2]), [0, 10])
-    assert t.mask(lab).tolist() == [True, True, False, False]
+    assert t.valid(lab).tolist() == [True, True, False, False]
     custom = LabelTransform.resolve({"preset": "figshare", "units_per_mm": 10.0})
     assert custom.units_per_mm == 10 and custom.invalid_value == -105
     assert LabelTransform.from_dict(custom.to_dict()) == custom
@@ -287,5 +287,5 @@ def test_generator_figshare_round_trip(tmp_path):
         valid = a["mask"] > 0
         assert 0.5 < valid.float().mean() <= 1 and (a["height"][valid] > -100).all()
     # An export labelled differently is refused instead of misread.
-    with pytest.raises(DataError, match="labelled with scale=6"):
+    with pytest.raises(DataError, match="labelled with units_per_mm=6"):
         FppsimDataset(tmp_path / "gen", transform=LabelTransform(units_per_mm=10.0))

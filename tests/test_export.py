@@ -8,7 +8,7 @@ from torch import nn
 
 from uhrnet.checkpoint import FORMAT, VERSION
 from uhrnet.cli import main
-from uhrnet.data import LabelTransform
+from fppsim.formats import LabelTransform
 from uhrnet.models import build_model, list_models
 from uhrnet.optimize import fold_batchnorm, fold_conv_bn, merge_multilevel_blocks, prepare_for_inference
 

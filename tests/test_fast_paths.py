@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp
-from fppsim.dataset import LabelTransform, export_figshare, save_npz, write_sample_folder
+from fppsim.formats import LabelTransform, export_figshare, save_npz, write_sample_folder
 from fppsim.pipeline import BackgroundWriter, FigshareRows, figshare_rows
 
 

@@ -21,7 +21,7 @@ import trimesh
 
 from fppsim._fs import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own_tmp
 from fppsim.cli import main as fppsim_main
-from fppsim.dataset import DatasetError, export_figshare, read_manifest, reconcile, LabelTransform
+from fppsim.formats import DatasetError, export_figshare, read_manifest, reconcile, LabelTransform
 
 from _uhrnet_fixtures import write_figshare
 
@@ -125,7 +125,7 @@ def native_ds(tmp_path_factory, meshes):
 
 
 def test_disk_full_in_figshare_export_patched_writer(tmp_path, native_ds, monkeypatch):
-    import fppsim.dataset as ds
+    import fppsim.formats as ds
 
     out = tmp_path / "fig"
     out.mkdir()
@@ -160,7 +160,7 @@ def test_disk_full_on_a_real_small_filesystem(tmp_path, native_ds):
     if not _mount_tmpfs(small, "1m"):
         pytest.skip("cannot mount a tmpfs here (needs root)")
     try:
-        script = ("import sys; from fppsim.dataset import export_figshare, LabelTransform\n"
+        script = ("import sys; from fppsim.formats import export_figshare, LabelTransform\n"
                   "try:\n    export_figshare(sys.argv[1], sys.argv[2], LabelTransform())\n"
                   "except Exception as e:\n    print(type(e).__name__, e, file=sys.stderr); sys.exit(1)\n")
         res = subprocess.run([sys.executable, "-c", script, str(native_ds), str(small)], env=ENV,
@@ -251,7 +251,7 @@ def test_kill9_during_figshare_export_then_rerun_is_exact(tmp_path, meshes):
     for name in ("f1_80.npy", "Z.npy"):
         (out / name).unlink()
     # an export that writes slowly, killed while its temp files exist
-    script = ("import sys, time\nimport fppsim.dataset as d\nreal = d.write_fully\n"
+    script = ("import sys, time\nimport fppsim.formats as d\nreal = d.write_fully\n"
               "def slow(fh, b):\n    real(fh, b); fh.flush(); time.sleep(0.3)\n"
               "d.write_fully = slow\nd.export_figshare(sys.argv[1] + '/native', sys.argv[1], d.LabelTransform())\n")
     proc = subprocess.Popen([sys.executable, "-c", script, str(out)], env=ENV)

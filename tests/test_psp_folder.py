@@ -147,7 +147,7 @@ def test_matlab_v73_without_h5py_is_one_line(tmp_path, monkeypatch):
 def test_export_native_dataset(tmp_path):
     from _uhrnet_fixtures import write_native
 
-    from fppsim.dataset import load_native_sample
+    from fppsim.formats import load_native_sample
     from fppsim.psp_io import export_psp_folders
 
     ids = write_native(tmp_path / "nat", n=3, h=16, w=24, seed=0)

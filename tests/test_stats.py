@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from fppsim import stats
+from fppsim.formats import LabelTransform
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real-sample"
 H, W = 176, 320
@@ -166,7 +167,7 @@ def test_three_layouts_read_the_same_samples(tmp_path):
 def test_native_preset_is_configurable(tmp_path):
     gray, label = _scene()
     _write_native(tmp_path / "nat", [(gray, label)])
-    _, lab = stats.open_dataset(tmp_path / "nat", scale=10.0, offset=0.0, invalid=-1.0).sample(0)
+    _, lab = stats.open_dataset(tmp_path / "nat", LabelTransform(units_per_mm=10.0, plane_offset=0.0, invalid_value=-1.0)).sample(0)
     valid = label != -105.0
     assert np.allclose(lab[valid], (label[valid] + 97.0) / 6.0 * 10.0, atol=1e-3)
     assert np.all(lab[~valid] == -1.0)
@@ -181,7 +182,7 @@ def test_bad_folders_raise_value_error_naming_the_folder(tmp_path):
     (tmp_path / "bad").mkdir()
     np.save(tmp_path / "bad" / "f1_80.npy", np.zeros((2, 8, 16, 1), np.float32))
     np.save(tmp_path / "bad" / "Z.npy", np.zeros((3, 8, 16, 1), np.float32))
-    with pytest.raises(ValueError, match="differ in shape"):
+    with pytest.raises(ValueError, match="3 samples but f1_80.npy has 2"):
         stats.open_dataset(tmp_path / "bad")
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "manifest.jsonl").write_text("")

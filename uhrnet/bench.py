@@ -77,7 +77,7 @@ def resolve_device(name: str):
     """``"auto"`` -> cuda if available else cpu; ``"cuda"`` without a GPU is a user error."""
     import torch
 
-    from .cli import CLIError
+    from .errors import ConfigError as CLIError
 
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
@@ -279,7 +279,7 @@ def format_optimized(results: list[dict]) -> str:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from .cli import CLIError
+    from .errors import ConfigError as CLIError
     from .models import list_models
 
     unknown = [m for m in args.models if m.lower() not in list_models()]

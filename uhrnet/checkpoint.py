@@ -23,53 +23,22 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim._fs import tmp_path
+from fppsim.formats import LabelTransform, atomic_path, atomic_write_text  # noqa: F401 (re-export)
+from uhrnet.errors import CheckpointError
 
 FORMAT = "uhrnet-checkpoint"
 VERSION = 1
 
 
-class CheckpointError(ValueError):
-    """A checkpoint that cannot be used; the message names the file."""
-
-
 def atomic_save(obj, path: str | os.PathLike) -> Path:
-    """``torch.save`` to a temporary file in the same folder, fsync, then rename over ``path``.
+    """``torch.save`` through :func:`fppsim.formats.atomic_path` (temporary file, fsync, rename).
 
     A crash or kill at any moment leaves either the previous file or the new one, never a torn file.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = tmp_path(path)
-    try:
-        with open(tmp, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    try:  # make the rename itself durable
-        fd = os.open(path.parent, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-    except OSError:
-        pass
-    return path
-
-
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    path = Path(path)
-    tmp = tmp_path(path)
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        torch.save(obj, f)
     return path
 
 
@@ -157,9 +126,9 @@ class LabelHead(nn.Module):
         return out.float() * self.scale + self.shift
 
 
-def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, "LabelTransform"]:  # noqa: F821
-    """The checkpoint's network in eval mode, wrapped to output labels, and its label transform."""
-    from uhrnet.data import LabelTransform
+def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, LabelTransform]:
+    """The checkpoint's network in eval mode, wrapped to output labels, and its label transform
+    (checkpoints of any version: old label field names are read too)."""
     from uhrnet.models import build_model
 
     config = dict(ckpt["model"]["config"])

@@ -22,12 +22,7 @@ COMMANDS = {
 }
 
 
-class CLIError(Exception):
-    """A user-facing error: printed as one line, exit code 1."""
-
-
-class UsageError(CLIError):
-    """A bad command-line value: printed as one line, exit code 2 (like argparse's own errors)."""
+from uhrnet.errors import ConfigError as CLIError, UsageError  # noqa: E402,F401  (names the subcommands use)
 
 
 def build_parser(load=None) -> argparse.ArgumentParser:
@@ -74,20 +69,19 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     module = importlib.import_module(COMMANDS[args.command][0])
-    from fppsim._fs import FolderBusy, signals_raise
+    from fppsim._fs import signals_raise
 
     try:
         with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum, temp files removed
             return int(module.run(args) or 0)
     except Exception as exc:  # user-facing errors become one line; anything else is a bug: traceback
-        from uhrnet.checkpoint import CheckpointError
-        from uhrnet.data import DataError
+        from uhrnet.errors import CheckpointError, ConfigError, DataError, FolderBusy, UhrnetError
 
         if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, ...
             where = f"{exc.filename}: " if exc.filename else ""
             print(f"uhrnet {args.command}: error: {where}{exc.strerror}", file=sys.stderr)
             return 1
-        if not isinstance(exc, (CLIError, DataError, CheckpointError, FolderBusy)):
+        if not isinstance(exc, (ConfigError, DataError, CheckpointError, UhrnetError, FolderBusy)):
             raise
         print(f"uhrnet {args.command}: error: {one_line(exc)}", file=sys.stderr)
         return 2 if isinstance(exc, UsageError) else 1

@@ -8,10 +8,12 @@ Every dataset returns the same sample dict (``torch`` tensors)::
     mm_per_unit  float
     id, source   str (sample id and "real"/"synthetic")
 
-Label units are those of the public figshare dataset (DESIGN.md §5): Z = 6 * height_mm + plane offset,
-invalid (shadow) pixels exactly -105, and the reference evaluation counts Z <= -100 as invalid.
-:class:`LabelTransform` holds that preset and makes it configurable; fppsim's native heights (mm above
-the reference plane) are mapped through the same transform so real and synthetic samples mix.
+Label units are those of the public figshare dataset: Z = 6 * height_mm + plane offset, invalid
+(shadow) pixels exactly -105, and the reference evaluation counts Z <= -100 as invalid.
+:class:`fppsim.formats.LabelTransform` holds that preset and makes it configurable; fppsim's native
+heights (mm above the reference plane) are mapped through the same transform so real and synthetic
+samples mix. Files are read through :mod:`fppsim.formats` (the dataset contract); this module only
+adapts them to torch.
 """
 
 from __future__ import annotations
@@ -19,10 +21,9 @@ from __future__ import annotations
 import json
 import math
 import os
-import warnings
 import zipfile
 import zlib
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -31,111 +32,9 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
-
-class DataError(ValueError):
-    """A dataset problem a user must fix; the message names the offending file."""
-
-
-# --------------------------------------------------------------------------------------------------
-# Label transform
-
-
-@dataclass(frozen=True)
-class LabelTransform:
-    """How heights are stored as labels.
-
-    ``label = height_mm * units_per_mm + plane_offset`` on valid pixels, ``invalid_value`` elsewhere;
-    a label is valid when ``label > invalid_threshold``. The ``figshare`` preset (6 units per mm,
-    -105 invalid marker, -100 threshold, plane at about -97) is estimated from the public sample and
-    the reference evaluation code (DESIGN.md §5); adjust it for data labelled differently.
-    ``data_range`` is the label range used by SSIM (C1 = (0.01 L)^2, C2 = (0.03 L)^2).
-    """
-
-    name: str = "figshare"
-    units_per_mm: float = 6.0
-    invalid_value: float = -105.0
-    invalid_threshold: float = -100.0
-    plane_offset: float = -97.0
-    data_range: float = 286.0
-
-    @property
-    def mm_per_unit(self) -> float:
-        return 1.0 / self.units_per_mm
-
-    def mask(self, label):
-        """Valid-pixel mask (bool) for a numpy array or torch tensor of labels."""
-        return label > self.invalid_threshold
-
-    def to_mm(self, label):
-        """Labels in millimetres as the reference evaluation does (Z / 6): fine for differences."""
-        return label / self.units_per_mm
-
-    def height_mm(self, label):
-        """Height above the reference plane in millimetres: (Z - plane_offset) / units_per_mm."""
-        return (label - self.plane_offset) / self.units_per_mm
-
-    def from_height_mm(self, height_mm: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-        """Height above the reference plane (mm) -> labels; invalid pixels get ``invalid_value``."""
-        h = np.asarray(height_mm, dtype=np.float64)
-        label = h * self.units_per_mm + self.plane_offset
-        bad = ~np.isfinite(label)
-        if valid is not None:
-            bad |= ~np.asarray(valid, dtype=bool)
-        label[bad] = self.invalid_value
-        return label.astype(np.float32)
-
-    def to_dict(self) -> dict:
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> "LabelTransform":
-        names = {f.name for f in fields(cls)}
-        unknown = set(d) - names - {"preset"}
-        if unknown:
-            raise DataError(f"label transform: unknown keys {sorted(unknown)} (known: {sorted(names)})")
-        base = PRESETS.get(d.get("preset", d.get("name", "figshare")), PRESETS["figshare"])
-        values = {}
-        for k, v in d.items():
-            if k not in names:
-                continue
-            if k == "name":
-                values[k] = str(v)
-                continue
-            try:
-                values[k] = float(v)
-            except (TypeError, ValueError):
-                raise DataError(f"label transform: {k} must be a number, got {v!r}") from None
-        return replace(base, **values).checked()
-
-    def checked(self) -> "LabelTransform":
-        """Self, after refusing values that make every label meaningless (raises DataError)."""
-        for k in ("units_per_mm", "invalid_value", "invalid_threshold", "plane_offset", "data_range"):
-            if not math.isfinite(getattr(self, k)):
-                raise DataError(f"label transform: {k} must be finite, got {getattr(self, k)}")
-        if not self.units_per_mm > 0:
-            raise DataError(f"label transform: units_per_mm must be > 0, got {self.units_per_mm:g}")
-        if not self.data_range > 0:
-            raise DataError(f"label transform: data_range must be > 0, got {self.data_range:g}")
-        if not self.invalid_value <= self.invalid_threshold:
-            raise DataError(f"label transform: invalid_value ({self.invalid_value:g}) must be <= invalid_threshold "
-                            f"({self.invalid_threshold:g}), or invalid pixels would count as valid")
-        return self
-
-    @classmethod
-    def resolve(cls, spec: "LabelTransform | str | dict | None") -> "LabelTransform":
-        """A transform from a preset name, a dict (e.g. from a checkpoint) or None (figshare)."""
-        if spec is None:
-            return PRESETS["figshare"]
-        if isinstance(spec, LabelTransform):
-            return spec
-        if isinstance(spec, dict):
-            return cls.from_dict(spec)
-        if spec in PRESETS:
-            return PRESETS[spec]
-        raise DataError(f"unknown label preset {spec!r} (known: {', '.join(PRESETS)})")
-
-
-PRESETS: dict[str, LabelTransform] = {"figshare": LabelTransform()}
+from fppsim.formats import (FIGSHARE_PAIRS, PRESETS, LabelTransform, encode_fringe, find_figshare_pair,
+                            manifest_ids, open_figshare_pair, read_gray_image, read_native_label)
+from uhrnet.errors import DataError
 
 
 # --------------------------------------------------------------------------------------------------
@@ -198,7 +97,7 @@ def split_indices(n: int, part: str, mode: str = "reference") -> np.ndarray:
 def _sample(fringe: np.ndarray, label: np.ndarray, transform: LabelTransform, sid: str, source: str) -> dict:
     fringe = np.array(fringe, dtype=np.float32, order="C", copy=True)  # off the memory map
     label = np.array(label, dtype=np.float32, order="C", copy=True)
-    mask = transform.mask(label).astype(np.float32)
+    mask = transform.valid(label).astype(np.float32)
     return {
         "fringe": torch.from_numpy(fringe)[None],
         "height": torch.from_numpy(label)[None],
@@ -207,46 +106,6 @@ def _sample(fringe: np.ndarray, label: np.ndarray, transform: LabelTransform, si
         "id": sid,
         "source": source,
     }
-
-
-# File names of known figshare-style pairs: the full dataset and the single published sample.
-FIGSHARE_PAIRS = (("f1_80.npy", "Z.npy"), ("fringe_pattern.npy", "height_map.npy"))
-
-
-def find_figshare_pair(folder: str | os.PathLike) -> tuple[Path, Path] | None:
-    folder = Path(folder)
-    for f, z in FIGSHARE_PAIRS:
-        if (folder / f).is_file() or (folder / z).is_file():
-            return folder / f, folder / z
-    return None
-
-
-def _load_npy(path: Path, what: str) -> np.ndarray:
-    if not path.exists():
-        raise DataError(f"{path}: {what} file not found")
-    if path.is_dir():
-        raise DataError(f"{path}: is a folder, expected a .npy {what} file")
-    try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
-    if not isinstance(arr, np.ndarray):
-        raise DataError(f"{path}: expected a single .npy array, got {type(arr).__name__}")
-    if not np.issubdtype(arr.dtype, np.floating):
-        raise DataError(f"{path}: dtype {arr.dtype}, expected float32 ({what})")
-    if arr.ndim == 2:  # (H, W): one image
-        arr = arr[None]
-    elif arr.ndim == 3 and arr.shape[-1] == 1:  # (H, W, 1): one image
-        arr = arr[None, ..., 0]
-    elif arr.ndim == 4:
-        if arr.shape[-1] != 1:
-            raise DataError(f"{path}: shape {arr.shape}, expected (N, H, W, 1) with one channel")
-        arr = arr[..., 0]
-    elif arr.ndim != 3:
-        raise DataError(f"{path}: shape {arr.shape}, expected (N, H, W, 1), (N, H, W) or (H, W)")
-    if arr.shape[0] == 0 or arr.shape[1] == 0 or arr.shape[2] == 0:
-        raise DataError(f"{path}: empty array of shape {arr.shape}")
-    return arr
 
 
 class FigshareArrays(Dataset):
@@ -278,18 +137,7 @@ class FigshareArrays(Dataset):
         elif fringe is None or label is None:
             raise TypeError("FigshareArrays needs root or both fringe= and label=")
         self.fringe_path, self.label_path = Path(fringe), Path(label)
-        self.fringes = _load_npy(self.fringe_path, "fringe")
-        self.labels = _load_npy(self.label_path, "label")
-        if self.fringes.shape[0] != self.labels.shape[0]:
-            raise DataError(
-                f"{self.label_path}: {self.labels.shape[0]} samples but {self.fringe_path.name} has "
-                f"{self.fringes.shape[0]}"
-            )
-        if self.fringes.shape[1:] != self.labels.shape[1:]:
-            raise DataError(
-                f"{self.label_path}: image size {self.labels.shape[1:]} differs from "
-                f"{self.fringe_path.name}'s {self.fringes.shape[1:]}"
-            )
+        self.fringes, self.labels = open_figshare_pair(self.fringe_path, self.label_path)
         self.ids = [f"{i:06d}" for i in range(len(self))]
         if check:
             self.check()
@@ -304,8 +152,7 @@ class FigshareArrays(Dataset):
 
     def __setstate__(self, state):
         self.__dict__.update(state)
-        self.fringes = _load_npy(self.fringe_path, "fringe")
-        self.labels = _load_npy(self.label_path, "label")
+        self.fringes, self.labels = open_figshare_pair(self.fringe_path, self.label_path)
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -368,7 +215,7 @@ class FppsimDataset(Dataset):
             return
         manifest = self.root / "manifest.jsonl"
         if manifest.is_file():
-            self.ids = _read_manifest(manifest)
+            self.ids = manifest_ids(self.root)
         else:
             self.ids = sorted(p.name for p in self.root.iterdir() if (p / "arrays.npz").is_file())
         if not self.ids:
@@ -405,27 +252,15 @@ class FppsimDataset(Dataset):
         d = self.root / sid
         fringe = read_fringe_image(d / "fringe.png")
         npz = d / "arrays.npz"
-        hkey, mkey = ("height", "mask") if self.label == "true" else ("height_psp", "mask_psp")
         try:
             with np.load(npz, allow_pickle=False) as z:
-                missing = [k for k in (hkey, mkey) if k not in z.files]
-                if missing:
-                    raise DataError(f"{npz}: missing array(s) {missing} (has {sorted(z.files)})")
-                height, valid = z[hkey], z[mkey]
+                # PSP heights are NaN where decoding failed: invalid, as fppsim's export does
+                height, valid = read_native_label(z, npz, fringe.shape, source=self.label)
         except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
             if isinstance(exc, DataError):
                 raise
             raise DataError(f"{npz}: cannot read ({type(exc).__name__}: {exc})") from None
-        if height.shape != fringe.shape or valid.shape != fringe.shape:
-            raise DataError(
-                f"{npz}: {hkey} {height.shape} / {mkey} {valid.shape} do not match fringe.png {fringe.shape}"
-            )
-        valid = valid > 0.5
-        if self.label == "psp":  # PSP heights are NaN where decoding failed: invalid, as fppsim's export does
-            valid &= np.isfinite(height)
-        elif not np.isfinite(height[valid]).all():
-            raise DataError(f"{npz}: {hkey} has NaN/inf on {int((~np.isfinite(height[valid])).sum())} valid pixels")
-        label = self.transform.from_height_mm(height, valid)
+        label = self.transform.label_from_height_mm(height, valid)
         if self.mask_fringe:  # as `fppsim generate --format figshare` encodes it: -1 off the mask
             fringe = np.where(valid, fringe, np.float32(-1.0))
         return _sample(fringe, label, self.transform, sid, self.source)
@@ -438,94 +273,23 @@ def _check_export_labels(root: Path, transform: LabelTransform) -> None:
         if not meta.is_file():
             continue
         try:
-            label = json.loads(meta.read_text()).get("label") or {}
-        except (json.JSONDecodeError, AttributeError):
+            theirs = LabelTransform.from_dict(json.loads(meta.read_text()).get("label") or {})
+        except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
             return
-        names = {"scale": "units_per_mm", "offset": "plane_offset", "invalid": "invalid_value",
-                 "threshold": "invalid_threshold"}
-        for theirs, ours in names.items():
-            if theirs in label and not math.isclose(float(label[theirs]), float(getattr(transform, ours)),
-                                                    rel_tol=1e-6, abs_tol=1e-6):
-                raise DataError(
-                    f"{meta}: these arrays were labelled with {theirs}={label[theirs]} but the label transform "
-                    f"has {ours}={getattr(transform, ours)} (set --label-transform {ours}={label[theirs]})"
-                )
+        if not theirs.same_labels(transform):
+            diff = ", ".join(f"{k}={getattr(theirs, k):g}" for k in ("units_per_mm", "plane_offset", "invalid_value",
+                                                                      "invalid_threshold")
+                             if getattr(theirs, k) != getattr(transform, k))
+            raise DataError(
+                f"{meta}: these arrays were labelled with {diff} but the label transform differs "
+                f"(set --label-transform {diff.replace(', ', ' ')})"
+            )
         return
-
-
-def _read_manifest(path: Path) -> list[str]:
-    ids: list[str] = []
-    seen = set()
-    lines = path.read_text().splitlines()
-    for n, line in enumerate(lines, 1):
-        if not line.strip():
-            continue
-        try:
-            rec = json.loads(line)
-            sid = str(rec["id"])
-        except (json.JSONDecodeError, KeyError, TypeError):
-            if n == len(lines):  # a half-written last line of an interrupted run
-                warnings.warn(f"{path}:{n}: ignoring unreadable last line")
-                continue
-            raise DataError(f"{path}:{n}: not a JSON object with an 'id'") from None
-        if sid not in seen:
-            seen.add(sid)
-            ids.append(sid)
-    return ids
-
-
-COLOUR_TOLERANCE = 8.0  # mean |channel - grey| in 8-bit levels above which a colour image is refused
-
-
-def _colour_to_grey(img: np.ndarray, path) -> np.ndarray:
-    """BGR(A) image -> grey, the way a grey camera would have recorded the same scene.
-
-    A fringe image saved in colour (equal channels, or a colour camera's near-grey white-light image)
-    becomes its luminance ``0.299 R + 0.587 G + 0.114 B`` (OpenCV's BGR2GRAY): equal channels give
-    exactly the grey image. An image whose channels differ more than :data:`COLOUR_TOLERANCE` levels on
-    average (a colour-mapped picture, tinted light) has no grey equivalent the models were trained on,
-    so it is refused with a hint instead of giving heights off by tens of millimetres.
-    """
-    import cv2
-
-    if img.shape[2] == 4:
-        img = img[..., :3]
-    elif img.shape[2] != 3:
-        raise DataError(f"{path}: {img.shape[2]}-channel image, expected grey (or colour with equal channels)")
-    img = np.ascontiguousarray(img)
-    grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    scale = 257.0 if img.dtype == np.uint16 else 1.0
-    spread = float(np.abs(img.astype(np.float32) - grey[..., None].astype(np.float32)).mean()) / scale
-    if spread > COLOUR_TOLERANCE:
-        raise DataError(f"{path}: colour image whose channels differ by {spread:.1f} gray levels on average; the "
-                        "models take grey fringe images: save the camera's grey (monochrome) image instead")
-    return grey
 
 
 def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
     """An 8-bit (or 16-bit) grey image as float32 in the dataset encoding, intensity / 127.5 - 1."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: file not found")
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # our one-line error replaces its log line
-    try:
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    finally:
-        cv2.utils.logging.setLogLevel(level)
-    if img is None:
-        raise DataError(f"{path}: cannot read as an image")
-    if img.ndim == 3:  # colour: only a grey scene saved in colour is accepted (see _colour_to_grey)
-        img = _colour_to_grey(img, path)
-    if img.dtype == np.uint8:
-        scale = 1.0
-    elif img.dtype == np.uint16:
-        scale = 1.0 / 257.0  # 16-bit -> 8-bit intensity scale
-    else:
-        raise DataError(f"{path}: {img.dtype} image, expected 8-bit (or 16-bit) grey")
-    return (img.astype(np.float32) * np.float32(scale) / np.float32(127.5) - np.float32(1.0)).astype(np.float32)
+    return encode_fringe(read_gray_image(path))
 
 
 def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:

@@ -19,9 +19,10 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.cli import CLIError, UsageError
-from uhrnet.data import SPLIT_MODES, LabelTransform, Prepared, load_sources, parse_size
+from fppsim.formats import LabelTransform, atomic_write_text
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
+from uhrnet.data import SPLIT_MODES, Prepared, load_sources, parse_size
+from uhrnet.errors import ConfigError as CLIError, UsageError
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

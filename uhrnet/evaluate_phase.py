@@ -19,7 +19,7 @@ import numpy as np
 import torch
 
 from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.cli import CLIError
+from uhrnet.errors import ConfigError as CLIError
 from uhrnet.data import parse_size
 
 
@@ -151,7 +151,7 @@ def run(args: argparse.Namespace) -> int:
         for (model, transform, size), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
             h = transform.height_mm(label)
-            pred_valid = np.asarray(transform.mask(label))
+            pred_valid = np.asarray(transform.valid(label))
             ok = s.valid & (img > 0)
             if args.mask_predicted_invalid:
                 ok &= pred_valid

@@ -25,13 +25,11 @@ import numpy as np
 import torch
 from torch import nn
 
+from uhrnet.errors import ExportError
+
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
 DEFAULT_OPSET = 17
-
-
-class ExportError(ValueError):
-    """An export that cannot be made or that fails its check; the message is one line."""
 
 
 @dataclass

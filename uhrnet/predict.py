@@ -31,8 +31,9 @@ import numpy as np
 import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.cli import CLIError, UsageError
-from uhrnet.data import DataError, parse_size, read_fringe_image
+from fppsim.formats import as_image_stack, encode_fringe
+from uhrnet.data import parse_size, read_fringe_image
+from uhrnet.errors import ConfigError as CLIError, DataError, UsageError
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 INPUT_EXTS = IMAGE_EXTS + (".npy",)
@@ -82,16 +83,9 @@ def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
         arr = np.load(path, mmap_mode="r", allow_pickle=False)
     except (ValueError, OSError, EOFError) as exc:
         raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
-    if arr.ndim == 4 and arr.shape[-1] == 1:
-        arr = arr[..., 0]
-    elif arr.ndim == 3 and arr.shape[-1] == 1:
-        arr = arr[None, ..., 0]
-    elif arr.ndim == 2:
-        arr = arr[None]
-    elif arr.ndim != 3:
-        raise DataError(f"{path}: shape {arr.shape}, expected (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)")
+    arr = as_image_stack(arr, path)
     if arr.dtype == np.uint8:
-        arr = arr.astype(np.float32) / np.float32(127.5) - np.float32(1)
+        arr = encode_fringe(arr)
     elif not np.issubdtype(arr.dtype, np.floating):
         raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
     out = []
@@ -216,7 +210,7 @@ def run(args: argparse.Namespace) -> int:
             label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
             height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
             if not args.keep_all:
-                valid = transform.mask(label) & (fringe > -1 + 1e-6)
+                valid = transform.valid(label) & (fringe > -1 + 1e-6)
                 height = np.where(valid, height, np.float32(np.nan))
             if not np.isfinite(height).any():
                 print(f"uhrnet predict: warning: {path} ({name}): no valid pixel in the prediction (every label at "

@@ -40,15 +40,13 @@ from typing import Sequence
 
 import numpy as np
 
+from uhrnet.errors import Sim2RealError
+
 __all__ = [
     "Sim2RealConfig", "Variant", "Sim2RealError", "SCALES", "object_mask", "plane_level", "real_metrics",
     "parse_variant", "load_variants", "generate_command", "train_command", "evaluate_real", "run_sim2real",
     "markdown_report", "find_real_pairs",
 ]
-
-
-class Sim2RealError(ValueError):
-    """A configuration or input problem (one-line message naming the culprit)."""
 
 
 # The two scales. "cpu" is the recipe the issue judges; "gpu" the full-size one.
@@ -277,7 +275,8 @@ def real_metrics(pred: np.ndarray, label: np.ndarray, valid: np.ndarray, units_p
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
-    from uhrnet.data import DataError, FigshareArrays, find_figshare_pair
+    from uhrnet.data import FigshareArrays, find_figshare_pair
+    from uhrnet.errors import DataError
 
     out = []
     for f in folders:

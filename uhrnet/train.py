@@ -28,15 +28,13 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock, tmp_path
+from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock
+from fppsim.formats import PRESETS, LabelTransform, atomic_path, atomic_write_text
 from uhrnet.checkpoint import (
-    FORMAT, VERSION, CheckpointError, LabelHead, atomic_save, atomic_write_text, load_checkpoint, rng_state,
-    select_device, set_rng_state,
+    FORMAT, VERSION, LabelHead, atomic_save, load_checkpoint, rng_state, select_device, set_rng_state,
 )
-from uhrnet.cli import CLIError, UsageError
-from uhrnet.data import (
-    PRESETS, SPLIT_MODES, DataError, LabelTransform, MixedSampler, Prepared, load_sources, parse_size,
-)
+from uhrnet.data import SPLIT_MODES, MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.errors import CheckpointError, ConfigError as CLIError, DataError, UsageError
 
 LOSS_NAMES = ("compound", "l2", "chunked", "ssim")
 RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
@@ -596,13 +594,8 @@ class Trainer:
 
 
 def _atomic_copy(src: Path, dst: Path) -> None:
-    tmp = tmp_path(dst)
-    try:
+    with atomic_path(dst) as tmp:
         shutil.copyfile(src, tmp)
-        os.replace(tmp, dst)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
 
 
 def _version() -> str:

@@ -1,0 +1,63 @@
+"""Exceptions of the fppsim library, one module so callers (and the CLI) can catch them by kind.
+
+Every message is one line that names the culprit (a file, a flag value, a sample). The command line
+maps :class:`UsageError` (an option value that is wrong on its own) to exit status 2, like argparse's
+own errors, and every other :class:`FppsimError` to exit status 1. No library module imports the CLI.
+"""
+
+from __future__ import annotations
+
+__all__ = ["FppsimError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
+           "ValidateError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy"]
+
+
+class FppsimError(Exception):
+    """Base class of every error fppsim raises on purpose."""
+
+
+class DatasetError(FppsimError, ValueError):
+    """A dataset folder or file that cannot be read or written as asked (the message names it)."""
+
+
+class ConfigError(FppsimError, ValueError):
+    """Settings that do not fit together (e.g. a PSP ladder that does not end at the rig's frequency)."""
+
+
+class UsageError(ConfigError):
+    """An option value that is invalid on its own (e.g. a non-finite label offset): exit 2 on the command line."""
+
+
+class RigError(FppsimError, ValueError):
+    """A rig calibration that cannot be loaded or is inconsistent."""
+
+
+class MeshError(FppsimError, ValueError):
+    """A mesh file that cannot be used."""
+
+
+class PlyError(FppsimError, ValueError):
+    """A PLY file fppsim's own reader cannot parse (:mod:`fppsim.meshio`)."""
+
+
+class GenerateError(FppsimError, RuntimeError):
+    """A generation run that cannot produce anything (one-line reason)."""
+
+
+class SampleError(FppsimError, RuntimeError):
+    """A sample that cannot be produced (e.g. nothing lands in view after all attempts)."""
+
+
+class ValidateError(FppsimError, ValueError):
+    """Input that cannot be validated (one-line reason)."""
+
+
+class PSPMatError(FppsimError, ValueError):
+    """A .mat phase-shifting file (or folder of them) that does not hold what the reader expects."""
+
+
+class BackendError(FppsimError, RuntimeError):
+    """The requested off-screen GL backend cannot be used (one line saying what to install or set)."""
+
+
+class FolderBusy(FppsimError, RuntimeError):
+    """Another process holds the output folder's lock (one line naming the folder)."""
