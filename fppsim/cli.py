@@ -1,7 +1,20 @@
-"""`fppsim` command line: git-style subcommands (generate, merge, compare-real, validate-psp).
+"""`fppsim` command line: git-style subcommands over the library (the only module that parses flags).
 
-Units: millimetres and radians; images are 8-bit. Usage errors exit 2, input/IO errors exit 1 with a
-one-line reason.
+Every command turns its flags into a config dataclass of the library, which validates itself, and
+calls one plain function a Python user can call too:
+
+    generate      -> fppsim.generate(GenerateConfig)            (fppsim.generation)
+    merge         -> fppsim.generation.merge(out, shards)
+    compare-real  -> fppsim.stats.compare_real(real, synthetic)
+    validate-psp  -> fppsim.validate.validate_psp(ValidateConfig)
+    fit-rig       -> fppsim.fit_rig.fit_rig(...)                 (flags in fppsim.cli_fit)
+    fit-optics    -> fppsim.fit_optics.fit_optics(...)           (flags in fppsim.cli_fit)
+
+Units: millimetres and radians; images are 8-bit. Usage errors (bad flags, and a library
+:class:`fppsim.errors.UsageError`) exit 2; other errors of the library (:mod:`fppsim.errors`), bad
+values and I/O errors exit 1 with a one-line reason; SIGTERM/SIGINT stop like Ctrl-C (workers
+terminated, temp files removed) and exit ``128 + signum``. The same design serves ``uhrnet``
+(:mod:`uhrnet.cli` uses :func:`run_commands`).
 """
 
 from __future__ import annotations
@@ -9,19 +22,105 @@ from __future__ import annotations
 import argparse
 import logging
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
-__all__ = ["main", "build_parser"]
-
-
-class CLIError(Exception):
-    """Printed as one line; exit code 1."""
+__all__ = ["main", "build_parser", "run_commands", "build_command_parser", "one_line", "Command", "COMMANDS"]
 
 
-class UsageError(CLIError):
-    """A bad command-line value: printed as one line; exit code 2 (like argparse's own errors)."""
+# ============================================================================ one CLI design (both tools)
+@dataclass(frozen=True)
+class Command:
+    """A subcommand: ``add(parser)`` declares its flags, ``run(args) -> exit code`` calls the library."""
+
+    add: Callable[[argparse.ArgumentParser], None]
+    run: Callable[[argparse.Namespace], int]
+    help: str
 
 
+def build_command_parser(prog: str, description: str, commands: dict[str, Command],
+                         globals_: Callable[[argparse.ArgumentParser], None] | None = None,
+                         load: str | None = None) -> argparse.ArgumentParser:
+    """One sub-parser per command; with ``load`` only that command declares its flags (the others
+    keep name and help: a CLI whose commands import heavy modules stays fast)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    if globals_ is not None:
+        globals_(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, cmd in commands.items():
+        p = sub.add_parser(name, help=cmd.help, description=cmd.help)
+        if load is None or load == name:
+            cmd.add(p)
+    return parser
+
+
+def one_line(exc: BaseException) -> str:
+    """The one-line message of an error, also when a DataLoader worker re-raised it.
+
+    A worker's error arrives as ``Caught DatasetError in DataLoader worker process 0.`` followed by the
+    worker's traceback, whose last line (``fppsim.errors.DatasetError: <file>: ...``) names the culprit.
+    """
+    lines = [line for line in str(exc).splitlines() if line.strip()]
+    if not lines:
+        return type(exc).__name__
+    if len(lines) > 1 and lines[0].startswith("Caught ") and "worker" in lines[0]:
+        last = lines[-1].strip()
+        head, sep, rest = last.partition(": ")
+        return rest if sep and "." in head and " " not in head else last
+    return lines[0]
+
+
+def run_commands(parser: argparse.ArgumentParser, commands: dict[str, Command], argv: list[str] | None,
+                 errors: tuple[type[BaseException], ...], setup: Callable[[argparse.Namespace], None] | None = None,
+                 resume_hint: dict[str, str] | str = " (re-run the same command to resume)") -> int:
+    """Parse ``argv``, run the chosen command and report how it ended, one line on stderr:
+
+    * ``errors`` and ``OSError`` -> ``prog command: error: <one line>`` (``file: strerror`` for I/O
+      errors such as a full disk), exit 1; a ``UsageError`` (of :mod:`fppsim.errors` or
+      :mod:`uhrnet.errors`) exits 2 like argparse's own errors; no command is a usage error too;
+    * SIGTERM (e.g. a Slurm timeout) and SIGINT -> ``prog command: terminated|interrupted<hint>``, exit
+      ``128 + signum``; the library's clean-up ran on the way (pools terminated, temp files removed);
+    * anything else is a bug: traceback.
+
+    ``resume_hint``: text after the interruption line, or ``{command: text}``.
+    """
+    from ._fs import signals_raise
+
+    args = parser.parse_args(argv)
+    if setup is not None:
+        setup(args)
+    if args.command is None:
+        parser.print_usage(sys.stderr)
+        print(f"{parser.prog}: error: choose a command: " + ", ".join(commands), file=sys.stderr)
+        return 2
+    where = f"{parser.prog} {args.command}"
+    try:
+        with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum
+            return int(commands[args.command].run(args) or 0)
+    except Exception as exc:
+        if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, missing file ...
+            msg = f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
+        elif isinstance(exc, errors + (OSError,)):
+            msg = one_line(exc)
+        else:
+            raise
+        print(f"{where}: error: {msg}", file=sys.stderr)
+        return 2 if _is_usage_error(exc) else 1
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", 2)
+        hint = resume_hint.get(args.command, "") if isinstance(resume_hint, dict) else resume_hint
+        print(f"{where}: {'terminated' if signum == 15 else 'interrupted'}{hint}", file=sys.stderr)
+        return 128 + signum
+
+
+def _is_usage_error(exc: BaseException) -> bool:
+    """A library's UsageError (either package's; matched by name so fppsim needs no uhrnet import)."""
+    return any(c.__name__ == "UsageError" and c.__module__ in ("fppsim.errors", "uhrnet.errors")
+               for c in type(exc).__mro__)
+
+
+# ============================================================================ argument types
 def _range_int(text: str) -> tuple[int, int]:
     try:
         parts = [int(p) for p in text.split("-")]
@@ -79,32 +178,53 @@ def _optics_override(text: str) -> tuple[str, list[float]]:
     return key.strip(), nums
 
 
+def _optics_names() -> str:
+    from .optics import OPTICS_UNITS, OpticsRanges
+
+    return ", ".join(f"{k} ({OPTICS_UNITS[k]})" if k in OPTICS_UNITS else k for k in OpticsRanges.range_names())
+
+
+def _overrides(pairs) -> dict:
+    return {k: (v[0] if len(v) == 1 else v) for k, v in pairs}
+
+
+def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
+    """Flags shared by `generate` and `validate-psp --meshes` (same names, same parsing)."""
+    from .generation import SUPERSAMPLE
+
+    p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
+    p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
+                                 "default: the packaged default rig" + suffix)
+    p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
+                   help="objects per scene, e.g. 1-3 (default) or 2" + suffix)
+    p.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1; same samples for any K)")
+    p.add_argument("--supersample", type=int, default=1, choices=SUPERSAMPLE,
+                   help="render intensities at KxK sub-pixels and average (ground truth stays at pixel centres)" + suffix)
+    p.add_argument("--optics", action="append", type=_optics_override, default=[], metavar="NAME=LO[,HI]",
+                   help="override an optics range, e.g. noise_sigma=0 or gain=120,200 (repeatable); names: "
+                        + _optics_names() + suffix)
+    p.add_argument("--noise-free", action="store_true", help="no camera noise (exactness checks)" + suffix)
+    p.add_argument("--psp-steps", type=_min_int(3), default=4,
+                   help="phase-shifting steps per frequency (>= 3, default 4)" + suffix)
+    p.add_argument("--psp-freqs", type=_freqs, default=(1, 8, 80), metavar="F1,F2,...",
+                   help="temporal unwrapping ladder in periods across the projector, starting at 1 (default 1,8,80)" + suffix)
+
+
+# ============================================================================ generate
 def add_generate(p: argparse.ArgumentParser) -> None:
+    from .generation import FORMATS
+    from .render import BACKENDS
+
     p.add_argument("--meshes", nargs="+", required=True, metavar="PATH",
                    help="mesh files or folders (any format trimesh reads: OBJ, PLY, STL, OFF, GLB); "
                         "unusable meshes are skipped and reported")
     p.add_argument("--out", required=True, help="output folder (created; re-running resumes it)")
     p.add_argument("--count", type=_positive_int, required=True, help="number of samples in the whole dataset")
-    p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
-    p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
-                                 "default: assets/default_rig.json")
-    p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
-                   help="objects per scene, e.g. 1-3 (default) or 2")
-    p.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1; same samples for any K)")
-    p.add_argument("--format", choices=["native", "figshare"], default="native",
+    _add_scene_flags(p)
+    p.add_argument("--format", choices=FORMATS, default="native",
                    help="native: one folder per sample (default); figshare: also f1_80.npy + Z.npy (N,H,W,1)")
     p.add_argument("--shard", type=_shard, metavar="I/N", help="generate only shard I of N (0-based, round robin)")
-    p.add_argument("--supersample", type=int, default=1, choices=[1, 3, 5],
-                   help="render intensities at KxK sub-pixels and average (ground truth stays at pixel centres)")
-    p.add_argument("--optics", action="append", type=_optics_override, default=[], metavar="NAME=LO[,HI]",
-                   help="override an optics range, e.g. noise_sigma=0 or gain=120,200 (repeatable); "
-                        "names: gain, ambient, albedo_plane, albedo_object, projector_gamma, camera_gamma, "
-                        "projector_blur (projector px), camera_blur (camera px), noise_sigma (gray levels), shot_noise")
     p.add_argument("--optics-file", help="JSON/YAML mapping of optics ranges (same names as --optics)")
-    p.add_argument("--noise-free", action="store_true", help="no camera noise (exactness checks)")
-    p.add_argument("--psp-steps", type=_min_int(3), default=4, help="phase-shifting steps per frequency (>= 3, default 4)")
-    p.add_argument("--psp-freqs", type=_freqs, default=(1, 8, 80), metavar="F1,F2,...",
-                   help="temporal unwrapping ladder in periods across the projector, starting at 1 (default 1,8,80)")
     p.add_argument("--no-psp", action="store_true", help="skip the phase-shifting images and PSP decoding")
     p.add_argument("--label-scale", type=float, default=6.0, help="figshare label units per mm (default 6)")
     p.add_argument("--label-offset", type=float, default=-97.0,
@@ -115,7 +235,7 @@ def add_generate(p: argparse.ArgumentParser) -> None:
     add_realism_arguments(p)
     p.add_argument("--preview", action=argparse.BooleanOptionalAction, default=True,
                    help="write preview.png (fringe | height | mask) of the first samples (default on)")
-    p.add_argument("--backend", choices=["osmesa", "egl"], default=None,
+    p.add_argument("--backend", choices=BACKENDS, default=None,
                    help="off-screen GL: osmesa (software, default) or egl (headless GPU; Mesa's software "
                         "device without one); default $PYOPENGL_PLATFORM, else osmesa")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
@@ -156,86 +276,32 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
 
 
-def realism_config(args) -> tuple[list[str], dict, object]:
-    """(mesh paths without the 'procedural' token, SceneRanges procedural options, RigJitter)."""
-    from .jitter import RigJitter
-
-    meshes = [m for m in args.meshes if m != "procedural"]
-    share = args.procedural_share
-    if share is None:
-        share = 1.0 if not meshes else 0.0
-    if not meshes and share < 1.0:
-        raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
-    return meshes, {"procedural_share": share, "procedural_pool": args.procedural_pool}, RigJitter(*args.rig_jitter)
-
-
 def run_generate(args) -> int:
-    from .formats import LabelTransform
-    from .generate import generate
-    from .optics import OpticsRanges
+    from .formats import PRESETS, LabelTransform
+    from .generation import GenerateConfig, generate, read_optics_file
     from .rig import load_rig
-    from .scene import SceneRanges
-    from .synth import SynthConfig
 
-    rig = load_rig(args.rig)
-    ranges = {}
-    if args.optics_file:
-        ranges.update(_read_mapping(args.optics_file))
-        try:
-            OpticsRanges.from_dict(ranges)
-        except ValueError as exc:
-            raise CLIError(f"{args.optics_file}: {exc}") from None
-    for key, nums in args.optics:
-        ranges[key] = nums[0] if len(nums) == 1 else nums
-    try:
-        optics = OpticsRanges.from_dict(ranges)
-    except ValueError as exc:
-        raise UsageError(f"--optics: {exc}") from None
-    freqs = () if args.no_psp else tuple(args.psp_freqs)
-    if freqs and freqs[-1] != rig.periods:
-        raise CLIError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
-    meshes, procedural, jitter = realism_config(args)
-    config = SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(args.objects), **procedural),
-                         supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps,
-                         rig_jitter=jitter)
-    preset = (args.label_scale, args.label_offset, args.label_invalid, args.label_threshold)
+    rig = load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
+    optics = read_optics_file(args.optics_file) if args.optics_file else {}
+    optics.update(_overrides(args.optics))
+    fig = PRESETS["figshare"]
     label = LabelTransform(units_per_mm=args.label_scale, plane_offset=args.label_offset,
-                           invalid_value=args.label_invalid, invalid_threshold=args.label_threshold,
-                           name="figshare" if preset == (6.0, -97.0, -105.0, -100.0) else "custom")
-    try:
-        label.check()
-    except ValueError as exc:
-        raise UsageError(f"--label-*: {exc}") from None
-    summary = generate(meshes, args.out, args.count, seed=args.seed, config=config, workers=args.workers,
-                       fmt=args.format, shard=args.shard, label=label, noise_free=args.noise_free,
-                       progress=not args.quiet, backend=args.backend)
+                           invalid_value=args.label_invalid, invalid_threshold=args.label_threshold)
+    label = fig if label.same_labels(fig) else LabelTransform(**{**label.to_dict(), "name": "custom"})
+    config = GenerateConfig(
+        meshes=list(args.meshes), out=args.out, count=args.count, seed=args.seed, rig=rig,
+        objects=tuple(args.objects), workers=args.workers, format=args.format, shard=args.shard,
+        supersample=args.supersample, optics=optics, noise_free=args.noise_free, psp_steps=args.psp_steps,
+        psp_freqs=() if args.no_psp else tuple(args.psp_freqs), label=label,
+        procedural_share=args.procedural_share, procedural_pool=args.procedural_pool, rig_jitter=args.rig_jitter,
+        preview=args.preview, backend=args.backend, progress=not args.quiet)
+    summary = generate(config)
     for line in summary.lines():
         print(line)
-    if args.preview:
-        from .preview import write_preview
-
-        root = Path(args.out) / ("native" if args.format == "figshare" else "")
-        print(f"preview: {write_preview(root, Path(args.out) / 'preview.png')}")
     return 0
 
 
-def _read_mapping(path: str) -> dict:
-    import json
-
-    import yaml
-
-    p = Path(path)
-    if not p.is_file():
-        raise CLIError(f"file not found: {p}")
-    try:
-        doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
-    except Exception as exc:
-        raise CLIError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
-    if not isinstance(doc, dict):
-        raise CLIError(f"{p}: expected a mapping of name -> value or [lo, hi]")
-    return doc
-
-
+# ============================================================================ merge
 def add_merge(p: argparse.ArgumentParser) -> None:
     p.add_argument("out", help="merged dataset folder")
     p.add_argument("shards", nargs="+", metavar="SHARD_DIR", help="folders written with --shard I/N")
@@ -243,7 +309,7 @@ def add_merge(p: argparse.ArgumentParser) -> None:
 
 
 def run_merge(args) -> int:
-    from .generate import merge
+    from .generation import merge
 
     n, fig, missing = merge(args.out, args.shards, link=not args.copy)
     print(f"merged {n} samples into {args.out}" + (f" (figshare arrays in {fig})" if fig else ""))
@@ -254,6 +320,7 @@ def run_merge(args) -> int:
     return 0
 
 
+# ============================================================================ compare-real
 def add_compare_real(p: argparse.ArgumentParser) -> None:
     p.add_argument("real", metavar="REAL_DIR", help="real data: figshare folder (f1_80.npy + Z.npy) or a "
                                                     "fringe_pattern.npy + height_map.npy pair")
@@ -268,82 +335,109 @@ def run_compare_real(args) -> int:
     from .formats import atomic_write_text
     from .stats import compare_real, format_comparison
 
-    try:
-        result = compare_real(args.real, args.synthetic, max_samples=args.max_samples)
-    except ValueError as exc:
-        raise CLIError(str(exc)) from None
+    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples)
     print(format_comparison(result))
     if args.json:
         atomic_write_text(args.json, json.dumps(result, indent=1, default=float))
     return 0
 
 
-COMMANDS = {
-    "generate": (add_generate, run_generate, "render a synthetic FPP dataset from meshes"),
-    "merge": (add_merge, run_merge, "join datasets generated as shards (--shard I/N) into one"),
-    "compare-real": (add_compare_real, run_compare_real,
-                     "print real vs synthetic statistics side by side (fringe period, intensity, shadows, heights)"),
+# ============================================================================ validate-psp
+def add_validate(p: argparse.ArgumentParser) -> None:
+    from .validate import DEFAULT_SWEEP
+
+    p.description = (
+        "Measure how far phase-shifting (PSP) ground truth is from the exact height: per sample RMSE, "
+        "99th percentile and max |error| (mm), fringe-order errors and PSP rejections, on the pixels the "
+        "exact mask calls valid. Writes OUT/report.json, OUT/maps/<id>.png and prints a table. Give a "
+        "dataset folder, or --meshes to render a fresh set into OUT/samples (resumable). "
+        "--sweep renders the same scenes once per combination of the given optics values (full grid) "
+        "into OUT/sweep/<setting>/ and tabulates the error per setting. No pass/fail thresholds.")
+    p.add_argument("dataset", nargs="?", metavar="DATASET",
+                   help="generated dataset folder (native layout, or a figshare output with native/)")
+    p.add_argument("--out", required=True, help="output folder for report.json, maps/ (and samples/, sweep/)")
+    p.add_argument("--meshes", nargs="+", metavar="PATH", help="render a fresh set from these meshes instead")
+    p.add_argument("--count", type=_positive_int, help="samples to render with --meshes")
+    _add_scene_flags(p, suffix=" (with --meshes)")
+    p.add_argument("--tmp-samples", action="store_true",
+                   help="render into a temporary folder that is deleted afterwards (not resumable)")
+    p.add_argument("--sweep", nargs="*", metavar="NAME=V1,V2",
+                   help="optics sweep, full grid of all given values; alone: " + " ".join(DEFAULT_SWEEP) +
+                        ". Names: noise (noise_sigma, gray levels; shot_noise 0 unless given), gamma "
+                        "(projector_gamma), blur (projector_blur, projector px), or any optics range name")
+    p.add_argument("--edge-px", type=int, default=3,
+                   help="width of the edge region (px) for the edge/interior RMSE split (0: off)")
+    p.add_argument("--no-maps", action="store_true", help="skip the per-sample error-map PNGs")
+    p.add_argument("--max-rows", type=int, default=20, help="per-sample rows printed (all are in report.json)")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+
+
+def run_validate(args) -> int:
+    from .validate import ValidateConfig, format_sweep_table, format_table, validate_psp
+
+    config = ValidateConfig(
+        out=args.out, dataset=args.dataset, meshes=args.meshes, count=args.count, seed=args.seed, rig=args.rig,
+        objects=tuple(args.objects), optics=_overrides(args.optics), noise_free=args.noise_free,
+        supersample=args.supersample, psp_steps=args.psp_steps, psp_freqs=tuple(args.psp_freqs),
+        workers=args.workers, tmp_samples=args.tmp_samples, sweep=args.sweep, edge_px=args.edge_px,
+        maps=not args.no_maps, progress=not args.quiet)
+    report = validate_psp(config, echo=print)
+    out = Path(args.out)
+    if "rows" in report:
+        print(format_sweep_table(report["rows"]))
+        print(f"report: {out / 'report.json'} (per setting: {out / 'sweep'}/<setting>/report.json)")
+    else:
+        print(format_table(report, args.max_rows))
+        print(f"report: {out / 'report.json'}")
+    return 0
+
+
+# ============================================================================ fit-rig, fit-optics
+def _fit(name: str):
+    """``fppsim.cli_fit.<name>``, imported when called (the fitting modules need scipy)."""
+    def call(arg):
+        from . import cli_fit
+
+        return getattr(cli_fit, name)(arg)
+    call.__name__ = name
+    return call
+
+
+# ============================================================================ main
+COMMANDS: dict[str, Command] = {
+    "generate": Command(add_generate, run_generate, "render a synthetic FPP dataset from meshes"),
+    "merge": Command(add_merge, run_merge, "join datasets generated as shards (--shard I/N) into one"),
+    "compare-real": Command(add_compare_real, run_compare_real,
+                            "print real vs synthetic statistics side by side (fringe period, intensity, shadows, heights)"),
+    "validate-psp": Command(add_validate, run_validate, "measure how far PSP ground truth is from the exact height"),
+    "fit-rig": Command(_fit("add_fit_rig"), _fit("run_fit_rig"),
+                       "fit the projector pose / fringe period of a rig to real fringe images"),
+    "fit-optics": Command(_fit("add_fit_optics"), _fit("run_fit_optics"),
+                          "fit the optics ranges (gain, albedo, blur, noise) to real fringe images"),
 }
 
 
-def _register_optional():
-    from .cli_fit import add_fit_optics, add_fit_rig, run_fit_optics, run_fit_rig
-
-    COMMANDS.setdefault("fit-rig", (add_fit_rig, run_fit_rig,
-                                    "fit the projector pose / fringe period of a rig to real fringe images"))
-    COMMANDS.setdefault("fit-optics", (add_fit_optics, run_fit_optics,
-                                       "fit the optics ranges (gain, albedo, blur, noise) to real fringe images"))
-    try:
-        from .validate import add_arguments, run
-    except ImportError:
-        return
-    COMMANDS["validate-psp"] = (add_arguments, run, "measure how far PSP ground truth is from the exact height")
-
-
-def build_parser() -> argparse.ArgumentParser:
-    _register_optional()
-    parser = argparse.ArgumentParser(
-        prog="fppsim",
-        description="Calibrated virtual fringe projection profilometry rig. Units: mm, radians, 8-bit images.")
+def _global_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true", help="log details (skipped meshes, failed samples)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (add, _, help_) in COMMANDS.items():
-        add(sub.add_parser(name, help=help_, description=help_))
-    return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+def _setup_logging(args) -> None:
     # only our logger gets INFO with -v: PyOpenGL logs noise at INFO on the root logger
     logging.basicConfig(level=logging.WARNING, format="fppsim: %(levelname)s: %(message)s")
     logging.getLogger("fppsim").setLevel(logging.INFO if args.verbose else logging.WARNING)
-    if args.command is None:
-        parser.print_usage(sys.stderr)
-        print("fppsim: error: choose a command: " + ", ".join(COMMANDS), file=sys.stderr)
-        return 2
-    from ._fs import FolderBusy, signals_raise
-    from .formats import DatasetError
-    from .generate import GenerateError
-    from .render import BackendError
-    from .rig import RigError
-    from .scene import MeshError
 
-    try:
-        with signals_raise():  # SIGTERM stops like Ctrl-C (workers terminated), exit 128 + signum
-            return int(COMMANDS[args.command][1](args) or 0)
-    except (CLIError, GenerateError, DatasetError, RigError, MeshError, FolderBusy, BackendError, ValueError,
-            OSError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        if isinstance(exc, OSError) and exc.filename and exc.strerror:
-            msg = f"{exc.filename}: {exc.strerror}"
-        print(f"fppsim {args.command}: error: {msg}", file=sys.stderr)
-        return 2 if isinstance(exc, UsageError) else 1
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", 2)
-        name = "terminated" if signum == 15 else "interrupted"
-        print(f"fppsim {args.command}: {name} (re-run the same command to resume)", file=sys.stderr)
-        return 128 + signum
+
+def build_parser() -> argparse.ArgumentParser:
+    return build_command_parser(
+        "fppsim", "Calibrated virtual fringe projection profilometry rig. Units: mm, radians, 8-bit images.",
+        COMMANDS, _global_flags)
+
+
+def main(argv: list[str] | None = None) -> int:
+    from .errors import FppsimError
+
+    # ValueError/OSError: bad values and unreadable/unwritable files surface as one line, like ours
+    return run_commands(build_parser(), COMMANDS, argv, (FppsimError, ValueError), _setup_logging)
 
 
 if __name__ == "__main__":

@@ -354,7 +354,7 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     and return compare-real's statistics side by side: statistic | real | default | fitted."""
     import tempfile
 
-    from .generate import generate
+    from .generation import generate_dataset as generate
     from .stats import STAT_ROWS, _fmt, dataset_stats
     from .synth import SynthConfig
 

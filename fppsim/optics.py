@@ -23,7 +23,11 @@ from dataclasses import asdict, dataclass, fields
 import numpy as np
 from scipy.ndimage import gaussian_filter, gaussian_filter1d
 
-__all__ = ["Optics", "OpticsRanges", "pattern_profile", "projector_radiance", "form_image", "OPTICS_LIMITS"]
+__all__ = ["Optics", "OpticsRanges", "OPTICS_UNITS", "pattern_profile", "projector_radiance", "form_image",
+           "OPTICS_LIMITS"]
+
+# Units of the optics ranges that have one (help texts list the names from OpticsRanges itself).
+OPTICS_UNITS = {"projector_blur": "projector px", "camera_blur": "camera px", "noise_sigma": "gray levels"}
 
 # Physical range of every numeric parameter: (lowest, highest, lowest allowed, highest allowed) as
 # inclusive/exclusive flags. A value outside makes garbage images (negative noise variance -> NaN ->
@@ -183,6 +187,11 @@ class OpticsRanges:
 
     def to_dict(self) -> dict:
         return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def range_names(cls) -> list[str]:
+        """Names of the (lo, hi) range fields, in declaration order (what --optics/--sweep accept)."""
+        return [f.name for f in fields(cls) if isinstance(f.default, tuple)]
 
     @classmethod
     def from_dict(cls, d: dict) -> "OpticsRanges":

@@ -60,7 +60,8 @@ class SynthConfig:
         scene = {k: tuple(v) if isinstance(v, list) else v for k, v in d["scene_ranges"].items()}
         return cls(rig=rig, optics=OpticsRanges.from_dict(d["optics_ranges"]), scene=SceneRanges(**scene),
                    supersample=int(d["supersample"]), psp_freqs=tuple(d["psp_freqs"]), psp_steps=int(d["psp_steps"]),
-                   min_object_fraction=float(d["min_object_fraction"]), max_attempts=int(d["max_attempts"]))
+                   min_object_fraction=float(d["min_object_fraction"]), max_attempts=int(d["max_attempts"]),
+                   rig_jitter=RigJitter(**d.get("rig_jitter", {"yaw": 0.0, "focal": 0.0})))
 
     @classmethod
     def from_settings(cls, settings: dict) -> "SynthConfig":

@@ -45,14 +45,15 @@ random draw in every setting alike), and so is the noise realisation (scaled by 
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 import math
+import os
 import shutil
 import tempfile
-from dataclasses import fields, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -62,7 +63,7 @@ from .formats import atomic_path, atomic_write_text, json_default, load_native_s
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ValidateError", "resolve_dataset", "evaluate_sample", "validate_dataset",
     "parse_sweep", "sweep_settings", "format_table", "format_sweep_table", "write_error_map",
-    "add_arguments", "run",
+    "ValidateConfig", "validate_psp",
 ]
 
 SWEEP_ALIASES = {"noise": "noise_sigma", "gamma": "projector_gamma", "blur": "projector_blur"}
@@ -587,148 +588,124 @@ def _config_from_settings(settings: dict):
         raise ValidateError(f"dataset.json cannot be turned back into generation settings ({exc})") from None
 
 
-# ====================================================================== CLI
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import _freqs, _optics_override, _positive_int, _range_int
+# ====================================================================== the whole command as a function
+@dataclass
+class ValidateConfig:
+    """What ``fppsim validate-psp`` does, checked on construction (:class:`ValidateError`).
 
-    p.description = (
-        "Measure how far phase-shifting (PSP) ground truth is from the exact height: per sample RMSE, "
-        "99th percentile and max |error| (mm), fringe-order errors and PSP rejections, on the pixels the "
-        "exact mask calls valid. Writes OUT/report.json, OUT/maps/<id>.png and prints a table. Give a "
-        "dataset folder, or --meshes to render a fresh set into OUT/samples (resumable). "
-        "--sweep renders the same scenes once per combination of the given optics values (full grid) "
-        "into OUT/sweep/<setting>/ and tabulates the error per setting. No pass/fail thresholds.")
-    p.add_argument("dataset", nargs="?", metavar="DATASET",
-                   help="generated dataset folder (native layout, or a figshare output with native/)")
-    p.add_argument("--out", required=True, help="output folder for report.json, maps/ (and samples/, sweep/)")
-    p.add_argument("--meshes", nargs="+", metavar="PATH", help="render a fresh set from these meshes instead")
-    p.add_argument("--count", type=_positive_int, help="samples to render with --meshes")
-    p.add_argument("--seed", type=int, default=0, help="global seed with --meshes")
-    p.add_argument("--rig", help="rig calibration file with --meshes (default: assets/default_rig.json)")
-    p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
-                   help="objects per scene with --meshes")
-    p.add_argument("--optics", action="append", type=_optics_override, default=[], metavar="NAME=LO[,HI]",
-                   help="optics range override with --meshes (repeatable), e.g. camera_blur=0 or gain=180,220")
-    p.add_argument("--noise-free", action="store_true", help="render without camera noise (--meshes)")
-    p.add_argument("--supersample", type=int, default=1, choices=[1, 3, 5], help="intensity supersampling (--meshes)")
-    p.add_argument("--psp-steps", type=int, default=4, help="phase-shifting steps (--meshes)")
-    p.add_argument("--psp-freqs", type=_freqs, default=(1, 8, 80), metavar="F1,F2,...", help="ladder (--meshes)")
-    p.add_argument("--workers", type=_positive_int, default=1, help="render worker processes")
-    p.add_argument("--tmp-samples", action="store_true",
-                   help="render into a temporary folder that is deleted afterwards (not resumable)")
-    p.add_argument("--sweep", nargs="*", metavar="NAME=V1,V2",
-                   help="optics sweep, full grid of all given values; alone: " + " ".join(DEFAULT_SWEEP) +
-                        ". Names: noise (noise_sigma, gray levels; shot_noise 0 unless given), gamma "
-                        "(projector_gamma), blur (projector_blur, projector px), or any optics range name")
-    p.add_argument("--edge-px", type=int, default=3,
-                   help="width of the edge region (px) for the edge/interior RMSE split (0: off)")
-    p.add_argument("--no-maps", action="store_true", help="skip the per-sample error-map PNGs")
-    p.add_argument("--max-rows", type=int, default=20, help="per-sample rows printed (all are in report.json)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    Either ``dataset`` (a generated native folder, or a figshare output with ``native/``) or ``meshes``
+    + ``count`` to render a fresh set into ``out/samples`` (the scene fields then apply as in
+    :class:`fppsim.generation.GenerateConfig`). ``sweep``: None (no sweep), [] (:data:`DEFAULT_SWEEP`)
+    or ``["noise=0,1", ...]``: the full grid of the given optics values, rendered into
+    ``out/sweep/<setting>/``. ``edge_px``: width of the edge region for the edge/interior split (0: off).
+    """
 
+    out: str | os.PathLike
+    dataset: str | os.PathLike | None = None
+    meshes: Sequence[str] | None = None
+    count: int | None = None
+    seed: int = 0
+    rig: object = None
+    objects: tuple[int, int] = (1, 3)
+    optics: dict = field(default_factory=dict)
+    noise_free: bool = False
+    supersample: int = 1
+    psp_steps: int = 4
+    psp_freqs: tuple[int, ...] = (1, 8, 80)
+    workers: int = 1
+    tmp_samples: bool = False
+    sweep: Sequence[str] | None = None
+    edge_px: int = 3
+    maps: bool = True
+    progress: bool = True
 
-def _mesh_config(args):
-    from .cli import CLIError
-    from .optics import OpticsRanges
-    from .rig import load_rig
-    from .scene import SceneRanges
-    from .synth import SynthConfig
+    def __post_init__(self):
+        if self.dataset and self.meshes:
+            raise ValidateError("give either a DATASET folder or --meshes, not both")
+        if not self.dataset and not self.meshes:
+            raise ValidateError("nothing to validate: give a DATASET folder or --meshes PATH... --count N")
+        if self.meshes and not self.count:
+            raise ValidateError("--meshes needs --count N")
+        if self.dataset and (self.count or self.optics or self.noise_free):
+            raise ValidateError("--count/--optics/--noise-free only apply with --meshes")
+        if self.psp_steps < 3:
+            raise ValidateError(f"--psp-steps must be >= 3, got {self.psp_steps}")
 
-    rig = load_rig(args.rig)
-    overrides = {k: (v[0] if len(v) == 1 else v) for k, v in args.optics}
-    try:
-        optics = OpticsRanges.from_dict(overrides)
-    except (TypeError, ValueError) as exc:
-        raise CLIError(str(exc)) from None
-    if args.psp_steps < 3:
-        raise CLIError(f"--psp-steps must be >= 3, got {args.psp_steps}")
-    freqs = tuple(args.psp_freqs)
-    if freqs[-1] != rig.periods:
-        raise CLIError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
-    config = SynthConfig(rig=rig, optics=optics, scene=SceneRanges(objects=tuple(args.objects)),
-                         supersample=args.supersample, psp_freqs=freqs, psp_steps=args.psp_steps)
-    return config, overrides
+    def grid(self) -> list[tuple[str, list]] | None:
+        return parse_sweep(self.sweep) if self.sweep is not None else None
 
 
-def _render(meshes, folder: Path, count: int, seed: int, config, noise_free: bool, args) -> None:
-    from .generate import generate
+def _render(meshes, folder: Path, count: int, seed: int, config, noise_free: bool, workers: int, progress: bool,
+            echo) -> None:
+    from .generation import generate_dataset
 
-    summary = generate(meshes, folder, count, seed=seed, config=config, workers=args.workers,
-                       noise_free=noise_free, progress=not args.quiet)
+    summary = generate_dataset(meshes, folder, count, seed=seed, config=config, workers=workers,
+                               noise_free=noise_free, progress=progress)
     for line in summary.lines():
-        print(line)
+        echo(line)
 
 
-def run(args) -> int:
-    from .cli import CLIError
+def validate_psp(config: ValidateConfig, echo=None) -> dict:
+    """Run ``fppsim validate-psp``: validate a dataset, render and validate a fresh set, or a sweep.
 
-    try:
-        return _run(args)
-    except ValidateError as exc:
-        raise CLIError(str(exc)) from None
-
-
-def _run(args) -> int:
-    from .cli import CLIError
-
-    if args.dataset and args.meshes:
-        raise CLIError("give either a DATASET folder or --meshes, not both")
-    if not args.dataset and not args.meshes:
-        raise CLIError("nothing to validate: give a DATASET folder or --meshes PATH... --count N")
-    if args.meshes and not args.count:
-        raise CLIError("--meshes needs --count N")
-    if args.dataset and (args.count or args.optics or args.noise_free):
-        raise CLIError("--count/--optics/--noise-free only apply with --meshes")
-    grid = parse_sweep(args.sweep) if args.sweep is not None else None
-    out = Path(args.out)
-    progress = not args.quiet
-    kw = dict(maps=not args.no_maps, progress=progress, edge_px=args.edge_px)
-
-    if args.dataset:
-        root = resolve_dataset(args.dataset)
+    Writes ``out/report.json`` (and maps, samples, sweep folders) and returns the report: the
+    :func:`validate_dataset` report, or for a sweep ``{"grid", "rows": [{"name", "setting", "folder",
+    "aggregate"}], ...}``. ``echo`` receives progress lines of the rendering runs (None: silent).
+    """
+    echo = echo or (lambda line: None)
+    grid = config.grid()
+    out = Path(config.out)
+    kw = dict(maps=config.maps, progress=config.progress, edge_px=config.edge_px)
+    if config.dataset:
+        root = resolve_dataset(config.dataset)
         _records(root)  # fail early on an empty dataset
         settings = _settings(root)
         if grid is None:
-            report = validate_dataset(root, out, **kw)
-            print(format_table(report, args.max_rows))
-            print(f"report: {out / 'report.json'}")
-            return 0
+            return validate_dataset(root, out, **kw)
         if settings is None:
-            raise CLIError(f"{root}: no dataset.json, so its scenes cannot be re-rendered for --sweep")
-        config, meshes, seed, noise_free = _config_from_settings(settings)
-        if not config.psp_freqs:
-            raise CLIError(f"{root}: no PSP data (generated with --no-psp): re-generate without --no-psp")
+            raise ValidateError(f"{root}: no dataset.json, so its scenes cannot be re-rendered for --sweep")
+        synth, meshes, seed, noise_free = _config_from_settings(settings)
+        if not synth.psp_freqs:
+            raise ValidateError(f"{root}: no PSP data (generated with --no-psp): re-generate without --no-psp")
         missing = [m for m in meshes if not Path(m).exists()]
         if missing:
-            raise CLIError(f"cannot re-render the dataset's scenes for --sweep: mesh not found: {missing[0]}")
+            raise ValidateError(f"cannot re-render the dataset's scenes for --sweep: mesh not found: {missing[0]}")
         count = max(int(r["index"]) for r in _records(root)) + 1
         base = {}
     else:
-        config, base = _mesh_config(args)
-        meshes, seed, noise_free, count = args.meshes, args.seed, args.noise_free, args.count
+        from .errors import ConfigError
+        from .generation import GenerateConfig
+
+        try:
+            synth = GenerateConfig(meshes=list(config.meshes), out=out, count=config.count, seed=config.seed,
+                                   rig=config.rig, objects=tuple(config.objects), optics=dict(config.optics),
+                                   supersample=config.supersample, psp_steps=config.psp_steps,
+                                   psp_freqs=tuple(config.psp_freqs)).synth_config()
+        except ConfigError as exc:
+            raise ValidateError(str(exc)) from None
+        base = dict(config.optics)
+        meshes, seed, noise_free, count = list(config.meshes), config.seed, config.noise_free, config.count
 
     if grid is not None and noise_free and any(n in ("noise_sigma", "shot_noise") for n, _ in grid):
-        raise CLIError("a noise sweep needs noise: the dataset/run is noise-free (--noise-free), so every "
-                       "setting would render the same images")
+        raise ValidateError("a noise sweep needs noise: the dataset/run is noise-free (--noise-free), so every "
+                            "setting would render the same images")
     out.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix="fppsim-validate-")) if args.tmp_samples else None
+    tmp = Path(tempfile.mkdtemp(prefix="fppsim-validate-")) if config.tmp_samples else None
+    render = dict(workers=config.workers, progress=config.progress, echo=echo)
     try:
         if grid is None:
             samples = (tmp or out) / "samples"
-            _render(meshes, samples, count, seed, config, noise_free, args)
-            report = validate_dataset(samples, out, extra={"samples_folder": None if tmp else str(samples)}, **kw)
-            print(format_table(report, args.max_rows))
-            print(f"report: {out / 'report.json'}")
-            return 0
+            _render(meshes, samples, count, seed, synth, noise_free, **render)
+            return validate_dataset(samples, out, extra={"samples_folder": None if tmp else str(samples)}, **kw)
         rows = []
         settings = sweep_settings(grid, base)
         for i, (name, fixed) in enumerate(settings, 1):
-            if progress:
-                print(f"sweep {i}/{len(settings)}: {name}")
-            cfg = replace(config, optics=_ranges_with(config.optics, fixed))
+            if config.progress:
+                echo(f"sweep {i}/{len(settings)}: {name}")
+            cfg = replace(synth, optics=_ranges_with(synth.optics, fixed))
             sub = out / "sweep" / name
             samples = ((tmp / name) if tmp else sub) / "samples"
-            _render(meshes, samples, count, seed, cfg, noise_free, args)
+            _render(meshes, samples, count, seed, cfg, noise_free, **render)
             rep = validate_dataset(samples, sub, extra={"sweep_setting": fixed}, **kw)
             rows.append({"name": name, "setting": fixed, "folder": f"sweep/{name}", "aggregate": rep["aggregate"]})
         sweep_report = {
@@ -736,14 +713,12 @@ def _run(args) -> int:
             "grid": {n: v for n, v in grid},
             "combination": "full grid (every combination of the given values)",
             "seed": seed, "count": count, "meshes": [str(Path(m).resolve()) for m in meshes],
-            "noise_free": noise_free, "base_optics_ranges": config.optics.to_dict(),
-            "config": config.to_dict(), "rig": config.rig.to_dict(),
+            "noise_free": noise_free, "base_optics_ranges": synth.optics.to_dict(),
+            "config": synth.to_dict(), "rig": synth.rig.to_dict(),
             "rows": rows,
         }
         atomic_write_text(out / "report.json", json.dumps(sweep_report, indent=1, default=json_default))
-        print(format_sweep_table(rows))
-        print(f"report: {out / 'report.json'} (per setting: {out / 'sweep'}/<setting>/report.json)")
-        return 0
+        return sweep_report
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)

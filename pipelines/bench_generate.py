@@ -37,7 +37,10 @@ ROOT = Path(__file__).resolve().parent.parent
 
 def _pipeline_block(indices, assets, config, renderer, writer, tmp, write):
     """Wall and CPU seconds to produce (and write, on the writer thread) the samples ``indices``."""
-    from fppsim.formats import write_sample_folder
+    try:
+        from fppsim.formats import write_sample_folder
+    except ImportError:  # trees before the dataset contract module (fppsim.dataset)
+        from fppsim.dataset import write_sample_folder
     from fppsim.synth import synthesize
 
     attempts = {}
@@ -112,7 +115,10 @@ def main(argv=None) -> int:
     if args.backend:
         os.environ["PYOPENGL_PLATFORM"] = args.backend
 
-    from fppsim.generate import load_assets
+    try:
+        from fppsim.generation import load_assets
+    except ImportError:  # trees before the library/CLI split (fppsim.generate was the module)
+        from fppsim.generate import load_assets
     from fppsim.pipeline import BackgroundWriter
     from fppsim.render import DepthRenderer
     from fppsim.rig import Rig

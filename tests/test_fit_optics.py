@@ -47,11 +47,12 @@ def test_plane_images_with_known_optics(tmp_path):
             assert v[0] <= c[k] <= v[1]
 
     # the CLI on a folder of PNGs writes a YAML that the --optics-file path reads
-    from fppsim.cli import _read_mapping, main
+    from fppsim.cli import main
+    from fppsim.generation import read_optics_file
 
     out = tmp_path / "optics.yaml"
     assert main(["fit-optics", str(tmp_path), "--out", str(out), "--compare", "0"]) == 0
-    ranges = OpticsRanges.from_dict(_read_mapping(str(out)))
+    ranges = OpticsRanges.from_dict(read_optics_file(str(out)))
     assert ranges.gain[0] < c["gain"] < ranges.gain[1]
     assert ranges.albedo_object == OpticsRanges().albedo_object  # not fitted: the default stays
     assert main(["fit-optics", str(tmp_path), "--out", str(out), "--compare", "0"]) == 1  # no overwrite
@@ -74,7 +75,7 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
     """Rendered samples (pyrender) with fixed optics, figshare layout (labels tell plane from objects).
     Tolerances: gain x albedo (plane and object) 5 %, combined blur 0.1 px, noise sigma 25 %, shot 35 %."""
     from fppsim.cli import main
-    from fppsim.generate import generate
+    from fppsim.generation import generate_dataset as generate
     from fppsim.synth import SynthConfig
 
     rig = Rig.default()
@@ -101,9 +102,9 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
     import json
 
     meta = json.loads(next((tmp_path / "gen").glob("*/meta.json")).read_text())
-    from fppsim.cli import _read_mapping
+    from fppsim.generation import read_optics_file
 
-    ranges = OpticsRanges.from_dict(_read_mapping(str(out)))
+    ranges = OpticsRanges.from_dict(read_optics_file(str(out)))
     for k, v in ranges.to_dict().items():
         if isinstance(v, list):
             assert v[0] - 1e-9 <= meta["optics"][k] <= v[1] + 1e-9, k

@@ -145,7 +145,7 @@ def test_phase_folders_give_plane_and_object_masks(tmp_path):
 # ---------------------------------------------------------------- height sensitivity from labels
 def _rendered(tmp_path, rig, count=2, seed=5):
     """Samples rendered by pyrender (independent of fit_rig's re-projection) with the given rig."""
-    from fppsim.generate import generate
+    from fppsim.generation import generate_dataset as generate
     from fppsim.optics import OpticsRanges
     from fppsim.synth import SynthConfig
 

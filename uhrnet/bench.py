@@ -1,4 +1,8 @@
-"""``uhrnet bench``: parameters, forward time, training-step time and peak memory per model.
+"""``uhrnet.bench.bench(BenchConfig(...))`` (``uhrnet bench``): parameters, forward time, training-step time and peak memory per model.
+
+With ``optimize`` every model is also timed in its deployable forms (folded batch norms and merged
+UHRNet blocks, channels_last, torch.compile, onnxruntime), each checked against the eager output, and
+the fastest torch form is reported as the forward time.
 
 For each model at batch 1 (352 x 640 by default): the trainable parameter count, the median forward
 time in eval mode without gradient (the paper's "speed"), the median time of one training step (forward,
@@ -10,80 +14,63 @@ included) and the growth of the peak resident set size on CPU (roughly: activati
 
 from __future__ import annotations
 
-import argparse
 import gc
 import json
 import statistics
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
 REFERENCE_WIDTH = 64  # the default base width of uhrnet and unet, which --base-channels replaces
 PAPER_SECONDS = {"uhrnet": 0.0224, "unet": 0.0081}  # RTX 2080 Ti, batch 1, 352 x 640
 OPT_VARIANTS = ("fold", "fold_cl", "compile", "onnxruntime")
 OPT_RTOL = 1e-4  # a deployable form must match the eager model within this fraction of the output range
+AMP = ("off", "fp16", "bf16")
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--models",
-        nargs="+",
-        default=list(DEFAULT_MODELS),
-        metavar="NAME",
-        help=f"models to measure (any name of uhrnet.models.list_models(); default: {' '.join(DEFAULT_MODELS)})",
-    )
-    parser.add_argument("--height", type=int, default=352, help="input height, a multiple of 16 (default 352)")
-    parser.add_argument("--width", type=int, default=640, help="input width, a multiple of 16 (default 640)")
-    parser.add_argument("--batch-size", type=int, default=1, help="batch size (default 1, as in the paper)")
-    parser.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="default: cuda if available")
-    parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
-    parser.add_argument("--amp", choices=["off", "fp16", "bf16"], default="off",
-                        help="forward and training step under torch.autocast with this dtype (default off)")
-    parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
-    parser.add_argument(
-        "--compile",
-        action="store_true",
-        help="wrap each model in torch.compile (compiles during warm-up, so at least 2 warm-up calls are made)",
-    )
-    parser.add_argument(
-        "--base-channels",
-        type=int,
-        default=None,
-        metavar="B",
-        help="width override: uhrnet and unet get base B, the half-width models (model_a, hnet) B/2 "
-        "(for quick runs; parameter counts then differ from the paper)",
-    )
-    parser.add_argument("--no-train", action="store_true", help="skip the training-step measurement")
-    parser.add_argument(
-        "--optimize",
-        action="store_true",
-        help="also time each model in its deployable forms (see --variants; every form is checked to give the "
-        "eager model's output within 1e-4 x its range) and report the fastest torch form as forward ms",
-    )
-    parser.add_argument(
-        "--variants",
-        nargs="+",
-        default=list(OPT_VARIANTS),
-        choices=list(OPT_VARIANTS),
-        metavar="V",
-        help="forms tried by --optimize: fold (batch norms folded, UHRNet blocks merged, inference_mode), "
-        "fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime (ONNX export of fold run "
-        f"by onnxruntime; a column of its own) (default: {' '.join(OPT_VARIANTS)})",
-    )
-    parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
+@dataclass
+class BenchConfig:
+    """What to measure: model names, input size (multiples of 16), batch, device, timed ``repeats``
+    after ``warmup`` calls, autocast dtype (``amp``), memory format, torch.compile, a width override
+    (``base_channels``), whether to time a training step, whether to also time the deployable forms
+    ``variants`` (``optimize``; see :func:`optimize_variants`), and an optional JSON output path.
+    Checks itself (:class:`ConfigError`)."""
 
+    models: list = field(default_factory=lambda: list(DEFAULT_MODELS))
+    height: int = 352
+    width: int = 640
+    batch_size: int = 1
+    device: str = "auto"
+    repeats: int = 10
+    warmup: int = 3
+    amp: str = "off"
+    channels_last: bool = False
+    compile: bool = False
+    base_channels: int | None = None
+    train: bool = True
+    optimize: bool = False
+    variants: list = field(default_factory=lambda: list(OPT_VARIANTS))
+    json: str | Path | None = None
 
-def resolve_device(name: str):
-    """``"auto"`` -> cuda if available else cpu; ``"cuda"`` without a GPU is a user error."""
-    import torch
+    def __post_init__(self):
+        from .errors import ConfigError
+        from .models import list_models
 
-    from .errors import ConfigError as CLIError
-
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name == "cuda" and not torch.cuda.is_available():
-        raise CLIError("--device cuda, but torch sees no CUDA device")
-    return torch.device(name)
+        unknown = [m for m in self.models if m.lower() not in list_models()]
+        if unknown:
+            raise ConfigError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
+        if self.height % 16 or self.width % 16 or self.height < 16 or self.width < 16:
+            raise ConfigError(f"--height and --width must be positive multiples of 16, got {self.height}x{self.width}")
+        if self.repeats < 1 or self.warmup < 0 or self.batch_size < 1:
+            raise ConfigError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
+        if self.amp not in AMP:
+            raise ConfigError(f"--amp {self.amp!r}: choose from {', '.join(AMP)}")
+        bad = [v for v in self.variants if v not in OPT_VARIANTS]
+        if bad:
+            raise ConfigError(f"--variants {' '.join(bad)}: choose from {', '.join(OPT_VARIANTS)}")
+        if self.compile:
+            self.warmup = max(self.warmup, 2)
 
 
 def build_scaled(name: str, base_channels: int | None):
@@ -116,7 +103,7 @@ def measure(name: str, args, device) -> dict:
     x = torch.randn(shape, device=device).contiguous(memory_format=memory_format)
     target = torch.randn((args.batch_size, 1, args.height, args.width), device=device)
     net = torch.compile(model) if args.compile else model
-    amp = getattr(args, "amp", "off")
+    amp = args.amp
 
     def autocast():
         if amp == "off":
@@ -139,7 +126,7 @@ def measure(name: str, args, device) -> dict:
         "train_step_ms": None,
         "train_peak_bytes": None,
     }
-    if getattr(args, "optimize", False):
+    if args.optimize:
         with torch.no_grad():
             reference = model(x)
         result["eager_forward_ms"] = result["forward_ms"]
@@ -154,7 +141,7 @@ def measure(name: str, args, device) -> dict:
         ort = result["optimized"].get("onnxruntime", {})
         result["onnxruntime_ms"] = ort.get("forward_ms") if ort.get("ok") else None
         model = model.to(memory_format=memory_format)
-    if not args.no_train:
+    if args.train:
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
 
         def train_step():
@@ -276,23 +263,16 @@ def format_optimized(results: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def run(args: argparse.Namespace) -> int:
+def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
+    """Measure every model of ``args``; ``echo`` gets the progress lines and the final table.
+    Returns the report (also written to ``args.json`` when given)."""
     import torch
 
-    from .errors import ConfigError as CLIError
-    from .models import list_models
+    from .device import select_device
+    from .errors import ConfigError
 
-    unknown = [m for m in args.models if m.lower() not in list_models()]
-    if unknown:
-        raise CLIError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
-    if args.height % 16 or args.width % 16 or args.height < 16 or args.width < 16:
-        raise CLIError(f"--height and --width must be positive multiples of 16, got {args.height}x{args.width}")
-    if args.repeats < 1 or args.warmup < 0 or args.batch_size < 1:
-        raise CLIError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
-    device = resolve_device(args.device)
-    if args.compile:
-        args.warmup = max(args.warmup, 2)
-    if getattr(args, "optimize", False) and "compile" in args.variants and device.type == "cpu":
+    device = select_device(args.device)
+    if args.optimize and "compile" in args.variants and device.type == "cpu":
         import shutil
 
         if shutil.which("g++") is None and shutil.which("c++") is None:
@@ -302,66 +282,68 @@ def run(args: argparse.Namespace) -> int:
         where = torch.cuda.get_device_name(device)
     else:
         where = f"cpu, {torch.get_num_threads()} threads"
-    print(
+    echo(
         f"uhrnet bench: {where}; input {args.batch_size}x{args.height}x{args.width}; "
         f"median of {args.repeats} after {args.warmup} warm-up; channels_last {'on' if args.channels_last else 'off'}; "
         f"torch.compile {'on' if args.compile else 'off'}"
-        + (f"; --optimize: {' '.join(args.variants)}" if getattr(args, "optimize", False) else ""),
-        flush=True,
+        + (f"; --optimize: {' '.join(args.variants)}" if args.optimize else ""),
     )
     results = []
     for name in args.models:
         try:
             results.append(measure(name, args, device))
         except ValueError as exc:
-            raise CLIError(f"{name}: {exc}") from exc
+            raise ConfigError(f"{name}: {exc}") from exc
         r = results[-1]
-        print(f"  {name}: forward {_ms(r['forward_ms'])} ms, train step {_ms(r['train_step_ms'])} ms", flush=True)
+        echo(f"  {name}: forward {_ms(r['forward_ms'])} ms, train step {_ms(r['train_step_ms'])} ms")
         gc.collect()
         if device.type == "cuda":
             torch.cuda.empty_cache()
-    print(format_table(results))
-    if getattr(args, "optimize", False):
-        print(format_optimized(results))
+    echo(format_table(results))
+    if args.optimize:
+        echo(format_optimized(results))
     by_name = {r["model"].lower(): r for r in results}
     ratio = None
     if "uhrnet" in by_name and "unet" in by_name:
         ratio = by_name["uhrnet"]["forward_ms"] / by_name["unet"]["forward_ms"]
         paper = PAPER_SECONDS["uhrnet"] / PAPER_SECONDS["unet"]
-        print(
+        echo(
             f"UHRNet / U-Net forward time: {ratio:.2f} (paper: {PAPER_SECONDS['uhrnet']} s / "
             f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
         )
     ort_ratio = None
-    if getattr(args, "optimize", False) and "uhrnet" in by_name and "unet" in by_name:
+    if args.optimize and "uhrnet" in by_name and "unet" in by_name:
         a, b = by_name["uhrnet"].get("onnxruntime_ms"), by_name["unet"].get("onnxruntime_ms")
         ort_ratio = a / b if a and b else None
         if ort_ratio is not None:
-            print(f"UHRNet / U-Net forward time under onnxruntime: {ort_ratio:.2f}")
+            echo(f"UHRNet / U-Net forward time under onnxruntime: {ort_ratio:.2f}")
     memory_note = (
         "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
         if device.type == "cuda"
         else "peak memory: growth of the process's peak RSS during one call (n/a where /proc does not allow it)"
     )
-    print(memory_note)
+    echo(memory_note)
+    report = {
+        "device": where,
+        "input_shape": [args.batch_size, 1, args.height, args.width],
+        "repeats": args.repeats,
+        "warmup": args.warmup,
+        "channels_last": args.channels_last,
+        "amp": args.amp,
+        "batch_size": args.batch_size,
+        "compile": args.compile,
+        "torch": torch.__version__,
+        "results": results,
+        "optimize": bool(args.optimize),
+        "uhrnet_unet_forward_ratio": ratio,
+        "uhrnet_unet_onnxruntime_ratio": ort_ratio,
+        "memory": memory_note,
+    }
     if args.json is not None:
-        report = {
-            "device": where,
-            "input_shape": [args.batch_size, 1, args.height, args.width],
-            "repeats": args.repeats,
-            "warmup": args.warmup,
-            "channels_last": args.channels_last,
-            "amp": getattr(args, "amp", "off"),
-            "batch_size": args.batch_size,
-            "compile": args.compile,
-            "torch": torch.__version__,
-            "results": results,
-            "optimize": bool(getattr(args, "optimize", False)),
-            "uhrnet_unet_forward_ratio": ratio,
-            "uhrnet_unet_onnxruntime_ratio": ort_ratio,
-            "memory": memory_note,
-        }
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
-        print(f"wrote {args.json}")
-    return 0
+        from fppsim.formats import atomic_write_text
+
+        path = Path(args.json)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+        echo(f"wrote {path}")
+    return report

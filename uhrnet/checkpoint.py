@@ -144,15 +144,3 @@ def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, LabelTra
     out = ckpt.get("output", {"scale": 1.0, "shift": 0.0})
     model = LabelHead(net, out["scale"], out["shift"]).to(device).eval()
     return model, LabelTransform.from_dict(ckpt["label_transform"])
-
-
-def select_device(name: str = "auto", local_rank: int | None = None) -> torch.device:
-    """``auto`` -> CUDA when available, else CPU; ``cuda`` without a GPU is a user error."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ValueError("--device cuda requested but no CUDA device is available")
-        if local_rank is not None and name == "cuda":
-            return torch.device("cuda", local_rank)
-    return torch.device(name)

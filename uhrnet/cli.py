@@ -1,95 +1,345 @@
-"""`uhrnet` command line: git-style subcommands.
+"""`uhrnet` command line: git-style subcommands over the library (the only module that parses flags).
 
-Each subcommand lives in its own module exposing ``add_arguments(parser)`` and ``run(args) -> int``;
-modules are imported lazily so ``uhrnet --help`` stays fast.
+Same design as ``fppsim`` (:func:`fppsim.cli.run_commands`): every command turns its flags into a
+config of the library, which validates itself, and calls one plain function a Python user can call:
+
+    train           -> uhrnet.train(TrainConfig)
+    evaluate        -> uhrnet.evaluate(checkpoints, EvalData, ...) -> Report
+    evaluate-phase  -> uhrnet.evaluate_phase.evaluate_phase_folder(PhaseEvalConfig)
+    predict         -> uhrnet.predict(PredictConfig)
+    bench           -> uhrnet.bench.bench(BenchConfig)
+    export          -> uhrnet.export.export_checkpoint(ExportConfig)
+
+Choices (models, losses, label presets, split modes) are listed from the library's registries. Only
+the chosen command's flags are declared (its library module imported), so ``uhrnet --help`` stays fast.
+Library errors (:mod:`uhrnet.errors`) and I/O errors print one line and exit 1; usage errors exit 2;
+SIGTERM/Ctrl-C exit 128 + signum (``train`` says how to resume).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
+from pathlib import Path
 
-# name -> (module, one-line help)
-COMMANDS = {
-    "train": ("uhrnet.train", "train a model on real (figshare) and/or synthetic (fppsim) data"),
-    "evaluate": ("uhrnet.evaluate", "evaluate checkpoints on the test split like the paper (Table 3, figures)"),
-    "evaluate-phase": ("uhrnet.evaluate_phase", "evaluate checkpoints on real phase-shifting data without height "
-                       "labels (PSin/PCos/Fringe/iPattern folders): calibration-free phase residual"),
-    "predict": ("uhrnet.predict", "predict height maps and point clouds from fringe images"),
-    "bench": ("uhrnet.bench", "parameters, forward/training-step time and peak memory per model"),
-    "export": ("uhrnet.export", "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
+from fppsim.cli import Command, build_command_parser, one_line, run_commands  # noqa: F401 (one_line re-exported)
+
+__all__ = ["main", "build_parser", "COMMANDS", "one_line"]
+
+DEVICES = ("auto", "cpu", "cuda")
+
+
+# ============================================================================ train
+def add_train(p: argparse.ArgumentParser) -> None:
+    from fppsim.formats import PRESETS
+    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.losses import LOSSES
+    from uhrnet.models import list_models
+
+    # defaults are applied by the library (None = not given), so --resume can tell what the user set
+    d = p.add_argument_group("data (at least one of --real / --synthetic)")
+    d.add_argument("--real", nargs="+", metavar="DIR", help="figshare-layout folder(s) (f1_80.npy + Z.npy)")
+    d.add_argument("--synthetic", nargs="+", metavar="DIR",
+                   help="fppsim folder(s): native (manifest.jsonl) or figshare-format exports")
+    d.add_argument("--synthetic-ratio", type=float, metavar="R",
+                   help="share of synthetic samples per batch in expectation when both kinds are given "
+                        "(default: proportional to the dataset sizes)")
+    d.add_argument("--real-split", choices=SPLIT_MODES,
+                   help="reference = the paper's 80/10/10 split; train/val/test = every real sample in that "
+                        "split (e.g. a single sample) [reference]")
+    d.add_argument("--synthetic-split", choices=SPLIT_MODES, help="same for synthetic folders [reference]")
+    d.add_argument("--synthetic-label", choices=LABEL_SOURCES,
+                   help="train on the exact rendered height or the phase-shifting height [true]")
+    d.add_argument("--preset", choices=sorted(PRESETS), help="label transform preset [figshare]")
+    d.add_argument("--label-transform", nargs="+", metavar="KEY=VALUE",
+                   help="override preset fields: units_per_mm, invalid_value, invalid_threshold, plane_offset, "
+                        "data_range")
+    d.add_argument("--crop", metavar="HxW", help="random HxW crop per training sample (centre crop for validation)")
+    d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
+    d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
+    d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
+    d.add_argument("--augment", dest="augment", action="store_const", const=True,
+                   help="photometric augmentation of synthetic samples (gain, gamma, contrast, blur, noise; "
+                        "uhrnet.augment; real samples are never augmented) [on]")
+    d.add_argument("--no-augment", dest="augment", action="store_const", const=False,
+                   help="no photometric augmentation")
+    m = p.add_argument_group("model and optimisation")
+    m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
+    m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
+    m.add_argument("--model-option", nargs="+", metavar="KEY=VALUE", help="extra model constructor options")
+    m.add_argument("--loss", choices=LOSSES, help="training loss [compound]")
+    m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
+    m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
+    m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
+    m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
+    m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
+    m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
+    m.add_argument("--raw-output", action="store_const", const=True,
+                   help="the network outputs raw labels (as the reference code) instead of height/10 mm "
+                        "above the plane")
+    m.add_argument("--seed", type=int, help="seed of weights, data order, crops and dropout [0]")
+    r = p.add_argument_group("run")
+    r.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (history, checkpoints, plots)")
+    r.add_argument("--resume", nargs="?", const="auto", metavar="CKPT",
+                   help="continue from RUN_DIR/last.pt (or CKPT) with the same settings")
+    r.add_argument("--overwrite", action="store_true",
+                   help="start afresh in a RUN_DIR that already holds a run (its best.pt, last.pt, history and "
+                        "config are replaced); without it such a folder is refused")
+    r.add_argument("--device", choices=DEVICES, help="[auto: cuda when available]")
+    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def run_train(args) -> int:
+    from dataclasses import fields
+
+    from uhrnet.trainer import TrainConfig, train
+
+    given = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if hasattr(args, f.name)}
+    train(TrainConfig(**given, progress=not args.no_progress))
+    return 0
+
+
+# ============================================================================ evaluate
+def add_evaluate(p: argparse.ArgumentParser) -> None:
+    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.evaluation import SPLITS
+
+    p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
+    p.add_argument("--real", nargs="*", metavar="DIR",
+                   help="real figshare-layout folder(s); bare --real: none [the first checkpoint's]")
+    p.add_argument("--synthetic", nargs="*", metavar="DIR",
+                   help="fppsim folder(s); bare --synthetic: none [the first checkpoint's]")
+    p.add_argument("--out", required=True, metavar="DIR", help="report folder")
+    p.add_argument("--split", choices=SPLITS, default="test", help="which split to evaluate [test]")
+    p.add_argument("--real-split", choices=SPLIT_MODES, help="how real folders are split [the checkpoint's]")
+    p.add_argument("--synthetic-split", choices=SPLIT_MODES, help="how synthetic folders are split [the checkpoint's]")
+    p.add_argument("--synthetic-label", choices=LABEL_SOURCES, help="ground truth of native folders [the checkpoint's]")
+    p.add_argument("--names", nargs="+", metavar="NAME", help="model names in the table (one per checkpoint)")
+    p.add_argument("--crop", metavar="HxW", help="evaluate a centre crop of every image")
+    p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N images of the split")
+    p.add_argument("--figures", type=int, default=3, metavar="N", help="comparison figures for N evenly spaced images [3]")
+    p.add_argument("--samples", nargs="+", metavar="ID", help="figures for these sample ids (or split positions #K)")
+    p.add_argument("--row", type=int, help="cross-section row [the row crossing most object pixels]")
+    p.add_argument("--batch-size", type=int, default=1)
+    p.add_argument("--device", choices=DEVICES, default="auto")
+    p.add_argument("--timing-repeats", type=int, default=5, metavar="N",
+                   help="timed forward passes per model at batch 1 (0: skip timing) [5]")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def run_evaluate(args) -> int:
+    from uhrnet.evaluation import EvalData, evaluate
+
+    data = EvalData(real=args.real, synthetic=args.synthetic, split=args.split, real_split=args.real_split,
+                    synthetic_split=args.synthetic_split, synthetic_label=args.synthetic_label, crop=args.crop,
+                    limit=args.limit)
+    report = evaluate(args.checkpoints, data, out=args.out, names=args.names, figures=args.figures,
+                      samples=args.samples, row=args.row, batch_size=args.batch_size, device=args.device,
+                      timing_repeats=args.timing_repeats, progress=not args.no_progress)
+    out = Path(args.out)
+    print(report.table, end="")
+    print(f"report: {out / 'results.md'} (also results.csv, results.json, per_sample.csv)")
+    if report.figures:
+        print(f"figures: {out / 'figures'} ({len(report.figures)} image{'s' if len(report.figures) > 1 else ''})")
+    return 0
+
+
+# ============================================================================ predict
+def add_predict(p: argparse.ArgumentParser) -> None:
+    p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
+    p.add_argument("inputs", nargs="+", metavar="INPUT", help="fringe images, .npy arrays, or folders of them")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
+                                                 "metric x, y in the point cloud")
+    p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
+                   help="x, y spacing of the point cloud without --rig [1.0]")
+    p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
+    p.add_argument("--range", nargs=2, type=float, metavar=("LO", "HI"),
+                   help="colour range of the PNG in mm [1st-99th percentile]")
+    p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG [viridis]")
+    p.add_argument("--no-ply", action="store_true", help="skip the point clouds")
+    p.add_argument("--device", choices=DEVICES, default="auto")
+    p.add_argument("--no-progress", action="store_true")
+
+
+def run_predict(args) -> int:
+    from uhrnet.prediction import PredictConfig, predict
+
+    config = PredictConfig(checkpoint=args.checkpoint, inputs=list(args.inputs), out=args.out, rig=args.rig,
+                           pixel_size=args.pixel_size, keep_all=args.keep_all,
+                           range=tuple(args.range) if args.range is not None else None, colormap=args.colormap,
+                           ply=not args.no_ply, device=args.device, progress=not args.no_progress)
+    result = predict(config)
+    for line in result.warnings:
+        print(f"uhrnet predict: warning: {line}", file=sys.stderr)
+    print(f"predict: {len(result.names)} height map(s) from {len(result.files)} input file(s) -> {args.out} "
+          f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
+          f"{', x/y from rig ' + str(args.rig) if args.rig else ''})")
+    return 0
+
+
+# ============================================================================ bench
+def add_bench(parser: argparse.ArgumentParser) -> None:
+    from uhrnet.bench import DEFAULT_MODELS, OPT_VARIANTS
+
+    parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS), metavar="NAME",
+                        help=f"models to measure (any name of uhrnet.models.list_models(); default: "
+                             f"{' '.join(DEFAULT_MODELS)})")
+    parser.add_argument("--height", type=int, default=352, help="input height, a multiple of 16 (default 352)")
+    parser.add_argument("--width", type=int, default=640, help="input width, a multiple of 16 (default 640)")
+    parser.add_argument("--batch-size", type=int, default=1, help="batch size (default 1, as in the paper)")
+    parser.add_argument("--device", default="auto", choices=DEVICES, help="default: cuda if available")
+    parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
+    parser.add_argument("--warmup", type=int, default=3, help="untimed warm-up repetitions (default 3)")
+    parser.add_argument("--amp", choices=["off", "fp16", "bf16"], default="off",
+                        help="forward and training step under torch.autocast with this dtype (default off)")
+    parser.add_argument("--channels-last", action="store_true", help="use the channels_last memory format")
+    parser.add_argument("--compile", action="store_true",
+                        help="wrap each model in torch.compile (compiles during warm-up, so at least 2 warm-up "
+                             "calls are made)")
+    parser.add_argument("--base-channels", type=int, default=None, metavar="B",
+                        help="width override: uhrnet and unet get base B, the half-width models (model_a, hnet) B/2 "
+                             "(for quick runs; parameter counts then differ from the paper)")
+    parser.add_argument("--no-train", action="store_true", help="skip the training-step measurement")
+    parser.add_argument("--optimize", action="store_true",
+                        help="also time each model in its deployable forms (see --variants; every form is checked to "
+                             "give the eager model's output within 1e-4 x its range) and report the fastest torch "
+                             "form as forward ms")
+    parser.add_argument("--variants", nargs="+", default=list(OPT_VARIANTS), choices=list(OPT_VARIANTS), metavar="V",
+                        help="forms tried by --optimize: fold (batch norms folded, UHRNet blocks merged, "
+                             "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), "
+                             "onnxruntime (ONNX export of fold run by onnxruntime; a column of its own) "
+                             f"(default: {' '.join(OPT_VARIANTS)})")
+    parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
+
+
+def run_bench(args) -> int:
+    from uhrnet.bench import BenchConfig, bench
+
+    config = BenchConfig(models=list(args.models), height=args.height, width=args.width, batch_size=args.batch_size,
+                         device=args.device, repeats=args.repeats, warmup=args.warmup,
+                         amp=args.amp, channels_last=args.channels_last, compile=args.compile,
+                         base_channels=args.base_channels, train=not args.no_train, optimize=args.optimize,
+                         variants=list(args.variants), json=args.json)
+    bench(config, echo=lambda line: print(line, flush=True))
+    return 0
+
+
+# ============================================================================ evaluate-phase
+def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
+    from fppsim.psp_io import CONVENTIONS
+
+    p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
+    p.add_argument("--phase-root", required=True, metavar="DIR",
+                   help="folder with PSin/, PCos/, Fringe/ (variable Order), iPattern/ sub-folders of <id>.mat")
+    p.add_argument("--out", required=True, metavar="DIR", help="report folder")
+    p.add_argument("--degree", type=int, default=3, help="total degree of the reference-plane polynomial in x, y [3]")
+    p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
+    p.add_argument("--convention", choices=CONVENTIONS, default="benchmark",
+                   help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data) [default]; "
+                        "fppsim: atan2(PSin, PCos) + 2 pi Order")
+    p.add_argument("--negate-sin", action="store_true", help="the files store PSin with the opposite sign")
+    p.add_argument("--mask-predicted-invalid", action="store_true",
+                   help="leave out pixels the model labels invalid (default: keep them: real phase exists there, so "
+                        "a predicted shadow is a prediction error)")
+    p.add_argument("--names", nargs="+", metavar="NAME", help="model names (one per checkpoint)")
+    p.add_argument("--ids", nargs="+", metavar="ID", help="evaluate only these ids [all]")
+    p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N ids")
+    p.add_argument("--figures", type=int, default=3, metavar="N", help="residual-map figures for the first N ids [3]")
+    p.add_argument("--device", choices=DEVICES, default="auto")
+
+
+def run_evaluate_phase(args) -> int:
+    from uhrnet.evaluate_phase import PhaseEvalConfig, evaluate_phase_folder
+
+    config = PhaseEvalConfig(checkpoints=list(args.checkpoints), phase_root=args.phase_root, out=args.out,
+                             degree=args.degree, robust=args.robust, convention=args.convention,
+                             negate_sin=args.negate_sin, mask_predicted_invalid=args.mask_predicted_invalid,
+                             names=args.names, ids=args.ids, limit=args.limit, figures=args.figures,
+                             device=args.device)
+    result = evaluate_phase_folder(config, echo=print)
+    out = Path(args.out)
+    print(result["markdown"], end="")
+    print(f"report: {out / 'phase_results.md'} (also phase_results.json)")
+    if result["figures"]:
+        n = len(result["figures"])
+        print(f"figures: {out / 'figures'} ({n} residual map{'s' if n > 1 else ''})")
+    return 0
+
+
+# ============================================================================ export
+def add_export(parser: argparse.ArgumentParser) -> None:
+    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS
+
+    parser.description = (
+        "Export a checkpoint's model (batch norms folded, UHRNet blocks merged: the same function) as ONNX or "
+        "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
+        f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
+        f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
+        "(max - min) of the checkpoint model's output."
+    )
+    parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
+    parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
+    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt)")
+    parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
+    parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
+    parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
+    parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (no folding/merging)")
+
+
+def run_export(args) -> int:
+    from uhrnet.export import ExportConfig, export_checkpoint
+
+    config = ExportConfig(checkpoint=args.checkpoint, out=args.out, format=args.format, height=args.height,
+                          width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
+                          optimize=not args.no_optimize)
+    summary = export_checkpoint(config)
+    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
+    if summary["check"] is not None:
+        r = summary["check"]
+        print(f"check passed: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
+    return 0
+
+
+# ============================================================================ main
+COMMANDS: dict[str, Command] = {
+    "train": Command(add_train, run_train, "train a model on real (figshare) and/or synthetic (fppsim) data"),
+    "evaluate": Command(add_evaluate, run_evaluate,
+                        "evaluate checkpoints on the test split like the paper (Table 3, figures)"),
+    "evaluate-phase": Command(add_evaluate_phase, run_evaluate_phase,
+                              "evaluate checkpoints on real phase-shifting data without height labels "
+                              "(PSin/PCos/Fringe/iPattern folders): calibration-free phase residual"),
+    "predict": Command(add_predict, run_predict, "predict height maps and point clouds from fringe images"),
+    "bench": Command(add_bench, run_bench, "parameters, forward/training-step time and peak memory per model"),
+    "export": Command(add_export, run_export,
+                      "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
 }
 
 
-from uhrnet.errors import ConfigError as CLIError, UsageError  # noqa: E402,F401  (names the subcommands use)
-
-
-def build_parser(load=None) -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="uhrnet",
-        description="UHRNet and baselines for single-shot fringe projection profilometry. "
-        "Heights are in label units on disk and reported in millimetres.",
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (module, help_) in COMMANDS.items():
-        p = sub.add_parser(name, help=help_, description=help_)
-        if load is None or load == name:
-            importlib.import_module(module).add_arguments(p)
-    return parser
-
-
-def one_line(exc: BaseException) -> str:
-    """The one-line message of a user error, also when a DataLoader worker re-raised it.
-
-    A worker's error arrives as ``Caught DataError in DataLoader worker process 0.`` followed by the
-    worker's traceback, whose last line (``uhrnet.data.DataError: <file>: ...``) names the culprit.
-    """
-    lines = [line for line in str(exc).splitlines() if line.strip()]
-    if not lines:
-        return type(exc).__name__
-    if len(lines) > 1 and lines[0].startswith("Caught ") and "worker" in lines[0]:
-        last = lines[-1].strip()
-        prefix = f"{type(exc).__module__}.{type(exc).__qualname__}: "
-        return last[len(prefix):] if last.startswith(prefix) else last
-    return lines[0]
+def build_parser(load: str | None = None) -> argparse.ArgumentParser:
+    """The parser; with ``load`` only that command's flags are declared (the others: name and help)."""
+    return build_command_parser(
+        "uhrnet", "UHRNet and baselines for single-shot fringe projection profilometry. "
+        "Heights are in label units on disk and reported in millimetres.", COMMANDS, load=load)
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fppsim.errors import FppsimError
+    from uhrnet.errors import DataError, UhrnetError
+
     argv = sys.argv[1:] if argv is None else list(argv)
-    # Load only the chosen subcommand's module (argparse exits 2 on usage errors).
     chosen = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(load=chosen if chosen in COMMANDS else "__none__")
     if chosen not in COMMANDS and not any(a in ("-h", "--help") for a in argv):
+        parser = build_parser(load="")
         parser.print_usage(sys.stderr)
         print(f"uhrnet: error: choose a command from: {', '.join(COMMANDS)}", file=sys.stderr)
         return 2
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
-    module = importlib.import_module(COMMANDS[args.command][0])
-    from fppsim._fs import signals_raise
-
-    try:
-        with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum, temp files removed
-            return int(module.run(args) or 0)
-    except Exception as exc:  # user-facing errors become one line; anything else is a bug: traceback
-        from uhrnet.errors import CheckpointError, ConfigError, DataError, FolderBusy, UhrnetError
-
-        if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, ...
-            where = f"{exc.filename}: " if exc.filename else ""
-            print(f"uhrnet {args.command}: error: {where}{exc.strerror}", file=sys.stderr)
-            return 1
-        if not isinstance(exc, (ConfigError, DataError, CheckpointError, UhrnetError, FolderBusy)):
-            raise
-        print(f"uhrnet {args.command}: error: {one_line(exc)}", file=sys.stderr)
-        return 2 if isinstance(exc, UsageError) else 1
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", 2)
-        print(f"uhrnet {args.command}: {'terminated' if signum == 15 else 'interrupted'}"
-              + (" (resume with --resume)" if args.command == "train" else ""), file=sys.stderr)
-        return 128 + signum
+    # FolderBusy, BackendError ... of the fppsim side are one line too (uhrnet reads through fppsim)
+    return run_commands(build_parser(load=chosen if chosen in COMMANDS else ""), COMMANDS, argv,
+                        (UhrnetError, DataError, FppsimError),
+                        resume_hint={"train": " (resume with --resume)"})
 
 
 if __name__ == "__main__":

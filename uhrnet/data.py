@@ -71,6 +71,7 @@ def reference_split(n: int, test_size: float = 0.2, seeds: tuple[int, int] = (0,
 
 
 SPLIT_MODES = ("reference", "train", "val", "test")
+LABEL_SOURCES = ("true", "psp")  # native ground truth: exact rendered height or phase-shifting height
 
 
 def split_indices(n: int, part: str, mode: str = "reference") -> np.ndarray:
@@ -202,7 +203,7 @@ class FppsimDataset(Dataset):
         self.label = label
         self.mask_fringe = mask_fringe
         self.arrays: FigshareArrays | None = None
-        if label not in ("true", "psp"):
+        if label not in LABEL_SOURCES:
             raise ValueError(f"label must be 'true' or 'psp', got {label!r}")
         if not self.root.exists():
             raise DataError(f"{self.root}: folder not found")

@@ -1,4 +1,5 @@
-"""`uhrnet evaluate-phase`: checkpoints on real phase-shifting data without height labels.
+"""Checkpoints on real phase-shifting data without height labels (``uhrnet evaluate-phase`` calls
+:func:`evaluate_phase_folder`).
 
 Reads the folder layout of the public phase-retrieval data (``<root>/PSin``, ``PCos``, ``Fringe``,
 ``iPattern``, one ``<id>.mat`` each; :mod:`fppsim.psp_io`), predicts a height map from every iPattern
@@ -11,37 +12,43 @@ explained, fitted coefficients; the same for the flat h = 0 baseline) and ``figu
 
 from __future__ import annotations
 
-import argparse
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from uhrnet.checkpoint import atomic_write_text, load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.errors import ConfigError as CLIError
+from fppsim.formats import atomic_write_text
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size
+from uhrnet.device import select_device
+from uhrnet.errors import ConfigError
+
+__all__ = ["PhaseEvalConfig", "evaluate_phase_folder", "markdown", "plot_phase_residuals"]
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
-    p.add_argument("--phase-root", required=True, metavar="DIR",
-                   help="folder with PSin/, PCos/, Fringe/ (variable Order), iPattern/ sub-folders of <id>.mat")
-    p.add_argument("--out", required=True, metavar="DIR", help="report folder")
-    p.add_argument("--degree", type=int, default=3, help="total degree of the reference-plane polynomial in x, y [3]")
-    p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
-    p.add_argument("--convention", choices=("benchmark", "fppsim"), default="benchmark",
-                   help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data) [default]; "
-                        "fppsim: atan2(PSin, PCos) + 2 pi Order")
-    p.add_argument("--negate-sin", action="store_true", help="the files store PSin with the opposite sign")
-    p.add_argument("--mask-predicted-invalid", action="store_true",
-                   help="leave out pixels the model labels invalid (default: keep them: real phase exists there, so "
-                        "a predicted shadow is a prediction error)")
-    p.add_argument("--names", nargs="+", metavar="NAME", help="model names (one per checkpoint)")
-    p.add_argument("--ids", nargs="+", metavar="ID", help="evaluate only these ids [all]")
-    p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N ids")
-    p.add_argument("--figures", type=int, default=3, metavar="N", help="residual-map figures for the first N ids [3]")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
+@dataclass
+class PhaseEvalConfig:
+    """What ``uhrnet evaluate-phase`` does; the fields are its flags (see :mod:`uhrnet.cli`)."""
+
+    checkpoints: list
+    phase_root: str | Path
+    out: str | Path
+    degree: int = 3
+    robust: bool = False
+    convention: str = "benchmark"
+    negate_sin: bool = False
+    mask_predicted_invalid: bool = False
+    names: list | None = None
+    ids: list | None = None
+    limit: int | None = None
+    figures: int = 3
+    device: str = "auto"
+
+    def __post_init__(self):
+        if self.degree < 0:
+            raise ConfigError(f"--degree must be >= 0, got {self.degree}")
 
 
 def _mean(values) -> float:
@@ -99,33 +106,32 @@ def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, r
     return out
 
 
-def run(args: argparse.Namespace) -> int:
+def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
+    """Evaluate ``args.checkpoints`` on the folder layout at ``args.phase_root``; writes the report to
+    ``args.out`` and returns ``{"summary", "per_image", "markdown", "figures"}``. ``echo`` gets one line
+    per image (None: silent)."""
     from fppsim.psp_io import PSPMatError, list_psp_ids, load_psp_folder_sample
-    from uhrnet.evaluate import _names
+    from uhrnet.evaluation import model_names
     from uhrnet.inference import predict_labels
     from uhrnet.phase_eval import evaluate_phase, fit_phase
 
-    if args.degree < 0:
-        raise CLIError(f"--degree must be >= 0, got {args.degree}")
+    echo = echo or (lambda line: None)
     try:
         ids = list_psp_ids(args.phase_root)
     except PSPMatError as exc:
-        raise CLIError(str(exc)) from None
+        raise ConfigError(str(exc)) from None
     if args.ids:
         unknown = [i for i in args.ids if i not in ids]
         if unknown:
-            raise CLIError(f"{args.phase_root}: no such id(s): {', '.join(unknown[:10])}")
+            raise ConfigError(f"{args.phase_root}: no such id(s): {', '.join(unknown[:10])}")
         ids = list(args.ids)
     if args.limit is not None:
         ids = ids[: max(0, args.limit)]
     if not ids:
-        raise CLIError(f"{args.phase_root}: nothing to evaluate")
+        raise ConfigError(f"{args.phase_root}: nothing to evaluate")
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
-    names = _names(ckpts, args.names)
-    try:
-        device = select_device(args.device)
-    except ValueError as exc:
-        raise CLIError(str(exc)) from None
+    names = model_names(ckpts, args.names)
+    device = select_device(args.device)
     models = []
     for ck in ckpts:
         model, transform = model_from_checkpoint(ck, device)
@@ -139,14 +145,14 @@ def run(args: argparse.Namespace) -> int:
         try:
             s = load_psp_folder_sample(args.phase_root, sid, convention=args.convention, negate_sin=args.negate_sin)
         except PSPMatError as exc:
-            raise CLIError(str(exc)) from None
+            raise ConfigError(str(exc)) from None
         img = s.image
         x = torch.from_numpy(img.astype(np.float32) / 127.5 - 1.0)[None, None]
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:
             _, relief = fit_phase(s.phase, np.zeros(img.shape), s.valid, return_residual=True, **fit_kw)
         except ValueError as exc:
-            raise CLIError(f"{s.path}: {exc}") from None
+            raise ConfigError(f"{s.path}: {exc}") from None
         heights, residuals = {}, {}
         for (model, transform, size), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
@@ -158,7 +164,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 res = evaluate_phase(s.phase, h, ok, **fit_kw)
             except ValueError as exc:
-                raise CLIError(f"{s.path}: {name}: {exc}") from None
+                raise ConfigError(f"{s.path}: {name}: {exc}") from None
             record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"],
                                       "pixel_fraction": float(ok.mean()),
                                       "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
@@ -168,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         if k < args.figures:
             figures.append(plot_phase_residuals(img, relief, heights, residuals, out / "figures" / f"{sid}.png",
                                                 title=f"{sid}: calibration-free phase fit (degree {args.degree})"))
-        print(f"{sid}: " + ", ".join(f"{n} residual {r['prediction']['rmse_rad']:.3f} rad "
+        echo(f"{sid}: " + ", ".join(f"{n} residual {r['prediction']['rmse_rad']:.3f} rad "
                                      f"(flat {r['flat']['rmse_rad']:.3f}), explained {r['prediction']['explained']:.3f}"
                                      for n, r in record["models"].items()))
     summary = []
@@ -189,8 +195,4 @@ def run(args: argparse.Namespace) -> int:
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
          "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image},
         indent=1, allow_nan=True))
-    print(md, end="")
-    print(f"report: {out / 'phase_results.md'} (also phase_results.json)")
-    if figures:
-        print(f"figures: {out / 'figures'} ({len(figures)} residual map{'s' if len(figures) > 1 else ''})")
-    return 0
+    return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}

@@ -16,7 +16,6 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 
 from __future__ import annotations
 
-import argparse
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +42,13 @@ class ExportConfig:
     dynamic: bool = False
     check: bool = False
     optimize: bool = True
+
+    def __post_init__(self):
+        h, w = self.height, self.width
+        if h % 16 or w % 16 or h < 16 or w < 16:
+            raise ExportError(f"--height and --width must be positive multiples of 16, got {h}x{w}")
+        if self.format not in FORMATS:
+            raise ExportError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
 
 
 def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> torch.Tensor:
@@ -175,41 +181,3 @@ def export_checkpoint(config: ExportConfig) -> dict:
 
 # --------------------------------------------------------------------------------------------------
 # CLI
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.description = (
-        "Export a checkpoint's model (batch norms folded, UHRNet blocks merged: the same function) as ONNX or "
-        "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
-        f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
-        f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
-        "(max - min) of the checkpoint model's output."
-    )
-    parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
-    parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
-    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt)")
-    parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
-    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
-    parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
-    parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
-    parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
-    parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (no folding/merging)")
-
-
-def run(args: argparse.Namespace) -> int:
-    from .cli import CLIError
-
-    if args.height % 16 or args.width % 16 or args.height < 16 or args.width < 16:
-        raise CLIError(f"--height and --width must be positive multiples of 16, got {args.height}x{args.width}")
-    config = ExportConfig(checkpoint=args.checkpoint, out=args.out, format=args.format, height=args.height,
-                          width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
-                          optimize=not args.no_optimize)
-    try:
-        summary = export_checkpoint(config)
-    except ExportError as exc:
-        raise CLIError(str(exc)) from None
-    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
-    if summary["check"] is not None:
-        r = summary["check"]
-        print(f"check passed: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
-    return 0

@@ -20,6 +20,8 @@ import torch
 from torch import nn
 import torch.nn.functional as F
 
+from uhrnet.device import synchronize  # noqa: F401 (re-exported: the timing helpers below use it)
+
 ArrayLike = torch.Tensor | np.ndarray
 
 
@@ -196,13 +198,6 @@ def count_parameters(model: nn.Module, trainable_only: bool = True) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad or not trainable_only)
 
 
-def synchronize(device: torch.device | str) -> None:
-    """Wait for queued work on ``device`` (a no-op on CPU)."""
-    device = torch.device(device)
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
 def time_call(fn: Callable[[], object], device: torch.device | str, warmup: int = 3, repeats: int = 10) -> list[float]:
     """Wall-clock seconds of ``repeats`` calls of ``fn()`` after ``warmup`` untimed calls, each call
     bracketed by :func:`synchronize` so that GPU time is included."""
@@ -298,3 +293,12 @@ def peak_memory_bytes(fn: Callable[[], object], device: torch.device | str) -> i
     if before is None or peak is None:
         return None
     return max(0, peak - before) * 1024
+
+
+def image_metrics(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, transform) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-image RMSE (mm) and SSIM of label maps ``(N, 1, H, W)`` under a label ``transform``
+    (:class:`fppsim.formats.LabelTransform`): float64 CPU tensors, NaN where an image has no valid pixel."""
+    pred, target, mask = pred.detach().float(), target.float(), mask
+    r = rmse_mm(pred, target, mask, transform.mm_per_unit, reduction="none").double().cpu()
+    s = ssim(pred, target, transform.data_range, mask, reduction="none").detach().double().cpu()
+    return r, s

@@ -300,7 +300,8 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     """
     import torch
 
-    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.device import select_device
     from uhrnet.data import parse_size
     from uhrnet.inference import predict_labels
 

@@ -1,4 +1,5 @@
-"""`uhrnet train`: train UHRNet or a baseline on real (figshare) and/or synthetic (fppsim) data.
+"""Training: ``uhrnet.train(TrainConfig(...))`` trains UHRNet or a baseline on real (figshare) and/or
+synthetic (fppsim) data; ``uhrnet train`` calls it.
 
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
 ``RUN/history.png`` (the paper's Fig. 6); ``RUN/last.pt`` is written atomically after every epoch and
@@ -9,7 +10,6 @@ it runs DistributedDataParallel (gloo on CPU, nccl on GPU); only rank 0 writes.
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
@@ -19,7 +19,7 @@ import shutil
 import sys
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass, fields
 from datetime import timedelta
 from pathlib import Path
 
@@ -29,14 +29,15 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 
 from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock
-from fppsim.formats import PRESETS, LabelTransform, atomic_path, atomic_write_text
+from fppsim.formats import LabelTransform, atomic_path, atomic_write_text
 from uhrnet.checkpoint import (
-    FORMAT, VERSION, LabelHead, atomic_save, load_checkpoint, rng_state, select_device, set_rng_state,
+    FORMAT, VERSION, LabelHead, atomic_save, load_checkpoint, rng_state, set_rng_state,
 )
-from uhrnet.data import SPLIT_MODES, MixedSampler, Prepared, load_sources, parse_size
-from uhrnet.errors import CheckpointError, ConfigError as CLIError, DataError, UsageError
+from uhrnet.device import select_device
+from uhrnet.data import MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.metrics import image_metrics
+from uhrnet.errors import CheckpointError, ConfigError, DataError, TrainingDiverged, UsageError
 
-LOSS_NAMES = ("compound", "l2", "chunked", "ssim")
 RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
@@ -58,66 +59,91 @@ HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rm
                    "lr", "seconds", "best")
 
 
-def _model_names() -> list[str]:
-    try:
-        from uhrnet.models import list_models
+@dataclass
+class TrainConfig:
+    """Options of a training run; ``None`` means "not given": the default of :data:`DEFAULTS` for a
+    fresh run, the checkpoint's value on ``resume`` (options in :data:`LOCKED` must then match it).
 
-        return list_models()
-    except ImportError:  # pragma: no cover
-        return ["uhrnet", "unet", "hnet", "model_a", "model_b", "model_c", "model_d"]
+    Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
+    ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
+    already holds a run (refused otherwise). ``augment``: photometric augmentation of synthetic samples
+    (:mod:`uhrnet.augment`). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    on its own (the command line exits 2), :class:`ConfigError` otherwise.
+    """
+
+    out: str | os.PathLike
+    real: list | None = None
+    synthetic: list | None = None
+    synthetic_ratio: float | None = None
+    real_split: str | None = None
+    synthetic_split: str | None = None
+    synthetic_label: str | None = None
+    preset: str | None = None
+    label_transform: list | None = None
+    crop: str | None = None
+    resize: str | None = None
+    samples_per_epoch: int | None = None
+    workers: int | None = None
+    augment: bool | None = None
+    model: str | None = None
+    base_channels: int | None = None
+    model_option: list | None = None
+    loss: str | None = None
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    weight_decay: float | None = None
+    grad_clip: float | None = None
+    amp: bool | None = None
+    raw_output: bool | None = None
+    seed: int | None = None
+    device: str | None = None
+    resume: str | None = None
+    overwrite: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        for key in ("real", "synthetic"):
+            value = getattr(self, key)
+            if isinstance(value, (str, os.PathLike)):
+                setattr(self, key, [value])
+        given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
+        check_options(given)
+        if not self.resume:  # a fresh run's label transform must be usable before anything is written
+            label_transform_from({**DEFAULTS, **given})
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    d = p.add_argument_group("data (at least one of --real / --synthetic)")
-    d.add_argument("--real", nargs="+", metavar="DIR", help="figshare-layout folder(s) (f1_80.npy + Z.npy)")
-    d.add_argument("--synthetic", nargs="+", metavar="DIR",
-                   help="fppsim folder(s): native (manifest.jsonl) or figshare-format exports")
-    d.add_argument("--synthetic-ratio", type=float, metavar="R",
-                   help="share of synthetic samples per batch in expectation when both kinds are given "
-                        "(default: proportional to the dataset sizes)")
-    d.add_argument("--real-split", choices=SPLIT_MODES,
-                   help="reference = the paper's 80/10/10 split; train/val/test = every real sample in that "
-                        "split (e.g. a single sample) [reference]")
-    d.add_argument("--synthetic-split", choices=SPLIT_MODES, help="same for synthetic folders [reference]")
-    d.add_argument("--synthetic-label", choices=("true", "psp"),
-                   help="train on the exact rendered height or the phase-shifting height [true]")
-    d.add_argument("--preset", choices=sorted(PRESETS), help="label transform preset [figshare]")
-    d.add_argument("--label-transform", nargs="+", metavar="KEY=VALUE",
-                   help="override preset fields: units_per_mm, invalid_value, invalid_threshold, plane_offset, "
-                        "data_range")
-    d.add_argument("--crop", metavar="HxW", help="random HxW crop per training sample (centre crop for validation)")
-    d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
-    d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
-    d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
-    d.add_argument("--augment", dest="augment", action="store_const", const=True,
-                   help="photometric augmentation of synthetic samples (gain, gamma, contrast, blur, noise; "
-                        "uhrnet.augment; real samples are never augmented) [on]")
-    d.add_argument("--no-augment", dest="augment", action="store_const", const=False,
-                   help="no photometric augmentation")
-    m = p.add_argument_group("model and optimisation")
-    m.add_argument("--model", choices=_model_names(), help="architecture [uhrnet]")
-    m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
-    m.add_argument("--model-option", nargs="+", metavar="KEY=VALUE", help="extra model constructor options")
-    m.add_argument("--loss", choices=LOSS_NAMES, help="training loss [compound]")
-    m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
-    m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
-    m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
-    m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
-    m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
-    m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
-    m.add_argument("--raw-output", action="store_const", const=True,
-                   help="the network outputs raw labels (as the reference code) instead of height/10 mm "
-                        "above the plane")
-    m.add_argument("--seed", type=int, help="seed of weights, data order, crops and dropout [0]")
-    r = p.add_argument_group("run")
-    r.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (history, checkpoints, plots)")
-    r.add_argument("--resume", nargs="?", const="auto", metavar="CKPT",
-                   help="continue from RUN_DIR/last.pt (or CKPT) with the same settings")
-    r.add_argument("--overwrite", action="store_true",
-                   help="start afresh in a RUN_DIR that already holds a run (its best.pt, last.pt, history and "
-                        "config are replaced); without it such a folder is refused")
-    r.add_argument("--device", choices=("auto", "cpu", "cuda"), help="[auto: cuda when available]")
-    r.add_argument("--no-progress", action="store_true", help="no progress bar")
+def check_options(cfg: dict) -> None:
+    """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
+    of the first invalid option in ``cfg``."""
+    from fppsim.formats import PRESETS
+    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.losses import LOSSES
+    from uhrnet.models import list_models
+
+    choices = {"model": list_models(), "loss": LOSSES, "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
+               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
+    for key, allowed in choices.items():
+        if key in cfg and cfg[key] not in allowed:
+            raise ConfigError(f"--{key.replace('_', '-')} {cfg[key]!r}: choose from {', '.join(allowed)}")
+    for key in ("crop", "resize"):
+        try:
+            parse_size(cfg.get(key))
+        except ValueError as exc:
+            raise ConfigError(f"--{key}: {exc}") from None
+    if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
+        raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
+    for key in ("epochs", "batch_size"):
+        if key in cfg and cfg[key] < 1:
+            raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
+    if "lr" in cfg and not cfg["lr"] > 0:
+        raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
+    if "lr" in cfg and not math.isfinite(cfg["lr"]):
+        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
+    if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
+        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
+        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -130,7 +156,7 @@ def _parse_kv(items, what: str) -> dict:
     out = {}
     for item in items or []:
         if "=" not in item:
-            raise CLIError(f"{what}: expected KEY=VALUE, got {item!r}")
+            raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         out[k.strip().replace("-", "_")] = yaml.safe_load(v)
     return out
@@ -144,7 +170,7 @@ def _normalise(key: str, value):
     return value
 
 
-def resolve_config(args: argparse.Namespace, previous: dict | None = None) -> dict:
+def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
     """Options after defaults (fresh run) or the checkpoint's options (resume)."""
     cfg = {}
     for key, default in DEFAULTS.items():
@@ -152,7 +178,7 @@ def resolve_config(args: argparse.Namespace, previous: dict | None = None) -> di
         if previous is not None and key in previous:
             if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, previous[key]):
                 flag = "--" + key.replace("_", "-")
-                raise CLIError(
+                raise ConfigError(
                     f"{flag} {given} differs from the checkpoint's {previous[key]!r}; drop {flag} to resume, "
                     "or start a new --out"
                 )
@@ -161,24 +187,7 @@ def resolve_config(args: argparse.Namespace, previous: dict | None = None) -> di
             cfg[key] = default if given is None else given
     cfg["real"] = _normalise("real", cfg["real"])
     cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
-    for key in ("crop", "resize"):
-        try:
-            parse_size(cfg[key])
-        except ValueError as exc:
-            raise CLIError(f"--{key}: {exc}") from None
-    if cfg["synthetic_ratio"] is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
-        raise CLIError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
-    for key in ("epochs", "batch_size"):
-        if cfg[key] < 1:
-            raise CLIError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
-    if not cfg["lr"] > 0:
-        raise CLIError(f"--lr must be positive, got {cfg['lr']}")
-    if not math.isfinite(cfg["lr"]):
-        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
-    if cfg["grad_clip"] is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
-        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
-    if not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
-        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
+    check_options(cfg)
     return cfg
 
 
@@ -232,17 +241,7 @@ def _all_reduce(values: torch.Tensor, info: DistInfo, device, op=None) -> torch.
 
 
 # --------------------------------------------------------------------------------------------------
-# Metrics helpers (shared with evaluate)
-
-
-def image_metrics(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, transform: LabelTransform):
-    """Per-image RMSE (mm) and SSIM (float64 CPU tensors, NaN where an image has no valid pixel)."""
-    from uhrnet.metrics import rmse_mm, ssim
-
-    pred, target, mask = pred.detach().float(), target.float(), mask
-    r = rmse_mm(pred, target, mask, transform.mm_per_unit, reduction="none").double().cpu()
-    s = ssim(pred, target, transform.data_range, mask, reduction="none").detach().double().cpu()
-    return r, s
+# Metric sums over processes
 
 
 class _Sums:
@@ -269,8 +268,6 @@ class _Sums:
 # Trainer
 
 
-class Diverged(RuntimeError):
-    pass
 
 
 def _fmt(v) -> str:
@@ -297,7 +294,9 @@ def write_history(rows: list[dict], out: Path) -> None:
 
 
 class Trainer:
-    def __init__(self, args: argparse.Namespace, info: DistInfo):
+    """One training run of a :class:`TrainConfig` in this process (one rank under torchrun)."""
+
+    def __init__(self, args: TrainConfig, info: DistInfo):
         self.args, self.info = args, info
         self.out = Path(args.out)
         self.ckpt = None
@@ -308,18 +307,15 @@ class Trainer:
         elif args.resume:
             path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
-        elif not getattr(args, "overwrite", False):
+        elif not args.overwrite:
             existing = [n for n in RUN_FILES if (self.out / n).exists()]
             if existing:
-                raise CLIError(f"{self.out} already holds a run ({', '.join(existing)}): pass --resume to continue "
-                               "it, --overwrite to replace it, or choose another --out")
+                raise ConfigError(f"{self.out} already holds a run ({', '.join(existing)}): pass --resume to continue "
+                                  "it, --overwrite to replace it, or choose another --out")
         self.cfg = resolve_config(args, self.ckpt["args"] if self.ckpt else None)
         if not self.cfg["real"] and not self.cfg["synthetic"]:
-            raise CLIError("no data: give --real DIR and/or --synthetic DIR")
-        try:
-            self.device = select_device(self.cfg["device"], info.local_rank if info.enabled else None)
-        except ValueError as exc:
-            raise CLIError(str(exc)) from None
+            raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
+        self.device = select_device(self.cfg["device"], info.local_rank if info.enabled else None)
         if self.device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
@@ -338,11 +334,11 @@ class Trainer:
                                   augment=AugmentConfig() if cfg["augment"] else None)
         self.val_set = Prepared(sources.val, crop, resize, random_crop=False)
         if len(self.train_set) == 0:
-            raise CLIError("no training samples: every sample is in the val/test split "
+            raise ConfigError("no training samples: every sample is in the val/test split "
                            "(check --real-split/--synthetic-split)")
         shape = tuple(self.train_set[0]["fringe"].shape[-2:])
         if shape[0] % 16 or shape[1] % 16:
-            raise CLIError(f"training images are {shape[0]}x{shape[1]}; the models need multiples of 16: "
+            raise ConfigError(f"training images are {shape[0]}x{shape[1]}; the models need multiples of 16: "
                            "use --crop HxW or --resize HxW")
         self.image_shape = shape
         self.sampler = MixedSampler(sources.train.n_real, sources.train.n_synthetic, cfg["synthetic_ratio"],
@@ -366,7 +362,7 @@ class Trainer:
         try:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
-            raise CLIError(f"--model {cfg['model']}: {exc}") from None
+            raise ConfigError(f"--model {cfg['model']}: {exc}") from None
         self.net = net
         self.n_params = count_parameters(net)
         scale, shift = (1.0, 0.0) if cfg["raw_output"] else (10.0 * self.transform.units_per_mm,
@@ -383,7 +379,7 @@ class Trainer:
         try:
             self.loss_fn = build_loss(cfg["loss"], data_range=self.transform.data_range).to(self.device)
         except (TypeError, ValueError) as exc:
-            raise CLIError(f"--loss {cfg['loss']}: {exc}") from None
+            raise ConfigError(f"--loss {cfg['loss']}: {exc}") from None
         self.optimizer = torch.optim.Adam(net.parameters(), lr=cfg["lr"], weight_decay=cfg["weight_decay"])
         self.amp = bool(cfg["amp"])
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp and self.device.type == "cuda")
@@ -433,7 +429,7 @@ class Trainer:
         self.ddp.train()
         sums = _Sums(["loss", "rmse", "ssim"])
         bar = tqdm(self.loader, desc=f"epoch {epoch + 1}/{self.cfg['epochs']}", unit="step", leave=False,
-                   disable=not self.info.main or self.args.no_progress, dynamic_ncols=True)
+                   disable=not self.info.main or not self.args.progress, dynamic_ncols=True)
         for step, batch in enumerate(bar):
             x, y, m = self._batch(batch)
             with self._autocast():
@@ -442,7 +438,7 @@ class Trainer:
             loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
             finite = torch.isfinite(loss.detach()).to(torch.float64).reshape(1).cpu()
             if float(_all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
-                raise Diverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
+                raise TrainingDiverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
                                + (" (on another process)" if torch.isfinite(loss) else ""))
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.scale(loss).backward()
@@ -455,7 +451,7 @@ class Trainer:
             r, s = image_metrics(outs[0], y, m, self.transform)
             sums.add("rmse", r)
             sums.add("ssim", s)
-            if self.info.main and not self.args.no_progress:
+            if self.info.main and self.args.progress:
                 bar.set_postfix(loss=f"{loss.item():.4g}", rmse_mm=f"{float(r.nanmean()):.3f}", refresh=False)
         bar.close()
         res = sums.reduce(self.info, self.device)
@@ -551,10 +547,10 @@ class Trainer:
             t0 = time.perf_counter()
             try:
                 row = self.train_epoch(epoch)
-            except Diverged as exc:
+            except TrainingDiverged as exc:
                 last = self.out / "last.pt"
                 hint = f"; the last good checkpoint is {last}" if last.exists() else ""
-                raise CLIError(f"training diverged: {exc}{hint}; try a lower --lr (now {cfg['lr']:g})"
+                raise TrainingDiverged(f"training diverged: {exc}{hint}; try a lower --lr (now {cfg['lr']:g})"
                                + (" or drop --amp" if self.amp else "")) from None
             self._end_epoch_loss()
             row.update(self.validate())
@@ -604,20 +600,26 @@ def _version() -> str:
     return __version__
 
 
-def run(args: argparse.Namespace) -> int:
-    info = init_distributed(args.device or "auto")
+def train(config: TrainConfig) -> dict:
+    """Train (or resume) the run ``config`` describes; returns ``{"out", "best", "history"}``.
+
+    Under ``torchrun`` every process calls this; it runs DistributedDataParallel and only rank 0 writes.
+    """
+    info = init_distributed(config.device or "auto")
     try:
         if not info.main:
-            return Trainer(args, info).fit()
-        if not args.resume:  # refuse bad options before the run folder is created
-            label_transform_from(resolve_config(args))
-        try:
-            check_writable_dir(args.out)
-        except ValueError as exc:
-            raise CLIError(str(exc)) from None
-        with folder_lock(args.out, "uhrnet train"):  # two trainings in one folder would overwrite each other
-            clean_stale_tmp(args.out)  # checkpoint temp files of a killed run
-            return Trainer(args, info).fit()
+            trainer = Trainer(config, info)
+            trainer.fit()
+        else:
+            try:
+                check_writable_dir(config.out)
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
+            with folder_lock(config.out, "uhrnet train"):  # two trainings in one folder would overwrite each other
+                clean_stale_tmp(config.out)  # checkpoint temp files of a killed run
+                trainer = Trainer(config, info)
+                trainer.fit()
+        return {"out": trainer.out, "best": dict(trainer.best), "history": [dict(r) for r in trainer.history]}
     finally:
         if info.enabled and dist.is_initialized():
             dist.destroy_process_group()

@@ -1,5 +1,9 @@
 """Dataset generation run: mesh loading, sharding, worker pool, resumable writing, summary.
 
+``fppsim.generate(GenerateConfig(meshes=[...], out=..., count=N))`` is the whole run as the command
+line does it (rig file, optics overrides, label preset, preview); :func:`generate_dataset` is the
+same run over an already-built :class:`fppsim.synth.SynthConfig`.
+
 A run owns an output folder. ``dataset.json`` records the settings; re-running the same command on
 the same folder first reconciles it (temporary folders removed, manifest rebuilt from the complete
 sample folders) and then produces only the missing samples, so an interrupted run completes without
@@ -15,19 +19,27 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Sequence
 
 
 from . import __version__
 from ._fs import clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise, tmp_path
-from .errors import DatasetError, GenerateError, MeshError, SampleError
+from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
 from .formats import (LabelTransform, append_manifest, atomic_write_text, export_figshare, foreign_sample_folders,
                       manifest_record, read_settings, reconcile, sample_id, write_sample_folder)
 from .scene import MeshAsset, find_meshes, load_mesh
 from .synth import SynthConfig, synthesize
 
+if TYPE_CHECKING:
+    from .rig import Rig
+
 log = logging.getLogger("fppsim")
 
-__all__ = ["GenerateError", "RunSummary", "load_assets", "generate", "shard_indices", "merge"]
+__all__ = ["GenerateConfig", "GenerateError", "RunSummary", "load_assets", "generate", "generate_dataset",
+           "shard_indices", "merge", "read_optics_file", "FORMATS", "SUPERSAMPLE", "PROCEDURAL"]
+
+FORMATS = ("native", "figshare")  # on-disk layouts generate writes
+SUPERSAMPLE = (1, 3, 5)  # odd sub-pixel factors (ground truth stays at pixel centres)
 
 
 @dataclass
@@ -40,6 +52,7 @@ class RunSummary:
     skipped_meshes: list = field(default_factory=list)  # (path, reason)
     seconds: float = 0.0
     figshare: str | None = None
+    preview: str | None = None
 
     def lines(self) -> list[str]:
         out = [f"samples: {self.written} written, {self.existing} already there, {len(self.failed)} failed "
@@ -52,7 +65,178 @@ class RunSummary:
             out.append(f"... and {len(self.failed) - 10} more failed samples")
         if self.figshare:
             out.append(f"figshare arrays: {self.figshare}")
+        if self.preview:
+            out.append(f"preview: {self.preview}")
         return out
+
+
+PROCEDURAL = "procedural"  # a --meshes entry that stands for fppsim.shapes.procedural sculptures
+
+
+@dataclass
+class GenerateConfig:
+    """Everything ``fppsim generate`` needs; checks itself on construction.
+
+    meshes : mesh files or folders (the entry ``"procedural"`` alone: procedural sculptures only).
+    out : output folder (re-running resumes it). count : samples in the whole dataset; sample i
+    depends only on (seed, i). rig : calibration file, a :class:`Rig`, or None for the packaged
+    default rig. objects : (lo, hi) objects per scene. format : one of :data:`FORMATS`. shard : (i, n)
+    to generate only every n-th sample from i. supersample : one of :data:`SUPERSAMPLE`. optics :
+    optics range overrides ``{name: value or [lo, hi]}`` (names of :class:`fppsim.optics.OpticsRanges`;
+    :func:`read_optics_file` reads them from a file). psp_freqs : unwrapping ladder starting at 1 and
+    ending at the rig's frequency; () skips the phase-shifting images. label : figshare label
+    transform. procedural_share : chance that an object is a procedural sculpture (None: 1 when
+    ``meshes`` is just ``"procedural"``, else 0); procedural_pool : distinct sculptures. rig_jitter :
+    per-sample projector (yaw rad, relative focal) jitter, (0, 0) = off. preview : also write
+    ``out/preview.png``. backend : GL platform ``osmesa``/``egl`` (None: ``$PYOPENGL_PLATFORM``).
+
+    A value that is wrong on its own raises :class:`UsageError` (the command line exits 2, before
+    anything is written); settings that do not fit the rig raise :class:`ConfigError` in
+    :meth:`synth_config`.
+    """
+
+    meshes: Sequence[str]
+    out: str | os.PathLike
+    count: int
+    seed: int = 0
+    rig: "str | os.PathLike | Rig | None" = None
+    objects: tuple[int, int] = (1, 3)
+    workers: int = 1
+    format: str = "native"
+    shard: tuple[int, int] | None = None
+    supersample: int = 1
+    optics: dict = field(default_factory=dict)
+    noise_free: bool = False
+    psp_steps: int = 4
+    psp_freqs: tuple[int, ...] = (1, 8, 80)
+    label: LabelTransform = field(default_factory=LabelTransform)
+    procedural_share: float | None = None
+    procedural_pool: int = 96
+    rig_jitter: tuple[float, float] = (0.0, 0.0)
+    preview: bool = False
+    backend: str | None = None
+    progress: bool = True
+
+    def __post_init__(self):
+        if isinstance(self.meshes, (str, os.PathLike)):
+            self.meshes = [self.meshes]
+        self.meshes = [str(m) for m in self.meshes]
+        if not self.meshes:
+            raise UsageError("no meshes given (--meshes)")
+        if int(self.count) < 1:
+            raise UsageError(f"--count must be >= 1, got {self.count}")
+        if self.format not in FORMATS:
+            raise UsageError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
+        if self.supersample not in SUPERSAMPLE:
+            raise UsageError(f"supersample must be one of {SUPERSAMPLE}, got {self.supersample}")
+        if int(self.workers) < 1:
+            raise UsageError(f"workers must be >= 1, got {self.workers}")
+        lo, hi = self.objects
+        if not 1 <= lo <= hi:
+            raise UsageError(f"objects must be LO-HI with 1 <= LO <= HI, got {lo}-{hi}")
+        if self.shard is not None:
+            try:
+                shard_indices(1, self.shard)
+            except ValueError as exc:
+                raise UsageError(str(exc)) from None
+        if self.psp_freqs:
+            f = tuple(int(v) for v in self.psp_freqs)
+            if f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
+                raise UsageError(f"--psp-freqs ladder must start at 1 and increase, got {list(f)}")
+            if self.psp_steps < 3:
+                raise UsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
+        from .optics import OpticsRanges
+
+        try:
+            OpticsRanges.from_dict(dict(self.optics))
+        except ValueError as exc:
+            raise UsageError(f"--optics: {exc}") from None
+        if self.procedural_share is not None and not 0.0 <= float(self.procedural_share) <= 1.0:
+            raise UsageError(f"--procedural-share must be in [0, 1], got {self.procedural_share}")
+        if int(self.procedural_pool) < 1:
+            raise UsageError(f"--procedural-pool must be >= 1, got {self.procedural_pool}")
+        if not self.mesh_paths and self.share < 1.0:
+            raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
+        self.rig_jitter = tuple(float(v) for v in self.rig_jitter)
+        try:
+            self.jitter()
+        except ValueError as exc:
+            raise UsageError(f"--rig-jitter: {exc}") from None
+        try:
+            self.label.check()
+        except DatasetError as exc:
+            raise UsageError(f"--label-*: {exc}") from None
+
+    @property
+    def mesh_paths(self) -> list[str]:
+        """The mesh files and folders, without the ``"procedural"`` entry."""
+        return [m for m in self.meshes if m != PROCEDURAL]
+
+    @property
+    def share(self) -> float:
+        """The procedural share in effect (``procedural_share``, or its default)."""
+        if self.procedural_share is not None:
+            return float(self.procedural_share)
+        return 1.0 if not self.mesh_paths else 0.0
+
+    def jitter(self):
+        from .jitter import RigJitter
+
+        return RigJitter(*self.rig_jitter)
+
+    def synth_config(self) -> SynthConfig:
+        """The renderer's configuration: loads the rig and checks the ladder against it
+        (:class:`RigError` / :class:`ConfigError`)."""
+        from .optics import OpticsRanges
+        from .rig import Rig, load_rig
+        from .scene import SceneRanges
+
+        rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig)
+        optics = OpticsRanges.from_dict(dict(self.optics))
+        freqs = tuple(int(f) for f in self.psp_freqs)
+        if freqs and freqs[-1] != rig.periods:
+            raise ConfigError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
+        scene = SceneRanges(objects=tuple(self.objects), procedural_share=self.share,
+                            procedural_pool=int(self.procedural_pool))
+        return SynthConfig(rig=rig, optics=optics, scene=scene, supersample=self.supersample, psp_freqs=freqs,
+                           psp_steps=self.psp_steps, rig_jitter=self.jitter())
+
+
+def read_optics_file(path: str | os.PathLike) -> dict:
+    """Optics range overrides from a JSON/YAML mapping ``{name: value or [lo, hi]}``, checked
+    (:class:`ConfigError` naming the file)."""
+    import yaml
+
+    from .optics import OpticsRanges
+
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"file not found: {p}")
+    try:
+        doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
+    except Exception as exc:
+        raise ConfigError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: expected a mapping of name -> value or [lo, hi]")
+    try:
+        OpticsRanges.from_dict(doc)
+    except ValueError as exc:
+        raise ConfigError(f"{p}: {exc}") from None
+    return doc
+
+
+def generate(config: GenerateConfig) -> RunSummary:
+    """Generate (or complete) the dataset ``config`` describes; returns a :class:`RunSummary`."""
+    summary = generate_dataset(config.mesh_paths, config.out, config.count, seed=config.seed,
+                               config=config.synth_config(), workers=config.workers, fmt=config.format,
+                               shard=config.shard, label=config.label, noise_free=config.noise_free,
+                               progress=config.progress, backend=config.backend)
+    if config.preview:
+        from .preview import write_preview
+
+        root = Path(config.out) / ("native" if config.format == "figshare" else "")
+        summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
+    return summary
 
 
 def load_assets(paths) -> tuple[list[MeshAsset], list[tuple[str, str]]]:
@@ -110,7 +294,7 @@ def _worker_run_chunk(indices: list[int]) -> list[tuple]:
     Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
     chunk is complete on disk, so the manifest never lists a sample still being written.
     """
-    from .pipeline import figshare_rows
+    from .formats import figshare_rows
 
     w = _WORKER
     out = []
@@ -159,11 +343,12 @@ def _check_settings(path: Path, settings: dict) -> None:
                             "use a new --out (or the same options) to resume")
 
 
-def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
-             workers: int = 1, fmt: str = "native", shard: tuple[int, int] | None = None,
-             label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True,
-             backend: str | None = None) -> RunSummary:
-    """Generate (or complete) a dataset. See the module docstring; returns a :class:`RunSummary`.
+def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
+                     workers: int = 1, fmt: str = "native", shard: tuple[int, int] | None = None,
+                     label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True,
+                     backend: str | None = None) -> RunSummary:
+    """Generate (or complete) a dataset from an already-built :class:`SynthConfig` (what
+    :func:`generate` calls). See the module docstring; returns a :class:`RunSummary`.
 
     ``backend``: GL platform ``osmesa`` or ``egl`` (None: ``$PYOPENGL_PLATFORM``, else osmesa); it does
     not change the samples beyond rasteriser rounding (depth within about 1e-3 mm).
@@ -176,7 +361,7 @@ def generate(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | N
     t0 = time.perf_counter()
     if count < 1:
         raise GenerateError(f"--count must be >= 1, got {count}")
-    if fmt not in ("native", "figshare"):
+    if fmt not in FORMATS:
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
     from .render import select_backend
 

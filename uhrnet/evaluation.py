@@ -1,58 +1,98 @@
-"""`uhrnet evaluate`: checkpoints on the test split -> the paper's Table 3 and Figs. 7-9.
+"""Evaluation: ``uhrnet.evaluate(checkpoints, EvalData(...), out=...) -> Report`` runs checkpoints on
+the test split -> the paper's Table 3 and Figs. 7-9; ``uhrnet evaluate`` calls it.
 
-Writes to ``--out``: ``results.md``, ``results.csv``, ``results.json`` (per model: RMSE in mm, SSIM,
+Writes to ``out``: ``results.md``, ``results.csv``, ``results.json`` (per model: RMSE in mm, SSIM,
 parameters, seconds per image), ``per_sample.csv`` (every model x image), and ``figures/*.png``
 (fringe, ground truth, each model's prediction and height-error map, and a cross-section along a row).
 """
 
 from __future__ import annotations
 
-import argparse
 import csv
 import io
 import json
 import math
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from fppsim.formats import LabelTransform, atomic_write_text
-from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
-from uhrnet.data import SPLIT_MODES, Prepared, load_sources, parse_size
-from uhrnet.errors import ConfigError as CLIError, UsageError
+from fppsim.formats import LabelTransform, atomic_write_text, json_default
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.data import Prepared, load_sources, parse_size
+from uhrnet.device import select_device
+from uhrnet.errors import ConfigError, UsageError
+
+__all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "SPLITS"]
+
+SPLITS = ("test", "val", "train", "all")
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
-    p.add_argument("--real", nargs="*", metavar="DIR",
-                   help="real figshare-layout folder(s); bare --real: none [the first checkpoint's]")
-    p.add_argument("--synthetic", nargs="*", metavar="DIR",
-                   help="fppsim folder(s); bare --synthetic: none [the first checkpoint's]")
-    p.add_argument("--out", required=True, metavar="DIR", help="report folder")
-    p.add_argument("--split", choices=("test", "val", "train", "all"), default="test", help="which split to evaluate [test]")
-    p.add_argument("--real-split", choices=SPLIT_MODES, help="how real folders are split [the checkpoint's]")
-    p.add_argument("--synthetic-split", choices=SPLIT_MODES, help="how synthetic folders are split [the checkpoint's]")
-    p.add_argument("--synthetic-label", choices=("true", "psp"), help="ground truth of native folders [the checkpoint's]")
-    p.add_argument("--names", nargs="+", metavar="NAME", help="model names in the table (one per checkpoint)")
-    p.add_argument("--crop", metavar="HxW", help="evaluate a centre crop of every image")
-    p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N images of the split")
-    p.add_argument("--figures", type=int, default=3, metavar="N", help="comparison figures for N evenly spaced images [3]")
-    p.add_argument("--samples", nargs="+", metavar="ID", help="figures for these sample ids (or split positions #K)")
-    p.add_argument("--row", type=int, help="cross-section row [the row crossing most object pixels]")
-    p.add_argument("--batch-size", type=int, default=1)
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    p.add_argument("--timing-repeats", type=int, default=5, metavar="N",
-                   help="timed forward passes per model at batch 1 (0: skip timing) [5]")
-    p.add_argument("--no-progress", action="store_true")
+@dataclass
+class EvalData:
+    """Which images to evaluate. ``None`` fields take the first checkpoint's training setting;
+    ``real=[]`` / ``synthetic=[]`` means none of that kind. ``split``: one of :data:`SPLITS`
+    (``all``: every image, no split). ``crop``: "HxW" centre crop; ``limit``: first N images only."""
+
+    real: Sequence[str] | None = None
+    synthetic: Sequence[str] | None = None
+    split: str = "test"
+    real_split: str | None = None
+    synthetic_split: str | None = None
+    synthetic_label: str | None = None
+    crop: str | None = None
+    limit: int | None = None
+
+    def __post_init__(self):
+        if self.limit is not None and self.limit < 1:
+            raise UsageError(f"--limit must be >= 1, got {self.limit}")
+        if self.split not in SPLITS:
+            raise ConfigError(f"--split {self.split!r}: choose from {', '.join(SPLITS)}")
+        try:
+            parse_size(self.crop)
+        except ValueError as exc:
+            raise ConfigError(f"--crop: {exc}") from None
 
 
-def _names(ckpts: list[dict], given: list[str] | None) -> list[str]:
+@dataclass
+class Report:
+    """What :func:`evaluate` measured: one summary row per model (``models``: RMSE mm, SSIM, parameters,
+    seconds per image, per-source values), every model x image (``per_sample``), the markdown table
+    (``table``, also ``results.md``) and the figure paths."""
+
+    split: str
+    images: int
+    data: dict
+    label_transform: dict
+    models: list[dict]
+    per_sample: list[dict]
+    table: str
+    header: str = ""
+    figures: list = field(default_factory=list)
+
+    def write(self, out: str | Path) -> None:
+        """results.md, results.csv, results.json and per_sample.csv in ``out``."""
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out / "results.md", self.header + self.table)
+        _write_csv(out / "results.csv", self.models,
+                   ["name", "rmse_mm", "rmse_mm_std", "ssim", "ssim_std", "parameters", "seconds_per_image", "images",
+                    "rmse_mm_real", "ssim_real", "images_real", "rmse_mm_synthetic", "ssim_synthetic",
+                    "images_synthetic", "model", "epoch", "checkpoint", "device"])
+        _write_csv(out / "per_sample.csv", self.per_sample, ["model", "id", "source", "rmse_mm", "ssim"])
+        atomic_write_text(out / "results.json", json.dumps(
+            {"split": self.split, "images": self.images, "data": self.data, "label_transform": self.label_transform,
+             "models": self.models}, indent=2, default=json_default, allow_nan=True))
+
+
+def model_names(ckpts: list[dict], given: list[str] | None) -> list[str]:
     if given:
         if len(given) != len(ckpts):
-            raise CLIError(f"--names: {len(given)} names for {len(ckpts)} checkpoints")
+            raise ConfigError(f"--names: {len(given)} names for {len(ckpts)} checkpoints")
         return list(given)
     base = [c["model"]["name"] for c in ckpts]
     names = []
@@ -101,70 +141,71 @@ def markdown_table(rows: list[dict], per_source: bool) -> str:
     return "\n".join(lines) + "\n"
 
 
-def run(args: argparse.Namespace) -> int:
+def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | Path | None = None,
+             names: Sequence[str] | None = None, figures: int = 3, samples: Sequence[str] | None = None,
+             row: int | None = None, batch_size: int = 1, device: str = "auto", timing_repeats: int = 5,
+             progress: bool = True) -> Report:
+    """Evaluate checkpoints (files or run folders) on ``data``; with ``out``, write the report files and
+    comparison figures (``figures`` evenly spaced images, or the ids in ``samples``; cross-section
+    ``row``) there. ``timing_repeats`` timed forward passes at batch 1 per model (0: no timing)."""
     from tqdm import tqdm
 
     from uhrnet.inference import predict_labels
-    from uhrnet.metrics import count_parameters, inference_seconds
+    from uhrnet.metrics import count_parameters, image_metrics, inference_seconds
     from uhrnet.plots import plot_comparison
-    from uhrnet.train import image_metrics
 
-    for flag, value, lowest in (("--limit", args.limit, 1), ("--batch-size", args.batch_size, 1),
-                                ("--figures", args.figures, 0), ("--timing-repeats", args.timing_repeats, 0)):
+    data = data or EvalData()
+    for flag, value, lowest in (("--batch-size", batch_size, 1), ("--figures", figures, 0),
+                                ("--timing-repeats", timing_repeats, 0)):
         if value is not None and value < lowest:
             raise UsageError(f"{flag} must be >= {lowest}, got {value}")
-    ckpts = [load_checkpoint(p) for p in args.checkpoints]
-    names = _names(ckpts, args.names)
+    ckpts = [load_checkpoint(p) for p in checkpoints]
+    names = model_names(ckpts, names)
     transform = LabelTransform.from_dict(ckpts[0]["label_transform"])
     for c in ckpts[1:]:
         if LabelTransform.from_dict(c["label_transform"]) != transform:
-            raise CLIError(f"{c['path']}: label transform {c['label_transform']} differs from "
+            raise ConfigError(f"{c['path']}: label transform {c['label_transform']} differs from "
                            f"{ckpts[0]['path']}'s {transform.to_dict()}")
     first = ckpts[0].get("args", {})
-    real = args.real if args.real is not None else (first.get("real") or [])
-    synthetic = args.synthetic if args.synthetic is not None else (first.get("synthetic") or [])
+    real = data.real if data.real is not None else (first.get("real") or [])
+    synthetic = data.synthetic if data.synthetic is not None else (first.get("synthetic") or [])
     if not real and not synthetic:
-        raise CLIError("no data: give --real DIR and/or --synthetic DIR")
-    real_split = args.real_split or first.get("real_split", "reference")
-    syn_split = args.synthetic_split or first.get("synthetic_split", "reference")
-    if args.split == "all":
+        raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
+    real_split = data.real_split or first.get("real_split", "reference")
+    syn_split = data.synthetic_split or first.get("synthetic_split", "reference")
+    if data.split == "all":
         real_split = syn_split = "test"
     sources = load_sources(real, synthetic, transform, real_split, syn_split,
-                           args.synthetic_label or first.get("synthetic_label", "true"))
-    data = {"test": sources.test, "val": sources.val, "train": sources.train, "all": sources.test}[args.split]
+                           data.synthetic_label or first.get("synthetic_label", "true"))
+    split = data.split
+    subset = {"test": sources.test, "val": sources.val, "train": sources.train, "all": sources.test}[split]
     _warn_split_drift(ckpts, sources.description)
-    try:
-        crop = parse_size(args.crop)
-    except ValueError as exc:
-        raise CLIError(f"--crop: {exc}") from None
-    ds = Prepared(data, crop=crop, random_crop=False)
-    n = len(ds) if args.limit is None else min(len(ds), max(0, args.limit))
+    ds = Prepared(subset, crop=parse_size(data.crop), random_crop=False)
+    n = len(ds) if data.limit is None else min(len(ds), max(0, data.limit))
     if n == 0:
-        raise CLIError(f"the {args.split} split is empty ({len(sources.train)} train / {len(sources.val)} val / "
+        raise ConfigError(f"the {split} split is empty ({len(sources.train)} train / {len(sources.val)} val / "
                        f"{len(sources.test)} test images); try --split all or --real-split test")
     indices = list(range(n))
-    figure_idx = _figure_indices(data.ids, n, args.samples, args.figures)
-    try:
-        device = select_device(args.device)
-    except ValueError as exc:
-        raise CLIError(str(exc)) from None
+    figure_idx = _figure_indices(subset.ids, n, samples, figures) if out is not None else []
+    device = select_device(device)
     image_shape = tuple(ds[0]["fringe"].shape[-2:])
-    if args.row is not None and not 0 <= args.row < image_shape[0]:
-        raise CLIError(f"--row {args.row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    if row is not None and not 0 <= row < image_shape[0]:
+        raise ConfigError(f"--row {row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
 
     per_sample: list[dict] = []
     summary: list[dict] = []
     preds: dict[int, dict[str, np.ndarray]] = {i: {} for i in figure_idx}
-    loader = DataLoader(torch.utils.data.Subset(ds, indices), batch_size=args.batch_size, shuffle=False)
+    loader = DataLoader(torch.utils.data.Subset(ds, indices), batch_size=batch_size, shuffle=False)
     for ck, name in zip(ckpts, names):
         model, _ = model_from_checkpoint(ck, device)
         size = parse_size(ck.get("args", {}).get("resize"))
         rows = []
         pos = 0
-        bar = tqdm(loader, desc=f"evaluate {name}", unit="img", unit_scale=args.batch_size, leave=False,
-                   disable=args.no_progress)
+        bar = tqdm(loader, desc=f"evaluate {name}", unit="img", unit_scale=batch_size, leave=False,
+                   disable=not progress)
         for batch in bar:
             y, m = batch["height"].to(device), batch["mask"].to(device)
             pred = predict_labels(model, batch["fringe"], size)
@@ -179,10 +220,10 @@ def run(args: argparse.Namespace) -> int:
         bar.close()
         per_sample += rows
         seconds = None
-        if args.timing_repeats > 0:
+        if timing_repeats > 0:
             seconds = inference_seconds(model, (1, 1, *(_mult16(size or image_shape))), device,
-                                        warmup=1, repeats=args.timing_repeats)
-        row = {
+                                        warmup=1, repeats=timing_repeats)
+        entry = {
             "name": name, "checkpoint": ck["path"], "model": ck["model"]["name"], "config": ck["model"]["config"],
             "epoch": ck.get("epoch"), "images": len(rows),
             "rmse_mm": _nanmean([r["rmse_mm"] for r in rows]), "rmse_mm_std": _nanstd([r["rmse_mm"] for r in rows]),
@@ -192,30 +233,24 @@ def run(args: argparse.Namespace) -> int:
         }
         for src in ("real", "synthetic"):
             sel = [r for r in rows if r["source"] == src]
-            row[f"rmse_mm_{src}"] = _nanmean([r["rmse_mm"] for r in sel])
-            row[f"ssim_{src}"] = _nanmean([r["ssim"] for r in sel])
-            row[f"images_{src}"] = len(sel)
-        summary.append(row)
+            entry[f"rmse_mm_{src}"] = _nanmean([r["rmse_mm"] for r in sel])
+            entry[f"ssim_{src}"] = _nanmean([r["ssim"] for r in sel])
+            entry[f"images_{src}"] = len(sel)
+        summary.append(entry)
         del model
 
     per_source = any(r["images_real"] for r in summary) and any(r["images_synthetic"] for r in summary)
     md = markdown_table(summary, per_source)
-    header = (f"# Evaluation: {args.split} split, {n} images ({sum(1 for r in per_sample[:n] if r['source'] == 'real')} "
+    header = (f"# Evaluation: {split} split, {n} images ({sum(1 for r in per_sample[:n] if r['source'] == 'real')} "
               f"real, {sum(1 for r in per_sample[:n] if r['source'] == 'synthetic')} synthetic)\n\n"
               f"RMSE over valid pixels in mm (label transform {transform.name}: {transform.units_per_mm:g} units/mm, "
               f"invalid <= {transform.invalid_threshold:g}), SSIM with L = {transform.data_range:g}, "
               f"time = one forward pass at batch 1 on {device}.\n\n")
-    atomic_write_text(out / "results.md", header + md)
-    _write_csv(out / "results.csv", summary, ["name", "rmse_mm", "rmse_mm_std", "ssim", "ssim_std", "parameters",
-                                              "seconds_per_image", "images", "rmse_mm_real", "ssim_real",
-                                              "images_real", "rmse_mm_synthetic", "ssim_synthetic",
-                                              "images_synthetic", "model", "epoch", "checkpoint", "device"])
-    _write_csv(out / "per_sample.csv", per_sample, ["model", "id", "source", "rmse_mm", "ssim"])
-    atomic_write_text(out / "results.json", json.dumps(
-        {"split": args.split, "images": n, "data": sources.description, "label_transform": transform.to_dict(),
-         "models": summary}, indent=2, default=_json_default, allow_nan=True))
-
-    figures = []
+    report = Report(split=split, images=n, data=sources.description, label_transform=transform.to_dict(),
+                    models=summary, per_sample=per_sample, table=md, header=header)
+    if out is None:
+        return report
+    report.write(out)
     if preds:
         (out / "figures").mkdir(exist_ok=True)
         for i in figure_idx:
@@ -224,15 +259,11 @@ def run(args: argparse.Namespace) -> int:
             label = sample["height"][0].numpy().astype(np.float64)
             valid = sample["mask"][0].numpy() > 0.5
             truth = transform.height_mm(label)
-            row = args.row if args.row is not None else _cross_row(truth, valid)
+            r = row if row is not None else _cross_row(truth, valid)
             path = out / "figures" / f"{sample['source']}_{sample['id']}.png"
-            figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=row,
-                                           title=f"{sample['source']} sample {sample['id']} ({args.split} split)"))
-    print(md, end="")
-    print(f"report: {out / 'results.md'} (also results.csv, results.json, per_sample.csv)")
-    if figures:
-        print(f"figures: {out / 'figures'} ({len(figures)} image{'s' if len(figures) > 1 else ''})")
-    return 0
+            report.figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=r,
+                                                  title=f"{sample['source']} sample {sample['id']} ({split} split)"))
+    return report
 
 
 def _mult16(shape) -> tuple[int, int]:
@@ -249,7 +280,7 @@ def _figure_indices(ids: list[str], n: int, samples: list[str] | None, count: in
             elif s in ids[:n]:
                 out.append(ids.index(s))
             else:
-                raise CLIError(f"--samples: {s!r} is not a sample id of the evaluated split (e.g. {ids[0]!r}, or #0)")
+                raise ConfigError(f"--samples: {s!r} is not a sample id of the evaluated split (e.g. {ids[0]!r}, or #0)")
         return sorted(set(out))
     if count <= 0:
         return []
@@ -266,14 +297,6 @@ def _warn_split_drift(ckpts: list[dict], description: dict) -> None:
                     print(f"warning: {d['path']} had {d['n']} samples when {c['path']} was trained and has "
                           f"{now[d['path']]} now: its split differs, test images may have been trained on",
                           file=sys.stderr)
-
-
-def _json_default(o):
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, Path):
-        return str(o)
-    return str(o)
 
 
 def _write_csv(path: Path, rows: list[dict], columns: list[str]) -> None:

@@ -1,8 +1,9 @@
-"""`uhrnet predict`: fringe images -> height maps (mm), colour previews and point clouds.
+"""Prediction: ``uhrnet.predict(PredictConfig(...))`` turns fringe images into height maps (mm), colour
+previews and point clouds; ``uhrnet predict`` calls it.
 
 Inputs: 8-bit (or 16-bit) grey PNG/TIFF/BMP/JPEG images, or ``.npy`` arrays in the dataset encoding
 (intensity / 127.5 - 1, shapes (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)), or folders of them.
-For every image ``NAME`` it writes to ``--out``:
+For every image ``NAME`` it writes to ``out``:
 
 * ``NAME_height.npy`` and ``NAME_height.tif``: float32 height above the reference plane in mm
   (label transform of the checkpoint: ``(label - plane_offset) / units_per_mm``), NaN where invalid;
@@ -13,48 +14,75 @@ For every image ``NAME`` it writes to ``--out``:
 
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
 input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
-prediction without any valid pixel is written and reported with a warning.
+prediction without any valid pixel is written and reported in :attr:`PredictResult.warnings`.
 
 Inputs must be at least ``MIN_SIDE`` x ``MIN_SIDE`` pixels (the networks pool four times). Colour
 images are accepted when they show a grey scene (channels equal within a few gray levels): they are
 converted to their luminance, which for equal channels is exactly the grey image; other colour
-images are refused (see ``uhrnet.data.read_fringe_image``).
+images are refused (see :func:`fppsim.formats.colour_to_grey`).
 """
 
 from __future__ import annotations
 
-import argparse
-import sys
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import torch
 
-from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint, select_device
 from fppsim.formats import as_image_stack, encode_fringe
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size, read_fringe_image
-from uhrnet.errors import ConfigError as CLIError, DataError, UsageError
+from uhrnet.device import select_device
+from uhrnet.errors import ConfigError, DataError, UsageError
+
+__all__ = ["PredictConfig", "PredictResult", "predict", "collect_inputs", "load_inputs", "points_from_rig",
+           "points_from_grid", "write_ply"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 INPUT_EXTS = IMAGE_EXTS + (".npy",)
 MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="fringe images, .npy arrays, or folders of them")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
-                                                 "metric x, y in the point cloud")
-    p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
-                   help="x, y spacing of the point cloud without --rig [1.0]")
-    p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
-    p.add_argument("--range", nargs=2, type=float, metavar=("LO", "HI"),
-                   help="colour range of the PNG in mm [1st-99th percentile]")
-    p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG [viridis]")
-    p.add_argument("--no-ply", action="store_true", help="skip the point clouds")
-    p.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
-    p.add_argument("--no-progress", action="store_true")
+@dataclass
+class PredictConfig:
+    """What to predict. ``inputs``: image/.npy files or folders of them. ``rig``: calibration file for
+    metric x, y in the point clouds (else the pixel grid times ``pixel_size`` mm). ``keep_all``: no
+    invalid masking. ``range``: (lo, hi) colour range of the PNG in mm (default 1st-99th percentile).
+    ``ply``: also write point clouds. Checks itself on construction (:class:`ConfigError`)."""
+
+    checkpoint: str | Path
+    inputs: Sequence[str | Path]
+    out: str | Path
+    rig: str | Path | None = None
+    pixel_size: float = 1.0
+    keep_all: bool = False
+    range: tuple[float, float] | None = None
+    colormap: str = "viridis"
+    ply: bool = True
+    device: str = "auto"
+    progress: bool = True
+
+    def __post_init__(self):
+        if isinstance(self.inputs, (str, Path)):
+            self.inputs = [self.inputs]
+        if not (self.pixel_size > 0 and np.isfinite(self.pixel_size)):
+            raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {self.pixel_size:g}")
+        if self.range is not None and not (np.isfinite(self.range).all() and self.range[0] < self.range[1]):
+            raise ConfigError(f"--range: expected LO < HI (mm), got {self.range[0]:g} {self.range[1]:g}")
+        if self.colormap not in __import__("matplotlib").colormaps:
+            raise ConfigError(f"--colormap: unknown matplotlib colour map {self.colormap!r}")
+
+
+@dataclass
+class PredictResult:
+    """Input files read, the output name of every height map written (``<out>/<name>_height.npy``) and
+    one line per suspicious result (e.g. no valid pixel at all)."""
+
+    files: list[Path] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
 
 
 def collect_inputs(items: list[str]) -> list[Path]:
@@ -64,14 +92,14 @@ def collect_inputs(items: list[str]) -> list[Path]:
         if p.is_dir():
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS)
             if not found:
-                raise CLIError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder")
+                raise ConfigError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder")
             files += found
         elif p.is_file():
             if p.suffix.lower() not in INPUT_EXTS:
-                raise CLIError(f"{p}: unsupported input type (use {', '.join(INPUT_EXTS)})")
+                raise ConfigError(f"{p}: unsupported input type (use {', '.join(INPUT_EXTS)})")
             files.append(p)
         else:
-            raise CLIError(f"{p}: input not found")
+            raise ConfigError(f"{p}: input not found")
     return files
 
 
@@ -106,7 +134,7 @@ def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
     cam = rig.camera
     h, w = height_mm.shape
     if (cam.width, cam.height) != (w, h):
-        raise CLIError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
+        raise ConfigError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
     uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     origin, d = cam.pixel_rays(np.stack([uu, vv], axis=-1))
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -161,38 +189,30 @@ def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
     cv2.imwrite(str(path), rgb[..., ::-1])
 
 
-def run(args: argparse.Namespace) -> int:
+def predict(config: PredictConfig) -> PredictResult:
+    """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
     from uhrnet.inference import predict_labels
 
-    if not (args.pixel_size > 0 and np.isfinite(args.pixel_size)):
-        raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {args.pixel_size:g}")
-    files = collect_inputs(args.inputs)
-    ckpt = load_checkpoint(args.checkpoint)
-    try:
-        device = select_device(args.device)
-    except ValueError as exc:
-        raise CLIError(str(exc)) from None
+    files = collect_inputs(config.inputs)
+    ckpt = load_checkpoint(config.checkpoint)
+    device = select_device(config.device)
     model, transform = model_from_checkpoint(ckpt, device)
     size = parse_size(ckpt.get("args", {}).get("resize"))
     rig = None
-    if args.rig:
+    if config.rig:
         from fppsim.rig import Rig, RigError
 
         try:
-            rig = Rig.load(args.rig)
+            rig = Rig.load(config.rig)
         except RigError as exc:
-            raise CLIError(str(exc)) from None
-    if args.range is not None and not (np.isfinite(args.range).all() and args.range[0] < args.range[1]):
-        raise CLIError(f"--range: expected LO < HI (mm), got {args.range[0]:g} {args.range[1]:g}")
-    if args.colormap not in __import__("matplotlib").colormaps:
-        raise CLIError(f"--colormap: unknown matplotlib colour map {args.colormap!r}")
-    out = Path(args.out)
+            raise ConfigError(str(exc)) from None
+    out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
+    result = PredictResult(files=files)
     used: set[str] = set()
-    written = 0
-    for path in tqdm(files, desc="predict", unit="file", disable=args.no_progress or len(files) < 2):
+    for path in tqdm(files, desc="predict", unit="file", disable=not config.progress or len(files) < 2):
         for name, fringe in load_inputs(path):
             if name in used:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
                 name = f"{path.parent.name}_{name}"
@@ -202,29 +222,26 @@ def run(args: argparse.Namespace) -> int:
                 name = f"{base}_{k}"
             used.add(name)
             if min(fringe.shape) < MIN_SIDE:
-                raise CLIError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
-                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
-            if rig is not None and not args.no_ply and (rig.camera.height, rig.camera.width) != fringe.shape:
-                raise CLIError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
-                               f"({args.rig}) is {rig.camera.width}x{rig.camera.height}")
+                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
+                                  f"{MIN_SIDE}x{MIN_SIDE} pixels")
+            if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
+                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
+                                  f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
             label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
             height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
-            if not args.keep_all:
+            if not config.keep_all:
                 valid = transform.valid(label) & (fringe > -1 + 1e-6)
                 height = np.where(valid, height, np.float32(np.nan))
             if not np.isfinite(height).any():
-                print(f"uhrnet predict: warning: {path} ({name}): no valid pixel in the prediction (every label at "
-                      f"or below {transform.invalid_threshold:g}, or a black input); is this a fringe image like "
-                      "the training data?", file=sys.stderr)
+                result.warnings.append(
+                    f"{path} ({name}): no valid pixel in the prediction (every label at or below "
+                    f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
             np.save(out / f"{name}_height.npy", height)
             write_tiff(out / f"{name}_height.tif", height)
-            write_preview(out / f"{name}_height.png", height, args.colormap, args.range)
-            if not args.no_ply:
-                pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, args.pixel_size)
+            write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
+            if config.ply:
+                pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
                 grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
                 write_ply(out / f"{name}.ply", pts, grey)
-            written += 1
-    print(f"predict: {written} height map(s) from {len(files)} input file(s) -> {out} "
-          f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
-          f"{', x/y from rig ' + str(args.rig) if rig is not None else ''})")
-    return 0
+            result.names.append(name)
+    return result
