@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from .optics import Optics, OpticsRanges, form_image, projector_radiance
-from .rig import Rig
+from .rig import Rig, data_path
 
 __all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
            "format_optics_fit", "compare_before_after"]
@@ -359,7 +359,7 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     from .synth import SynthConfig
 
     if meshes is None:
-        meshes = [str(Path(__file__).resolve().parent.parent / "assets" / "meshes")]
+        meshes = [str(data_path("meshes"))]
     with tempfile.TemporaryDirectory(prefix="fit-optics-", dir=workdir) as tmp:
         results = {"real": dataset_stats(real_dir, max_samples=50)}
         for name, ranges in (("default", OpticsRanges()), ("fitted", fit.ranges)):

@@ -1,6 +1,6 @@
 """Image formation: projector pattern, Lambertian shading, camera blur, noise, gamma, 8-bit quantisation.
 
-Intensity model (DESIGN.md §3), per camera pixel, in 8-bit gray levels before noise::
+Intensity model, per camera pixel, in 8-bit gray levels before noise::
 
     E = gain * albedo * (ambient + lit * cos_incidence * falloff * P(u_p))
     P(u_p) = blur_p( gamma_p( q8( 0.5 + 0.5 * cos(2*pi*f*c/W_p + delta) ) ) )(u_p)

@@ -3,7 +3,7 @@
 Plain numpy functions over arrays (scikit-image / SciPy style); all arithmetic in float64.
 Units: radians for phases, millimetres for lengths, pixels for image coordinates.
 
-Conventions (see DESIGN.md §2 and §4, and :mod:`fppsim.rig`)
+Conventions (see :mod:`fppsim.rig`)
 ------------------------------------------------------------
 * Projector phase: the absolute phase of a pattern with ``f`` periods across the projector width
   ``W_p`` is ``Phi = 2*pi*f*u_p/W_p``, where ``u_p`` is the OpenCV projector column (integer =

@@ -1,6 +1,6 @@
 """Calibrated FPP rig: a camera and a projector as OpenCV pinholes above the reference plane z = 0.
 
-Conventions (the single reference for the whole package; see DESIGN.md §2):
+Conventions (the single reference for the whole package):
 
 * Units are millimetres, angles radians.
 * World frame: the reference plane is ``z = 0`` and ``+z`` points from the plane towards the camera.
@@ -28,7 +28,14 @@ from .errors import RigError
 __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_figshare_like_rig", "make_parallel_rig", "projector_for",
            "rotation_to_plane_frame"]
 
-ASSETS = Path(__file__).resolve().parent.parent / "assets"
+
+
+def data_path(*parts: str) -> Path:
+    """A file shipped inside the package (``fppsim/data/...``: the default rig, the asset meshes),
+    found through importlib.resources so it works from a wheel as from a checkout."""
+    from importlib.resources import files
+
+    return Path(str(files("fppsim").joinpath("data", *parts)))
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
@@ -524,12 +531,12 @@ class Rig:
 
     @classmethod
     def default(cls) -> "Rig":
-        """The embedded default rig (assets/default_rig.json)."""
+        """The packaged default rig (``fppsim/data/default_rig.json``)."""
         return cls.load(default_rig_path())
 
 
 def default_rig_path() -> Path:
-    return ASSETS / "default_rig.json"
+    return data_path("default_rig.json")
 
 
 def load_rig(path: str | os.PathLike | None) -> Rig:
@@ -580,16 +587,16 @@ def make_parallel_rig() -> Rig:
 
 
 def make_default_rig() -> Rig:
-    """Build the default rig (what assets/default_rig.json holds): :func:`make_figshare_like_rig`, the
+    """Build the default rig (what fppsim/data/default_rig.json holds): :func:`make_figshare_like_rig`, the
     rig fitted to the real figshare data (period trend and height sensitivity). The former default,
-    :func:`make_parallel_rig`, is ``assets/parallel_rig.json``."""
+    :func:`make_parallel_rig`, is ``fppsim/data/parallel_rig.json``."""
     rig = make_figshare_like_rig()
     rig.name = "default: " + rig.name
     return rig
 
 
 def make_figshare_like_rig() -> Rig:
-    """Build the figshare-like rig (what assets/figshare_like_rig.json holds; ``--rig`` it).
+    """Build the figshare-like rig (what fppsim/data/figshare_like_rig.json holds; ``--rig`` it).
 
     Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (330 mm) to the +x side at the
     camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.30 deg) towards the scene, ``fx = fy =

@@ -3,7 +3,7 @@
 A scene is one to three objects resting on the plane z = 0, posed by a seeded sampler. Meshes arrive in
 any units (a 0.16-unit bunny, a 1000-unit alligator), so each is first normalised: its principal axes
 are aligned with x, y, z (smallest extent vertical, like a relief facing the camera), and it is later
-scaled so that its footprint and relief match the real figshare data (DESIGN.md §2).
+scaled so that its footprint and relief match the real figshare data.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""Write the project's own sculpture-like meshes to assets/meshes/*.ply.
+"""Write the project's own sculpture-like meshes to fppsim/data/meshes/*.ply.
 
-    python pipelines/make_assets.py [--out assets/meshes] [--check]
+    python pipelines/make_assets.py [--out fppsim/data/meshes] [--check]
 
 Deterministic: re-running writes the same bytes (binary PLY, float32 vertices, no normals).
 The shapes come from fppsim.shapes (seeded implicit figures, a bas-relief and a vase); the list
@@ -34,7 +34,7 @@ watertight. Regenerate with the same command; `--check` verifies these files.
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=ROOT / "assets" / "meshes", help="output folder")
+    ap.add_argument("--out", type=Path, default=ROOT / "fppsim" / "data" / "meshes", help="output folder")
     ap.add_argument("--check", action="store_true", help="verify the files on disk instead of writing")
     args = ap.parse_args(argv)
 

@@ -262,9 +262,9 @@ def _fppsim_generate(out, *extra):
 
     pytest.importorskip("pyrender", reason="pyrender (OSMesa) not installed")
     root = Path(__file__).resolve().parents[1]
-    meshes = sorted((root / "assets" / "meshes").glob("*.ply"))
+    meshes = sorted((root / "fppsim" / "data" / "meshes").glob("*.ply"))
     if not meshes:
-        pytest.skip("no meshes in assets/meshes")
+        pytest.skip("no meshes in fppsim/data/meshes")
     env = {**os.environ, "PYOPENGL_PLATFORM": "osmesa"}
     cmd = [sys.executable, "-c", "import sys; from fppsim.cli import main; sys.exit(main())", "generate",
            "--meshes", str(meshes[0]), "--out", str(out), "--count", "2", "-q", "--no-psp", "--no-preview", *extra]

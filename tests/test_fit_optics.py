@@ -9,9 +9,9 @@ import pytest
 from fppsim import fit_optics as fo
 from fppsim import fit_rig as fr
 from fppsim.optics import Optics, OpticsRanges
-from fppsim.rig import Rig
+from fppsim.rig import Rig, data_path
 
-ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
+ASSETS = data_path("meshes")
 
 
 def _eff_blur(rig, period, pb, cb):

@@ -149,7 +149,9 @@ def _rendered(tmp_path, rig, count=2, seed=5):
     from fppsim.optics import OpticsRanges
     from fppsim.synth import SynthConfig
 
-    ASSETS = Path(__file__).resolve().parents[1] / "assets" / "meshes"
+    from fppsim.rig import data_path
+
+    ASSETS = data_path("meshes")
     out = tmp_path / f"syn{seed}"
     generate([str(ASSETS)], out, count, seed=seed, config=SynthConfig(rig=rig, optics=OpticsRanges(), psp_freqs=()),
              fmt="figshare", progress=False)

@@ -175,3 +175,15 @@ def test_build_loss():
         build_loss("compound")
     with pytest.raises(ValueError, match="known losses"):
         build_loss("l1")
+
+
+def test_stateful_losses_declare_their_distributed_reduction():
+    """reduce_state hands exactly the per-epoch accumulators to the all-reduce (composites recurse)."""
+    for name, n in (("chunked", 2), ("compound", 2), ("l2", 0), ("ssim", 0)):
+        loss = build_loss(name, data_range=286.0)
+        seen = []
+        loss.reduce_state(seen.append)
+        assert len(seen) == n, name
+        chunked = loss if name == "chunked" else getattr(loss, "chunked", None)
+        if n:
+            assert seen[0] is chunked.epoch_sse and seen[1] is chunked.epoch_count

@@ -17,9 +17,9 @@ def rig():
 @pytest.mark.parametrize("asset,builder", [("default_rig.json", make_default_rig),
                                            ("figshare_like_rig.json", make_figshare_like_rig)])
 def test_assets_match_builders(asset, builder):
-    from fppsim.rig import ASSETS
+    from fppsim.rig import data_path
 
-    rig, built = Rig.load(ASSETS / asset), builder()
+    rig, built = Rig.load(data_path(asset)), builder()
     np.testing.assert_allclose(rig.camera.K, built.camera.K)
     np.testing.assert_allclose(rig.projector.K, built.projector.K)
     np.testing.assert_allclose(rig.projector.R, built.projector.R, atol=1e-12)

@@ -1,4 +1,4 @@
-"""fppsim.shapes: the project's own sculpture-like meshes and the shipped assets/meshes files."""
+"""fppsim.shapes: the project's own sculpture-like meshes and the shipped fppsim/data/meshes files."""
 
 from functools import lru_cache
 from pathlib import Path
@@ -9,7 +9,7 @@ import trimesh
 
 from fppsim.shapes import ASSETS, SHAPES, asset_name, export_ply_bytes, make_shape
 
-ASSET_DIR = Path(__file__).resolve().parents[1] / "assets" / "meshes"
+ASSET_DIR = Path(__file__).resolve().parents[1] / "fppsim" / "data" / "meshes"
 
 
 @lru_cache(maxsize=None)

@@ -68,9 +68,9 @@ def test_tiny_uhrnet_learns_generated_samples(tmp_path, one_thread):
     """Acceptance: a tiny UHRNet trained a few epochs on a handful of `fppsim generate` samples gets far
     below the trivial predictor (the mean training height) in validation RMSE."""
     pytest.importorskip("pyrender", reason="pyrender (OSMesa) not installed")
-    meshes = ROOT / "assets" / "meshes"
+    meshes = ROOT / "fppsim" / "data" / "meshes"
     if not list(meshes.glob("*.ply")):
-        pytest.skip("no meshes in assets/meshes")
+        pytest.skip("no meshes in fppsim/data/meshes")
     env = {**os.environ, "PYOPENGL_PLATFORM": "osmesa"}
     gen = [sys.executable, "-c", "import sys; from fppsim.cli import main; sys.exit(main())", "generate",
            "--meshes", str(meshes), "--out", str(tmp_path / "syn"), "--count", "16", "--seed", "3", "-q",

@@ -39,7 +39,7 @@ def sphere(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def sculpture(tmp_path_factory):
-    plys = sorted((ROOT / "assets" / "meshes").glob("*.ply"))
+    plys = sorted((ROOT / "fppsim" / "data" / "meshes").glob("*.ply"))
     if plys:
         return plys[0]
     # fallback: a bumpy, non-convex blob (sculpture-like relief) written to a temporary PLY

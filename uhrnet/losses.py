@@ -19,10 +19,21 @@ from .metrics import ssim, valid_mask
 
 
 class Loss(nn.Module):
-    """Base class: the ``loss(pred, target, mask=None)`` convention and ``end_epoch()``."""
+    """Base class: the ``loss(pred, target, mask=None)`` convention, ``end_epoch()`` and
+    ``reduce_state()``."""
 
     def end_epoch(self) -> None:
         """Called after every training epoch; nothing to do by default."""
+
+    def reduce_state(self, all_reduce_sum) -> None:
+        """Combine the per-process state of a distributed run before :meth:`end_epoch`.
+
+        ``all_reduce_sum(tensor)`` sums a tensor over all processes in place. Stateless losses have
+        nothing to combine; composite losses pass the call on to the losses they contain.
+        """
+        for child in self.children():
+            if isinstance(child, Loss):
+                child.reduce_state(all_reduce_sum)
 
 
 def _squared_error(pred: torch.Tensor, target: torch.Tensor, mask) -> tuple[torch.Tensor, torch.Tensor]:
@@ -145,6 +156,12 @@ class ChunkedL2Loss(Loss):
                 self.epoch_sse += (l2 * count).double()
                 self.epoch_count += count.double()
         return (self.weights.to(l2.dtype)[ranks - 1] * l2).sum() / self.num_patches
+
+    def reduce_state(self, all_reduce_sum) -> None:
+        """The epoch accumulators are sums over training calls: sum them over processes, so every
+        process re-ranks the patches identically."""
+        all_reduce_sum(self.epoch_sse)
+        all_reduce_sum(self.epoch_count)
 
     def end_epoch(self) -> None:
         """Re-rank the patches by this epoch's accumulated per-patch L2 and reset the accumulators.

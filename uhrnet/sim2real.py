@@ -2,7 +2,7 @@
 
 The judged recipe (``scale="cpu"``) is exactly::
 
-    fppsim generate --meshes ../shared/meshes assets/meshes --out syn --count 400 --seed 100 --workers 2 \
+    fppsim generate --meshes ../shared/meshes fppsim/data/meshes --out syn --count 400 --seed 100 --workers 2 \
         --no-psp --format figshare
     uhrnet train --synthetic syn --model unet --base-channels 16 --loss compound --epochs 10 \
         --batch-size 2 --lr 5e-4 --device cpu --out run
@@ -60,6 +60,13 @@ SCALES: dict[str, dict] = {
 }
 
 
+def _packaged_meshes() -> str:
+    """The meshes shipped with fppsim (``fppsim/data/meshes``), wherever the package is installed."""
+    from fppsim.rig import data_path
+
+    return str(data_path("meshes"))
+
+
 @dataclass
 class Variant:
     """One row of an ablation: extra ``fppsim generate`` and ``uhrnet train`` arguments."""
@@ -85,7 +92,7 @@ class Sim2RealConfig:
 
     out: str
     real: list[str]
-    meshes: list[str] = field(default_factory=lambda: ["assets/meshes"])
+    meshes: list[str] = field(default_factory=lambda: [_packaged_meshes()])
     scale: str = "cpu"
     count: int | None = None
     seed: int | None = None

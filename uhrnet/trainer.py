@@ -485,9 +485,7 @@ class Trainer:
     def _end_epoch_loss(self) -> None:
         """Sum the loss's per-epoch accumulators over ranks, so every rank re-ranks identically."""
         if self.info.enabled:
-            for name, buf in self.loss_fn.named_buffers():
-                if name.split(".")[-1].startswith("epoch_"):
-                    dist.all_reduce(buf)
+            self.loss_fn.reduce_state(dist.all_reduce)
         self.loss_fn.end_epoch()
 
     # -- checkpoints ----------------------------------------------------------------------------------
