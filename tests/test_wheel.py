@@ -4,6 +4,7 @@ another directory with the packaged default rig and meshes."""
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -18,10 +19,24 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.slow
 def test_wheel_installed_alone_generates_with_the_default_rig(tmp_path):
     pip = [sys.executable, "-m", "pip", "--disable-pip-version-check", "-q"]
-    res = subprocess.run([*pip, "wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "dist"), str(ROOT)],
+    # build from a clean copy: an in-tree build would leave build/ behind, whose stale files (modules
+    # deleted since) setuptools would put into later wheels
+    src = tmp_path / "src"
+    ignore = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for name in ("fppsim", "uhrnet"):
+        shutil.copytree(ROOT / name, src / name, ignore=ignore)
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy2(ROOT / name, src / name)
+    res = subprocess.run([*pip, "wheel", "--no-deps", "--no-build-isolation", "-w", str(tmp_path / "dist"), str(src)],
                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     wheel = next((tmp_path / "dist").glob("fppsim_uhrnet-*.whl"))
+    import zipfile
+
+    names = zipfile.ZipFile(wheel).namelist()
+    for needed in ("fppsim/py.typed", "uhrnet/py.typed", "fppsim/data/default_rig.json",
+                   "fppsim/data/figshare_like_rig.json", "fppsim/data/parallel_rig.json", "fppsim/data/meshes/bust_s0.ply"):
+        assert needed in names, needed
     # A fresh environment: the wheel alone in its own folder, the dependencies from this interpreter's
     # site-packages (no .pth files processed there, so the editable checkout is NOT importable).
     site = tmp_path / "site"
