@@ -10,7 +10,7 @@ import uhrnet
 from fppsim.errors import ConfigError as FppsimConfigError
 from uhrnet.errors import ConfigError
 
-from _uhrnet_fixtures import write_figshare
+from _helpers import write_figshare
 
 
 @pytest.mark.slow
@@ -30,6 +30,7 @@ def test_fppsim_generate_from_python(tmp_path):
         fppsim.GenerateConfig(meshes=["x"], out=tmp_path, count=1, format="tiff")
 
 
+@pytest.mark.slow
 def test_uhrnet_train_evaluate_predict_from_python(tmp_path):
     fr, _ = write_figshare(tmp_path / "real", n=8, h=32, w=64)
     result = uhrnet.train(uhrnet.TrainConfig(out=tmp_path / "run", real=[tmp_path / "real"], model="unet",

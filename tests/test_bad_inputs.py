@@ -20,7 +20,7 @@ from fppsim.cli import main as fppsim_main
 from fppsim.rig import Rig
 from uhrnet.cli import main as uhrnet_main
 
-from _uhrnet_fixtures import train_tiny, write_figshare, write_native
+from _helpers import train_tiny, write_figshare, write_native
 
 ROOT = Path(__file__).resolve().parent.parent
 
@@ -385,7 +385,7 @@ def test_predict_refuses_nonsense(tiny_run, tmp_path, capsys):
 
 
 def test_predict_colour_equals_grey_and_warns_when_all_invalid(tiny_run, tmp_path, capsys):
-    from _uhrnet_fixtures import scene
+    from _helpers import scene
 
     _, run = tiny_run
     f8, _, _ = scene(np.random.default_rng(3), 32, 64)

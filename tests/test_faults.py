@@ -23,7 +23,7 @@ from fppsim._fs import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own
 from fppsim.cli import main as fppsim_main
 from fppsim.formats import DatasetError, export_figshare, read_manifest, reconcile, LabelTransform
 
-from _uhrnet_fixtures import write_figshare
+from _helpers import write_figshare
 
 ROOT = Path(__file__).resolve().parent.parent
 ENV = {**os.environ, "PYOPENGL_PLATFORM": "osmesa", "OMP_NUM_THREADS": "1",

@@ -10,7 +10,7 @@ from uhrnet.sim2real import (
     markdown_report, object_mask, parse_variant, plane_level, real_metrics, train_command,
 )
 
-from _uhrnet_fixtures import REAL_SAMPLE, train_tiny, write_figshare
+from _helpers import REAL_SAMPLE, train_tiny, write_figshare
 
 
 def _scene(h=60, w=80, plane=-97.0, bump_mm=30.0):

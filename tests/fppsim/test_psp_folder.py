@@ -145,7 +145,7 @@ def test_matlab_v73_without_h5py_is_one_line(tmp_path, monkeypatch):
 
 
 def test_export_native_dataset(tmp_path):
-    from _uhrnet_fixtures import write_native
+    from _helpers import write_native
 
     from fppsim.formats import load_native_sample
     from fppsim.psp_io import export_psp_folders

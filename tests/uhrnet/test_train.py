@@ -16,18 +16,9 @@ from uhrnet.checkpoint import CheckpointError, atomic_save, load_checkpoint, mod
 from uhrnet.cli import main
 from uhrnet.data import Prepared, load_sources
 
-from _uhrnet_fixtures import write_figshare, write_native
+from _helpers import write_figshare, write_native
 
-ROOT = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture
-def one_thread():
-    """The CI machine has 2 shared cores: tiny models run faster (and steadier) on one thread."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def history(run) -> list[dict]:

@@ -15,7 +15,7 @@ import pytest
 
 from fppsim.cli import main
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 RENDER = r"""
 import sys, numpy as np, trimesh

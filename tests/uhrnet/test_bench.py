@@ -11,12 +11,8 @@ from uhrnet.cli import main
 
 
 @pytest.fixture(autouse=True)
-def single_thread():
+def single_thread(one_thread):
     """Tiny models on a shared machine run 10-30x faster on one thread than on an oversubscribed pool."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def test_bench_runs_all_default_models(tmp_path, capsys):

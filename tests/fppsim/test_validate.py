@@ -23,8 +23,10 @@ from fppsim.cli import main
 from fppsim.validate import (DEFAULT_SWEEP, ValidateError, evaluate_sample, parse_sweep, resolve_dataset,
                              sweep_settings)
 
-ROOT = Path(__file__).resolve().parent.parent
-SPOT = ROOT.parent / "shared" / "meshes" / "spot.obj"
+ROOT = Path(__file__).resolve().parents[2]
+from _helpers import SHARED_MESHES
+
+SPOT = SHARED_MESHES / "spot.obj"
 NOISE_FREE = ["--noise-free", "--optics", "camera_blur=0", "--optics", "projector_blur=1.0",
               "--optics", "gain=200", "--optics", "albedo_plane=0.4"]
 RMSE_BOUND_MM = 0.02

@@ -16,8 +16,8 @@ import trimesh
 from fppsim.cli import main
 from fppsim.formats import read_manifest
 
-ROOT = Path(__file__).resolve().parent.parent
-SHARED_MESHES = ROOT.parent / "shared" / "meshes"
+ROOT = Path(__file__).resolve().parents[2]
+from _helpers import SHARED_MESHES
 
 
 @pytest.fixture(scope="module")

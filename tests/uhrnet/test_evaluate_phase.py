@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from _uhrnet_fixtures import scene, train_tiny, write_figshare
+from _helpers import scene, train_tiny, write_figshare
 from fppsim.psp_io import save_psp_folder_sample, sums_from_phase
 from uhrnet.cli import main
 

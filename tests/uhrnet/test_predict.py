@@ -8,7 +8,7 @@ from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
 from uhrnet.inference import predict_labels
 
-from _uhrnet_fixtures import scene, train_tiny, write_figshare
+from _helpers import scene, train_tiny, write_figshare
 
 
 @pytest.fixture(scope="module")

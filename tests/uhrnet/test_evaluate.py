@@ -12,7 +12,7 @@ from uhrnet.cli import main
 from uhrnet.data import load_sources
 from uhrnet.inference import predict_labels
 
-from _uhrnet_fixtures import REAL_SAMPLE, train_tiny, write_figshare, write_native
+from _helpers import REAL_SAMPLE, train_tiny, write_figshare, write_native
 
 
 @pytest.fixture(scope="module")

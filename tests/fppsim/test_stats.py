@@ -10,7 +10,7 @@ import pytest
 from fppsim import stats
 from fppsim.formats import LabelTransform
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real-sample"
+from _helpers import REAL_SAMPLE as REAL
 H, W = 176, 320
 
 

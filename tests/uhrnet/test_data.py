@@ -11,7 +11,7 @@ from uhrnet.data import (
     load_sources, parse_size, reference_split, split_indices,
 )
 
-from _uhrnet_fixtures import REAL_SAMPLE, write_figshare, write_native
+from _helpers import REAL_SAMPLE, write_figshare, write_native
 
 
 @pytest.mark.parametrize("n", [6, 7, 10, 15, 37, 100, 1234, 1500])
@@ -261,7 +261,7 @@ def _fppsim_generate(out, *extra):
     from pathlib import Path
 
     pytest.importorskip("pyrender", reason="pyrender (OSMesa) not installed")
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     meshes = sorted((root / "fppsim" / "data" / "meshes").glob("*.ply"))
     if not meshes:
         pytest.skip("no meshes in fppsim/data/meshes")

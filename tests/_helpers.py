@@ -1,4 +1,4 @@
-"""Tiny on-disk datasets for the uhrnet data/train/evaluate/predict tests.
+"""Shared test helpers: the ../shared paths (computed once here) and tiny on-disk datasets.
 
 The fringe encodes the height in a way a tiny CNN learns in a few epochs: vertical fringes whose
 brightness envelope grows with the height (plus a phase shift), on a dark plane, with a projector
@@ -8,12 +8,14 @@ shadow (invalid pixels) beside each object. Label transform: the figshare preset
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
-REAL_SAMPLE = Path(__file__).resolve().parents[1] / ".." / "shared" / "real-sample"
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"  # third-party test data beside the checkout; tests skip cleanly without it
+SHARED_MESHES = SHARED / "meshes"
+REAL_SAMPLE = SHARED / "real-sample"
 
 
 def scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -60,29 +62,26 @@ def write_figshare(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, 
 
 
 def write_native(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, psp: bool = False) -> list[str]:
-    """fppsim native layout: manifest.jsonl, <id>/fringe.png, <id>/arrays.npz, <id>/meta.json."""
-    import cv2
+    """fppsim native layout written by fppsim's own writer (write_sample_folder + reconcile)."""
+    from fppsim.formats import reconcile, sample_id, write_sample_folder
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
     ids = []
-    with open(folder / "manifest.jsonl", "w") as mf:
-        for i in range(n):
-            sid = f"{i:06d}"
-            d = folder / sid
-            d.mkdir(exist_ok=True)
-            f8, hmm, valid = scene(rng, h, w)
-            cv2.imwrite(str(d / "fringe.png"), f8)
-            arrays = {"height": hmm, "depth": (500.0 - hmm).astype(np.float32),
-                      "phase_true": np.zeros_like(hmm), "mask": valid.astype(np.float32)}
-            if psp:
-                arrays.update(height_psp=hmm + np.float32(0.01), mask_psp=valid.astype(np.float32),
-                              phase_psp=np.zeros_like(hmm))
-            np.savez_compressed(d / "arrays.npz", **arrays)
-            (d / "meta.json").write_text(json.dumps({"seed": i, "version": "test", "rig": {}, "objects": []}))
-            mf.write(json.dumps({"id": sid}) + "\n")
-            ids.append(sid)
+    for i in range(n):
+        sid = sample_id(i)
+        f8, hmm, valid = scene(rng, h, w)
+        arrays = {"height": hmm, "depth": (500.0 - hmm).astype(np.float32),
+                  "phase_true": np.zeros_like(hmm), "mask": valid.astype(np.float32)}
+        if psp:
+            arrays.update(height_psp=hmm + np.float32(0.01), mask_psp=valid.astype(np.float32),
+                          phase_psp=np.zeros_like(hmm))
+        meta = {"index": i, "seed": i, "version": "test", "rig": {}, "objects": [],
+                "stats": {"valid_fraction": float(valid.mean())}}
+        write_sample_folder(folder, sid, {"fringe.png": f8}, arrays, meta)
+        ids.append(sid)
+    reconcile(folder)
     return ids
 
 

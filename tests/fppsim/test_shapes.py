@@ -9,7 +9,7 @@ import trimesh
 
 from fppsim.shapes import ASSETS, SHAPES, asset_name, export_ply_bytes, make_shape
 
-ASSET_DIR = Path(__file__).resolve().parents[1] / "fppsim" / "data" / "meshes"
+ASSET_DIR = Path(__file__).resolve().parents[2] / "fppsim" / "data" / "meshes"
 
 
 @lru_cache(maxsize=None)

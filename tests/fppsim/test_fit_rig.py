@@ -10,7 +10,7 @@ from fppsim import fit_rig as fr
 from fppsim.rig import Rig, RigError, make_parallel_rig
 from fppsim.stats import estimate_period
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "real-sample"
+from _helpers import REAL_SAMPLE as REAL
 
 
 def _plane_images(rig, n=2, noise=1.5, seed=0):
