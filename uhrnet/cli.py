@@ -32,7 +32,8 @@ DEVICES = ("auto", "cpu", "cuda")
 # ============================================================================ train
 def add_train(p: argparse.ArgumentParser) -> None:
     from fppsim.formats import PRESETS
-    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.reading import LABEL_SOURCES
+    from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
 
@@ -101,7 +102,8 @@ def run_train(args) -> int:
 
 # ============================================================================ evaluate
 def add_evaluate(p: argparse.ArgumentParser) -> None:
-    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.reading import LABEL_SOURCES
+    from uhrnet.splits import SPLIT_MODES
     from uhrnet.evaluation import SPLITS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")

@@ -12,17 +12,14 @@ Label units are those of the public figshare dataset: Z = 6 * height_mm + plane 
 (shadow) pixels exactly -105, and the reference evaluation counts Z <= -100 as invalid.
 :class:`fppsim.formats.LabelTransform` holds that preset and makes it configurable; fppsim's native
 heights (mm above the reference plane) are mapped through the same transform so real and synthetic
-samples mix. Files are read through :mod:`fppsim.formats` (the dataset contract); this module only
-adapts them to torch.
+samples mix. Files are read through :mod:`fppsim.formats` (the dataset contract) by the numpy
+readers of :mod:`uhrnet.reading`; splits come from :mod:`uhrnet.splits`; this module only adapts them
+to torch (datasets, mixtures, the sampler, crops/resizing/augmentation, train/val/test sources).
 """
 
 from __future__ import annotations
 
-import json
-import math
 import os
-import zipfile
-import zlib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable, Sequence
@@ -32,63 +29,19 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
-from fppsim.formats import (FIGSHARE_PAIRS, PRESETS, LabelTransform, encode_fringe, find_figshare_pair,
-                            manifest_ids, open_figshare_pair, read_gray_image, read_native_label)
+from fppsim.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids, open_figshare_pair
 from uhrnet.errors import DataError
+from uhrnet.reading import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
+                            read_fringe_image, read_native_pair)
+from uhrnet.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 
-
-# --------------------------------------------------------------------------------------------------
-# Reference split
-
-
-def _shuffle_split(n: int, test_size: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """sklearn ``train_test_split(range(n), test_size=..., random_state=seed)`` index for index."""
-    n_test = math.ceil(test_size * n)  # same float expression as sklearn's _validate_shuffle_split
-    n_train = n - n_test
-    if n_train <= 0 or n_test <= 0:
-        raise DataError(f"cannot split {n} samples with test_size={test_size}")
-    perm = np.random.RandomState(seed).permutation(n)
-    return perm[n_test:n_test + n_train], perm[:n_test]
-
-
-MIN_REFERENCE_SPLIT = 6
-
-
-def reference_split(n: int, test_size: float = 0.2, seeds: tuple[int, int] = (0, 1)) -> dict[str, np.ndarray]:
-    """The reference 80/10/10 split of the figshare data, reproduced index for index.
-
-    ``train, rest = train_test_split(idx, test_size=0.2, random_state=0)`` then
-    ``val, test = train_test_split(rest, test_size=0.5, random_state=1)``.
-    """
-    if n < MIN_REFERENCE_SPLIT:
-        raise DataError(
-            f"the reference 80/10/10 split needs at least {MIN_REFERENCE_SPLIT} samples, got {n} "
-            "(for tiny sets use --real-split/--synthetic-split train, val or test)"
-        )
-    train, rest = _shuffle_split(n, test_size, seeds[0])
-    val_pos, test_pos = _shuffle_split(len(rest), 0.5, seeds[1])
-    return {"train": train, "val": rest[val_pos], "test": rest[test_pos]}
-
-
-SPLIT_MODES = ("reference", "train", "val", "test")
-LABEL_SOURCES = ("true", "psp")  # native ground truth: exact rendered height or phase-shifting height
-
-
-def split_indices(n: int, part: str, mode: str = "reference") -> np.ndarray:
-    """Indices of split ``part`` (train/val/test/all) of ``n`` samples.
-
-    mode ``reference``: the 80/10/10 reference split; ``train``/``val``/``test``: every sample belongs
-    to that one split (e.g. a single real sample used only for testing).
-    """
-    if part == "all":
-        return np.arange(n)
-    if part not in ("train", "val", "test"):
-        raise ValueError(f"unknown split {part!r}")
-    if mode == "reference":
-        return reference_split(n)[part]
-    if mode in ("train", "val", "test"):
-        return np.arange(n) if part == mode else np.zeros(0, dtype=np.int64)
-    raise ValueError(f"unknown split mode {mode!r} (known: {', '.join(SPLIT_MODES)})")
+__all__ = [
+    "FigshareArrays", "FppsimDataset", "open_dataset", "DatasetSubset", "MixedDataset", "MixedSampler", "Prepared",
+    "parse_size", "resize_sample", "crop_sample", "Sources", "load_sources",
+    # re-exported: reading (numpy) and splits, which the torch datasets above are built on
+    "LABEL_SOURCES", "read_fringe_image", "SPLIT_MODES", "MIN_REFERENCE_SPLIT", "reference_split", "split_indices",
+    "DataError", "LabelTransform", "PRESETS",
+]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -161,24 +114,7 @@ class FigshareArrays(Dataset):
 
     def check(self, chunk_bytes: int = 256 << 20) -> None:
         """Scan for NaN/inf (labels and fringes) and fringe values outside [-1, 1]."""
-        n = len(self)
-        step = max(1, chunk_bytes // max(1, self.labels[0].nbytes))
-        for arr, path, name in ((self.labels, self.label_path, "label"), (self.fringes, self.fringe_path, "fringe")):
-            lo, hi = np.inf, -np.inf
-            for i in range(0, n, step):
-                block = np.asarray(arr[i:i + step])
-                finite = np.isfinite(block)
-                if not finite.all():
-                    bad = np.flatnonzero(~finite.reshape(len(block), -1).all(axis=1))[0]
-                    count = int((~finite[bad]).sum())
-                    raise DataError(f"{path}: sample {i + bad} has {count} NaN/inf {name} values")
-                lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
-            if name == "fringe" and (lo < -1.001 or hi > 1.001):
-                hint = " (looks like raw 8-bit intensities)" if hi > 2 else ""
-                raise DataError(
-                    f"{path}: fringe values span [{lo:g}, {hi:g}], expected [-1, 1] = "
-                    f"intensity / 127.5 - 1{hint}"
-                )
+        check_figshare_arrays(self.fringes, self.labels, self.fringe_path, self.label_path, chunk_bytes)
 
     def __getitem__(self, i: int) -> dict:
         i = int(i)
@@ -210,7 +146,7 @@ class FppsimDataset(Dataset):
         if not self.root.is_dir():
             raise DataError(f"{self.root}: not a folder")
         if find_figshare_pair(self.root) is not None:
-            _check_export_labels(self.root, self.transform)
+            check_export_labels(self.root, self.transform)
             self.arrays = FigshareArrays(self.root, transform=self.transform, check=check, source=source)
             self.ids = self.arrays.ids
             return
@@ -227,21 +163,8 @@ class FppsimDataset(Dataset):
             for name in ("fringe.png", "arrays.npz"):
                 if not (self.root / sid / name).is_file():
                     raise DataError(f"{self.root / sid / name}: file not found (listed in {manifest.name})")
-        if label == "psp":  # refuse up front, not at the first batch: a --no-psp dataset has no PSP height
-            try:
-                settings = json.loads((self.root / "dataset.json").read_text())
-                no_psp = not (settings.get("config") or {}).get("psp_freqs", True)
-            except (OSError, ValueError, AttributeError):
-                no_psp = False
-            if not no_psp:
-                try:
-                    with np.load(self.root / self.ids[0] / "arrays.npz", allow_pickle=False) as z:
-                        no_psp = "height_psp" not in z.files
-                except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error):
-                    pass  # named when the sample is read
-            if no_psp:
-                raise DataError(f"{self.root}: label 'psp' (--synthetic-label psp) but this dataset has no PSP "
-                                "height (generated with --no-psp)")
+        if label == "psp":
+            check_psp_available(self.root, self.ids[0])
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -250,47 +173,8 @@ class FppsimDataset(Dataset):
         if self.arrays is not None:
             return self.arrays[i]
         sid = self.ids[int(i)]
-        d = self.root / sid
-        fringe = read_fringe_image(d / "fringe.png")
-        npz = d / "arrays.npz"
-        try:
-            with np.load(npz, allow_pickle=False) as z:
-                # PSP heights are NaN where decoding failed: invalid, as fppsim's export does
-                height, valid = read_native_label(z, npz, fringe.shape, source=self.label)
-        except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
-            if isinstance(exc, DataError):
-                raise
-            raise DataError(f"{npz}: cannot read ({type(exc).__name__}: {exc})") from None
-        label = self.transform.label_from_height_mm(height, valid)
-        if self.mask_fringe:  # as `fppsim generate --format figshare` encodes it: -1 off the mask
-            fringe = np.where(valid, fringe, np.float32(-1.0))
+        fringe, label = read_native_pair(self.root / sid, self.transform, self.label, self.mask_fringe)
         return _sample(fringe, label, self.transform, sid, self.source)
-
-
-def _check_export_labels(root: Path, transform: LabelTransform) -> None:
-    """A figshare-format export by fppsim records its label transform in ``native/dataset.json``:
-    refuse to read it with a different one (the labels would be silently misinterpreted)."""
-    for meta in (root / "native" / "dataset.json", root / "dataset.json"):
-        if not meta.is_file():
-            continue
-        try:
-            theirs = LabelTransform.from_dict(json.loads(meta.read_text()).get("label") or {})
-        except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
-            return
-        if not theirs.same_labels(transform):
-            diff = ", ".join(f"{k}={getattr(theirs, k):g}" for k in ("units_per_mm", "plane_offset", "invalid_value",
-                                                                      "invalid_threshold")
-                             if getattr(theirs, k) != getattr(transform, k))
-            raise DataError(
-                f"{meta}: these arrays were labelled with {diff} but the label transform differs "
-                f"(set --label-transform {diff.replace(', ', ' ')})"
-            )
-        return
-
-
-def read_fringe_image(path: str | os.PathLike) -> np.ndarray:
-    """An 8-bit (or 16-bit) grey image as float32 in the dataset encoding, intensity / 127.5 - 1."""
-    return encode_fringe(read_gray_image(path))
 
 
 def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:

@@ -33,7 +33,8 @@ import torch
 
 from fppsim.formats import as_image_stack, encode_fringe
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-from uhrnet.data import parse_size, read_fringe_image
+from uhrnet.data import parse_size
+from uhrnet.reading import read_fringe_image
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 

@@ -117,7 +117,8 @@ def check_options(cfg: dict) -> None:
     """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
     of the first invalid option in ``cfg``."""
     from fppsim.formats import PRESETS
-    from uhrnet.data import LABEL_SOURCES, SPLIT_MODES
+    from uhrnet.reading import LABEL_SOURCES
+    from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
 
