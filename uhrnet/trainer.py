@@ -1,6 +1,9 @@
 """Training: ``uhrnet.train(TrainConfig(...))`` trains UHRNet or a baseline on real (figshare) and/or
 synthetic (fppsim) data; ``uhrnet train`` calls it.
 
+The run's options live in :mod:`uhrnet.train_config`, its files in :mod:`uhrnet.run_folder`, the
+process layout under torchrun in :mod:`uhrnet.distributed`; this module is the loop.
+
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
 ``RUN/history.png`` (the paper's Fig. 6); ``RUN/last.pt`` is written atomically after every epoch and
 ``RUN/best.pt`` whenever the validation RMSE improves. ``--resume`` continues a run exactly (model,
@@ -10,17 +13,9 @@ it runs DistributedDataParallel (gloo on CPU, nccl on GPU); only rank 0 writes.
 
 from __future__ import annotations
 
-import csv
-import io
-import json
-import math
-import os
-import shutil
 import sys
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass, fields
-from datetime import timedelta
 from pathlib import Path
 
 import numpy as np
@@ -29,269 +24,16 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 
 from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock
-from fppsim.formats import LabelTransform, atomic_path, atomic_write_text
-from uhrnet.checkpoint import (
-    FORMAT, VERSION, LabelHead, atomic_save, load_checkpoint, rng_state, set_rng_state,
-)
-from uhrnet.device import select_device
+from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
 from uhrnet.data import MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.device import select_device
+from uhrnet.distributed import DistInfo, MetricSums, all_reduce, init_distributed
+from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.metrics import image_metrics
-from uhrnet.errors import CheckpointError, ConfigError, DataError, TrainingDiverged, UsageError
+from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
+from uhrnet.train_config import TrainConfig, label_transform_from, parse_kv, resolve_config
 
-RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
-
-# Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
-# the user set; LOCKED options must match the checkpoint's, the others may change on resume.
-DEFAULTS = {
-    "model": "uhrnet", "loss": "compound", "real": [], "synthetic": [], "synthetic_ratio": None,
-    "real_split": "reference", "synthetic_split": "reference", "synthetic_label": "true",
-    "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
-    "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
-    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": True,
-}
-LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
-          "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment")
-
-HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
-                   "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
-                   "lr", "seconds", "best")
-
-
-@dataclass
-class TrainConfig:
-    """Options of a training run; ``None`` means "not given": the default of :data:`DEFAULTS` for a
-    fresh run, the checkpoint's value on ``resume`` (options in :data:`LOCKED` must then match it).
-
-    Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
-    ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
-    already holds a run (refused otherwise). ``augment``: photometric augmentation of synthetic samples
-    (:mod:`uhrnet.augment`). Checks itself on construction: :class:`UsageError` for a value that is wrong
-    on its own (the command line exits 2), :class:`ConfigError` otherwise.
-    """
-
-    out: str | os.PathLike
-    real: list | None = None
-    synthetic: list | None = None
-    synthetic_ratio: float | None = None
-    real_split: str | None = None
-    synthetic_split: str | None = None
-    synthetic_label: str | None = None
-    preset: str | None = None
-    label_transform: list | None = None
-    crop: str | None = None
-    resize: str | None = None
-    samples_per_epoch: int | None = None
-    workers: int | None = None
-    augment: bool | None = None
-    model: str | None = None
-    base_channels: int | None = None
-    model_option: list | None = None
-    loss: str | None = None
-    epochs: int | None = None
-    batch_size: int | None = None
-    lr: float | None = None
-    weight_decay: float | None = None
-    grad_clip: float | None = None
-    amp: bool | None = None
-    raw_output: bool | None = None
-    seed: int | None = None
-    device: str | None = None
-    resume: str | None = None
-    overwrite: bool = False
-    progress: bool = True
-
-    def __post_init__(self):
-        for key in ("real", "synthetic"):
-            value = getattr(self, key)
-            if isinstance(value, (str, os.PathLike)):
-                setattr(self, key, [value])
-        given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
-        check_options(given)
-        if not self.resume:  # a fresh run's label transform must be usable before anything is written
-            label_transform_from({**DEFAULTS, **given})
-
-
-def check_options(cfg: dict) -> None:
-    """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
-    of the first invalid option in ``cfg``."""
-    from fppsim.formats import PRESETS
-    from uhrnet.reading import LABEL_SOURCES
-    from uhrnet.splits import SPLIT_MODES
-    from uhrnet.losses import LOSSES
-    from uhrnet.models import list_models
-
-    choices = {"model": list_models(), "loss": LOSSES, "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
-               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
-    for key, allowed in choices.items():
-        if key in cfg and cfg[key] not in allowed:
-            raise ConfigError(f"--{key.replace('_', '-')} {cfg[key]!r}: choose from {', '.join(allowed)}")
-    for key in ("crop", "resize"):
-        try:
-            parse_size(cfg.get(key))
-        except ValueError as exc:
-            raise ConfigError(f"--{key}: {exc}") from None
-    if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
-        raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
-    for key in ("epochs", "batch_size"):
-        if key in cfg and cfg[key] < 1:
-            raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
-    if "lr" in cfg and not cfg["lr"] > 0:
-        raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
-    if "lr" in cfg and not math.isfinite(cfg["lr"]):
-        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
-    if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
-        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
-    if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
-        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
-
-
-# --------------------------------------------------------------------------------------------------
-# Options
-
-
-def _parse_kv(items, what: str) -> dict:
-    import yaml
-
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
-        k, v = item.split("=", 1)
-        out[k.strip().replace("-", "_")] = yaml.safe_load(v)
-    return out
-
-
-def _normalise(key: str, value):
-    if key in ("real", "synthetic"):
-        return [str(Path(v).resolve()) for v in (value or [])]
-    if key in ("label_transform", "model_option"):
-        return sorted(value or [])
-    return value
-
-
-def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
-    """Options after defaults (fresh run) or the checkpoint's options (resume)."""
-    cfg = {}
-    for key, default in DEFAULTS.items():
-        given = getattr(args, key, None)
-        if previous is not None and key in previous:
-            if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, previous[key]):
-                flag = "--" + key.replace("_", "-")
-                raise ConfigError(
-                    f"{flag} {given} differs from the checkpoint's {previous[key]!r}; drop {flag} to resume, "
-                    "or start a new --out"
-                )
-            cfg[key] = previous[key] if given is None else given
-        else:
-            cfg[key] = default if given is None else given
-    cfg["real"] = _normalise("real", cfg["real"])
-    cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
-    check_options(cfg)
-    return cfg
-
-
-def label_transform_from(cfg: dict) -> LabelTransform:
-    overrides = _parse_kv(cfg["label_transform"], "--label-transform")
-    try:
-        return LabelTransform.from_dict({"preset": cfg["preset"], "name": cfg["preset"], **overrides})
-    except DataError as exc:
-        raise UsageError(f"--label-transform: {exc}") from None
-
-
-# --------------------------------------------------------------------------------------------------
-# Distributed
-
-
-@dataclass
-class DistInfo:
-    rank: int = 0
-    world: int = 1
-    local_rank: int = 0
-
-    @property
-    def enabled(self) -> bool:
-        return self.world > 1
-
-    @property
-    def main(self) -> bool:
-        return self.rank == 0
-
-
-def init_distributed(device_name: str) -> DistInfo:
-    """torchrun sets WORLD_SIZE/RANK/LOCAL_RANK; without them this is a single process."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world <= 1:
-        return DistInfo()
-    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
-    use_cuda = device_name != "cpu" and torch.cuda.is_available()
-    if use_cuda:
-        torch.cuda.set_device(local)
-    if not dist.is_initialized():
-        dist.init_process_group("nccl" if use_cuda else "gloo", timeout=timedelta(minutes=30))
-    return DistInfo(rank, world, local)
-
-
-def _all_reduce(values: torch.Tensor, info: DistInfo, device, op=None) -> torch.Tensor:
-    if not info.enabled:
-        return values
-    t = values.to(device)
-    dist.all_reduce(t, op=op or dist.ReduceOp.SUM)
-    return t.cpu()
-
-
-# --------------------------------------------------------------------------------------------------
-# Metric sums over processes
-
-
-class _Sums:
-    """Sums and counts of per-image values (NaN skipped), reducible across ranks."""
-
-    def __init__(self, keys):
-        self.keys = list(keys)
-        self.v = torch.zeros(2 * len(self.keys), dtype=torch.float64)
-
-    def add(self, key: str, values: torch.Tensor) -> None:
-        values = values.double().flatten()
-        ok = torch.isfinite(values)
-        i = self.keys.index(key)
-        self.v[2 * i] += values[ok].sum()
-        self.v[2 * i + 1] += ok.sum()
-
-    def reduce(self, info: DistInfo, device) -> dict:
-        v = _all_reduce(self.v.clone(), info, device)
-        return {k: (float(v[2 * i] / v[2 * i + 1]) if v[2 * i + 1] > 0 else float("nan"))
-                for i, k in enumerate(self.keys)}
-
-
-# --------------------------------------------------------------------------------------------------
-# Trainer
-
-
-
-
-def _fmt(v) -> str:
-    if v is None or (isinstance(v, float) and math.isnan(v)):
-        return ""
-    if isinstance(v, float):
-        return f"{v:.6g}"
-    return str(v)
-
-
-def write_history(rows: list[dict], out: Path) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_COLUMNS, lineterminator="\n")
-    w.writeheader()
-    for row in rows:
-        w.writerow({k: _fmt(row.get(k)) for k in HISTORY_COLUMNS})
-    atomic_write_text(out / "history.csv", buf.getvalue())
-    try:
-        from uhrnet.plots import plot_history
-
-        plot_history(rows, out / "history.png")
-    except Exception as exc:  # a plotting problem must not stop training
-        print(f"warning: could not draw history.png ({exc})", file=sys.stderr)
+__all__ = ["TrainConfig", "Trainer", "train"]
 
 
 class Trainer:
@@ -301,18 +43,12 @@ class Trainer:
         self.args, self.info = args, info
         self.out = Path(args.out)
         self.ckpt = None
-        fresh = (args.resume == "auto" and not (self.out / "last.pt").exists()
-                 and not any((self.out / n).exists() for n in ("best.pt", "history.csv")))
-        if fresh:  # killed before its first checkpoint: nothing trained yet, so start the run afresh
+        state = check_run_folder(self.out, args.resume, args.overwrite)
+        if state == "fresh":  # killed before its first checkpoint: nothing trained yet, so start the run afresh
             print(f"note: {self.out} has no last.pt yet; starting the run from epoch 1", file=sys.stderr)
-        elif args.resume:
+        elif state == "resume":
             path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
-        elif not args.overwrite:
-            existing = [n for n in RUN_FILES if (self.out / n).exists()]
-            if existing:
-                raise ConfigError(f"{self.out} already holds a run ({', '.join(existing)}): pass --resume to continue "
-                                  "it, --overwrite to replace it, or choose another --out")
         self.cfg = resolve_config(args, self.ckpt["args"] if self.ckpt else None)
         if not self.cfg["real"] and not self.cfg["synthetic"]:
             raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
@@ -357,7 +93,7 @@ class Trainer:
         from uhrnet.models import build_model
 
         torch.manual_seed(cfg["seed"])
-        options = _parse_kv(cfg["model_option"], "--model-option")
+        options = parse_kv(cfg["model_option"], "--model-option")
         if cfg["base_channels"] is not None:
             options["base_channels"] = cfg["base_channels"]
         try:
@@ -428,7 +164,7 @@ class Trainer:
         self.sampler.set_epoch(epoch)
         self.loader.generator = torch.Generator().manual_seed(self.cfg["seed"] * 100_003 + epoch)
         self.ddp.train()
-        sums = _Sums(["loss", "rmse", "ssim"])
+        sums = MetricSums(["loss", "rmse", "ssim"])
         bar = tqdm(self.loader, desc=f"epoch {epoch + 1}/{self.cfg['epochs']}", unit="step", leave=False,
                    disable=not self.info.main or not self.args.progress, dynamic_ncols=True)
         for step, batch in enumerate(bar):
@@ -438,7 +174,7 @@ class Trainer:
             outs = out if isinstance(out, (tuple, list)) else (out,)
             loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
             finite = torch.isfinite(loss.detach()).to(torch.float64).reshape(1).cpu()
-            if float(_all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
+            if float(all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
                 raise TrainingDiverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
                                + (" (on another process)" if torch.isfinite(loss) else ""))
             self.optimizer.zero_grad(set_to_none=True)
@@ -463,7 +199,7 @@ class Trainer:
         if len(self.val_set) == 0:
             return {}
         self.model.eval()
-        sums = _Sums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"])
+        sums = MetricSums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"])
         for batch in self.val_loader:
             x, y, m = self._batch(batch)
             with self._autocast():
@@ -510,7 +246,7 @@ class Trainer:
             "image_shape": list(self.image_shape),
             "n_parameters": int(self.n_params),
             "world_size": self.info.world,
-            "uhrnet_version": _version(),
+            "uhrnet_version": package_version(),
         }
 
     def _gather_rng(self) -> list:
@@ -526,9 +262,9 @@ class Trainer:
         cfg, info = self.cfg, self.info
         if info.main:
             self.out.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(self.out / "config.json", json.dumps(
-                {**cfg, "label_transform_resolved": self.transform.to_dict(), "data": self.sources.description,
-                 "n_parameters": self.n_params, "world_size": info.world}, indent=2, default=str))
+            write_run_config(self.out, {**cfg, "label_transform_resolved": self.transform.to_dict(),
+                                        "data": self.sources.description, "n_parameters": self.n_params,
+                                        "world_size": info.world})
             src = self.sources
             print(f"uhrnet train: {cfg['model']} ({self.n_params:,} parameters), loss {cfg['loss']}, "
                   f"{src.train.n_real} real + {src.train.n_synthetic} synthetic training / {len(src.val)} validation "
@@ -566,10 +302,7 @@ class Trainer:
             self.history.append(row)
             rng = self._gather_rng()
             if info.main:
-                payload = self._payload(epoch + 1, rng)
-                atomic_save(payload, self.out / "last.pt")
-                if is_best:
-                    _atomic_copy(self.out / "last.pt", self.out / "best.pt")
+                save_epoch(self.out, self._payload(epoch + 1, rng), is_best)
                 write_history(self.history, self.out)
                 val = (f"  val RMSE {row['val_rmse_mm']:.3f} mm  val SSIM {row['val_ssim']:.4f}"
                        if "val_rmse_mm" in row else "")
@@ -586,17 +319,6 @@ class Trainer:
                 print(f"done: no best.pt written (no epoch had a finite {self.best['metric']}); last epoch in "
                       f"{self.out / 'last.pt'}, history {self.out / 'history.csv'}", flush=True)
         return 0
-
-
-def _atomic_copy(src: Path, dst: Path) -> None:
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
-
-
-def _version() -> str:
-    from uhrnet import __version__
-
-    return __version__
 
 
 def train(config: TrainConfig) -> dict:

@@ -1,0 +1,92 @@
+"""What a training run leaves in its folder: ``history.csv``/``history.png``, ``last.pt``/``best.pt``
+(written atomically; best is a copy of last), ``config.json``; and the rule that a folder holding a
+run is never replaced without ``--overwrite``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import shutil
+import sys
+from pathlib import Path
+
+from fppsim.formats import atomic_path, atomic_write_text
+from uhrnet.checkpoint import atomic_save
+from uhrnet.errors import ConfigError
+
+__all__ = ["RUN_FILES", "HISTORY_COLUMNS", "write_history", "save_epoch", "write_run_config", "check_run_folder",
+           "package_version"]
+
+RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
+
+HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
+                   "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
+                   "lr", "seconds", "best")
+
+
+
+def _fmt(v) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return ""
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    return str(v)
+
+
+def write_history(rows: list[dict], out: Path) -> None:
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=HISTORY_COLUMNS, lineterminator="\n")
+    w.writeheader()
+    for row in rows:
+        w.writerow({k: _fmt(row.get(k)) for k in HISTORY_COLUMNS})
+    atomic_write_text(out / "history.csv", buf.getvalue())
+    try:
+        from uhrnet.plots import plot_history
+
+        plot_history(rows, out / "history.png")
+    except Exception as exc:  # a plotting problem must not stop training
+        print(f"warning: could not draw history.png ({exc})", file=sys.stderr)
+
+
+def save_epoch(out: Path, payload: dict, is_best: bool) -> None:
+    """``out/last.pt`` (atomically); a copy as ``out/best.pt`` when this epoch is the best so far."""
+    atomic_save(payload, out / "last.pt")
+    if is_best:
+        _atomic_copy(out / "last.pt", out / "best.pt")
+
+
+def write_run_config(out: Path, config: dict) -> None:
+    """``out/config.json``: the resolved options and what they were resolved to."""
+    atomic_write_text(out / "config.json", json.dumps(config, indent=2, default=str))
+
+
+def check_run_folder(out: Path, resume, overwrite: bool) -> str:
+    """How to treat ``out``: ``"resume"``, ``"fresh"`` (a ``--resume`` of a run killed before its first
+    checkpoint: nothing was trained, so it starts afresh) or ``"new"``; a folder that already holds a
+    run is refused (:class:`ConfigError`) unless ``resume`` or ``overwrite``."""
+    if resume == "auto" and not (out / "last.pt").exists() and not any((out / n).exists() for n in ("best.pt", "history.csv")):
+        return "fresh"
+    if resume:
+        return "resume"
+    if not overwrite:
+        existing = [n for n in RUN_FILES if (out / n).exists()]
+        if existing:
+            raise ConfigError(f"{out} already holds a run ({', '.join(existing)}): pass --resume to continue "
+                              "it, --overwrite to replace it, or choose another --out")
+    return "new"
+
+
+def _atomic_copy(src: Path, dst: Path) -> None:
+    with atomic_path(dst) as tmp:
+        shutil.copyfile(src, tmp)
+
+
+def package_version() -> str:
+    from uhrnet import __version__
+
+    return __version__
+
+

@@ -1,0 +1,170 @@
+"""The options of a training run: :class:`TrainConfig`, their defaults, checks and resolution on resume.
+
+``None`` means "not given" for every option, so a resumed run can tell what the user set: options in
+:data:`LOCKED` must then match the checkpoint's, the others may change (e.g. ``--epochs``, ``--lr``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from fppsim.formats import LabelTransform
+from uhrnet.data import parse_size
+from uhrnet.errors import ConfigError, DataError, UsageError
+
+__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "check_options", "resolve_config",
+           "label_transform_from", "parse_kv"]
+
+# Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
+# the user set; LOCKED options must match the checkpoint's, the others may change on resume.
+DEFAULTS = {
+    "model": "uhrnet", "loss": "compound", "real": [], "synthetic": [], "synthetic_ratio": None,
+    "real_split": "reference", "synthetic_split": "reference", "synthetic_label": "true",
+    "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
+    "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
+    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
+    "raw_output": False, "grad_clip": None, "augment": True,
+}
+LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
+          "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment")
+
+
+@dataclass
+class TrainConfig:
+    """Options of a training run; ``None`` means "not given": the default of :data:`DEFAULTS` for a
+    fresh run, the checkpoint's value on ``resume`` (options in :data:`LOCKED` must then match it).
+
+    Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
+    ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
+    already holds a run (refused otherwise). ``augment``: photometric augmentation of synthetic samples
+    (:mod:`uhrnet.augment`). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    on its own (the command line exits 2), :class:`ConfigError` otherwise.
+    """
+
+    out: str | os.PathLike
+    real: list | None = None
+    synthetic: list | None = None
+    synthetic_ratio: float | None = None
+    real_split: str | None = None
+    synthetic_split: str | None = None
+    synthetic_label: str | None = None
+    preset: str | None = None
+    label_transform: list | None = None
+    crop: str | None = None
+    resize: str | None = None
+    samples_per_epoch: int | None = None
+    workers: int | None = None
+    augment: bool | None = None
+    model: str | None = None
+    base_channels: int | None = None
+    model_option: list | None = None
+    loss: str | None = None
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    weight_decay: float | None = None
+    grad_clip: float | None = None
+    amp: bool | None = None
+    raw_output: bool | None = None
+    seed: int | None = None
+    device: str | None = None
+    resume: str | None = None
+    overwrite: bool = False
+    progress: bool = True
+
+    def __post_init__(self):
+        for key in ("real", "synthetic"):
+            value = getattr(self, key)
+            if isinstance(value, (str, os.PathLike)):
+                setattr(self, key, [value])
+        given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
+        check_options(given)
+        if not self.resume:  # a fresh run's label transform must be usable before anything is written
+            label_transform_from({**DEFAULTS, **given})
+
+
+def check_options(cfg: dict) -> None:
+    """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
+    of the first invalid option in ``cfg``."""
+    from fppsim.formats import PRESETS
+    from uhrnet.reading import LABEL_SOURCES
+    from uhrnet.splits import SPLIT_MODES
+    from uhrnet.losses import LOSSES
+    from uhrnet.models import list_models
+
+    choices = {"model": list_models(), "loss": LOSSES, "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
+               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
+    for key, allowed in choices.items():
+        if key in cfg and cfg[key] not in allowed:
+            raise ConfigError(f"--{key.replace('_', '-')} {cfg[key]!r}: choose from {', '.join(allowed)}")
+    for key in ("crop", "resize"):
+        try:
+            parse_size(cfg.get(key))
+        except ValueError as exc:
+            raise ConfigError(f"--{key}: {exc}") from None
+    if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
+        raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
+    for key in ("epochs", "batch_size"):
+        if key in cfg and cfg[key] < 1:
+            raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
+    if "lr" in cfg and not cfg["lr"] > 0:
+        raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
+    if "lr" in cfg and not math.isfinite(cfg["lr"]):
+        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
+    if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
+        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
+        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
+
+
+def parse_kv(items, what: str) -> dict:
+    import yaml
+
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip().replace("-", "_")] = yaml.safe_load(v)
+    return out
+
+
+def _normalise(key: str, value):
+    if key in ("real", "synthetic"):
+        return [str(Path(v).resolve()) for v in (value or [])]
+    if key in ("label_transform", "model_option"):
+        return sorted(value or [])
+    return value
+
+
+def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
+    """Options after defaults (fresh run) or the checkpoint's options (resume)."""
+    cfg = {}
+    for key, default in DEFAULTS.items():
+        given = getattr(args, key, None)
+        if previous is not None and key in previous:
+            if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, previous[key]):
+                flag = "--" + key.replace("_", "-")
+                raise ConfigError(
+                    f"{flag} {given} differs from the checkpoint's {previous[key]!r}; drop {flag} to resume, "
+                    "or start a new --out"
+                )
+            cfg[key] = previous[key] if given is None else given
+        else:
+            cfg[key] = default if given is None else given
+    cfg["real"] = _normalise("real", cfg["real"])
+    cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
+    check_options(cfg)
+    return cfg
+
+
+def label_transform_from(cfg: dict) -> LabelTransform:
+    overrides = parse_kv(cfg["label_transform"], "--label-transform")
+    try:
+        return LabelTransform.from_dict({"preset": cfg["preset"], "name": cfg["preset"], **overrides})
+    except DataError as exc:
+        raise UsageError(f"--label-transform: {exc}") from None
