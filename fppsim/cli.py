@@ -332,13 +332,13 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 def run_compare_real(args) -> int:
     import json
 
-    from .formats import atomic_write_text
+    from .formats import atomic_write_text, json_default
     from .stats import compare_real, format_comparison
 
     result = compare_real(args.real, args.synthetic, max_samples=args.max_samples)
     print(format_comparison(result))
     if args.json:
-        atomic_write_text(args.json, json.dumps(result, indent=1, default=float))
+        atomic_write_text(args.json, json.dumps(result, indent=1, default=json_default))
     return 0
 
 

@@ -31,7 +31,7 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from fppsim.formats import as_image_stack, encode_fringe
+from fppsim.formats import as_image_stack, atomic_path, encode_fringe
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size
 from uhrnet.reading import read_fringe_image
@@ -160,7 +160,7 @@ def write_ply(path: Path, points: np.ndarray, grey: np.ndarray) -> int:
     header = ("ply\nformat binary_little_endian 1.0\ncomment uhrnet predicted height, millimetres\n"
               f"element vertex {len(rec)}\nproperty float x\nproperty float y\nproperty float z\n"
               "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with open(path, "wb") as f:
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(rec.tobytes())
     return len(rec)
@@ -169,7 +169,8 @@ def write_ply(path: Path, points: np.ndarray, grey: np.ndarray) -> int:
 def write_tiff(path: Path, array: np.ndarray) -> None:
     from PIL import Image
 
-    Image.fromarray(np.ascontiguousarray(array, dtype=np.float32)).save(path)
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(array, dtype=np.float32)).save(tmp, format="TIFF")
 
 
 def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
@@ -187,7 +188,9 @@ def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
     rgb[~np.isfinite(height_mm)] = 128
     import cv2
 
-    cv2.imwrite(str(path), rgb[..., ::-1])
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
+            raise OSError(f"cannot write {path}")
 
 
 def predict(config: PredictConfig) -> PredictResult:
@@ -237,7 +240,8 @@ def predict(config: PredictConfig) -> PredictResult:
                 result.warnings.append(
                     f"{path} ({name}): no valid pixel in the prediction (every label at or below "
                     f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
-            np.save(out / f"{name}_height.npy", height)
+            with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
+                np.save(fh, height)
             write_tiff(out / f"{name}_height.tif", height)
             write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
             if config.ply:

@@ -13,7 +13,7 @@ import shutil
 import sys
 from pathlib import Path
 
-from fppsim.formats import atomic_path, atomic_write_text
+from fppsim.formats import atomic_path, atomic_write_text, json_default
 from uhrnet.checkpoint import atomic_save
 from uhrnet.errors import ConfigError
 
@@ -60,7 +60,7 @@ def save_epoch(out: Path, payload: dict, is_best: bool) -> None:
 
 def write_run_config(out: Path, config: dict) -> None:
     """``out/config.json``: the resolved options and what they were resolved to."""
-    atomic_write_text(out / "config.json", json.dumps(config, indent=2, default=str))
+    atomic_write_text(out / "config.json", json.dumps(config, indent=2, default=json_default))
 
 
 def check_run_folder(out: Path, resume, overwrite: bool) -> str:

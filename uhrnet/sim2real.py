@@ -40,6 +40,8 @@ from typing import Sequence
 
 import numpy as np
 
+from fppsim.formats import atomic_path, atomic_write_text, json_default
+
 from uhrnet.errors import Sim2RealError
 
 __all__ = [
@@ -339,7 +341,7 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
            "label_transform": transform.to_dict(), "images": len(rows), "mean": mean, "per_image": rows}
     del model
     torch.cuda.empty_cache() if torch.cuda.is_available() else None
-    (out / "real_metrics.json").write_text(json.dumps(doc, indent=2))
+    atomic_write_text(out / "real_metrics.json", json.dumps(doc, indent=2))
     return doc
 
 
@@ -383,7 +385,8 @@ def plot_real(fringe, label, valid, pred, units_per_mm, metrics, path, object_mm
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    fig.savefig(path, dpi=70)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=70)
     plt.close(fig)
     return Path(path)
 
@@ -465,14 +468,14 @@ def run_sim2real(cfg: Sim2RealConfig, log=print) -> dict:
         if timing:
             old = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
             old.update(timing)
-            timing_file.write_text(json.dumps(old, indent=1))
+            atomic_write_text(timing_file, json.dumps(old, indent=1))
         entry["timing"] = json.loads(timing_file.read_text()) if timing_file.is_file() else timing
         report["variants"].append(entry)
         log(f"[{var.name}] object RMSE {metrics['mean']['object_rmse_mm']:.2f} mm, valid RMSE "
             f"{metrics['mean']['valid_rmse_mm']:.2f} mm")
         report["recipe"][var.name] = {"generate": shlex.join(gcmd[3:]), "train": shlex.join(tcmd[3:])}
-        (out / "report.json").write_text(json.dumps(report, indent=2, default=str))
-        (out / "report.md").write_text(markdown_report(report))
+        atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
+        atomic_write_text(out / "report.md", markdown_report(report))
     return report
 
 
