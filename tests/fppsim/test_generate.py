@@ -80,6 +80,7 @@ def test_native_outputs_and_meta(tmp_path, meshes):
     assert arr["height"].min() >= 0
 
 
+@pytest.mark.slow  # over 5 s on a shared 2-core machine
 def test_same_seed_identical_and_workers_invariant(tmp_path, meshes):
     a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
     common = ["--meshes", str(meshes), "--count", "3", "--seed", "11"]

@@ -142,6 +142,7 @@ def test_default_optics_on_figshare_dataset(tmp_path, sculpture, capsys):
     assert "all (3, pooled)" in io.out and f"{100 * agg['order_error_fraction']:.3f}" in io.out
 
 
+@pytest.mark.slow  # over 5 s on a shared 2-core machine
 def test_sweep_grid_same_scenes_and_resume(tmp_path, sphere, capsys):
     out = tmp_path / "sw"
     args = ["--meshes", sphere, "--count", 1, "--seed", 3, "--out", out, "--no-maps",

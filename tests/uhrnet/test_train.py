@@ -90,6 +90,7 @@ def _train(out, data, epochs, extra=()):
                  "--no-progress", *extra])
 
 
+@pytest.mark.slow  # over 5 s on a shared 2-core machine
 def test_resume_equals_uninterrupted(tmp_path, one_thread):
     data = (tmp_path / "real", tmp_path / "syn")
     write_figshare(data[0], n=8, h=32, w=64, seed=1)
