@@ -21,9 +21,6 @@ import numpy as np
 
 from .errors import BackendError
 
-if not hasattr(np, "infty"):  # pyrender 0.1.45 still uses np.infty (removed in numpy 2)
-    np.infty = np.inf
-
 __all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
 
 

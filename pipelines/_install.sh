@@ -45,11 +45,11 @@ if [ ! -f "$stamp" ] || [ "$ROOT/pyproject.toml" -nt "$stamp" ]; then
   touch "$stamp"
 fi
 
-# 5. pyrender 0.1.45 pins PyOpenGL 3.1.0, which lacks OSMesa: upgrade it in a separate command.
-if ! python -c 'import importlib.metadata as m, sys; sys.exit(0 if m.version("PyOpenGL")=="3.1.10" else 1)' 2>/dev/null; then
-  log "installing PyOpenGL==3.1.10 (pyrender pins 3.1.0, which lacks OSMesa; pip's conflict notice is expected)"
-  pip_log="$(mktemp)"
-  if ! pipq PyOpenGL==3.1.10 >"$pip_log" 2>&1; then cat "$pip_log" >&2; rm -f "$pip_log"; exit 1; fi
-  rm -f "$pip_log"
+# 5. An environment made before the switch to pyrender2 still has pyrender 0.1.45: both distributions
+#    install the same `pyrender` package folder, so remove the old one and reinstall pyrender2's files.
+if python -c 'import importlib.metadata as m; m.version("pyrender")' 2>/dev/null; then
+  log "replacing pyrender 0.1.45 with pyrender2 (the maintained fork this package requires)"
+  python -m pip uninstall --disable-pip-version-check -y -q pyrender
+  pipq --force-reinstall --no-deps "pyrender2==0.2.2"
 fi
 export PYOPENGL_PLATFORM=osmesa

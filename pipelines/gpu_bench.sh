@@ -20,13 +20,13 @@ log() { printf '[gpu_bench %s] %s\n' "$(date -u +%H:%M:%S)" "$*" | tee -a "$OUT/
 cd "$ROOT"
 
 # 1. Dependencies: everything pyproject.toml lists except torch (keep the machine's CUDA build) and the
-#    rendering stack (pyrender, PyOpenGL: no fppsim rendering here), then this package without deps.
+#    rendering stack (pyrender2, PyOpenGL: no fppsim rendering here), then this package without deps.
 if ! "$PY" -c 'import uhrnet, scipy, skimage, yaml, tqdm, matplotlib' 2>/dev/null; then
   log "installing uhrnet's dependencies (torch kept as it is)"
   mapfile -t deps < <("$PY" - <<'PYEOF'
 import re, tomllib
 deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]
-print("\n".join(d for d in deps if re.split(r"[<>=!~ \[]", d)[0].lower() not in ("torch", "pyrender")))
+print("\n".join(d for d in deps if re.split(r"[<>=!~ \[]", d)[0].lower() not in ("torch", "pyrender", "pyrender2")))
 PYEOF
 )
   "$PY" -m pip install -q "${deps[@]}"

@@ -58,8 +58,6 @@ EOF
   # shellcheck disable=SC2086
   pipq $deps
   pipq --no-deps -e .
-  # pyrender 0.1.45 pins PyOpenGL 3.1.0, which lacks OSMesa: upgrade it in a separate command
-  pipq PyOpenGL==3.1.10 >/dev/null 2>&1 || pipq PyOpenGL==3.1.10
 fi
 export PYOPENGL_PLATFORM=osmesa
 "$PY" -c 'import pyrender' >/dev/null 2>&1 || { log "error: pyrender does not import (OSMesa missing?)"; exit 1; }
