@@ -194,7 +194,7 @@ def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
 
     p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
     p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
-                                 "default: the packaged default rig" + suffix)
+                                 "default: the packaged default rig, fppsim/data/default_rig.json" + suffix)
     p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
                    help="objects per scene, e.g. 1-3 (default) or 2" + suffix)
     p.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1; same samples for any K)")

@@ -478,8 +478,6 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
     Figshare-format shards (a ``native`` subfolder) also get one ``f1_80.npy``/``Z.npy`` pair.
     Returns (samples in out, figshare path or None, missing indices below the largest one).
     """
-    import shutil
-
     out = Path(out)
     natives, settings, fmt = [], None, None
     for d in map(Path, shard_dirs):

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim.formats import LabelTransform, atomic_path, atomic_write_text  # noqa: F401 (re-export)
+from fppsim.formats import LabelTransform, atomic_path
 from uhrnet.errors import CheckpointError
 
 FORMAT = "uhrnet-checkpoint"

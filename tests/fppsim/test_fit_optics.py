@@ -1,7 +1,5 @@
 """fppsim.fit_optics: optics ranges fitted to fringe images made with known optics."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest

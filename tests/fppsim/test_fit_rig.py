@@ -1,7 +1,5 @@
 """fppsim.fit_rig: analytic period map of a rig, band measurement of fringe images, fitting the projector."""
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest

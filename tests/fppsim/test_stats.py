@@ -1,8 +1,6 @@
 """fppsim.stats: fringe/height statistics and the compare-real readers."""
 
 import json
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
