@@ -151,6 +151,10 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
                         "one of --meshes (default 0; 1 when --meshes is just 'procedural')")
     p.add_argument("--procedural-pool", type=_positive_int, default=96, metavar="N",
                    help="number of distinct procedural sculptures (seeds 0..N-1; any N) (default 96)")
+    p.add_argument("--pedestal", type=_fraction, default=None, metavar="P",
+                   help="chance that each object stands on a prism pedestal (its outline shrunk 0.7-1x, 10-35 mm "
+                        "high, object + pedestal at most 55 mm), like plaster casts on thick flat backs "
+                        "(default: fppsim.scene.SceneRanges.pedestal_probability)")
     p.add_argument("--rig-jitter", type=_jitter, default=(0.0, 0.0), metavar="YAW,FOCAL",
                    help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
@@ -166,7 +170,10 @@ def realism_config(args) -> tuple[list[str], dict, object]:
         share = 1.0 if not meshes else 0.0
     if not meshes and share < 1.0:
         raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
-    return meshes, {"procedural_share": share, "procedural_pool": args.procedural_pool}, RigJitter(*args.rig_jitter)
+    scene = {"procedural_share": share, "procedural_pool": args.procedural_pool}
+    if getattr(args, "pedestal", None) is not None:
+        scene["pedestal_probability"] = args.pedestal
+    return meshes, scene, RigJitter(*args.rig_jitter)
 
 
 def run_generate(args) -> int:
