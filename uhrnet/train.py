@@ -49,11 +49,15 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": True,
+    "raw_output": False, "grad_clip": None, "augment": True, "lr_schedule": "constant",
 }
+# what a run made before an option existed used: resuming it must not switch the option on
+LEGACY = {"augment": False, "lr_schedule": "constant"}
+LR_SCHEDULES = ("cosine", "constant")
+LR_FLOOR = 0.05  # the cosine schedule ends at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment")
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule")
 
 HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
                    "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
@@ -104,6 +108,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
     m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
     m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
+    m.add_argument("--lr-schedule", choices=LR_SCHEDULES,
+                   help="learning rate over the run: cosine decays it per step from --lr to "
+                        f"{LR_FLOOR:g} x --lr at the last step of --epochs; constant keeps --lr [constant]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
@@ -159,6 +166,8 @@ def resolve_config(args: argparse.Namespace, previous: dict | None = None) -> di
                     "or start a new --out"
                 )
             cfg[key] = previous[key] if given is None else given
+        elif previous is not None and key in LEGACY and given is None:
+            cfg[key] = LEGACY[key]
         else:
             cfg[key] = default if given is None else given
     cfg["real"] = _normalise("real", cfg["real"])
@@ -427,6 +436,26 @@ class Trainer:
         return (batch["fringe"].to(self.device, non_blocking=nb), batch["height"].to(self.device, non_blocking=nb),
                 batch["mask"].to(self.device, non_blocking=nb))
 
+    def lr_at(self, epoch: int, step: int) -> float:
+        """Learning rate of ``step`` (0-based) of ``epoch`` (0-based): a function of the position in the
+        run alone, so a resumed run follows the same curve.
+
+        cosine: ``lr * (f + (1 - f) * (1 + cos(pi * t / (T - 1))) / 2)`` with ``t`` the global step,
+        ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``.
+        """
+        base = self.cfg["lr"]
+        if self.cfg["lr_schedule"] == "constant":
+            return base
+        per = max(1, len(self.loader))
+        total = max(2, per * self.cfg["epochs"])
+        t = min(epoch * per + step, total - 1)
+        return base * (LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * t / (total - 1))))
+
+    def _set_lr(self, epoch: int, step: int) -> None:
+        lr = self.lr_at(epoch, step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def train_epoch(self, epoch: int) -> dict:
         from tqdm import tqdm
 
@@ -446,6 +475,7 @@ class Trainer:
             if float(_all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
                 raise Diverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
                                + (" (on another process)" if torch.isfinite(loss) else ""))
+            self._set_lr(epoch, step)
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.scale(loss).backward()
             if self.cfg["grad_clip"]:
