@@ -154,7 +154,7 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pedestal", type=_fraction, default=None, metavar="P",
                    help="chance that each object stands on a prism pedestal (its outline shrunk 0.7-1x, 10-35 mm "
                         "high, object + pedestal at most 55 mm), like plaster casts on thick flat backs "
-                        "(default: fppsim.scene.SceneRanges.pedestal_probability)")
+                        "(default 0.5; 0 = the scenes of fppsim before 2026-11-23)")
     p.add_argument("--rig-jitter", type=_jitter, default=(0.0, 0.0), metavar="YAW,FOCAL",
                    help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")

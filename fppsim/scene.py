@@ -158,7 +158,7 @@ class SceneRanges:
     procedural_pool: int = 96                   # procedural shapes are fppsim.shapes.procedural(0..pool-1)
     # Plaster casts stand on thick flat backs or plinths: the real figshare pair's visible object lies
     # 30-46 mm above the plane behind near-vertical walls, so nothing but the shadow tells its height.
-    pedestal_probability: float = 0.0           # chance that an object stands on a prism pedestal
+    pedestal_probability: float = 0.5           # chance that an object stands on a prism pedestal
     pedestal_height: tuple[float, float] = (10.0, 35.0)  # pedestal height, mm (object + pedestal <= max_relief[1])
     pedestal_shrink: tuple[float, float] = (0.7, 1.0)    # pedestal outline / object's convex outline
 

@@ -26,11 +26,16 @@ def _assets():
 
 def test_no_pedestal_draws_leave_scenes_unchanged():
     rig = Rig.default()
+    assert SceneRanges().pedestal_probability == 0.5  # the default
     for seed in range(5):
-        a = sample_scene(_assets(), rig, np.random.default_rng(seed), SceneRanges())
-        b = sample_scene(_assets(), rig, np.random.default_rng(seed), SceneRanges(),
+        a = sample_scene(_assets(), rig, np.random.default_rng(seed), SceneRanges(pedestal_probability=0.0))
+        b = sample_scene(_assets(), rig, np.random.default_rng(seed), SceneRanges(pedestal_probability=0.0),
+                         pedestal_rng=np.random.default_rng(99))
+        c = sample_scene(_assets(), rig, np.random.default_rng(seed), SceneRanges(pedestal_probability=1.0),
                          pedestal_rng=np.random.default_rng(99))
         assert [o.to_dict() for o in a.objects] == [o.to_dict() for o in b.objects]
+        # pedestals move objects up but draw nothing else from the scene generator
+        assert [o.scale for o in a.objects] == [o.scale for o in c.objects if not o.mesh.startswith(PEDESTAL_PREFIX)]
 
 
 def test_pedestals_lift_objects_and_stay_under_them():
