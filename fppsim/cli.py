@@ -194,7 +194,7 @@ def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
 
     p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
     p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
-                                 "default: the packaged default rig, fppsim/data/default_rig.json" + suffix)
+                                 "default: the packaged default rig, assets/default_rig.json" + suffix)
     p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
                    help="objects per scene, e.g. 1-3 (default) or 2" + suffix)
     p.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1; same samples for any K)")
@@ -271,6 +271,10 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
                         "one of --meshes (default 0; 1 when --meshes is just 'procedural')")
     p.add_argument("--procedural-pool", type=_positive_int, default=96, metavar="N",
                    help="number of distinct procedural sculptures (seeds 0..N-1; any N) (default 96)")
+    p.add_argument("--pedestal", type=_fraction, default=None, metavar="P",
+                   help="chance that each object stands on a prism pedestal (its outline shrunk 0.7-1x, 10-35 mm "
+                        "high, object + pedestal at most 55 mm), like plaster casts on thick flat backs "
+                        "(default 0.5; 0 = the scenes of fppsim before 2026-11-23)")
     p.add_argument("--rig-jitter", type=_jitter, default=(0.0, 0.0), metavar="YAW,FOCAL",
                    help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
@@ -294,6 +298,7 @@ def run_generate(args) -> int:
         supersample=args.supersample, optics=optics, noise_free=args.noise_free, psp_steps=args.psp_steps,
         psp_freqs=() if args.no_psp else tuple(args.psp_freqs), label=label,
         procedural_share=args.procedural_share, procedural_pool=args.procedural_pool, rig_jitter=args.rig_jitter,
+        pedestal=args.pedestal,
         preview=args.preview, backend=args.backend, progress=not args.quiet)
     summary = generate(config)
     for line in summary.lines():

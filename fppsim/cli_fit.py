@@ -38,7 +38,7 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                    help="real fringe images: figshare folder (f1_80.npy + Z.npy), the real-sample pair, native "
                         "fppsim folder, PSin/PCos/Fringe/iPattern folders, or a folder of 8-bit images")
     p.add_argument("--out", required=True, metavar="RIG", help="fitted rig file (.json, or .yaml/.yml)")
-    p.add_argument("--base", metavar="RIG", help="rig to start from (camera kept fixed) [fppsim/data/default_rig.json]")
+    p.add_argument("--base", metavar="RIG", help="rig to start from (camera kept fixed) [assets/default_rig.json]")
     p.add_argument("--params", type=_params, default=("yaw", "pitch", "periods"), metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre), "
                         "baseline (mm), periods (across the projector), focal (projector px) [yaw,pitch,periods]")
@@ -93,12 +93,12 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
                    help="real fringe images (same layouts as fit-rig); with height labels the plane and object "
                         "pixels are told apart")
     p.add_argument("--out", required=True, metavar="YAML", help="optics ranges for `fppsim generate --optics-file`")
-    p.add_argument("--rig", metavar="RIG", help="rig of the images (e.g. from fit-rig) [fppsim/data/default_rig.json]")
+    p.add_argument("--rig", metavar="RIG", help="rig of the images (e.g. from fit-rig) [assets/default_rig.json]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
     p.add_argument("--compare", type=int, default=4, metavar="N",
                    help="render N samples with the default and with the fitted ranges and print compare-real "
                         "before/after (0: skip) [4]")
-    p.add_argument("--meshes", nargs="+", metavar="PATH", help="meshes for --compare [fppsim/data/meshes]")
+    p.add_argument("--meshes", nargs="+", metavar="PATH", help="meshes for --compare [assets/meshes]")
     p.add_argument("--seed", type=int, default=0, help="seed of the --compare renders [0]")
     p.add_argument("--json", metavar="FILE", help="also write the per-image estimates as JSON")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")

@@ -87,7 +87,8 @@ class GenerateConfig:
     ending at the rig's frequency; () skips the phase-shifting images. label : figshare label
     transform. procedural_share : chance that an object is a procedural sculpture (None: 1 when
     ``meshes`` is just ``"procedural"``, else 0); procedural_pool : distinct sculptures. rig_jitter :
-    per-sample projector (yaw rad, relative focal) jitter, (0, 0) = off. preview : also write
+    per-sample projector (yaw rad, relative focal) jitter, (0, 0) = off. pedestal : chance that an
+    object stands on a prism pedestal (None: ``SceneRanges.pedestal_probability``). preview : also write
     ``out/preview.png``. backend : GL platform ``osmesa``/``egl`` (None: ``$PYOPENGL_PLATFORM``).
 
     A value that is wrong on its own raises :class:`UsageError` (the command line exits 2, before
@@ -113,6 +114,7 @@ class GenerateConfig:
     procedural_share: float | None = None
     procedural_pool: int = 96
     rig_jitter: tuple[float, float] = (0.0, 0.0)
+    pedestal: float | None = None
     preview: bool = False
     backend: str | None = None
     progress: bool = True
@@ -155,6 +157,8 @@ class GenerateConfig:
             raise UsageError(f"--procedural-share must be in [0, 1], got {self.procedural_share}")
         if int(self.procedural_pool) < 1:
             raise UsageError(f"--procedural-pool must be >= 1, got {self.procedural_pool}")
+        if self.pedestal is not None and not 0.0 <= float(self.pedestal) <= 1.0:
+            raise UsageError(f"--pedestal must be in [0, 1], got {self.pedestal}")
         if not self.mesh_paths and self.share < 1.0:
             raise UsageError("--meshes procedural alone needs --procedural-share 1 (or give mesh files too)")
         self.rig_jitter = tuple(float(v) for v in self.rig_jitter)
@@ -196,8 +200,9 @@ class GenerateConfig:
         freqs = tuple(int(f) for f in self.psp_freqs)
         if freqs and freqs[-1] != rig.periods:
             raise ConfigError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
+        extra = {} if self.pedestal is None else {"pedestal_probability": float(self.pedestal)}
         scene = SceneRanges(objects=tuple(self.objects), procedural_share=self.share,
-                            procedural_pool=int(self.procedural_pool))
+                            procedural_pool=int(self.procedural_pool), **extra)
         return SynthConfig(rig=rig, optics=optics, scene=scene, supersample=self.supersample, psp_freqs=freqs,
                            psp_steps=self.psp_steps, rig_jitter=self.jitter())
 

@@ -32,7 +32,9 @@ __all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_de
 
 def data_path(*parts: str) -> Path:
     """A file shipped inside the package (``fppsim/data/...``: the default rig, the asset meshes),
-    found through importlib.resources so it works from a wheel as from a checkout."""
+    found through importlib.resources so it works from a wheel as from a checkout. In the repository
+    ``fppsim/data`` is a link to the top-level ``assets/`` folder (the files live there once); a wheel
+    holds real copies."""
     from importlib.resources import files
 
     return Path(str(files("fppsim").joinpath("data", *parts)))
@@ -587,16 +589,16 @@ def make_parallel_rig() -> Rig:
 
 
 def make_default_rig() -> Rig:
-    """Build the default rig (what fppsim/data/default_rig.json holds): :func:`make_figshare_like_rig`, the
+    """Build the default rig (what assets/default_rig.json holds): :func:`make_figshare_like_rig`, the
     rig fitted to the real figshare data (period trend and height sensitivity). The former default,
-    :func:`make_parallel_rig`, is ``fppsim/data/parallel_rig.json``."""
+    :func:`make_parallel_rig`, is ``assets/parallel_rig.json``."""
     rig = make_figshare_like_rig()
     rig.name = "default: " + rig.name
     return rig
 
 
 def make_figshare_like_rig() -> Rig:
-    """Build the figshare-like rig (what fppsim/data/figshare_like_rig.json holds; ``--rig`` it).
+    """Build the figshare-like rig (what assets/figshare_like_rig.json holds; ``--rig`` it).
 
     Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (330 mm) to the +x side at the
     camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.30 deg) towards the scene, ``fx = fy =

@@ -20,6 +20,7 @@ from .errors import MeshError
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
     "sample_scene", "MESH_EXTENSIONS", "asset_from_arrays", "procedural_asset", "PROCEDURAL_PREFIX",
+    "PEDESTAL_PREFIX", "pedestal_prism",
 ]
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -153,6 +154,11 @@ class SceneRanges:
     flip_probability: float = 0.5               # chance to flip the canonical mesh upside down
     procedural_share: float = 0.0               # chance that an object is a procedural sculpture (opt-in)
     procedural_pool: int = 96                   # procedural shapes are fppsim.shapes.procedural(0..pool-1)
+    # Plaster casts stand on thick flat backs or plinths: the real figshare pair's visible object lies
+    # 30-46 mm above the plane behind near-vertical walls, so nothing but the shadow tells its height.
+    pedestal_probability: float = 0.5           # chance that an object stands on a prism pedestal
+    pedestal_height: tuple[float, float] = (10.0, 35.0)  # pedestal height, mm (object + pedestal <= max_relief[1])
+    pedestal_shrink: tuple[float, float] = (0.7, 1.0)    # pedestal outline / object's convex outline
 
     def __post_init__(self):
         lo, hi = self.objects
@@ -162,6 +168,14 @@ class SceneRanges:
             raise ValueError(f"procedural_share must be in [0, 1], got {self.procedural_share}")
         if self.procedural_pool < 1:
             raise ValueError(f"procedural_pool must be >= 1, got {self.procedural_pool}")
+        if not 0.0 <= self.pedestal_probability <= 1.0:
+            raise ValueError(f"pedestal_probability must be in [0, 1], got {self.pedestal_probability}")
+        lo, hi = self.pedestal_height
+        if not (0.0 < lo <= hi and np.isfinite(hi)):
+            raise ValueError(f"pedestal_height must satisfy 0 < lo <= hi (mm), got {self.pedestal_height}")
+        lo, hi = self.pedestal_shrink
+        if not (0.0 < lo <= hi <= 1.0):
+            raise ValueError(f"pedestal_shrink must satisfy 0 < lo <= hi <= 1, got {self.pedestal_shrink}")
 
 
 @dataclass
@@ -191,7 +205,7 @@ class PlacedObject:
         from .render import Instance
 
         # procedural shapes are many and short-lived: do not keep them uploaded in the renderer
-        key = None if self.asset.path.startswith(PROCEDURAL_PREFIX) else self.asset.path
+        key = None if self.asset.path.startswith((PROCEDURAL_PREFIX, PEDESTAL_PREFIX)) else self.asset.path
         return Instance(self.asset.vertices, self.asset.faces, self.transform, key=key)
 
     def to_dict(self) -> dict:
@@ -208,6 +222,39 @@ class Scene:
 
 
 PROCEDURAL_PREFIX = "procedural:"
+PEDESTAL_PREFIX = "pedestal:"
+
+
+def pedestal_prism(outline_xy: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:
+    """A closed prism over a convex outline: (V, 3) vertices (mm) and (F, 3) outward-facing faces.
+
+    outline_xy : (N, 2) convex polygon, counter-clockwise seen from +z. The prism spans z = 0 .. height.
+    """
+    xy = np.asarray(outline_xy, dtype=np.float64)
+    n = len(xy)
+    bottom = np.c_[xy, np.zeros(n)]
+    top = np.c_[xy, np.full(n, float(height))]
+    v = np.concatenate([bottom, top])
+    i = np.arange(n)
+    j = (i + 1) % n
+    fan = np.arange(1, n - 1)
+    faces = np.concatenate([
+        np.stack([np.full(n - 2, n), n + fan, n + fan + 1], 1),   # top, normal +z
+        np.stack([np.zeros(n - 2, int), fan + 1, fan], 1),         # bottom, normal -z
+        np.stack([i, j, n + j], 1), np.stack([i, n + j, n + i], 1),  # walls, outward
+    ])
+    return v, faces.astype(np.int32)
+
+
+def _pedestal(outline_xy: np.ndarray, centre_xy: np.ndarray, height: float, shrink: float, index: int) -> "PlacedObject":
+    from scipy.spatial import ConvexHull
+
+    hull = outline_xy[ConvexHull(outline_xy).vertices]  # counter-clockwise
+    c = hull.mean(0)
+    ring = c + shrink * (hull - c) + centre_xy
+    v, f = pedestal_prism(ring, height)
+    asset = MeshAsset(path=f"{PEDESTAL_PREFIX}{index}", vertices=v, faces=f, canonical=np.eye(4), hull=v)
+    return PlacedObject(mesh=asset.path, scale=1.0, pose=np.eye(4), asset=asset, transform=np.eye(4))
 
 
 @lru_cache(maxsize=256)
@@ -254,13 +301,19 @@ def view_rectangle(rig, margin: float = 0.0) -> tuple[float, float, float, float
 
 
 def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
-                 ranges: SceneRanges | None = None) -> Scene:
+                 ranges: SceneRanges | None = None, pedestal_rng: np.random.Generator | None = None) -> Scene:
     """Draw a scene of 1-3 posed objects resting on the plane from ``rng``.
 
     Each object: canonical mesh (optionally flipped), scaled so its longest horizontal size is drawn
     from ``ranges.footprint`` and its relief does not exceed a draw from ``ranges.max_relief``, rotated
     about z, tilted, then lowered onto the plane (min z = 0) and translated inside the camera view.
     Multi-object scenes are either isolated (footprint circles apart) or overlapping in depth.
+
+    With ``ranges.pedestal_probability`` > 0, each object may instead stand on a prism pedestal (its
+    convex outline shrunk by a draw from ``pedestal_shrink``, height from ``pedestal_height`` cut so that
+    pedestal + object stay below ``max_relief[1]``; no pedestal when less than half the lowest height
+    remains). The object keeps its size. Those draws come from
+    ``pedestal_rng`` alone, so scenes without pedestals are the same as before they existed.
     """
     r = ranges or SceneRanges()
     n = int(rng.integers(r.objects[0], r.objects[1] + 1))
@@ -289,6 +342,13 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
         footprint = rng.uniform(*r.footprint)
         relief = rng.uniform(*r.max_relief)
         s = min(footprint / max(ext[0], ext[1]), relief / max(ext[2], 1e-12))
+        lift = 0.0
+        if r.pedestal_probability > 0 and pedestal_rng is not None and pedestal_rng.random() < r.pedestal_probability:
+            lift = pedestal_rng.uniform(*r.pedestal_height)
+            shrink = pedestal_rng.uniform(*r.pedestal_shrink)
+            # the object keeps its size; pedestal + object stay within the largest relief of the range
+            lift = min(lift, r.max_relief[1] - s * ext[2])
+            lift = lift if lift >= 0.5 * r.pedestal_height[0] else 0.0
         radius = 0.5 * s * np.hypot(ext[0], ext[1])
         # position: isolated -> reject overlaps of footprint circles; overlapping -> near the previous one
         for attempt in range(50):
@@ -304,7 +364,7 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
                 break
         circles.append((cx, cy, radius))
         lo, hi = rv.min(0) * s, rv.max(0) * s
-        offset = np.array([cx - (lo[0] + hi[0]) / 2, cy - (lo[1] + hi[1]) / 2, -lo[2]])
+        offset = np.array([cx - (lo[0] + hi[0]) / 2, cy - (lo[1] + hi[1]) / 2, lift - lo[2]])
         transform = np.eye(4)
         transform[:3, :3] = s * R
         transform[:3, 3] = offset
@@ -314,4 +374,6 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
         pose[:3, :3] = R @ A
         pose[:3, 3] = s * (R @ a) + offset
         placed.append(PlacedObject(mesh=asset.path, scale=float(s), pose=pose, asset=asset, transform=transform))
+        if lift > 0:
+            placed.append(_pedestal(rv[:, :2] * s, offset[:2], lift, shrink, len(placed)))
     return Scene(objects=placed, layout=layout)

@@ -573,7 +573,7 @@ def procedural(seed: int, size_mm=DEFAULT_SIZE_MM, detail: bool = True) -> tuple
     return kind, _finish(mesh, rng, size_mm)
 
 
-# The meshes shipped in fppsim/data/meshes (written by pipelines/make_assets.py): (kind, seed) pairs.
+# The meshes shipped in assets/meshes (written by pipelines/make_assets.py): (kind, seed) pairs.
 ASSETS: tuple[tuple[str, int], ...] = (
     ("bust", 0),
     ("figurine", 0),

@@ -154,10 +154,12 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     last_reason = ""
     for attempt in range(config.max_attempts):
         ss = np.random.SeedSequence([int(seed), int(index), attempt])
-        scene_ss, optics_ss, noise_ss, rig_ss, look_ss = ss.spawn(5)  # the first three as before
+        # children keep their index: a child added at the end leaves the earlier draws as they were
+        scene_ss, optics_ss, noise_ss, rig_ss, look_ss, pedestal_ss = ss.spawn(6)
         rig = jitter_rig(config.rig, np.random.default_rng(rig_ss), config.rig_jitter)
         render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
-        scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene)
+        scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene,
+                             pedestal_rng=np.random.default_rng(pedestal_ss))
         geom_ss = scene_geometry(render_rig, [o.instance() for o in scene.objects], renderer, scale=k)
         geom = geom_ss.at_pixel_centres(k).cropped(*crop)
         frac = float(geom.on_object.mean())

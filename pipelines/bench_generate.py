@@ -11,10 +11,10 @@ same scenes, writer idle) and reports the median over blocks of the wall-time ra
 including the rasteriser's: less sensitive to other processes).
 
 ``--workers-count N`` (default 400, 0 skips) also times the whole command
-``fppsim generate --meshes ../shared/meshes fppsim/data/meshes --count N --seed 100 --workers 2 --no-psp
+``fppsim generate --meshes ../shared/meshes assets/meshes --count N --seed 100 --workers 2 --no-psp
 --format figshare`` in a fresh process (start-up, mesh loading, export included): ``workers2_samples_per_s``
 (wall) and ``workers2_cpu_bound_samples_per_s`` (2 / CPU seconds per sample: what two idle cores give).
-Uses ../shared/meshes/ogre.obj when present, else fppsim/data/meshes.
+Uses ../shared/meshes/ogre.obj when present, else assets/meshes.
 
     python pipelines/bench_generate.py [--mesh PATH] [--samples 15] [--no-psp] [--no-write] [--json FILE]
 """
@@ -100,7 +100,7 @@ def main(argv=None) -> int:
     default_mesh = ROOT.parent / "shared" / "meshes" / "ogre.obj"
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--mesh", default=str(default_mesh if default_mesh.is_file() else ROOT / "fppsim" / "data" / "meshes"),
-                   help="mesh file or folder (default: ../shared/meshes/ogre.obj, else fppsim/data/meshes)")
+                   help="mesh file or folder (default: ../shared/meshes/ogre.obj, else assets/meshes)")
     p.add_argument("--samples", type=int, default=15, help="timed samples (after one warm-up), in blocks")
     p.add_argument("--block", type=int, default=5, help="samples per timed block (default 5)")
     p.add_argument("--no-psp", action="store_true", help="single-shot image only")

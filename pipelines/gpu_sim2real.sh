@@ -10,7 +10,7 @@
 # the Python package index (pip) and, only when libosmesa6/libgl1/libxrender1 are missing, to the apt
 # package index. Nothing else is downloaded (no datasets, no weights). The real data must be uploaded
 # with the repository (the published pair is 1.8 MB): REAL_DIR defaults to ../shared/real-sample, then
-# shared/real-sample. Meshes: ../shared/meshes (or shared/meshes) when present, plus fppsim/data/meshes and
+# shared/real-sample. Meshes: ../shared/meshes (or shared/meshes) when present, plus assets/meshes and
 # the procedural sculptures that `fppsim generate` mixes in by default.
 #
 # Environment (all optional):
@@ -70,7 +70,7 @@ fi
 [ ${#REAL[@]} -gt 0 ] || { log "error: no real data folder (give REAL_DIR or upload shared/real-sample)"; exit 2; }
 MESHES=()
 for d in ../shared/meshes shared/meshes; do [ -d "$d" ] && { MESHES+=("$d"); break; }; done
-MESHES+=(fppsim/data/meshes)
+MESHES+=(assets/meshes)
 S2R_OUT="${S2R_OUT:-runs/gpu_sim2real}"
 RESULTS="${S2R_RESULTS:-${OUT:-$S2R_OUT/results}}"
 args=(--scale gpu --real "${REAL[@]}" --meshes "${MESHES[@]}" --out "$S2R_OUT" --workers 0

@@ -1,7 +1,7 @@
 #!/usr/bin/env python
-"""Write the project's own sculpture-like meshes to fppsim/data/meshes/*.ply.
+"""Write the project's own sculpture-like meshes to assets/meshes/*.ply.
 
-    python pipelines/make_assets.py [--out fppsim/data/meshes] [--check]
+    python pipelines/make_assets.py [--out assets/meshes] [--check]
 
 Deterministic: re-running writes the same bytes (binary PLY, float32 vertices, no normals).
 The shapes come from fppsim.shapes (seeded implicit figures, a bas-relief and a vase); the list

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Quickstart: install everything (idempotent), then the whole story on the embedded defaults:
-#   1. generate a small synthetic dataset from the meshes in fppsim/data/meshes (+ preview PNG)
+#   1. generate a small synthetic dataset from the meshes in assets/meshes (+ preview PNG)
 #   2. train a tiny UHRNet for a few minutes on CPU (synthetic + real figshare data when available)
 #   3. evaluate it like the paper (Table 3 + figures) and predict one image (height map + point cloud)
 # Usage: bash pipelines/quickstart.sh [--real DIR] [--out DIR] [--count N] [--epochs N]
@@ -26,8 +26,8 @@ cd "$ROOT"
 if [ -z "$REAL" ] && [ -f "$ROOT/../shared/real-sample/height_map.npy" ]; then REAL="$ROOT/../shared/real-sample"; fi
 if [ -n "$REAL" ] && [ ! -d "$REAL" ]; then echo "quickstart: --real folder not found: $REAL" >&2; exit 2; fi
 
-echo "== 1/4 generating $COUNT synthetic samples from fppsim/data/meshes"
-fppsim generate --meshes fppsim/data/meshes --out "$OUT/synthetic" --count "$COUNT" --seed 0 --workers 2
+echo "== 1/4 generating $COUNT synthetic samples from assets/meshes"
+fppsim generate --meshes assets/meshes --out "$OUT/synthetic" --count "$COUNT" --seed 0 --workers 2
 
 echo "== 2/4 training a tiny UHRNet on CPU ($EPOCHS epochs at 176 x 320)"
 REAL_ARGS=()
@@ -45,7 +45,7 @@ echo "== 3/4 evaluating on the synthetic test split"
 uhrnet evaluate "$OUT/run" --out "$OUT/report"
 
 echo "== 4/4 predicting one fringe image"
-uhrnet predict "$OUT/run" "$OUT/synthetic/000000/fringe.png" --rig fppsim/data/default_rig.json --out "$OUT/predict"
+uhrnet predict "$OUT/run" "$OUT/synthetic/000000/fringe.png" --rig assets/default_rig.json --out "$OUT/predict"
 
 cat <<EOT
 

@@ -6,7 +6,7 @@
         --variant baseline --variant "no-aug: | --no-augment" --variant "no-jitter: --rig-jitter 0"
     python pipelines/sim2real.py --scale gpu --real REAL_DIR --out runs/gpu     # full UHRNet, 2000 samples
 
---scale cpu is the judged recipe (400 samples of ../shared/meshes + fppsim/data/meshes, seed 100, U-Net base
+--scale cpu is the judged recipe (400 samples of ../shared/meshes + assets/meshes, seed 100, U-Net base
 16, compound loss, 10 epochs, batch 2, lr 5e-4, CPU; under 60 minutes on 2 cores); --scale gpu is UHRNet
 at 352 x 640 on 2000 samples. Each --variant NAME[: GENERATE ARGS | TRAIN ARGS] adds a row to the
 ablation table (--ablation FILE reads a YAML list of {name, generate, train}); variants with the same
@@ -42,7 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="real figshare-format folder(s); evaluation only, never trained on")
     p.add_argument("--out", required=True, help="experiment folder (re-running resumes it)")
     p.add_argument("--meshes", nargs="+", metavar="PATH",
-                   help="meshes for fppsim generate [../shared/meshes (if present) and fppsim/data/meshes]")
+                   help="meshes for fppsim generate [../shared/meshes (if present) and assets/meshes]")
     for name, typ, what in (("count", int, "synthetic samples"), ("seed", int, "generator seed"),
                             ("workers", int, "generator processes (0: all cores)"), ("epochs", int, "epochs"),
                             ("batch-size", int, "batch size"), ("lr", float, "learning rate"),

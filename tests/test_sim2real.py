@@ -70,10 +70,10 @@ def test_parse_variant_forms():
 def test_load_variants_yaml(tmp_path):
     p = tmp_path / "abl.yaml"
     p.write_text("- name: base\n- name: no-aug\n  train: --no-augment\n"
-                 "- name: parallel\n  generate: [--rig, fppsim/data/parallel.json]\n- 'x: --count 3 | --lr 1'\n")
+                 "- name: parallel\n  generate: [--rig, assets/parallel.json]\n- 'x: --count 3 | --lr 1'\n")
     vs = load_variants(p)
     assert [v.name for v in vs] == ["base", "no-aug", "parallel", "x"]
-    assert vs[1].train == ["--no-augment"] and vs[2].generate == ["--rig", "fppsim/data/parallel.json"]
+    assert vs[1].train == ["--no-augment"] and vs[2].generate == ["--rig", "assets/parallel.json"]
     p.write_text("- name: a\n  bogus: 1\n")
     with pytest.raises(Sim2RealError, match="unknown keys"):
         load_variants(p)
@@ -85,7 +85,7 @@ def test_load_variants_yaml(tmp_path):
 
 
 def test_config_scales_and_commands(tmp_path):
-    cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "fppsim/data/meshes"])
+    cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
     assert (cfg.count, cfg.seed, cfg.epochs, cfg.model, cfg.base_channels) == (400, 100, 10, "unet", 16)
     g = generate_command(cfg, Variant("v", ["--rig-jitter", "0"]), tmp_path / "syn")
     tail = g[3:]

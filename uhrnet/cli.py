@@ -36,6 +36,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
+    from uhrnet.train_config import LR_FLOOR, LR_SCHEDULES
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
@@ -72,6 +73,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
     m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
     m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
+    m.add_argument("--lr-schedule", choices=LR_SCHEDULES,
+                   help="learning rate over the run: cosine decays it per step from --lr to "
+                        f"{LR_FLOOR:g} x --lr at the last step of --epochs; constant keeps --lr [constant]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")

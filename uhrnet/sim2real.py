@@ -2,7 +2,7 @@
 
 The judged recipe (``scale="cpu"``) is exactly::
 
-    fppsim generate --meshes ../shared/meshes fppsim/data/meshes --out syn --count 400 --seed 100 --workers 2 \
+    fppsim generate --meshes ../shared/meshes assets/meshes --out syn --count 400 --seed 100 --workers 2 \
         --no-psp --format figshare
     uhrnet train --synthetic syn --model unet --base-channels 16 --loss compound --epochs 10 \
         --batch-size 2 --lr 5e-4 --device cpu --out run
@@ -63,7 +63,7 @@ SCALES: dict[str, dict] = {
 
 
 def _packaged_meshes() -> str:
-    """The meshes shipped with fppsim (``fppsim/data/meshes``), wherever the package is installed."""
+    """The meshes shipped with fppsim (``assets/meshes``), wherever the package is installed."""
     from fppsim.rig import data_path
 
     return str(data_path("meshes"))

@@ -15,7 +15,7 @@ from fppsim.formats import LabelTransform
 from uhrnet.data import parse_size
 from uhrnet.errors import ConfigError, DataError, UsageError
 
-__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "check_options", "resolve_config",
+__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "check_options", "resolve_config",
            "label_transform_from", "parse_kv"]
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
@@ -26,11 +26,15 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": True,
+    "raw_output": False, "grad_clip": None, "augment": True, "lr_schedule": "constant",
 }
+# what a run made before an option existed used: resuming it must not switch the option on
+LEGACY = {"augment": False, "lr_schedule": "constant"}
+LR_SCHEDULES = ("cosine", "constant")
+LR_FLOOR = 0.05  # the cosine schedule ends at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment")
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule")
 
 
 @dataclass
@@ -59,6 +63,7 @@ class TrainConfig:
     samples_per_epoch: int | None = None
     workers: int | None = None
     augment: bool | None = None
+    lr_schedule: str | None = None
     model: str | None = None
     base_channels: int | None = None
     model_option: list | None = None
@@ -117,6 +122,8 @@ def check_options(cfg: dict) -> None:
         raise UsageError(f"--lr must be finite, got {cfg['lr']}")
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
+        raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 
@@ -154,6 +161,8 @@ def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
                     "or start a new --out"
                 )
             cfg[key] = previous[key] if given is None else given
+        elif previous is not None and key in LEGACY and given is None:
+            cfg[key] = LEGACY[key]
         else:
             cfg[key] = default if given is None else given
     cfg["real"] = _normalise("real", cfg["real"])

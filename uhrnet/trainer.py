@@ -13,6 +13,7 @@ it runs DistributedDataParallel (gloo on CPU, nccl on GPU); only rank 0 writes.
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from contextlib import nullcontext
@@ -158,6 +159,28 @@ class Trainer:
         return (batch["fringe"].to(self.device, non_blocking=nb), batch["height"].to(self.device, non_blocking=nb),
                 batch["mask"].to(self.device, non_blocking=nb))
 
+    def lr_at(self, epoch: int, step: int) -> float:
+        """Learning rate of ``step`` (0-based) of ``epoch`` (0-based): a function of the position in the
+        run alone, so a resumed run follows the same curve.
+
+        cosine: ``lr * (f + (1 - f) * (1 + cos(pi * t / (T - 1))) / 2)`` with ``t`` the global step,
+        ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``.
+        """
+        from uhrnet.train_config import LR_FLOOR
+
+        base = self.cfg["lr"]
+        if self.cfg["lr_schedule"] == "constant":
+            return base
+        per = max(1, len(self.loader))
+        total = max(2, per * self.cfg["epochs"])
+        t = min(epoch * per + step, total - 1)
+        return base * (LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * t / (total - 1))))
+
+    def _set_lr(self, epoch: int, step: int) -> None:
+        lr = self.lr_at(epoch, step)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+
     def train_epoch(self, epoch: int) -> dict:
         from tqdm import tqdm
 
@@ -177,6 +200,7 @@ class Trainer:
             if float(all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
                 raise TrainingDiverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
                                + (" (on another process)" if torch.isfinite(loss) else ""))
+            self._set_lr(epoch, step)
             self.optimizer.zero_grad(set_to_none=True)
             self.scaler.scale(loss).backward()
             if self.cfg["grad_clip"]:

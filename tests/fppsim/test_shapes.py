@@ -1,4 +1,4 @@
-"""fppsim.shapes: the project's own sculpture-like meshes and the shipped fppsim/data/meshes files."""
+"""fppsim.shapes: the project's own sculpture-like meshes and the shipped assets/meshes files."""
 
 from functools import lru_cache
 from pathlib import Path

@@ -264,7 +264,7 @@ def _fppsim_generate(out, *extra):
     root = Path(__file__).resolve().parents[2]
     meshes = sorted((root / "fppsim" / "data" / "meshes").glob("*.ply"))
     if not meshes:
-        pytest.skip("no meshes in fppsim/data/meshes")
+        pytest.skip("no meshes in assets/meshes")
     env = {**os.environ, "PYOPENGL_PLATFORM": "osmesa"}
     cmd = [sys.executable, "-c", "import sys; from fppsim.cli import main; sys.exit(main())", "generate",
            "--meshes", str(meshes[0]), "--out", str(out), "--count", "2", "-q", "--no-psp", "--no-preview", *extra]

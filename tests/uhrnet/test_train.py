@@ -61,7 +61,7 @@ def test_tiny_uhrnet_learns_generated_samples(tmp_path, one_thread):
     pytest.importorskip("pyrender", reason="pyrender (OSMesa) not installed")
     meshes = ROOT / "fppsim" / "data" / "meshes"
     if not list(meshes.glob("*.ply")):
-        pytest.skip("no meshes in fppsim/data/meshes")
+        pytest.skip("no meshes in assets/meshes")
     env = {**os.environ, "PYOPENGL_PLATFORM": "osmesa"}
     gen = [sys.executable, "-c", "import sys; from fppsim.cli import main; sys.exit(main())", "generate",
            "--meshes", str(meshes), "--out", str(tmp_path / "syn"), "--count", "16", "--seed", "3", "-q",
@@ -252,3 +252,23 @@ def test_ddp_two_cpu_processes_write_one_history(tmp_path):
     ckpt = load_checkpoint(run / "last.pt")
     assert ckpt["world_size"] == 2 and len(ckpt["rng"]) == 2
     assert sorted(p.name for p in run.iterdir()) == ["best.pt", "config.json", "history.csv", "history.png", "last.pt"]
+
+
+def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
+    import csv
+    import math
+
+    data = (tmp_path / "real", tmp_path / "syn")
+    write_figshare(data[0], n=8, h=32, w=64, seed=1)
+    write_native(data[1], n=8, h=32, w=64, seed=2)
+    assert _train(tmp_path / "cos", data, 3, ["--lr-schedule", "cosine"]) == 0
+    assert _train(tmp_path / "const", data, 3) == 0
+    lrs = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "cos" / "history.csv"))]
+    assert [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "const" / "history.csv"))] == [1e-3] * 3
+
+    def closed_form(per):  # the lr of each epoch's last step, T = 3 epochs of `per` steps
+        T = 3 * per
+        return [1e-3 * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (e * per - 1) / (T - 1)))) for e in (1, 2, 3)]
+
+    assert any(np.allclose(lrs, closed_form(per), rtol=1e-6) for per in range(1, 64)), lrs
+    assert lrs[-1] == pytest.approx(0.05e-3, rel=1e-9)  # the run's last step sits at the floor
