@@ -164,5 +164,14 @@ def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, 
     assert rc == 1 and "no figshare-format pair" in capsys.readouterr().err
     abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")
     assert abl[0].name == "defaults" and abl[0].generate == abl[0].train == []
-    assert {"augment", "figshare-like-rig", "figshare-like-rig-jitter", "procedural", "all-realism"} <= {v.name for v in abl}
-    assert all(v.generate or v.train for v in abl[1:])  # every other row turns an option on
+    assert {"no-pedestal", "parallel-rig", "no-augment", "old-defaults", "procedural"} <= {v.name for v in abl}
+    assert all(v.generate or v.train for v in abl[1:])  # every other row changes an option
+    # every generate/train option of the rows parses with the real command lines
+    from fppsim.cli import build_parser as fppsim_parser
+    from uhrnet.cli import build_parser as uhrnet_parser
+
+    for v in abl[1:]:
+        if v.generate:
+            fppsim_parser().parse_args(["generate", "--meshes", "m", "--out", "o", "--count", "1", *v.generate])
+        if v.train:
+            uhrnet_parser("train").parse_args(["train", "--synthetic", "s", "--out", "o", *v.train])

@@ -76,7 +76,7 @@ def test_rendered_pedestal_top_and_shadow(tmp_path):
     """A flat box on a 25 mm pedestal rendered through the whole generator: its top face is exactly
     25 mm above the same box drawn without a pedestal (same seed: same pose and size), and the raised
     box casts a larger projector shadow."""
-    from fppsim.generate import generate
+    from fppsim.generation import generate_dataset as generate
     from fppsim.synth import SynthConfig
 
     box = trimesh.creation.box(extents=(50.0, 40.0, 10.0))
