@@ -37,9 +37,9 @@ def _imported(path: Path, module: str) -> set[str]:
 
 
 def _is_cli(module: str) -> bool:
-    """The command-line layer: ``cli``, ``cli_*`` (e.g. fppsim.cli_fit) and ``__main__`` modules."""
+    """The command-line layer: ``cli`` and ``__main__`` modules."""
     last = module.split(".")[-1]
-    return last in ("cli", "__main__") or last.startswith("cli_")
+    return last in ("cli", "__main__")
 
 
 def test_library_modules_never_import_a_cli_module():
@@ -72,3 +72,8 @@ def test_library_entry_points_exist():
 
     assert callable(fppsim.generate) and callable(fppsim.validate_psp)
     assert callable(uhrnet.train) and callable(uhrnet.evaluate) and callable(uhrnet.predict)
+
+
+def test_the_command_line_lives_in_one_module_per_package():
+    extra = sorted(m for m, _ in _modules() if m.split(".")[-1].startswith("cli") and m.split(".")[-1] != "cli")
+    assert not extra, extra
