@@ -75,7 +75,8 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
     m.add_argument("--lr-schedule", choices=LR_SCHEDULES,
                    help="learning rate over the run: cosine decays it per step from --lr to "
-                        f"{LR_FLOOR:g} x --lr at the last step of --epochs; constant keeps --lr [constant]")
+                        f"{LR_FLOOR:g} x --lr at the last step of --epochs, so the last epoch is the settled one; "
+                        "constant keeps --lr [cosine]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")

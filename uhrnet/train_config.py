@@ -26,7 +26,7 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": True, "lr_schedule": "constant",
+    "raw_output": False, "grad_clip": None, "augment": True, "lr_schedule": "cosine",
 }
 # what a run made before an option existed used: resuming it must not switch the option on
 LEGACY = {"augment": False, "lr_schedule": "constant"}
