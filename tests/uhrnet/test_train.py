@@ -266,9 +266,7 @@ def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
     write_figshare(data[0], n=8, h=32, w=64, seed=1)
     write_native(data[1], n=8, h=32, w=64, seed=2)
     assert _train(tmp_path / "cos", data, 3, ["--lr-schedule", "cosine"]) == 0
-    assert _train(tmp_path / "const", data, 3, ["--lr-schedule", "constant"]) == 0
     lrs = [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "cos" / "history.csv"))]
-    assert [float(r["lr"]) for r in csv.DictReader(open(tmp_path / "const" / "history.csv"))] == [1e-3] * 3
 
     def closed_form(per):  # the lr of each epoch's last step, T = 3 epochs of `per` steps
         T = 3 * per
