@@ -441,7 +441,7 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
 
 def run_fit_rig(args) -> int:
     from .formats import atomic_write_text
-    from .fit_rig import adjust_rig, fit_baseline, fit_rig, format_baseline_fit, format_fit, load_fringe_images, measure_bands
+    from .fit_rig import fit_baseline, fit_rig, format_baseline_fit, format_fit, load_fringe_images, measure_bands
     from .rig import load_rig
 
     if args.col_bands < 1 or args.row_bands < 1 or args.max_images < 1:
@@ -451,18 +451,15 @@ def run_fit_rig(args) -> int:
     images, layout = load_fringe_images(args.real, args.max_images)
     measured = measure_bands(images, args.col_bands, args.row_bands)
     print(f"{args.real}: {len(images)} image(s), layout {layout}")
-    params, bfit = args.params, None
-    if args.sensitivity == "auto":
-        rest = tuple(p for p in params if p != "baseline")
-        bfit = fit_baseline(images, measured, base, rest or ("yaw",))
-        if bfit is None:
+    bfit = fit_baseline(images, measured, base, args.params) if args.sensitivity == "auto" else None
+    if bfit is not None:
+        print(format_baseline_fit(bfit))
+        print()
+        fit = bfit.fit  # the period fit at the chosen baseline: nothing to refit
+    else:
+        if args.sensitivity == "auto":
             print("height sensitivity: no labelled images with enough object pixels; baseline kept")
-        else:
-            print(format_baseline_fit(bfit))
-            print()
-            base = adjust_rig(base, baseline=bfit.baseline)
-            params = rest
-    fit = fit_rig(measured, base, params or ("yaw",))
+        fit = fit_rig(measured, base, args.params)
     print(format_fit(fit))
     fit.rig.save(out)
     print(f"rig: {out}")

@@ -199,6 +199,13 @@ class FringeImage:
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 
 
+def _poly_basis(h: int, w: int, degree: int) -> np.ndarray:
+    """(h*w, n) monomials x^i y^j, i + j <= degree, of pixel coordinates scaled to [-1, 1]."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
+    return np.stack([x ** i * y ** j for t in range(degree + 1) for j in range(t + 1) for i in [t - j]], axis=1)
+
+
 def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
                       object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
@@ -208,9 +215,7 @@ def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, pla
     object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
     """
     h, w = phase.shape
-    yy, xx = np.mgrid[0:h, 0:w]
-    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
-    A = np.stack([x ** i * y ** j for t in range(degree + 1) for j in range(t + 1) for i in [t - j]], axis=1)
+    A = _poly_basis(h, w, degree)
     b = phase.ravel()
     use = valid.ravel() & np.isfinite(b)
     if use.sum() < 4 * A.shape[1]:
@@ -477,19 +482,23 @@ def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
     if h.shape != (cam.height, cam.width):
         raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
-    origin, d = cam.pixel_rays(cam.pixel_grid())
+    return _phase_at(rig, cam.pixel_grid(), h)
+
+
+def _phase_at(rig: Rig, uv: np.ndarray, height_mm: np.ndarray) -> np.ndarray:
+    """Projector phase at camera pixels ``uv`` (..., 2) whose surface lies ``height_mm`` (...) above the plane."""
+    origin, d = rig.camera.pixel_rays(uv)
     with np.errstate(divide="ignore", invalid="ignore"):
-        s = (h - origin[2]) / d[..., 2]
-    uv, _ = rig.projector.project(origin + s[..., None] * d)
-    return rig.phase_of_column(uv[..., 0])
+        s = (height_mm - origin[2]) / d[..., 2]
+    uv_p, _ = rig.projector.project(origin + s[..., None] * d)
+    return rig.phase_of_column(uv_p[..., 0])
 
 
 def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
     """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
     cam = rig.camera
-    H, W = cam.height, cam.width
-    lo = surface_phase(rig, np.zeros((H, W)))[H // 2, W // 2]
-    hi = surface_phase(rig, np.full((H, W), dh))[H // 2, W // 2]
+    centre = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
+    lo, hi = _phase_at(rig, centre, np.array([0.0, float(dh)]))
     return float((hi - lo) / dh)
 
 
@@ -543,12 +552,9 @@ def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree:
     cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
     d = np.angle(cs)
     du = unwrap_phase(np.ma.array(d, mask=~plane))
-    H, W = d.shape
-    yy, xx = np.mgrid[0:H, 0:W]
-    x, y = xx / max(W - 1, 1) * 2 - 1, yy / max(H - 1, 1) * 2 - 1
-    A = np.stack([x ** i * y ** (t - i) for t in range(degree + 1) for i in range(t + 1)], axis=-1)
-    coef = np.linalg.lstsq(A[plane], np.asarray(du)[plane], rcond=None)[0]
-    r = np.angle(np.exp(1j * (d - A @ coef)))
+    A = _poly_basis(*d.shape, degree)
+    coef = np.linalg.lstsq(A[plane.ravel()], np.asarray(du)[plane], rcond=None)[0]
+    r = np.angle(np.exp(1j * (d - (A @ coef).reshape(d.shape))))
     ro, ho = r[obj], h[obj]
     phasor = np.mean(np.exp(1j * ro))
     offset = float(np.angle(phasor))
@@ -559,11 +565,11 @@ def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree:
 
 @dataclass
 class BaselineFit:
-    """Result of :func:`fit_baseline`: the chosen baseline (mm), the rig fitted at it, the scan
-    (baseline, mean coherence) and the per-image checks at the chosen baseline."""
+    """Result of :func:`fit_baseline`: the chosen baseline (mm), the period fit at it (``fit.rig`` is the
+    fitted rig), the scan (baseline, mean coherence) and the per-image checks at the chosen baseline."""
 
     baseline: float
-    rig: Rig
+    fit: RigFit
     scan: list
     checks: list
     sensitivity: float
@@ -581,14 +587,14 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
 
     For each candidate baseline (mm, default 120..480 in steps of 15) the rig's other ``params`` are
     refitted to the measured band periods (:func:`fit_rig`, so the plane's period map stays the real
-    one), then :func:`sensitivity_check` scores every labelled image; the score is the object-pixel
+    one; ``yaw`` when none is left besides the baseline), then :func:`sensitivity_check` scores every labelled image; the score is the object-pixel
     weighted mean coherence. The best grid point is refined in steps of ``refine`` mm. Returns None when
     no image has height labels with enough object pixels (plain images, phase-only folders).
     """
     labelled = [im for im in images if im.height_mm is not None]
     if not labelled:
         return None
-    params = tuple(p for p in params if p != "baseline")
+    params = tuple(p for p in params if p != "baseline") or ("yaw",)  # the period map needs one to fit
     grid = np.arange(120.0, 481.0, 15.0) if baselines is None else np.asarray(baselines, dtype=np.float64)
 
     cache: dict = {}
@@ -597,16 +603,16 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
         b = round(float(b), 3)
         if b not in cache:
             try:
-                rig = fit_rig(measured, adjust_rig(base, baseline=b), params).rig if params else adjust_rig(base, baseline=b)
+                fit = fit_rig(measured, adjust_rig(base, baseline=b), params)
             except RigError:
                 cache[b] = (-1.0, None, [])
                 return cache[b]
-            checks = [c for c in (sensitivity_check(rig, im, smooth) for im in labelled) if c is not None]
+            checks = [c for c in (sensitivity_check(fit.rig, im, smooth) for im in labelled) if c is not None]
             if not checks:
-                cache[b] = (float("nan"), rig, [])
+                cache[b] = (float("nan"), fit, [])
             else:
                 wts = np.array([c.n_object for c in checks], dtype=np.float64)
-                cache[b] = (float(np.sum(wts * [c.coherence for c in checks]) / wts.sum()), rig, checks)
+                cache[b] = (float(np.sum(wts * [c.coherence for c in checks]) / wts.sum()), fit, checks)
         return cache[b]
 
     coarse = [(float(b), score(b)[0]) for b in grid]
@@ -620,8 +626,8 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
                 score(b)
     scan = sorted((b, v[0]) for b, v in cache.items() if np.isfinite(v[0]) and v[1] is not None)
     best = max(scan, key=lambda t: t[1])[0]
-    _, rig, checks = cache[round(best, 3)]
-    return BaselineFit(float(best), rig, scan, checks, centre_sensitivity(rig))
+    _, fit, checks = cache[round(best, 3)]
+    return BaselineFit(float(best), fit, scan, checks, centre_sensitivity(fit.rig))
 
 
 def format_baseline_fit(fit: BaselineFit) -> str:

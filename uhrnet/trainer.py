@@ -32,7 +32,7 @@ from uhrnet.distributed import DistInfo, MetricSums, all_reduce, init_distribute
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.metrics import image_metrics
 from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
-from uhrnet.train_config import TrainConfig, label_transform_from, parse_kv, resolve_config
+from uhrnet.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
 __all__ = ["TrainConfig", "Trainer", "train"]
 
@@ -166,8 +166,6 @@ class Trainer:
         cosine: ``lr * (f + (1 - f) * (1 + cos(pi * t / (T - 1))) / 2)`` with ``t`` the global step,
         ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``.
         """
-        from uhrnet.train_config import LR_FLOOR
-
         base = self.cfg["lr"]
         if self.cfg["lr_schedule"] == "constant":
             return base
