@@ -30,6 +30,8 @@ from math import erfc
 
 import numpy as np
 
+from .rig import along_rays
+
 __all__ = [
     "DEFAULT_FREQS",
     "Decoded",
@@ -73,6 +75,10 @@ def phase_shifts(n_steps: int) -> np.ndarray:
 def wrap_phase(phase: np.ndarray) -> np.ndarray:
     """Wrap phases (rad) into ``(-pi, pi]`` (float64, NaN stays NaN); values already there are unchanged."""
     p = np.asarray(phase, dtype=np.float64)
+    if p.ndim and p.size and p.min() > -np.pi + 1e-9 and p.max() <= np.pi:
+        # Already wrapped (and finite): (p - pi) / 2pi then lies in (-1, 0], ceil gives -0.0 or 0.0 and
+        # the formula below returns p + 0.0 (the same bits; -0.0 becomes +0.0 there as here).
+        return p + 0.0
     w = p - TWO_PI * np.ceil((p - np.pi) / TWO_PI)
     return np.where(w <= -np.pi, w + TWO_PI, np.where(w > np.pi, w - TWO_PI, w))
 
@@ -179,9 +185,19 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
         raise ValueError("images must be a stack of shape (N, ...)")
     n = I.shape[0]
     w = _shift_weights(_resolve_shifts(n, shifts))
-    exact = _exact_sums(I, w)
-    if exact is not None:
-        A, c, s = exact
+    sums = _exact_int_sums(I, w)
+    if sums is not None:
+        (a, sa, _), (ic, sc, _), (is_, ss, _) = sums
+        A = a * sa
+        tables = _phase_tables(n, sums, I.dtype) if I.ndim > 1 else None
+        if tables is not None:  # phase and modulation of every possible integer (PSin, PCos) pair
+            phase_t, mod_t, n_c, offset = tables
+            idx = is_  # the table entry of (PSin, PCos), in place
+            idx *= n_c
+            idx += ic
+            idx += offset
+            return PhaseShift(phase=np.take(phase_t, idx), background=A, modulation=np.take(mod_t, idx))
+        c, s = ic * sc, is_ * ss
     else:
         I = np.asarray(I, dtype=np.float64)
         A = np.tensordot(w[0], I, axes=1)
@@ -196,9 +212,21 @@ def _exact_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
     When every weight is ``k / 2**m`` (``m <= max_bits``; the four-step weights 1/4, 0, +-1 are) and the
     images are unsigned integers of at most 16 bits, every product and partial sum of the float64
     weighted sum is exactly representable, so the float result does not depend on the summation order:
-    summing ``k * I`` in int64 and scaling by ``2**-m`` gives the very same float64 bits, several times
+    summing ``k * I`` in integers and scaling by ``2**-m`` gives the very same float64 bits, several times
     faster than converting the stack to float64. Each row needs a positive weight so that a zero sum is
-    +0.0 on both paths (non-negative images).
+    +0.0 on both paths (non-negative images). See :func:`_exact_int_sums`.
+    """
+    sums = _exact_int_sums(I, w, max_bits)
+    return None if sums is None else tuple(acc * scale for acc, scale, _ in sums)
+
+
+def _exact_int_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
+    """``[(acc, scale, weights)]`` per weight row with ``acc * scale`` the exact float64 weighted sum,
+    or None.
+
+    ``acc`` is the integer sum with the row's integer ``weights``, ``k = w * 2**m`` divided by their
+    common divisor ``g`` (four-step PCos: ``I0 - I2``), and ``scale = g / 2**m``: ``acc * scale`` equals
+    ``(g * acc) * 2**-m`` exactly (both are exact), so dividing out ``g`` changes no bit.
     """
     if I.dtype.kind != "u" or I.dtype.itemsize > 2 or I.shape[0] > 256:
         return None
@@ -214,16 +242,49 @@ def _exact_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
     acc_type = np.int32 if I.dtype.itemsize == 1 else np.int64
     out = []
     for row in k:
+        g = int(np.gcd.reduce(np.abs(row)))  # > 0: every row has a positive weight
+        weights = tuple((row // g).tolist())
         acc = np.zeros(I.shape[1:], dtype=acc_type)
-        for weight, img in zip(row.tolist(), I):
+        for weight, img in zip(weights, I):
             if weight == 1:
                 acc += img
             elif weight == -1:
                 acc -= img
             elif weight:
                 acc += weight * img.astype(acc_type)
-        out.append(acc * (1.0 / 2 ** m))
-    return tuple(out)
+        out.append((acc, g / 2 ** m, weights))
+    return out
+
+
+_PHASE_TABLES: dict = {}
+_MAX_TABLE = 1 << 19  # entries per table (the 8-bit four-step table has 511 x 511)
+
+
+def _phase_tables(n: int, sums, dtype):
+    """Lookup tables of :func:`phase_from_sums` and the modulation over every integer (PSin, PCos) pair
+    an unsigned stack of ``dtype`` can give with the integer weights behind ``sums``, or None (too many
+    pairs). ``(phase, modulation, columns, offset)``: the entry of ``(acc_s, acc_c)`` is
+    ``acc_s * columns + acc_c + offset``. The tables hold what the float path computes for exactly those
+    float64 sums, element by element, so a lookup returns the very same bits.
+    """
+    (_, sc, wc), (_, ss, ws) = sums[1], sums[2]
+    key = (n, dtype.str, sc, ss, wc, ws)
+    if key in _PHASE_TABLES:
+        return _PHASE_TABLES[key]
+    top = int(np.iinfo(dtype).max)
+    lo_c, hi_c = top * sum(k for k in wc if k < 0), top * sum(k for k in wc if k > 0)
+    lo_s, hi_s = top * sum(k for k in ws if k < 0), top * sum(k for k in ws if k > 0)
+    n_c, n_s = hi_c - lo_c + 1, hi_s - lo_s + 1
+    tables = None
+    if n_c * n_s <= _MAX_TABLE:
+        c = np.tile(np.arange(lo_c, hi_c + 1) * sc, n_s)  # contiguous float64, as the sums arrays are
+        s = np.repeat(np.arange(lo_s, hi_s + 1) * ss, n_c)
+        phase_t, mod_t = phase_from_sums(s, c), (2.0 / n) * np.hypot(s, c)
+        for t in (phase_t, mod_t):
+            t.setflags(write=False)
+        tables = (phase_t, mod_t, n_c, -lo_s * n_c - lo_c)
+    _PHASE_TABLES[key] = tables
+    return tables
 
 
 def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation: float,
@@ -343,6 +404,17 @@ class Unwrapped:
         return iter((self.phase, self.order, self.reliable))
 
 
+def _mod_two_pi(x: np.ndarray) -> np.ndarray:
+    """``np.mod(x, 2*pi)`` (float64), faster where every ``x`` lies in ``(-2*pi, 2*pi)``.
+
+    There numpy's remainder (``fmod``, exact, then ``+ 2*pi`` when the signs differ, +0.0 for a zero
+    remainder) is ``x + 2*pi`` for ``x < 0`` and ``x + 0.0`` otherwise: the same single rounding.
+    """
+    if x.ndim and x.size and x.min() > -TWO_PI and x.max() < TWO_PI:
+        return np.where(x < 0, x + TWO_PI, x + 0.0)
+    return np.mod(x, TWO_PI)
+
+
 def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_margin: float | None = None,
                     phase_origin: float = 0.0) -> Unwrapped:
     """Hierarchical temporal phase unwrapping over a frequency ladder starting at 1 period.
@@ -395,7 +467,7 @@ def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_m
     for p in phases:
         finite &= np.isfinite(p)
     phi0 = np.where(finite, phases[0], 0.0)
-    Phi = np.mod(phi0 - phase_origin, TWO_PI)
+    Phi = _mod_two_pi(phi0 - phase_origin)
     reliable = finite & (Phi >= seam_margin) & (Phi <= TWO_PI - seam_margin)
     Phi = Phi + phase_origin
     residual = np.zeros(shape)
@@ -506,6 +578,13 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
     contracts quickly for the mild distortion of projection lenses. Pixels that have not converged after
     ``max_iter`` steps are marked invalid.
     """
+    return _triangulate(rig, phase, periods, mask, pixels, max_iter, tol)
+
+
+def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, tol=1e-9, height_only=False):
+    """:func:`triangulate`; with ``height_only`` just its ``height`` array (the same bits), without the
+    arrays only the full result needs (projector pixels of the points, the NaN-filled points, depth,
+    column and row)."""
     cam, proj = rig.camera, rig.projector
     Phi = np.asarray(phase, dtype=np.float64)
     if pixels is None:
@@ -539,13 +618,13 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
     row = np.full(Phi.shape, np.nan)
     if proj.has_distortion:
         good = np.isfinite(s)
-        X = origin + np.where(good, s, 0.0)[..., None] * d
+        X = along_rays(origin, np.where(good, s, 0.0), d)
         row = proj.project(X)[0][..., 1]
         converged = np.zeros(Phi.shape, dtype=bool)
         for _ in range(int(max_iter)):
             s = intersect(_column_plane_normal(proj, u, row))
             good = np.isfinite(s)
-            X = origin + np.where(good, s, 0.0)[..., None] * d
+            X = along_rays(origin, np.where(good, s, 0.0), d)
             new_row = proj.project(X)[0][..., 1]
             step = np.abs(new_row - row)
             row = new_row
@@ -553,7 +632,11 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
             if np.all(converged | ~valid | ~good):
                 break
         valid &= converged
-    X = origin + np.where(np.isfinite(s), s, 0.0)[..., None] * d
+    X = along_rays(origin, np.where(np.isfinite(s), s, 0.0), d)
+    if height_only:  # z_p is what proj.project(X) returns as depth: the same expression
+        z_p = proj.world_to_device(X)[..., 2]
+        valid &= np.isfinite(s) & (s > 0) & (z_p > 0)
+        return np.where(valid, X[..., 2], np.nan)
     uv_p, z_p = proj.project(X)
     valid &= np.isfinite(s) & (s > 0) & (z_p > 0)
     if not proj.has_distortion:
@@ -569,7 +652,7 @@ def height_from_phase(rig, phase: np.ndarray, periods: float | None = None, mask
 
     Shorthand for ``triangulate(rig, phase, periods, mask, **kwargs).height``.
     """
-    return triangulate(rig, phase, periods=periods, mask=mask, **kwargs).height
+    return _triangulate(rig, phase, periods=periods, mask=mask, height_only=True, **kwargs)
 
 
 # ====================================================================== reference-plane formula
@@ -639,16 +722,20 @@ def order_consistency(phase: np.ndarray, valid: np.ndarray) -> np.ndarray:
     pp = np.pad(np.where(valid, phase, 0.0), 1)
     vp = np.pad(valid, 1)
     agree = np.zeros((H, W), np.int8)
-    disagree = np.zeros((H, W), np.int8)
+    neighbours = np.zeros((H, W), np.int8)  # valid ones; those that do not agree disagree
+    diff = np.empty((H, W))
+    close = np.empty((H, W), bool)
     for dy in (0, 1, 2):
         for dx in (0, 1, 2):
             if dy == 1 and dx == 1:
                 continue
             nv = vp[dy:dy + H, dx:dx + W]
-            close = np.abs(pp[dy:dy + H, dx:dx + W] - phase) < np.pi
-            agree += nv & close
-            disagree += nv & ~close
-    return valid & (agree >= disagree)
+            np.subtract(pp[dy:dy + H, dx:dx + W], phase, out=diff)
+            np.less(np.abs(diff, out=diff), np.pi, out=close)
+            close &= nv
+            agree += close
+            neighbours += nv
+    return valid & (agree >= neighbours - agree)  # agree >= disagree
 
 
 @dataclass

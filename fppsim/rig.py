@@ -110,7 +110,12 @@ class Device:
     def world_to_device(self, X: np.ndarray) -> np.ndarray:
         """(..., 3) world points -> (..., 3) device-frame points (mm)."""
         X = np.asarray(X, dtype=np.float64)
-        return X @ self.R.T + self.t
+        Xd = X @ self.R.T
+        if Xd.ndim < 2:
+            return Xd + self.t
+        for i in range(3):  # + t one coordinate plane at a time: the same sums, no length-3 inner loops
+            Xd[..., i] += self.t[i]
+        return Xd
 
     def project(self, X: np.ndarray, distort: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Project world points to pixels.
@@ -160,7 +165,7 @@ class Device:
     def backproject(self, uv: np.ndarray, depth: np.ndarray) -> np.ndarray:
         """(..., 2) pixels and (...,) device-frame depths (mm) -> (..., 3) world points."""
         origin, d = self.pixel_rays(uv)
-        return origin + np.asarray(depth, dtype=np.float64)[..., None] * d
+        return along_rays(origin, np.asarray(depth, dtype=np.float64), d)
 
     def pixel_grid(self, scale: int = 1) -> np.ndarray:
         """(H*scale, W*scale, 2) pixel-centre coordinates of a ``scale``-times supersampled grid.
@@ -230,6 +235,23 @@ class Device:
         R = np.diag([1.0, -1.0, -1.0])
         return cls(K=[[fx, 0, cx], [0, fy, cy], [0, 0, 1]], R=R, t=-R @ np.asarray(center, float),
                    width=width, height=height, dist=np.zeros(5) if dist is None else dist)
+
+
+def along_rays(origin: np.ndarray, depth: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Points ``origin + depth[..., None] * dirs`` (..., 3) on rays ``dirs`` (..., 3) from ``origin`` (3,).
+
+    Computed one coordinate plane at a time: the same two roundings per element as the broadcast
+    expression, without numpy's slow inner loops over the length-3 axis. Other shapes fall back to it.
+    """
+    origin, depth = np.asarray(origin), np.asarray(depth)
+    if depth.shape != dirs.shape[:-1] or origin.shape != (3,) or dirs.shape[-1:] != (3,):
+        return origin + depth[..., None] * dirs
+    P = np.empty(dirs.shape, dtype=np.result_type(origin, depth, dirs))
+    for i in range(3):
+        plane = P[..., i]
+        np.multiply(depth, dirs[..., i], out=plane)
+        plane += origin[i]
+    return P
 
 
 def _pixels(value, name: str) -> int:

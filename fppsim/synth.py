@@ -7,6 +7,8 @@ index and the inputs: worker count, sharding and resumption do not change it.
 
 from __future__ import annotations
 
+import queue
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -97,8 +99,9 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
     out = []
     for periods, shift in patterns:
         prof = pattern_profile(rig.projector.width, periods, shift, optics)[1].astype(np.float32)
-        p0 = prof[i0]
-        pattern = prof[i1] - p0
+        p0 = prof.take(i0)  # np.take: prof[i0], faster
+        pattern = prof.take(i1)
+        pattern -= p0
         pattern *= w
         pattern += p0  # p0 + w * (prof[i1] - p0), in place
         if getattr(optics, "subsurface", 0.0) > 0:
@@ -107,6 +110,49 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
             pattern = subsurface_pattern(pattern, geom.on_object, optics.subsurface * scale)
         out.append(form_image(parts, pattern, optics, noise_rng, scale))
     return out
+
+
+class PrefetchedNormals:
+    """The standard-normal draws of :func:`fppsim.optics.form_image`, made ahead on a helper thread.
+
+    Draws ``count`` float32 arrays of ``shape`` from ``rng`` in order, starting at once (numpy releases
+    the GIL while it fills them), and hands them out through :meth:`standard_normal` in the same order:
+    the very arrays ``rng.standard_normal(shape, dtype=np.float32)`` would have returned one call after
+    another, so the images are unchanged; the image formation (blur, pattern lookups) of the main
+    thread meanwhile runs on another core.
+    """
+
+    def __init__(self, rng: np.random.Generator, shape: tuple[int, int], count: int):
+        self.shape, self.count = tuple(shape), int(count)
+        self._ready: queue.SimpleQueue = queue.SimpleQueue()
+        self._taken = 0
+        self._thread = threading.Thread(target=self._draw, args=(rng,), name="fppsim-noise", daemon=True)
+        self._thread.start()
+
+    def _draw(self, rng) -> None:
+        try:
+            for _ in range(self.count):
+                self._ready.put(rng.standard_normal(self.shape, dtype=np.float32))
+        except BaseException as exc:  # handed to the caller's thread
+            self._ready.put(exc)
+
+    def standard_normal(self, size, dtype=np.float32) -> np.ndarray:
+        if tuple(size) != self.shape or np.dtype(dtype) != np.float32 or self._taken >= self.count:
+            raise RuntimeError(f"prefetched noise holds {self.count} float32 draws of {self.shape}; "
+                               f"draw {self._taken + 1} asked for {np.dtype(dtype)} {tuple(size)}")
+        self._taken += 1
+        out = self._ready.get()
+        if isinstance(out, BaseException):
+            raise out
+        return out
+
+
+def _noise_source(rng: np.random.Generator, optics: Optics, shape: tuple[int, int], count: int):
+    """What :func:`render_images` draws its camera noise from: ``rng`` itself, or its draws made ahead
+    (:class:`PrefetchedNormals`) when the optics add noise to the ``count`` images of ``shape``."""
+    if optics.noise_sigma > 0 or optics.shot_noise > 0:
+        return PrefetchedNormals(rng, shape, count)
+    return rng
 
 
 def _appearance(parts, geom, rig, optics, rng, scale):
@@ -172,13 +218,15 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     optics = config.optics.sample(np.random.default_rng(optics_ss))
     if noise_free:
         optics = optics.noise_free()
-    noise_rng = None if noise_free else np.random.default_rng(noise_ss)
     patterns = [(float(rig.periods), 0.0)]
     names = ["fringe.png"]
     for f in config.psp_freqs:
         for n in range(config.psp_steps):
             patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
             names.append(f"psp/f{f}_s{n}.png")
+    # the camera noise of the images, drawn on a helper thread while the images form
+    noise_rng = None if noise_free else _noise_source(np.random.default_rng(noise_ss), optics,
+                                                      (cam.height + 2 * m, cam.width + 2 * m), len(patterns))
     imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k, np.random.default_rng(look_ss))
     images = {name: np.ascontiguousarray(img[crop]) for name, img in zip(names, imgs)}
 
@@ -195,7 +243,9 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         arrays.update(psp_decode(stacks, rig, tuple(config.psp_freqs)))
 
     fringe = images["fringe.png"]
-    p50, p99 = np.percentile(fringe, [50, 99])  # one partition for both
+    # one partition for both, of the sorted image rebuilt from its histogram (the same values)
+    p50, p99 = np.percentile(np.repeat(np.arange(256, dtype=np.uint8), np.bincount(fringe.ravel(), minlength=256)),
+                             [50, 99]) if fringe.dtype == np.uint8 else np.percentile(fringe, [50, 99])
     meta = {
         "version": __version__,
         "index": int(index),

@@ -166,3 +166,140 @@ def test_keyed_meshes_render_like_unkeyed_ones_and_hide_afterwards():
     alone = DepthRenderer().depth(rig.camera, [Instance(b.vertices, b.faces, poses[2])])
     assert np.array_equal(only_box, alone)
     r.close()
+
+
+# ------------------------------------------------------------------------- issue 11: generator cost
+def test_phase_tables_hold_the_float_path_for_every_pair():
+    """The 8-bit four-step lookup tables equal phase_from_sums / hypot on every (PSin, PCos) pair,
+    evaluated in another (shuffled) order."""
+    stack = np.zeros((4, 2, 2), np.uint8)
+    w = psp._shift_weights(psp.phase_shifts(4))
+    phase_t, mod_t, n_c, offset = psp._phase_tables(4, psp._exact_int_sums(stack, w), stack.dtype)
+    v = np.arange(-255, 256, dtype=float)
+    c, s = np.tile(v, v.size), np.repeat(v, v.size)
+    order = np.random.default_rng(0).permutation(c.size)
+    assert np.array_equal(psp.phase_from_sums(s[order], c[order]), phase_t[order])
+    assert np.array_equal(0.5 * np.hypot(s[order], c[order]), mod_t[order])
+    assert np.array_equal((s * n_c + c + offset).astype(int), np.arange(c.size))
+    assert psp._phase_tables(4, psp._exact_int_sums(stack.astype(np.uint16), w), np.dtype(np.uint16)) is None
+
+
+def test_wrap_and_mod_fast_paths_equal_the_formulas():
+    def wrap_ref(p):
+        w = p - psp.TWO_PI * np.ceil((p - np.pi) / psp.TWO_PI)
+        return np.where(w <= -np.pi, w + psp.TWO_PI, np.where(w > np.pi, w - psp.TWO_PI, w))
+
+    rng = np.random.default_rng(2)
+    edges = np.array([-0.0, 0.0, np.pi, -np.pi, np.nextafter(-np.pi, 0), np.nextafter(np.pi, 0), 1e-300])
+    inside = np.concatenate([rng.uniform(-np.pi + 1e-9, np.pi, 5000), edges[[0, 1, 2, 5, 6]]])
+    for p in (inside, np.concatenate([inside, edges]), rng.uniform(-9, 9, 5000), np.array([np.nan, 1.0])):
+        got, ref = psp.wrap_phase(p), wrap_ref(p)
+        assert np.array_equal(got, ref, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(ref))
+    for x in (rng.uniform(-psp.TWO_PI, psp.TWO_PI, 5000), np.concatenate([edges, [-psp.TWO_PI, psp.TWO_PI]]),
+              rng.uniform(-30, 30, 5000), np.array([np.inf, -1.0, np.nan])):
+        with np.errstate(invalid="ignore"):
+            got, ref = psp._mod_two_pi(x), np.mod(x, psp.TWO_PI)
+        assert np.array_equal(got, ref, equal_nan=True) and np.array_equal(np.signbit(got), np.signbit(ref))
+
+
+def test_order_consistency_counts_like_agree_versus_disagree():
+    def reference(phase, valid):
+        valid = valid & np.isfinite(phase)
+        H, W = phase.shape
+        pp, vp = np.pad(np.where(valid, phase, 0.0), 1), np.pad(valid, 1)
+        agree, disagree = np.zeros((H, W), int), np.zeros((H, W), int)
+        for dy in range(3):
+            for dx in range(3):
+                if dy == dx == 1:
+                    continue
+                nv = vp[dy:dy + H, dx:dx + W]
+                close = np.abs(pp[dy:dy + H, dx:dx + W] - phase) < np.pi
+                agree += nv & close
+                disagree += nv & ~close
+        return valid & (agree >= disagree)
+
+    rng = np.random.default_rng(4)
+    phase = np.cumsum(rng.uniform(0, 0.5, (40, 60)), axis=1)
+    phase[rng.random(phase.shape) < 0.1] += 2 * np.pi * rng.integers(-2, 3)
+    phase[rng.random(phase.shape) < 0.03] = np.nan
+    valid = rng.random(phase.shape) < 0.9
+    assert np.array_equal(psp.order_consistency(phase, valid), reference(phase, valid))
+
+
+@pytest.mark.parametrize("distorted", [False, True])
+def test_height_from_phase_is_the_triangulated_height(distorted):
+    from fppsim.rig import Rig
+
+    rig = Rig.default()
+    if distorted:
+        rig.projector.dist = np.array([0.05, -0.02, 0.001, 0.0, 0.0])
+    rng = np.random.default_rng(6)
+    cam = rig.camera
+    phase = rng.uniform(0, 2 * np.pi * rig.periods, (cam.height, cam.width))
+    mask = rng.random(phase.shape) < 0.8
+    tri = psp.triangulate(rig, phase, mask=mask)
+    h = psp.height_from_phase(rig, phase, mask=mask)
+    assert np.array_equal(h, tri.height, equal_nan=True)
+    pix = rng.uniform(0, 50, (7, 5, 2))
+    ph = rng.uniform(0, 2 * np.pi * rig.periods, (7, 5))
+    assert np.array_equal(psp.height_from_phase(rig, ph, pixels=pix), psp.triangulate(rig, ph, pixels=pix).height,
+                          equal_nan=True)
+
+
+def test_plane_by_plane_geometry_equals_the_broadcast_formulas():
+    from fppsim.rig import Rig, along_rays
+
+    rng = np.random.default_rng(8)
+    origin, dirs = rng.normal(size=3) * 100, rng.normal(size=(9, 11, 3))
+    depth = rng.uniform(1, 900, (9, 11))
+    assert np.array_equal(along_rays(origin, depth, dirs), origin + depth[..., None] * dirs)
+    d32 = depth.astype(np.float32)
+    assert np.array_equal(along_rays(origin, d32, dirs.astype(np.float32)),
+                          origin + d32[..., None] * dirs.astype(np.float32))
+    assert np.array_equal(along_rays(origin, np.float64(3.0), dirs[0, 0]), origin + 3.0 * dirs[0, 0])
+    cam = Rig.default().camera
+    X = rng.uniform(-300, 300, (9, 11, 3))
+    assert np.array_equal(cam.world_to_device(X), X @ cam.R.T + cam.t)
+    assert np.array_equal(cam.world_to_device(X[0, 0]), X[0, 0] @ cam.R.T + cam.t)
+
+
+def test_prefetched_noise_is_the_generator_draws_in_order():
+    from fppsim.synth import PrefetchedNormals
+
+    pre = PrefetchedNormals(np.random.default_rng(5), (7, 9), 3)
+    ref = np.random.default_rng(5)
+    for _ in range(3):
+        got = pre.standard_normal((7, 9), dtype=np.float32)
+        assert got.dtype == np.float32 and np.array_equal(got, ref.standard_normal((7, 9), dtype=np.float32))
+    with pytest.raises(RuntimeError, match="3 float32 draws"):
+        pre.standard_normal((7, 9), dtype=np.float32)
+    with pytest.raises(RuntimeError, match="asked for"):
+        PrefetchedNormals(np.random.default_rng(5), (7, 9), 3).standard_normal((9, 7), dtype=np.float32)
+
+    class Broken:
+        def standard_normal(self, *args, **kwargs):
+            raise MemoryError("no room for noise")
+
+    with pytest.raises(MemoryError, match="no room"):
+        PrefetchedNormals(Broken(), (2, 2), 2).standard_normal((2, 2), dtype=np.float32)
+
+
+def test_synthesize_with_prefetched_noise_equals_drawing_in_place(monkeypatch, tmp_path):
+    """The noise drawn ahead on the helper thread gives the very images of drawing it image by image."""
+    import trimesh
+
+    from fppsim import synth
+    from fppsim.generation import load_assets
+    from fppsim.render import DepthRenderer
+    from fppsim.rig import Rig
+
+    trimesh.creation.box(extents=(60.0, 40.0, 25.0)).export(tmp_path / "box.ply")
+    assets, _ = load_assets([str(tmp_path / "box.ply")])
+    config = synth.SynthConfig(rig=Rig.default(), psp_freqs=(1, 8), psp_steps=3, min_object_fraction=0.0)
+    r = DepthRenderer()
+    images, arrays, _ = synth.synthesize(1, 7, assets, config, r)
+    monkeypatch.setattr(synth, "_noise_source", lambda rng, optics, shape, count: rng)
+    images2, arrays2, _ = synth.synthesize(1, 7, assets, config, r)
+    r.close()
+    assert images.keys() == images2.keys() and all(np.array_equal(images[k], images2[k]) for k in images)
+    assert all(np.array_equal(arrays[k], arrays2[k], equal_nan=True) for k in arrays)
