@@ -175,3 +175,34 @@ def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, 
             fppsim_parser().parse_args(["generate", "--meshes", "m", "--out", "o", "--count", "1", *v.generate])
         if v.train:
             uhrnet_parser("train").parse_args(["train", "--synthetic", "s", "--out", "o", *v.train])
+
+
+def test_fringe_twins_keep_the_envelope_and_drop_the_relief():
+    from scipy import ndimage as ndi
+
+    from uhrnet.sim2real import fringe_twins
+
+    h, w = 96, 192
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    carrier = 2 * np.pi * xx / 11.7 + 0.3 * (xx / w) ** 2 + 0.1 * yy / h   # a slightly chirped carrier
+    bump = np.exp(-((xx - 96) ** 2 + (yy - 48) ** 2) / (2 * 18.0 ** 2))
+    obj = bump > 0.2
+    relief = 5.0 * bump * obj                                              # up to 5 rad of relief phase
+    shade = np.where(obj, 1.6, 1.0)                                        # a brighter object
+    f = -0.5 + 0.1 * shade + 0.35 * shade * np.cos(carrier + relief)
+    valid = np.ones((h, w), bool)
+    valid[:, :6] = False
+    f[~valid] = -1
+    plane = valid & ~ndi.binary_dilation(obj, iterations=3)
+    twins = fringe_twins(f, valid, plane)
+    flat, env = twins["flat"], twins["envelope"]
+    assert flat.dtype == np.float32 and np.all(flat[~valid] == -1) and np.all(env[~valid] == -1)
+    inner = ndi.binary_erosion(obj, iterations=8)
+    # under the object the flat twin follows the bare carrier, not the relief
+    ac = flat - ndi.gaussian_filter(flat, 6)
+    res = np.angle(ndi.gaussian_filter(ac * np.exp(-1j * carrier), 4))
+    ref = np.angle(ndi.gaussian_filter((f - ndi.gaussian_filter(f, 6)) * np.exp(-1j * carrier), 4))
+    assert np.abs(np.angle(np.exp(1j * (res - np.median(res[inner]))))[inner]).max() < 0.35
+    assert np.ptp(np.unwrap(ref[48, 60:132])) > 3.0   # while the input's does carry it
+    # the envelope (local background) keeps the object's brightness
+    assert env[inner].mean() - env[plane & valid].mean() == pytest.approx(0.06, abs=0.02)

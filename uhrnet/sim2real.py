@@ -22,6 +22,16 @@ Metrics on each real image (heights in mm):
 - ``true_object_mean_mm`` / ``pred_object_mean_mm``: mean height above the plane on the object pixels;
 - ``object_fraction``: object pixels / all pixels.
 
+Does the network read the fringes at all? Each real image is also predicted as two twins that keep
+its envelope (local background and fringe modulation, i.e. shading, albedo and shadows) but not its
+relief (:func:`fringe_twins`): ``flat`` carries the fringes of the bare plane (the carrier fitted on
+the plane pixels, extended under the object) and ``envelope`` no fringes at all.
+
+- ``relief_effect_mm``: RMS over the object pixels of prediction(real) - prediction(flat twin), the
+  part of the prediction that comes from the fringes' deformation. Near 0: the network reads height
+  from shading and shadows, not from the fringes, and will not transfer to other lighting;
+- ``flat_twin_object_rmse_mm`` / ``envelope_twin_object_rmse_mm``: the object RMSE of the twins.
+
 Variants (an ablation) add options to the generate and/or train commands; variants with the same
 generate options share one synthetic dataset. Every stage is resumable: a finished dataset, a finished
 run (``last.pt`` at the requested epochs) and a finished evaluation are re-used.
@@ -47,7 +57,7 @@ from uhrnet.errors import Sim2RealError
 __all__ = [
     "Sim2RealConfig", "Variant", "Sim2RealError", "SCALES", "object_mask", "plane_level", "real_metrics",
     "parse_variant", "load_variants", "generate_command", "train_command", "evaluate_real", "run_sim2real",
-    "markdown_report", "find_real_pairs",
+    "markdown_report", "find_real_pairs", "fringe_twins",
 ]
 
 
@@ -282,6 +292,59 @@ def real_metrics(pred: np.ndarray, label: np.ndarray, valid: np.ndarray, units_p
     }
 
 
+def _wblur(x: np.ndarray, w: np.ndarray, sigma: float) -> np.ndarray:
+    from scipy import ndimage as ndi
+
+    return ndi.gaussian_filter(x * w, sigma) / np.maximum(ndi.gaussian_filter(w, sigma), 1e-6)
+
+
+def fringe_twins(fringe: np.ndarray, valid: np.ndarray, plane: np.ndarray, degree: int = 3,
+                 envelope_sigma: float = 6.0, smooth: float = 4.0) -> dict[str, np.ndarray]:
+    """Twins of a fringe image with its envelope but without its relief (no rig needed).
+
+    fringe : (H, W) in [-1, 1] (dataset encoding). valid : (H, W) bool, pixels with a fringe.
+    plane : (H, W) bool, pixels of the bare reference plane (e.g. valid and within 2 mm of it).
+    The local background ``m`` and modulation ``a`` are Gaussian-weighted (``envelope_sigma`` px)
+    moments over the valid pixels. The carrier is the dominant column frequency ``w``; the image is
+    demodulated with ``exp(-i w x)``, low-passed (``smooth`` px), unwrapped on the plane and fitted
+    there with a ``degree`` polynomial ``q(x, y)``. Returns ``{"flat": m + a cos(w x + q),
+    "envelope": m}``, each (H, W) float32 in [-1, 1] with the invalid pixels at -1.
+    """
+    from scipy import ndimage as ndi
+    from skimage.restoration import unwrap_phase
+
+    f = np.asarray(fringe, np.float64)
+    valid = np.asarray(valid, bool)
+    plane = np.asarray(plane, bool) & valid
+    if plane.sum() < 100:
+        raise Sim2RealError("fringe_twins: fewer than 100 plane pixels to fit the carrier on")
+    w = valid.astype(np.float64)
+    m = _wblur(f, w, envelope_sigma)
+    ac = np.where(valid, f - m, 0.0)
+    a = np.sqrt(2.0 * np.maximum(_wblur(ac ** 2, w, envelope_sigma), 0.0))
+    hgt, wid = f.shape
+    rows = np.where(plane, ac, 0.0)
+    spec = np.abs(np.fft.rfft(rows * np.hanning(wid)[None, :], axis=1)).sum(axis=0)
+    k = int(np.argmax(spec[2:])) + 2  # cycles across the width (skip the DC and the window's own)
+    x = np.arange(wid, dtype=np.float64)[None, :]
+    c = ac * np.exp(-2j * np.pi * k * x / wid)
+    wp = plane.astype(np.float64)
+    cs = ndi.gaussian_filter(c.real * wp, smooth) + 1j * ndi.gaussian_filter(c.imag * wp, smooth)
+    inner = ndi.binary_erosion(plane, iterations=int(np.ceil(smooth)))
+    fit_on = inner if inner.sum() >= 100 else plane
+    d = np.asarray(unwrap_phase(np.ma.array(np.angle(cs), mask=~fit_on)))
+    yy, xx = np.mgrid[0:hgt, 0:wid]
+    u, v = xx / max(wid - 1, 1) * 2 - 1, yy / max(hgt - 1, 1) * 2 - 1
+    basis = np.stack([u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)], -1)
+    coef = np.linalg.lstsq(basis[fit_on], d[fit_on], rcond=None)[0]
+    carrier = 2 * np.pi * k * x / wid + basis @ coef
+
+    def enc(img):
+        return np.where(valid, np.clip(img, -1.0, 1.0), -1.0).astype(np.float32)
+
+    return {"flat": enc(m + a * np.cos(carrier)), "envelope": enc(m)}
+
+
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
     from uhrnet.data import FigshareArrays, find_figshare_pair
@@ -328,6 +391,8 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
             label = s["height"][0].numpy()
             valid = s["mask"][0].numpy() > 0.5
             m = real_metrics(pred, label, valid, transform.units_per_mm, object_mm)
+            m.update(_twin_metrics(model, s["fringe"][0].numpy(), pred, label, valid, transform.units_per_mm,
+                                   object_mm, m["plane_label"], size))
             key = f"{fi}_{i:06d}"
             preds[key] = pred.astype(np.float32)
             rows.append({"folder": folder, "index": i, "key": key, **m})
@@ -343,6 +408,30 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     torch.cuda.empty_cache() if torch.cuda.is_available() else None
     atomic_write_text(out / "real_metrics.json", json.dumps(doc, indent=2))
     return doc
+
+
+def _twin_metrics(model, fringe, pred, label, valid, units_per_mm, object_mm, plane, size) -> dict:
+    """relief_effect_mm and the twins' object RMSE (see the module docstring); NaN when no plane."""
+    import torch
+
+    from uhrnet.inference import predict_labels
+
+    obj, _ = object_mask(label, valid, units_per_mm, object_mm, plane)
+    near = valid & (np.abs(np.asarray(label, np.float64) - plane) <= 2.0 * units_per_mm)
+    try:
+        twins = fringe_twins(fringe, valid, near)
+    except Sim2RealError:
+        return {"relief_effect_mm": float("nan"), "flat_twin_object_rmse_mm": float("nan"),
+                "envelope_twin_object_rmse_mm": float("nan")}
+    out = {}
+    with torch.no_grad():
+        for name, img in twins.items():
+            p = predict_labels(model, torch.from_numpy(img)[None, None], size)[0, 0].cpu().numpy()
+            out[f"{name}_twin_object_rmse_mm"] = real_metrics(p, label, valid, units_per_mm, object_mm)["object_rmse_mm"]
+            if name == "flat":
+                d = (np.asarray(pred, np.float64) - p) / units_per_mm
+                out["relief_effect_mm"] = float(np.sqrt(np.mean(d[obj] ** 2))) if obj.any() else float("nan")
+    return out
 
 
 def plot_real(fringe, label, valid, pred, units_per_mm, metrics, path, object_mm=1.0, title="") -> Path:
@@ -488,8 +577,8 @@ def markdown_report(report: dict) -> str:
              + f", {c['epochs']} epochs, batch {c['batch_size']}, lr {c['lr']:g}, loss {c['loss']}. "
              f"Object pixels: valid and more than {c['object_mm']:g} mm above the plane.", "",
              "| variant | generate | train | object RMSE (mm) | valid RMSE (mm) | flat plane, object (mm) | "
-             "true / pred. object mean (mm) | synthetic val RMSE (mm) | minutes |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "true / pred. object mean (mm) | relief effect (mm) | synthetic val RMSE (mm) | minutes |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for v in report["variants"]:
         r = v["real"]
         mins = sum(x for x in v["timing"].values() if isinstance(x, (int, float))) / 60.0
@@ -498,5 +587,6 @@ def markdown_report(report: dict) -> str:
                      f"{shlex.join(v['train']) or '(defaults)'} | {r['object_rmse_mm']:.2f} | "
                      f"{r['valid_rmse_mm']:.2f} | {r['flat_object_rmse_mm']:.2f} | "
                      f"{r['true_object_mean_mm']:.1f} / {r['pred_object_mean_mm']:.1f} | "
+                     f"{r.get('relief_effect_mm', float('nan')):.1f} | "
                      f"{'' if sv is None else f'{sv:.2f}'} | {mins:.1f} |")
     return "\n".join(lines) + "\n"
