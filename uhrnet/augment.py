@@ -8,6 +8,8 @@ re-exposed with a seeded random draw of:
 - gain: a global factor times a smooth low-frequency gain field (uneven lighting, albedo);
 - gamma: ``I' = 255 (I/255)^gamma`` (camera/projector response);
 - contrast: the fringe modulation around a local (blurred) background is scaled;
+- envelope: the local background and the fringe modulation are each multiplied by their own finer
+  smooth random field (object-sized, 20-90 px), so shading cannot stand in for the fringe phase;
 - blur: a Gaussian of random width (focus);
 - noise: Gaussian read noise plus shot noise, then 8-bit quantisation (the data are 8-bit).
 
@@ -22,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-__all__ = ["AugmentConfig", "augment_fringe", "augment_sample"]
+__all__ = ["AugmentConfig", "AUGMENTS", "augment_config", "augment_fringe", "augment_sample"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +36,10 @@ class AugmentConfig:
     gamma : response exponent range. contrast : factor on the fringe modulation around the local mean.
     blur : Gaussian sigma range, pixels. noise : read-noise sigma range, gray levels.
     shot : shot-noise variance per gray level range.
+    envelope : largest log-amplitude of the two smooth fields on background and modulation (factors
+        ``exp(+-envelope)``);
+        0 turns them off (and leaves the other draws exactly as without them).
+    envelope_scale : range of their feature size as a fraction of the image height.
     """
 
     probability: float = 0.8
@@ -44,9 +50,29 @@ class AugmentConfig:
     blur: tuple[float, float] = (0.0, 1.2)
     noise: tuple[float, float] = (0.0, 3.0)
     shot: tuple[float, float] = (0.0, 0.1)
+    envelope: float = 0.9
+    envelope_scale: tuple[float, float] = (0.06, 0.25)
 
     def to_dict(self) -> dict:
         return asdict(self)
+
+
+AUGMENTS = {
+    "shading": AugmentConfig(),                   # photometric jitter + random shading fields
+    "photometric": AugmentConfig(envelope=0.0),   # the jitter alone (the default before the shading fields)
+    "off": None,
+}
+
+
+def augment_config(kind) -> AugmentConfig | None:
+    """The :class:`AugmentConfig` of a train option value: a name of :data:`AUGMENTS`, or the boolean
+    older runs stored (True: ``photometric``, False: ``off``)."""
+    if isinstance(kind, bool):
+        kind = "photometric" if kind else "off"
+    try:
+        return AUGMENTS[kind]
+    except (KeyError, TypeError):
+        raise ValueError(f"augmentation {kind!r}: choose from {', '.join(AUGMENTS)}") from None
 
 
 def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -92,7 +118,13 @@ def augment_fringe(fringe: np.ndarray, valid: np.ndarray, rng: np.random.Generat
     noise = rng.uniform(*cfg.noise)
     shot = rng.uniform(*cfg.shot)
     I = (x + 1.0) * 127.5
-    if contrast != 1.0:  # scale the fringe around its local background (about two periods wide)
+    if cfg.envelope > 0:  # shading and albedo unrelated to height: the phase must carry the relief
+        amp_b, amp_m = rng.uniform(0.0, cfg.envelope, 2)
+        field_b = _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale))
+        field_m = _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale))
+        background = _gauss(I, 6.0)
+        I = background * np.exp(amp_b * field_b) + contrast * np.exp(amp_m * field_m) * (I - background)
+    elif contrast != 1.0:  # scale the fringe around its local background (about two periods wide)
         background = _gauss(I, 6.0)
         I = background + contrast * (I - background)
     I = I * gain * (1.0 + field_amp * _smooth_field(I.shape, rng))

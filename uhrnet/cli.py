@@ -60,11 +60,14 @@ def add_train(p: argparse.ArgumentParser) -> None:
     d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
     d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
-    d.add_argument("--augment", dest="augment", action="store_const", const=True,
-                   help="photometric augmentation of synthetic samples (gain, gamma, contrast, blur, noise; "
-                        "uhrnet.augment; real samples are never augmented) [on]")
-    d.add_argument("--no-augment", dest="augment", action="store_const", const=False,
-                   help="no photometric augmentation")
+    d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=("shading", "photometric", "off"),
+                   metavar="KIND",
+                   help="augmentation of synthetic samples (uhrnet.augment; real samples never): 'photometric' "
+                        "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "
+                        "the fringe background and modulation so that shading cannot stand in for the phase; "
+                        "'off' [shading]")
+    d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
+                   help="no augmentation (same as --augment off)")
     m = p.add_argument_group("model and optimisation")
     m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")

@@ -26,10 +26,10 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": True, "lr_schedule": "cosine",
+    "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine",
 }
 # what a run made before an option existed used: resuming it must not switch the option on
-LEGACY = {"augment": False, "lr_schedule": "constant"}
+LEGACY = {"augment": "off", "lr_schedule": "constant"}
 LR_SCHEDULES = ("cosine", "constant")
 LR_FLOOR = 0.05  # the cosine schedule ends at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
@@ -44,8 +44,8 @@ class TrainConfig:
 
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
-    already holds a run (refused otherwise). ``augment``: photometric augmentation of synthetic samples
-    (:mod:`uhrnet.augment`). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
+    :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
     """
 
@@ -62,7 +62,7 @@ class TrainConfig:
     resize: str | None = None
     samples_per_epoch: int | None = None
     workers: int | None = None
-    augment: bool | None = None
+    augment: str | bool | None = None
     lr_schedule: str | None = None
     model: str | None = None
     base_channels: int | None = None
@@ -122,6 +122,13 @@ def check_options(cfg: dict) -> None:
         raise UsageError(f"--lr must be finite, got {cfg['lr']}")
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if "augment" in cfg:
+        from uhrnet.augment import augment_config
+
+        try:
+            augment_config(cfg["augment"])
+        except ValueError as exc:
+            raise UsageError(f"--augment: {exc}") from None
     if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
@@ -145,6 +152,8 @@ def _normalise(key: str, value):
         return [str(Path(v).resolve()) for v in (value or [])]
     if key in ("label_transform", "model_option"):
         return sorted(value or [])
+    if key == "augment" and isinstance(value, bool):  # runs saved before the augmentation kinds
+        return "photometric" if value else "off"
     return value
 
 

@@ -66,10 +66,10 @@ class Trainer:
                                cfg["synthetic_split"], cfg["synthetic_label"])
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
-        from uhrnet.augment import AugmentConfig
+        from uhrnet.augment import augment_config
 
         self.train_set = Prepared(sources.train, crop, resize, random_crop=True,
-                                  augment=AugmentConfig() if cfg["augment"] else None)
+                                  augment=augment_config(cfg["augment"]))
         self.val_set = Prepared(sources.val, crop, resize, random_crop=False)
         if len(self.train_set) == 0:
             raise ConfigError("no training samples: every sample is in the val/test split "

@@ -44,7 +44,7 @@ def test_invalid_pixels_exactly_minus_one_and_output_on_the_8bit_grid():
 def _only(**kw):
     """A config that changes only the given parameters (the others at their identity value)."""
     base = dict(probability=1.0, gain=(1.0, 1.0), field=0.0, gamma=(1.0, 1.0), contrast=(1.0, 1.0),
-                blur=(0.0, 0.0), noise=(0.0, 0.0), shot=(0.0, 0.0))
+                blur=(0.0, 0.0), noise=(0.0, 0.0), shot=(0.0, 0.0), envelope=0.0)
     base.update(kw)
     return AugmentConfig(**base)
 
@@ -76,6 +76,47 @@ def test_each_jitter_changes_the_statistic_it_should():
     field = augment_fringe(f, v, rng(), _only(field=0.35)).astype(np.float64)
     cols = [(field[:, i:i + 24] + 1).mean() for i in range(0, 96, 24)]
     assert np.ptp(cols) > 0.01
+
+
+def _local_envelope(img, period=12):
+    """Per-block (12 x 12 px) mean and fringe amplitude of an image in gray levels."""
+    I = (img.astype(np.float64) + 1) * 127.5
+    h, w = (I.shape[0] // period) * period, (I.shape[1] // period) * period
+    b = I[:h, :w].reshape(h // period, period, w // period, period)
+    return b.mean(axis=(1, 3)), b.std(axis=(1, 3))
+
+
+def test_shading_fields_vary_background_and_modulation_independently_and_keep_the_phase():
+    h, w = 128, 192
+    xx = np.arange(w)[None, :] + np.zeros((h, 1))
+    I = 100 + 60 * np.cos(2 * np.pi * xx / 12.0)
+    f = (np.rint(I) / 127.5 - 1).astype(np.float32)
+    v = np.ones((h, w), bool)
+    out = augment_fringe(f, v, np.random.default_rng(2), _only(envelope=0.9, envelope_scale=(0.1, 0.1)))
+    mean0, amp0 = _local_envelope(f)
+    mean1, amp1 = _local_envelope(out)
+    rb, rm = mean1 / mean0, amp1 / amp0
+    # both vary over the image by well over the 8-bit rounding, and not in lockstep
+    assert np.ptp(np.log(rb)) > 0.2 and np.ptp(np.log(rm)) > 0.2
+    assert abs(np.corrcoef(np.log(rb).ravel(), np.log(rm).ravel())[0, 1]) < 0.9
+    # the fringe phase is untouched: demodulated against the carrier, it stays put
+    carrier = np.exp(-2j * np.pi * xx / 12.0)
+    ph0 = np.angle(np.sum(((f + 1) * 127.5 - 100) * carrier))
+    ac = (out.astype(np.float64) + 1) * 127.5
+    from scipy.ndimage import uniform_filter1d
+    ac = ac - uniform_filter1d(ac, 12, axis=1)
+    ph1 = np.angle(np.sum(ac * carrier))
+    assert abs(np.angle(np.exp(1j * (ph1 - ph0)))) < 0.05
+
+
+def test_augmentation_kinds_and_the_booleans_of_older_runs():
+    from uhrnet.augment import AUGMENTS, augment_config
+
+    assert augment_config("shading").envelope > 0 and augment_config("photometric").envelope == 0
+    assert augment_config("off") is None and augment_config(False) is None
+    assert augment_config(True) == AUGMENTS["photometric"]
+    with pytest.raises(ValueError, match="choose from"):
+        augment_config("strong")
 
 
 def test_prepared_augments_synthetic_samples_only_and_only_with_a_seed():

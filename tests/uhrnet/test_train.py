@@ -274,3 +274,18 @@ def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
 
     assert any(np.allclose(lrs, closed_form(per), rtol=1e-6) for per in range(1, 64)), lrs
     assert lrs[-1] == pytest.approx(0.05e-3, rel=1e-9)  # the run's last step sits at the floor
+
+
+def test_augment_option_on_resume_of_older_runs():
+    from uhrnet.train_config import TrainConfig, resolve_config
+    from uhrnet.errors import ConfigError, UsageError
+
+    older = {"augment": True, "synthetic": [], "real": []}  # a run saved before the augmentation kinds
+    assert resolve_config(TrainConfig(out="r"), older)["augment"] is True  # kept: photometric, as it was trained
+    assert resolve_config(TrainConfig(out="r", augment="photometric"), older)["augment"] == "photometric"
+    with pytest.raises(ConfigError, match="--augment shading differs"):
+        resolve_config(TrainConfig(out="r", augment="shading"), older)
+    assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": []})["augment"] == "off"  # before augmentation
+    assert resolve_config(TrainConfig(out="r"))["augment"] == "shading"
+    with pytest.raises(UsageError, match="--augment"):
+        TrainConfig(out="r", augment="strong")
