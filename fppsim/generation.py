@@ -28,7 +28,7 @@ from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleE
 from .formats import (LabelTransform, append_manifest, atomic_write_text, export_figshare, foreign_sample_folders,
                       manifest_record, read_settings, reconcile, sample_id, write_sample_folder)
 from .scene import MeshAsset, find_meshes, load_mesh
-from .synth import SynthConfig, synthesize, synthesize_deferred
+from .synth import SynthConfig, synthesize
 
 if TYPE_CHECKING:
     from .rig import Rig
@@ -294,27 +294,24 @@ def _worker_run(index: int):
 
 
 def _worker_run_chunk(indices: list[int]) -> list[tuple]:
-    """Produce ``indices``, decoding and writing each sample on the background thread while the next
-    one renders.
+    """Produce ``indices``, writing each sample on the background thread while the next one renders.
 
     Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
-    chunk is complete on disk, so the manifest never lists a sample still being written. An error of
-    the decode or the write re-raises here, as a synchronous one would.
+    chunk is complete on disk, so the manifest never lists a sample still being written.
     """
     from .formats import figshare_rows
-    from .pipeline import write_sample
 
     w = _WORKER
     out = []
     for index in indices:
         sid = sample_id(index)
         try:
-            images, arrays, meta, decode = synthesize_deferred(index, w["seed"], w["assets"], w["config"],
-                                                               w["renderer"], noise_free=w["noise_free"])
+            images, arrays, meta = synthesize(index, w["seed"], w["assets"], w["config"], w["renderer"],
+                                              noise_free=w["noise_free"])
         except SampleError as exc:
             out.append((index, None, str(exc), None))
             continue
-        w["writer"].submit(write_sample, w["out"], sid, images, arrays, meta, decode)
+        w["writer"].submit(write_sample_folder, w["out"], sid, images, arrays, meta)
         rows = figshare_rows(images["fringe.png"], arrays, w["label"]) if w["label"] is not None else None
         out.append((index, manifest_record(sid, meta), None, rows))
     w["writer"].flush()

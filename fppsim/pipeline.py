@@ -1,8 +1,7 @@
 """Overlapping output with rendering: a background writer thread and figshare rows streamed from memory.
 
 :class:`BackgroundWriter` runs sample writes (PNG encoding, deflate, file IO: all release the GIL) on
-one thread while the caller synthesises the next sample; :func:`write_sample` is that job, the
-sample's PSP decode included (:func:`fppsim.synth.synthesize_deferred`). :class:`FigshareRows` fills ``f1_80.npy`` and
+one thread while the caller synthesises the next sample. :class:`FigshareRows` fills ``f1_80.npy`` and
 ``Z.npy`` from the in-memory arrays as samples finish, so a figshare run need not read every native
 sample back at the end; the rows are computed by the very functions :func:`fppsim.formats.export_figshare`
 uses (:func:`fppsim.formats.figshare_rows`), so the files are identical.
@@ -20,19 +19,8 @@ import numpy as np
 from ._fs import tmp_path
 from .errors import DatasetError
 from .formats import figshare_rows  # noqa: F401  (re-exported: the rows export_figshare writes)
-from .formats import write_sample_folder
 
-__all__ = ["BackgroundWriter", "FigshareRows", "figshare_rows", "write_sample"]
-
-
-def write_sample(root: Path, sid: str, images: dict, arrays: dict, meta: dict, decode=None) -> None:
-    """Write one sample folder (:func:`fppsim.formats.write_sample_folder`) after finishing its deferred
-    PSP decode (``decode``: a :class:`fppsim.synth.DeferredDecode`, or None): the writer thread's job
-    per sample, so the decode runs while the caller renders the next sample. The folder gets the
-    arrays :func:`fppsim.synth.synthesize` would have returned; a failing decode leaves no folder."""
-    if decode is not None:
-        arrays = decode.complete(arrays)
-    write_sample_folder(root, sid, images, arrays, meta)
+__all__ = ["BackgroundWriter", "FigshareRows", "figshare_rows"]
 
 
 class BackgroundWriter:

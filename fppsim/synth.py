@@ -21,8 +21,7 @@ from .jitter import RigJitter, jitter_rig
 from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
 
-__all__ = ["SynthConfig", "SampleError", "synthesize", "synthesize_deferred", "DeferredDecode", "render_images",
-           "psp_decode"]
+__all__ = ["SynthConfig", "SampleError", "synthesize", "render_images", "psp_decode"]
 
 
 @dataclass
@@ -182,20 +181,6 @@ def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, 
     }
 
 
-@dataclass(frozen=True)
-class DeferredDecode:
-    """The PSP decode of one sample, left for later (e.g. the writer thread, while the next sample
-    renders): :meth:`complete` returns the sample's arrays with ``phase_psp``, ``height_psp`` and
-    ``mask_psp`` added after the others, the arrays :func:`synthesize` returns."""
-
-    stacks: dict
-    rig: Rig
-    freqs: tuple
-
-    def complete(self, arrays: dict) -> dict:
-        return {**arrays, **psp_decode(self.stacks, self.rig, self.freqs)}
-
-
 def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConfig,
                renderer: DepthRenderer, noise_free: bool = False) -> tuple[dict, dict, dict]:
     """Produce sample ``index``: ``(images, arrays, meta)``.
@@ -206,15 +191,6 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         and lit), and with PSP phase_psp, height_psp, mask_psp.
     meta : everything needed to reproduce the sample.
     """
-    images, arrays, meta, decode = synthesize_deferred(index, seed, assets, config, renderer, noise_free)
-    return images, (arrays if decode is None else decode.complete(arrays)), meta
-
-
-def synthesize_deferred(index: int, seed: int, assets: list[MeshAsset], config: SynthConfig,
-                        renderer: DepthRenderer, noise_free: bool = False) -> tuple[dict, dict, dict, DeferredDecode | None]:
-    """:func:`synthesize` without its last step: ``(images, arrays, meta, decode)`` where ``arrays``
-    lacks the PSP decode and ``decode.complete(arrays)`` adds it (``decode`` is None without PSP).
-    Nothing else of the sample (meta, its statistics, the figshare rows) depends on the decode."""
     k = config.supersample
     cam = config.rig.camera
     # Render a margin around the image so the camera blur sees real scene content at the borders
@@ -262,10 +238,9 @@ def synthesize_deferred(index: int, seed: int, assets: list[MeshAsset], config: 
         "phase_true": np.where(seen, rig.phase_of_column(geom.u_p), 0.0).astype(np.float32),
         "mask": mask.astype(np.float32),
     }
-    decode = None
     if config.psp_freqs:
         stacks = {f: [images[f"psp/f{f}_s{n}.png"] for n in range(config.psp_steps)] for f in config.psp_freqs}
-        decode = DeferredDecode(stacks, rig, tuple(config.psp_freqs))
+        arrays.update(psp_decode(stacks, rig, tuple(config.psp_freqs)))
 
     fringe = images["fringe.png"]
     # one partition for both, of the sorted image rebuilt from its histogram (the same values)
@@ -298,4 +273,4 @@ def synthesize_deferred(index: int, seed: int, assets: list[MeshAsset], config: 
             "intensity_p99": float(p99),
         },
     }
-    return images, arrays, meta, decode
+    return images, arrays, meta

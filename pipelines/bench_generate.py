@@ -42,26 +42,14 @@ def _pipeline_block(indices, assets, config, renderer, writer, tmp, write):
     except ImportError:  # trees before the dataset contract module (fppsim.dataset)
         from fppsim.dataset import write_sample_folder
     from fppsim.synth import synthesize
-    try:  # the PSP decode runs on the writer thread (fppsim.generation._worker_run_chunk)
-        from fppsim.pipeline import write_sample
-        from fppsim.synth import synthesize_deferred
-    except ImportError:  # trees before it: decoded in synthesize
-        synthesize_deferred = None
 
     attempts = {}
     w0, c0 = time.perf_counter(), time.process_time()
     for i in indices:
-        if synthesize_deferred is not None:
-            images, arrays, meta, decode = synthesize_deferred(i, 0, assets, config, renderer)
-            if write:
-                writer.submit(write_sample, tmp, f"{i:06d}", images, arrays, meta, decode)
-            elif decode is not None:
-                decode.complete(arrays)
-        else:
-            images, arrays, meta = synthesize(i, 0, assets, config, renderer)
-            if write:
-                writer.submit(write_sample_folder, tmp, f"{i:06d}", images, arrays, meta)
+        images, arrays, meta = synthesize(i, 0, assets, config, renderer)
         attempts[i] = meta["attempt"]
+        if write:
+            writer.submit(write_sample_folder, tmp, f"{i:06d}", images, arrays, meta)
     if write:
         writer.flush()
     return time.perf_counter() - w0, time.process_time() - c0, attempts
