@@ -90,6 +90,39 @@ def _single_sample_framebuffer(offscreen) -> None:
     inner._configure_main_framebuffer = single_sampled
 
 
+def _keep_shader_programs(offscreen) -> None:
+    """Make pyrender reuse its compiled shader programs (one GL context per off-screen renderer).
+
+    pyrender keys its program cache by ``OpenGL.contextdata.getContext()``, which under OSMesa is a new
+    ctypes pointer object on every call (hashed by identity): no lookup ever hits, so each draw call
+    compiled and linked a fresh program (about 1-2 ms) and kept it until the renderer closed. This
+    renderer owns one context, so the cache is keyed by shader files and defines alone; the programs
+    are pyrender's own, compiled from the same sources, so the depth is unchanged.
+    """
+    from pyrender.shader_program import ShaderProgramCache
+
+    class OneContextProgramCache(ShaderProgramCache):
+        def __init__(self):
+            super().__init__()
+            self._by_source = {}
+
+        def get_program(self, vertex_shader, fragment_shader, geometry_shader=None, defines=None):
+            key = (vertex_shader, fragment_shader, geometry_shader, tuple(sorted((defines or {}).items())))
+            program = self._by_source.get(key)
+            if program is None:
+                program = super().get_program(vertex_shader, fragment_shader, geometry_shader, defines)
+                self._by_source[key] = program
+            return program
+
+        def clear(self):
+            super().clear()
+            self._by_source = {}
+
+    inner = offscreen._renderer
+    if getattr(inner, "_program_cache", None) is not None and not inner._program_cache._program_cache:
+        inner._program_cache = OneContextProgramCache()
+
+
 class DepthRenderer:
     """Reusable pyrender off-screen depth renderer.
 
@@ -137,6 +170,7 @@ class DepthRenderer:
                                    f"or try --backend {'osmesa' if self.backend == 'egl' else 'egl'})") from None
             if self.backend == "egl":
                 _single_sample_framebuffer(offscreen)
+            _keep_shader_programs(offscreen)
             self._slots[key] = (offscreen, scene, {})
         return self._slots[key]
 
