@@ -206,23 +206,16 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
     return PhaseShift(phase=phase_from_sums(s, c), background=A, modulation=(2.0 / n) * np.hypot(s, c))
 
 
-def _exact_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
-    """``(A, PCos, PSin)`` of an unsigned-integer stack by integer arithmetic, or None.
+def _exact_int_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
+    """``[(acc, scale, weights)]`` per weight row (A, PCos, PSin) of an unsigned-integer stack, with
+    ``acc * scale`` the exact float64 weighted sum, or None.
 
     When every weight is ``k / 2**m`` (``m <= max_bits``; the four-step weights 1/4, 0, +-1 are) and the
     images are unsigned integers of at most 16 bits, every product and partial sum of the float64
     weighted sum is exactly representable, so the float result does not depend on the summation order:
     summing ``k * I`` in integers and scaling by ``2**-m`` gives the very same float64 bits, several times
     faster than converting the stack to float64. Each row needs a positive weight so that a zero sum is
-    +0.0 on both paths (non-negative images). See :func:`_exact_int_sums`.
-    """
-    sums = _exact_int_sums(I, w, max_bits)
-    return None if sums is None else tuple(acc * scale for acc, scale, _ in sums)
-
-
-def _exact_int_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
-    """``[(acc, scale, weights)]`` per weight row with ``acc * scale`` the exact float64 weighted sum,
-    or None.
+    +0.0 on both paths (non-negative images).
 
     ``acc`` is the integer sum with the row's integer ``weights``, ``k = w * 2**m`` divided by their
     common divisor ``g`` (four-step PCos: ``I0 - I2``), and ``scale = g / 2**m``: ``acc * scale`` equals

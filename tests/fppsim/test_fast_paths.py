@@ -35,11 +35,11 @@ def test_integer_phase_sums_equal_float_path_bitwise(steps, dtype):
 
 def test_integer_path_only_for_exact_cases():
     w4 = psp._shift_weights(psp.phase_shifts(4))
-    assert psp._exact_sums(np.zeros((4, 2, 2), np.uint8), w4) is not None
-    assert psp._exact_sums(np.zeros((4, 2, 2), np.float32), w4) is None  # floats: tensordot
-    assert psp._exact_sums(np.zeros((4, 2, 2), np.int16), w4) is None  # signed: -0.0 possible
+    assert psp._exact_int_sums(np.zeros((4, 2, 2), np.uint8), w4) is not None
+    assert psp._exact_int_sums(np.zeros((4, 2, 2), np.float32), w4) is None  # floats: tensordot
+    assert psp._exact_int_sums(np.zeros((4, 2, 2), np.int16), w4) is None  # signed: -0.0 possible
     w3 = psp._shift_weights(psp.phase_shifts(3))
-    assert psp._exact_sums(np.zeros((3, 2, 2), np.uint8), w3) is None  # sin(2 pi/3) is not dyadic
+    assert psp._exact_int_sums(np.zeros((3, 2, 2), np.uint8), w3) is None  # sin(2 pi/3) is not dyadic
 
 
 def test_camera_rays_cache_matches_and_is_read_only():
