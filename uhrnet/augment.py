@@ -24,7 +24,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 import torch
 
-__all__ = ["AugmentConfig", "AUGMENTS", "augment_config", "augment_fringe", "augment_sample"]
+__all__ = ["AugmentConfig", "AUGMENTS", "augment_kind", "augment_config", "augment_fringe", "augment_sample"]
 
 
 @dataclass(frozen=True)
@@ -64,13 +64,18 @@ AUGMENTS = {
 }
 
 
+def augment_kind(value):
+    """The name in :data:`AUGMENTS` of a train option value; older runs stored a boolean (True:
+    ``photometric``, False: ``off``). Other values come back unchanged."""
+    if isinstance(value, bool):
+        return "photometric" if value else "off"
+    return value
+
+
 def augment_config(kind) -> AugmentConfig | None:
-    """The :class:`AugmentConfig` of a train option value: a name of :data:`AUGMENTS`, or the boolean
-    older runs stored (True: ``photometric``, False: ``off``)."""
-    if isinstance(kind, bool):
-        kind = "photometric" if kind else "off"
+    """The :class:`AugmentConfig` of a train option value (see :func:`augment_kind`)."""
     try:
-        return AUGMENTS[kind]
+        return AUGMENTS[augment_kind(kind)]
     except (KeyError, TypeError):
         raise ValueError(f"augmentation {kind!r}: choose from {', '.join(AUGMENTS)}") from None
 
@@ -118,15 +123,17 @@ def augment_fringe(fringe: np.ndarray, valid: np.ndarray, rng: np.random.Generat
     noise = rng.uniform(*cfg.noise)
     shot = rng.uniform(*cfg.shot)
     I = (x + 1.0) * 127.5
-    if cfg.envelope > 0:  # shading and albedo unrelated to height: the phase must carry the relief
-        amp_b, amp_m = rng.uniform(0.0, cfg.envelope, 2)
-        field_b = _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale))
-        field_m = _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale))
+    if cfg.envelope > 0 or contrast != 1.0:
+        # the fringe around its local background (about two periods wide): contrast scales it, and the
+        # shading fields vary background and modulation apart, unrelated to height (the phase must
+        # carry the relief); without them both factors are exactly 1
+        scale_b = scale_m = 1.0
+        if cfg.envelope > 0:
+            amp_b, amp_m = rng.uniform(0.0, cfg.envelope, 2)
+            scale_b = np.exp(amp_b * _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale)))
+            scale_m = np.exp(amp_m * _smooth_field(I.shape, rng, rng.uniform(*cfg.envelope_scale)))
         background = _gauss(I, 6.0)
-        I = background * np.exp(amp_b * field_b) + contrast * np.exp(amp_m * field_m) * (I - background)
-    elif contrast != 1.0:  # scale the fringe around its local background (about two periods wide)
-        background = _gauss(I, 6.0)
-        I = background + contrast * (I - background)
+        I = background * scale_b + contrast * scale_m * (I - background)
     I = I * gain * (1.0 + field_amp * _smooth_field(I.shape, rng))
     I = 255.0 * (np.clip(I, 0.0, None) / 255.0) ** gamma
     I = _gauss(I, blur)

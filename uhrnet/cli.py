@@ -32,6 +32,7 @@ DEVICES = ("auto", "cpu", "cuda")
 # ============================================================================ train
 def add_train(p: argparse.ArgumentParser) -> None:
     from fppsim.formats import PRESETS
+    from uhrnet.augment import AUGMENTS
     from uhrnet.reading import LABEL_SOURCES
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
@@ -60,7 +61,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
     d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
-    d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=("shading", "photometric", "off"),
+    d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=tuple(AUGMENTS),
                    metavar="KIND",
                    help="augmentation of synthetic samples (uhrnet.augment; real samples never): 'photometric' "
                         "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "

@@ -152,8 +152,10 @@ def _normalise(key: str, value):
         return [str(Path(v).resolve()) for v in (value or [])]
     if key in ("label_transform", "model_option"):
         return sorted(value or [])
-    if key == "augment" and isinstance(value, bool):  # runs saved before the augmentation kinds
-        return "photometric" if value else "off"
+    if key == "augment":  # runs saved before the augmentation kinds hold a boolean
+        from uhrnet.augment import augment_kind
+
+        return augment_kind(value)
     return value
 
 
