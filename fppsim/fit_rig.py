@@ -27,7 +27,7 @@ import numpy as np
 
 from .rig import Device, Rig, RigError
 
-__all__ = ["PARAMETERS", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
+__all__ = ["PARAMETERS", "poly_basis", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
            "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "format_fit", "surface_phase",
            "centre_sensitivity", "SensitivityCheck", "sensitivity_check", "BaselineFit", "fit_baseline",
            "format_baseline_fit"]
@@ -199,7 +199,7 @@ class FringeImage:
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 
 
-def _poly_basis(h: int, w: int, degree: int) -> np.ndarray:
+def poly_basis(h: int, w: int, degree: int) -> np.ndarray:
     """(h*w, n) monomials x^i y^j, i + j <= degree, of pixel coordinates scaled to [-1, 1]."""
     yy, xx = np.mgrid[0:h, 0:w]
     x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
@@ -215,7 +215,7 @@ def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, pla
     object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
     """
     h, w = phase.shape
-    A = _poly_basis(h, w, degree)
+    A = poly_basis(h, w, degree)
     b = phase.ravel()
     use = valid.ravel() & np.isfinite(b)
     if use.sum() < 4 * A.shape[1]:
@@ -552,7 +552,7 @@ def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree:
     cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
     d = np.angle(cs)
     du = unwrap_phase(np.ma.array(d, mask=~plane))
-    A = _poly_basis(*d.shape, degree)
+    A = poly_basis(*d.shape, degree)
     coef = np.linalg.lstsq(A[plane.ravel()], np.asarray(du)[plane], rcond=None)[0]
     r = np.angle(np.exp(1j * (d - (A @ coef).reshape(d.shape))))
     ro, ho = r[obj], h[obj]

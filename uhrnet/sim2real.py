@@ -313,6 +313,8 @@ def fringe_twins(fringe: np.ndarray, valid: np.ndarray, plane: np.ndarray, degre
     from scipy import ndimage as ndi
     from skimage.restoration import unwrap_phase
 
+    from fppsim.fit_rig import poly_basis
+
     f = np.asarray(fringe, np.float64)
     valid = np.asarray(valid, bool)
     plane = np.asarray(plane, bool) & valid
@@ -333,11 +335,9 @@ def fringe_twins(fringe: np.ndarray, valid: np.ndarray, plane: np.ndarray, degre
     inner = ndi.binary_erosion(plane, iterations=int(np.ceil(smooth)))
     fit_on = inner if inner.sum() >= 100 else plane
     d = np.asarray(unwrap_phase(np.ma.array(np.angle(cs), mask=~fit_on)))
-    yy, xx = np.mgrid[0:hgt, 0:wid]
-    u, v = xx / max(wid - 1, 1) * 2 - 1, yy / max(hgt - 1, 1) * 2 - 1
-    basis = np.stack([u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)], -1)
-    coef = np.linalg.lstsq(basis[fit_on], d[fit_on], rcond=None)[0]
-    carrier = 2 * np.pi * k * x / wid + basis @ coef
+    basis = poly_basis(hgt, wid, degree)
+    coef = np.linalg.lstsq(basis[fit_on.ravel()], d[fit_on], rcond=None)[0]
+    carrier = 2 * np.pi * k * x / wid + (basis @ coef).reshape(hgt, wid)
 
     def enc(img):
         return np.where(valid, np.clip(img, -1.0, 1.0), -1.0).astype(np.float32)
