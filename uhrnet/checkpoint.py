@@ -5,11 +5,13 @@ loads with ``weights_only=True``::
 
     format "uhrnet-checkpoint", version 1
     model            {"name", "config"}   build_model(**config) rebuilds the architecture
-    state_dict       the model's weights (the bare model, not a DDP/affine wrapper)
+    state_dict       the model's weights (the bare model, not a DDP/affine wrapper); with ``--ema``
+                     their moving average, the weights every use of the checkpoint should see
     output           {"scale", "shift"}   label = network output * scale + shift
     label_transform  LabelTransform.to_dict()
     epoch            number of finished epochs
     optimizer, scaler, loss, rng, best, history, args, data   (for --resume)
+    train_state_dict, ema {"decay", "updates"}                  (with --ema, for --resume)
 """
 
 from __future__ import annotations

@@ -83,6 +83,10 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "constant keeps --lr [cosine]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
+    m.add_argument("--ema", type=float, metavar="DECAY",
+                   help="keep an exponential moving average of the weights, updated after every optimizer step "
+                        "with this decay (ramped up as min(DECAY, (1+n)/(10+n)) over the first steps); validation, "
+                        "best.pt and the checkpoints' weights use the average; 0 turns it off [0.998]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
@@ -283,7 +287,8 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS
 
     parser.description = (
-        "Export a checkpoint's model (batch norms folded, UHRNet blocks merged: the same function) as ONNX or "
+        "Export a checkpoint's model (batch norms folded; for TorchScript also UHRNet blocks merged: the same "
+        "function) as ONNX or "
         "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
         f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
         f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "

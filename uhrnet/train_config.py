@@ -26,15 +26,15 @@ DEFAULTS = {
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine",
+    "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.998,
 }
 # what a run made before an option existed used: resuming it must not switch the option on
-LEGACY = {"augment": "off", "lr_schedule": "constant"}
+LEGACY = {"augment": "off", "lr_schedule": "constant", "ema": 0.0}
 LR_SCHEDULES = ("cosine", "constant")
 LR_FLOOR = 0.05  # the cosine schedule ends at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule")
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema")
 
 
 @dataclass
@@ -45,7 +45,9 @@ class TrainConfig:
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
     already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
-    :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs).
+    ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
+    ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
     """
 
@@ -73,6 +75,7 @@ class TrainConfig:
     lr: float | None = None
     weight_decay: float | None = None
     grad_clip: float | None = None
+    ema: float | None = None
     amp: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
@@ -131,6 +134,8 @@ def check_options(cfg: dict) -> None:
             raise UsageError(f"--augment: {exc}") from None
     if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
+    if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
+        raise UsageError(f"--ema must be a decay in [0, 1) (0: off), got {cfg['ema']}")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 

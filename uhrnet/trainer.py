@@ -106,6 +106,13 @@ class Trainer:
         scale, shift = (1.0, 0.0) if cfg["raw_output"] else (10.0 * self.transform.units_per_mm,
                                                              self.transform.plane_offset)
         self.model = LabelHead(net, scale, shift).to(self.device)
+        self.ema = None
+        self.eval_model = self.model
+        if cfg["ema"]:
+            from uhrnet.ema import WeightEMA
+
+            self.ema = WeightEMA(net, cfg["ema"])
+            self.eval_model = LabelHead(self.ema.module, scale, shift)
         if info.enabled:
             torch.manual_seed(cfg["seed"] + 1_000_003 * info.rank)  # distinct dropout streams per rank
             from torch.nn.parallel import DistributedDataParallel as DDP
@@ -130,7 +137,11 @@ class Trainer:
     def _restore(self, ckpt: dict) -> None:
         if ckpt["model"]["config"] != self.net.config:
             raise CheckpointError(f"{ckpt['path']}: model {ckpt['model']['config']} differs from {self.net.config}")
-        self.net.load_state_dict(ckpt["state_dict"])
+        # with --ema, "state_dict" holds the average (what every later use loads) and "train_state_dict"
+        # the optimised weights
+        self.net.load_state_dict(ckpt.get("train_state_dict", ckpt["state_dict"]))
+        if self.ema is not None:
+            self.ema.load_state_dict(ckpt["state_dict"], ckpt["ema"]["updates"])
         self.optimizer.load_state_dict(ckpt["optimizer"])
         for group in self.optimizer.param_groups:  # --lr / --weight-decay may change on resume
             group["lr"], group["weight_decay"] = self.cfg["lr"], self.cfg["weight_decay"]
@@ -206,6 +217,8 @@ class Trainer:
                 torch.nn.utils.clip_grad_norm_(self.net.parameters(), self.cfg["grad_clip"])
             self.scaler.step(self.optimizer)
             self.scaler.update()
+            if self.ema is not None:
+                self.ema.update()
             sums.add("loss", loss.detach().double().cpu().reshape(1))
             r, s = image_metrics(outs[0], y, m, self.transform)
             sums.add("rmse", r)
@@ -220,12 +233,12 @@ class Trainer:
     def validate(self) -> dict:
         if len(self.val_set) == 0:
             return {}
-        self.model.eval()
+        self.eval_model.eval()
         sums = MetricSums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"])
         for batch in self.val_loader:
             x, y, m = self._batch(batch)
             with self._autocast():
-                pred = self.model(x)
+                pred = self.eval_model(x)
             r, s = image_metrics(pred, y, m, self.transform)
             sums.add("rmse", r)
             sums.add("ssim", s)
@@ -252,7 +265,9 @@ class Trainer:
         return {
             "format": FORMAT, "version": VERSION,
             "model": {"name": self.net.config["name"], "config": dict(self.net.config)},
-            "state_dict": self.net.state_dict(),
+            "state_dict": (self.ema.state_dict() if self.ema is not None else self.net.state_dict()),
+            **({"train_state_dict": self.net.state_dict(),
+                "ema": {"decay": self.ema.decay, "updates": self.ema.updates}} if self.ema is not None else {}),
             "output": {"scale": self.model.scale, "shift": self.model.shift},
             "label_transform": self.transform.to_dict(),
             "epoch": epoch,

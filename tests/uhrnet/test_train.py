@@ -78,6 +78,7 @@ def test_tiny_uhrnet_learns_generated_samples(tmp_path, one_thread):
                "--crop", "128x256", "--epochs", "10", "--batch-size", "2", "--lr", "3e-3", "--loss", "l2",
                "--lr-schedule", "constant",  # capacity check: 70 steps at the full rate
                "--augment", "photometric",  # the shading fields slow a 70-step tiny model down
+               "--ema", "0",  # capacity of the optimised weights, not of an average lagging 70 steps
                "--out", str(tmp_path / "run"), "--no-progress"])
     assert rc == 0
     best = min(float(r["val_rmse_mm"]) for r in history(tmp_path / "run"))
@@ -105,8 +106,10 @@ def test_resume_equals_uninterrupted(tmp_path, one_thread):
     assert _train(tmp_path / "part", data, 3, ["--resume"]) == 0
     a, b = load_checkpoint(tmp_path / "full" / "last.pt"), load_checkpoint(tmp_path / "part" / "last.pt")
     assert a["epoch"] == b["epoch"] == 3
-    for k, v in a["state_dict"].items():
-        assert torch.equal(v, b["state_dict"][k]), k
+    assert a["ema"] == b["ema"] and a["ema"]["updates"] > 0  # the default keeps a weight average
+    for key in ("state_dict", "train_state_dict"):
+        for k, v in a[key].items():
+            assert torch.equal(v, b[key][k]), (key, k)
     for k, v in a["loss"].items():
         assert torch.equal(v, b["loss"][k]), k
     ha, hb = history(tmp_path / "full"), history(tmp_path / "part")
@@ -290,3 +293,67 @@ def test_augment_option_on_resume_of_older_runs():
     assert resolve_config(TrainConfig(out="r"))["augment"] == "shading"
     with pytest.raises(UsageError, match="--augment"):
         TrainConfig(out="r", augment="strong")
+
+
+def test_weight_average_follows_the_formula():
+    """WeightEMA against the recurrence computed independently in float64 numpy."""
+    from uhrnet.ema import WeightEMA
+
+    torch.manual_seed(0)
+    net = torch.nn.Sequential(torch.nn.Conv2d(1, 3, 3), torch.nn.BatchNorm2d(3))
+    ema = WeightEMA(net, 0.9)
+    ref = {k: v.detach().double().numpy().copy() for k, v in net.state_dict().items()}
+    rng = np.random.default_rng(1)
+    for n in range(1, 41):
+        with torch.no_grad():
+            for p in net.parameters():
+                p.add_(torch.from_numpy(rng.normal(size=tuple(p.shape)).astype(np.float32)))
+            net(torch.randn(2, 1, 8, 8))  # training-mode BN moves its running statistics and step counter
+        d = min(0.9, (1 + n) / (10 + n))
+        assert ema.update() == pytest.approx(d)
+        for k, v in net.state_dict().items():
+            w = v.detach().double().numpy()
+            ref[k] = w.copy() if k.endswith("num_batches_tracked") else d * ref[k] + (1 - d) * w
+    for k, v in ema.state_dict().items():
+        np.testing.assert_allclose(v.double().numpy(), ref[k], rtol=1e-5, atol=1e-5, err_msg=k)
+    assert int(ema.state_dict()["1.num_batches_tracked"]) == 40
+    assert not any(p.requires_grad for p in ema.module.parameters())
+    with pytest.raises(ValueError):
+        WeightEMA(net, 1.0)
+
+
+def test_ema_option_checks_and_older_runs():
+    from uhrnet.train_config import TrainConfig, resolve_config
+    from uhrnet.errors import ConfigError, UsageError
+
+    assert resolve_config(TrainConfig(out="r"))["ema"] == 0.998
+    assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": []})["ema"] == 0.0  # before --ema
+    with pytest.raises(ConfigError, match="--ema 0.99 differs"):
+        resolve_config(TrainConfig(out="r", ema=0.99), {"synthetic": [], "real": [], "ema": 0.998})
+    for bad in (1.0, -0.1, float("nan")):
+        with pytest.raises(UsageError, match="--ema"):
+            TrainConfig(out="r", ema=bad)
+
+
+def test_checkpoint_holds_the_average_and_validation_uses_it(tmp_path, one_thread):
+    """With --ema the checkpoint's weights are the average, the optimised ones ride along for --resume,
+    and the logged validation RMSE is that of the checkpoint's weights."""
+    from uhrnet.metrics import image_metrics
+
+    data = (tmp_path / "real", tmp_path / "syn")
+    write_figshare(data[0], n=8, h=32, w=64, seed=1)
+    write_native(data[1], n=8, h=32, w=64, seed=2)
+    assert _train(tmp_path / "ema", data, 2, ["--ema", "0.5"]) == 0
+    ck = load_checkpoint(tmp_path / "ema" / "last.pt")
+    assert ck["ema"]["decay"] == 0.5 and ck["ema"]["updates"] > 0
+    assert any(not torch.equal(v, ck["train_state_dict"][k]) for k, v in ck["state_dict"].items()
+               if v.is_floating_point())
+    model, transform = model_from_checkpoint(ck)  # the averaged weights
+    val = Prepared(load_sources(*([d] for d in data), transform).val, (16, 32), None, random_crop=False)
+    with torch.no_grad():
+        r = [float(image_metrics(model(val[i]["fringe"][None]), val[i]["height"][None], val[i]["mask"][None],
+                                 transform)[0][0]) for i in range(len(val))]
+    assert float(history(tmp_path / "ema")[-1]["val_rmse_mm"]) == pytest.approx(np.nanmean(r), rel=1e-4)
+    assert _train(tmp_path / "off", data, 2, ["--ema", "0"]) == 0
+    off = load_checkpoint(tmp_path / "off" / "last.pt")
+    assert "train_state_dict" not in off and "ema" not in off
