@@ -94,8 +94,8 @@ def render(folder: Path, note: str | None = None) -> str:
         lines += [
             "## uhrnet bench (forward time per image, median)",
             "",
-            "`best ms` is the fastest deployable torch form (`--optimize`: batch norms folded, UHRNet blocks "
-            "merged, channels_last, torch.compile), each checked to match the eager model within 1e-4 of the "
+            "`best ms` is the fastest deployable torch form (`--optimize`: batch norms folded; + channels_last; "
+            "+ torch.compile), each checked to match the eager model within 1e-4 of the "
             "output range; `onnxruntime ms` runs the folded ONNX export.",
             "",
             "| file | device | input | model | base | parameters | eager ms | best ms | best form | onnxruntime ms | train step ms |",

@@ -86,7 +86,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--ema", type=float, metavar="DECAY",
                    help="keep an exponential moving average of the weights, updated after every optimizer step "
                         "with this decay (ramped up as min(DECAY, (1+n)/(10+n)) over the first steps); validation, "
-                        "best.pt and the checkpoints' weights use the average; 0 turns it off [0.998]")
+                        "best.pt and the checkpoints' weights use the average; e.g. 0.998 (about 500 steps); 0: off [0]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
@@ -221,9 +221,9 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
                              "give the eager model's output within 1e-4 x its range) and report the fastest torch "
                              "form as forward ms")
     parser.add_argument("--variants", nargs="+", default=list(OPT_VARIANTS), choices=list(OPT_VARIANTS), metavar="V",
-                        help="forms tried by --optimize: fold (batch norms folded, UHRNet blocks merged, "
-                             "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), "
-                             "onnxruntime (ONNX export of fold run by onnxruntime; a column of its own) "
+                        help="forms tried by --optimize: fold (batch norms folded, "
+                             "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime (the "
+                             "ONNX export of fold, a column of its own) "
                              f"(default: {' '.join(OPT_VARIANTS)})")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
 
@@ -287,8 +287,7 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS
 
     parser.description = (
-        "Export a checkpoint's model (batch norms folded; for TorchScript also UHRNet blocks merged: the same "
-        "function) as ONNX or "
+        "Export a checkpoint's model (batch norms folded: the same function) as ONNX or "
         "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
         f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
         f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "

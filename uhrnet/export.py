@@ -1,8 +1,7 @@
 """``uhrnet export``: a checkpoint's model as ONNX or TorchScript, batch norms folded, checked.
 
 The exported model is the checkpoint's network in eval mode, batch norms folded into the convolutions
-(and, for TorchScript, each UHRNet Multi-Level conv Block merged into five convolutions; see
-:mod:`uhrnet.optimize`), with the label head: input ``fringe`` ``(N, in_channels, H, W)`` float32,
+(:mod:`uhrnet.optimize`), with the label head: input ``fringe`` ``(N, in_channels, H, W)`` float32,
 the fringe normalised to [-1, 1] as in training; output ``label`` ``(N, out_channels, H, W)`` float32
 in label units (what ``uhrnet predict`` converts to millimetres). H and W must be multiples of 16;
 with ``dynamic=True`` the ONNX batch, height and width are free (TorchScript traces are always
@@ -57,17 +56,17 @@ def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> tor
     return torch.rand((1, in_channels, height, width), generator=g) * 2 - 1
 
 
-def deployable(model: nn.Module, format: str = "torchscript") -> nn.Module:
-    """``model`` (e.g. a LabelHead) with batch norms folded, eval mode; for TorchScript also UHRNet's
-    blocks merged.
+def deployable(model: nn.Module) -> nn.Module:
+    """``model`` (e.g. a LabelHead) with batch norms folded, eval mode.
 
-    ONNX keeps the blocks unmerged: onnxruntime runs convolutions in a blocked channel layout (NCHWc)
-    and fuses a following residual add and LeakyReLU into them, but the merged block's channel splits
-    force a layout conversion around every convolution (97 reorder nodes in UHRNet against 34 unmerged).
+    UHRNet's blocks are not merged (:func:`uhrnet.optimize.merge_multilevel_blocks`): onnxruntime runs
+    convolutions in a blocked channel layout (NCHWc) and fuses a following residual add and LeakyReLU
+    into them, but the merged block's channel splits force a layout conversion around every
+    convolution (97 reorder nodes in UHRNet against 34 unmerged); torch runs them slower too.
     """
     from .optimize import prepare_for_inference
 
-    return prepare_for_inference(model, merge_blocks=format != "onnx")
+    return prepare_for_inference(model)
 
 
 def export_model(
@@ -81,7 +80,7 @@ def export_model(
 ) -> Path:
     """Write ``model`` (eval mode, single-tensor output) to ``out`` as ONNX or TorchScript.
 
-    ``optimize``: fold batch norms (and, for TorchScript, merge UHRNet blocks) first (same function). The file is written
+    ``optimize``: fold batch norms first (same function). The file is written
     next to ``out`` under a temporary name and renamed, so an existing file is replaced only by a
     complete export. Returns ``out``.
     """
@@ -91,7 +90,7 @@ def export_model(
     if h % 16 or w % 16 or h < 16 or w < 16:
         raise ExportError(f"height and width must be positive multiples of 16, got {h}x{w}")
     model = model.eval()
-    net = deployable(model, format) if optimize else model
+    net = deployable(model) if optimize else model
     x = check_input(c, h, w).expand(n, c, h, w).contiguous()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

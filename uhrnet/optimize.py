@@ -189,9 +189,13 @@ def merge_multilevel_blocks(model: nn.Module, inplace: bool = False) -> nn.Modul
     return model
 
 
-def prepare_for_inference(model: nn.Module, merge_blocks: bool = True, channels_last: bool = False) -> nn.Module:
-    """The deployable eager form of ``model``: a folded (and, for UHRNet, branch-merged) copy in eval
-    mode with gradients off, optionally in the channels_last memory format.
+def prepare_for_inference(model: nn.Module, merge_blocks: bool = False, channels_last: bool = False) -> nn.Module:
+    """The deployable eager form of ``model``: a folded (with ``merge_blocks``, for UHRNet, also
+    branch-merged) copy in eval mode with gradients off, optionally in the channels_last memory format.
+
+    The blocks stay unmerged by default: at 352 x 640 on a 2-core AVX-512 CPU the unmerged UHRNet ran
+    5 % (contiguous), 10 % (channels_last) and 10 % (onnxruntime) faster than the merged one
+    (docs/BENCHMARKS.md); the merge trades launches for channel splits and copies, which cost more.
 
     Same function as ``model.eval()`` up to float32 rounding. ``torch.compile`` is left to the caller
     (it helps some models on some machines; ``uhrnet bench --optimize`` measures it).

@@ -78,7 +78,6 @@ def test_tiny_uhrnet_learns_generated_samples(tmp_path, one_thread):
                "--crop", "128x256", "--epochs", "10", "--batch-size", "2", "--lr", "3e-3", "--loss", "l2",
                "--lr-schedule", "constant",  # capacity check: 70 steps at the full rate
                "--augment", "photometric",  # the shading fields slow a 70-step tiny model down
-               "--ema", "0",  # capacity of the optimised weights, not of an average lagging 70 steps
                "--out", str(tmp_path / "run"), "--no-progress"])
     assert rc == 0
     best = min(float(r["val_rmse_mm"]) for r in history(tmp_path / "run"))
@@ -101,12 +100,12 @@ def test_resume_equals_uninterrupted(tmp_path, one_thread):
     # extending --epochs on --resume keeps the curve only at a constant rate (cosine is planned over
     # --epochs); a cosine run killed and resumed with the same --epochs: tests/test_faults.py
     const = ["--lr-schedule", "constant"]
-    assert _train(tmp_path / "full", data, 3, const) == 0
-    assert _train(tmp_path / "part", data, 1, const) == 0
+    assert _train(tmp_path / "full", data, 3, const + ["--ema", "0.9"]) == 0
+    assert _train(tmp_path / "part", data, 1, const + ["--ema", "0.9"]) == 0
     assert _train(tmp_path / "part", data, 3, ["--resume"]) == 0
     a, b = load_checkpoint(tmp_path / "full" / "last.pt"), load_checkpoint(tmp_path / "part" / "last.pt")
     assert a["epoch"] == b["epoch"] == 3
-    assert a["ema"] == b["ema"] and a["ema"]["updates"] > 0  # the default keeps a weight average
+    assert a["ema"] == b["ema"] and a["ema"]["updates"] > 0  # the average resumes exactly too
     for key in ("state_dict", "train_state_dict"):
         for k, v in a[key].items():
             assert torch.equal(v, b[key][k]), (key, k)
@@ -326,8 +325,9 @@ def test_ema_option_checks_and_older_runs():
     from uhrnet.train_config import TrainConfig, resolve_config
     from uhrnet.errors import ConfigError, UsageError
 
-    assert resolve_config(TrainConfig(out="r"))["ema"] == 0.998
+    assert resolve_config(TrainConfig(out="r"))["ema"] == 0.0
     assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": []})["ema"] == 0.0  # before --ema
+    assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": [], "ema": 0.998})["ema"] == 0.998
     with pytest.raises(ConfigError, match="--ema 0.99 differs"):
         resolve_config(TrainConfig(out="r", ema=0.99), {"synthetic": [], "real": [], "ema": 0.998})
     for bad in (1.0, -0.1, float("nan")):
