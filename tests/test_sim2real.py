@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from uhrnet.sim2real import (
-    SCALES, Sim2RealConfig, Sim2RealError, Variant, evaluate_real, generate_command, load_variants,
-    markdown_report, object_mask, parse_variant, plane_level, real_metrics, train_command,
+    SCALES, Sim2RealConfig, Sim2RealError, Variant, evaluate_level, evaluate_real, generate_command,
+    level_response, load_variants, markdown_report, object_mask, parse_variant, plane_level, real_metrics,
+    train_command,
 )
 
 from _helpers import REAL_SAMPLE, train_tiny, write_figshare
@@ -121,6 +122,9 @@ def test_markdown_report_rows():
     row = [line for line in md.splitlines() if line.startswith("| base")][0]
     assert "12.35" in row and "39.7 / 25.7" in row and "--no-augment" in row and "(defaults)" in row
     assert "| 10.0 |" in row
+    report["variants"][0]["synthetic_level"] = {"slope": -0.98, "intercept_mm": 30.4, "prior_level_mm": 31.02}
+    row = [line for line in markdown_report(report).splitlines() if line.startswith("| base")][0]
+    assert "| -0.98 / 31.0 |" in row
 
 
 def test_evaluate_real_writes_metrics_predictions_and_figure(tmp_path):
@@ -206,3 +210,75 @@ def test_fringe_twins_keep_the_envelope_and_drop_the_relief():
     assert np.ptp(np.unwrap(ref[48, 60:132])) > 3.0   # while the input's does carry it
     # the envelope (local background) keeps the object's brightness
     assert env[inner].mean() - env[plane & valid].mean() == pytest.approx(0.06, abs=0.02)
+
+
+class _LevelModel:
+    """Fake networks for level_response: ``truth`` returns the sample's own labels; ``prior`` the
+    labels with every object pixel at one level (prior_mm above the plane) plus the true relief around
+    the object's own mean (a network that reads relief but not level)."""
+
+    def __init__(self, kind, labels, plane=-97.0, prior_mm=30.0):
+        import torch
+
+        self.kind, self.labels, self.plane, self.prior_mm = kind, labels, plane, prior_mm
+        self.param = torch.nn.Parameter(torch.zeros(1))
+        self.calls = 0
+
+    def parameters(self):
+        return iter([self.param])
+
+    def eval(self):
+        return self
+
+    def __call__(self, x):
+        import torch
+
+        label = self.labels[self.calls]
+        self.calls += 1
+        out = label.copy()
+        if self.kind == "prior":
+            obj = label > self.plane + 5 * 6
+            out[obj] = label[obj] - label[obj].mean() + self.plane + 6 * self.prior_mm
+        return torch.from_numpy(out[None, None].astype(np.float32))
+
+
+def _level_samples(levels_mm, h=48, w=64, plane=-97.0):
+    import torch
+
+    rng = np.random.default_rng(3)
+    samples, labels = [], []
+    yy, xx = np.mgrid[0:h, 0:w]
+    for lv in levels_mm:
+        label = plane + rng.uniform(-0.3, 0.3, (h, w))
+        disc = (yy - 24) ** 2 + (xx - 32) ** 2 < 16 ** 2
+        label[disc] = plane + 6 * (lv + 4 * np.cos(xx[disc] / 5.0))  # relief +-4 mm on a level lv
+        labels.append(label)
+        samples.append({"fringe": torch.zeros(1, h, w), "height": torch.from_numpy(label[None].astype(np.float32)),
+                        "mask": torch.ones(1, h, w)})
+    return samples, labels
+
+
+def test_level_response_slope_zero_for_truth_and_minus_one_for_a_constant_level():
+    levels = [15.0, 22.0, 31.0, 38.0, 45.0]
+    samples, labels = _level_samples(levels)
+    exact = level_response(_LevelModel("truth", labels), samples, min_pixels=100)
+    assert exact["n_objects"] == 5 and exact["slope"] == pytest.approx(0.0, abs=1e-4)
+    assert np.isnan(exact["prior_level_mm"]) and exact["shape_rmse_mm"] == pytest.approx(0.0, abs=1e-3)
+    prior = level_response(_LevelModel("prior", labels, prior_mm=30.0), samples, min_pixels=100)
+    # bias of each object = 30 - its true mean level: slope -1, prior 30 mm, no shape error
+    truth_means = [h for h, _ in prior["objects"]]
+    # (h is measured from the estimated plane, the fake network uses the exact one: a few 1e-3 mm apart)
+    np.testing.assert_allclose([b for _, b in prior["objects"]], [30.0 - m for m in truth_means], atol=1e-2)
+    assert prior["slope"] == pytest.approx(-1.0, abs=1e-4)
+    assert prior["prior_level_mm"] == pytest.approx(30.0, abs=1e-2)
+    assert prior["shape_rmse_mm"] == pytest.approx(0.0, abs=1e-3)
+    few = level_response(_LevelModel("truth", labels), samples[:1], min_pixels=100)
+    assert few["n_objects"] == 1 and np.isnan(few["slope"])
+
+
+def test_evaluate_level_writes_the_report_file(tmp_path):
+    write_figshare(tmp_path / "syn", n=8, h=32, w=64, seed=1)
+    run = train_tiny(tmp_path / "run", "--synthetic", tmp_path / "syn", extra=["--no-augment"])
+    doc = evaluate_level(run / "last.pt", [str(tmp_path / "syn")], tmp_path / "ev", object_mm=1.0)
+    assert (tmp_path / "ev" / "synthetic_level.json").is_file()
+    assert doc["epoch"] >= 1 and doc["n_objects"] == len(doc["objects"])

@@ -32,6 +32,12 @@ the plane pixels, extended under the object) and ``envelope`` no fringes at all.
   from shading and shadows, not from the fringes, and will not transfer to other lighting;
 - ``flat_twin_object_rmse_mm`` / ``envelope_twin_object_rmse_mm``: the object RMSE of the twins.
 
+Does the network read the object's *level* (its height above the plane behind steep walls, which only
+the projector shadow tells)? :func:`level_response` on the synthetic validation split regresses each
+object's mean error on its true mean height: slope 0, the level is read; slope -1, the network
+predicts one level, the training prior (``prior_level_mm``), whatever the object. The report gives
+both (``synthetic_level``; ``eval/synthetic_level.json`` per variant).
+
 Variants (an ablation) add options to the generate and/or train commands; variants with the same
 generate options share one synthetic dataset. Every stage is resumable: a finished dataset, a finished
 run (``last.pt`` at the requested epochs) and a finished evaluation are re-used.
@@ -410,6 +416,67 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     return doc
 
 
+def level_response(model, samples, units_per_mm: float = 6.0, object_mm: float = 5.0, min_pixels: int = 500,
+                   size=None) -> dict:
+    """Does the predicted object *level* follow the true one? Measured on labelled (synthetic) samples.
+
+    For each sample (a dict with ``fringe`` (1, H, W), ``height`` (1, H, W) labels and ``mask``) with at
+    least ``min_pixels`` object pixels (valid and more than ``object_mm`` above the plane,
+    :func:`object_mask`): the object's true mean height above the plane ``h`` and the mean error of
+    the prediction there ``b`` (mm). A least-squares line ``b = slope * h + intercept`` summarises them:
+    slope 0 means the level is read from the image; slope -1 means a constant predicted level, the
+    training prior, at ``prior_level_mm = -intercept / slope``. ``model`` maps a (1, 1, H, W) tensor to
+    labels (``uhrnet.checkpoint.model_from_checkpoint``). Returns ``{"slope", "intercept_mm",
+    "prior_level_mm", "shape_rmse_mm" (RMS over objects of the error's standard deviation, i.e. the
+    error without each object's bias), "n_objects", "objects": [[h, b], ...]}`` (NaN without 2 objects).
+    """
+    from uhrnet.inference import predict_labels
+
+    rows = []
+    for s in samples:
+        label = s["height"][0].numpy()
+        valid = s["mask"][0].numpy() > 0.5
+        obj, plane = object_mask(label, valid, units_per_mm, object_mm)
+        if obj.sum() < min_pixels:
+            continue
+        pred = predict_labels(model, s["fringe"][None], size)[0, 0].cpu().numpy()
+        err = (pred[obj].astype(np.float64) - label[obj]) / units_per_mm
+        rows.append((float((label[obj] - plane).mean() / units_per_mm), float(err.mean()), float(err.std())))
+    out = {"slope": float("nan"), "intercept_mm": float("nan"), "prior_level_mm": float("nan"),
+           "shape_rmse_mm": float("nan"), "n_objects": len(rows), "objects": [[h, b] for h, b, _ in rows]}
+    if len(rows) >= 2:
+        h, b, sd = (np.array(c) for c in zip(*rows))
+        slope, intercept = np.polyfit(h, b, 1)
+        out.update(slope=float(slope), intercept_mm=float(intercept),
+                   prior_level_mm=float(-intercept / slope) if slope < -1e-6 else float("nan"),
+                   shape_rmse_mm=float(np.sqrt(np.mean(sd ** 2))))
+    return out
+
+
+def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | Path, object_mm: float = 5.0,
+                   device: str = "cpu") -> dict:
+    """:func:`level_response` of ``checkpoint`` on the validation split of the ``synthetic`` folders
+    (split as the run split them); writes and returns ``out/synthetic_level.json``."""
+    import torch
+
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.data import load_sources, parse_size
+    from uhrnet.device import select_device
+
+    ck = load_checkpoint(checkpoint)
+    model, transform = model_from_checkpoint(ck, select_device(device))
+    args = ck.get("args", {})
+    val = load_sources(synthetic=list(synthetic), transform=transform,
+                       synthetic_split=args.get("synthetic_split") or "reference").val
+    with torch.no_grad():
+        doc = level_response(model, (val[i] for i in range(len(val))), transform.units_per_mm, object_mm,
+                             size=parse_size(args.get("resize")))
+    doc = {"checkpoint": str(checkpoint), "epoch": ck.get("epoch"), "object_mm": object_mm, **doc}
+    Path(out).mkdir(parents=True, exist_ok=True)
+    atomic_write_text(Path(out) / "synthetic_level.json", json.dumps(doc, indent=1))
+    return doc
+
+
 def _twin_metrics(model, fringe, pred, label, valid, units_per_mm, object_mm, plane, size) -> dict:
     """relief_effect_mm and the twins' object RMSE (see the module docstring); NaN when no plane."""
     import torch
@@ -548,9 +615,17 @@ def run_sim2real(cfg: Sim2RealConfig, log=print) -> dict:
                                     device="cuda" if cfg.device == "cuda" else "cpu", figures=cfg.figures,
                                     title=f"sim2real {var.name} ({cfg.scale})")
             timing["evaluate_s"] = time.perf_counter() - t0
+        lvl = ev / "synthetic_level.json"
+        if lvl.is_file() and lvl.stat().st_mtime >= (run / "last.pt").stat().st_mtime:
+            level = json.loads(lvl.read_text())
+        else:
+            level = evaluate_level(run / "last.pt", [str(data)], ev,
+                                   device="cuda" if cfg.device == "cuda" else "cpu")
         hist = _history(run)
         entry = {"name": var.name, "generate": var.generate, "train": var.train, "data": str(data),
                  "run": str(run), "timing": timing, "real": metrics["mean"], "images": metrics["images"],
+                 "synthetic_level": {k: level[k] for k in ("slope", "intercept_mm", "prior_level_mm",
+                                                           "shape_rmse_mm", "n_objects")},
                  "synthetic_val_rmse_mm": hist[-1].get("val_rmse_mm") if hist else None,
                  "history": hist}
         timing_file = out / var.name / "timing.json"
@@ -568,6 +643,13 @@ def run_sim2real(cfg: Sim2RealConfig, log=print) -> dict:
     return report
 
 
+def _level_cell(level: dict | None) -> str:
+    if not level or not np.isfinite(level.get("slope", float("nan"))):
+        return ""
+    prior = level.get("prior_level_mm", float("nan"))
+    return f"{level['slope']:+.2f}" + (f" / {prior:.1f}" if np.isfinite(prior) else "")
+
+
 def markdown_report(report: dict) -> str:
     """The ablation table (one row per variant) as Markdown."""
     c = report["config"]
@@ -577,8 +659,9 @@ def markdown_report(report: dict) -> str:
              + f", {c['epochs']} epochs, batch {c['batch_size']}, lr {c['lr']:g}, loss {c['loss']}. "
              f"Object pixels: valid and more than {c['object_mm']:g} mm above the plane.", "",
              "| variant | generate | train | object RMSE (mm) | valid RMSE (mm) | flat plane, object (mm) | "
-             "true / pred. object mean (mm) | relief effect (mm) | synthetic val RMSE (mm) | minutes |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "true / pred. object mean (mm) | relief effect (mm) | synthetic val RMSE (mm) | "
+             "level slope / prior (mm) | minutes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for v in report["variants"]:
         r = v["real"]
         mins = sum(x for x in v["timing"].values() if isinstance(x, (int, float))) / 60.0
@@ -588,5 +671,5 @@ def markdown_report(report: dict) -> str:
                      f"{r['valid_rmse_mm']:.2f} | {r['flat_object_rmse_mm']:.2f} | "
                      f"{r['true_object_mean_mm']:.1f} / {r['pred_object_mean_mm']:.1f} | "
                      f"{r.get('relief_effect_mm', float('nan')):.1f} | "
-                     f"{'' if sv is None else f'{sv:.2f}'} | {mins:.1f} |")
+                     f"{'' if sv is None else f'{sv:.2f}'} | {_level_cell(v.get('synthetic_level'))} | {mins:.1f} |")
     return "\n".join(lines) + "\n"
