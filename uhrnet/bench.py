@@ -1,8 +1,8 @@
 """``uhrnet.bench.bench(BenchConfig(...))`` (``uhrnet bench``): parameters, forward time, training-step time and peak memory per model.
 
-With ``optimize`` every model is also timed in its deployable forms (folded batch norms; + channels_last;
-+ torch.compile; onnxruntime), each checked
-against the eager output, and the fastest torch form is reported as the forward time.
+With ``optimize`` every model is also timed in its deployable forms (batch norms folded; also
+channels_last; also torch.compile; the ONNX export under onnxruntime), each checked against the eager
+output, and the fastest torch form is reported as the forward time.
 
 For each model at batch 1 (352 x 640 by default): the trainable parameter count, the median forward
 time in eval mode without gradient (the paper's "speed"), the median time of one training step (forward,
