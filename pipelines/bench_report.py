@@ -59,12 +59,15 @@ def uhrnet_rows(name: str, data: dict) -> list[str]:
         rows.append(
             f"| {name} | {data.get('device', '?')} | {shape} | {r['model']} | {r['base_channels']} | "
             f"{r['parameters']:,} | {_f(r.get('eager_forward_ms', r['forward_ms']))} | {_f(r['forward_ms'])} | "
-            f"{r.get('best_form', 'eager')} | {_f(r.get('onnxruntime_ms'))} | {_f(r.get('train_step_ms'))} |"
+            f"{r.get('best_form', 'eager')} | {_f(r.get('onnxruntime_ms'))} | {_f(r.get('openvino_ms'))} | "
+            f"{_f(r.get('best_deployable_ms'))} ({r.get('best_deployable_form', '-')}) | {_f(r.get('train_step_ms'))} |"
         )
     ratio = data.get("uhrnet_unet_forward_ratio")
     ort = data.get("uhrnet_unet_onnxruntime_ratio")
+    ov = data.get("uhrnet_unet_openvino_ratio")
+    best = data.get("uhrnet_unet_best_deployable_ratio")
     rows.append(f"| {name} | | | **UHRNet / U-Net** | | | | **{_f(ratio, '{:.2f}')}** | | "
-                f"{_f(ort, '{:.2f}')} | |")
+                f"{_f(ort, '{:.2f}')} | {_f(ov, '{:.2f}')} | **{_f(best, '{:.2f}')}** | |")
     return rows
 
 
@@ -96,10 +99,12 @@ def render(folder: Path, note: str | None = None) -> str:
             "",
             "`best ms` is the fastest deployable torch form (`--optimize`: batch norms folded; + channels_last; "
             "+ torch.compile), each checked to match the eager model within 1e-4 of the "
-            "output range; `onnxruntime ms` runs the folded ONNX export.",
+            "output range; `onnxruntime ms` / `openvino ms` run the folded ONNX export (OpenVINO in float32); "
+            "`fastest ms` is the fastest of all forms.",
             "",
-            "| file | device | input | model | base | parameters | eager ms | best ms | best form | onnxruntime ms | train step ms |",
-            "|---|---|---|---|---|---|---|---|---|---|---|",
+            "| file | device | input | model | base | parameters | eager ms | best ms | best form | onnxruntime ms "
+            "| openvino ms | fastest ms (form) | train step ms |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for name, data in groups["uhrnet_bench"]:
             lines += uhrnet_rows(name, data)

@@ -18,9 +18,11 @@ def load_report():
 
 def test_report_collects_uhrnet_generate_and_gpu_json(tmp_path):
     bench = {"device": "cpu, 2 threads", "input_shape": [1, 1, 352, 640], "uhrnet_unet_forward_ratio": 1.234,
+             "uhrnet_unet_best_deployable_ratio": 1.515,
              "results": [
                  {"model": "uhrnet", "base_channels": 64, "parameters": 30330977, "forward_ms": 900.0,
-                  "eager_forward_ms": 1500.0, "best_form": "fold_cl", "onnxruntime_ms": 800.0, "train_step_ms": None},
+                  "eager_forward_ms": 1500.0, "best_form": "fold_cl", "onnxruntime_ms": 800.0, "openvino_ms": 700.0,
+                  "best_deployable_ms": 700.0, "best_deployable_form": "openvino", "train_step_ms": None},
                  {"model": "unet", "base_channels": 64, "parameters": 31030593, "forward_ms": 729.3,
                   "train_step_ms": 2000.0}]}
     (tmp_path / "uhrnet.json").write_text(json.dumps(bench))
@@ -34,6 +36,7 @@ def test_report_collects_uhrnet_generate_and_gpu_json(tmp_path):
     assert report.main([str(tmp_path), "--out", str(out)]) == 0
     page = out.read_text()
     assert "30,330,977" in page and "**1.23**" in page and "fold_cl" in page and "1500.0" in page
+    assert "700.0 (openvino)" in page and "**1.51**" in page
     assert "| generate | ogre.obj | True | True | 500.0 | 2.00 | 4.50 |" in page
     assert "NVIDIA X" in page and "torch" in page and "logical cores" in page
 

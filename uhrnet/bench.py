@@ -1,8 +1,9 @@
 """``uhrnet.bench.bench(BenchConfig(...))`` (``uhrnet bench``): parameters, forward time, training-step time and peak memory per model.
 
 With ``optimize`` every model is also timed in its deployable forms (batch norms folded; also
-channels_last; also torch.compile; the ONNX export under onnxruntime), each checked against the eager
-output, and the fastest torch form is reported as the forward time.
+channels_last; also torch.compile; the ONNX export under onnxruntime and under OpenVINO), each checked
+against the eager output; the fastest torch form is reported as the forward time, the fastest form of
+all as ``best_deployable_ms`` (and their UHRNet / U-Net ratio).
 
 For each model at batch 1 (352 x 640 by default): the trainable parameter count, the median forward
 time in eval mode without gradient (the paper's "speed"), the median time of one training step (forward,
@@ -24,7 +25,8 @@ from typing import Callable
 DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
 REFERENCE_WIDTH = 64  # the default base width of uhrnet and unet, which --base-channels replaces
 PAPER_SECONDS = {"uhrnet": 0.0224, "unet": 0.0081}  # RTX 2080 Ti, batch 1, 352 x 640
-OPT_VARIANTS = ("fold", "fold_cl", "compile", "onnxruntime")
+OPT_VARIANTS = ("fold", "fold_cl", "compile", "onnxruntime", "openvino")
+RUNTIME_FORMS = ("onnxruntime", "openvino")  # the ONNX export of fold under each runtime (not torch forms)
 OPT_RTOL = 1e-4  # a deployable form must match the eager model within this fraction of the output range
 AMP = ("off", "fp16", "bf16")
 
@@ -131,15 +133,20 @@ def measure(name: str, args, device) -> dict:
             reference = model(x)
         result["eager_forward_ms"] = result["forward_ms"]
         result["optimized"] = optimize_variants(model, x, reference, args, device)
-        torch_forms = {k: v for k, v in result["optimized"].items() if k != "onnxruntime" and v.get("ok")}
+        torch_forms = {k: v for k, v in result["optimized"].items() if k not in RUNTIME_FORMS and v.get("ok")}
         best = min(torch_forms, key=lambda k: torch_forms[k]["forward_ms"], default=None)
         if best is not None and torch_forms[best]["forward_ms"] < result["forward_ms"]:
             result["forward_ms"] = torch_forms[best]["forward_ms"]
             result["best_form"] = best
         else:
             result["best_form"] = "eager"
-        ort = result["optimized"].get("onnxruntime", {})
-        result["onnxruntime_ms"] = ort.get("forward_ms") if ort.get("ok") else None
+        for form in RUNTIME_FORMS:
+            v = result["optimized"].get(form, {})
+            result[f"{form}_ms"] = v.get("forward_ms") if v.get("ok") else None
+        ok = {k: v["forward_ms"] for k, v in result["optimized"].items() if v.get("ok")}
+        ok["eager"] = result["eager_forward_ms"]
+        result["best_deployable_form"] = min(ok, key=ok.get)
+        result["best_deployable_ms"] = ok[result["best_deployable_form"]]
         model = model.to(memory_format=memory_format)
     if args.train:
         optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
@@ -187,19 +194,15 @@ def optimize_variants(model, x, reference, args, device) -> dict:
     out = {}
     for form in args.variants:
         try:
-            if form == "onnxruntime":
-                import onnxruntime as ort
-
-                from .export import export_model
+            if form in RUNTIME_FORMS:
+                from .export import export_model, onnx_runner
 
                 with tempfile.TemporaryDirectory() as tmp:
                     path = export_model(model, f"{tmp}/m.onnx", "onnx", tuple(x.shape))
-                    opts = ort.SessionOptions()
-                    opts.intra_op_num_threads = torch.get_num_threads()
-                    session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
-                feed = {"fringe": x.detach().cpu().contiguous().numpy()}
-                y = torch.from_numpy(session.run(None, feed)[0])
-                fn = lambda: session.run(None, feed)  # noqa: E731
+                    run = onnx_runner(path, form, threads=torch.get_num_threads())
+                feed = x.detach().cpu().contiguous().numpy()
+                y = torch.from_numpy(run(feed))
+                fn = lambda: run(feed)  # noqa: E731
                 times = time_call(fn, "cpu", args.warmup, args.repeats)
             else:
                 cl = form in ("fold_cl", "compile")
@@ -251,7 +254,7 @@ def format_table(results: list[dict]) -> str:
 
 def format_optimized(results: list[dict]) -> str:
     """One line per model: eager and each deployable form's forward ms (x: failed its check)."""
-    lines = ["deployable forms (forward ms; best torch form is reported above):"]
+    lines = ["deployable forms (forward ms; the best torch form is reported above):"]
     for r in results:
         parts = [f"eager {_ms(r.get('eager_forward_ms'))}"]
         for form, v in r.get("optimized", {}).items():
@@ -259,7 +262,8 @@ def format_optimized(results: list[dict]) -> str:
                 parts.append(f"{form} n/a ({v['error'][:60]})")
             else:
                 parts.append(f"{form} {_ms(v['forward_ms'])}{'' if v['ok'] else ' (x: differs)'}")
-        lines.append(f"  {r['model']}: " + ", ".join(parts) + f" -> {r.get('best_form')}")
+        lines.append(f"  {r['model']}: " + ", ".join(parts) + f" -> torch: {r.get('best_form')}, "
+                     f"any: {r.get('best_deployable_form')}")
     return "\n".join(lines)
 
 
@@ -311,12 +315,17 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
             f"UHRNet / U-Net forward time: {ratio:.2f} (paper: {PAPER_SECONDS['uhrnet']} s / "
             f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
         )
-    ort_ratio = None
+    runtime_ratios, best_ratio = {}, None
     if args.optimize and "uhrnet" in by_name and "unet" in by_name:
-        a, b = by_name["uhrnet"].get("onnxruntime_ms"), by_name["unet"].get("onnxruntime_ms")
-        ort_ratio = a / b if a and b else None
-        if ort_ratio is not None:
-            echo(f"UHRNet / U-Net forward time under onnxruntime: {ort_ratio:.2f}")
+        u, n = by_name["uhrnet"], by_name["unet"]
+        for form in RUNTIME_FORMS:
+            a, b = u.get(f"{form}_ms"), n.get(f"{form}_ms")
+            runtime_ratios[form] = a / b if a and b else None
+            if runtime_ratios[form] is not None:
+                echo(f"UHRNet / U-Net forward time under {form}: {runtime_ratios[form]:.2f}")
+        best_ratio = u["best_deployable_ms"] / n["best_deployable_ms"]
+        echo(f"UHRNet / U-Net forward time, each in its fastest deployable form ({u['best_deployable_form']} / "
+             f"{n['best_deployable_form']}): {best_ratio:.2f}")
     memory_note = (
         "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
         if device.type == "cuda"
@@ -336,7 +345,9 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "results": results,
         "optimize": bool(args.optimize),
         "uhrnet_unet_forward_ratio": ratio,
-        "uhrnet_unet_onnxruntime_ratio": ort_ratio,
+        "uhrnet_unet_onnxruntime_ratio": runtime_ratios.get("onnxruntime"),
+        "uhrnet_unet_openvino_ratio": runtime_ratios.get("openvino"),
+        "uhrnet_unet_best_deployable_ratio": best_ratio,
         "memory": memory_note,
     }
     if args.json is not None:

@@ -69,6 +69,8 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "'off' [shading]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
                    help="no augmentation (same as --augment off)")
+    d.add_argument("--augment-probability", type=float, metavar="P",
+                   help="chance that a synthetic training sample is augmented; the rest are shown as rendered [0.8]")
     m = p.add_argument_group("model and optimisation")
     m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
@@ -284,12 +286,12 @@ def run_evaluate_phase(args) -> int:
 
 # ============================================================================ export
 def add_export(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS
+    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS, RUNTIMES
 
     parser.description = (
         "Export a checkpoint's model (batch norms folded: the same function) as ONNX or "
         "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
-        f"--check runs the export (onnxruntime / torch.jit.load) and the checkpoint's model on a seeded input "
+        f"--check runs the export (ONNX: under --runtime; TorchScript: torch.jit.load) and the checkpoint's model on a seeded input "
         f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
         "(max - min) of the checkpoint model's output."
     )
@@ -297,6 +299,9 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
     parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt)")
     parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
+    parser.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime",
+                        help="what runs the ONNX file for --check: onnxruntime (default) or openvino (its CPU "
+                             "plugin in float32, the fastest CPU form measured here; pip install openvino)")
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
     parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
     parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
@@ -309,12 +314,13 @@ def run_export(args) -> int:
 
     config = ExportConfig(checkpoint=args.checkpoint, out=args.out, format=args.format, height=args.height,
                           width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
-                          optimize=not args.no_optimize)
+                          optimize=not args.no_optimize, runtime=args.runtime)
     summary = export_checkpoint(config)
     print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
     if summary["check"] is not None:
         r = summary["check"]
-        print(f"check passed: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
+        where = f" ({summary['runtime']})" if summary.get("runtime") else ""
+        print(f"check passed{where}: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
     return 0
 
 

@@ -7,8 +7,9 @@ in label units (what ``uhrnet predict`` converts to millimetres). H and W must b
 with ``dynamic=True`` the ONNX batch, height and width are free (TorchScript traces are always
 shape-generic for these models).
 
-Check (``check=True``): both the exported file (onnxruntime for ONNX, ``torch.jit.load`` for
-TorchScript) and the checkpoint's unmodified model run a seeded input (uniform in [-1, 1], seed 0,
+Check (``check=True``): both the exported file (for ONNX: onnxruntime, or OpenVINO with
+``runtime="openvino"``; ``torch.jit.load`` for TorchScript) and the checkpoint's unmodified model run a
+seeded input (uniform in [-1, 1], seed 0,
 batch 1 at the export size); the export passes when ``max |exported - reference| <= CHECK_RTOL *
 (max - min of the reference output)``, with ``CHECK_RTOL = 1e-4`` (a floor of 1e-6 on the range).
 """
@@ -27,6 +28,7 @@ from uhrnet.errors import ExportError
 
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
+RUNTIMES = ("onnxruntime", "openvino")  # what runs an ONNX file
 DEFAULT_OPSET = 17
 
 
@@ -41,6 +43,7 @@ class ExportConfig:
     dynamic: bool = False
     check: bool = False
     optimize: bool = True
+    runtime: str = "onnxruntime"
 
     def __post_init__(self):
         h, w = self.height, self.width
@@ -48,6 +51,10 @@ class ExportConfig:
             raise ExportError(f"--height and --width must be positive multiples of 16, got {h}x{w}")
         if self.format not in FORMATS:
             raise ExportError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
+        if self.runtime not in RUNTIMES:
+            raise ExportError(f"unknown runtime {self.runtime!r}; choose from {', '.join(RUNTIMES)}")
+        if self.runtime != "onnxruntime" and self.format != "onnx":
+            raise ExportError(f"--runtime {self.runtime} runs ONNX files; it does not apply to --format {self.format}")
 
 
 def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> torch.Tensor:
@@ -117,19 +124,57 @@ def export_model(
     return out
 
 
-def run_exported(path: str | Path, format: str, x: torch.Tensor) -> np.ndarray:
-    """Run an exported file on ``x`` (onnxruntime on the CPU for ONNX, ``torch.jit.load`` for TorchScript)."""
+def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | None = None):
+    """A function ``run(x: np.ndarray float32 (N, C, H, W)) -> np.ndarray`` that runs the ONNX file
+    ``path`` on the CPU under ``runtime``: ``"onnxruntime"`` or ``"openvino"`` (its CPU plugin, in
+    float32: on CPUs with AVX512-BF16 or AMX OpenVINO would otherwise compute in bfloat16, a different
+    function; latency mode, one stream). ``threads``: intra-op threads (default: the runtime's own).
+    Raises :class:`ExportError` when the runtime is not installed or cannot load the file."""
     path = Path(path)
-    if format == "onnx":
+    if runtime not in RUNTIMES:
+        raise ExportError(f"unknown runtime {runtime!r}; choose from {', '.join(RUNTIMES)}")
+    if runtime == "onnxruntime":
         try:
             import onnxruntime as ort
         except ImportError:
-            raise ExportError("checking an ONNX export needs onnxruntime (pip install onnxruntime)") from None
+            raise ExportError("running an ONNX export needs onnxruntime (pip install onnxruntime)") from None
         try:
-            session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-            return session.run(None, {session.get_inputs()[0].name: x.numpy()})[0]
+            opts = ort.SessionOptions()
+            if threads:
+                opts.intra_op_num_threads = int(threads)
+            session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         except Exception as exc:
-            raise ExportError(f"{path}: onnxruntime cannot run it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+            raise ExportError(f"{path}: onnxruntime cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+        name = session.get_inputs()[0].name
+        return lambda x: session.run(None, {name: np.ascontiguousarray(x, dtype=np.float32)})[0]
+    try:
+        import openvino as ov
+    except ImportError:
+        raise ExportError("running an ONNX export under OpenVINO needs openvino (pip install openvino)") from None
+    config = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
+    if threads:
+        config["INFERENCE_NUM_THREADS"] = str(int(threads))
+    try:
+        request = ov.Core().compile_model(str(path), "CPU", config).create_infer_request()
+    except Exception as exc:
+        raise ExportError(f"{path}: openvino cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+
+    def run(x):
+        request.infer({0: np.ascontiguousarray(x, dtype=np.float32)})
+        return request.get_output_tensor(0).data.copy()
+
+    return run
+
+
+def run_exported(path: str | Path, format: str, x: torch.Tensor, runtime: str = "onnxruntime") -> np.ndarray:
+    """Run an exported file on ``x`` (ONNX: :func:`onnx_runner` with ``runtime``; TorchScript: ``torch.jit.load``)."""
+    path = Path(path)
+    if format == "onnx":
+        run = onnx_runner(path, runtime)
+        try:
+            return run(x.numpy())
+        except Exception as exc:
+            raise ExportError(f"{path}: {runtime} cannot run it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
     try:
         module = torch.jit.load(str(path), map_location="cpu")
         with torch.no_grad():
@@ -139,8 +184,9 @@ def run_exported(path: str | Path, format: str, x: torch.Tensor) -> np.ndarray:
 
 
 def check_export(path: str | Path, format: str, reference: nn.Module, input_shape: tuple[int, int, int, int],
-                 rtol: float = CHECK_RTOL) -> dict:
-    """Compare the exported file with ``reference`` on the seeded check input.
+                 rtol: float = CHECK_RTOL, runtime: str = "onnxruntime") -> dict:
+    """Compare the exported file (an ONNX file run under ``runtime``) with ``reference`` on the seeded
+    check input.
 
     Returns ``{"max_abs_diff", "output_range", "tolerance", "passed"}``; tolerance is
     ``rtol * max(output range, 1e-6)``.
@@ -150,7 +196,7 @@ def check_export(path: str | Path, format: str, reference: nn.Module, input_shap
     with torch.no_grad():
         ref = reference.eval()(x)
     ref = (ref[0] if isinstance(ref, (tuple, list)) else ref).float().numpy()
-    got = run_exported(path, format, x)
+    got = run_exported(path, format, x, runtime)
     if got.shape != ref.shape:
         return {"max_abs_diff": float("inf"), "output_range": float(np.ptp(ref)), "tolerance": 0.0, "passed": False,
                 "shape": list(got.shape)}
@@ -172,9 +218,9 @@ def export_checkpoint(config: ExportConfig) -> dict:
     shape = (1, in_channels, config.height, config.width)
     path = export_model(model, config.out, config.format, shape, config.opset, config.dynamic, config.optimize)
     summary = {"path": str(path), "format": config.format, "model": ckpt["model"]["config"].get("name"),
-               "input_shape": list(shape), "check": None}
+               "input_shape": list(shape), "check": None, "runtime": config.runtime if config.format == "onnx" else None}
     if config.check:
-        result = check_export(path, config.format, model, shape)
+        result = check_export(path, config.format, model, shape, runtime=config.runtime)
         summary["check"] = result
         if not result["passed"]:
             raise ExportError(

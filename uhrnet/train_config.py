@@ -27,6 +27,7 @@ DEFAULTS = {
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
+    "augment_probability": 0.8,
 }
 # what a run made before an option existed used: resuming it must not switch the option on
 LEGACY = {"augment": "off", "lr_schedule": "constant"}
@@ -34,7 +35,8 @@ LR_SCHEDULES = ("cosine", "constant")
 LR_FLOOR = 0.05  # the cosine schedule ends at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema")
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
+          "augment_probability")
 
 
 @dataclass
@@ -45,7 +47,9 @@ class TrainConfig:
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
     already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
-    :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs).
+    :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
+    ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
+    as rendered).
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
@@ -65,6 +69,7 @@ class TrainConfig:
     samples_per_epoch: int | None = None
     workers: int | None = None
     augment: str | bool | None = None
+    augment_probability: float | None = None
     lr_schedule: str | None = None
     model: str | None = None
     base_channels: int | None = None
@@ -132,6 +137,10 @@ def check_options(cfg: dict) -> None:
             augment_config(cfg["augment"])
         except ValueError as exc:
             raise UsageError(f"--augment: {exc}") from None
+    if "augment_probability" in cfg:
+        p = cfg["augment_probability"]
+        if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
+            raise UsageError(f"--augment-probability must be in [0, 1], got {p}")
     if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):

@@ -66,10 +66,14 @@ class Trainer:
                                cfg["synthetic_split"], cfg["synthetic_label"])
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
+        import dataclasses
+
         from uhrnet.augment import augment_config
 
-        self.train_set = Prepared(sources.train, crop, resize, random_crop=True,
-                                  augment=augment_config(cfg["augment"]))
+        augment = augment_config(cfg["augment"])
+        if augment is not None:
+            augment = dataclasses.replace(augment, probability=float(cfg["augment_probability"]))
+        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment)
         self.val_set = Prepared(sources.val, crop, resize, random_crop=False)
         if len(self.train_set) == 0:
             raise ConfigError("no training samples: every sample is in the val/test split "

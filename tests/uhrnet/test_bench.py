@@ -65,3 +65,25 @@ def test_bench_optimize_json_keys(tmp_path, capsys):
     assert report["uhrnet_unet_onnxruntime_ratio"] == pytest.approx(
         by["uhrnet"]["onnxruntime_ms"] / by["unet"]["onnxruntime_ms"])
     assert "deployable forms" in capsys.readouterr().out
+
+
+def test_bench_openvino_form_and_best_deployable_ratio(tmp_path):
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("openvino")
+    out = tmp_path / "ov.json"
+    argv = ["bench", "--models", "uhrnet", "unet", "--height", "16", "--width", "32", "--base-channels", "4",
+            "--repeats", "1", "--warmup", "0", "--no-train", "--optimize", "--variants", "fold", "onnxruntime",
+            "openvino", "--device", "cpu", "--json", str(out)]
+    assert main(argv) == 0
+    report = json.loads(out.read_text())
+    for r in report["results"]:
+        ov = r["optimized"]["openvino"]
+        assert ov["ok"] and ov["max_rel_diff"] <= 1e-4 and r["openvino_ms"] == ov["forward_ms"]
+        forms = {k: v["forward_ms"] for k, v in r["optimized"].items()} | {"eager": r["eager_forward_ms"]}
+        assert r["best_deployable_ms"] == min(forms.values())
+        assert forms[r["best_deployable_form"]] == r["best_deployable_ms"]
+        assert r["best_form"] in ("eager", "fold")  # torch forms only
+    by = {r["model"]: r for r in report["results"]}
+    assert report["uhrnet_unet_openvino_ratio"] == pytest.approx(by["uhrnet"]["openvino_ms"] / by["unet"]["openvino_ms"])
+    assert report["uhrnet_unet_best_deployable_ratio"] == pytest.approx(
+        by["uhrnet"]["best_deployable_ms"] / by["unet"]["best_deployable_ms"])

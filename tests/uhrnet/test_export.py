@@ -184,3 +184,54 @@ def test_export_user_errors(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "checkpoint not found" in err and "multiples of 16" in err
     assert not (tmp_path / "x.onnx").exists()
+
+
+@pytest.mark.parametrize("name", ["uhrnet", "unet"])
+def test_export_check_under_openvino_agrees_with_onnxruntime(tmp_path, name, capsys):
+    """OpenVINO runs the same ONNX file as onnxruntime (an independent runtime) in float32: both agree
+    with the checkpoint within the check tolerance (bfloat16 inference, OpenVINO's default on CPUs with
+    AVX512-BF16, would not)."""
+    pytest.importorskip("openvino")
+    pytest.importorskip("onnxruntime")
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.export import onnx_runner
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", name)
+    out = tmp_path / f"{name}.onnx"
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--runtime", "openvino",
+                 "--height", "32", "--width", "48"]) == 0
+    assert "check passed (openvino)" in capsys.readouterr().out
+    model, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    x = torch.rand(1, 1, 32, 48, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    with torch.no_grad():
+        expected = model(x)
+    ov = torch.from_numpy(onnx_runner(out, "openvino", threads=1)(x.numpy()))
+    ort = torch.from_numpy(onnx_runner(out, "onnxruntime", threads=1)(x.numpy()))
+    assert rel_err(ov, expected) < 1e-4 and rel_err(ov, ort) < 1e-4
+
+
+def test_openvino_check_fails_on_a_tampered_export(tmp_path):
+    pytest.importorskip("openvino")
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.export import check_export, export_model
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    model, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    tampered, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    with torch.no_grad():
+        tampered.net.head.weight[0, 0, 0, 0] += 0.05 * tampered.net.head.weight.abs().max()
+    out = export_model(tampered, tmp_path / "t.onnx", "onnx", (1, 1, 32, 32))
+    assert not check_export(out, "onnx", model, (1, 1, 32, 32), runtime="openvino")["passed"]
+    assert check_export(out, "onnx", tampered, (1, 1, 32, 32), runtime="openvino")["passed"]
+
+
+def test_export_runtime_user_errors(tmp_path, capsys):
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    out = tmp_path / "m.ts"
+    assert main(["export", str(ckpt), "--out", str(out), "--format", "torchscript", "--runtime", "openvino",
+                 "--check"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--runtime openvino" in err[0] and not out.exists()
+    with pytest.raises(SystemExit) as exit_info:
+        main(["export", str(ckpt), "--out", str(out), "--runtime", "tensorrt"])
+    assert exit_info.value.code == 2

@@ -357,3 +357,29 @@ def test_checkpoint_holds_the_average_and_validation_uses_it(tmp_path, one_threa
     assert _train(tmp_path / "off", data, 2, ["--ema", "0"]) == 0
     off = load_checkpoint(tmp_path / "off" / "last.pt")
     assert "train_state_dict" not in off and "ema" not in off
+
+
+def test_augment_probability_option(tmp_path, capsys):
+    """--augment-probability reaches the training set's augmentation; it is checked, stored and locked."""
+    from uhrnet.errors import ConfigError, UsageError
+    from uhrnet.train_config import TrainConfig, resolve_config
+    from uhrnet.distributed import DistInfo
+    from uhrnet.trainer import Trainer
+
+    assert resolve_config(TrainConfig(out="r"))["augment_probability"] == 0.8  # the former fixed value
+    assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": []})["augment_probability"] == 0.8
+    with pytest.raises(ConfigError, match="--augment-probability 0.5 differs"):
+        resolve_config(TrainConfig(out="r", augment_probability=0.5), {"augment_probability": 0.8})
+    for bad in (-0.1, 1.5):
+        with pytest.raises(UsageError, match="--augment-probability"):
+            TrainConfig(out="r", augment_probability=bad)
+    assert main(["train", "--synthetic", str(tmp_path), "--out", str(tmp_path / "x"),
+                 "--augment-probability", "2"]) == 2
+    assert "--augment-probability" in capsys.readouterr().err
+    syn = tmp_path / "syn"
+    write_native(syn, n=6, h=32, w=64, seed=2)
+    for p, kind in ((0.25, None), (1.0, "photometric"), (0.5, "off")):
+        cfg = TrainConfig(out=tmp_path / f"run{p}", synthetic=[syn], model="unet", base_channels=4, epochs=1,
+                          augment_probability=p, augment=kind, progress=False)
+        aug = Trainer(cfg, DistInfo()).train_set.augment
+        assert (aug is None) if kind == "off" else (aug.probability == p)
