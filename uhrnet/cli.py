@@ -224,8 +224,8 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
                              "form as forward ms")
     parser.add_argument("--variants", nargs="+", default=list(OPT_VARIANTS), choices=list(OPT_VARIANTS), metavar="V",
                         help="forms tried by --optimize: fold (batch norms folded, "
-                             "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime (the "
-                             "ONNX export of fold, a column of its own) "
+                             "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime and "
+                             "openvino (the ONNX export of fold under each runtime, float32; columns of their own) "
                              f"(default: {' '.join(OPT_VARIANTS)})")
     parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
 
@@ -286,14 +286,15 @@ def run_evaluate_phase(args) -> int:
 
 # ============================================================================ export
 def add_export(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS, RUNTIMES
+    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS, OPSET_RANGE, RUNTIMES
 
     parser.description = (
         "Export a checkpoint's model (batch norms folded: the same function) as ONNX or "
         "TorchScript. Input 'fringe' (N, C, H, W) float32 in [-1, 1]; output 'label' (N, 1, H, W) in label units. "
         f"--check runs the export (ONNX: under --runtime; TorchScript: torch.jit.load) and the checkpoint's model on a seeded input "
         f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
-        "(max - min) of the checkpoint model's output."
+        "(max - min) of the checkpoint model's output; the export is checked under a temporary name and only a "
+        "passing one replaces --out. --out may not be a uhrnet checkpoint."
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
     parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
@@ -302,11 +303,12 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime",
                         help="what runs the ONNX file for --check: onnxruntime (default) or openvino (its CPU "
                              "plugin in float32, the fastest CPU form measured here; pip install openvino)")
-    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET, help=f"ONNX opset (default {DEFAULT_OPSET})")
+    parser.add_argument("--opset", type=int, default=DEFAULT_OPSET,
+                        help=f"ONNX opset, {OPSET_RANGE[0]}-{OPSET_RANGE[1]} (default {DEFAULT_OPSET})")
     parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
     parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
     parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
-    parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (no folding/merging)")
+    parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (batch norms not folded)")
 
 
 def run_export(args) -> int:

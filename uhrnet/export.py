@@ -16,6 +16,7 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 
 from __future__ import annotations
 
+import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,12 +25,16 @@ import numpy as np
 import torch
 from torch import nn
 
-from uhrnet.errors import ExportError
+from uhrnet.errors import ExportError, UsageError
 
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
 RUNTIMES = ("onnxruntime", "openvino")  # what runs an ONNX file
 DEFAULT_OPSET = 17
+# torch's TorchScript-based ONNX exporter writes opsets 7-20; each gave the eager output under both
+# runtimes for every model here (torch 2.13). Below 7 it writes files onnxruntime rejects.
+OPSET_RANGE = (7, 20)
+SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
 
 
 @dataclass
@@ -48,7 +53,10 @@ class ExportConfig:
     def __post_init__(self):
         h, w = self.height, self.width
         if h % 16 or w % 16 or h < 16 or w < 16:
-            raise ExportError(f"--height and --width must be positive multiples of 16, got {h}x{w}")
+            raise UsageError(f"--height and --width must be positive multiples of 16, got {h}x{w}")
+        lo, hi = OPSET_RANGE
+        if self.format == "onnx" and not lo <= self.opset <= hi:
+            raise UsageError(f"--opset must be between {lo} and {hi}, got {self.opset}")
         if self.format not in FORMATS:
             raise ExportError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
         if self.runtime not in RUNTIMES:
@@ -99,6 +107,9 @@ def export_model(
     model = model.eval()
     net = deployable(model) if optimize else model
     x = check_input(c, h, w).expand(n, c, h, w).contiguous()
+    param = next(net.parameters(), None)
+    if param is not None:  # trace on the model's device (uhrnet bench --device cuda --optimize)
+        x = x.to(param.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp")
@@ -119,9 +130,36 @@ def export_model(
     except ExportError:
         raise
     except Exception as exc:
-        tmp.unlink(missing_ok=True)
+        _remove_quietly(tmp)
         raise ExportError(f"{out}: {format} export failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
     return out
+
+
+def _remove_quietly(path: Path) -> None:
+    """Remove a file this module wrote; a folder that refuses (read-only) must not hide the real error."""
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def _threads(threads) -> int | None:
+    if threads is None:
+        return None
+    try:
+        n = int(threads)
+        whole = not isinstance(threads, bool) and float(threads) == n
+    except (TypeError, ValueError):
+        n, whole = 0, False
+    if n < 1 or not whole:
+        raise ExportError(f"threads must be a positive integer, got {threads!r}")
+    return n
+
+
+def _last_line(exc: Exception) -> str:
+    """OpenVINO puts the source location first and the cause last: keep the last non-empty line."""
+    lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
+    return lines[-1][:200] if lines else "no details"
 
 
 def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | None = None):
@@ -133,6 +171,9 @@ def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | N
     path = Path(path)
     if runtime not in RUNTIMES:
         raise ExportError(f"unknown runtime {runtime!r}; choose from {', '.join(RUNTIMES)}")
+    threads = _threads(threads)
+    if not path.is_file():
+        raise ExportError(f"{path}: no such ONNX file")
     if runtime == "onnxruntime":
         try:
             import onnxruntime as ort
@@ -141,7 +182,7 @@ def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | N
         try:
             opts = ort.SessionOptions()
             if threads:
-                opts.intra_op_num_threads = int(threads)
+                opts.intra_op_num_threads = threads
             session = ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
         except Exception as exc:
             raise ExportError(f"{path}: onnxruntime cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
@@ -153,11 +194,11 @@ def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | N
         raise ExportError("running an ONNX export under OpenVINO needs openvino (pip install openvino)") from None
     config = {"INFERENCE_PRECISION_HINT": "f32", "PERFORMANCE_HINT": "LATENCY"}
     if threads:
-        config["INFERENCE_NUM_THREADS"] = str(int(threads))
+        config["INFERENCE_NUM_THREADS"] = str(threads)
     try:
         request = ov.Core().compile_model(str(path), "CPU", config).create_infer_request()
     except Exception as exc:
-        raise ExportError(f"{path}: openvino cannot load it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+        raise ExportError(f"{path}: openvino cannot load it ({type(exc).__name__}: {_last_line(exc)})") from None
 
     def run(x):
         request.infer({0: np.ascontiguousarray(x, dtype=np.float32)})
@@ -174,7 +215,7 @@ def run_exported(path: str | Path, format: str, x: torch.Tensor, runtime: str = 
         try:
             return run(x.numpy())
         except Exception as exc:
-            raise ExportError(f"{path}: {runtime} cannot run it ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
+            raise ExportError(f"{path}: {runtime} cannot run it ({type(exc).__name__}: {_last_line(exc)})") from None
     try:
         module = torch.jit.load(str(path), map_location="cpu")
         with torch.no_grad():
@@ -191,8 +232,8 @@ def check_export(path: str | Path, format: str, reference: nn.Module, input_shap
     Returns ``{"max_abs_diff", "output_range", "tolerance", "passed"}``; tolerance is
     ``rtol * max(output range, 1e-6)``.
     """
-    _, c, h, w = input_shape
-    x = check_input(c, h, w)
+    n, c, h, w = input_shape
+    x = check_input(c, h, w).expand(n, c, h, w).contiguous()
     with torch.no_grad():
         ref = reference.eval()(x)
     ref = (ref[0] if isinstance(ref, (tuple, list)) else ref).float().numpy()
@@ -213,21 +254,50 @@ def export_checkpoint(config: ExportConfig) -> dict:
     from .checkpoint import load_checkpoint, model_from_checkpoint
 
     ckpt = load_checkpoint(config.checkpoint)
+    out = Path(config.out)
+    if out.exists() and out.resolve() == Path(ckpt["path"]).resolve():
+        raise ExportError(f"{out}: is the checkpoint being exported; choose another --out")
+    if out.is_file() and _is_checkpoint(out):
+        raise ExportError(f"{out}: is a uhrnet checkpoint; choose another --out (an export would replace it)")
     model, _ = model_from_checkpoint(ckpt)
     in_channels = int(ckpt["model"]["config"].get("in_channels", 1))
     shape = (1, in_channels, config.height, config.width)
-    path = export_model(model, config.out, config.format, shape, config.opset, config.dynamic, config.optimize)
-    summary = {"path": str(path), "format": config.format, "model": ckpt["model"]["config"].get("name"),
+    summary = {"path": str(out), "format": config.format, "model": ckpt["model"]["config"].get("name"),
                "input_shape": list(shape), "check": None, "runtime": config.runtime if config.format == "onnx" else None}
-    if config.check:
-        result = check_export(path, config.format, model, shape, runtime=config.runtime)
+    if not config.check:
+        export_model(model, out, config.format, shape, config.opset, config.dynamic, config.optimize)
+        return summary
+    # Export next to --out under a staging name (with the format's suffix: OpenVINO picks its reader by
+    # it), check that file, and only then move it onto --out: a failed check leaves --out as it was.
+    stage = out.with_name(f".{out.stem}.unchecked-{os.getpid()}{SUFFIXES[config.format]}")
+    try:
+        export_model(model, stage, config.format, shape, config.opset, config.dynamic, config.optimize)
+        result = check_export(stage, config.format, model, shape, runtime=config.runtime)
         summary["check"] = result
         if not result["passed"]:
             raise ExportError(
-                f"{path}: check failed: max |exported - checkpoint| = {result['max_abs_diff']:.3g} > "
+                f"{out}: check failed, nothing written: max |exported - checkpoint| = {result['max_abs_diff']:.3g} > "
                 f"{result['tolerance']:.3g} (= {CHECK_RTOL:g} x output range {result['output_range']:.3g})"
             )
+        stage.replace(out)
+    finally:
+        _remove_quietly(stage)
     return summary
+
+
+def _is_checkpoint(path: Path) -> bool:
+    from .checkpoint import load_checkpoint
+    from .errors import CheckpointError
+
+    if path.suffix.lower() in (".onnx",):
+        return False
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # torch's note on TorchScript archives
+            load_checkpoint(path)
+    except (CheckpointError, OSError):
+        return False
+    return True
 
 
 # --------------------------------------------------------------------------------------------------

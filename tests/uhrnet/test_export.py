@@ -7,6 +7,7 @@ import torch
 from torch import nn
 
 from uhrnet.checkpoint import FORMAT, VERSION
+from uhrnet.errors import ExportError
 from uhrnet.cli import main
 from fppsim.formats import LabelTransform
 from uhrnet.models import build_model, list_models
@@ -180,10 +181,66 @@ def test_export_cli_check_failure_exit_code(tmp_path, capsys, monkeypatch):
 def test_export_user_errors(tmp_path, capsys):
     assert main(["export", str(tmp_path / "missing.pt"), "--out", str(tmp_path / "x.onnx")]) == 1
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
-    assert main(["export", str(ckpt), "--out", str(tmp_path / "x.onnx"), "--height", "30"]) == 1
-    err = capsys.readouterr().err
-    assert "checkpoint not found" in err and "multiples of 16" in err
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "x.onnx"), "--height", "30"]) == 2  # a bad value: usage
+    for opset in ("5", "99"):
+        assert main(["export", str(ckpt), "--out", str(tmp_path / "x.onnx"), "--opset", opset]) == 2
+    captured = capsys.readouterr()
+    assert "checkpoint not found" in captured.err and "multiples of 16" in captured.err
+    assert captured.err.count("--opset must be between") == 2 and not captured.out  # no exporter dump
     assert not (tmp_path / "x.onnx").exists()
+
+
+def test_failed_check_leaves_the_output_as_it_was(tmp_path, capsys, monkeypatch):
+    """The export is checked under a staging name and moved onto --out only when it passes: a failed or
+    impossible check leaves the user's file untouched and no staging file behind."""
+    import uhrnet.export as export
+
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    out = tmp_path / "keep.onnx"
+    out.write_bytes(b"the user's file")
+    real = export.run_exported
+    monkeypatch.setattr(export, "run_exported", lambda *a: real(*a) + 1.0)  # a broken runtime
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "16", "--width", "16"]) == 1
+    assert "check failed, nothing written" in capsys.readouterr().err
+    assert out.read_bytes() == b"the user's file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.onnx", "m.pt"]
+    monkeypatch.setattr(export, "run_exported", real)
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "16", "--width", "16"]) == 0
+    assert out.read_bytes() != b"the user's file"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.onnx", "m.pt"]
+
+
+def test_export_refuses_to_overwrite_a_checkpoint(tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    ckpt = write_checkpoint(run / "best.pt", "unet")
+    other = write_checkpoint(tmp_path / "other.pt", "unet")
+    before = ckpt.read_bytes(), other.read_bytes()
+    assert main(["export", str(run), "--out", str(ckpt), "--format", "torchscript", "--height", "16", "--width", "16"]) == 1
+    assert main(["export", str(run), "--out", str(other), "--format", "torchscript", "--height", "16", "--width", "16"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "is the checkpoint being exported" in err[0] and "is a uhrnet checkpoint" in err[1]
+    assert (ckpt.read_bytes(), other.read_bytes()) == before
+
+
+def test_onnx_runner_errors_name_the_cause(tmp_path):
+    from uhrnet.export import export_model, onnx_runner
+
+    with pytest.raises(ExportError, match="no such ONNX file"):
+        onnx_runner(tmp_path / "missing.onnx")
+    model = build_model("unet", base_channels=4).eval()
+    path = export_model(model, tmp_path / "m.onnx", "onnx", (1, 1, 16, 16))
+    for bad in (0, -2, 2.5, "two", True):
+        with pytest.raises(ExportError, match="threads must be a positive integer"):
+            onnx_runner(path, threads=bad)
+    pytest.importorskip("openvino")
+    from uhrnet.export import run_exported
+
+    bad = tmp_path / "bad.onnx"
+    bad.write_bytes(b"not a model")
+    with pytest.raises(ExportError) as info:
+        run_exported(bad, "onnx", torch.zeros(1, 1, 16, 16), runtime="openvino")
+    assert "openvino cannot load it" in str(info.value) and not str(info.value).rstrip().endswith(":)")
 
 
 @pytest.mark.parametrize("name", ["uhrnet", "unet"])
