@@ -37,7 +37,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
-    from uhrnet.train_config import LR_FLOOR, LR_SCHEDULES
+    from uhrnet.train_config import LR_FLAT, LR_FLOOR, LR_SCHEDULES
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
@@ -82,6 +82,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--lr-schedule", choices=LR_SCHEDULES,
                    help="learning rate over the run: cosine decays it per step from --lr to "
                         f"{LR_FLOOR:g} x --lr at the last step of --epochs, so the last epoch is the settled one; "
+                        f"flat-cosine keeps --lr for the first {LR_FLAT * 100:.0f} %% of the steps and decays over the rest; "
                         "constant keeps --lr [cosine]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
