@@ -12,6 +12,8 @@ Check (``check=True``): both the exported file (for ONNX: onnxruntime, or OpenVI
 seeded input (uniform in [-1, 1], seed 0,
 batch 1 at the export size); the export passes when ``max |exported - reference| <= CHECK_RTOL *
 (max - min of the reference output)``, with ``CHECK_RTOL = 1e-4`` (a floor of 1e-6 on the range).
+:func:`export_checkpoint` checks the file under a staging name next to ``out`` and moves it onto
+``out`` only when it passes, so a failed check leaves an existing ``out`` as it was.
 """
 
 from __future__ import annotations
