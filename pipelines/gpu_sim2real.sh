@@ -21,6 +21,7 @@
 #   S2R_DEVICE   cuda or cpu                  [cuda]
 #   S2R_ARGS     extra pipelines/sim2real.py arguments (e.g. "--base-channels 8" for a CPU dry run)
 #   PYTHON       interpreter that has torch   [python3]
+#   PYOPENGL_PLATFORM  osmesa or egl (the NVIDIA driver's EGL, e.g. on a machine without apt access) [osmesa]
 # CPU dry run of the plumbing:  S2R_COUNT=8 S2R_EPOCHS=1 S2R_DEVICE=cpu S2R_ARGS="--base-channels 8" \
 #                               bash pipelines/gpu_sim2real.sh
 set -euo pipefail
@@ -30,9 +31,12 @@ PY="${PYTHON:-python3}"
 log() { printf '[gpu_sim2real %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
 T0=$(date +%s)
 
-# 1. System libraries for off-screen rendering (pyrender imports pyglet: libGL and libXrender too).
+# 1. System libraries for off-screen rendering (pyrender imports pyglet: libGL and libXrender too;
+#    OSMesa only for the osmesa platform).
+export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-osmesa}"   # egl: GPU rendering where OSMesa is missing
+pkgs=(libgl1 libxrender1); [ "$PYOPENGL_PLATFORM" = osmesa ] && pkgs+=(libosmesa6)
 need=()
-for pkg in libosmesa6 libgl1 libxrender1; do
+for pkg in "${pkgs[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || need+=("$pkg")
 done
 if [ ${#need[@]} -gt 0 ]; then
@@ -59,8 +63,7 @@ EOF
   pipq $deps
   pipq --no-deps -e .
 fi
-export PYOPENGL_PLATFORM=osmesa
-"$PY" -c 'import pyrender' >/dev/null 2>&1 || { log "error: pyrender does not import (OSMesa missing?)"; exit 1; }
+"$PY" -c 'import pyrender' >/dev/null 2>&1 || { log "error: pyrender does not import ($PYOPENGL_PLATFORM library missing?)"; exit 1; }
 
 # 3. Inputs.
 REAL=("$@")
