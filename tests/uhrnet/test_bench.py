@@ -46,6 +46,17 @@ def test_bench_user_errors(capsys):
     assert "error" in capsys.readouterr().err
 
 
+def test_bench_json_destination_is_checked_before_timing(tmp_path, capsys):
+    """A --json that cannot be written fails at once (before minutes of timing), one line, exit 1."""
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["bench", "--models", "unet", "--json", str(tmp_path)]) == 1
+    assert main(["bench", "--models", "unet", "--json", str(blocker / "out.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and "is a folder" in err[0] and "cannot write in" in err[1] and str(blocker) in err[1]
+    assert blocker.read_text() == "x"
+
+
 def test_bench_optimize_json_keys(tmp_path, capsys):
     pytest.importorskip("onnxruntime")
     out = tmp_path / "opt.json"
