@@ -74,14 +74,15 @@ class BenchConfig:
         if self.compile:
             self.warmup = max(self.warmup, 2)
         if self.json is not None:  # fail now, not after minutes of timing
-            import os
+            from fppsim._fs import check_writable_dir
 
             path = Path(self.json)
             if path.is_dir():
                 raise ConfigError(f"--json {path}: is a folder; give a file name")
-            parent = next((d for d in (path.parent, *path.parent.parents) if d.exists()), Path("."))
-            if not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK):
-                raise ConfigError(f"--json {path}: cannot write in {parent}")
+            try:
+                check_writable_dir(path.parent, "--json")
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
 
 
 def build_scaled(name: str, base_channels: int | None):

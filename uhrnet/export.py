@@ -18,7 +18,6 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 
 from __future__ import annotations
 
-import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +26,9 @@ import numpy as np
 import torch
 from torch import nn
 
-from uhrnet.errors import ExportError, UsageError
+from fppsim._fs import tmp_path
+
+from uhrnet.errors import CheckpointError, ExportError, UsageError
 
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
@@ -269,9 +270,10 @@ def export_checkpoint(config: ExportConfig) -> dict:
     if not config.check:
         export_model(model, out, config.format, shape, config.opset, config.dynamic, config.optimize)
         return summary
-    # Export next to --out under a staging name (with the format's suffix: OpenVINO picks its reader by
-    # it), check that file, and only then move it onto --out: a failed check leaves --out as it was.
-    stage = out.with_name(f".{out.stem}.unchecked-{os.getpid()}{SUFFIXES[config.format]}")
+    # Export to this process's temporary sibling of --out, named with the format's suffix (OpenVINO picks
+    # its reader by it), check that file, and only then move it onto --out: a failed check leaves --out
+    # as it was.
+    stage = tmp_path(out.with_suffix(SUFFIXES[config.format]))
     try:
         export_model(model, stage, config.format, shape, config.opset, config.dynamic, config.optimize)
         result = check_export(stage, config.format, model, shape, runtime=config.runtime)
@@ -289,9 +291,8 @@ def export_checkpoint(config: ExportConfig) -> dict:
 
 def _is_checkpoint(path: Path) -> bool:
     from .checkpoint import load_checkpoint
-    from .errors import CheckpointError
 
-    if path.suffix.lower() in (".onnx",):
+    if path.suffix.lower() == ".onnx":
         return False
     try:
         with warnings.catch_warnings():

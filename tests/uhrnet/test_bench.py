@@ -53,7 +53,7 @@ def test_bench_json_destination_is_checked_before_timing(tmp_path, capsys):
     assert main(["bench", "--models", "unet", "--json", str(tmp_path)]) == 1
     assert main(["bench", "--models", "unet", "--json", str(blocker / "out.json")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 2 and "is a folder" in err[0] and "cannot write in" in err[1] and str(blocker) in err[1]
+    assert len(err) == 2 and "is a folder" in err[0] and "is a file, not a folder" in err[1] and str(blocker) in err[1]
     assert blocker.read_text() == "x"
 
 
