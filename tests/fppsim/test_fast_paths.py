@@ -100,6 +100,47 @@ def test_save_npz_round_trip_fixed_bytes_and_stored_noise(tmp_path):
     assert all(i.date_time == (1980, 1, 1, 0, 0, 0) for i in info.values())
 
 
+def test_npz_members_are_standard_deflate(tmp_path):
+    """zlib-ng writes the members; the stdlib zlib (what np.load and zipfile use) must inflate them."""
+    import zlib
+
+    rng = np.random.default_rng(3)
+    arrays = {"height": np.where(rng.random((352, 640)) < 0.5, 0, rng.uniform(0, 50, (352, 640))).astype(np.float32),
+              "mask": (rng.random((352, 640)) < 0.7).astype(np.float32)}
+    save_npz(tmp_path / "a.npz", arrays)
+    with zipfile.ZipFile(tmp_path / "a.npz") as zf:
+        assert zf.testzip() is None  # CRCs of the inflated members
+        for info in zf.infolist():
+            assert info.compress_type == zipfile.ZIP_DEFLATED
+            raw = zf.fp  # the member's deflate stream, inflated by the stdlib zlib directly
+            raw.seek(info.header_offset + 26)
+            skip = int.from_bytes(raw.read(2), "little") + int.from_bytes(raw.read(2), "little")
+            raw.seek(skip, 1)
+            data = zlib.decompress(raw.read(info.compress_size), -15)
+            key = info.filename[:-4]
+            assert data.endswith(arrays[key].tobytes()) and len(data) == info.file_size
+
+
+@pytest.mark.parametrize("shape", [(352, 640), (1, 1), (1, 9), (7, 1), (3, 4)])
+def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
+    import io
+
+    import cv2
+    from PIL import Image
+
+    from fppsim.formats import encode_png
+
+    rng = np.random.default_rng(sum(shape))
+    img = rng.integers(0, 256, shape, dtype=np.uint8)
+    img[: shape[0] // 2] = np.clip(img[: shape[0] // 2], 250, 255)  # wrap-around differences in the filter
+    data = encode_png(img)
+    Image.open(io.BytesIO(data)).verify()  # chunk CRCs and structure
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(data))), img)
+    assert np.array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED), img)
+    colour = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)  # other images: OpenCV's encoder
+    assert np.array_equal(cv2.imdecode(np.frombuffer(encode_png(colour), np.uint8), cv2.IMREAD_UNCHANGED), colour)
+
+
 def test_background_writer_runs_in_order_and_reraises():
     done = []
     w = BackgroundWriter()
