@@ -273,7 +273,9 @@ def form_image(irradiance_parts: tuple[np.ndarray, np.ndarray], pattern: np.ndar
         sd *= optics.shot_noise
         sd += optics.noise_sigma ** 2
         np.sqrt(sd, out=sd)  # sqrt(noise_sigma**2 + shot_noise * max(E, 0))
-        E += rng.standard_normal(E.shape, dtype=np.float32) * sd
+        noise = rng.standard_normal(E.shape, dtype=np.float32)  # a fresh array: scaled in place
+        noise *= sd
+        E += noise
     E = np.clip(E, 0.0, 255.0, out=E)
     if optics.camera_gamma != 1.0:
         E = 255.0 * (E / 255.0) ** (1.0 / optics.camera_gamma)

@@ -94,16 +94,15 @@ def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple
     x = (np.where(geom.lit, geom.u_p, 0.0) + 0.5) * OVERSAMPLE - 0.5
     n = rig.projector.width * OVERSAMPLE
     i0 = np.clip(np.floor(x), 0, n - 2).astype(np.intp)
-    i1 = i0 + 1
     w = np.clip(x - i0, 0.0, 1.0).astype(np.float32)
     out = []
     for periods, shift in patterns:
         prof = pattern_profile(rig.projector.width, periods, shift, optics)[1].astype(np.float32)
-        p0 = prof.take(i0)  # np.take: prof[i0], faster
-        pattern = prof.take(i1)
-        pattern -= p0
+        # prof[i0] + w * (prof[i0 + 1] - prof[i0]), the differences taken once on the profile (the same
+        # float32 values) instead of per pixel; np.take: faster than fancy indexing
+        pattern = np.diff(prof).take(i0)
         pattern *= w
-        pattern += p0  # p0 + w * (prof[i1] - p0), in place
+        pattern += prof.take(i0)
         if getattr(optics, "subsurface", 0.0) > 0:
             from .appearance import subsurface_pattern
 
