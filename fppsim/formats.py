@@ -385,7 +385,8 @@ def encode_png(img: np.ndarray) -> bytes:
     idat = z.compress(rows) + z.flush()
 
     def chunk(kind: bytes, data: bytes) -> bytes:
-        return len(data).to_bytes(4, "big") + kind + data + zlib.crc32(data, zlib.crc32(kind)).to_bytes(4, "big")
+        crc = _deflate.crc32(data, _deflate.crc32(kind))
+        return len(data).to_bytes(4, "big") + kind + data + crc.to_bytes(4, "big")
 
     ihdr = w.to_bytes(4, "big") + h.to_bytes(4, "big") + bytes((8, 0, 0, 0, 0))  # 8-bit grey, no interlace
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", idat) + chunk(b"IEND", b"")
@@ -402,10 +403,10 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
         shutil.rmtree(tmp)
     try:
         tmp.mkdir(parents=True)
+        for sub in sorted({(tmp / rel).parent for rel in images} - {tmp}):  # psp/: once, not per image
+            sub.mkdir(parents=True, exist_ok=True)
         for rel, img in images.items():
-            p = tmp / rel
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_bytes(encode_png(img))
+            (tmp / rel).write_bytes(encode_png(img))
         save_npz(tmp / "arrays.npz", arrays)
         (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
         if final.exists():
