@@ -311,7 +311,7 @@ def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1, min_
     """
     with zipfile.ZipFile(path, "w") as zf:
         for key, arr in arrays.items():
-            arr = np.ascontiguousarray(arr)
+            arr = np.asarray(arr, order="C")  # (np.ascontiguousarray would make a 0-d array 1-d)
             if arr.dtype.hasobject:
                 raise ValueError(f"save_npz: '{key}' holds Python objects (not allowed without pickle)")
             header = _npy_header(arr)
@@ -369,7 +369,11 @@ def encode_png(img: np.ndarray) -> bytes:
     time for about 3 % smaller files. Any other image (colour, 16-bit) goes through OpenCV's encoder.
     """
     img = np.asarray(img)
-    if img.dtype != np.uint8 or img.ndim != 2 or 0 in img.shape:
+    if img.dtype not in (np.uint8, np.uint16) or 0 in img.shape \
+            or not (img.ndim == 2 or img.ndim == 3 and img.shape[2] in (3, 4)):
+        raise ValueError(f"encode_png: a PNG holds a non-empty uint8/uint16 image of shape (H, W), (H, W, 3) "
+                         f"or (H, W, 4), got {img.dtype} {img.shape}")
+    if img.dtype != np.uint8 or img.ndim != 2:
         import cv2
 
         ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])

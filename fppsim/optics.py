@@ -273,8 +273,11 @@ def form_image(irradiance_parts: tuple[np.ndarray, np.ndarray], pattern: np.ndar
         sd *= optics.shot_noise
         sd += optics.noise_sigma ** 2
         np.sqrt(sd, out=sd)  # sqrt(noise_sigma**2 + shot_noise * max(E, 0))
-        noise = rng.standard_normal(E.shape, dtype=np.float32)  # a fresh array: scaled in place
-        noise *= sd
+        noise = rng.standard_normal(E.shape, dtype=np.float32)
+        if noise.dtype == sd.dtype:
+            noise *= sd  # a fresh array: scaled in place, the same values as noise * sd
+        else:
+            noise = noise * sd  # (float64 images: the product in float64, as ever)
         E += noise
     E = np.clip(E, 0.0, 255.0, out=E)
     if optics.camera_gamma != 1.0:

@@ -139,6 +139,24 @@ def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
     assert np.array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED), img)
     colour = rng.integers(0, 256, (*shape, 3), dtype=np.uint8)  # other images: OpenCV's encoder
     assert np.array_equal(cv2.imdecode(np.frombuffer(encode_png(colour), np.uint8), cv2.IMREAD_UNCHANGED), colour)
+    view = np.asfortranarray(img)[:, ::-1]  # any layout
+    assert np.array_equal(np.asarray(Image.open(io.BytesIO(encode_png(view)))), view)
+
+
+@pytest.mark.parametrize("bad", [np.zeros((0, 4), np.uint8), np.zeros((3, 4), np.float32), np.zeros((3, 4), bool),
+                                 np.zeros((3, 4), np.int8), np.zeros(5, np.uint8), np.zeros((3, 4, 2), np.uint8)])
+def test_encode_png_refuses_what_a_png_cannot_hold_exactly(bad):
+    from fppsim.formats import encode_png
+
+    with pytest.raises(ValueError, match=r"encode_png: .*got"):
+        encode_png(bad)
+
+
+def test_save_npz_keeps_zero_d_and_empty_shapes(tmp_path):
+    arrays = {"scalar": np.array(3.5, np.float32), "empty": np.zeros((0, 5), np.float32)}
+    save_npz(tmp_path / "a.npz", arrays)
+    with np.load(tmp_path / "a.npz") as z:
+        assert z["scalar"].shape == () and z["scalar"] == 3.5 and z["empty"].shape == (0, 5)
 
 
 def test_background_writer_runs_in_order_and_reraises():
