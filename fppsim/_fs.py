@@ -116,6 +116,8 @@ def is_own_tmp(name: str) -> bool:
 
 
 def pid_alive(pid: int) -> bool:
+    """Is process ``pid`` running? A zombie is not: a worker orphaned by kill -9 can stay one for
+    seconds where PID 1 reaps slowly (containers), and its temporary folders are stale all the same."""
     if pid <= 0:
         return False
     try:
@@ -123,8 +125,15 @@ def pid_alive(pid: int) -> bool:
     except ProcessLookupError:
         return False
     except PermissionError:  # exists, owned by someone else
+        pass
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as fh:
+            state = fh.read().rsplit(b")", 1)[1].split()[0]
+    except FileNotFoundError:  # gone meanwhile, or no /proc at all (macOS: then kill(0) is what we know)
+        return not os.path.isdir("/proc/self")
+    except (OSError, IndexError):
         return True
-    return True
+    return state not in (b"Z", b"X")
 
 
 def clean_stale_tmp(folder: str | os.PathLike) -> list[Path]:

@@ -107,6 +107,29 @@ def test_reconcile_and_cleanup_touch_only_our_dead_temp_files(tmp_path):
     assert clean_stale_tmp(root) == []
 
 
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="zombie state is read from /proc")
+def test_a_zombie_writer_counts_as_dead(tmp_path):
+    """A worker orphaned by kill -9 stays a zombie until PID 1 reaps it (seconds in containers); kill(0)
+    still succeeds on it, yet its temporary folders are stale and a re-run must remove them."""
+    from fppsim._fs import pid_alive
+
+    p = subprocess.Popen(["sleep", "30"])
+    try:
+        assert pid_alive(p.pid)
+        p.kill()
+        deadline = time.time() + 10
+        while time.time() < deadline and b") Z" not in Path(f"/proc/{p.pid}/stat").read_bytes():
+            time.sleep(0.01)  # not waited for: a zombie
+        os.kill(p.pid, 0)  # what the old check relied on: succeeds on a zombie
+        assert not pid_alive(p.pid)
+        stale = own_tmp(tmp_path / "000003").parent / f".fppsim-tmp-{p.pid}-000003"
+        stale.mkdir()
+        assert clean_stale_tmp(tmp_path) == [stale] and not stale.exists()
+    finally:
+        p.wait()
+    assert not pid_alive(p.pid)
+
+
 def test_folder_lock_refuses_a_second_holder(tmp_path):
     with folder_lock(tmp_path):
         with pytest.raises(FolderBusy, match="in use by another"):
