@@ -32,7 +32,7 @@ from .errors import FolderBusy
 __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
            "check_writable_dir", "write_fully", "atomic_path", "atomic_write_text", "atomic_write_bytes",
-           "fsync_dir"]
+           "fsync_dir", "unlink_quietly"]
 
 TMP_PREFIX = ".fppsim-tmp-"
 _TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
@@ -86,9 +86,18 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        unlink_quietly(tmp)
         raise
     fsync_dir(path.parent)
+
+
+def unlink_quietly(path: str | os.PathLike) -> None:
+    """Remove a file we wrote, if it is there; a folder that refuses (read-only) must not hide the
+    error that made us clean up."""
+    try:
+        Path(path).unlink(missing_ok=True)
+    except OSError:
+        pass
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim._fs import tmp_path
+from fppsim._fs import atomic_path, tmp_path, unlink_quietly
 
 from uhrnet.errors import CheckpointError, ExportError, UsageError
 
@@ -115,9 +115,8 @@ def export_model(
         x = x.to(param.device)
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp")
     try:
-        with warnings.catch_warnings(), torch.no_grad():
+        with atomic_path(out) as tmp, warnings.catch_warnings(), torch.no_grad():
             warnings.simplefilter("ignore")  # tracer notes on the shape check, legacy-exporter notice
             if format == "onnx":
                 axes = {"fringe": {0: "batch", 2: "height", 3: "width"},
@@ -129,21 +128,11 @@ def export_model(
                 traced = torch.jit.trace(net, (x,), check_trace=False)
                 traced = torch.jit.freeze(traced)
                 traced.save(str(tmp))
-        tmp.replace(out)
     except ExportError:
         raise
     except Exception as exc:
-        _remove_quietly(tmp)
         raise ExportError(f"{out}: {format} export failed ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})") from None
     return out
-
-
-def _remove_quietly(path: Path) -> None:
-    """Remove a file this module wrote; a folder that refuses (read-only) must not hide the real error."""
-    try:
-        path.unlink(missing_ok=True)
-    except OSError:
-        pass
 
 
 def _threads(threads) -> int | None:
@@ -285,7 +274,7 @@ def export_checkpoint(config: ExportConfig) -> dict:
             )
         stage.replace(out)
     finally:
-        _remove_quietly(stage)
+        unlink_quietly(stage)
     return summary
 
 
