@@ -38,6 +38,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
     from uhrnet.train_config import LR_FLAT, LR_FLOOR, LR_SCHEDULES
+    from uhrnet.models.init import INITS
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
@@ -90,6 +91,11 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="keep an exponential moving average of the weights, updated after every optimizer step "
                         "with this decay (ramped up as min(DECAY, (1+n)/(10+n)) over the first steps); validation, "
                         "best.pt and the checkpoints' weights use the average; e.g. 0.998 (about 500 steps); 0: off [0]")
+    m.add_argument("--init", choices=INITS,
+                   help="weight initialisation of a fresh run: he draws the convolutions' weights from N(0, 2/fan_in) "
+                        "with zero biases, as the U-Net paper (the coarse levels of a network without batch norm then "
+                        "start contributing); torch is PyTorch's default, what runs used before this option; auto is "
+                        "he for models without batch norm (unet, model_a, hnet) and torch for the others [auto]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "

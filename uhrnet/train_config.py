@@ -27,10 +27,10 @@ DEFAULTS = {
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
-    "augment_probability": 0.8,
+    "augment_probability": 0.8, "init": "auto",
 }
 # what a run made before an option existed used: resuming it must not switch the option on
-LEGACY = {"augment": "off", "lr_schedule": "constant"}
+LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch"}
 LR_SCHEDULES = ("cosine", "constant", "flat-cosine")
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 LR_FLAT = 0.7  # flat-cosine: share of the steps at --lr before its cosine decay
@@ -51,6 +51,9 @@ class TrainConfig:
     :data:`uhrnet.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
     ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
     as rendered).
+    ``init``: weight initialisation of a fresh run, a name of :data:`uhrnet.models.init.INITS` (``auto``:
+    ``he`` for models without batch norm, ``torch`` otherwise; ``he``: N(0, 2/fan_in) as the U-Net paper;
+    ``torch``: PyTorch's default, what every run used before); ignored on resume.
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
@@ -82,6 +85,7 @@ class TrainConfig:
     weight_decay: float | None = None
     grad_clip: float | None = None
     ema: float | None = None
+    init: str | None = None
     amp: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
@@ -146,6 +150,11 @@ def check_options(cfg: dict) -> None:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
         raise UsageError(f"--ema must be a decay in [0, 1) (0: off), got {cfg['ema']}")
+    if "init" in cfg:
+        from uhrnet.models.init import INITS
+
+        if cfg["init"] not in INITS:
+            raise UsageError(f"--init must be one of {', '.join(INITS)}, got {cfg['init']!r}")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 

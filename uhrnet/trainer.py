@@ -105,6 +105,9 @@ class Trainer:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"--model {cfg['model']}: {exc}") from None
+        from uhrnet.models.init import init_weights
+
+        init_weights(net, cfg["init"])  # drawn from the seeded global generator, so --seed fixes it; resume overwrites it
         self.net = net
         self.n_params = count_parameters(net)
         scale, shift = (1.0, 0.0) if cfg["raw_output"] else (10.0 * self.transform.units_per_mm,
