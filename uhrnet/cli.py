@@ -67,7 +67,8 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="augmentation of synthetic samples (uhrnet.augment; real samples never): 'photometric' "
                         "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "
                         "the fringe background and modulation so that shading cannot stand in for the phase; "
-                        "'off' [shading]")
+                        "'shading-tilt' adds a random planar gain ramp over the whole image (the projector's "
+                        "falloff across the field differs between rigs); 'off' [shading]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
                    help="no augmentation (same as --augment off)")
     d.add_argument("--augment-probability", type=float, metavar="P",
