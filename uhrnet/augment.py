@@ -45,8 +45,9 @@ class AugmentConfig:
         ``exp(+-envelope)``);
         0 turns them off (and leaves the other draws exactly as without them).
     envelope_scale : range of their feature size as a fraction of the image height.
-    tilt : largest log-gain change across the image width of the planar ramp (0: off, and the other
-        draws exactly as without it).
+    tilt : largest log-gain change across the image width of the planar ramp, applied before the
+        gamma (so the final image's log-gain changes by up to gamma x tilt); 0: off, and the other
+        draws exactly as without it.
     """
 
     probability: float = 0.8

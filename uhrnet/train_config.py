@@ -37,7 +37,7 @@ LR_FLAT = 0.7  # flat-cosine: share of the steps at --lr before its cosine decay
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
-          "augment_probability")
+          "augment_probability", "init")
 
 
 @dataclass

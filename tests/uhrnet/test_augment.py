@@ -125,10 +125,22 @@ def test_tilt_is_a_planar_log_gain_ramp_and_off_changes_nothing():
         assert np.hypot(coef[1], coef[2]) * w <= 0.7 + 1e-3
         assert np.mean(logI) == pytest.approx(np.log(100), abs=0.05)  # centred on the image: no net gain
     f, v = _fringe()
-    a = augment_fringe(f, v, np.random.default_rng(9), AugmentConfig(probability=1.0))
-    b = augment_fringe(f, v, np.random.default_rng(9), AugmentConfig(probability=1.0, tilt=0.0))
-    np.testing.assert_array_equal(a, b)
-    c = augment_fringe(f, v, np.random.default_rng(9), AugmentConfig(probability=1.0, tilt=0.7))
+
+
+    class Counting:  # counts the draws augment_fringe takes from its generator
+        def __init__(self, seed):
+            self.rng, self.calls = np.random.default_rng(seed), []
+
+        def __getattr__(self, name):
+            self.calls.append(name)
+            return getattr(self.rng, name)
+
+    off, on = Counting(9), Counting(9)
+    a = augment_fringe(f, v, off, AugmentConfig(probability=1.0, tilt=0.0))
+    c = augment_fringe(f, v, on, AugmentConfig(probability=1.0, tilt=0.7))
+    # the tilt adds exactly its two uniform draws (amplitude, direction) before the noise; off, none
+    assert on.calls == off.calls[:-1] + ["uniform", "uniform"] + off.calls[-1:]
+    assert off.calls[-1] == "standard_normal"
     assert not np.array_equal(a, c)
 
 

@@ -49,6 +49,19 @@ def test_auto_is_he_without_batch_norm_and_torch_with_it():
             assert torch.equal(a, b), (name, k)
 
 
+def test_hnets_bilinear_upsamplers_survive_every_scheme():
+    from uhrnet.models.hnet import bilinear_kernel_
+
+    for scheme in ("auto", "he", "torch"):
+        torch.manual_seed(0)
+        net = init_weights(build_model("hnet", base_channels=4), scheme)
+        ups = [m for m in net.modules() if isinstance(m, nn.ConvTranspose2d) and getattr(m, "keep_init", False)]
+        assert ups, "hnet has guidance upsamplers"
+        for up in ups:
+            expected = bilinear_kernel_(torch.empty_like(up.weight), up.stride[0])
+            assert torch.equal(up.weight, expected), scheme
+
+
 def test_he_keeps_a_relu_unet_alive_where_torchs_default_fades():
     """The point of the option: without normalisation PyTorch's default shrinks the signal about
     six-fold in variance per ReLU layer, so the bottleneck of a U-Net is nearly silent."""

@@ -51,6 +51,7 @@ class GuidanceBranch(nn.Sequential):
         if scale > 1:
             up = upsample_conv(1, 1, scale, kernel_size=2 * scale, bias=False)
             bilinear_kernel_(up.weight, scale)
+            up.keep_init = True  # uhrnet.models.init leaves the bilinear kernel alone
             layers.append(up)
         super().__init__(*layers)
 

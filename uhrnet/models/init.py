@@ -23,7 +23,8 @@ A convolution directly followed by a batch norm (UHRNet's ``conv -> BN`` pairs) 
 initialisation in both schemes: the batch norm removes its scale from the forward pass, and under Adam a
 larger weight norm only slows its relative updates (a tiny UHRNet trained 7 epochs at lr 3e-3 ended at
 4.3 mm instead of under 3.1 when those convolutions were drawn at the He scale too). Batch-norm layers
-keep weight 1 and bias 0.
+keep weight 1 and bias 0. A module with the attribute ``keep_init = True`` keeps the weights its model
+gave it in every scheme (hNet's guidance upsamplers, which start as bilinear interpolation).
 """
 
 from __future__ import annotations
@@ -49,7 +50,8 @@ def _fan_in(module: nn.Conv2d | nn.ConvTranspose2d) -> float:
 def init_weights(model: nn.Module, scheme: str = "auto", generator: torch.Generator | None = None) -> nn.Module:
     """Initialise ``model``'s convolutions in place by ``scheme`` (see the module docstring); returns it.
 
-    Convolutions directly followed by a ``BatchNorm2d`` inside an ``nn.Sequential`` are left as built.
+    Convolutions directly followed by a ``BatchNorm2d`` inside an ``nn.Sequential``, and modules marked
+    ``keep_init = True``, are left as built.
 
     ``"torch"`` leaves the model as built. Draws come from ``generator`` (default: torch's global one,
     which the trainer seeds), in module order, so the same seed gives the same weights.
@@ -67,7 +69,8 @@ def init_weights(model: nn.Module, scheme: str = "auto", generator: torch.Genera
             normalised.update(id(a) for a, b in zip(layers, layers[1:]) if isinstance(b, nn.BatchNorm2d))
     with torch.no_grad():
         for module in model.modules():
-            if isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)) and id(module) not in normalised:
+            if (isinstance(module, (nn.Conv2d, nn.ConvTranspose2d)) and id(module) not in normalised
+                    and not getattr(module, "keep_init", False)):
                 std = math.sqrt(2.0 / max(_fan_in(module), 1e-12))
                 module.weight.normal_(0.0, std, generator=generator)
                 if module.bias is not None:
