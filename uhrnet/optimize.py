@@ -23,6 +23,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .models.blocks import conv_bn_pairs
+
 __all__ = [
     "fold_batchnorm",
     "fold_conv_bn",
@@ -76,20 +78,11 @@ def fold_batchnorm(model: nn.Module, inplace: bool = False) -> nn.Module:
     if not inplace:
         model = copy.deepcopy(model)
     model.eval()
-    for module in list(model.modules()):
-        if not isinstance(module, nn.Sequential):
-            continue
-        names = list(module._modules)
-        for first, second in zip(names, names[1:]):
-            conv, bn = module._modules[first], module._modules[second]
-            if (
-                isinstance(conv, (nn.Conv2d, nn.ConvTranspose2d))
-                and isinstance(bn, nn.BatchNorm2d)
-                and bn.num_features == conv.out_channels
-                and bn.track_running_stats
-            ):
-                module._modules[first] = fold_conv_bn(conv, bn)
-                module._modules[second] = nn.Identity()
+    for module, first, second in conv_bn_pairs(model):
+        conv, bn = module._modules[first], module._modules[second]
+        if bn.num_features == conv.out_channels and bn.track_running_stats:
+            module._modules[first] = fold_conv_bn(conv, bn)
+            module._modules[second] = nn.Identity()
     return model
 
 

@@ -53,7 +53,8 @@ class TrainConfig:
     as rendered).
     ``init``: weight initialisation of a fresh run, a name of :data:`uhrnet.models.init.INITS` (``auto``:
     ``he`` for models without batch norm, ``torch`` otherwise; ``he``: N(0, 2/fan_in) as the U-Net paper;
-    ``torch``: PyTorch's default, what every run used before); ignored on resume.
+    ``torch``: PyTorch's default, what every run used before); on resume the checkpoint's weights are
+    kept, and a different ``init`` is refused like every LOCKED option.
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.

@@ -12,7 +12,7 @@ and the published parameter counts include those biases.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 import torch
 from torch import nn
@@ -49,6 +49,22 @@ class ConvBNAct(nn.Sequential):
         if act:
             layers.append(activation(negative_slope))
         super().__init__(*layers)
+
+
+def conv_bn_pairs(model: nn.Module) -> Iterator[tuple[nn.Sequential, str, str]]:
+    """Every ``Conv2d`` / ``ConvTranspose2d`` directly followed by a ``BatchNorm2d`` inside an
+    ``nn.Sequential`` of ``model`` (how :class:`ConvBNAct` builds them): ``(sequential, conv name, bn name)``.
+
+    The pairs are collected before the first is yielded, so a caller may replace the modules it gets.
+    """
+    pairs = []
+    for module in model.modules():
+        if isinstance(module, nn.Sequential):
+            names = list(module._modules)
+            pairs += [(module, a, b) for a, b in zip(names, names[1:])
+                      if isinstance(module._modules[a], (nn.Conv2d, nn.ConvTranspose2d))
+                      and isinstance(module._modules[b], nn.BatchNorm2d)]
+    yield from pairs
 
 
 class DoubleConv(nn.Sequential):
