@@ -252,7 +252,8 @@ class Geometry:
     u_p, v_p : projector pixel coordinates (with projector distortion)
     lit : seen and lit by the projector (inside its image, not shadowed, facing it)
     cos_incidence : cosine between normal and direction to the projector (0 where not lit)
-    falloff : projector inverse-square falloff relative to the world origin
+    falloff : projector irradiance per unit cos(incidence), 1 at the world origin
+              (:meth:`fppsim.rig.Device.irradiance_falloff`: equal flux per projector pixel)
     """
 
     depth: np.ndarray
@@ -441,7 +442,7 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     cos_inc /= np.sqrt(dist2, out=tmp)
     lit = inside & unshadowed & (cos_inc > 0)
     cos_inc = np.where(lit, cos_inc, 0.0)
-    falloff = float(np.sum(proj.center ** 2)) / dist2
+    falloff = proj.irradiance_falloff(Ps, z=z_p, dist2=dist2)
     return Geometry(depth=depth, points=P, normals=normals, on_object=on_object & seen,
                     u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
 
