@@ -439,10 +439,11 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     cos_inc = normals[..., 0] * tp[0]
     cos_inc += np.multiply(normals[..., 1], tp[1], out=tmp)
     cos_inc += np.multiply(normals[..., 2], tp[2], out=tmp)
-    cos_inc /= np.sqrt(dist2, out=tmp)
+    dist = np.sqrt(dist2, out=dist2)
+    cos_inc /= dist
     lit = inside & unshadowed & (cos_inc > 0)
     cos_inc = np.where(lit, cos_inc, 0.0)
-    falloff = proj.irradiance_falloff(Ps, z=z_p, dist2=dist2)
+    falloff = proj.irradiance_falloff(Ps, z=z_p, dist=dist)
     return Geometry(depth=depth, points=P, normals=normals, on_object=on_object & seen,
                     u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
 

@@ -143,7 +143,7 @@ class Device:
         return np.stack([u, v], axis=-1), z
 
     def irradiance_falloff(self, X: np.ndarray, z: np.ndarray | None = None,
-                           dist2: np.ndarray | None = None) -> np.ndarray:
+                           dist: np.ndarray | None = None) -> np.ndarray:
         """Relative irradiance a projector delivers at world points, per unit of cos(incidence).
 
         A projector sends the same flux through every pixel of its image (for a uniform pattern), so
@@ -158,23 +158,28 @@ class Device:
         Parameters
         ----------
         X : (..., 3) world points, mm.
-        z, dist2 : optional, the points' depth along the axis (from :meth:`project`) and squared
-            distance to :attr:`center`, when the caller already has them.
+        z, dist : optional, the points' depth along the axis (from :meth:`project`) and distance to
+            :attr:`center` (mm), when the caller already has them.
 
         Returns
         -------
         (...,) float64, 0 where a point is not in front of the device.
         """
-        X = np.asarray(X, dtype=np.float64)
         if z is None:
             z = self.world_to_device(X)[..., 2]
-        if dist2 is None:
-            dist2 = np.sum((self.center - X) ** 2, axis=-1)
+        if dist is None:
+            dist = np.sqrt(np.sum((self.center - np.asarray(X, dtype=np.float64)) ** 2, axis=-1))
         z0 = float(self.t[2])  # the world origin's depth
-        r0 = float(np.sqrt(np.sum(self.center ** 2)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            f = np.sqrt(dist2) / r0 * (z0 / z) ** 3
-        return np.where(z > 0, f, 0.0)
+        scale = z0 ** 3 / float(np.sqrt(np.sum(self.center ** 2)))
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            f = np.divide(1.0, z)  # in place from here: this runs on every rendered pixel
+            f *= f * f
+            f *= dist
+            f *= scale
+        if np.ndim(f) == 0:
+            return np.float64(f if z > 0 else 0.0)
+        f[~(z > 0)] = 0.0
+        return f
 
     def normalized_rays(self, uv: np.ndarray) -> np.ndarray:
         """(..., 2) pixels -> (..., 3) device-frame ray directions (x, y, 1), distortion removed."""
