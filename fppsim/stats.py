@@ -26,7 +26,9 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
   valid pixels;
 - ``modulation_gray``: median fringe amplitude B (I = A + B cos phi) over valid pixels, from a band-pass
   around the fringe frequency along rows (analytic signal, i.e. the Hilbert envelope); ``contrast``: median
-  B / A with A the low-passed background;
+  B / A with A the low-passed background; ``plane_modulation_lr``: the median B on the reference plane
+  (valid pixels within ``object_mm`` of the plane level) in the right quarter of the image over the left
+  quarter: how the projector's light falls across the plane (the real figshare pair: about 1.2);
 - ``invalid_fraction``: label == invalid marker; ``below_threshold_fraction``: label <= -100 (the reference
   evaluation's invalid rule);
 - ``height_p1/p50/p99``: label percentiles over pixels that are not the invalid marker;
@@ -72,6 +74,7 @@ STAT_ROWS: list[tuple[str, str, str]] = [
     ("intensity_valid_p50", "intensity p50, valid px", "{:.1f}"),
     ("modulation_gray", "fringe modulation B (gray)", "{:.1f}"),
     ("contrast", "fringe contrast B/A", "{:.3f}"),
+    ("plane_modulation_lr", "  plane modulation, right/left", "{:.2f}"),
     ("invalid_fraction", "invalid fraction (marker)", "{:.2%}"),
     ("below_threshold_fraction", "fraction label <= -100", "{:.2%}"),
     ("height_p1", "height p1 (label)", "{:.1f}"),
@@ -239,7 +242,9 @@ def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform 
         ok = valid & (a > 1.0)
         out["contrast"] = float(np.median(b[ok] / a[ok])) if ok.any() else float("nan")
     else:
+        b = None
         out["modulation_gray"] = out["contrast"] = float("nan")
+    out["plane_modulation_lr"] = float("nan")
     out["invalid_fraction"] = float(marker.mean())
     out["below_threshold_fraction"] = float((label <= threshold).mean())
     if valid.any():
@@ -247,6 +252,12 @@ def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform 
         plane = plane_level(label, valid)
         obj = valid & (label > plane + object_mm * scale)
         above = (label[obj].astype(np.float64) - plane) / scale
+        if b is not None:
+            on_plane = valid & (np.abs(label - plane) <= object_mm * scale)
+            q = g.shape[1] // 4
+            left, right = b[:, :q][on_plane[:, :q]], b[:, -q:][on_plane[:, -q:]]
+            if left.size >= 100 and right.size >= 100:
+                out["plane_modulation_lr"] = float(np.median(right) / max(np.median(left), 1e-9))
         out.update(height_p1=float(h1), height_p50=float(h50), height_p99=float(h99), plane_level=plane,
                    object_fraction=float(obj.mean()),
                    relief_p99_mm=float(np.percentile(above, 99)) if above.size else 0.0)

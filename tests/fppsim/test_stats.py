@@ -98,6 +98,26 @@ def test_sample_stats_percentiles_fractions_and_coverage_match_numpy():
     assert s["modulation_gray"] == pytest.approx(40.0, rel=0.1)
 
 
+def test_plane_modulation_right_over_left_of_a_known_ramp():
+    """Fringe amplitude rising linearly from 20 to 50 gray levels across a flat plane (with an object in
+    the middle that the ratio must ignore): right quarter over left quarter = the ramp's medians."""
+    h, w = 176, 320
+    x = np.arange(w)
+    amp = 20.0 + 30.0 * x / (w - 1)
+    rng = np.random.default_rng(1)
+    gray = 80.0 + amp[None, :] * np.cos(2 * np.pi * x[None, :] / 11.6) + rng.normal(0, 0.5, (h, w))
+    gray = np.clip(np.rint(gray), 0, 255).astype(np.uint8)
+    label = np.full((h, w), -97.0, np.float32)
+    label[60:120, 140:180] = 60.0  # object, not plane
+    q = w // 4
+    expected = np.median(amp[-q:]) / np.median(amp[:q])
+    s = stats.sample_stats(gray, label)
+    assert s["plane_modulation_lr"] == pytest.approx(expected, rel=0.03)
+    assert expected > 1.8  # the ramp is steep enough for the check to mean something
+    flat = np.clip(np.rint(80.0 + 30.0 * np.cos(2 * np.pi * x[None, :] / 11.6) + 0 * label), 0, 255).astype(np.uint8)
+    assert stats.sample_stats(flat, label)["plane_modulation_lr"] == pytest.approx(1.0, abs=0.02)
+
+
 def _write_native(root, samples, with_mask_key=True):
     root.mkdir(parents=True, exist_ok=True)
     lines = []
@@ -202,3 +222,4 @@ def test_real_sample_statistics():
     assert 0.10 <= s["object_fraction"] <= 0.40
     assert s["height_p99"] > 100
     assert s["modulation_gray"] > 10
+    assert 1.05 <= s["plane_modulation_lr"] <= 1.4  # the real projector's light: about 1.2x left to right
