@@ -28,7 +28,9 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
   around the fringe frequency along rows (analytic signal, i.e. the Hilbert envelope); ``contrast``: median
   B / A with A the low-passed background; ``plane_modulation_lr``: the median B on the reference plane
   (valid pixels within ``object_mm`` of the plane level) in the right quarter of the image over the left
-  quarter: how the projector's light falls across the plane (the real figshare pair: about 1.2);
+  quarter: how the projector's light falls across the plane (the real figshare pair: about 1.14);
+  ``fringe_tilt_deg``: the fringe lines' angle from vertical on the plane (:func:`fringe_tilt`; the
+  real pair: about -1.35);
 - ``invalid_fraction``: label == invalid marker; ``below_threshold_fraction``: label <= -100 (the reference
   evaluation's invalid rule);
 - ``height_p1/p50/p99``: label percentiles over pixels that are not the invalid marker;
@@ -51,6 +53,7 @@ __all__ = [
     "estimate_period",
     "quarter_periods",
     "fringe_modulation",
+    "fringe_tilt",
     "plane_level",
     "sample_stats",
     "dataset_stats",
@@ -75,6 +78,7 @@ STAT_ROWS: list[tuple[str, str, str]] = [
     ("modulation_gray", "fringe modulation B (gray)", "{:.1f}"),
     ("contrast", "fringe contrast B/A", "{:.3f}"),
     ("plane_modulation_lr", "  plane modulation, right/left", "{:.2f}"),
+    ("fringe_tilt_deg", "fringe tilt on the plane (deg)", "{:+.2f}"),
     ("invalid_fraction", "invalid fraction (marker)", "{:.2%}"),
     ("below_threshold_fraction", "fraction label <= -100", "{:.2%}"),
     ("height_p1", "height p1 (label)", "{:.1f}"),
@@ -180,6 +184,32 @@ def fringe_modulation(gray: np.ndarray, period: float, valid: np.ndarray | None 
     frequency f0 = 1/period (positive frequencies only, i.e. the Hilbert envelope of the band-passed
     row); A = the row low-passed below (1-band) f0.  Invalid pixels are filled with the row mean first.
     """
+    analytic, background = _analytic_rows(gray, period, valid, band)
+    return 2.0 * np.abs(analytic), background
+
+
+def fringe_tilt(gray: np.ndarray, period: float, mask: np.ndarray | None = None, band: float = 0.5) -> float:
+    """Angle of the fringe lines from the image's vertical, degrees: positive when a line leans to the
+    right going down the image (``atan(du/dv)`` along a line of constant phase).
+
+    From the rows' analytic signals (as :func:`fringe_modulation`): the phase gradients along rows
+    (``g_u``) and down columns (``g_v``), each from the angle of neighbouring samples' product (no
+    unwrapping), give ``du/dv = -g_v / g_u``; the median over ``mask`` (e.g. the reference plane, where
+    the fringes are the rig's own) is returned, NaN with fewer than 100 usable pixels. The real
+    figshare pair: about -1.35 deg; a rig whose projector is not rolled: 0.
+    """
+    x = np.asarray(gray, np.float64)
+    m = np.ones(x.shape, bool) if mask is None else np.asarray(mask, bool)
+    a, _ = _analytic_rows(x, period, m, band)
+    gu = np.angle(a[:-1, 1:] * np.conj(a[:-1, :-1]))
+    gv = np.angle(a[1:, :-1] * np.conj(a[:-1, :-1]))
+    ok = m[:-1, :-1] & m[1:, :-1] & m[:-1, 1:] & (np.abs(gu) > 0.25 * 2 * np.pi / period)
+    if ok.sum() < 100:
+        return float("nan")
+    return float(np.degrees(np.arctan(np.median(-gv[ok] / gu[ok]))))
+
+
+def _analytic_rows(gray, period, valid, band):
     x0 = np.asarray(gray, np.float64)
     h, w = x0.shape
     if valid is None:
@@ -198,7 +228,7 @@ def fringe_modulation(gray: np.ndarray, period: float, valid: np.ndarray | None 
     low = np.abs(f) < (1 - band) * f0
     analytic = np.fft.ifft(spec * sel, axis=1)[:, padw:padw + w]
     background = np.fft.ifft(spec * low, axis=1).real[:, padw:padw + w]
-    return 2.0 * np.abs(analytic), background
+    return analytic, background
 
 
 def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, window: float = 6.0) -> float:
@@ -244,7 +274,7 @@ def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform 
     else:
         b = None
         out["modulation_gray"] = out["contrast"] = float("nan")
-    out["plane_modulation_lr"] = float("nan")
+    out["plane_modulation_lr"] = out["fringe_tilt_deg"] = float("nan")
     out["invalid_fraction"] = float(marker.mean())
     out["below_threshold_fraction"] = float((label <= threshold).mean())
     if valid.any():
@@ -258,6 +288,7 @@ def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform 
             left, right = b[:, :q][on_plane[:, :q]], b[:, -q:][on_plane[:, -q:]]
             if left.size >= 100 and right.size >= 100:
                 out["plane_modulation_lr"] = float(np.median(right) / max(np.median(left), 1e-9))
+            out["fringe_tilt_deg"] = fringe_tilt(g, period, on_plane)
         out.update(height_p1=float(h1), height_p50=float(h50), height_p99=float(h99), plane_level=plane,
                    object_fraction=float(obj.mean()),
                    relief_p99_mm=float(np.percentile(above, 99)) if above.size else 0.0)

@@ -118,6 +118,22 @@ def test_plane_modulation_right_over_left_of_a_known_ramp():
     assert stats.sample_stats(flat, label)["plane_modulation_lr"] == pytest.approx(1.0, abs=0.02)
 
 
+@pytest.mark.parametrize("deg", [-1.35, 0.0, 2.0, 6.0])
+def test_fringe_tilt_of_rotated_fringes(deg):
+    """Lines u - v tan(theta) = const lean right going down by theta: the measured angle is theta."""
+    h, w = 176, 320
+    v, u = np.mgrid[0:h, 0:w]
+    rng = np.random.default_rng(2)
+    phi = 2 * np.pi * (u - v * np.tan(np.radians(deg))) / 11.6
+    gray = np.clip(np.rint(70 + 40 * np.cos(phi) + rng.normal(0, 1.0, (h, w))), 0, 255).astype(np.uint8)
+    mask = np.ones((h, w), bool)
+    mask[40:100, 100:200] = False  # an object elsewhere must not matter
+    gray[40:100, 100:200] = rng.integers(0, 255, (60, 100))
+    assert stats.fringe_tilt(gray, 11.6, mask) == pytest.approx(deg, abs=0.05, rel=0.02)
+    label = np.where(mask, -97.0, 80.0).astype(np.float32)
+    assert stats.sample_stats(gray, label)["fringe_tilt_deg"] == pytest.approx(deg, abs=0.05, rel=0.02)
+
+
 def _write_native(root, samples, with_mask_key=True):
     root.mkdir(parents=True, exist_ok=True)
     lines = []
@@ -222,4 +238,5 @@ def test_real_sample_statistics():
     assert 0.10 <= s["object_fraction"] <= 0.40
     assert s["height_p99"] > 100
     assert s["modulation_gray"] > 10
-    assert 1.05 <= s["plane_modulation_lr"] <= 1.4  # the real projector's light: about 1.2x left to right
+    assert 1.05 <= s["plane_modulation_lr"] <= 1.4  # the real projector's light: about 1.14x left to right
+    assert -1.6 <= s["fringe_tilt_deg"] <= -1.1  # the real fringes lean: 8.6 px over the 352 rows
