@@ -78,7 +78,7 @@ STAT_ROWS: list[tuple[str, str, str]] = [
     ("modulation_gray", "fringe modulation B (gray)", "{:.1f}"),
     ("contrast", "fringe contrast B/A", "{:.3f}"),
     ("plane_modulation_lr", "  plane modulation, right/left", "{:.2f}"),
-    ("fringe_tilt_deg", "fringe tilt on the plane (deg)", "{:+.2f}"),
+    ("fringe_tilt_deg", "fringe tilt on the plane (deg)", "{:.2f}"),
     ("invalid_fraction", "invalid fraction (marker)", "{:.2%}"),
     ("below_threshold_fraction", "fraction label <= -100", "{:.2%}"),
     ("height_p1", "height p1 (label)", "{:.1f}"),
