@@ -12,7 +12,9 @@ half, 11.49 px in the right). :func:`measure_bands` measures the period per colu
 of real images (plane pixels only where labels exist) with :func:`fppsim.stats.estimate_period`, and
 :func:`fit_rig` adjusts a few projector parameters (yaw / pitch / roll about the projector's centre,
 baseline, periods across the projector, projector focal length) with :func:`scipy.optimize.least_squares`
-until the band periods of :func:`period_map` match. The camera stays fixed; after every change the
+until the band periods of :func:`period_map` match, and the fringe lines' angle on the plane
+(:func:`plane_tilt` against :func:`fppsim.stats.fringe_tilt` of the images: a rolled projector tilts
+them; the real figshare rig by about -1.35 deg). The camera stays fixed; after every change the
 projector's principal point is re-centred (lens shift) so the camera's view of the plane stays lit.
 
 Units: mm, radians, camera pixels for periods.
@@ -28,7 +30,7 @@ import numpy as np
 from .rig import Device, Rig, RigError
 
 __all__ = ["PARAMETERS", "poly_basis", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
-           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "format_fit", "surface_phase",
+           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "plane_tilt", "format_fit", "surface_phase",
            "centre_sensitivity", "SensitivityCheck", "sensitivity_check", "BaselineFit", "fit_baseline",
            "format_baseline_fit"]
 
@@ -85,6 +87,27 @@ def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndar
     return u, v, np.where(inside, period, np.nan)
 
 
+def plane_tilt(rig: Rig, step: int = 8) -> float:
+    """Angle of the pattern's lines on the reference plane from the camera's vertical, degrees, positive
+    when a line leans right going down (as :func:`fppsim.stats.fringe_tilt` measures images): the
+    median of ``atan(-(du_p/dv) / (du_p/du))`` over the lit plane. A rolled projector tilts the lines;
+    the real figshare rig: about -1.35 deg."""
+    cam, proj = rig.camera, rig.projector
+    u = np.arange(0, cam.width, step, dtype=np.float64)
+    v = np.arange(0, cam.height, step, dtype=np.float64)
+    uu, vv = np.meshgrid(u, v)
+    h = 0.5
+
+    def up(du, dv):
+        uvp, z = proj.project(_plane_points(cam, np.stack([uu + du, vv + dv], axis=-1)))
+        return np.where(z > 0, uvp[..., 0], np.nan)
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = -(up(0, h) - up(0, -h)) / (up(h, 0) - up(-h, 0))
+    ratio = ratio[np.isfinite(ratio)]
+    return float(np.degrees(np.arctan(np.median(ratio)))) if ratio.size else float("nan")
+
+
 def _band_edges(n: int, bands: int) -> np.ndarray:
     return np.linspace(0, n, bands + 1).round().astype(int)
 
@@ -92,7 +115,7 @@ def _band_edges(n: int, bands: int) -> np.ndarray:
 def band_model(rig: Rig, col_bands: int = 4, row_bands: int = 3, step: int = 4) -> dict:
     """Periods of :func:`period_map` per column band and per row band (the mean frequency of a band,
     what an FFT of the band measures), plus the left and right halves. Keys: ``columns`` (col_bands,),
-    ``rows`` (row_bands,), ``halves`` (2,), all camera px."""
+    ``rows`` (row_bands,), ``halves`` (2,), all camera px; ``tilt_deg`` (1,), :func:`plane_tilt`."""
     u, v, T = period_map(rig, step)
     freq = 1.0 / T
 
@@ -107,7 +130,8 @@ def band_model(rig: Rig, col_bands: int = 4, row_bands: int = 3, step: int = 4) 
     cols = [mean_period((uu >= a) & (uu < b)) for a, b in zip(ce[:-1], ce[1:])]
     rows = [mean_period((vv >= a) & (vv < b)) for a, b in zip(re[:-1], re[1:])]
     halves = [mean_period(uu < W // 2), mean_period(uu >= W // 2)]
-    return {"columns": np.array(cols), "rows": np.array(rows), "halves": np.array(halves)}
+    return {"columns": np.array(cols), "rows": np.array(rows), "halves": np.array(halves),
+            "tilt_deg": np.array([plane_tilt(rig, 2 * step)])}
 
 
 # ====================================================================== changing the rig
@@ -314,7 +338,9 @@ def _read_image(path: Path) -> FringeImage:
 @dataclass
 class BandPeriods:
     """Measured periods (camera px): per column band, per row band and per half; medians over images.
-    ``spread`` holds [min, max] over images for each entry; ``n_images`` how many gave a value."""
+    ``tilt_deg`` (1,): the fringe lines' angle from vertical on the plane (:func:`fppsim.stats.fringe_tilt`),
+    median over images. ``spread`` holds [min, max] over images for each entry; ``n_images`` how many
+    gave a value."""
 
     columns: np.ndarray
     rows: np.ndarray
@@ -322,21 +348,23 @@ class BandPeriods:
     spread: dict = field(default_factory=dict)
     n_images: int = 0
     shape: tuple = ()
+    tilt_deg: np.ndarray = field(default_factory=lambda: np.array([np.nan]))
 
     def to_dict(self) -> dict:
         return {"columns": self.columns.tolist(), "rows": self.rows.tolist(), "halves": self.halves.tolist(),
+                "tilt_deg": np.asarray(self.tilt_deg).tolist(),
                 "spread": {k: np.asarray(v).tolist() for k, v in self.spread.items()}, "n_images": self.n_images,
                 "shape": list(self.shape)}
 
 
 def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int = 3) -> BandPeriods:
     """Fringe period of every column band, row band and half of each image (plane pixels), median over images."""
-    from .stats import estimate_period
+    from .stats import estimate_period, fringe_tilt
 
     if not images:
         raise ValueError("no images to measure")
     shape = images[0].gray.shape
-    per = {"columns": [], "rows": [], "halves": []}
+    per = {"columns": [], "rows": [], "halves": [], "tilt_deg": []}
     for im in images:
         if im.gray.shape != shape:
             raise ValueError(f"{im.name}: image shape {im.gray.shape} differs from the first image's {shape}")
@@ -348,6 +376,8 @@ def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int 
         per["rows"].append([estimate_period(g[a:b], m[a:b]) for a, b in zip(re[:-1], re[1:])])
         per["halves"].append([estimate_period(g[:, : W // 2], m[:, : W // 2]),
                               estimate_period(g[:, W // 2:], m[:, W // 2:])])
+        period = estimate_period(g, m)
+        per["tilt_deg"].append([fringe_tilt(g, period, m) if np.isfinite(period) else np.nan])
     import warnings
 
     med, spread = {}, {}
@@ -360,7 +390,7 @@ def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int 
     n = int(np.isfinite(np.array(per["halves"])).all(axis=1).sum())
     if not np.isfinite(med["columns"]).any():
         raise ValueError("no fringe period could be measured in any image (no vertical fringes on the plane?)")
-    return BandPeriods(med["columns"], med["rows"], med["halves"], spread, n, tuple(shape))
+    return BandPeriods(med["columns"], med["rows"], med["halves"], spread, n, tuple(shape), med["tilt_deg"])
 
 
 # ====================================================================== fitting
@@ -389,14 +419,19 @@ class RigFit:
                 "success": self.success, "message": self.message}
 
 
+TILT_WEIGHT = 0.5  # camera px of band-period residual per degree of fringe tilt
+
+
 def _residual(model: dict, measured: BandPeriods) -> np.ndarray:
-    r = np.concatenate([model["columns"] - measured.columns, model["rows"] - measured.rows])
+    tilt = TILT_WEIGHT * (model["tilt_deg"] - np.asarray(measured.tilt_deg, dtype=np.float64))
+    r = np.concatenate([model["columns"] - measured.columns, model["rows"] - measured.rows, tilt])
     return np.where(np.isfinite(r), r, 0.0)
 
 
-def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", "pitch", "periods"),
+def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", "pitch", "roll", "periods"),
             prior: float = 0.02, step: int = 4) -> RigFit:
-    """Adjust ``params`` of ``base`` so its band periods (:func:`band_model`) match ``measured``.
+    """Adjust ``params`` of ``base`` so its band periods and fringe tilt (:func:`band_model`) match
+    ``measured`` (the tilt, in degrees, weighs ``TILT_WEIGHT`` px per degree; ``roll`` is what sets it).
 
     ``prior``: weight (camera px per typical parameter step) of a pull towards the base values, which
     keeps directions the period map cannot see (e.g. baseline vs periods) at the base rig. The camera
@@ -424,7 +459,7 @@ def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", 
         try:
             model = band_model(make(x), col_bands, row_bands, step)
         except RigError:
-            return np.full(col_bands + row_bands + len(params), 1e3)
+            return np.full(col_bands + row_bands + 1 + len(params), 1e3)
         return np.concatenate([_residual(model, measured), prior * x])
 
     sol = least_squares(fun, np.zeros(len(params)), method="trf", x_scale=1.0, diff_step=1e-4, xtol=1e-10,
@@ -461,6 +496,8 @@ def format_fit(fit: RigFit) -> str:
     rows("rows", _band_edges(H, len(m.rows)), "rows")
     for i, name in enumerate(("left half", "right half")):
         lines.append(f"{name:<22}{m.halves[i]:>10.3f}{fit.base_model['halves'][i]:>10.3f}{fit.fitted_model['halves'][i]:>10.3f}")
+    lines.append(f"{'fringe tilt (deg)':<22}{float(np.asarray(m.tilt_deg)[0]):>10.3f}"
+                 f"{float(fit.base_model['tilt_deg'][0]):>10.3f}{float(fit.fitted_model['tilt_deg'][0]):>10.3f}")
     lines.append(f"{'RMS residual (bands)':<22}{'':>10}{fit.rms_base:>10.3f}{fit.rms_fitted:>10.3f}")
     lines.append("")
     for p, v in fit.params.items():

@@ -82,6 +82,24 @@ def test_fit_recovers_a_perturbed_rig():
     assert "columns    0-160" in text and "right half" in text and "yaw" in text
 
 
+def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
+    """Roll barely changes the band periods; the measured tilt of the lines is what fixes it."""
+    from fppsim.rig import make_default_rig
+
+    base = make_default_rig()
+    truth = fr.adjust_rig(base, roll=np.radians(-1.3))
+    assert fr.plane_tilt(base) == pytest.approx(0.0, abs=1e-6)
+    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
+    measured = fr.measure_bands(images)
+    assert float(measured.tilt_deg[0]) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
+    assert abs(fr.plane_tilt(truth)) > 1.0
+    fit = fr.fit_rig(measured, base)
+    assert "roll" in fit.params
+    assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.1))
+    assert fr.plane_tilt(fit.rig) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
+    assert "fringe tilt (deg)" in fr.format_fit(fit)
+
+
 @pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")
 def test_fit_reproduces_the_real_trend():
     images, layout = fr.load_fringe_images(REAL)
@@ -90,6 +108,9 @@ def test_fit_reproduces_the_real_trend():
     left, right = fit.fitted_model["halves"]
     assert left == pytest.approx(11.96, abs=0.1) and right == pytest.approx(11.49, abs=0.1)
     assert left - right > 0.35
+    # the real fringes lean by about -1.35 deg (8.6 px over the 352 rows); the fitted projector is rolled to match
+    assert float(fit.measured.tilt_deg[0]) == pytest.approx(-1.34, abs=0.1)
+    assert float(fit.fitted_model["tilt_deg"][0]) == pytest.approx(float(fit.measured.tilt_deg[0]), abs=0.05)
 
 
 def test_cli(tmp_path, capsys):
