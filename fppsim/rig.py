@@ -617,9 +617,13 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 # coherent (R = 0.988) only near a 330 mm baseline, 0.87 rad per mm at the image centre; the former
 # 180 mm parallel rig had 0.48 rad/mm (R = 0.20), i.e. it taught networks 1.8x too little fringe
 # shift per mm.
+# Its fringe lines are not vertical either: on the plane they lean by -1.34 deg (8.6 px over the 352
+# rows; fppsim.stats.fringe_tilt), which a projector rolled by -1.29 deg about its optical axis
+# reproduces (fit-rig fits it from the tilt).
 DEFAULT_BASELINE = 330.0  # mm
 DEFAULT_PROJECTOR_YAW = 0.07499517978544548  # rad (4.30 deg)
 DEFAULT_PROJECTOR_FOCAL = 1309.7183169905145  # px
+DEFAULT_PROJECTOR_ROLL = -0.02250633517859773  # rad (-1.29 deg)
 
 
 def _rot_y(a: float) -> np.ndarray:
@@ -627,12 +631,18 @@ def _rot_y(a: float) -> np.ndarray:
     return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
 
 
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, baseline: float = 180.0,
-                  height: float = 500.0, width: int = 912, rows: int = 1140) -> Device:
+                  height: float = 500.0, width: int = 912, rows: int = 1140, roll: float = 0.0) -> Device:
     """A projector at ``(baseline, 0, height)`` mm looking down, turned ``yaw`` rad about its own y axis
-    (positive: its axis leans towards -x, the scene), principal point shifted so the world origin lands
-    in the middle of the DMD (lens shift, as DLP projectors have)."""
-    R = _rot_y(float(yaw)) @ np.diag([1.0, -1.0, -1.0])
+    (positive: its axis leans towards -x, the scene), then ``roll`` rad about its optical axis (tilts
+    the fringes; as :func:`fppsim.fit_rig.adjust_rig` applies it), principal point shifted so the world
+    origin lands in the middle of the DMD (lens shift, as DLP projectors have)."""
+    R = _rot_z(float(roll)) @ _rot_y(float(yaw)) @ np.diag([1.0, -1.0, -1.0])
     t = -R @ np.array([float(baseline), 0.0, float(height)])
     z = t[2]  # the world origin in the projector frame is t
     cx = (width - 1) / 2 - focal * t[0] / z
@@ -663,12 +673,15 @@ def make_figshare_like_rig() -> Rig:
 
     Like the real figshare rig: the projector ``DEFAULT_BASELINE`` (330 mm) to the +x side at the
     camera's height, turned by ``DEFAULT_PROJECTOR_YAW`` (4.30 deg) towards the scene, ``fx = fy =
-    DEFAULT_PROJECTOR_FOCAL``, lens shift so the scene centre lands mid-projector. The plane's fringe
-    period falls from 12.06 px (left quarter) to 11.40 px (right quarter), 11.95 px in the left half
-    and 11.51 px in the right half, and is constant down a column (vertical fringes); a raised surface
-    shifts the phase by about -0.87 rad per mm at the image centre (one period per 7.2 mm).
+    DEFAULT_PROJECTOR_FOCAL``, rolled by ``DEFAULT_PROJECTOR_ROLL`` (-1.29 deg) about its axis, lens
+    shift so the scene centre lands mid-projector. The plane's fringe period falls from 12.06 px (left
+    quarter) to 11.40 px (right quarter), 11.95 px in the left half and 11.51 px in the right half,
+    with no trend down the image; the fringe lines lean by -1.34 deg (8.6 px over the 352 rows) as the
+    real ones do; a raised surface shifts the phase by about -0.87 rad per mm at the image centre (one
+    period per 7.2 mm).
     """
     cam = Device.looking_down([0.0, 0.0, 500.0], 1230.0, 1230.0, 319.5, 175.5, 640, 352)
-    proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL, baseline=DEFAULT_BASELINE)
+    proj = projector_for(cam, yaw=DEFAULT_PROJECTOR_YAW, focal=DEFAULT_PROJECTOR_FOCAL, baseline=DEFAULT_BASELINE,
+                         roll=DEFAULT_PROJECTOR_ROLL)
     return Rig(camera=cam, projector=proj, periods=80.0,
-               name="figshare-like (330 mm baseline, projector yawed 4.30 deg), lens shift")
+               name="figshare-like (330 mm baseline, projector yawed 4.30 deg, rolled -1.29 deg), lens shift")

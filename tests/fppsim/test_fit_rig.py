@@ -84,9 +84,7 @@ def test_fit_recovers_a_perturbed_rig():
 
 def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
     """Roll barely changes the band periods; the measured tilt of the lines is what fixes it."""
-    from fppsim.rig import make_default_rig
-
-    base = make_default_rig()
+    base = make_parallel_rig()
     truth = fr.adjust_rig(base, roll=np.radians(-1.3))
     assert fr.plane_tilt(base) == pytest.approx(0.0, abs=1e-6)
     images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
@@ -98,6 +96,19 @@ def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
     assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.1))
     assert fr.plane_tilt(fit.rig) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
     assert "fringe tilt (deg)" in fr.format_fit(fit)
+
+
+def test_default_rig_fringes_lean_like_the_real_ones():
+    from fppsim.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
+
+    rig = make_default_rig()
+    assert fr.plane_tilt(rig) == pytest.approx(-1.34, abs=0.03)
+    img = _plane_images(rig, 1, noise=0.0)[0]
+    assert fr.measure_bands([fr.FringeImage(img, np.ones(img.shape, bool))]).tilt_deg[0] == pytest.approx(-1.34, abs=0.05)
+    # rolling it back gives vertical fringes and leaves the period trend alone
+    unrolled = fr.adjust_rig(rig, roll=-DEFAULT_PROJECTOR_ROLL)
+    assert fr.plane_tilt(unrolled) == pytest.approx(0.0, abs=1e-3)
+    np.testing.assert_allclose(fr.band_model(unrolled)["columns"], fr.band_model(rig)["columns"], atol=0.01)
 
 
 @pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")

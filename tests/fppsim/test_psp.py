@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp
-from fppsim.rig import Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
+from fppsim.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
 
@@ -256,7 +256,10 @@ def test_phase_direction_against_projector_projection():
     assert np.all(z > 0)
     assert uv[0, 0] == pytest.approx((proj.width - 1) / 2)  # default rig: scene centre mid-projector
     assert uv[1, 0] > uv[0, 0]  # projector columns (and phase) increase with world x
-    assert uv[2, 0] == pytest.approx(uv[0, 0])  # vertical fringes: world y does not change the phase
+    # the default projector is rolled by DEFAULT_PROJECTOR_ROLL (the real fringes lean): 10 mm along
+    # world y moves the projector column by about 10 mm * f / 500 mm * sin(roll), not 0
+    assert uv[2, 0] - uv[0, 0] == pytest.approx(
+        10.0 * proj.K[0, 0] / 523.3 * np.sin(DEFAULT_PROJECTOR_ROLL), rel=0.05)
     assert uv[3, 0] < uv[0, 0]  # a raised point shifts towards smaller u_p (projector at +x)
     phase = rig.phase_of_column(uv[:, 0])
     np.testing.assert_allclose(phase, TWO_PI * 80 * uv[:, 0] / proj.width)

@@ -79,7 +79,8 @@ def figshare_rig():
 
 
 def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
-    """The real figshare rig: 12.06 -> 11.39 px over four column bands, no trend down a column."""
+    """The real figshare rig: 12.06 -> 11.39 px over four column bands, no trend down a column, lines
+    leaning by -1.34 deg."""
     rig = figshare_rig
     cam = rig.camera
     uv = np.stack(np.meshgrid(np.linspace(0, 639, 9), np.linspace(0, 351, 5)), -1).reshape(-1, 2)
@@ -88,9 +89,13 @@ def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
     assert np.all(np.diff(grid, axis=1) < 0)  # falls steadily left to right
     np.testing.assert_allclose(grid, np.broadcast_to(grid[:1], grid.shape), rtol=2e-3)  # nothing top to bottom
     assert grid[0, 0] == pytest.approx(12.2, abs=0.1) and grid[0, -1] == pytest.approx(11.25, abs=0.1)
-    # vertical fringes: moving down a camera column does not change the projector column
+    # the fringe lines lean like the real ones: a line of constant u_p moves du/dv = -(du_p/dv)/(du_p/du)
+    # = tan(-1.34 deg) camera px per row (the projector's roll; see fit_rig.plane_tilt)
     X3 = cam.backproject(uv + [0, 1], cam.plane_depth(uv + [0, 1]))
-    assert np.max(np.abs(rig.projector.project(X3)[0][:, 0] - u_p)) < 1e-9
+    X4 = cam.backproject(uv + [1, 0], cam.plane_depth(uv + [1, 0]))
+    dv = rig.projector.project(X3)[0][:, 0] - u_p
+    du = rig.projector.project(X4)[0][:, 0] - u_p
+    np.testing.assert_allclose(-dv / du, np.tan(np.radians(-1.34)), rtol=0.05)
     assert np.all((u_p > 0) & (u_p < rig.projector.width - 1))  # the projector covers the view
 
 
