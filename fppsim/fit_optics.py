@@ -11,8 +11,9 @@ estimator as the real images (:func:`fppsim.stats.fringe_modulation`), so estima
 Per image, on plane pixels:
 
 * ``A``, ``B/A``: medians of the fringe background and modulation;
-* noise: fringes are vertical, so the difference of vertically adjacent plane pixels is noise
-  (variance ``2 (sigma^2 + shot * E + 1/12)``, the 1/12 from 8-bit rounding); a robust line through
+* noise: fringes are vertical to within a degree or two (the real pair's -1.34 deg lean changes the
+  phase by 0.013 rad a row), so the vertical second difference of plane pixels is noise (variance
+  ``6 (sigma^2 + shot * E + 1/12)``, the 1/12 from 8-bit rounding); a robust line through
   the variance against intensity gives ``noise_sigma`` (intercept) and ``shot_noise`` (slope);
 * blur: ``c = (B/A) (ambient + k/2) / (k/2)`` inverted through the table, split between projector and
   camera blur in the proportion of the default ranges' centres. Ambient light and blur both lower the
