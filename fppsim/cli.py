@@ -425,10 +425,10 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                         "fppsim folder, PSin/PCos/Fringe/iPattern folders, or a folder of 8-bit images")
     p.add_argument("--out", required=True, metavar="RIG", help="fitted rig file (.json, or .yaml/.yml)")
     p.add_argument("--base", metavar="RIG", help="rig to start from (camera kept fixed) [assets/default_rig.json]")
-    p.add_argument("--params", type=_params, default=("yaw", "pitch", "roll", "periods"), metavar="P1,P2,...",
+    p.add_argument("--params", type=_params, default=("yaw", "roll", "periods"), metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre; roll "
-                        "tilts the fringes), baseline (mm), periods (across the projector), focal (projector px) "
-                        "[yaw,pitch,roll,periods]")
+                        "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
+                        "periods (across the projector), focal (projector px) [yaw,roll,periods]")
     p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
     p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")

@@ -163,13 +163,17 @@ class Device:
 
         Returns
         -------
-        (...,) float64, 0 where a point is not in front of the device.
+        (...,) float64, 0 where a point is not in front of the device. Raises RigError when the world
+        origin is not in front of it.
         """
-        if z is None:
-            z = self.world_to_device(X)[..., 2]
+        z0 = float(self.t[2])  # the world origin's depth
+        if not z0 > 0:
+            raise RigError("the world origin (the scene centre, where the irradiance is normalised) is behind "
+                           "the projector")
+        z = self.world_to_device(X)[..., 2] if z is None else np.asarray(z, dtype=np.float64)
         if dist is None:
             dist = np.sqrt(np.sum((self.center - np.asarray(X, dtype=np.float64)) ** 2, axis=-1))
-        z0 = float(self.t[2])  # the world origin's depth
+        dist = np.asarray(dist, dtype=np.float64)
         scale = z0 ** 3 / float(np.sqrt(np.sum(self.center ** 2)))
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             f = np.divide(1.0, z)  # in place from here: this runs on every rendered pixel
@@ -450,6 +454,8 @@ class Rig:
         lit = (z > 0) & (puv[:, 0] >= -0.5) & (puv[:, 0] <= proj.width - 0.5) \
             & (puv[:, 1] >= -0.5) & (puv[:, 1] <= proj.height - 0.5)
         frac = float(lit.mean())
+        if not proj.t[2] > 0:
+            raise RigError("the world origin (the scene centre) is behind the projector: check the projector pose (R, t)")
         if frac < min_lit:
             raise RigError(f"the projector lights {100 * frac:.1f}% of the camera's view of the reference plane "
                            f"(need >= {100 * min_lit:.0f}%): check the projector pose (R, t) and resolution")

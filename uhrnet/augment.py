@@ -12,9 +12,9 @@ re-exposed with a seeded random draw of:
   smooth random field (object-sized, 20-90 px), so shading cannot stand in for the fringe phase;
 - tilt (kind ``shading-tilt``): a planar gain ramp across the whole image in a random direction,
   ``exp(a * d / W)`` with ``d`` the distance along that direction from the image centre: the
-  projector's falloff over the field differs between rigs (fppsim's default rig: about 2x from the
-  left edge to the right on the plane; the real figshare pair: about 1.25x), and the local fields above
-  are too small to hide it;
+  projector's falloff over the field differs between rigs (fppsim's default rig: 1.11x from the left
+  edge to the right on the plane, 1.92x before its irradiance model was corrected; the real figshare
+  pair: about 1.14x), and the local fields above are too small to hide it;
 - blur: a Gaussian of random width (focus);
 - noise: Gaussian read noise plus shot noise, then 8-bit quantisation (the data are 8-bit).
 

@@ -98,6 +98,19 @@ def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
     assert "fringe tilt (deg)" in fr.format_fit(fit)
 
 
+def test_default_fit_recovers_the_roll_of_a_yawed_rig():
+    """On the default (yawed, lens-shifted) geometry pitch tilts the lines too; the default parameters
+    (yaw, roll, periods) recover a roll without trading it against pitch."""
+    from fppsim.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
+
+    unrolled = fr.adjust_rig(make_default_rig(), roll=-DEFAULT_PROJECTOR_ROLL)
+    truth = fr.adjust_rig(unrolled, roll=np.radians(-1.3))
+    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
+    fit = fr.fit_rig(fr.measure_bands(images), unrolled)
+    assert set(fit.params) == {"yaw", "roll", "periods"}
+    assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.05))
+
+
 def test_default_rig_fringes_lean_like_the_real_ones():
     from fppsim.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
 

@@ -263,3 +263,17 @@ def test_default_rig_plane_brightness_trend_like_the_real_rig():
     k = plane_model(make_default_rig())["k"]
     ratio = k[:, -40:].mean() / k[:, :40].mean()
     assert 1.05 < ratio < 1.3
+
+
+def test_irradiance_falloff_normalisation_and_bad_points():
+    proj = make_default_rig().projector
+    assert proj.irradiance_falloff(np.zeros(3)) == pytest.approx(1.0, abs=1e-12)
+    behind = proj.center - 100.0 * proj.R[2]  # 100 mm behind the projector, on its axis
+    f = proj.irradiance_falloff(np.stack([np.zeros(3), behind]))
+    assert f[0] == pytest.approx(1.0) and f[1] == 0.0
+    f = proj.irradiance_falloff(np.zeros((2, 3)), z=523.3, dist=np.array([600.0, 601.0]))  # scalar z
+    assert f.dtype == np.float64 and np.all(f > 0)
+    R = np.diag([1.0, -1.0, -1.0]) @ proj.R  # the same projector turned round: the origin is behind it
+    turned = Device(K=proj.K, R=R, t=-R @ proj.center, width=proj.width, height=proj.height)
+    with pytest.raises(RigError, match="behind"):
+        turned.irradiance_falloff(np.zeros(3))
