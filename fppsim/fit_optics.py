@@ -60,9 +60,9 @@ def plane_model(rig: Rig) -> dict:
     X = cam.backproject(uv, cam.plane_depth(uv))
     uvp, z = proj.project(X)
     to_proj = proj.center - X
-    dist2 = np.sum(to_proj ** 2, axis=-1)
-    cos_inc = to_proj[..., 2] / np.sqrt(dist2)  # plane normal +z
-    falloff = proj.irradiance_falloff(X, z=z, dist=np.sqrt(dist2))
+    dist = np.sqrt(np.sum(to_proj ** 2, axis=-1))
+    cos_inc = to_proj[..., 2] / dist  # plane normal +z
+    falloff = proj.irradiance_falloff(X, z=z, dist=dist)
     lit = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) & (cos_inc > 0)
     return {"u_p": uvp[..., 0], "k": np.where(lit, cos_inc * falloff, 0.0), "lit": lit}
 
@@ -82,8 +82,8 @@ def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     n *= np.sign(n[..., 2:3]) + (n[..., 2:3] == 0)  # towards +z (the camera side)
     to_proj = proj.center - P
-    dist2 = np.sum(to_proj ** 2, axis=-1)
-    k = np.sum(n * to_proj, axis=-1) / np.sqrt(dist2) * proj.irradiance_falloff(P, dist=np.sqrt(dist2))
+    dist = np.sqrt(np.sum(to_proj ** 2, axis=-1))
+    k = np.sum(n * to_proj, axis=-1) / dist * proj.irradiance_falloff(P, dist=dist)
     return np.where(np.isfinite(height_mm), np.maximum(k, 0.0), np.nan)
 
 

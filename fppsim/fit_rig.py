@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .rig import Device, Rig, RigError
+from .rig import Device, Rig, RigError, rotation
 
 __all__ = ["PARAMETERS", "poly_basis", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
            "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "plane_tilt", "format_fit", "surface_phase",
@@ -135,15 +135,6 @@ def band_model(rig: Rig, col_bands: int = 4, row_bands: int = 3, step: int = 4) 
 
 
 # ====================================================================== changing the rig
-def _rot(axis: str, angle: float) -> np.ndarray:
-    c, s = np.cos(angle), np.sin(angle)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
-
-
 def _recentre(rig: Rig, proj: Device) -> Device:
     """Shift the projector's principal point so the plane point seen at the camera's image centre lands
     at the projector's centre (lens shift keeps the camera view lit)."""
@@ -178,7 +169,7 @@ def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
     R = p.R.copy()
     for name, axis in (("roll", "z"), ("pitch", "x"), ("yaw", "y")):
         if values.get(name):
-            R = _rot(axis, float(values[name])) @ R
+            R = rotation(axis, float(values[name])) @ R
     c = p.center.copy()
     if "baseline" in values:
         c[0] = rig.camera.center[0] + float(values["baseline"])

@@ -17,7 +17,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .rig import Device, Rig
+from .rig import Device, Rig, rotation
 
 __all__ = ["RigJitter", "jitter_rig"]
 
@@ -45,11 +45,6 @@ class RigJitter:
         return asdict(self)
 
 
-def _rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
 def jitter_rig(rig: Rig, rng: np.random.Generator, jitter: RigJitter) -> Rig:
     """A copy of ``rig`` whose projector is turned by ``U(-yaw, yaw)`` about its own y axis and whose
     focal lengths are scaled by ``1 + U(-focal, focal)``; the principal point moves so the world
@@ -62,7 +57,7 @@ def jitter_rig(rig: Rig, rng: np.random.Generator, jitter: RigJitter) -> Rig:
         return rig
     p = rig.projector
     origin_px = p.project(np.zeros(3), distort=False)[0]
-    R = _rot_y(d_yaw * jitter.yaw) @ p.R
+    R = rotation("y", d_yaw * jitter.yaw) @ p.R
     t = -R @ p.center
     K = p.K.copy()
     K[0, 0] *= 1.0 + d_focal * jitter.focal

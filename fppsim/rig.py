@@ -25,7 +25,7 @@ import numpy as np
 from ._fs import atomic_write_text
 from .errors import RigError
 
-__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_figshare_like_rig", "make_parallel_rig", "projector_for",
+__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation",
            "rotation_to_plane_frame"]
 
 
@@ -632,14 +632,17 @@ DEFAULT_PROJECTOR_FOCAL = 1309.7183169905145  # px
 DEFAULT_PROJECTOR_ROLL = -0.02250633517859773  # rad (-1.29 deg)
 
 
-def _rot_y(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def _rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+def rotation(axis: str, angle: float) -> np.ndarray:
+    """(3, 3) float64 right-handed rotation by ``angle`` rad about the coordinate axis ``"x"``, ``"y"``
+    or ``"z"`` (the one helper for fit-rig, rig jitter and scene placement)."""
+    c, s = np.cos(angle), np.sin(angle)
+    if axis == "x":
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    if axis == "z":
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    raise ValueError(f"rotation axis must be x, y or z, got {axis!r}")
 
 
 def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, baseline: float = 180.0,
@@ -648,7 +651,7 @@ def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, basel
     (positive: its axis leans towards -x, the scene), then ``roll`` rad about its optical axis (tilts
     the fringes; as :func:`fppsim.fit_rig.adjust_rig` applies it), principal point shifted so the world
     origin lands in the middle of the DMD (lens shift, as DLP projectors have)."""
-    R = _rot_z(float(roll)) @ _rot_y(float(yaw)) @ np.diag([1.0, -1.0, -1.0])
+    R = rotation("z", float(roll)) @ rotation("y", float(yaw)) @ np.diag([1.0, -1.0, -1.0])
     t = -R @ np.array([float(baseline), 0.0, float(height)])
     z = t[2]  # the world origin in the projector frame is t
     cx = (width - 1) / 2 - focal * t[0] / z

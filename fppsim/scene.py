@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import MeshError
+from .rig import rotation
 
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
@@ -267,11 +268,6 @@ def procedural_asset(seed: int) -> MeshAsset:
     return asset_from_arrays(mesh.vertices, mesh.faces, f"{PROCEDURAL_PREFIX}{kind}:{int(seed)}")
 
 
-def _rot_z(a):
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
-
-
 def _rot_axis(axis, a):
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
     K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
@@ -336,7 +332,7 @@ def sample_scene(assets: list[MeshAsset], rig, rng: np.random.Generator,
         theta = rng.uniform(0, 2 * np.pi)
         tilt_axis = rng.normal(size=2)
         tilt = rng.uniform(0, r.tilt)
-        R = _rot_axis([tilt_axis[0], tilt_axis[1], 0.0], tilt) @ _rot_z(theta) @ R0
+        R = _rot_axis([tilt_axis[0], tilt_axis[1], 0.0], tilt) @ rotation("z", theta) @ R0
         rv = v @ R.T
         ext = rv.max(0) - rv.min(0)
         footprint = rng.uniform(*r.footprint)
