@@ -26,6 +26,10 @@ def test_report_collects_uhrnet_generate_and_gpu_json(tmp_path):
                  {"model": "unet", "base_channels": 64, "parameters": 31030593, "forward_ms": 729.3,
                   "train_step_ms": 2000.0}]}
     (tmp_path / "uhrnet.json").write_text(json.dumps(bench))
+    # a newer bench: forward ratio = best forms re-timed in pairs, the torch forms' ratio on its own key
+    newer = {**bench, "uhrnet_unet_forward_ratio": 1.47, "uhrnet_unet_best_deployable_ratio": 1.47,
+             "uhrnet_unet_torch_ratio": 1.96}
+    (tmp_path / "uhrnet_newer.json").write_text(json.dumps(newer))
     (tmp_path / "generate.json").write_text(json.dumps(
         {"mesh": "/x/ogre.obj", "psp": True, "write": True, "sample_s_median": 0.5, "samples_per_s": 2.0,
          "cost_over_floor": 4.5}))
@@ -37,6 +41,7 @@ def test_report_collects_uhrnet_generate_and_gpu_json(tmp_path):
     page = out.read_text()
     assert "30,330,977" in page and "**1.23**" in page and "fold_cl" in page and "1500.0" in page
     assert "700.0 (openvino)" in page and "**1.51**" in page
+    assert "**1.96**" in page and "**1.47**" in page
     assert "| generate | ogre.obj | True | True | 500.0 | 2.00 | 4.50 |" in page
     assert "NVIDIA X" in page and "torch" in page and "logical cores" in page
 

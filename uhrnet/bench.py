@@ -3,7 +3,9 @@
 With ``optimize`` every model is also timed in its deployable forms (batch norms folded; also
 channels_last; also torch.compile; the ONNX export under onnxruntime and under OpenVINO), each checked
 against the eager output; the fastest torch form is reported as the forward time, the fastest form of
-all as ``best_deployable_ms`` (and their UHRNet / U-Net ratio).
+all as ``best_deployable_ms``. The UHRNet / U-Net ratio ``uhrnet_unet_forward_ratio`` is then that of
+each model in its fastest deployable form, re-timed in alternating pairs (UHRNet, U-Net, UHRNet, ...)
+so that a slow spell of a shared machine falls on both (``uhrnet_unet_torch_ratio``: the torch forms').
 
 For each model at batch 1 (352 x 640 by default): the trainable parameter count, the median forward
 time in eval mode without gradient (the paper's "speed"), the median time of one training step (forward,
@@ -101,8 +103,9 @@ def build_scaled(name: str, base_channels: int | None):
     return build_model(arch, **{**fixed, "base_channels": scaled})
 
 
-def measure(name: str, args, device) -> dict:
-    """Build one model and measure it; returns a JSON-ready dict."""
+def measure(name: str, args, device, runners: dict | None = None) -> dict:
+    """Build one model and measure it; returns a JSON-ready dict. With ``optimize`` and a ``runners``
+    dict, the callables of every form that passed its check (and ``"eager"``) are left in it by form."""
     import torch
 
     from .metrics import count_parameters, peak_memory_bytes, time_call
@@ -142,7 +145,7 @@ def measure(name: str, args, device) -> dict:
         with torch.no_grad():
             reference = model(x)
         result["eager_forward_ms"] = result["forward_ms"]
-        result["optimized"] = optimize_variants(model, x, reference, args, device)
+        result["optimized"] = optimize_variants(model, x, reference, args, device, runners)
         torch_forms = {k: v for k, v in result["optimized"].items() if k not in RUNTIME_FORMS and v.get("ok")}
         best = min(torch_forms, key=lambda k: torch_forms[k]["forward_ms"], default=None)
         if best is not None and torch_forms[best]["forward_ms"] < result["forward_ms"]:
@@ -155,6 +158,8 @@ def measure(name: str, args, device) -> dict:
             result[f"{form}_ms"] = v.get("forward_ms") if v.get("ok") else None
         ok = {k: v["forward_ms"] for k, v in result["optimized"].items() if v.get("ok")}
         ok["eager"] = result["eager_forward_ms"]
+        if runners is not None:
+            runners["eager"] = lambda: (model.eval(), forward())  # the training step below leaves train mode
         result["best_deployable_form"] = min(ok, key=ok.get)
         result["best_deployable_ms"] = ok[result["best_deployable_form"]]
         model = model.to(memory_format=memory_format)
@@ -186,12 +191,13 @@ def _rel_diff(out, reference) -> float:
     return float((torch.as_tensor(out).float() - ref.float()).abs().max()) / max(span, 1e-12)
 
 
-def optimize_variants(model, x, reference, args, device) -> dict:
+def optimize_variants(model, x, reference, args, device, runners: dict | None = None) -> dict:
     """Time the deployable forms of ``model`` (eval mode) named in ``args.variants`` on ``x``.
 
     Returns ``{form: {"forward_ms", "max_rel_diff", "ok"}}`` (``max_rel_diff``: max |form - eager| /
     range of the eager output; ``ok`` when within :data:`OPT_RTOL`), or ``{"error": ...}`` for a form
-    that cannot be made here (no C++ compiler for torch.compile, no onnxruntime ...).
+    that cannot be made here (no C++ compiler for torch.compile, no onnxruntime ...). The timed
+    callable of each form that passes goes into ``runners`` when given.
     """
     import statistics
     import tempfile
@@ -212,7 +218,7 @@ def optimize_variants(model, x, reference, args, device) -> dict:
                     run = onnx_runner(path, form, threads=torch.get_num_threads())
                 feed = x.detach().cpu().contiguous().numpy()
                 y = torch.from_numpy(run(feed))
-                fn = lambda: run(feed)  # noqa: E731
+                fn = lambda run=run, feed=feed: run(feed)  # noqa: E731  (bound now: the loop rebinds run)
                 times = time_call(fn, "cpu", args.warmup, args.repeats)
             else:
                 cl = form in ("fold_cl", "compile")
@@ -229,9 +235,30 @@ def optimize_variants(model, x, reference, args, device) -> dict:
                 times = time_call(fn, device, max(args.warmup, 1 if form == "compile" else 0), args.repeats)
             diff = _rel_diff(y.to(reference.device) if hasattr(y, "to") else y, reference)
             out[form] = {"forward_ms": 1000 * statistics.median(times), "max_rel_diff": diff, "ok": diff <= OPT_RTOL}
+            if runners is not None and out[form]["ok"]:
+                runners[form] = fn
         except Exception as exc:  # a form that cannot be built here is reported, not fatal
             out[form] = {"error": f"{type(exc).__name__}: {str(exc).splitlines()[0][:200] if str(exc) else ''}"}
     return out
+
+
+def paired_times(a: Callable[[], object], b: Callable[[], object], device, warmup: int = 3, repeats: int = 10) -> dict:
+    """Time ``a`` and ``b`` in ``repeats`` alternating pairs (``a, b, a, b, ...``, after ``warmup`` calls
+    of each), so that a slow spell of a shared machine slows both alike.
+
+    Returns ``{"a_ms", "b_ms", "ratio", "pair_ratios"}``: the median ms of each, ``a_ms / b_ms`` and the
+    ratio within every pair (their spread shows how steady the machine was).
+    """
+    from .metrics import time_call
+
+    for fn in (a, b):
+        time_call(fn, device, warmup, 1)
+    ta, tb = [], []
+    for _ in range(repeats):
+        ta += time_call(a, device, 0, 1)
+        tb += time_call(b, device, 0, 1)
+    a_ms, b_ms = 1000 * statistics.median(ta), 1000 * statistics.median(tb)
+    return {"a_ms": a_ms, "b_ms": b_ms, "ratio": a_ms / b_ms, "pair_ratios": [x / y for x, y in zip(ta, tb)]}
 
 
 def _mib(value: int | None) -> str:
@@ -302,10 +329,13 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         f"torch.compile {'on' if args.compile else 'off'}"
         + (f"; --optimize: {' '.join(args.variants)}" if args.optimize else ""),
     )
-    results = []
+    results, runners = [], {}
     for name in args.models:
+        keep = {} if args.optimize and name.lower() in ("uhrnet", "unet") else None
+        if keep is not None:
+            runners[name.lower()] = keep
         try:
-            results.append(measure(name, args, device))
+            results.append(measure(name, args, device, keep))
         except ValueError as exc:
             raise ConfigError(f"{name}: {exc}") from exc
         r = results[-1]
@@ -322,10 +352,11 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         ratio = by_name["uhrnet"]["forward_ms"] / by_name["unet"]["forward_ms"]
         paper = PAPER_SECONDS["uhrnet"] / PAPER_SECONDS["unet"]
         echo(
-            f"UHRNet / U-Net forward time: {ratio:.2f} (paper: {PAPER_SECONDS['uhrnet']} s / "
+            f"UHRNet / U-Net forward time{' (fastest torch forms)' if args.optimize else ''}: {ratio:.2f} "
+            f"(paper: {PAPER_SECONDS['uhrnet']} s / "
             f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
         )
-    runtime_ratios, best_ratio = {}, None
+    runtime_ratios, best_ratio, torch_ratio, paired = {}, None, None, None
     if args.optimize and "uhrnet" in by_name and "unet" in by_name:
         u, n = by_name["uhrnet"], by_name["unet"]
         for form in RUNTIME_FORMS:
@@ -333,9 +364,14 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
             runtime_ratios[form] = a / b if a and b else None
             if runtime_ratios[form] is not None:
                 echo(f"UHRNet / U-Net forward time under {form}: {runtime_ratios[form]:.2f}")
-        best_ratio = u["best_deployable_ms"] / n["best_deployable_ms"]
+        torch_ratio = ratio
+        paired = paired_times(runners["uhrnet"][u["best_deployable_form"]], runners["unet"][n["best_deployable_form"]],
+                              device, args.warmup, args.repeats)
+        best_ratio = ratio = paired["ratio"]
         echo(f"UHRNet / U-Net forward time, each in its fastest deployable form ({u['best_deployable_form']} / "
-             f"{n['best_deployable_form']}): {best_ratio:.2f}")
+             f"{n['best_deployable_form']}; {args.repeats} alternating pairs: {paired['a_ms']:.1f} / "
+             f"{paired['b_ms']:.1f} ms): {best_ratio:.2f}")
+    runners.clear()
     memory_note = (
         "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
         if device.type == "cuda"
@@ -355,9 +391,11 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "results": results,
         "optimize": bool(args.optimize),
         "uhrnet_unet_forward_ratio": ratio,
+        "uhrnet_unet_torch_ratio": torch_ratio if args.optimize else ratio,
         "uhrnet_unet_onnxruntime_ratio": runtime_ratios.get("onnxruntime"),
         "uhrnet_unet_openvino_ratio": runtime_ratios.get("openvino"),
         "uhrnet_unet_best_deployable_ratio": best_ratio,
+        "best_deployable_pairs": paired,
         "memory": memory_note,
     }
     if args.json is not None:

@@ -229,7 +229,8 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--optimize", action="store_true",
                         help="also time each model in its deployable forms (see --variants; every form is checked to "
                              "give the eager model's output within 1e-4 x its range) and report the fastest torch "
-                             "form as forward ms")
+                             "form as forward ms; the UHRNet / U-Net ratio (JSON uhrnet_unet_forward_ratio) is then "
+                             "that of each model in its fastest form of all, re-timed in --repeats alternating pairs")
     parser.add_argument("--variants", nargs="+", default=list(OPT_VARIANTS), choices=list(OPT_VARIANTS), metavar="V",
                         help="forms tried by --optimize: fold (batch norms folded, "
                              "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime and "

@@ -72,7 +72,12 @@ def test_bench_optimize_json_keys(tmp_path, capsys):
         assert r["best_form"] in ("eager", "fold_cl")
         assert r["forward_ms"] <= r["eager_forward_ms"] and r["onnxruntime_ms"] > 0
     by = {r["model"]: r for r in report["results"]}
-    assert report["uhrnet_unet_forward_ratio"] == pytest.approx(by["uhrnet"]["forward_ms"] / by["unet"]["forward_ms"])
+    assert report["uhrnet_unet_torch_ratio"] == pytest.approx(by["uhrnet"]["forward_ms"] / by["unet"]["forward_ms"])
+    # the headline ratio: each model's fastest form of all, re-timed in alternating pairs
+    pairs = report["best_deployable_pairs"]
+    assert len(pairs["pair_ratios"]) == 1 and pairs["a_ms"] > 0 and pairs["b_ms"] > 0
+    assert report["uhrnet_unet_forward_ratio"] == report["uhrnet_unet_best_deployable_ratio"] == pytest.approx(
+        pairs["a_ms"] / pairs["b_ms"])
     assert report["uhrnet_unet_onnxruntime_ratio"] == pytest.approx(
         by["uhrnet"]["onnxruntime_ms"] / by["unet"]["onnxruntime_ms"])
     assert "deployable forms" in capsys.readouterr().out
@@ -96,5 +101,35 @@ def test_bench_openvino_form_and_best_deployable_ratio(tmp_path):
         assert r["best_form"] in ("eager", "fold")  # torch forms only
     by = {r["model"]: r for r in report["results"]}
     assert report["uhrnet_unet_openvino_ratio"] == pytest.approx(by["uhrnet"]["openvino_ms"] / by["unet"]["openvino_ms"])
-    assert report["uhrnet_unet_best_deployable_ratio"] == pytest.approx(
-        by["uhrnet"]["best_deployable_ms"] / by["unet"]["best_deployable_ms"])
+    pairs = report["best_deployable_pairs"]
+    assert report["uhrnet_unet_best_deployable_ratio"] == pytest.approx(pairs["a_ms"] / pairs["b_ms"])
+
+
+def test_paired_times_alternate_the_two_calls():
+    """Warm-up of each, then a, b, a, b, ...; medians and per-pair ratios from the same calls."""
+    from uhrnet.bench import paired_times
+
+    calls = []
+    out = paired_times(lambda: calls.append("a"), lambda: calls.append("b"), "cpu", warmup=2, repeats=3)
+    assert calls == ["a"] * 3 + ["b"] * 3 + ["a", "b"] * 3  # warm-ups (each time_call also times one), then pairs
+    assert len(out["pair_ratios"]) == 3 and out["ratio"] == pytest.approx(out["a_ms"] / out["b_ms"])
+
+
+def test_optimize_variants_keeps_each_forms_own_runner(tmp_path):
+    """The runner kept for each ONNX runtime is that runtime's (not the last one the loop built)."""
+    pytest.importorskip("onnxruntime")
+    pytest.importorskip("openvino")
+    from uhrnet.bench import BenchConfig, optimize_variants
+    from uhrnet.models import build_model
+
+    torch.manual_seed(0)
+    model = build_model("unet", base_channels=4).eval()
+    x = torch.randn(1, 1, 16, 32)
+    with torch.no_grad():
+        ref = model(x)
+    args = BenchConfig(models=["unet"], height=16, width=32, repeats=1, warmup=0, variants=["onnxruntime", "openvino"])
+    runners = {}
+    out = optimize_variants(model, x, ref, args, torch.device("cpu"), runners)
+    assert out["onnxruntime"]["ok"] and out["openvino"]["ok"] and set(runners) == {"onnxruntime", "openvino"}
+    bound = {form: fn.__defaults__[0] for form, fn in runners.items()}  # each lambda's own run
+    assert bound["onnxruntime"] is not bound["openvino"]
