@@ -574,13 +574,24 @@ def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.n
     return _triangulate(rig, phase, periods, mask, pixels, max_iter, tol)
 
 
-def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, tol=1e-9, height_only=False):
+def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, tol=1e-9, height_only=False,
+                 rows: slice | None = None):
     """:func:`triangulate`; with ``height_only`` just its ``height`` array (the same bits), without the
     arrays only the full result needs (projector pixels of the points, the NaN-filled points, depth,
-    column and row)."""
+    column and row). ``rows``: ``phase`` holds only these camera rows (a band of the image; the
+    arithmetic per pixel is the same; not with a distorted projector, whose iteration stops for the
+    whole array at once)."""
     cam, proj = rig.camera, rig.projector
     Phi = np.asarray(phase, dtype=np.float64)
-    if pixels is None:
+    if rows is not None:
+        if pixels is not None or proj.has_distortion:
+            raise ValueError("rows= needs the camera grid (no pixels=) and a projector without distortion")
+        band = range(cam.height)[rows]
+        if band.step != 1 or Phi.shape != (len(band), cam.width):
+            raise ValueError(f"phase has shape {Phi.shape}, not the {len(band)} x {cam.width} of camera rows {rows}")
+        origin, d = _camera_rays(cam)
+        d = d[band.start:band.stop]
+    elif pixels is None:
         if Phi.shape != (cam.height, cam.width):
             raise ValueError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
                              "(pass pixels= for other sampling grids)")
@@ -753,7 +764,7 @@ class Decoded:
 
 
 def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0, min_ratio: float = 0.0,
-                  neighbour_check: bool = True, shifts=None) -> Decoded:
+                  neighbour_check: bool = True, shifts=None, threads: int = 1) -> Decoded:
     """The whole PSP chain as a lab runs it: N-step phases per frequency, quality mask, temporal
     unwrapping, order consistency check, triangulation with ``rig``.
 
@@ -765,8 +776,13 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
         frequency.
     neighbour_check : also reject pixels failing :func:`order_consistency`.
     rig : the calibrated rig for triangulation; None skips it (``height`` is then None).
+    threads : 2 decodes the top and bottom of the image on two threads (this one and
+        :func:`fppsim._threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
+        one-row halo, so the result is the very same; 1 (default) decodes in one piece.
     """
     freqs = tuple(int(f) for f in freqs)
+    if threads > 1:
+        return _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads)
     quality, wrapped = None, []
     for f in freqs:
         res = wrapped_phase(np.asarray(stacks[f]), shifts)  # uint8 stacks take the exact integer path
@@ -784,3 +800,54 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
         height = np.where(ok, height, np.nan)
     return Decoded(phase=un.phase, order=un.order, height=height, quality=quality,
                    reliable=un.reliable, consistent=consistent, valid=ok)
+
+
+def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads) -> Decoded:
+    """:func:`decode_stacks` on row bands (:func:`fppsim._threads.map_bands`): the same arrays."""
+    from ._threads import map_bands, row_bands
+
+    stacks = {f: np.asarray(stacks[f]) for f in freqs}
+    H = stacks[freqs[0]].shape[1] if stacks[freqs[0]].ndim == 3 else 0
+    bands = row_bands(H, threads)
+    if len(bands) < 2:
+        return decode_stacks(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts)
+
+    def phases(rows):
+        quality, wrapped = None, []
+        for f in freqs:
+            res = wrapped_phase(stacks[f][:, rows], shifts)
+            wrapped.append(res.phase)
+            q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
+            quality = q if quality is None else (quality & q)
+        return quality, unwrap_temporal(wrapped, freqs)
+
+    parts = map_bands(phases, bands)
+    quality = np.concatenate([q for q, _ in parts])
+    phase = np.concatenate([u.phase for _, u in parts])
+    ok = quality & np.concatenate([u.reliable for _, u in parts])
+    banded_height = rig is not None and not rig.projector.has_distortion
+
+    def check(rows):
+        if neighbour_check:  # with a one-row halo (the image border is padded as in one piece)
+            a, z = max(rows.start - 1, 0), min(rows.stop + 1, H)
+            consistent = order_consistency(phase[a:z], ok[a:z])[rows.start - a:rows.stop - a]
+        else:
+            consistent = ok[rows].copy()
+        good = ok[rows] & consistent
+        height = None
+        if banded_height:
+            height = height_from_phase(rig, phase[rows], periods=freqs[-1], mask=good, rows=rows)
+            good &= np.isfinite(height)
+            height = np.where(good, height, np.nan)
+        return consistent, good, height
+
+    checked = map_bands(check, bands)
+    consistent = np.concatenate([c for c, _, _ in checked])
+    ok = np.concatenate([g for _, g, _ in checked])
+    height = np.concatenate([h for _, _, h in checked]) if banded_height else None
+    if rig is not None and not banded_height:
+        height = height_from_phase(rig, phase, periods=freqs[-1], mask=ok)
+        ok &= np.isfinite(height)
+        height = np.where(ok, height, np.nan)
+    return Decoded(phase=phase, order=np.concatenate([u.order for _, u in parts]), height=height, quality=quality,
+                   reliable=np.concatenate([u.reliable for _, u in parts]), consistent=consistent, valid=ok)

@@ -12,6 +12,7 @@ shadowed, facing it) and the incidence cosine.
 from __future__ import annotations
 
 import os
+from concurrent.futures import wait
 from dataclasses import dataclass, field
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
@@ -19,6 +20,7 @@ BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
+from ._threads import helper_pool
 from .errors import BackendError
 from .rig import along_rays
 
@@ -365,19 +367,9 @@ class _GridCache:
 _GRID = _GridCache()
 
 
-def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
-                   scale: int = 1, shadow: ShadowSettings | None = None) -> Geometry:
-    """Exact camera-grid geometry of the mesh instances on the reference plane.
-
-    Two depth renders: the camera (what is seen) and the projector (shadow map).
-    """
-    if scale < 1 or scale % 2 == 0:
-        raise ValueError(f"supersampling factor must be an odd integer >= 1, got {scale}")
-    shadow = shadow or ShadowSettings()
-    cam, proj = rig.camera, rig.projector
-    origin, dirs, plane_depth = _GRID.get(cam, scale)
-    obj_depth = _distorted_depth(cam, renderer, meshes, scale) if cam.has_distortion \
-        else renderer.depth(cam, meshes, scale)
+def _camera_side(cam, proj, obj_depth, origin, dirs, plane_depth):
+    """Everything :func:`scene_geometry` derives from the camera's depth alone (points, normals,
+    projector coordinates): computed on a helper thread while the projector's shadow map renders."""
     on_object = obj_depth < plane_depth
     depth = np.where(on_object, obj_depth, plane_depth)
     seen = np.isfinite(depth)
@@ -409,7 +401,30 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     W, H = proj.width, proj.height
     inside = (seen & (z_p > 0) & (uv_p[..., 0] >= -0.5) & (uv_p[..., 0] <= W - 0.5)
               & (uv_p[..., 1] >= -0.5) & (uv_p[..., 1] <= H - 0.5))
-    shadow_depth = renderer.depth(proj, meshes, 1)
+    return on_object, depth, seen, P, normals, Ps, uv_p, z_p, uv_ideal, inside
+
+
+def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
+                   scale: int = 1, shadow: ShadowSettings | None = None) -> Geometry:
+    """Exact camera-grid geometry of the mesh instances on the reference plane.
+
+    Two depth renders: the camera (what is seen) and the projector (shadow map).
+    """
+    if scale < 1 or scale % 2 == 0:
+        raise ValueError(f"supersampling factor must be an odd integer >= 1, got {scale}")
+    shadow = shadow or ShadowSettings()
+    cam, proj = rig.camera, rig.projector
+    origin, dirs, plane_depth = _GRID.get(cam, scale)
+    obj_depth = _distorted_depth(cam, renderer, meshes, scale) if cam.has_distortion \
+        else renderer.depth(cam, meshes, scale)
+    # the camera side needs no shadow map: it runs beside the projector render (GL stays on this thread)
+    camera_side = helper_pool().submit(_camera_side, cam, proj, obj_depth, origin, dirs, plane_depth)
+    try:
+        shadow_depth = renderer.depth(proj, meshes, 1)
+    finally:
+        wait([camera_side])  # a failed render re-raises its own error, with the helper done
+    on_object, depth, seen, P, normals, Ps, uv_p, z_p, uv_ideal, inside = camera_side.result()
+    W, H = proj.width, proj.height
     ui = np.clip(np.rint(uv_ideal[..., 0]), 0, W - 1).astype(np.intp)
     vi = np.clip(np.rint(uv_ideal[..., 1]), 0, H - 1).astype(np.intp)
     # texel lookups as flat indices (np.take): the same values as shadow_depth[vi, ui], several times faster

@@ -172,7 +172,8 @@ def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, 
     """
     from .psp import decode_stacks
 
-    d = decode_stacks({f: np.stack(images[f]) for f in freqs}, rig, freqs, min_modulation=min_modulation)
+    # on two threads (the same arrays): nothing else runs beside the decode
+    d = decode_stacks({f: np.stack(images[f]) for f in freqs}, rig, freqs, min_modulation=min_modulation, threads=2)
     return {
         "phase_psp": d.phase.astype(np.float32),
         "height_psp": d.height.astype(np.float32),
