@@ -18,7 +18,9 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 
 from __future__ import annotations
 
+import ctypes
 import warnings
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -154,6 +156,35 @@ def _last_line(exc: Exception) -> str:
     return lines[-1][:200] if lines else "no details"
 
 
+class _SignalStack(ctypes.Structure):
+    _fields_ = [("ss_sp", ctypes.c_void_p), ("ss_flags", ctypes.c_int), ("ss_size", ctypes.c_size_t)]
+
+
+@contextmanager
+def keep_signal_stack():
+    """Restore the calling thread's alternate signal stack (``sigaltstack``) on leaving.
+
+    OpenVINO's CPU plugin (2026.4) installs an alternate signal stack of its own on the thread that
+    compiles a model, in memory it may later release. Python installs its signal handlers with
+    ``SA_ONSTACK``, so a signal caught after that (torch's DataLoader catches SIGCHLD, for instance) could
+    be delivered onto freed memory and the kernel kills the process with SIGSEGV; this thread keeps its
+    own stack instead (faulthandler's, or none). A no-op where libc has no ``sigaltstack``.
+    """
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        sigaltstack = libc.sigaltstack
+    except (OSError, AttributeError):
+        yield
+        return
+    old = _SignalStack()
+    saved = sigaltstack(None, ctypes.byref(old)) == 0
+    try:
+        yield
+    finally:
+        if saved:
+            sigaltstack(ctypes.byref(old), None)
+
+
 def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | None = None):
     """A function ``run(x: np.ndarray float32 (N, C, H, W)) -> np.ndarray`` that runs the ONNX file
     ``path`` on the CPU under ``runtime``: ``"onnxruntime"`` or ``"openvino"`` (its CPU plugin, in
@@ -188,7 +219,8 @@ def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | N
     if threads:
         config["INFERENCE_NUM_THREADS"] = str(threads)
     try:
-        request = ov.Core().compile_model(str(path), "CPU", config).create_infer_request()
+        with keep_signal_stack():
+            request = ov.Core().compile_model(str(path), "CPU", config).create_infer_request()
     except Exception as exc:
         raise ExportError(f"{path}: openvino cannot load it ({type(exc).__name__}: {_last_line(exc)})") from None
 

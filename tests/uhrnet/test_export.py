@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from torch import nn
@@ -292,3 +293,44 @@ def test_export_runtime_user_errors(tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["export", str(ckpt), "--out", str(out), "--runtime", "tensorrt"])
     assert exit_info.value.code == 2
+
+
+def test_openvino_leaves_the_callers_signal_stack_alone(tmp_path):
+    """OpenVINO's CPU plugin installs an alternate signal stack of its own on the compiling thread and may
+    free it later: a signal Python then catches (SA_ONSTACK) was delivered onto freed memory and the
+    test run died with SIGSEGV. onnx_runner gives the thread its own stack back."""
+    pytest.importorskip("openvino")
+    import ctypes
+
+    from uhrnet.export import _SignalStack, export_model, keep_signal_stack, onnx_runner
+
+    try:
+        sigaltstack = ctypes.CDLL(None, use_errno=True).sigaltstack
+    except (OSError, AttributeError):
+        pytest.skip("no sigaltstack in this libc")
+
+    def current():
+        s = _SignalStack()
+        assert sigaltstack(None, ctypes.byref(s)) == 0
+        return s.ss_sp, s.ss_flags, s.ss_size
+
+    from uhrnet.models import build_model
+
+    path = export_model(build_model("unet", base_channels=4).eval(), tmp_path / "m.onnx", "onnx", (1, 1, 16, 16))
+    mine = ctypes.create_string_buffer(16880)  # faulthandler's size: one the plugin replaces (not just "none")
+    before = current()
+    try:
+        assert sigaltstack(ctypes.byref(_SignalStack(ctypes.addressof(mine), 0, len(mine))), None) == 0
+        ours = current()
+        run = onnx_runner(path, "openvino")  # the plugin's default threads: it replaced the stack then
+        assert current() == ours
+        run(np.zeros((1, 1, 16, 16), np.float32))
+        assert current() == ours
+        with keep_signal_stack():  # what the plugin does, without it: the thread's stack replaced
+            other = ctypes.create_string_buffer(1 << 16)
+            sigaltstack(ctypes.byref(_SignalStack(ctypes.addressof(other), 0, len(other))), None)
+            assert current() != ours
+        assert current() == ours
+    finally:
+        sigaltstack(ctypes.byref(_SignalStack(before[0], before[1], before[2])), None)
+    assert current() == before
