@@ -25,6 +25,7 @@ Conventions (see :mod:`fppsim.rig`)
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from math import erfc
 
@@ -250,6 +251,7 @@ def _exact_int_sums(I: np.ndarray, w: np.ndarray, max_bits: int = 8):
 
 
 _PHASE_TABLES: dict = {}
+_CACHE_LOCK = threading.RLock()
 _MAX_TABLE = 1 << 19  # entries per table (the 8-bit four-step table has 511 x 511)
 
 
@@ -262,8 +264,13 @@ def _phase_tables(n: int, sums, dtype):
     """
     (_, sc, wc), (_, ss, ws) = sums[1], sums[2]
     key = (n, dtype.str, sc, ss, wc, ws)
-    if key in _PHASE_TABLES:
+    with _CACHE_LOCK:  # one thread builds a table, the other waits for it
+        if key not in _PHASE_TABLES:
+            _PHASE_TABLES[key] = _build_phase_tables(n, sc, ss, wc, ws, dtype)
         return _PHASE_TABLES[key]
+
+
+def _build_phase_tables(n, sc, ss, wc, ws, dtype):
     top = int(np.iinfo(dtype).max)
     lo_c, hi_c = top * sum(k for k in wc if k < 0), top * sum(k for k in wc if k > 0)
     lo_s, hi_s = top * sum(k for k in ws if k < 0), top * sum(k for k in ws if k > 0)
@@ -276,7 +283,6 @@ def _phase_tables(n: int, sums, dtype):
         for t in (phase_t, mod_t):
             t.setflags(write=False)
         tables = (phase_t, mod_t, n_c, -lo_s * n_c - lo_c)
-    _PHASE_TABLES[key] = tables
     return tables
 
 
@@ -529,14 +535,15 @@ def _camera_rays(cam) -> tuple[np.ndarray, np.ndarray]:
     The arrays are read-only: callers must not modify them.
     """
     key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.dist.tobytes(), cam.width, cam.height)
-    if key not in _RAYS:
-        if len(_RAYS) >= 4:
-            _RAYS.pop(next(iter(_RAYS)))
-        origin, d = cam.pixel_rays(cam.pixel_grid())
-        origin.setflags(write=False)
-        d.setflags(write=False)
-        _RAYS[key] = (origin, d)
-    return _RAYS[key]
+    with _CACHE_LOCK:  # threads (decode_stacks(threads=2)) share the cache
+        if key not in _RAYS:
+            if len(_RAYS) >= 4:
+                _RAYS.pop(next(iter(_RAYS)))
+            origin, d = cam.pixel_rays(cam.pixel_grid())
+            origin.setflags(write=False)
+            d.setflags(write=False)
+            _RAYS[key] = (origin, d)
+        return _RAYS[key]
 
 
 def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
@@ -807,15 +814,21 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
     from ._threads import map_bands, row_bands
 
     stacks = {f: np.asarray(stacks[f]) for f in freqs}
-    H = stacks[freqs[0]].shape[1] if stacks[freqs[0]].ndim == 3 else 0
+    shapes = {s.shape[1:] if s.ndim == 3 else None for s in stacks.values()}
+    shape = shapes.pop() if len(shapes) == 1 else None
+    cam = rig.camera if rig is not None else None
+    H = shape[0] if shape is not None and (cam is None or shape == (cam.height, cam.width)) else 0
     bands = row_bands(H, threads)
-    if len(bands) < 2:
+    if len(bands) < 2:  # (also every input the one-piece decode refuses, which then says why)
         return decode_stacks(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts)
+    if cam is not None:
+        _camera_rays(cam)  # filled once here, not by both bands at once
 
     def phases(rows):
         quality, wrapped = None, []
         for f in freqs:
-            res = wrapped_phase(stacks[f][:, rows], shifts)
+            # contiguous like the whole stack: numpy then takes the same path (dot's checks included)
+            res = wrapped_phase(np.ascontiguousarray(stacks[f][:, rows]), shifts)
             wrapped.append(res.phase)
             q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
             quality = q if quality is None else (quality & q)

@@ -20,7 +20,7 @@ BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
-from ._threads import helper_pool
+from ._threads import beside
 from .errors import BackendError
 from .rig import along_rays
 
@@ -418,7 +418,7 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     obj_depth = _distorted_depth(cam, renderer, meshes, scale) if cam.has_distortion \
         else renderer.depth(cam, meshes, scale)
     # the camera side needs no shadow map: it runs beside the projector render (GL stays on this thread)
-    camera_side = helper_pool().submit(_camera_side, cam, proj, obj_depth, origin, dirs, plane_depth)
+    camera_side = beside(_camera_side, cam, proj, obj_depth, origin, dirs, plane_depth)
     try:
         shadow_depth = renderer.depth(proj, meshes, 1)
     finally:

@@ -171,9 +171,8 @@ def keep_signal_stack():
     own stack instead (faulthandler's, or none). A no-op where libc has no ``sigaltstack``.
     """
     try:
-        libc = ctypes.CDLL(None, use_errno=True)
-        sigaltstack = libc.sigaltstack
-    except (OSError, AttributeError):
+        sigaltstack = ctypes.CDLL(None, use_errno=True).sigaltstack
+    except (OSError, AttributeError, TypeError):  # TypeError: Windows' CDLL wants a name
         yield
         return
     old = _SignalStack()
@@ -181,8 +180,10 @@ def keep_signal_stack():
     try:
         yield
     finally:
-        if saved:
-            sigaltstack(ctypes.byref(old), None)
+        if saved and sigaltstack(ctypes.byref(old), None) != 0:
+            warnings.warn(f"could not restore this thread's signal stack after OpenVINO "
+                          f"(errno {ctypes.get_errno()}): a later signal may crash the process", RuntimeWarning,
+                          stacklevel=3)
 
 
 def onnx_runner(path: str | Path, runtime: str = "onnxruntime", threads: int | None = None):

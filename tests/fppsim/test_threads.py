@@ -161,3 +161,60 @@ def test_scene_geometry_reports_a_failed_projector_render():
     with pytest.raises(RuntimeError, match="projector render failed"):
         scene_geometry(make_default_rig(), [], Renderer())
     assert helper_pool().submit(lambda: 7).result(timeout=30) == 7  # the helper is free again
+
+
+def test_scene_geometry_called_on_the_helper_runs_in_place():
+    """Started from the helper thread, the camera side runs at once instead of waiting for the helper."""
+    from fppsim.render import scene_geometry
+
+    class Renderer:
+        def depth(self, device, meshes, scale=1):
+            return np.full((device.height * scale, device.width * scale), np.inf)
+
+    rig = make_default_rig()
+    geom = helper_pool().submit(scene_geometry, rig, [], Renderer()).result(timeout=60)
+    here = scene_geometry(rig, [], Renderer())
+    assert all(np.array_equal(getattr(geom, k), getattr(here, k), equal_nan=True) for k in geom.__dataclass_fields__)
+
+
+def test_helper_jobs_keep_the_callers_floating_point_error_state():
+    """numpy's errstate (a context variable) travels to the helper's band: a division by zero there
+    raises, or stays quiet, as it would on the calling thread."""
+    import warnings
+
+    def divide(rows):
+        return np.ones(rows.stop - rows.start) / np.zeros(rows.stop - rows.start)
+
+    bands = [slice(0, 16), slice(16, 32)]
+    with np.errstate(divide="raise"), pytest.raises(FloatingPointError):
+        map_bands(lambda rows: divide(rows) if rows.start else None, bands)  # fails on the helper only
+    with np.errstate(divide="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert np.isinf(map_bands(divide, bands)[1]).all()
+
+
+def test_banded_decode_refuses_what_the_one_piece_decode_refuses():
+    rig = make_default_rig()
+    stacks = _stacks(rig, np.uint8)
+    uneven = {1: stacks[1][:, :64], 8: stacks[8][:, :100], 80: stacks[80][:, :100]}
+    for threads in (1, 2):
+        with pytest.raises(ValueError):
+            psp.decode_stacks(uneven, None, (1, 8, 80), threads=threads)
+    cropped = {f: s[:, :300] for f, s in stacks.items()}  # not the camera's 352 rows
+    for threads in (1, 2):
+        with pytest.raises(ValueError, match="camera is 352 x 640"):
+            psp.decode_stacks(cropped, rig, (1, 8, 80), threads=threads)
+
+
+def test_camera_ray_cache_holds_four_cameras_when_filled_from_two_threads():
+    from concurrent.futures import ThreadPoolExecutor
+
+    base = _small_rig(20, 30).camera
+    cams = [Device(K=base.K * np.array([[1 + i / 100, 1, 1], [1, 1 + i / 100, 1], [1, 1, 1]]), R=base.R, t=base.t,
+                   width=30, height=20) for i in range(12)]
+    with ThreadPoolExecutor(2) as pool:
+        got = list(pool.map(psp._camera_rays, cams * 2))
+    assert len(psp._RAYS) <= 4
+    for cam, (origin, d) in zip(cams * 2, got):
+        o2, d2 = cam.pixel_rays(cam.pixel_grid())
+        assert np.array_equal(origin, o2) and np.array_equal(d, d2)
