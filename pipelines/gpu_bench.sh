@@ -29,9 +29,13 @@ deps = tomllib.load(open("pyproject.toml", "rb"))["project"]["dependencies"]
 print("\n".join(d for d in deps if re.split(r"[<>=!~ \[]", d)[0].lower() not in ("torch", "pyrender", "pyrender2")))
 PYEOF
 )
-  "$PY" -m pip install -q "${deps[@]}"
-  "$PY" -m pip install -q --no-deps -e "$ROOT"
+  if ! { "$PY" -m pip install -q "${deps[@]}" && "$PY" -m pip install -q --no-deps -e "$ROOT"; }; then
+    # an offline machine: the steps below need only torch and numpy; uhrnet then runs from this checkout
+    log "pip install failed (offline?): running uhrnet from $ROOT with what is installed (torch + numpy)"
+    export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+  fi
 fi
+"$PY" -c 'import numpy, uhrnet' 2>/dev/null || { echo "gpu_bench: cannot import uhrnet here (it needs numpy besides torch)" >&2; exit 2; }
 CUDA=$("$PY" -c 'import torch; print(int(torch.cuda.is_available()))')
 TINY="${GPU_BENCH_TINY:-0}"
 if [ "$CUDA" = 0 ] && [ "$TINY" = 0 ]; then

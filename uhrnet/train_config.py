@@ -161,10 +161,12 @@ def check_options(cfg: dict) -> None:
 
 
 def parse_kv(items, what: str) -> dict:
+    out = {}
+    if not items:
+        return out  # (without importing yaml: a bare GPU machine may lack it)
     import yaml
 
-    out = {}
-    for item in items or []:
+    for item in items:
         if "=" not in item:
             raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)

@@ -204,15 +204,17 @@ class Trainer:
             group["lr"] = lr
 
     def train_epoch(self, epoch: int) -> dict:
-        from tqdm import tqdm
-
         self.sampler.set_epoch(epoch)
         self.loader.generator = torch.Generator().manual_seed(self.cfg["seed"] * 100_003 + epoch)
         self.ddp.train()
         sums = MetricSums(["loss", "rmse", "ssim"])
-        bar = tqdm(self.loader, desc=f"epoch {epoch + 1}/{self.cfg['epochs']}", unit="step", leave=False,
-                   disable=not self.info.main or not self.args.progress, dynamic_ncols=True)
-        for step, batch in enumerate(bar):
+        bar = None
+        if self.info.main and self.args.progress:  # tqdm only when it shows (a bare GPU machine may lack it)
+            from tqdm import tqdm
+
+            bar = tqdm(self.loader, desc=f"epoch {epoch + 1}/{self.cfg['epochs']}", unit="step", leave=False,
+                       dynamic_ncols=True)
+        for step, batch in enumerate(bar if bar is not None else self.loader):
             x, y, m = self._batch(batch)
             with self._autocast():
                 out = self.ddp(x)
@@ -236,9 +238,10 @@ class Trainer:
             r, s = image_metrics(outs[0], y, m, self.transform)
             sums.add("rmse", r)
             sums.add("ssim", s)
-            if self.info.main and self.args.progress:
+            if bar is not None:
                 bar.set_postfix(loss=f"{loss.item():.4g}", rmse_mm=f"{float(r.nanmean()):.3f}", refresh=False)
-        bar.close()
+        if bar is not None:
+            bar.close()
         res = sums.reduce(self.info, self.device)
         return {"train_loss": res["loss"], "train_rmse_mm": res["rmse"], "train_ssim": res["ssim"]}
 
