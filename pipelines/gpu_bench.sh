@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # GPU numbers for uhrnet, on an NVIDIA machine that has PyTorch but not our other dependencies.
 # Usage: bash pipelines/gpu_bench.sh [OUTDIR]            (default out/gpu_bench; about 10-15 minutes on one GPU)
-#   1. pip-installs what uhrnet needs besides torch (the torch already there is kept; no rendering libraries)
+#   1. pip-installs what uhrnet needs besides torch (the torch already there is kept; no rendering libraries);
+#      offline, uhrnet runs from this checkout with torch + numpy alone (the steps below need nothing else)
 #   2. uhrnet bench: UHRNet and U-Net ms/image at batch 1 in fp32, bf16, fp16, fp16 + channels_last, compiled;
 #      images/s over batch sizes for the fastest configuration
 #   3. one AMP (fp16) training epoch of UHRNet on 1,500 synthetic random tensors at 352 x 640: time, finiteness
