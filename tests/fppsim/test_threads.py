@@ -29,6 +29,13 @@ def _distorted_rig():
     return Rig(r.camera, proj, periods=80.0)
 
 
+def _camera_distorted_rig():
+    r = make_default_rig()
+    c = r.camera
+    cam = Device(K=c.K, R=c.R, t=c.t, width=c.width, height=c.height, dist=[-0.08, 0.05, 1e-3, -5e-4, 0.01])
+    return Rig(cam, r.projector, periods=80.0)
+
+
 def _stacks(rig, dtype, seed=3):
     """PSP stacks (1, 8, 80 periods, 4 steps) of a tilted plane with a bump, some dark and saturated
     regions and noise: every mask of the decode has both values somewhere."""
@@ -64,7 +71,7 @@ def _same(a: psp.Decoded, b: psp.Decoded):
         assert np.array_equal(x, y, equal_nan=True), name
 
 
-@pytest.mark.parametrize("rig_factory", [make_default_rig, _distorted_rig, _small_rig])
+@pytest.mark.parametrize("rig_factory", [make_default_rig, _distorted_rig, _camera_distorted_rig, _small_rig])
 @pytest.mark.parametrize("dtype", [np.uint8, np.float64])
 def test_decode_in_two_bands_equals_one_piece(rig_factory, dtype):
     rig = rig_factory()
