@@ -790,23 +790,37 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
     freqs = tuple(int(f) for f in freqs)
     if threads > 1:
         return _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads)
-    quality, wrapped = None, []
-    for f in freqs:
-        res = wrapped_phase(np.asarray(stacks[f]), shifts)  # uint8 stacks take the exact integer path
-        wrapped.append(res.phase)
-        q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
-        quality = q if quality is None else (quality & q)
-    un = unwrap_temporal(wrapped, freqs)
+    quality, un = _phases(stacks, freqs, shifts, min_modulation, min_ratio)
     ok = quality & un.reliable
     consistent = order_consistency(un.phase, ok) if neighbour_check else ok.copy()
     ok &= consistent
     height = None
     if rig is not None:
-        height = height_from_phase(rig, un.phase, periods=freqs[-1], mask=ok)
-        ok &= np.isfinite(height)
-        height = np.where(ok, height, np.nan)
+        height, ok = _heights(rig, un.phase, ok, freqs[-1])
     return Decoded(phase=un.phase, order=un.order, height=height, quality=quality,
                    reliable=un.reliable, consistent=consistent, valid=ok)
+
+
+def _phases(stacks, freqs, shifts, min_modulation, min_ratio, rows: slice | None = None):
+    """``(quality, unwrapped)`` of :func:`decode_stacks`, of the whole stacks or of their ``rows``."""
+    quality, wrapped = None, []
+    for f in freqs:
+        stack = np.asarray(stacks[f])
+        if rows is not None:  # contiguous like a whole stack: numpy then takes the same path (dot's checks too)
+            stack = np.ascontiguousarray(stack[:, rows])
+        res = wrapped_phase(stack, shifts)  # uint8 stacks take the exact integer path
+        wrapped.append(res.phase)
+        q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
+        quality = q if quality is None else (quality & q)
+    return quality, unwrap_temporal(wrapped, freqs)
+
+
+def _heights(rig, phase, ok, periods, rows: slice | None = None):
+    """``(height, ok)`` of :func:`decode_stacks`: triangulated where ``ok``, which keeps only the finite
+    heights; NaN elsewhere. ``rows``: ``phase`` holds these camera rows (see :func:`_triangulate`)."""
+    height = height_from_phase(rig, phase, periods=periods, mask=ok, rows=rows)
+    ok = ok & np.isfinite(height)
+    return np.where(ok, height, np.nan), ok
 
 
 def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads) -> Decoded:
@@ -824,17 +838,7 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
     if cam is not None:
         _camera_rays(cam)  # filled once here, not by both bands at once
 
-    def phases(rows):
-        quality, wrapped = None, []
-        for f in freqs:
-            # contiguous like the whole stack: numpy then takes the same path (dot's checks included)
-            res = wrapped_phase(np.ascontiguousarray(stacks[f][:, rows]), shifts)
-            wrapped.append(res.phase)
-            q = quality_mask(res.background, res.modulation, min_modulation=min_modulation, min_ratio=min_ratio)
-            quality = q if quality is None else (quality & q)
-        return quality, unwrap_temporal(wrapped, freqs)
-
-    parts = map_bands(phases, bands)
+    parts = map_bands(lambda rows: _phases(stacks, freqs, shifts, min_modulation, min_ratio, rows), bands)
     quality = np.concatenate([q for q, _ in parts])
     phase = np.concatenate([u.phase for _, u in parts])
     ok = quality & np.concatenate([u.reliable for _, u in parts])
@@ -849,9 +853,7 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
         good = ok[rows] & consistent
         height = None
         if banded_height:
-            height = height_from_phase(rig, phase[rows], periods=freqs[-1], mask=good, rows=rows)
-            good &= np.isfinite(height)
-            height = np.where(good, height, np.nan)
+            height, good = _heights(rig, phase[rows], good, freqs[-1], rows)
         return consistent, good, height
 
     checked = map_bands(check, bands)
@@ -859,8 +861,6 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
     ok = np.concatenate([g for _, g, _ in checked])
     height = np.concatenate([h for _, _, h in checked]) if banded_height else None
     if rig is not None and not banded_height:
-        height = height_from_phase(rig, phase, periods=freqs[-1], mask=ok)
-        ok &= np.isfinite(height)
-        height = np.where(ok, height, np.nan)
+        height, ok = _heights(rig, phase, ok, freqs[-1])
     return Decoded(phase=phase, order=np.concatenate([u.order for _, u in parts]), height=height, quality=quality,
                    reliable=np.concatenate([u.reliable for _, u in parts]), consistent=consistent, valid=ok)
