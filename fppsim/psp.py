@@ -835,13 +835,12 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
     bands = row_bands(H, threads)
     if len(bands) < 2:  # (also every input the one-piece decode refuses, which then says why)
         return decode_stacks(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts)
-    if cam is not None:
-        _camera_rays(cam)  # filled once here, not by both bands at once
 
     parts = map_bands(lambda rows: _phases(stacks, freqs, shifts, min_modulation, min_ratio, rows), bands)
     quality = np.concatenate([q for q, _ in parts])
     phase = np.concatenate([u.phase for _, u in parts])
-    ok = quality & np.concatenate([u.reliable for _, u in parts])
+    reliable = np.concatenate([u.reliable for _, u in parts])
+    ok = quality & reliable
     banded_height = rig is not None and not rig.projector.has_distortion
 
     def check(rows):
@@ -863,4 +862,4 @@ def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_ch
     if rig is not None and not banded_height:
         height, ok = _heights(rig, phase, ok, freqs[-1])
     return Decoded(phase=phase, order=np.concatenate([u.order for _, u in parts]), height=height, quality=quality,
-                   reliable=np.concatenate([u.reliable for _, u in parts]), consistent=consistent, valid=ok)
+                   reliable=reliable, consistent=consistent, valid=ok)
