@@ -22,7 +22,9 @@ _LAZY = {
     "merge": ("fppsim.generation", "merge"),
     "validate_psp": ("fppsim.validate", "validate_psp"),
     "ValidateConfig": ("fppsim.validate", "ValidateConfig"),
-    "compare_real": ("fppsim.stats", "compare_real"),
+    "compare_real": ("fppsim.compare", "compare_real"),
+    "label_real": ("fppsim.label_real", "label_real"),
+    "LabelRealConfig": ("fppsim.label_real", "LabelRealConfig"),
     "LabelTransform": ("fppsim.formats", "LabelTransform"),
     "Rig": ("fppsim.rig", "Rig"),
 }

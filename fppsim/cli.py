@@ -5,16 +5,17 @@ calls one plain function a Python user can call too:
 
     generate      -> fppsim.generate(GenerateConfig)            (fppsim.generation)
     merge         -> fppsim.generation.merge(out, shards)
-    compare-real  -> fppsim.stats.compare_real(real, synthetic)
+    compare-real  -> fppsim.compare.compare_real(real, synthetic)
     validate-psp  -> fppsim.validate.validate_psp(ValidateConfig)
-    fit-rig       -> fppsim.fit_rig.fit_baseline / fit_rig(...)
+    fit-rig       -> fppsim.fit_rig.fit_rig_images(FitRigConfig)
     fit-optics    -> fppsim.fit_optics.fit_optics(...)
+    label-real    -> fppsim.label_real.label_real(LabelRealConfig)
 
 Units: millimetres and radians; images are 8-bit. Usage errors (bad flags, and a library
 :class:`fppsim.errors.UsageError`) exit 2; other errors of the library (:mod:`fppsim.errors`), bad
 values and I/O errors exit 1 with a one-line reason; SIGTERM/SIGINT stop like Ctrl-C (workers
-terminated, temp files removed) and exit ``128 + signum``. The same design serves ``uhrnet``
-(:mod:`uhrnet.cli` uses :func:`run_commands`).
+terminated, temp files removed) and exit ``128 + signum``. The framework is :mod:`fppsim.commands`,
+which ``uhrnet`` (:mod:`uhrnet.cli`) uses too.
 """
 
 from __future__ import annotations
@@ -23,102 +24,11 @@ import argparse
 import json
 import logging
 import sys
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
-__all__ = ["main", "build_parser", "run_commands", "build_command_parser", "one_line", "Command", "COMMANDS"]
+from .commands import Command, build_command_parser, run_commands
 
-
-# ============================================================================ one CLI design (both tools)
-@dataclass(frozen=True)
-class Command:
-    """A subcommand: ``add(parser)`` declares its flags, ``run(args) -> exit code`` calls the library."""
-
-    add: Callable[[argparse.ArgumentParser], None]
-    run: Callable[[argparse.Namespace], int]
-    help: str
-
-
-def build_command_parser(prog: str, description: str, commands: dict[str, Command],
-                         globals_: Callable[[argparse.ArgumentParser], None] | None = None,
-                         load: str | None = None) -> argparse.ArgumentParser:
-    """One sub-parser per command; with ``load`` only that command declares its flags (the others
-    keep name and help: a CLI whose commands import heavy modules stays fast)."""
-    parser = argparse.ArgumentParser(prog=prog, description=description)
-    if globals_ is not None:
-        globals_(parser)
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, cmd in commands.items():
-        p = sub.add_parser(name, help=cmd.help, description=cmd.help)
-        if load is None or load == name:
-            cmd.add(p)
-    return parser
-
-
-def one_line(exc: BaseException) -> str:
-    """The one-line message of an error, also when a DataLoader worker re-raised it.
-
-    A worker's error arrives as ``Caught DatasetError in DataLoader worker process 0.`` followed by the
-    worker's traceback, whose last line (``fppsim.errors.DatasetError: <file>: ...``) names the culprit.
-    """
-    lines = [line for line in str(exc).splitlines() if line.strip()]
-    if not lines:
-        return type(exc).__name__
-    if len(lines) > 1 and lines[0].startswith("Caught ") and "worker" in lines[0]:
-        last = lines[-1].strip()
-        head, sep, rest = last.partition(": ")
-        return rest if sep and "." in head and " " not in head else last
-    return lines[0]
-
-
-def run_commands(parser: argparse.ArgumentParser, commands: dict[str, Command], argv: list[str] | None,
-                 errors: tuple[type[BaseException], ...], setup: Callable[[argparse.Namespace], None] | None = None,
-                 resume_hint: dict[str, str] | str = " (re-run the same command to resume)") -> int:
-    """Parse ``argv``, run the chosen command and report how it ended, one line on stderr:
-
-    * ``errors`` and ``OSError`` -> ``prog command: error: <one line>`` (``file: strerror`` for I/O
-      errors such as a full disk), exit 1; a ``UsageError`` (of :mod:`fppsim.errors` or
-      :mod:`uhrnet.errors`) exits 2 like argparse's own errors; no command is a usage error too;
-    * SIGTERM (e.g. a Slurm timeout) and SIGINT -> ``prog command: terminated|interrupted<hint>``, exit
-      ``128 + signum``; the library's clean-up ran on the way (pools terminated, temp files removed);
-    * anything else is a bug: traceback.
-
-    ``resume_hint``: text after the interruption line, or ``{command: text}``.
-    """
-    from ._fs import signals_raise
-
-    args = parser.parse_args(argv)
-    if setup is not None:
-        setup(args)
-    if args.command is None:
-        parser.print_usage(sys.stderr)
-        print(f"{parser.prog}: error: choose a command: " + ", ".join(commands), file=sys.stderr)
-        return 2
-    where = f"{parser.prog} {args.command}"
-    try:
-        with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum
-            return int(commands[args.command].run(args) or 0)
-    except Exception as exc:
-        if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, missing file ...
-            msg = f"{exc.filename}: {exc.strerror}" if exc.filename else exc.strerror
-        elif isinstance(exc, errors + (OSError,)):
-            msg = one_line(exc)
-        else:
-            raise
-        print(f"{where}: error: {msg}", file=sys.stderr)
-        return 2 if _is_usage_error(exc) else 1
-    except KeyboardInterrupt as exc:
-        signum = getattr(exc, "signum", 2)
-        hint = resume_hint.get(args.command, "") if isinstance(resume_hint, dict) else resume_hint
-        print(f"{where}: {'terminated' if signum == 15 else 'interrupted'}{hint}", file=sys.stderr)
-        return 128 + signum
-
-
-def _is_usage_error(exc: BaseException) -> bool:
-    """A library's UsageError (either package's; matched by name so fppsim needs no uhrnet import)."""
-    return any(c.__name__ == "UsageError" and c.__module__ in ("fppsim.errors", "uhrnet.errors")
-               for c in type(exc).__mro__)
+__all__ = ["main", "build_parser", "COMMANDS"]
 
 
 # ============================================================================ argument types
@@ -281,27 +191,34 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
 
 
-def run_generate(args) -> int:
+def generate_options(args) -> dict:
+    """The ``GenerateConfig`` fields the ``generate`` flags ``args`` give (``rig``: the file name or
+    None, not loaded); ``uhrnet sim2real`` turns variant flags into overrides with it."""
     from .formats import PRESETS, LabelTransform
-    from .generation import GenerateConfig, generate, read_optics_file
-    from .rig import load_rig
+    from .generation import read_optics_file
 
-    rig = load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
     optics = read_optics_file(args.optics_file) if args.optics_file else {}
     optics.update(_overrides(args.optics))
     fig = PRESETS["figshare"]
     label = LabelTransform(units_per_mm=args.label_scale, plane_offset=args.label_offset,
                            invalid_value=args.label_invalid, invalid_threshold=args.label_threshold)
     label = fig if label.same_labels(fig) else LabelTransform(**{**label.to_dict(), "name": "custom"})
-    config = GenerateConfig(
-        meshes=list(args.meshes), out=args.out, count=args.count, seed=args.seed, rig=rig,
+    return dict(
+        meshes=list(args.meshes), out=args.out, count=args.count, seed=args.seed, rig=args.rig,
         objects=tuple(args.objects), workers=args.workers, format=args.format, shard=args.shard,
         supersample=args.supersample, optics=optics, noise_free=args.noise_free, psp_steps=args.psp_steps,
         psp_freqs=() if args.no_psp else tuple(args.psp_freqs), label=label,
         procedural_share=args.procedural_share, procedural_pool=args.procedural_pool, rig_jitter=args.rig_jitter,
         pedestal=args.pedestal,
         preview=args.preview, backend=args.backend, progress=not args.quiet)
-    summary = generate(config)
+
+
+def run_generate(args) -> int:
+    from .generation import GenerateConfig, generate
+    from .rig import load_rig
+
+    rig = load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
+    summary = generate(GenerateConfig(**{**generate_options(args), "rig": rig}))
     for line in summary.lines():
         print(line)
     return 0
@@ -338,8 +255,9 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 def run_compare_real(args) -> int:
     import json
 
-    from .formats import atomic_write_text, json_default
-    from .stats import compare_real, format_comparison
+    from .encoding import json_default
+    from .files import atomic_write_text
+    from .compare import compare_real, format_comparison
 
     result = compare_real(args.real, args.synthetic, max_samples=args.max_samples)
     print(format_comparison(result))
@@ -410,15 +328,6 @@ def _params(text: str) -> tuple[str, ...]:
     return names
 
 
-def _check_out(path: str, force: bool) -> Path:
-    out = Path(path)
-    if out.exists() and not force:
-        raise ValueError(f"{out} exists; pass --force to replace it")
-    if not out.parent.is_dir():
-        raise ValueError(f"{out.parent}: output folder does not exist")
-    return out
-
-
 def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("real", metavar="REAL_DIR",
                    help="real fringe images: figshare folder (f1_80.npy + Z.npy), the real-sample pair, native "
@@ -428,7 +337,9 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("--params", type=_params, default=("yaw", "roll", "periods"), metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre; roll "
                         "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
-                        "periods (across the projector), focal (projector px) [yaw,roll,periods]")
+                        "periods (across the projector), focal (projector px), distance (camera height, mm: with "
+                        "height labels, fits how the sensitivity grows with height, and the baseline with it; "
+                        "fppsim.fit_depth) [yaw,roll,periods]")
     p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
     p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
@@ -441,34 +352,12 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_rig(args) -> int:
-    from .formats import atomic_write_text
-    from .fit_rig import fit_baseline, fit_rig, format_baseline_fit, format_fit, load_fringe_images, measure_bands
-    from .rig import load_rig
+    from .fit_rig import FitRigConfig, fit_rig_images
 
-    if args.col_bands < 1 or args.row_bands < 1 or args.max_images < 1:
-        raise ValueError("--col-bands, --row-bands and --max-images must be >= 1")
-    out = _check_out(args.out, args.force)
-    base = load_rig(args.base)
-    images, layout = load_fringe_images(args.real, args.max_images)
-    measured = measure_bands(images, args.col_bands, args.row_bands)
-    print(f"{args.real}: {len(images)} image(s), layout {layout}")
-    bfit = fit_baseline(images, measured, base, args.params) if args.sensitivity == "auto" else None
-    if bfit is not None:
-        print(format_baseline_fit(bfit))
-        print()
-        fit = bfit.fit  # the period fit at the chosen baseline: nothing to refit
-    else:
-        if args.sensitivity == "auto":
-            print("height sensitivity: no labelled images with enough object pixels; baseline kept")
-        fit = fit_rig(measured, base, args.params)
-    print(format_fit(fit))
-    fit.rig.save(out)
-    print(f"rig: {out}")
-    if args.json:
-        doc = fit.to_dict()
-        if bfit is not None:
-            doc["sensitivity"] = bfit.to_dict()
-        atomic_write_text(args.json, json.dumps(doc, indent=1))
+    fit_rig_images(FitRigConfig(
+        real=args.real, out=args.out, base=args.base, params=tuple(args.params), col_bands=args.col_bands,
+        row_bands=args.row_bands, max_images=args.max_images, sensitivity=args.sensitivity, json=args.json,
+        force=args.force), echo=print)
     return 0
 
 
@@ -489,14 +378,14 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_optics(args) -> int:
-    from .formats import atomic_write_text
+    from .files import atomic_write_text, check_output_file
     from .fit_optics import compare_before_after, fit_optics, format_optics_fit, ranges_yaml
-    from .fit_rig import load_fringe_images
+    from .readers import load_fringe_images
     from .rig import load_rig
 
     if args.max_images < 1 or args.compare < 0:
         raise ValueError("--max-images must be >= 1 and --compare >= 0")
-    out = _check_out(args.out, args.force)
+    out = check_output_file(args.out, args.force)
     rig = load_rig(args.rig)
     images, layout = load_fringe_images(args.real, args.max_images)
     fit = fit_optics(images, rig)
@@ -512,6 +401,67 @@ def run_fit_optics(args) -> int:
     return 0
 
 
+# ============================================================================ label-real
+def add_label_real(p: argparse.ArgumentParser) -> None:
+    p.description = (
+        "Turn phase-shifting scans into labelled samples in the figshare layout. Reads ROOT: the public layout "
+        "(PSin/ PCos/ Fringe/ iPattern/ of <id>.mat) or an fppsim dataset generated with phase-shifting images "
+        "(its psp/f{f}_s{n}.png are decoded here; the exact arrays are not read). The absolute phase (rad) is "
+        "triangulated through the rig into height = mm above the reference plane, and written as DIR/f1_80.npy "
+        "(float32 (N,H,W,1), 8-bit intensity/127.5 - 1, -1 where invalid) and DIR/Z.npy (float32 (N,H,W,1), "
+        "figshare label preset: label = 6 * mm - 97, -105 where the phase is missing; `uhrnet train --real DIR` "
+        "reads them), plus DIR/label_real.json (per scan: phase offset, plane level / RMS / tilt, valid share) "
+        "and DIR/previews/<id>.png. Phase offset: a scan's phase origin need not be the rig's projector column 0 "
+        "(public frames count fringe orders from the first fringe the camera sees); 'auto' fits one constant "
+        "per scan so the reference plane (the dominant flat mode) lies at 0 mm, 'none' adds nothing, a number "
+        "adds that many radians. The reference plane must come out flat at 0 mm: a scan whose plane is not "
+        "(RMS or tilt over the limits) is reported and the run warns that the rig does not fit these scans. "
+        "Files in DIR that label-real did not write are never replaced.")
+    p.add_argument("root", metavar="ROOT", help="scans: public layout folder or native fppsim dataset (with PSP images)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder (created; a re-run replaces its own files)")
+    p.add_argument("--rig", metavar="FILE",
+                   help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); its camera size must "
+                        "match the images; default: assets/default_rig.json for the public layout, each sample's "
+                        "recorded rig (meta.json) for fppsim datasets")
+    p.add_argument("--phase-offset", default=None, metavar="auto|none|RAD",
+                   help="constant added to the absolute phase before triangulation: auto (fit per scan on the "
+                        "reference plane), none, or radians; default auto for the public layout, none for fppsim "
+                        "datasets (absolute in rig terms; the fitted offset is still reported)")
+    p.add_argument("--periods", type=float, default=None,
+                   help="fringe periods across the projector of the public layout's phase (default: the rig's, 80)")
+    p.add_argument("--convention", choices=("benchmark", "fppsim"), default="benchmark",
+                   help="public layout: benchmark = atan2(-PSin,-PCos) + pi + 2 pi Order (as published, default); "
+                        "fppsim = atan2(PSin,PCos) + 2 pi Order")
+    p.add_argument("--negate-sin", action="store_true", help="public layout: PSin holds +sum I_n sin(delta_n)")
+    p.add_argument("--ids", nargs="+", metavar="ID", help="label only these scan ids, in this order (default: all)")
+    p.add_argument("--plane-window", type=float, default=3.0, metavar="MM",
+                   help="reference-plane pixels lie within this height of the plane (mm, default 3)")
+    p.add_argument("--max-plane-rms", type=float, default=1.5, metavar="MM",
+                   help="warn when the plane pixels' RMS about 0 mm exceeds this (default 1.5)")
+    p.add_argument("--max-plane-tilt", type=float, default=3.0, metavar="MM",
+                   help="warn when the fitted plane rises more than this across the image (default 3)")
+    p.add_argument("--min-modulation", type=float, default=3.0, metavar="B",
+                   help="fppsim datasets: PSP modulation threshold in gray levels (default 3, as generated)")
+    p.add_argument("--no-preview", action="store_true", help="skip the previews/<id>.png figures")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+
+
+def run_label_real(args) -> int:
+    from .label_real import LabelRealConfig, label_real
+
+    config = LabelRealConfig(
+        root=args.root, out=args.out, rig=args.rig, phase_offset=args.phase_offset, periods=args.periods,
+        convention=args.convention, negate_sin=args.negate_sin, ids=args.ids, plane_window_mm=args.plane_window,
+        max_plane_rms_mm=args.max_plane_rms, max_plane_tilt_mm=args.max_plane_tilt,
+        min_modulation=args.min_modulation, previews=not args.no_preview, progress=not args.quiet)
+    report = label_real(config)
+    for line in report.lines():
+        print(line)
+    for w in report.warnings:
+        print(f"fppsim label-real: warning: {w}", file=sys.stderr)
+    return 0
+
+
 # ============================================================================ main
 COMMANDS: dict[str, Command] = {
     "generate": Command(add_generate, run_generate, "render a synthetic FPP dataset from meshes"),
@@ -523,6 +473,8 @@ COMMANDS: dict[str, Command] = {
                        "fit the projector pose / fringe period of a rig to real fringe images"),
     "fit-optics": Command(add_fit_optics, run_fit_optics,
                           "fit the optics ranges (gain, albedo, blur, noise) to real fringe images"),
+    "label-real": Command(add_label_real, run_label_real,
+                          "label phase-shifting scans (public PSin/PCos/Fringe/iPattern or fppsim PSP) as figshare arrays"),
 }
 
 
@@ -543,10 +495,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .errors import FppsimError
+    from .errors import FppsimError, UsageError
 
     # ValueError/OSError: bad values and unreadable/unwritable files surface as one line, like ours
-    return run_commands(build_parser(), COMMANDS, argv, (FppsimError, ValueError), _setup_logging)
+    return run_commands(build_parser(), COMMANDS, argv, (FppsimError, ValueError), _setup_logging,
+                        usage_errors=(UsageError,))
 
 
 if __name__ == "__main__":

@@ -6,8 +6,8 @@ On the reference plane the image model of :mod:`fppsim.optics` reduces to
 
 with ``g = gain * albedo_plane``, ``k = cos_incidence * falloff`` (known from the rig), and ``c`` the
 attenuation of the fringe by projector + camera blur (and the DMD's pixelation), tabulated once by
-rendering noise-free planes through :func:`fppsim.optics.form_image` and measuring them with the same
-estimator as the real images (:func:`fppsim.stats.fringe_modulation`), so estimator bias cancels.
+rendering noise-free planes through :func:`fppsim.optics.optical_image` and measuring them with the same
+estimator as the real images (:func:`fppsim.fringe.fringe_modulation`), so estimator bias cancels.
 Per image, on plane pixels:
 
 * ``A``, ``B/A``: medians of the fringe background and modulation;
@@ -38,7 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .optics import Optics, OpticsRanges, form_image, projector_radiance
+from .optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
+from .render import plane_geometry, projector_incidence
 from .rig import Rig, data_path
 
 __all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
@@ -53,23 +54,17 @@ def _centre(r) -> float:
 
 
 def plane_model(rig: Rig) -> dict:
-    """Per camera pixel on the reference plane: projector column ``u_p``, ``k = cos_incidence * falloff``
-    (as :mod:`fppsim.render` computes them) and ``lit`` (inside the projector). (H, W) float64 / bool."""
-    cam, proj = rig.camera, rig.projector
-    uv = cam.pixel_grid()
-    X = cam.backproject(uv, cam.plane_depth(uv))
-    uvp, z = proj.project(X)
-    to_proj = proj.center - X
-    dist = np.sqrt(np.sum(to_proj ** 2, axis=-1))
-    cos_inc = to_proj[..., 2] / dist  # plane normal +z
-    falloff = proj.irradiance_falloff(X, z=z, dist=dist)
-    lit = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) & (cos_inc > 0)
-    return {"u_p": uvp[..., 0], "k": np.where(lit, cos_inc * falloff, 0.0), "lit": lit}
+    """Per camera pixel on the reference plane, as :func:`fppsim.render.plane_geometry` computes it:
+    projector column ``u_p``, ``k = cos_incidence * falloff`` and ``lit`` (inside the projector),
+    (H, W) float64 / bool, and the ``geometry`` itself (what :func:`render_plane` forms images of)."""
+    g = plane_geometry(rig)
+    return {"u_p": g.u_p, "k": g.cos_incidence * g.falloff, "lit": g.lit, "geometry": g}
 
 
 def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
-    """``k = cos_incidence * falloff`` of surfaces of known height (mm, (H, W), NaN = unknown), as
-    :mod:`fppsim.render` computes it: each camera ray cut at its height, normals from the neighbours."""
+    """``k = cos_incidence * falloff`` of surfaces of known height (mm, (H, W), NaN = unknown): each camera
+    ray cut at its height, normals from the neighbours, the light as :func:`fppsim.render.projector_incidence`
+    gives it to rendered surfaces."""
     cam, proj = rig.camera, rig.projector
     uv = cam.pixel_grid()
     h = np.where(np.isfinite(height_mm), height_mm, 0.0)
@@ -81,9 +76,8 @@ def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     n = np.cross(du, dv)
     n /= np.linalg.norm(n, axis=-1, keepdims=True)
     n *= np.sign(n[..., 2:3]) + (n[..., 2:3] == 0)  # towards +z (the camera side)
-    to_proj = proj.center - P
-    dist = np.sqrt(np.sum(to_proj ** 2, axis=-1))
-    k = np.sum(n * to_proj, axis=-1) / dist * proj.irradiance_falloff(P, dist=dist)
+    cos_inc, falloff = projector_incidence(proj, P, n)
+    k = cos_inc * falloff
     return np.where(np.isfinite(height_mm), np.maximum(k, 0.0), np.nan)
 
 
@@ -100,34 +94,29 @@ def _default_ratio(rig: Rig, period_cam: float) -> tuple[float, float]:
     return _centre(d.projector_blur) * px, _centre(d.camera_blur)
 
 
-def render_plane(rig: Rig, optics: Optics, model: dict | None = None, rng=None) -> np.ndarray:
-    """uint8 (H, W) image of the bare reference plane under ``optics`` (no rendering: analytic geometry)."""
+def render_plane(rig: Rig, optics: Optics, model: dict | None = None, rng=None, appearance_rng=None) -> np.ndarray:
+    """uint8 (H, W) image of the bare reference plane under ``optics``, formed like a sample's fringe image
+    (:func:`fppsim.optics.form_images`, appearance effects included) on :func:`plane_model`'s geometry.
+    ``rng``: camera noise (None = noise-free); ``appearance_rng``: texture, dirt, ..."""
     m = plane_model(rig) if model is None else model
-    pattern = projector_radiance(m["u_p"], rig.projector.width, rig.periods, 0.0, optics)
-    base = np.where(m["lit"], optics.gain * optics.albedo_plane * optics.ambient, 0.0)
-    mod = optics.gain * optics.albedo_plane * m["k"]
-    return form_image((base, mod), pattern, optics, rng)
+    return form_images(m["geometry"], rig, optics, [(float(rig.periods), 0.0)], rng, 1, appearance_rng)[0]
 
 
 def contrast_table(rig: Rig, period: float, sigmas=np.linspace(0.0, 4.0, 17), model: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fringe contrast ``c(sigma)`` (ambient 0) for effective blurs ``sigma`` (camera px), measured on
-    noise-free rendered planes with :func:`fppsim.stats.fringe_modulation`. Returns (sigmas, c)."""
-    from .stats import fringe_modulation
+    noise-free rendered planes with :func:`fppsim.fringe.fringe_modulation`. Returns (sigmas, c)."""
+    from .fringe import fringe_modulation
 
     m = plane_model(rig) if model is None else model
     ratio = _default_ratio(rig, period)
     cs = []
     for s in sigmas:
         pb, cb = _split(float(s), ratio)
-        # unquantised float image: 8-bit rounding would only add noise to the table
+        # the image before the sensor, in float64: 8-bit rounding would only add noise to the table
         o = Optics(gain=200.0, ambient=0.0, albedo_plane=1.0, projector_blur=pb, camera_blur=cb, noise_sigma=0.0,
                    shot_noise=0.0)
         pattern = projector_radiance(m["u_p"], rig.projector.width, rig.periods, 0.0, o)
-        E = 200.0 * m["k"] * pattern
-        if cb > 0:
-            from scipy.ndimage import gaussian_filter
-
-            E = gaussian_filter(E, cb, mode="nearest")
+        E = optical_image((0.0, 200.0 * m["k"]), pattern, o)
         b, a = fringe_modulation(E, period, m["lit"])
         ok = m["lit"] & (a > 1)
         cs.append(float(np.median(b[ok] / a[ok])))
@@ -190,7 +179,7 @@ def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
 def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
                     ambient: float, albedo_plane: float) -> dict:
     """Optics parameters of one image (see the module docstring); NaN where not measurable."""
-    from .stats import fringe_modulation
+    from .fringe import fringe_modulation
 
     plane, obj = _masks(im, model)
     g = im.gray.astype(np.float64)
@@ -264,13 +253,13 @@ class OpticsFit:
 
 def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: float | None = None,
                min_width: float = 0.10) -> OpticsFit:
-    """Fit optics ranges to real fringe images (:class:`fppsim.fit_rig.FringeImage`) of ``rig``.
+    """Fit optics ranges to real fringe images (:class:`fppsim.readers.FringeImage`) of ``rig``.
 
     ``ambient`` and ``albedo_plane`` are the values that cannot be separated from the others (default:
     the centres of the default ranges). ``min_width``: each range spans at least +-this fraction of its
     centre. Raises ValueError if no image has enough plane pixels with fringes.
     """
-    from .stats import estimate_period
+    from .fringe import estimate_period
 
     d = OpticsRanges()
     amb = _centre(d.ambient) if ambient is None else float(ambient)
@@ -315,7 +304,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     if ambient is None and all(abs(p.get("ambient", amb) - amb) < 1e-12 for p in per if np.isfinite(p.get("ambient", np.nan))):
         fixed["ambient"] = amb
     return OpticsFit(per_image=per, centre=centre, ranges=OpticsRanges.from_dict({k: list(v) for k, v in ranges.items()}),
-                     fixed=fixed, n_images=sum(np.isfinite(p["gain"]) for p in per))
+                     fixed=fixed, n_images=int(sum(np.isfinite(p["gain"]) for p in per)))
 
 
 def ranges_yaml(fit: OpticsFit, source: str = "") -> str:
@@ -356,7 +345,7 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     import tempfile
 
     from .generation import generate_dataset as generate
-    from .stats import STAT_ROWS, _fmt, dataset_stats
+    from .compare import STAT_ROWS, dataset_stats, format_value
     from .synth import SynthConfig
 
     if meshes is None:
@@ -374,7 +363,7 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     for key, label, fmt in STAT_ROWS:
         if key in skip:
             continue
-        rows.append((label.strip(), *(_fmt(fmt, results[n]["stats"].get(key)) for n in ("real", "default", "fitted"))))
+        rows.append((label.strip(), *(format_value(fmt, results[n]["stats"].get(key)) for n in ("real", "default", "fitted"))))
     w = [max(len(r[i]) for r in rows) for i in range(4)]
     text = [f"compare-real: real vs {count} rendered samples with the default and with the fitted optics (medians)"]
     for j, r in enumerate(rows):

@@ -9,30 +9,41 @@ The fringe period a camera sees on the reference plane follows from the rig alon
 (:func:`period_map`; no rendering). A projector whose axis is not exactly parallel to the camera's
 shows a period that drifts across the image, as the real figshare rig does (about 11.96 px in the left
 half, 11.49 px in the right). :func:`measure_bands` measures the period per column band and per row band
-of real images (plane pixels only where labels exist) with :func:`fppsim.stats.estimate_period`, and
+of real images (plane pixels only where labels exist) with :func:`fppsim.fringe.estimate_period`, and
 :func:`fit_rig` adjusts a few projector parameters (yaw / pitch / roll about the projector's centre,
 baseline, periods across the projector, projector focal length) with :func:`scipy.optimize.least_squares`
 until the band periods of :func:`period_map` match, and the fringe lines' angle on the plane
-(:func:`plane_tilt` against :func:`fppsim.stats.fringe_tilt` of the images: a rolled projector tilts
+(:func:`plane_tilt` against :func:`fppsim.fringe.fringe_tilt` of the images: a rolled projector tilts
 them; the real figshare rig by about -1.35 deg). The camera stays fixed; after every change the
 projector's principal point is re-centred (lens shift) so the camera's view of the plane stays lit.
+
+The height sensitivity (the fringe shift per mm a rig predicts, checked against labelled images) is
+:mod:`fppsim.height_sensitivity`; :func:`fit_baseline` chooses the baseline with it. The whole
+``fppsim fit-rig`` workflow (read the images, measure, fit, write the rig) is
+:func:`fit_rig_images` (:class:`FitRigConfig`); the images come from :func:`fppsim.readers.load_fringe_images`.
 
 Units: mm, radians, camera pixels for periods.
 """
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
-from .rig import Device, Rig, RigError, rotation
+from .files import atomic_write_text, check_output_file
+from .fringe import estimate_period, fringe_tilt
+from .height_sensitivity import centre_sensitivity, sensitivity_check
+from .readers import FringeImage, load_fringe_images
+from .rig import Device, Rig, RigError, load_rig, rotation
 
-__all__ = ["PARAMETERS", "poly_basis", "FringeImage", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig",
-           "load_fringe_images", "phase_plane_masks", "measure_bands", "fit_rig", "plane_tilt", "format_fit", "surface_phase",
-           "centre_sensitivity", "SensitivityCheck", "sensitivity_check", "BaselineFit", "fit_baseline",
-           "format_baseline_fit"]
+__all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
+           "plane_tilt", "format_fit", "BaselineFit", "fit_baseline", "format_baseline_fit", "FitRigConfig", "FitRigResult",
+           "fit_rig_images"]
 
 PARAMETERS = {
     "yaw": "rotation of the projector about its own y axis (rad); tilts the pattern's depth left to right",
@@ -41,12 +52,15 @@ PARAMETERS = {
     "baseline": "distance between camera and projector centres along world x (mm)",
     "periods": "fringe periods across the projector width",
     "focal": "projector focal length fx = fy (px)",
+    "distance": "camera height above the reference plane (mm); camera and projector move away from the scene "
+                "together (positions scaled about the world origin, both focal lengths with them: the plane's "
+                "image and fringes stay); sets how fast the height sensitivity grows with height",
 }
 """Parameters :func:`fit_rig` can adjust (name -> meaning)."""
 
 # typical scales: keep the optimiser's steps comparable and the weak prior meaningful
 _SCALE = {"yaw": np.radians(2.0), "pitch": np.radians(2.0), "roll": np.radians(2.0), "baseline": 20.0,
-          "periods": 2.0, "focal": 30.0}
+          "periods": 2.0, "focal": 30.0, "distance": 50.0}
 
 
 # ====================================================================== the analytic period map
@@ -89,7 +103,7 @@ def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def plane_tilt(rig: Rig, step: int = 8) -> float:
     """Angle of the pattern's lines on the reference plane from the camera's vertical, degrees, positive
-    when a line leans right going down (as :func:`fppsim.stats.fringe_tilt` measures images): the
+    when a line leans right going down (as :func:`fppsim.fringe.fringe_tilt` measures images): the
     median of ``atan(-(du_p/dv) / (du_p/du))`` over the lit plane. A rolled projector tilts the lines;
     the real figshare rig: about -1.35 deg."""
     cam, proj = rig.camera, rig.projector
@@ -152,7 +166,8 @@ def base_values(rig: Rig) -> dict:
     """Current values of :data:`PARAMETERS` (angles relative to the rig itself, hence 0)."""
     return {"yaw": 0.0, "pitch": 0.0, "roll": 0.0,
             "baseline": float(rig.projector.center[0] - rig.camera.center[0]),
-            "periods": float(rig.periods), "focal": float(rig.projector.K[0, 0])}
+            "periods": float(rig.periods), "focal": float(rig.projector.K[0, 0]),
+            "distance": float(rig.camera.center[2])}
 
 
 def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
@@ -160,24 +175,40 @@ def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
 
     Angles rotate the projector about its own centre (device-frame axes), ``baseline`` moves it along
     world x relative to the camera, ``periods`` and ``focal`` replace the rig's values. The camera is
-    unchanged. With ``recentre`` the projector's principal point follows (see :func:`_recentre`).
+    unchanged, except by ``distance`` (applied first): the camera's and the projector's centres are
+    scaled about the world origin by ``k = distance / camera height`` and both devices' focal lengths
+    by ``k`` (the camera's view of the plane stays exactly the same for a camera looking straight
+    down; the baseline scales with ``k`` unless ``baseline`` is given, which keeps the triangulation
+    angle and, to first order, the plane's sensitivity; ``baseline`` and ``focal``, when given, are
+    the values after the scaling). With ``recentre`` the projector's principal point follows (see
+    :func:`_recentre`).
     """
     unknown = set(values) - set(PARAMETERS)
     if unknown:
         raise RigError(f"unknown rig parameter(s) {', '.join(sorted(unknown))} (known: {', '.join(PARAMETERS)})")
-    p = rig.projector
+    cam, p = rig.camera, rig.projector
+    K = p.K.copy()
+    c = p.center.copy()
+    if "distance" in values:
+        d = float(values["distance"])
+        if not (np.isfinite(d) and d > 0 and cam.center[2] > 0):
+            raise RigError(f"distance must be > 0 mm with the camera above the plane, got {d}")
+        k = d / float(cam.center[2])
+        Kc = cam.K.copy()
+        Kc[:2, :2] *= k
+        cam = Device(K=Kc, R=cam.R, t=-cam.R @ (k * cam.center), width=cam.width, height=cam.height, dist=cam.dist)
+        K[:2, :2] *= k
+        c = k * c
     R = p.R.copy()
     for name, axis in (("roll", "z"), ("pitch", "x"), ("yaw", "y")):
         if values.get(name):
             R = rotation(axis, float(values[name])) @ R
-    c = p.center.copy()
     if "baseline" in values:
-        c[0] = rig.camera.center[0] + float(values["baseline"])
-    K = p.K.copy()
+        c[0] = cam.center[0] + float(values["baseline"])
     if "focal" in values:
         K[0, 0] = K[1, 1] = float(values["focal"])
     proj = Device(K=K, R=R, t=-R @ c, width=p.width, height=p.height, dist=p.dist)
-    out = Rig(camera=rig.camera, projector=proj, periods=float(values.get("periods", rig.periods)), name=rig.name)
+    out = Rig(camera=cam, projector=proj, periods=float(values.get("periods", rig.periods)), name=rig.name)
     if recentre:
         out.projector = _recentre(out, proj)
     return out
@@ -191,145 +222,9 @@ def plane_coverage(rig: Rig, step: int = 8) -> float:
 
 # ====================================================================== measuring real images
 @dataclass
-class FringeImage:
-    """One real fringe image.
-
-    gray : uint8 (H, W). valid : bool (H, W), pixels with a fringe (not the black shadow marker, phase
-    present). plane, obj : bool (H, W) reference-plane and object pixels when the source tells them
-    apart (height labels, or real phase), else None. name : for messages.
-    """
-
-    gray: np.ndarray
-    valid: np.ndarray
-    name: str = ""
-    plane: np.ndarray | None = None
-    obj: np.ndarray | None = None
-    height_mm: np.ndarray | None = None
-
-    @property
-    def plane_or_valid(self) -> np.ndarray:
-        return self.valid if self.plane is None else self.plane
-
-
-IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
-
-
-def poly_basis(h: int, w: int, degree: int) -> np.ndarray:
-    """(h*w, n) monomials x^i y^j, i + j <= degree, of pixel coordinates scaled to [-1, 1]."""
-    yy, xx = np.mgrid[0:h, 0:w]
-    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
-    return np.stack([x ** i * y ** j for t in range(degree + 1) for j in range(t + 1) for i in [t - j]], axis=1)
-
-
-def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
-                      object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
-
-    The plane's phase is smooth: fit a ``degree`` polynomial in (x, y) to the valid phase, refit on
-    the pixels within 3 robust sigmas, ``iterations`` times; plane = residual within ``plane_rad``,
-    object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
-    """
-    h, w = phase.shape
-    A = poly_basis(h, w, degree)
-    b = phase.ravel()
-    use = valid.ravel() & np.isfinite(b)
-    if use.sum() < 4 * A.shape[1]:
-        return np.zeros_like(valid), np.zeros_like(valid)
-    sel = use.copy()
-    for _ in range(iterations):
-        idx = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // 50_000)]
-        coef = np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
-        r = np.where(use, b - A @ coef, np.inf)
-        s = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
-        sel = use & (np.abs(r) <= max(3 * s, plane_rad))
-    r = r.reshape(h, w)
-    return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)
-
-
-def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0) -> tuple[list[FringeImage], str]:
-    """Real fringe images from a folder: figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair,
-    native fppsim, the PSin/PCos/Fringe/iPattern layout (or just ``iPattern/``), or a folder of 8-bit
-    images (or one image file).
-
-    ``valid`` drops black pixels (the datasets' shadow marker) and pixels without phase. Plane and
-    object pixels come from the height labels (within / beyond ``plane_mm`` of the plane level) or from
-    the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
-    evenly spaced images. Returns ``(images, layout)``; ValueError if nothing is readable.
-    """
-    from . import stats
-
-    path = Path(path)
-    if path.is_file() and path.suffix.lower() in IMAGE_EXTS:
-        return [_read_image(path)], "image"
-    if not path.is_dir():
-        raise ValueError(f"{path}: not a folder or image file")
-    from .psp_io import PSPMatError, _image_u8, _read_var, is_psp_folder, list_psp_ids, load_psp_folder_sample
-
-    if is_psp_folder(path) or (path / "iPattern").is_dir():
-        full = is_psp_folder(path)
-        try:
-            ids = list_psp_ids(path, ("sin", "cos", "order", "image") if full else ("image",))
-            out = []
-            for i in stats._pick(len(ids), max_images):
-                sid = ids[int(i)]
-                if full:
-                    s = load_psp_folder_sample(path, sid)
-                    valid = s.valid & (s.image > 0)
-                    plane, obj = phase_plane_masks(s.phase, valid)
-                    out.append(FringeImage(s.image, valid, sid, plane, obj))
-                else:
-                    f = path / "iPattern" / f"{sid}.mat"
-                    img = _image_u8(_read_var(f, "iPattern"), f)
-                    out.append(FringeImage(img, img > 0, sid))
-        except PSPMatError as exc:
-            raise ValueError(str(exc)) from None
-        return out, "psp-folders" if full else "ipattern"
-    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS)
-    try:
-        ds = stats.open_dataset(path)
-    except ValueError:
-        if not files:
-            raise ValueError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
-                             "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
-                             f"{'/'.join(IMAGE_EXTS)} files)") from None
-        files = [files[i] for i in stats._pick(len(files), max_images)]
-        return [_read_image(f) for f in files], "images"
-    out = []
-    for i in stats._pick(len(ds), max_images):
-        gray, label = ds.sample(int(i))
-        marker = np.isclose(label, ds.label.invalid_value, atol=1e-4) | ~np.isfinite(label)
-        valid = ~marker & (gray > 0)
-        plane = obj = np.zeros_like(valid)
-        if valid.any():
-            level = stats.plane_level(label, valid)
-            plane = valid & (np.abs(label - level) <= plane_mm * ds.label.units_per_mm)
-            obj = valid & (label > level + plane_mm * ds.label.units_per_mm)
-            height = np.where(valid, (label - level) / ds.label.units_per_mm, np.nan)
-        else:
-            height = np.full(label.shape, np.nan)
-        out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj, height))
-    return out, ds.layout
-
-
-def _read_image(path: Path) -> FringeImage:
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{path}: cannot read this image")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
-    if img.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an 8- or 16-bit gray image, got {img.dtype}")
-    return FringeImage(img, img > 0, path.name)
-
-
-@dataclass
 class BandPeriods:
     """Measured periods (camera px): per column band, per row band and per half; medians over images.
-    ``tilt_deg`` (1,): the fringe lines' angle from vertical on the plane (:func:`fppsim.stats.fringe_tilt`),
+    ``tilt_deg`` (1,): the fringe lines' angle from vertical on the plane (:func:`fppsim.fringe.fringe_tilt`),
     median over images. ``spread`` holds [min, max] over images for each entry; ``n_images`` how many
     gave a value."""
 
@@ -350,8 +245,6 @@ class BandPeriods:
 
 def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int = 3) -> BandPeriods:
     """Fringe period of every column band, row band and half of each image (plane pixels), median over images."""
-    from .stats import estimate_period, fringe_tilt
-
     if not images:
         raise ValueError("no images to measure")
     shape = images[0].gray.shape
@@ -502,98 +395,7 @@ def format_fit(fit: RigFit) -> str:
     return "\n".join(lines)
 
 
-# ====================================================================== height sensitivity from labels
-def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
-    """Projector phase (rad, ``2 pi f u_p / W_p``) the rig predicts at every camera pixel for the surface
-    ``height_mm`` (H, W) mm above the reference plane (NaN -> 0).
-
-    Exact for a height field: the point a pixel sees at height h is where its camera ray meets z = h.
-    """
-    cam = rig.camera
-    h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
-    if h.shape != (cam.height, cam.width):
-        raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
-    return _phase_at(rig, cam.pixel_grid(), h)
-
-
-def _phase_at(rig: Rig, uv: np.ndarray, height_mm: np.ndarray) -> np.ndarray:
-    """Projector phase at camera pixels ``uv`` (..., 2) whose surface lies ``height_mm`` (...) above the plane."""
-    origin, d = rig.camera.pixel_rays(uv)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (height_mm - origin[2]) / d[..., 2]
-    uv_p, _ = rig.projector.project(origin + s[..., None] * d)
-    return rig.phase_of_column(uv_p[..., 0])
-
-
-def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
-    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
-    cam = rig.camera
-    centre = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
-    lo, hi = _phase_at(rig, centre, np.array([0.0, float(dh)]))
-    return float((hi - lo) / dh)
-
-
-@dataclass
-class SensitivityCheck:
-    """How well a rig's height sensitivity matches one labelled real image (:func:`sensitivity_check`).
-
-    coherence : |mean phasor| of the residual phase on object pixels (1 = the rig predicts how the real
-    fringes shift with height everywhere on the object; low = the shift per mm differs).
-    slope : residual phase per mm of height on the object (rad/mm; 0 when the sensitivity matches).
-    offset : circular mean of the object residual (rad). plane_std : residual std on the plane (rad).
-    n_object : object pixels used.
-    """
-
-    coherence: float
-    slope: float
-    offset: float
-    plane_std: float
-    n_object: int
-
-    def to_dict(self) -> dict:
-        return dict(self.__dict__)
-
-
-def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree: int = 3,
-                      object_mm: float = 2.0) -> SensitivityCheck | None:
-    """Compare the fringe shift a rig predicts for a labelled real image with the real fringes.
-
-    The labelled surface is re-projected through ``rig`` (:func:`surface_phase`, phase ``phi``); the real
-    fringe, less its local mean, is demodulated with ``exp(-i phi)`` and low-passed (Gaussian ``smooth``
-    px), leaving the phase the rig does NOT explain. On the plane that is the carrier mismatch, a
-    smooth field: a ``degree`` polynomial in (x, y) fitted to it (unwrapped) is removed everywhere. On
-    the object, what remains is flat in height only when the rig's phase shift per mm matches the real
-    one. Returns None when the image has no labels or too few object pixels.
-    """
-    from scipy import ndimage as ndi
-    from skimage.restoration import unwrap_phase
-
-    if image.height_mm is None or image.plane is None:
-        return None
-    h = np.where(image.valid, np.nan_to_num(image.height_mm), 0.0)
-    inner = ndi.binary_erosion(image.valid, iterations=int(np.ceil(1.5 * smooth)))
-    plane = inner & image.plane
-    obj = inner & (h > object_mm)
-    if plane.sum() < 1000 or obj.sum() < 200:
-        return None
-    g = image.gray.astype(np.float64)
-    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
-    c = g * np.exp(-1j * surface_phase(rig, h))
-    w = image.valid.astype(np.float64)
-    cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
-    d = np.angle(cs)
-    du = unwrap_phase(np.ma.array(d, mask=~plane))
-    A = poly_basis(*d.shape, degree)
-    coef = np.linalg.lstsq(A[plane.ravel()], np.asarray(du)[plane], rcond=None)[0]
-    r = np.angle(np.exp(1j * (d - (A @ coef).reshape(d.shape))))
-    ro, ho = r[obj], h[obj]
-    phasor = np.mean(np.exp(1j * ro))
-    offset = float(np.angle(phasor))
-    centred = np.angle(np.exp(1j * (ro - offset)))  # unwrapped around the mean: slope is then meaningful
-    slope = float(np.polyfit(ho, centred, 1)[0]) if np.ptp(ho) > 1.0 else float("nan")
-    return SensitivityCheck(float(np.abs(phasor)), slope, offset, float(np.std(r[plane])), int(obj.sum()))
-
-
+# ====================================================================== the baseline from labelled images
 @dataclass
 class BaselineFit:
     """Result of :func:`fit_baseline`: the chosen baseline (mm), the period fit at it (``fit.rig`` is the
@@ -671,3 +473,118 @@ def format_baseline_fit(fit: BaselineFit) -> str:
                  f"at the image centre; residual slope {np.median(slopes) if slopes else float('nan'):+.4f} rad/mm "
                  f"over {len(fit.checks)} labelled image(s)")
     return "\n".join(lines)
+
+
+# ====================================================================== the fit-rig workflow
+@dataclass
+class FitRigConfig:
+    """What ``fppsim fit-rig`` does (the fields are its flags).
+
+    real : real fringe images (any layout :func:`fppsim.readers.load_fringe_images` reads).
+    out : the fitted rig file (.json, or .yaml/.yml); refused if it exists unless ``force``.
+    base : rig to start from (camera kept fixed); None: the packaged default rig.
+    params : names of :data:`PARAMETERS` to fit. col_bands, row_bands : bands measured (>= 1 each).
+    max_images : evenly spaced images read (>= 1).
+    sensitivity : ``"auto"``: with height labels, first choose the baseline whose fringe shift per mm
+        matches them (:func:`fit_baseline`), then fit ``params`` at it; ``"off"``: keep the base baseline.
+    json : also write measured / base / fitted band periods (and the sensitivity scan) there.
+    """
+
+    real: str | os.PathLike
+    out: str | os.PathLike
+    base: str | os.PathLike | None = None
+    params: tuple[str, ...] = ("yaw", "roll", "periods")
+    col_bands: int = 4
+    row_bands: int = 3
+    max_images: int = 20
+    sensitivity: str = "auto"
+    json: str | os.PathLike | None = None
+    force: bool = False
+
+    def __post_init__(self):
+        if self.col_bands < 1 or self.row_bands < 1 or self.max_images < 1:
+            raise ValueError("--col-bands, --row-bands and --max-images must be >= 1")
+        unknown = [p for p in self.params if p not in PARAMETERS]
+        if unknown or not self.params:
+            raise RigError(f"unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                           f"(known: {', '.join(PARAMETERS)})")
+        if self.sensitivity not in ("auto", "off"):
+            raise ValueError(f"sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+
+
+@dataclass
+class FitRigResult:
+    """What :func:`fit_rig_images` did: the images' ``layout`` and count, the period ``fit`` (``fit.rig``
+    is the rig written to ``out``), the baseline fit when the sensitivity was fitted, and the report
+    ``lines`` (what ``fppsim fit-rig`` prints); ``depth``: the :class:`fppsim.fit_depth.DepthFit` when
+    ``distance`` was fitted."""
+
+    layout: str
+    n_images: int
+    fit: RigFit
+    baseline: BaselineFit | None
+    out: Path
+    lines: list[str]
+    depth: object = None
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``FitRigConfig.json``: the period fit (and ``sensitivity``, ``depth``)."""
+        doc = self.fit.to_dict()
+        if self.baseline is not None:
+            doc["sensitivity"] = self.baseline.to_dict()
+        if self.depth is not None:
+            doc["depth"] = self.depth.to_dict()
+        return doc
+
+
+def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = None) -> FitRigResult:
+    """Read real fringe images, measure their band periods (:func:`measure_bands`), fit the rig (the
+    baseline first with ``sensitivity="auto"`` and labelled images: :func:`fit_baseline`; else
+    :func:`fit_rig`), write it to ``config.out`` (and the JSON report). ``echo`` receives every report
+    line as soon as it is known (the command line passes ``print``); the lines are also in the result.
+    """
+    lines: list[str] = []
+
+    def say(line: str) -> None:
+        lines.append(line)
+        if echo is not None:
+            echo(line)
+
+    out = check_output_file(config.out, config.force)
+    base = load_rig(config.base)
+    images, layout = load_fringe_images(config.real, config.max_images)
+    measured = measure_bands(images, config.col_bands, config.row_bands)
+    say(f"{config.real}: {len(images)} image(s), layout {layout}")
+    dfit = None
+    if "distance" in config.params:
+        # distance (with the baseline) comes from the labels' phase-height relation, not the period map
+        from .fit_depth import fit_depth, format_depth_fit
+
+        if config.sensitivity != "auto":
+            raise RigError("fitting 'distance' needs the height labels: drop it from the parameters or use "
+                           "sensitivity 'auto'")
+        dfit = fit_depth(images, measured, base, config.params)
+        if dfit is None:
+            raise RigError("fitting 'distance' needs images with height labels, objects and projector shadows "
+                           "(figshare folder or the real-sample pair)")
+        say(format_depth_fit(dfit))
+        say("")
+    bfit = fit_baseline(images, measured, base, config.params) \
+        if config.sensitivity == "auto" and dfit is None else None
+    if dfit is not None:
+        fit = dfit.fit  # the period fit at the chosen distance and baseline
+    elif bfit is not None:
+        say(format_baseline_fit(bfit))
+        say("")
+        fit = bfit.fit  # the period fit at the chosen baseline: nothing to refit
+    else:
+        if config.sensitivity == "auto":
+            say("height sensitivity: no labelled images with enough object pixels; baseline kept")
+        fit = fit_rig(measured, base, config.params)
+    say(format_fit(fit))
+    fit.rig.save(out)
+    say(f"rig: {out}")
+    result = FitRigResult(layout, len(images), fit, bfit, out, lines, dfit)
+    if config.json:
+        atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
+    return result

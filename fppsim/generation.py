@@ -23,12 +23,14 @@ from typing import TYPE_CHECKING, Sequence
 
 
 from . import __version__
-from ._fs import clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise, tmp_path
 from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
-from .formats import (LabelTransform, append_manifest, atomic_write_text, export_figshare, foreign_sample_folders,
-                      manifest_record, read_settings, reconcile, sample_id, write_sample_folder)
+from .files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
+                    tmp_path)
+from .formats import (LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
+                      reconcile, sample_id)
 from .scene import MeshAsset, find_meshes, load_mesh
 from .synth import SynthConfig, synthesize
+from .writers import export_figshare, write_sample_folder
 
 if TYPE_CHECKING:
     from .rig import Rig
@@ -271,7 +273,7 @@ _WORKER: dict = {}
 
 
 def _worker_init(assets, config, seed, out, noise_free, label=None, backend=None, pool_worker=False):
-    from .pipeline import BackgroundWriter
+    from .writers import BackgroundWriter
     from .render import DepthRenderer
 
     if pool_worker:  # only the parent reacts to Ctrl-C/SIGTERM (it terminates the pool); no orphans
@@ -299,7 +301,7 @@ def _worker_run_chunk(indices: list[int]) -> list[tuple]:
     Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
     chunk is complete on disk, so the manifest never lists a sample still being written.
     """
-    from .formats import figshare_rows
+    from .writers import figshare_rows
 
     w = _WORKER
     out = []
@@ -421,7 +423,7 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     # figshare rows come back with the samples when this run produces all of them (else: read back)
     rows = None
     if fmt == "figshare" and todo and not summary.existing:
-        from .pipeline import FigshareRows
+        from .writers import FigshareRows
 
         rows = FigshareRows(out, len(wanted), config.rig.camera.height, config.rig.camera.width)
     position = {index: k for k, index in enumerate(wanted)}

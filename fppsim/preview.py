@@ -7,18 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
-from .formats import atomic_path, load_native_sample, read_manifest
+from .formats import read_manifest
+from .readers import load_native_sample
 
 __all__ = ["write_preview"]
 
 
 def write_preview(root: str | os.PathLike, path: str | os.PathLike, max_samples: int = 3) -> Path:
     """Write a PNG with up to ``max_samples`` rows (fringe, height in mm, valid mask); returns its path."""
-    import matplotlib
+    from .plots import pyplot, save_figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = pyplot()
     root, path = Path(root), Path(path)
     records = read_manifest(root)[:max_samples]
     if not records:
@@ -38,7 +37,6 @@ def write_preview(root: str | os.PathLike, path: str | os.PathLike, max_samples:
         for ax in row:
             ax.set_axis_off()
     fig.tight_layout()
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=80)
+    save_figure(fig, path, dpi=80)
     plt.close(fig)
     return path

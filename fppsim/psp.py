@@ -1,4 +1,7 @@
-"""Phase-shifting profilometry (PSP): N-step phase, temporal unwrapping, phase -> 3D.
+"""Phase-shifting profilometry (PSP): N-step phase, temporal unwrapping, the whole decoding chain.
+
+Phase -> 3D (triangulation through a calibrated rig, the reference-plane formula) is
+:mod:`fppsim.triangulation`; :func:`decode_stacks` runs both, as a lab does.
 
 Plain numpy functions over arrays (scikit-image / SciPy style); all arithmetic in float64.
 Units: radians for phases, millimetres for lengths, pixels for image coordinates.
@@ -10,7 +13,7 @@ Conventions (see :mod:`fppsim.rig`)
   pixel centre). ``Phi = 0`` at ``u_p = 0`` and it increases with ``u_p``.
 * Pattern ``n`` of an ``N``-step set: ``I_n = A + B*cos(Phi + delta_n)``, ``delta_n = 2*pi*n/N``,
   ``n = 0 .. N-1`` (stack axis 0).
-* Phase-shifting sums (the "PSin / PCos" of real PSP data, see :mod:`fppsim.psp_io`)::
+* Phase-shifting sums (the "PSin / PCos" of real PSP data, see :mod:`fppsim.readers`)::
 
       PSin = -sum_n I_n sin(delta_n) = (N/2) B sin(Phi)
       PCos = +sum_n I_n cos(delta_n) = (N/2) B cos(Phi)
@@ -31,32 +34,11 @@ from math import erfc
 
 import numpy as np
 
-from .rig import along_rays
+from .triangulation import height_from_phase
 
-__all__ = [
-    "DEFAULT_FREQS",
-    "Decoded",
-    "PhaseShift",
-    "Triangulation",
-    "Unwrapped",
-    "decode_stacks",
-    "height_from_phase",
-    "ladder_stability_bound",
-    "order_consistency",
-    "order_error_probability",
-    "phase_from_sums",
-    "phase_noise_std",
-    "phase_shifts",
-    "phase_sums",
-    "quality_mask",
-    "reference_plane_height",
-    "reference_plane_parameters",
-    "synthesize_stack",
-    "triangulate",
-    "unwrap_temporal",
-    "wrap_phase",
-    "wrapped_phase",
-]
+__all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "ladder_stability_bound",
+           "order_consistency", "order_error_probability", "phase_from_sums", "phase_noise_std", "phase_shifts",
+           "phase_sums", "quality_mask", "synthesize_stack", "unwrap_temporal", "wrap_phase", "wrapped_phase"]
 
 DEFAULT_FREQS = (1, 8, 80)
 """Default frequency ladder (periods across the projector width)."""
@@ -88,7 +70,7 @@ def phase_from_sums(psin: np.ndarray, pcos: np.ndarray) -> np.ndarray:
     """Wrapped phase ``atan2(psin, pcos)`` in ``(-pi, pi]`` (float64) from the sums of :func:`phase_sums`.
 
     The one place simulated stacks (:func:`wrapped_phase`) and real PSin/PCos data
-    (:func:`fppsim.psp_io.load_psp_mat`) turn into phase.
+    (:func:`fppsim.readers.load_psp_mat`) turn into phase.
     """
     phi = np.arctan2(np.asarray(psin, dtype=np.float64), np.asarray(pcos, dtype=np.float64))
     return np.where(phi <= -np.pi, np.pi, phi)  # atan2(-0.0, x < 0) = -pi -> +pi
@@ -487,237 +469,6 @@ def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_m
     return Unwrapped(phase=Phi, order=k, reliable=reliable, residual=residual, freqs=tuple(freqs))
 
 
-# ====================================================================== phase -> 3D
-@dataclass
-class Triangulation:
-    """Result of :func:`triangulate` (arrays of the camera pixel shape ``S``, usually (H, W)).
-
-    points : (*S, 3) float64 world points (mm), NaN where not valid.
-    height : (*S,) float64 world z (mm) = height above the reference plane, NaN where not valid.
-    depth : (*S,) float64 camera-frame depth (mm), NaN where not valid.
-    column : (*S,) float64 projector column ``u_p`` of the phase.
-    row : (*S,) float64 projector row where the camera ray meets that column, NaN where not valid.
-    valid : (*S,) bool: finite phase, inside ``mask``, the ray meets the column plane in front of both
-        devices, and (with projector distortion) the row iteration converged.
-    """
-
-    points: np.ndarray
-    height: np.ndarray
-    depth: np.ndarray
-    column: np.ndarray
-    row: np.ndarray
-    valid: np.ndarray
-
-
-def _column_plane_normal(proj, u: np.ndarray, v: np.ndarray | None) -> np.ndarray:
-    """World-frame normal of the plane through the projector centre holding column ``u`` near row ``v``.
-
-    Without distortion the column is exactly the plane ``fx x + s y + (cx - u) z = 0`` (device frame).
-    With distortion, the plane through the undistorted rays of ``(u, v)`` and ``(u, v + 1)``: it holds
-    the ray of ``(u, v)`` exactly and follows the column's local direction.
-    """
-    if v is None or not proj.has_distortion:
-        K = proj.K
-        n_dev = np.stack([np.full_like(u, K[0, 0]), np.full_like(u, K[0, 1]), K[0, 2] - u], axis=-1)
-    else:
-        r1 = proj.normalized_rays(np.stack([u, v], axis=-1))
-        r2 = proj.normalized_rays(np.stack([u, v + 1.0], axis=-1))
-        n_dev = np.cross(r1, r2)  # orientation is irrelevant to the intersection
-    return n_dev @ proj.R  # R^T n for row vectors
-
-
-_RAYS: dict = {}
-
-
-def _camera_rays(cam) -> tuple[np.ndarray, np.ndarray]:
-    """``cam.pixel_rays(cam.pixel_grid())``, kept for the last few cameras (they rarely change).
-
-    The arrays are read-only: callers must not modify them.
-    """
-    key = (cam.K.tobytes(), cam.R.tobytes(), cam.t.tobytes(), cam.dist.tobytes(), cam.width, cam.height)
-    with _CACHE_LOCK:  # threads (decode_stacks(threads=2)) share the cache
-        if key not in _RAYS:
-            if len(_RAYS) >= 4:
-                _RAYS.pop(next(iter(_RAYS)))
-            origin, d = cam.pixel_rays(cam.pixel_grid())
-            origin.setflags(write=False)
-            d.setflags(write=False)
-            _RAYS[key] = (origin, d)
-        return _RAYS[key]
-
-
-def triangulate(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
-                pixels: np.ndarray | None = None, max_iter: int = 20, tol: float = 1e-9) -> Triangulation:
-    """Phase -> 3D by intersecting each camera ray with the projector's plane of constant column.
-
-    Parameters
-    ----------
-    rig : :class:`fppsim.rig.Rig` (camera and projector, mm).
-    phase : absolute projector phase (rad) of the ``periods``-period pattern, ``Phi = 2 pi f u_p / W_p``,
-        shape (H, W) of the camera image (or any shape matching ``pixels``).
-    periods : fringe periods ``f`` across the projector width; default ``rig.periods``.
-    mask : optional bool array (phase shape); False pixels are left invalid.
-    pixels : optional (..., 2) camera pixel coordinates (u = column, v = row) of the phase samples;
-        default the camera's pixel-centre grid (then ``phase`` must be (H, W)).
-    max_iter, tol : projector-distortion iteration (see Notes): at most ``max_iter`` steps, stop when
-        every pixel's row moved less than ``tol`` projector pixels.
-
-    Returns
-    -------
-    :class:`Triangulation` (points, height, depth, column, row, valid).
-
-    Notes
-    -----
-    ``u_p = Phi W_p / (2 pi f)``. Camera rays come from :meth:`Device.pixel_rays` (camera distortion
-    removed). Without projector distortion the pixels of column ``u_p`` form an exact plane through the
-    projector centre and one ray-plane intersection is exact. With projector distortion the column is a
-    curved surface: start from the undistorted plane, project the intersection into the projector
-    (with distortion) to get its row ``v``, replace the plane by the one through the undistorted rays of
-    ``(u_p, v)`` and ``(u_p, v + 1)`` and intersect again, until ``v`` stops moving. At the fixed point the
-    intersection projects exactly to ``(u_p, v)``, so the result is exact up to ``tol``; the iteration
-    contracts quickly for the mild distortion of projection lenses. Pixels that have not converged after
-    ``max_iter`` steps are marked invalid.
-    """
-    return _triangulate(rig, phase, periods, mask, pixels, max_iter, tol)
-
-
-def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, tol=1e-9, height_only=False,
-                 rows: slice | None = None):
-    """:func:`triangulate`; with ``height_only`` just its ``height`` array (the same bits), without the
-    arrays only the full result needs (projector pixels of the points, the NaN-filled points, depth,
-    column and row). ``rows``: ``phase`` holds only these camera rows (a band of the image; the
-    arithmetic per pixel is the same; not with a distorted projector, whose iteration stops for the
-    whole array at once)."""
-    cam, proj = rig.camera, rig.projector
-    Phi = np.asarray(phase, dtype=np.float64)
-    if rows is not None:
-        if pixels is not None or proj.has_distortion:
-            raise ValueError("rows= needs the camera grid (no pixels=) and a projector without distortion")
-        band = range(cam.height)[rows]
-        if band.step != 1 or Phi.shape != (len(band), cam.width):
-            raise ValueError(f"phase has shape {Phi.shape}, not the {len(band)} x {cam.width} of camera rows {rows}")
-        origin, d = _camera_rays(cam)
-        d = d[band.start:band.stop]
-    elif pixels is None:
-        if Phi.shape != (cam.height, cam.width):
-            raise ValueError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
-                             "(pass pixels= for other sampling grids)")
-        origin, d = _camera_rays(cam)
-    else:
-        pixels = np.asarray(pixels, dtype=np.float64)
-        if pixels.shape != Phi.shape + (2,):
-            raise ValueError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
-        origin, d = cam.pixel_rays(pixels)
-    f = rig.periods if periods is None else float(periods)
-    u = rig.column_of_phase(Phi, f)
-    valid = np.isfinite(u)
-    if mask is not None:
-        m = np.asarray(mask, dtype=bool)
-        if m.shape != Phi.shape:
-            raise ValueError(f"mask has shape {m.shape}, phase has {Phi.shape}")
-        valid &= m
-    u = np.where(valid, u, proj.K[0, 2])
-
-    C = proj.center
-    co = C - origin
-
-    def intersect(n):
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return (n @ co) / np.einsum("...i,...i->...", n, d)
-
-    s = intersect(_column_plane_normal(proj, u, None))
-    row = np.full(Phi.shape, np.nan)
-    if proj.has_distortion:
-        good = np.isfinite(s)
-        X = along_rays(origin, np.where(good, s, 0.0), d)
-        row = proj.project(X)[0][..., 1]
-        converged = np.zeros(Phi.shape, dtype=bool)
-        for _ in range(int(max_iter)):
-            s = intersect(_column_plane_normal(proj, u, row))
-            good = np.isfinite(s)
-            X = along_rays(origin, np.where(good, s, 0.0), d)
-            new_row = proj.project(X)[0][..., 1]
-            step = np.abs(new_row - row)
-            row = new_row
-            converged = step < tol
-            if np.all(converged | ~valid | ~good):
-                break
-        valid &= converged
-    X = along_rays(origin, np.where(np.isfinite(s), s, 0.0), d)
-    if height_only:  # z_p is what proj.project(X) returns as depth: the same expression
-        z_p = proj.world_to_device(X)[..., 2]
-        valid &= np.isfinite(s) & (s > 0) & (z_p > 0)
-        return np.where(valid, X[..., 2], np.nan)
-    uv_p, z_p = proj.project(X)
-    valid &= np.isfinite(s) & (s > 0) & (z_p > 0)
-    if not proj.has_distortion:
-        row = uv_p[..., 1]
-    X = np.where(valid[..., None], X, np.nan)
-    return Triangulation(points=X, height=X[..., 2], depth=np.where(valid, s, np.nan),
-                         column=np.where(valid, u, np.nan), row=np.where(valid, row, np.nan), valid=valid)
-
-
-def height_from_phase(rig, phase: np.ndarray, periods: float | None = None, mask: np.ndarray | None = None,
-                      **kwargs) -> np.ndarray:
-    """Height above the reference plane (mm, float64 (H, W)) from absolute phase; NaN where invalid.
-
-    Shorthand for ``triangulate(rig, phase, periods, mask, **kwargs).height``.
-    """
-    return _triangulate(rig, phase, periods=periods, mask=mask, height_only=True, **kwargs)
-
-
-# ====================================================================== reference-plane formula
-def reference_plane_height(dphi, L, d, f0):
-    """Classic reference-plane phase-to-height formula ``h = L dphi / (dphi + 2 pi f0 d)``.
-
-    Parameters
-    ----------
-    dphi : phase difference (rad) between the reference plane and the object at the same camera pixel,
-        ``dphi = Phi_reference - Phi_object``; positive for points above the plane when ``d > 0``.
-    L : distance (mm) from the camera (and projector) centre to the reference plane.
-    d : baseline (mm) between camera and projector centres, measured along the direction in which the
-        projected phase increases on the plane (signed: negative if the projector sits on the other side).
-    f0 : fringe frequency on the reference plane (periods per mm).
-
-    Returns
-    -------
-    height (mm) above the plane, float64, broadcast over the inputs.
-
-    Exact for the geometry it assumes: camera and projector centres at the same height ``L``, both
-    optical axes perpendicular to the plane, fringes uniform on the plane (a parallel-axis rig with projector lens shift such as :func:`fppsim.rig.make_default_rig`). Derivation:
-    a camera ray meets the plane at ``x`` and the object at height ``h`` at ``x (L-h)/L``; the projector
-    column of that point differs from the plane's by ``-fx_p d h / (L (L-h))``, so
-    ``dphi = 2 pi f0 d h/(L - h)``, which solves to the formula.
-    """
-    dphi = np.asarray(dphi, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return L * dphi / (dphi + TWO_PI * np.asarray(f0, np.float64) * np.asarray(d, np.float64))
-
-
-def reference_plane_parameters(rig, periods: float | None = None, atol: float = 1e-9) -> tuple[float, float, float]:
-    """``(L, d, f0)`` of a parallel-axis rig for :func:`reference_plane_height`.
-
-    ``L`` = camera height above the plane (mm), ``d`` = signed baseline along world x (mm),
-    ``f0 = f fx_p / (W_p L)`` periods per mm on the plane. Raises ValueError unless both optical axes
-    point straight down, the projector columns run along world x without skew, and both centres are
-    at the same height (where the formula is exact).
-    """
-    cam, proj = rig.camera, rig.projector
-    f = rig.periods if periods is None else float(periods)
-    down = np.array([0.0, 0.0, -1.0])
-    if not (np.allclose(cam.R[2], down, atol=atol) and np.allclose(proj.R[2], down, atol=atol)):
-        raise ValueError("reference-plane formula needs both optical axes perpendicular to the plane")
-    if abs(proj.K[0, 1]) > atol or abs(abs(proj.R[0, 0]) - 1.0) > atol:
-        raise ValueError("reference-plane formula needs projector columns along world x (no skew or rotation)")
-    L, Lp = cam.center[2], proj.center[2]
-    if abs(L - Lp) > atol * max(1.0, L):
-        raise ValueError(f"reference-plane formula needs camera and projector at one height ({L} vs {Lp} mm)")
-    sx = np.sign(proj.R[0, 0])  # +1 when projector columns increase with world x
-    d = float(sx * (proj.center[0] - cam.center[0]))
-    f0 = float(f * proj.K[0, 0] / (proj.width * L))
-    return float(L), d, f0
-
-
 # --------------------------------------------------------------------------------------------- decoding
 def order_consistency(phase: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Neighbour check of the fringe order: True where the pixel agrees with its 3 x 3 neighbourhood.
@@ -784,7 +535,7 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
     neighbour_check : also reject pixels failing :func:`order_consistency`.
     rig : the calibrated rig for triangulation; None skips it (``height`` is then None).
     threads : 2 decodes the top and bottom of the image on two threads (this one and
-        :func:`fppsim._threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
+        :func:`fppsim.threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
         one-row halo, so the result is the very same; 1 (default) decodes in one piece.
     """
     freqs = tuple(int(f) for f in freqs)
@@ -824,8 +575,8 @@ def _heights(rig, phase, ok, periods, rows: slice | None = None):
 
 
 def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads) -> Decoded:
-    """:func:`decode_stacks` on row bands (:func:`fppsim._threads.map_bands`): the same arrays."""
-    from ._threads import map_bands, row_bands
+    """:func:`decode_stacks` on row bands (:func:`fppsim.threads.map_bands`): the same arrays."""
+    from .threads import map_bands, row_bands
 
     stacks = {f: np.asarray(stacks[f]) for f in freqs}
     shapes = {s.shape[1:] if s.ndim == 3 else None for s in stacks.values()}

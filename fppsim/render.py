@@ -20,11 +20,12 @@ BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
-from ._threads import beside
+from .threads import beside
 from .errors import BackendError
 from .rig import along_rays
 
-__all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings"]
+__all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings",
+           "plane_geometry", "projector_incidence"]
 
 
 @dataclass(frozen=True)
@@ -444,9 +445,24 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     tolerance = shadow.bias_mm + shadow.slope_pixels * np.maximum(gx, gy)
     unshadowed = ~(z_p > occluder + tolerance)
 
+    cos_inc, falloff = projector_incidence(proj, Ps, normals, z_p)
+    lit = inside & unshadowed & (cos_inc > 0)
+    cos_inc = np.where(lit, cos_inc, 0.0)
+    return Geometry(depth=depth, points=P, normals=normals, on_object=on_object & seen,
+                    u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
+
+
+def projector_incidence(proj, points: np.ndarray, normals: np.ndarray,
+                        z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """How the projector's light falls on surfaces: ``(cos_incidence, falloff)``, (H, W) float64.
+
+    ``points``, ``normals``: (H, W, 3) world points (mm, finite) and unit normals; ``z``: the points'
+    projector depth when known. ``cos_incidence`` is negative where a surface faces away; ``falloff`` is
+    :meth:`fppsim.rig.Device.irradiance_falloff`.
+    """
     # Dot products per coordinate plane: the same (x + y) + z sums as np.sum(..., axis=-1), faster;
     # in place: dist2 = (tp0 * tp0 + tp1 * tp1) + tp2 * tp2, cos_inc = ((n0 tp0 + n1 tp1) + n2 tp2) / sqrt(dist2)
-    tp = [proj.center[i] - Ps[..., i] for i in range(3)]
+    tp = [proj.center[i] - points[..., i] for i in range(3)]
     tmp = np.empty_like(tp[0])
     dist2 = tp[0] * tp[0]
     dist2 += np.multiply(tp[1], tp[1], out=tmp)
@@ -456,11 +472,21 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     cos_inc += np.multiply(normals[..., 2], tp[2], out=tmp)
     dist = np.sqrt(dist2, out=dist2)
     cos_inc /= dist
-    lit = inside & unshadowed & (cos_inc > 0)
-    cos_inc = np.where(lit, cos_inc, 0.0)
-    falloff = proj.irradiance_falloff(Ps, z=z_p, dist=dist)
-    return Geometry(depth=depth, points=P, normals=normals, on_object=on_object & seen,
-                    u_p=uv_p[..., 0], v_p=uv_p[..., 1], lit=lit, cos_incidence=cos_inc, falloff=falloff)
+    return cos_inc, proj.irradiance_falloff(points, z=z, dist=dist)
+
+
+class _NothingToRender:
+    """Stands in for a :class:`DepthRenderer` when there are no meshes: no surface in front of any device."""
+
+    @staticmethod
+    def depth(device, instances, scale: int = 1) -> np.ndarray:
+        *_, W, H = device.gl_intrinsics(scale)
+        return np.full((H, W), np.inf)
+
+
+def plane_geometry(rig, scale: int = 1) -> Geometry:
+    """The geometry of the bare reference plane: :func:`scene_geometry` without meshes (no GL needed)."""
+    return scene_geometry(rig, [], _NothingToRender(), scale)
 
 
 def _distorted_depth(cam, renderer: DepthRenderer, meshes: list[Instance], scale: int) -> np.ndarray:

@@ -11,22 +11,23 @@ Conventions (the single reference for the whole package):
 * The projector is an inverse camera; its pattern varies along projector columns ``u_p``.
 * pyrender uses OpenGL axes (y up, z backwards) and pixel centres at +0.5. The conversion lives in
   exactly one place: :meth:`Device.gl_pose` and :meth:`Device.gl_intrinsics`.
+
+Calibration files (fppsim JSON/YAML, OpenCV stereo FileStorage) are read and written by
+:mod:`fppsim.rig_files` (:meth:`Rig.load` / :meth:`Rig.save` call it).
 """
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from ._fs import atomic_write_text
 from .errors import RigError
 
-__all__ = ["Device", "Rig", "RigError", "default_rig_path", "load_rig", "make_default_rig", "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation",
-           "rotation_to_plane_frame"]
+__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "make_default_rig",
+           "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
 
 
 
@@ -43,7 +44,9 @@ def data_path(*parts: str) -> Path:
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
 
 
-def _as_matrix(value, shape, name):
+def checked_matrix(value, shape, name: str) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` (any nesting with that many numbers), all finite;
+    :class:`RigError` naming ``name`` otherwise."""
     if isinstance(value, (dict, str, bytes)) or value is None:
         raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {type(value).__name__}")
     try:
@@ -79,9 +82,9 @@ class Device:
     dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
 
     def __post_init__(self):
-        self.K = _as_matrix(self.K, (3, 3), "K")
-        self.R = _as_matrix(self.R, (3, 3), "R")
-        self.t = _as_matrix(self.t, (3,), "t")
+        self.K = checked_matrix(self.K, (3, 3), "K")
+        self.R = checked_matrix(self.R, (3, 3), "R")
+        self.t = checked_matrix(self.t, (3,), "t")
         d = np.zeros(5)
         try:
             dist = np.asarray(self.dist, dtype=np.float64).ravel()
@@ -330,34 +333,6 @@ def _undistort(xd, yd, dist, iterations: int = 20):
     return x, y
 
 
-def _five_coefficients(D, path, name) -> np.ndarray:
-    """OpenCV distortion (4, 5, 8, 12 or 14 numbers) -> (k1, k2, p1, p2, k3); refuse models we cannot render."""
-    d = np.zeros(5) if D is None else np.ravel(np.asarray(D, dtype=np.float64))
-    if d.size > 5 and np.any(d[5:] != 0):
-        raise RigError(f"{path}: {name} distortion has {d.size} coefficients with non-zero k4.. terms; "
-                       "only (k1, k2, p1, p2, k3) is supported")
-    out = np.zeros(5)
-    out[: min(d.size, 5)] = d[:5]
-    return out
-
-
-def rotation_to_plane_frame(R_plane: np.ndarray, t_plane: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Camera extrinsics (R, t) for a world frame on a calibrated reference plane.
-
-    ``R_plane, t_plane`` map plane-board coordinates to the camera frame (as from cv2.solvePnP on a
-    board lying on the plane, the board's z = 0 being the plane). The result keeps the board's z = 0
-    as the reference plane but flips the board frame (180 deg about x) if needed so that +z points
-    towards the camera.
-    """
-    R = np.asarray(R_plane, float).reshape(3, 3)
-    t = np.asarray(t_plane, float).reshape(3)
-    cam_center = -R.T @ t
-    if cam_center[2] < 0:
-        flip = np.diag([1.0, -1.0, -1.0])
-        R = R @ flip
-    return R, t
-
-
 @dataclass
 class Rig:
     """Camera + projector + fringe design.
@@ -472,131 +447,26 @@ class Rig:
                            f"baseline {base:.1f} mm): camera and projector need a baseline across the fringes")
 
     def save(self, path: str | os.PathLike) -> None:
-        """Write JSON or YAML (by extension), atomically."""
-        path = Path(path)
-        doc = self.to_dict()
-        if path.suffix.lower() in (".yaml", ".yml"):
-            import yaml
-            text = yaml.safe_dump(doc, sort_keys=False)
-        else:
-            text = json.dumps(doc, indent=2)
-        atomic_write_text(path, text)
+        """Write JSON or YAML (by extension), atomically (:func:`fppsim.rig_files.save_rig`)."""
+        from .rig_files import save_rig
+
+        save_rig(self, path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":
-        """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration."""
-        path = Path(path)
-        if not path.is_file():
-            raise RigError(f"rig file not found: {path}")
-        text = path.read_text(errors="replace")
-        if text.lstrip().startswith("%YAML") or "opencv-matrix" in text or "<opencv_storage>" in text:
-            return cls.from_opencv_stereo(path)
-        try:
-            if path.suffix.lower() in (".yaml", ".yml"):
-                import yaml
-                doc = yaml.safe_load(text)
-            else:
-                doc = json.loads(text)
-        except Exception as exc:  # json/yaml parse errors have long messages: keep the first line
-            raise RigError(f"{path}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
-        try:
-            return cls.from_dict(doc)
-        except RigError as exc:
-            raise RigError(f"{path}: {exc}") from None
+        """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration
+        (:func:`fppsim.rig_files.read_rig_file`)."""
+        from .rig_files import read_rig_file
+
+        return read_rig_file(path)
 
     @classmethod
     def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
                            periods: float = 80.0) -> "Rig":
-        """Import an OpenCV stereo calibration (cv2.FileStorage YAML/XML), camera = device 1.
+        """Import an OpenCV stereo calibration (:func:`fppsim.rig_files.rig_from_opencv_stereo`)."""
+        from .rig_files import rig_from_opencv_stereo
 
-        Recognised nodes (first match wins): camera matrix ``M1|K1|cameraMatrix1|camera_matrix``,
-        distortion ``D1|dist1|distCoeffs1``, projector ``M2|K2|cameraMatrix2|projector_matrix``,
-        ``D2|dist2|distCoeffs2``, and ``R``, ``T`` with ``X_proj = R X_cam + T`` (cv2.stereoCalibrate).
-        Resolutions: ``camera_width/camera_height`` and ``projector_width/projector_height``, or
-        ``image_width/image_height`` (camera) — default 640 x 352 and 912 x 1140.
-        The reference plane: ``R_plane`` and ``T_plane`` (board-on-plane -> camera, as from solvePnP);
-        without them the plane is perpendicular to the camera axis at ``plane_distance`` mm
-        (node ``plane_distance``; required in that case).
-        """
-        import cv2
-
-        path = Path(path)
-        try:
-            fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-            opened = fs.isOpened()
-        except (cv2.error, SystemError) as exc:  # a malformed document raises from inside OpenCV
-            raise RigError(f"{path}: OpenCV cannot parse this FileStorage YAML/XML "
-                           f"({str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__})") from None
-        if not opened:
-            raise RigError(f"{path}: OpenCV cannot read this file as FileStorage YAML/XML")
-
-        def node(*names, required=True):
-            for n in names:
-                nd = fs.getNode(n)
-                if not nd.empty():
-                    if nd.isMap() or nd.isSeq():
-                        m = nd.mat()
-                        if m is None:
-                            raise RigError(f"{path}: node {n} is not a valid matrix (check rows x cols and data)")
-                        return m
-                    if not (nd.isInt() or nd.isReal()):
-                        raise RigError(f"{path}: node {n} must be a number, got {nd.string()!r}")
-                    return nd.real()
-            if required:
-                raise RigError(f"{path}: no node named {' or '.join(names)}")
-            return None
-
-        try:
-            K1 = node("M1", "K1", "cameraMatrix1", "camera_matrix")
-            D1 = node("D1", "dist1", "distCoeffs1", "camera_distortion", required=False)
-            K2 = node("M2", "K2", "cameraMatrix2", "projector_matrix")
-            D2 = node("D2", "dist2", "distCoeffs2", "projector_distortion", required=False)
-            R = node("R")
-            T = node("T")
-            Rp = node("R_plane", "Rp", required=False)
-            Tp = node("T_plane", "Tp", required=False)
-            def size(default, *names):  # an explicit 0 must be refused, not replaced by the default
-                v = node(*names, required=False)
-                return default if v is None else v
-
-            cw = size(640, "camera_width", "image_width")
-            ch = size(352, "camera_height", "image_height")
-            pw = size(912, "projector_width")
-            ph = size(1140, "projector_height")
-            if plane_distance is None:
-                plane_distance = node("plane_distance", required=False)
-        except cv2.error as exc:  # e.g. an opencv-matrix whose data count differs from rows x cols
-            detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-            detail = detail.split(" error: ", 1)[-1][:160]  # drop OpenCV's source path and line
-            raise RigError(f"{path}: OpenCV cannot read a matrix node (data count must be rows x cols): {detail}") from None
-        finally:
-            fs.release()
-        if R is None or T is None:
-            raise RigError(f"{path}: R and T must be matrices")
-        if R is not None and np.asarray(R).size == 3:  # Rodrigues vector
-            R = cv2.Rodrigues(np.asarray(R, float))[0]
-        if Rp is not None and np.asarray(Rp).size == 3:
-            Rp = cv2.Rodrigues(np.asarray(Rp, float))[0]
-        R = _as_matrix(R, (3, 3), "R")
-        T = _as_matrix(T, (3,), "T")
-        if Rp is not None and Tp is not None:
-            Rw, tw = rotation_to_plane_frame(Rp, Tp)
-        elif plane_distance:
-            Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
-        else:
-            raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
-        d1, d2 = _five_coefficients(D1, path, "camera"), _five_coefficients(D2, path, "projector")
-        try:
-            cam = Device(K=K1, dist=d1, R=Rw, t=tw, width=cw, height=ch)
-        except RigError as exc:
-            raise RigError(f"{path}: camera: {exc}") from None
-        try:
-            proj = Device(K=K2, dist=d2, R=R @ Rw, t=R @ tw + T, width=pw, height=ph)
-        except RigError as exc:
-            raise RigError(f"{path}: projector: {exc}") from None
-        rig = cls(camera=cam, projector=proj, periods=periods, name=path.stem)
-        rig.check()
-        return rig
+        return rig_from_opencv_stereo(path, plane_distance, periods)
 
     @classmethod
     def default(cls) -> "Rig":
@@ -624,7 +494,7 @@ def load_rig(path: str | os.PathLike | None) -> Rig:
 # 180 mm parallel rig had 0.48 rad/mm (R = 0.20), i.e. it taught networks 1.8x too little fringe
 # shift per mm.
 # Its fringe lines are not vertical either: on the plane they lean by -1.34 deg (8.6 px over the 352
-# rows; fppsim.stats.fringe_tilt), which a projector rolled by -1.29 deg about its optical axis
+# rows; fppsim.fringe.fringe_tilt), which a projector rolled by -1.29 deg about its optical axis
 # reproduces (fit-rig fits it from the tilt).
 DEFAULT_BASELINE = 330.0  # mm
 DEFAULT_PROJECTOR_YAW = 0.07499517978544548  # rad (4.30 deg)

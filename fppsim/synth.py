@@ -7,21 +7,19 @@ index and the inputs: worker count, sharding and resumption do not change it.
 
 from __future__ import annotations
 
-import queue
-import threading
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import __version__
 from .errors import SampleError
-from .optics import OVERSAMPLE, Optics, OpticsRanges, form_image, pattern_profile
-from .render import DepthRenderer, Geometry, scene_geometry
+from .optics import OpticsRanges, form_images, noise_source
+from .render import DepthRenderer, scene_geometry
 from .jitter import RigJitter, jitter_rig
 from .rig import Rig
 from .scene import MeshAsset, SceneRanges, sample_scene
 
-__all__ = ["SynthConfig", "SampleError", "synthesize", "render_images", "psp_decode"]
+__all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode"]
 
 
 @dataclass
@@ -72,97 +70,6 @@ class SynthConfig:
         return cls.from_dict(settings["config"], Rig.from_dict(settings["rig"]))
 
 
-def _irradiance_parts(geom: Geometry, optics: Optics) -> tuple[np.ndarray, np.ndarray]:
-    albedo = np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
-    seen = geom.seen
-    base = np.where(seen, optics.gain * albedo * optics.ambient, 0.0)
-    modulated = np.where(geom.lit, optics.gain * albedo * geom.cos_incidence * geom.falloff, 0.0)
-    return base, modulated
-
-
-def render_images(geom: Geometry, rig: Rig, optics: Optics, patterns: list[tuple[float, float]],
-                  noise_rng: np.random.Generator | None, scale: int = 1,
-                  appearance_rng: np.random.Generator | None = None) -> list[np.ndarray]:
-    """uint8 camera images for ``patterns`` = [(periods, phase shift rad), ...] on one geometry.
-
-    Each image gets its own noise realisation from ``noise_rng`` (None = noise-free); the appearance
-    effects of ``optics`` (texture, dirt, ...; :mod:`fppsim.appearance`) draw from ``appearance_rng``.
-    """
-    parts = tuple(a.astype(np.float32) for a in _irradiance_parts(geom, optics))
-    parts = _appearance(parts, geom, rig, optics, appearance_rng, scale)
-    # Linear interpolation weights into the oversampled 1-D pattern profile, shared by all patterns.
-    x = (np.where(geom.lit, geom.u_p, 0.0) + 0.5) * OVERSAMPLE - 0.5
-    n = rig.projector.width * OVERSAMPLE
-    i0 = np.clip(np.floor(x), 0, n - 2).astype(np.intp)
-    w = np.clip(x - i0, 0.0, 1.0).astype(np.float32)
-    out = []
-    for periods, shift in patterns:
-        prof = pattern_profile(rig.projector.width, periods, shift, optics)[1].astype(np.float32)
-        # prof[i0] + w * (prof[i0 + 1] - prof[i0]), the differences taken once on the profile (the same
-        # float32 values) instead of per pixel; np.take: faster than fancy indexing
-        pattern = np.diff(prof).take(i0)
-        pattern *= w
-        pattern += prof.take(i0)
-        if getattr(optics, "subsurface", 0.0) > 0:
-            from .appearance import subsurface_pattern
-
-            pattern = subsurface_pattern(pattern, geom.on_object, optics.subsurface * scale)
-        out.append(form_image(parts, pattern, optics, noise_rng, scale))
-    return out
-
-
-class PrefetchedNormals:
-    """The standard-normal draws of :func:`fppsim.optics.form_image`, made ahead on a helper thread.
-
-    Draws ``count`` float32 arrays of ``shape`` from ``rng`` in order, starting at once (numpy releases
-    the GIL while it fills them), and hands them out through :meth:`standard_normal` in the same order:
-    the very arrays ``rng.standard_normal(shape, dtype=np.float32)`` would have returned one call after
-    another, so the images are unchanged; the image formation (blur, pattern lookups) of the main
-    thread meanwhile runs on another core.
-    """
-
-    def __init__(self, rng: np.random.Generator, shape: tuple[int, int], count: int):
-        self.shape, self.count = tuple(shape), int(count)
-        self._ready: queue.SimpleQueue = queue.SimpleQueue()
-        self._taken = 0
-        self._thread = threading.Thread(target=self._draw, args=(rng,), name="fppsim-noise", daemon=True)
-        self._thread.start()
-
-    def _draw(self, rng) -> None:
-        try:
-            for _ in range(self.count):
-                self._ready.put(rng.standard_normal(self.shape, dtype=np.float32))
-        except BaseException as exc:  # handed to the caller's thread
-            self._ready.put(exc)
-
-    def standard_normal(self, size, dtype=np.float32) -> np.ndarray:
-        if tuple(size) != self.shape or np.dtype(dtype) != np.float32 or self._taken >= self.count:
-            raise RuntimeError(f"prefetched noise holds {self.count} float32 draws of {self.shape}; "
-                               f"draw {self._taken + 1} asked for {np.dtype(dtype)} {tuple(size)}")
-        self._taken += 1
-        out = self._ready.get()
-        if isinstance(out, BaseException):
-            raise out
-        return out
-
-
-def _noise_source(rng: np.random.Generator, optics: Optics, shape: tuple[int, int], count: int):
-    """What :func:`render_images` draws its camera noise from: ``rng`` itself, or its draws made ahead
-    (:class:`PrefetchedNormals`) when the optics add noise to the ``count`` images of ``shape``."""
-    if optics.noise_sigma > 0 or optics.shot_noise > 0:
-        return PrefetchedNormals(rng, shape, count)
-    return rng
-
-
-def _appearance(parts, geom, rig, optics, rng, scale):
-    """Texture, dirt, specular and vignetting (fppsim.appearance) when any is on; else ``parts``."""
-    if not any(getattr(optics, k, 0.0) > 0 for k in ("albedo_texture", "dirt", "specular", "vignetting")):
-        return parts
-    from .appearance import apply_appearance
-
-    return apply_appearance(parts, geom, rig, optics, rng if rng is not None else np.random.default_rng(0), scale)
-
-
 def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, ...],
                min_modulation: float = 3.0) -> dict[str, np.ndarray]:
     """Decode PSP stacks ``{freq: [step images]}`` like a lab (:func:`fppsim.psp.decode_stacks`).
@@ -193,9 +100,9 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     """
     k = config.supersample
     cam = config.rig.camera
-    # Render a margin around the image so the camera blur sees real scene content at the borders
+    # Render a margin around the image so the optics' blurs see real scene content at the borders
     # (blurring with a clamped edge would shift the fringe phase of the outer columns); crop after.
-    m = int(np.ceil(4.0 * config.optics.camera_blur[1]))
+    m = config.optics.render_margin()
     crop = (slice(m, m + cam.height), slice(m, m + cam.width))
     last_reason = ""
     for attempt in range(config.max_attempts):
@@ -225,9 +132,9 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
             patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
             names.append(f"psp/f{f}_s{n}.png")
     # the camera noise of the images, drawn on a helper thread while the images form
-    noise_rng = None if noise_free else _noise_source(np.random.default_rng(noise_ss), optics,
-                                                      (cam.height + 2 * m, cam.width + 2 * m), len(patterns))
-    imgs = render_images(geom_ss, rig, optics, patterns, noise_rng, k, np.random.default_rng(look_ss))
+    noise_rng = None if noise_free else noise_source(np.random.default_rng(noise_ss), optics,
+                                                     (cam.height + 2 * m, cam.width + 2 * m), len(patterns))
+    imgs = form_images(geom_ss, rig, optics, patterns, noise_rng, k, np.random.default_rng(look_ss))
     images = {name: np.ascontiguousarray(img[crop]) for name, img in zip(names, imgs)}
 
     seen = geom.seen

@@ -38,9 +38,12 @@ ROOT = Path(__file__).resolve().parent.parent
 def _pipeline_block(indices, assets, config, renderer, writer, tmp, write):
     """Wall and CPU seconds to produce (and write, on the writer thread) the samples ``indices``."""
     try:
-        from fppsim.formats import write_sample_folder
-    except ImportError:  # trees before the dataset contract module (fppsim.dataset)
-        from fppsim.dataset import write_sample_folder
+        from fppsim.writers import write_sample_folder
+    except ImportError:  # trees before fppsim.writers (fppsim.formats), or before the contract module (fppsim.dataset)
+        try:
+            from fppsim.formats import write_sample_folder
+        except ImportError:
+            from fppsim.dataset import write_sample_folder
     from fppsim.synth import synthesize
 
     attempts = {}
@@ -119,7 +122,10 @@ def main(argv=None) -> int:
         from fppsim.generation import load_assets
     except ImportError:  # trees before the library/CLI split (fppsim.generate was the module)
         from fppsim.generate import load_assets
-    from fppsim.pipeline import BackgroundWriter
+    try:
+        from fppsim.writers import BackgroundWriter
+    except ImportError:  # trees before fppsim.writers
+        from fppsim.pipeline import BackgroundWriter
     from fppsim.render import DepthRenderer
     from fppsim.rig import Rig
     from fppsim.synth import SynthConfig, synthesize

@@ -63,7 +63,8 @@ def write_figshare(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, 
 
 def write_native(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, psp: bool = False) -> list[str]:
     """fppsim native layout written by fppsim's own writer (write_sample_folder + reconcile)."""
-    from fppsim.formats import reconcile, sample_id, write_sample_folder
+    from fppsim.formats import reconcile, sample_id
+    from fppsim.writers import write_sample_folder
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -270,7 +270,7 @@ def test_psp_label_needs_psp_data(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------------- item 10
 def test_npz_is_byte_reproducible(tmp_path, monkeypatch):
-    from fppsim.formats import save_npz
+    from fppsim.encoding import save_npz
 
     arrays = {"height": np.arange(12, dtype=np.float32).reshape(3, 4), "mask": np.ones((3, 4), np.float32)}
     save_npz(tmp_path / "a.npz", arrays)

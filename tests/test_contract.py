@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from fppsim.formats import (LabelTransform, atomic_path, atomic_write_text, decode_fringe, encode_fringe,
-                            export_figshare, read_manifest, read_settings, reconcile, write_sample_folder)
-from fppsim.formats import tmp_path as temp_name
+from fppsim.encoding import decode_fringe, encode_fringe
+from fppsim.files import atomic_path, atomic_write_text
+from fppsim.formats import LabelTransform, read_manifest, read_settings, reconcile
+from fppsim.writers import export_figshare, write_sample_folder
+from fppsim.files import tmp_path as temp_name
 from uhrnet.data import FigshareArrays, FppsimDataset
 from uhrnet.errors import DataError
 

@@ -1,4 +1,6 @@
-"""Architecture rules: every module imports on its own, no import cycles, the library never imports a CLI."""
+"""Architecture rules: every module imports on its own, no import cycles, the library never imports a CLI
+nor runs a subprocess, no library module over 650 lines, one definition of each shared helper, no
+private name used across modules, a command framework that names no package."""
 
 from __future__ import annotations
 
@@ -77,3 +79,94 @@ def test_library_entry_points_exist():
 def test_the_command_line_lives_in_one_module_per_package():
     extra = sorted(m for m, _ in _modules() if m.split(".")[-1].startswith("cli") and m.split(".")[-1] != "cli")
     assert not extra, extra
+
+
+# ---------------------------------------------------------------------------- seams (issue 24)
+MAX_LINES = 650
+ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples")
+
+
+def _library_modules():
+    return [(m, p) for m, p in _modules() if not _is_cli(m)]
+
+
+def test_no_library_module_imports_subprocess():
+    """Library code calls functions; only command lines and pipelines/ start processes."""
+    offenders = []
+    for module, path in _library_modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = [a.name for a in node.names] if isinstance(node, ast.Import) else \
+                [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            if any(n == "subprocess" or n.startswith("subprocess.") for n in names):
+                offenders.append(f"{module}:{node.lineno}")
+    assert not offenders, offenders
+
+
+def test_no_library_module_is_longer_than_the_limit():
+    long = {m: n for m, p in _library_modules() if (n := len(p.read_text().splitlines())) > MAX_LINES}
+    assert not long, f"split along a seam (limit {MAX_LINES} lines): {long}"
+
+
+def test_shared_helpers_are_defined_once():
+    """One plane level, one polynomial plane basis, one name per dataset opener (a torch Dataset:
+    ``uhrnet.data.open_dataset``; a numpy reader: ``fppsim.readers.open_samples``)."""
+    where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION}
+    for pkg in PACKAGES + ("pipelines",):
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in where:
+                    where[node.name].append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
+    assert where["open_dataset"][0].startswith("uhrnet/data.py") and where["open_samples"][0].startswith("fppsim/readers/")
+    assert where["plane_level"][0].startswith("fppsim/fringe.py") and where["poly_basis"][0].startswith("fppsim/fringe.py")
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def test_no_module_uses_a_private_name_of_another_module():
+    """``_name`` is private to its module: nothing imports it, nothing reaches it as ``module._name``, and
+    no module of ours has a private name (anything shared across modules is public)."""
+    offenders = []
+    for module, path in _modules():
+        tree = ast.parse(path.read_text())
+        package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+        aliases = set()  # names bound to our modules
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    parts = package.split(".")
+                    base = ".".join(parts[:len(parts) - node.level + 1] + ([base] if base else []))
+                if base.split(".")[0] not in PACKAGES:
+                    continue
+                if any(_private(p) for p in base.split(".")):
+                    offenders.append(f"{module}:{node.lineno} imports from {base}")
+                for a in node.names:
+                    if _private(a.name):
+                        offenders.append(f"{module}:{node.lineno} imports {base}.{a.name}")
+                    aliases.add(a.asname or a.name)
+            elif isinstance(node, ast.Import):
+                for a in node.names:
+                    if a.name.split(".")[0] in PACKAGES:
+                        if any(_private(p) for p in a.name.split(".")):
+                            offenders.append(f"{module}:{node.lineno} imports {a.name}")
+                        aliases.add(a.asname or a.name.split(".")[0])
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Attribute) and _private(node.attr) and isinstance(node.value, ast.Name) \
+                    and node.value.id in aliases:
+                offenders.append(f"{module}:{node.lineno} uses {node.value.id}.{node.attr}")
+    assert not offenders, offenders
+
+
+def test_the_command_framework_names_no_package():
+    """``fppsim.commands`` serves both command lines: error classes come in as arguments, and no string
+    of it names a module of either package."""
+    tree = ast.parse((ROOT / "fppsim" / "commands.py").read_text())
+    strings = [n.value for n in ast.walk(tree) if isinstance(n, ast.Constant) and isinstance(n.value, str)]
+    docstrings = {ast.get_docstring(n, clean=False) for n in ast.walk(tree)
+                  if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))}
+    named = [s for s in strings if s not in docstrings and any(f"{p}." in s or s == p for p in PACKAGES)]
+    assert not named, named
+    assert _imported(ROOT / "fppsim" / "commands.py", "fppsim.commands") <= {"fppsim.files", "fppsim.files.signals_raise"}

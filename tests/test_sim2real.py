@@ -1,14 +1,15 @@
-"""uhrnet.sim2real: object mask, metrics on real data, variants/ablation parsing, report, evaluation."""
+"""uhrnet.sim2real: object mask, metrics on real data, variants/ablation parsing (``uhrnet sim2real``),
+stage configs, report, evaluation, and a whole tiny experiment run twice (resumed)."""
 
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from uhrnet.cli import VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags
 from uhrnet.sim2real import (
-    SCALES, Sim2RealConfig, Sim2RealError, Variant, evaluate_level, evaluate_real, generate_command,
-    level_response, load_variants, markdown_report, object_mask, parse_variant, plane_level, real_metrics,
-    train_command,
+    SCALES, Sim2RealConfig, Sim2RealError, Variant, data_key, evaluate_level, evaluate_real, generate_config,
+    level_response, markdown_report, object_mask, plane_level, real_metrics, train_config,
 )
 
 from _helpers import REAL_SAMPLE, train_tiny, write_figshare
@@ -55,7 +56,7 @@ def test_real_metrics_perfect_flat_and_offset_predictions():
 
 
 def test_parse_variant_forms():
-    assert parse_variant("base") == Variant("base")
+    assert parse_variant("base") == VariantFlags("base", [], [])
     v = parse_variant("aug-off: | --no-augment")
     assert v.generate == [] and v.train == ["--no-augment"]
     v = parse_variant("rig: --rig-jitter 0 --optics 'gain=200,210'")
@@ -85,30 +86,65 @@ def test_load_variants_yaml(tmp_path):
         load_variants(tmp_path / "nope.yaml")
 
 
-def test_config_scales_and_commands(tmp_path):
+def test_config_scales_and_stage_configs(tmp_path):
     cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
     assert (cfg.count, cfg.seed, cfg.epochs, cfg.model, cfg.base_channels) == (400, 100, 10, "unet", 16)
-    g = generate_command(cfg, Variant("v", ["--rig-jitter", "0"]), tmp_path / "syn")
-    tail = g[3:]
-    assert tail[:3] == ["generate", "--meshes", "../shared/meshes"]
-    for a, b in (("--count", "400"), ("--seed", "100"), ("--workers", "2"), ("--format", "figshare")):
-        assert tail[tail.index(a) + 1] == b
-    assert "--no-psp" in tail and tail[-2:] == ["--rig-jitter", "0"]
-    t = train_command(cfg, Variant("v", [], ["--no-augment"]), tmp_path / "syn", tmp_path / "run")
-    for a, b in (("--model", "unet"), ("--base-channels", "16"), ("--loss", "compound"), ("--epochs", "10"),
-                 ("--batch-size", "2"), ("--lr", "0.0005"), ("--device", "cpu")):
-        assert t[t.index(a) + 1] == b
-    assert t[-1] == "--no-augment"
+    g = generate_config(cfg, Variant("v", {"rig_jitter": (0.02, 0.03)}), tmp_path / "syn")
+    assert g.meshes == ["../shared/meshes", "assets/meshes"] and g.out == str(tmp_path / "syn")
+    assert (g.count, g.seed, g.workers, g.format, g.psp_freqs, g.rig_jitter) == (400, 100, 2, "figshare", (), (0.02, 0.03))
+    assert g.label.name == "figshare" and g.preview and not g.progress
+    t = train_config(cfg, Variant("v", train={"augment": "off"}), tmp_path / "syn", tmp_path / "run")
+    assert (t.model, t.base_channels, t.loss, t.epochs, t.batch_size, t.lr, t.device) == \
+        ("unet", 16, "compound", 10, 2, 5e-4, "cpu")
+    assert t.synthetic == [str(tmp_path / "syn")] and t.augment == "off" and t.resume is None and not t.amp
+    assert train_config(cfg, Variant("v"), "d", "r", resume=True).resume == "auto"
     gpu = Sim2RealConfig(out=str(tmp_path), real=["r"], scale="gpu")
-    assert gpu.model == "uhrnet" and gpu.count >= 2000 and "--base-channels" not in train_command(
-        gpu, Variant("v"), tmp_path, tmp_path)
+    tg = train_config(gpu, Variant("v"), tmp_path, tmp_path)
+    assert gpu.model == "uhrnet" and gpu.count >= 2000 and tg.base_channels is None and tg.amp is True
     with pytest.raises(Sim2RealError, match="unknown scale"):
         Sim2RealConfig(out="o", real=["r"], scale="tpu")
     with pytest.raises(Sim2RealError, match="unique"):
         Sim2RealConfig(out="o", real=["r"], variants=[Variant("a"), Variant("a")])
     with pytest.raises(Sim2RealError, match="no real data"):
         Sim2RealConfig(out="o", real=[])
+    with pytest.raises(Sim2RealError, match="has no field"):
+        Variant("v", generate={"pedestals": 0})
+    with pytest.raises(Sim2RealError, match="set by the experiment"):
+        Variant("v", train={"out": "x"})
     assert set(SCALES) == {"cpu", "gpu"}
+    assert data_key({}) == "defaults" and data_key({"pedestal": 0.0}) == data_key({"pedestal": 0.0}) != \
+        data_key({"pedestal": 0.5})
+
+
+def test_variant_flags_become_config_overrides_and_the_recipe_command_lines(tmp_path):
+    cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
+    v = variant_from_flags(cfg, parse_variant("both: --pedestal 0 --rig-jitter 0.02,0.03 --seed 100 | "
+                                              "--no-augment --lr 1e-3 --epochs 10"))
+    # flags that repeat the recipe (--seed 100, --epochs 10) change nothing
+    assert v.generate == {"pedestal": 0.0, "rig_jitter": (0.02, 0.03)}
+    assert v.train == {"augment": "off", "lr": 1e-3}
+    assert v.described("generate") == ["--pedestal", "0", "--rig-jitter", "0.02,0.03", "--seed", "100"]
+    assert Variant("x", {"pedestal": 0.0}).described("generate") == ["pedestal=0.0"]
+    assert variant_from_flags(cfg, parse_variant("rig: --rig assets/parallel_rig.json")).generate == \
+        {"rig": "assets/parallel_rig.json"}
+    assert variant_from_flags(cfg, parse_variant("p: --no-psp --format figshare")).generate == {}
+    with pytest.raises(Sim2RealError, match="variant 'bad': generate: unrecognized arguments: --bogus"):
+        variant_from_flags(cfg, parse_variant("bad: --bogus"))
+    with pytest.raises(Sim2RealError, match="variant 'bad': train: argument --lr"):
+        variant_from_flags(cfg, parse_variant("bad: | --lr x"))
+    r = recipe_commands(cfg, v, tmp_path / "syn", tmp_path / "run")
+    g, t = r["generate"].split(), r["train"].split()
+    assert g[:3] == ["generate", "--meshes", "../shared/meshes"] and "--no-psp" in g
+    assert g[-6:] == ["--pedestal", "0", "--rig-jitter", "0.02,0.03", "--seed", "100"]
+    for a, b in (("--count", "400"), ("--seed", "100"), ("--workers", "2"), ("--format", "figshare")):
+        assert g[g.index(a) + 1] == b
+    for a, b in (("--model", "unet"), ("--base-channels", "16"), ("--loss", "compound"), ("--epochs", "10"),
+                 ("--batch-size", "2"), ("--lr", "0.0005"), ("--device", "cpu")):
+        assert t[t.index(a) + 1] == b
+    assert t[-5:] == ["--no-augment", "--lr", "1e-3", "--epochs", "10"]
+    gpu = Sim2RealConfig(out=str(tmp_path), real=["r"], scale="gpu")
+    t = recipe_commands(gpu, Variant("v"), tmp_path, tmp_path)["train"].split()
+    assert "--base-channels" not in t and t[-1] == "--amp"
 
 
 def test_markdown_report_rows():
@@ -282,3 +318,35 @@ def test_evaluate_level_writes_the_report_file(tmp_path):
     doc = evaluate_level(run / "last.pt", [str(tmp_path / "syn")], tmp_path / "ev", object_mm=1.0)
     assert (tmp_path / "ev" / "synthetic_level.json").is_file()
     assert doc["epoch"] >= 1 and doc["n_objects"] == len(doc["objects"])
+
+
+@pytest.mark.slow
+def test_a_tiny_experiment_runs_its_stages_in_process_and_resumes(tmp_path, capsys):
+    """`uhrnet sim2real` end to end (about 20 s on 2 cores): generate, train, evaluate, report; re-run: all re-used."""
+    import json
+
+    from uhrnet.cli import main
+
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    out = tmp_path / "o"
+    argv = ["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6", "--epochs", "1",
+            "--base-channels", "4", "--batch-size", "2", "--workers", "1", "--no-figures",
+            "--variant", "v: --pedestal 0 | --no-augment"]
+    assert main(argv) == 0
+    first = capsys.readouterr().out
+    assert "[v] generate ->" in first and "[v] train ->" in first and "| v | --pedestal 0 | --no-augment |" in first
+    report = json.loads((out / "report.json").read_text())
+    v = report["variants"][0]
+    assert v["generate"] == ["--pedestal", "0"] and v["train"] == ["--no-augment"] and v["images"] == 2
+    assert report["config"]["count"] == 6 and "variants" not in report["config"]
+    assert report["recipe"]["v"]["train"].endswith("--no-progress --no-augment")
+    data = Path(v["data"])
+    assert data.name == data_key({"pedestal": 0.0}) and (data / "Z.npy").is_file()
+    assert (data.parent / f"{data.name}.log").read_text().startswith("$ generate --meshes")
+    assert "epoch 1/1" in (out / "v" / "train.log").read_text()
+    assert json.loads((out / "v" / "run" / "config.json").read_text())["augment"] == "off"
+    assert {"generate_s", "train_s", "evaluate_s"} <= set(v["timing"])
+    assert main(argv) == 0
+    second = capsys.readouterr().out
+    assert "generate ->" not in second and "train ->" not in second and "evaluate on" not in second
+    assert json.loads((out / "report.json").read_text())["variants"][0]["real"] == v["real"]

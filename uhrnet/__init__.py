@@ -5,8 +5,10 @@ Library entry points (the ``uhrnet`` command line calls the same)::
     uhrnet.train(uhrnet.TrainConfig(out="run", synthetic=["data"], model="unet", epochs=10))
     report = uhrnet.evaluate(["run"], uhrnet.EvalData(split="test"), out="eval")
     uhrnet.predict(uhrnet.PredictConfig(checkpoint="run", inputs=["img.png"], out="pred"))
+    uhrnet.evaluate_phase_folder(uhrnet.PhaseEvalConfig(checkpoints=["run"], phase_root="psp", out="ph"))
+    uhrnet.run_sim2real(uhrnet.Sim2RealConfig(out="s2r", real=["real"]))
 
-Data files are read through the dataset contract :mod:`fppsim.formats`. Attributes are imported
+Data files are read through :mod:`fppsim.readers` (the dataset contract: :mod:`fppsim.formats`). Attributes are imported
 lazily (``import uhrnet`` does not import torch).
 """
 
@@ -20,6 +22,10 @@ _LAZY = {
     "Report": ("uhrnet.evaluation", "Report"),
     "predict": ("uhrnet.prediction", "predict"),
     "PredictConfig": ("uhrnet.prediction", "PredictConfig"),
+    "evaluate_phase_folder": ("uhrnet.phase_residual", "evaluate_phase_folder"),
+    "PhaseEvalConfig": ("uhrnet.phase_residual", "PhaseEvalConfig"),
+    "run_sim2real": ("uhrnet.sim2real", "run_sim2real"),
+    "Sim2RealConfig": ("uhrnet.sim2real", "Sim2RealConfig"),
     "build_model": ("uhrnet.models", "build_model"),
     "build_loss": ("uhrnet.losses", "build_loss"),
 }

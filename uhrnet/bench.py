@@ -76,7 +76,7 @@ class BenchConfig:
         if self.compile:
             self.warmup = max(self.warmup, 2)
         if self.json is not None:  # fail now, not after minutes of timing
-            from fppsim._fs import check_writable_dir
+            from fppsim.files import check_writable_dir
 
             path = Path(self.json)
             if path.is_dir():
@@ -108,7 +108,9 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
     dict, the callable of the fastest deployable form is left in it (``{form: callable}``)."""
     import torch
 
-    from .metrics import count_parameters, peak_memory_bytes, time_call
+    from .metrics import count_parameters
+    from .models import outputs_of
+    from .timing import peak_memory_bytes, time_call
 
     model = build_scaled(name, args.base_channels).to(device)
     params = count_parameters(model)
@@ -168,8 +170,7 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
             optimizer.zero_grad(set_to_none=True)
             with autocast():
                 out = net(x)
-                outs = out if isinstance(out, (tuple, list)) else (out,)
-                loss = sum(torch.nn.functional.mse_loss(o.float(), target) for o in outs)
+                loss = sum(torch.nn.functional.mse_loss(o.float(), target) for o in outputs_of(out))
             loss.backward()
             optimizer.step()
 
@@ -192,8 +193,9 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
 def _rel_diff(out, reference) -> float:
     import torch
 
-    out = out[0] if isinstance(out, (tuple, list)) else out
-    ref = reference[0] if isinstance(reference, (tuple, list)) else reference
+    from .models import prediction_of
+
+    out, ref = prediction_of(out), prediction_of(reference)
     span = float(ref.max() - ref.min())
     return float((torch.as_tensor(out).float() - ref.float()).abs().max()) / max(span, 1e-12)
 
@@ -211,8 +213,8 @@ def optimize_variants(model, x, reference, args, device, runners: dict | None = 
 
     import torch
 
-    from .metrics import time_call
-    from .optimize import prepare_for_inference
+    from .timing import time_call
+    from .deploy import prepare_for_inference
 
     out = {}
     for form in args.variants:
@@ -256,7 +258,7 @@ def paired_times(a: Callable[[], object], b: Callable[[], object], device, warmu
     Returns ``{"a_ms", "b_ms", "ratio", "pair_ratios"}``: the median ms of each, ``a_ms / b_ms`` and the
     ratio within every pair (their spread shows how steady the machine was).
     """
-    from .metrics import time_call
+    from .timing import time_call
 
     for fn in (a, b):
         time_call(fn, device, warmup, 1)
@@ -409,7 +411,7 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "memory": memory_note,
     }
     if args.json is not None:
-        from fppsim.formats import atomic_write_text
+        from fppsim.files import atomic_write_text
 
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)

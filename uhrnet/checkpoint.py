@@ -16,6 +16,7 @@ loads with ``weights_only=True``::
 
 from __future__ import annotations
 
+import hashlib
 import os
 import pickle
 import random
@@ -25,15 +26,17 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim.formats import LabelTransform, atomic_path
+from fppsim.files import atomic_path
+from fppsim.formats import LabelTransform
 from uhrnet.errors import CheckpointError
+from uhrnet.models import outputs_of
 
 FORMAT = "uhrnet-checkpoint"
 VERSION = 1
 
 
 def atomic_save(obj, path: str | os.PathLike) -> Path:
-    """``torch.save`` through :func:`fppsim.formats.atomic_path` (temporary file, fsync, rename).
+    """``torch.save`` through :func:`fppsim.files.atomic_path` (temporary file, fsync, rename).
 
     A crash or kill at any moment leaves either the previous file or the new one, never a torn file.
     """
@@ -44,22 +47,40 @@ def atomic_save(obj, path: str | os.PathLike) -> Path:
     return path
 
 
-def load_checkpoint(path: str | os.PathLike, map_location="cpu") -> dict:
-    """Load and validate a uhrnet checkpoint (``weights_only=True``: no code runs while loading)."""
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """The checkpoint file a RUN argument names: ``path`` itself, or a run folder's ``best.pt`` (else
+    ``last.pt``); how ``predict``, ``evaluate`` and ``train --init-from`` read it."""
     path = Path(path)
     if path.is_dir():
         for name in ("best.pt", "last.pt"):
             if (path / name).is_file():
-                path = path / name
-                break
-        else:
-            raise CheckpointError(f"{path}: folder holds no best.pt or last.pt")
+                return path / name
+        raise CheckpointError(f"{path}: folder holds no best.pt or last.pt")
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike, map_location="cpu", *, digest: bool = False) -> dict:
+    """Load and validate a uhrnet checkpoint (``weights_only=True``: no code runs while loading).
+
+    ``path``: a checkpoint file or a run folder (:func:`checkpoint_file`); the result's ``"path"`` is the
+    file read. ``digest``: also put the SHA-256 of the file's bytes in ``"sha256"`` (hashed from the same
+    open file that is loaded, so a checkpoint replaced meanwhile cannot mismatch its hash).
+    """
+    path = checkpoint_file(path)
     if not path.is_file():
         raise CheckpointError(f"{path}: checkpoint not found")
     if path.stat().st_size == 0:
         raise CheckpointError(f"{path}: empty file (0 bytes), not a checkpoint")
+    sha256 = None
     try:
-        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+        with open(path, "rb") as f:
+            if digest:
+                h = hashlib.sha256()
+                for chunk in iter(lambda: f.read(1 << 22), b""):
+                    h.update(chunk)
+                sha256 = h.hexdigest()
+                f.seek(0)
+            ckpt = torch.load(f, map_location=map_location, weights_only=True)
     except pickle.UnpicklingError:  # torch's message advises weights_only=False: wrong for a garbage file
         raise CheckpointError(
             f"{path}: cannot load checkpoint: not a PyTorch checkpoint (truncated or another format)"
@@ -75,6 +96,8 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu") -> dict:
         if key not in ckpt:
             raise CheckpointError(f"{path}: checkpoint lacks {key!r}")
     ckpt["path"] = str(path)
+    if sha256 is not None:
+        ckpt["sha256"] = sha256
     return ckpt
 
 
@@ -123,9 +146,8 @@ class LabelHead(nn.Module):
 
     def forward(self, x):
         out = self.net(x)
-        if isinstance(out, (tuple, list)):
-            return tuple(o.float() * self.scale + self.shift for o in out)
-        return out.float() * self.scale + self.shift
+        labels = tuple(o.float() * self.scale + self.shift for o in outputs_of(out))
+        return labels if len(labels) > 1 else labels[0]  # hNet's tuple stays a tuple (side outputs)
 
 
 def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, LabelTransform]:
@@ -146,3 +168,78 @@ def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, LabelTra
     out = ckpt.get("output", {"scale": 1.0, "shift": 0.0})
     model = LabelHead(net, out["scale"], out["shift"]).to(device).eval()
     return model, LabelTransform.from_dict(ckpt["label_transform"])
+
+
+# --------------------------------------------------------------------------------------------------
+# Transfer learning: a fresh run that starts from a checkpoint's weights
+
+
+def output_mm(scale: float, shift: float, transform: LabelTransform) -> tuple[float, float]:
+    """``(a, b)`` such that a network output ``o`` means a height of ``a * o + b`` mm above the plane,
+    for a :class:`LabelHead` with ``scale``/``shift`` and the label transform ``transform``."""
+    return scale / transform.units_per_mm, (shift - transform.plane_offset) / transform.units_per_mm
+
+
+def _architecture(name: str) -> str:
+    from uhrnet.models import ALIASES
+
+    return ALIASES[name][0] if name in ALIASES else name
+
+
+def _describe(config: dict, keys) -> str:
+    def short(v):
+        text = repr(v)
+        return text if len(text) <= 40 else "<" + type(v).__name__ + ">"
+
+    opts = ", ".join(f"{k}={short(config.get(k))}" for k in keys)
+    return _architecture(config.get("name", "?")) + (f" ({opts})" if opts else "")
+
+
+def init_from_checkpoint(net: nn.Module, path: str | os.PathLike, output: tuple[float, float] | None = None) -> dict:
+    """Copy the weights of the checkpoint ``path`` (a ``.pt`` file or a run folder, read as
+    :func:`checkpoint_file` says) into ``net``: ``uhrnet train --init-from``.
+
+    The checkpoint must hold the same architecture: the same model (an ablation alias counts as its
+    architecture) with weights of the same names and shapes; options that shape no weight (dropout) may
+    differ and are listed in the result. ``output``: ``(a, b)`` of :func:`output_mm` for this run; the
+    checkpoint's network output must mean the same height (else ``--raw-output`` or the label scale
+    differs and the weights would predict other units).
+
+    The weights copied are the checkpoint's ``state_dict``: for a run trained with ``--ema`` that is
+    the moving average, the weights ``predict`` and ``evaluate`` use and ``best.pt`` was chosen on (the
+    optimised ``train_state_dict`` is not used). Batch-norm running statistics come along.
+
+    Returns the record a run keeps of it: ``{"path", "sha256", "epoch", "weights" ("ema" or
+    "trained"), "model", "other_options"}``. Raises :class:`CheckpointError` (one line, naming the file
+    and the mismatch).
+    """
+    ckpt = load_checkpoint(path, digest=True)
+    where = f"init-from {ckpt['path']}"
+    theirs, ours = dict(ckpt["model"]["config"]), dict(net.config)
+    keys = sorted((set(theirs) | set(ours)) - {"name"})
+    differ = [k for k in keys if theirs.get(k) != ours.get(k)]
+    if _architecture(theirs.get("name", "?")) != _architecture(ours["name"]):
+        raise CheckpointError(f"{where}: model {_describe(theirs, [])} does not match this run's "
+                              f"{_describe(ours, [])}")
+    state, own = ckpt["state_dict"], net.state_dict()
+    bad = sorted(set(state) ^ set(own)) or [k for k in own if tuple(state[k].shape) != tuple(own[k].shape)]
+    if bad:
+        if differ:
+            raise CheckpointError(f"{where}: model {_describe(theirs, differ)} does not match this run's "
+                                  f"{_describe(ours, differ)}")
+        k = bad[0]
+        detail = (f"{k} has shape {tuple(state[k].shape)}, this run's {tuple(own[k].shape)}"
+                  if k in state and k in own else f"{k} is only in {'the checkpoint' if k in state else 'this run'}")
+        raise CheckpointError(f"{where}: weights do not fit this run's {_describe(ours, [])}: {detail}")
+    if output is not None:
+        out = ckpt.get("output", {"scale": 1.0, "shift": 0.0})
+        a, b = output_mm(out["scale"], out["shift"], LabelTransform.from_dict(ckpt["label_transform"]))
+        if not (np.isclose(a, output[0], rtol=1e-6, atol=0) and np.isclose(b, output[1], rtol=1e-6, atol=1e-9)):
+            raise CheckpointError(f"{where}: its network output means {a:g} * output + {b:g} mm, this run's "
+                                  f"{output[0]:g} * output + {output[1]:g} mm (--raw-output or the label "
+                                  "transform differs)")
+    with torch.no_grad():
+        net.load_state_dict(state)
+    return {"path": str(Path(ckpt["path"]).resolve()), "sha256": ckpt["sha256"], "epoch": int(ckpt.get("epoch", 0)),
+            "weights": "ema" if "ema" in ckpt else "trained", "model": theirs.get("name"),
+            "other_options": {k: theirs.get(k) for k in differ}}

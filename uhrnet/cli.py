@@ -1,14 +1,15 @@
 """`uhrnet` command line: git-style subcommands over the library (the only module that parses flags).
 
-Same design as ``fppsim`` (:func:`fppsim.cli.run_commands`): every command turns its flags into a
+Same design as ``fppsim`` (:func:`fppsim.commands.run_commands`): every command turns its flags into a
 config of the library, which validates itself, and calls one plain function a Python user can call:
 
     train           -> uhrnet.train(TrainConfig)
     evaluate        -> uhrnet.evaluate(checkpoints, EvalData, ...) -> Report
-    evaluate-phase  -> uhrnet.evaluate_phase.evaluate_phase_folder(PhaseEvalConfig)
+    evaluate-phase  -> uhrnet.phase_residual.evaluate_phase_folder(PhaseEvalConfig)
     predict         -> uhrnet.predict(PredictConfig)
     bench           -> uhrnet.bench.bench(BenchConfig)
     export          -> uhrnet.export.export_checkpoint(ExportConfig)
+    sim2real        -> uhrnet.sim2real.run_sim2real(Sim2RealConfig)
 
 Choices (models, losses, label presets, split modes) are listed from the library's registries. Only
 the chosen command's flags are declared (its library module imported), so ``uhrnet --help`` stays fast.
@@ -19,10 +20,12 @@ SIGTERM/Ctrl-C exit 128 + signum (``train`` says how to resume).
 from __future__ import annotations
 
 import argparse
+import shlex
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
-from fppsim.cli import Command, build_command_parser, one_line, run_commands  # noqa: F401 (one_line re-exported)
+from fppsim.commands import Command, build_command_parser, one_line, run_commands  # noqa: F401 (one_line re-exported)
 
 __all__ = ["main", "build_parser", "COMMANDS", "one_line"]
 
@@ -33,12 +36,13 @@ DEVICES = ("auto", "cpu", "cuda")
 def add_train(p: argparse.ArgumentParser) -> None:
     from fppsim.formats import PRESETS
     from uhrnet.augment import AUGMENTS
-    from uhrnet.reading import LABEL_SOURCES
+    from fppsim.readers import LABEL_SOURCES
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
     from uhrnet.train_config import LR_FLAT, LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
+    from uhrnet.models.freeze import FREEZE_CHOICES
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
@@ -97,6 +101,30 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "with zero biases, as the U-Net paper (the coarse levels of a network without batch norm then "
                         "start contributing); torch is PyTorch's default, what runs used before this option; auto is "
                         "he for models without batch norm (unet, model_a, hnet) and torch for the others [auto]")
+    m.add_argument("--init-from", metavar="CKPT",
+                   help="transfer learning: start a new run from the weights of a checkpoint (a .pt file, or a run "
+                        "folder: its best.pt, else last.pt, as predict and evaluate read it) instead of --init, with a "
+                        "fresh optimizer, learning-rate schedule and epoch count; e.g. pretrain on synthetic data, then "
+                        "fine-tune on a few real scans: --init-from SYN_RUN --real DIR --real-split train --synthetic "
+                        "DIR --synthetic-ratio 0.5 --lr 1e-4. --model, --base-channels, --model-option and --raw-output "
+                        "must match the checkpoint's; of a checkpoint trained with --ema its averaged weights are used. "
+                        "Recorded in config.json and the checkpoints (path, sha256, epoch); --resume continues such a "
+                        "run without re-initialising it")
+    m.add_argument("--freeze", choices=FREEZE_CHOICES,
+                   help="with --init-from, keep a part of the initial weights fixed: encoder = the contracting path "
+                        "and the bottleneck, decoder = everything after it (up path, fusion blocks, heads); frozen "
+                        "weights are left out of the optimizer and their batch norms stay in eval mode (they keep "
+                        "the checkpoint's running statistics) [none]")
+    m.add_argument("--head", choices=("height", "phase"),
+                   help="what the network predicts: height (the papers' networks) or phase, the physics head: the "
+                        "network predicts the fringe phase (its cosine and sine) and a coarse height, and the calibrated "
+                        "rig turns them into height (fringe order from the coarse height, height from the phase through "
+                        "the rig's triangulation; one phase origin per image). Needs fppsim native samples (phase_true; "
+                        "a figshare export's native/ folder is used) and whole camera images; the checkpoint carries "
+                        "the rig, so predict, evaluate, export and bench need nothing more [height]")
+    m.add_argument("--rig", metavar="FILE",
+                   help="with --head phase: the rig (fppsim JSON/YAML or OpenCV stereo calibration) [the rig in the first "
+                        "synthetic sample's meta.json, else fppsim's default rig]")
     m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
@@ -113,19 +141,25 @@ def add_train(p: argparse.ArgumentParser) -> None:
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
-def run_train(args) -> int:
+def train_options(args) -> dict:
+    """The ``TrainConfig`` fields the ``train`` flags ``args`` give (None: not given)."""
     from dataclasses import fields
 
+    from uhrnet.train_config import TrainConfig
+
+    return {f.name: getattr(args, f.name) for f in fields(TrainConfig) if hasattr(args, f.name)}
+
+
+def run_train(args) -> int:
     from uhrnet.trainer import TrainConfig, train
 
-    given = {f.name: getattr(args, f.name) for f in fields(TrainConfig) if hasattr(args, f.name)}
-    train(TrainConfig(**given, progress=not args.no_progress))
+    train(TrainConfig(**train_options(args), progress=not args.no_progress))
     return 0
 
 
 # ============================================================================ evaluate
 def add_evaluate(p: argparse.ArgumentParser) -> None:
-    from uhrnet.reading import LABEL_SOURCES
+    from fppsim.readers import LABEL_SOURCES
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.evaluation import SPLITS
 
@@ -171,11 +205,26 @@ def run_evaluate(args) -> int:
 
 # ============================================================================ predict
 def add_predict(p: argparse.ArgumentParser) -> None:
+    from uhrnet.refine import REFINE_METHODS
+
     p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
-    p.add_argument("inputs", nargs="+", metavar="INPUT", help="fringe images, .npy arrays, or folders of them")
+    p.add_argument("inputs", nargs="+", metavar="INPUT",
+                   help="fringe images, .npy arrays, or folders of them; figshare folders (their fringes only) and "
+                        "phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/: their iPattern images)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
-                                                 "metric x, y in the point cloud")
+                                                 "metric x, y in the point cloud, and for --refine "
+                                                 "[--refine: the checkpoint's rig, else fppsim's default rig]")
+    p.add_argument("--refine", choices=("none", "phase"), default="none",
+                   help="phase: move the heights to agree with the image's own fringe phase (single-shot phase, "
+                        "rad) through the rig, where that phase is reliable and the move is within a margin; "
+                        "writes NAME_height_network.npy (the network's map) and refine.json (share of pixels moved) "
+                        "[none]")
+    p.add_argument("--refine-method", choices=REFINE_METHODS, default="relief",
+                   help="relief: unwrap the phase region by region, take each region's relief from the phase and "
+                        "its level from the network (no fringe-order guess; margin: moves up to 2 fringe periods "
+                        "of height); nearest: each pixel to the nearest phase-consistent height, only where the "
+                        "move is under a quarter fringe period (about 1.8 mm on the default rig) [relief]")
     p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
                    help="x, y spacing of the point cloud without --rig [1.0]")
     p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
@@ -193,10 +242,14 @@ def run_predict(args) -> int:
     config = PredictConfig(checkpoint=args.checkpoint, inputs=list(args.inputs), out=args.out, rig=args.rig,
                            pixel_size=args.pixel_size, keep_all=args.keep_all,
                            range=tuple(args.range) if args.range is not None else None, colormap=args.colormap,
-                           ply=not args.no_ply, device=args.device, progress=not args.no_progress)
+                           ply=not args.no_ply, device=args.device, progress=not args.no_progress,
+                           refine=None if args.refine == "none" else args.refine, refine_method=args.refine_method)
     result = predict(config)
     for line in result.warnings:
         print(f"uhrnet predict: warning: {line}", file=sys.stderr)
+    for name, st in result.refine.items():
+        print(f"refine {name}: {st['moved_fraction']:.1%} of the pixels moved ({st['method']}, mean move "
+              f"{st['mean_abs_move_mm']:.2f} mm, phase origin {st['offset_rad']:+.2f} rad, {st['rig']})")
     print(f"predict: {len(result.names)} height map(s) from {len(result.files)} input file(s) -> {args.out} "
           f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
           f"{', x/y from rig ' + str(args.rig) if args.rig else ''})")
@@ -253,7 +306,7 @@ def run_bench(args) -> int:
 
 # ============================================================================ evaluate-phase
 def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
-    from fppsim.psp_io import CONVENTIONS
+    from fppsim.readers import CONVENTIONS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--phase-root", required=True, metavar="DIR",
@@ -276,7 +329,7 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
 
 
 def run_evaluate_phase(args) -> int:
-    from uhrnet.evaluate_phase import PhaseEvalConfig, evaluate_phase_folder
+    from uhrnet.phase_residual import PhaseEvalConfig, evaluate_phase_folder
 
     config = PhaseEvalConfig(checkpoints=list(args.checkpoints), phase_root=args.phase_root, out=args.out,
                              degree=args.degree, robust=args.robust, convention=args.convention,
@@ -335,6 +388,261 @@ def run_export(args) -> int:
     return 0
 
 
+# ============================================================================ sim2real
+class VariantFlags(NamedTuple):
+    """An ablation row as written: its name and its extra ``fppsim generate`` / ``uhrnet train`` flags."""
+
+    name: str
+    generate: list[str]
+    train: list[str]
+
+
+def parse_variant(text: str) -> VariantFlags:
+    """``NAME`` or ``NAME: generate flags | train flags`` (shell-quoted; either side may be empty).
+
+    ``"aug-off: | --no-augment"`` -> VariantFlags("aug-off", [], ["--no-augment"]).
+    """
+    from uhrnet.sim2real import Sim2RealError, Variant
+
+    name, sep, rest = text.partition(":")
+    name = name.strip()
+    Variant(name)  # the name is checked before the flags
+    if not sep:
+        return VariantFlags(name, [], [])
+    gen, bar, tr = rest.partition("|")
+    try:
+        return VariantFlags(name, shlex.split(gen), shlex.split(tr) if bar else [])
+    except ValueError as exc:
+        raise Sim2RealError(f"variant {name!r}: {exc}") from None
+
+
+def load_variants(path: str | Path) -> list[VariantFlags]:
+    """Variants from a YAML/JSON list of ``{name, generate: [...] or "...", train: [...] or "..."}`` (or of
+    :func:`parse_variant` strings)."""
+    import yaml
+
+    from uhrnet.sim2real import Sim2RealError, Variant
+
+    p = Path(path)
+    if not p.is_file():
+        raise Sim2RealError(f"ablation file not found: {p}")
+    try:
+        doc = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise Sim2RealError(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, list) or not doc:
+        raise Sim2RealError(f"{p}: expected a non-empty list of variants")
+    out = []
+    for i, item in enumerate(doc):
+        if isinstance(item, str):
+            out.append(parse_variant(item))
+            continue
+        if not isinstance(item, dict) or "name" not in item:
+            raise Sim2RealError(f"{p}: item {i} must be a string or a mapping with a 'name'")
+        unknown = set(item) - {"name", "generate", "train"}
+        if unknown:
+            raise Sim2RealError(f"{p}: item {i} has unknown keys {sorted(unknown)}")
+        args = {}
+        for k in ("generate", "train"):
+            v = item.get(k) or []
+            args[k] = shlex.split(v) if isinstance(v, str) else [str(a) for a in v]
+        Variant(str(item["name"]))
+        out.append(VariantFlags(str(item["name"]), args["generate"], args["train"]))
+    return out
+
+
+def generate_flags(cfg, data) -> list[str]:
+    """The recipe's ``fppsim generate`` command line for the dataset folder ``data`` (no variant)."""
+    from uhrnet.sim2real.config import generate_workers
+
+    return ["generate", "--meshes", *cfg.meshes, "--out", str(data), "--count", str(cfg.count), "--seed",
+            str(cfg.seed), "--workers", str(generate_workers(cfg)), "--no-psp", "--format", "figshare", "-q"]
+
+
+def train_flags(cfg, data, run) -> list[str]:
+    """The recipe's ``uhrnet train`` command line on ``data`` into ``run`` (no variant)."""
+    from uhrnet.sim2real import SCALES
+
+    flags = ["train", "--synthetic", str(data), "--model", cfg.model,
+             *(["--base-channels", str(cfg.base_channels)] if cfg.base_channels is not None else []),
+             "--loss", cfg.loss, "--epochs", str(cfg.epochs), "--batch-size", str(cfg.batch_size),
+             "--lr", str(cfg.lr), "--device", cfg.device, "--out", str(run), "--no-progress"]
+    for key, value in SCALES[cfg.scale]["train"].items():  # TrainConfig fields are the flags' names
+        flag = "--" + key.replace("_", "-")
+        flags += [flag] if value is True else [flag, *map(str, value)] if isinstance(value, (list, tuple)) \
+            else [flag, str(value)]
+    return flags
+
+
+def _parse(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
+    """``parser.parse_args(argv)``, its error as a :class:`Sim2RealError` naming ``where``."""
+    import contextlib
+    import io
+
+    from uhrnet.sim2real import Sim2RealError
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err):
+            return parser.parse_args(argv)
+    except SystemExit:
+        lines = [line for line in err.getvalue().splitlines() if line.strip()]
+        raise Sim2RealError(f"{where}: {lines[-1].split(': error: ')[-1] if lines else 'bad flags'}") from None
+
+
+def variant_from_flags(cfg, flags: VariantFlags):
+    """The :class:`uhrnet.sim2real.Variant` of ``flags``: each side appended to the recipe's command
+    line (:func:`generate_flags`, :func:`train_flags`) and parsed by that command's own parser; the
+    config fields that then differ from the recipe's are the variant's overrides."""
+    from fppsim.cli import build_parser as fppsim_parser
+    from fppsim.cli import generate_options
+    from uhrnet.sim2real import Sim2RealError, Variant
+
+    def changed(base: dict, given: dict) -> dict:
+        return {k: v for k, v in given.items() if k not in base or v != base[k]}
+
+    where = f"variant {flags.name!r}"
+    gen, tr = {}, {}
+    if flags.generate:
+        head, parser = generate_flags(cfg, "DATA"), fppsim_parser()
+        try:
+            gen = changed(generate_options(_parse(parser, head, f"{where}: generate")),
+                          generate_options(_parse(parser, head + flags.generate, f"{where}: generate")))
+        except Sim2RealError:
+            raise
+        except (OSError, ValueError) as exc:  # e.g. an unreadable --optics-file
+            raise Sim2RealError(f"{where}: generate: {exc}") from None
+    if flags.train:
+        head, parser = train_flags(cfg, "DATA", "RUN"), build_parser("train")
+        tr = changed(train_options(_parse(parser, head, f"{where}: train")),
+                     train_options(_parse(parser, head + flags.train, f"{where}: train")))
+    return Variant(flags.name, gen, tr, generate_flags=list(flags.generate), train_flags=list(flags.train))
+
+
+def recipe_commands(cfg, variant, data, run) -> dict:
+    """Both stages of ``variant`` as the command lines that run them (``report.json``'s ``recipe``)."""
+    return {"generate": shlex.join(generate_flags(cfg, data) + list(variant.generate_flags or [])),
+            "train": shlex.join(train_flags(cfg, data, run) + list(variant.train_flags or []))}
+
+
+def add_sim2real(p: argparse.ArgumentParser) -> None:
+    from uhrnet.losses import LOSSES
+    from uhrnet.models import list_models
+    from uhrnet.sim2real import SCALES
+
+    def scales(key):
+        return ", ".join(f"{s}: {'the model default' if v[key] is None else v[key]}" for s, v in SCALES.items())
+
+    p.formatter_class = argparse.RawDescriptionHelpFormatter
+    p.description = (
+        "Sim-to-real experiment: fppsim generate -> uhrnet train on the synthetic data alone -> evaluate on REAL\n"
+        "data -> OUT/report.md and OUT/report.json. --scale cpu is the judged recipe (400 samples, seed 100,\n"
+        "U-Net base 16, compound loss, 10 epochs, batch 2, lr 5e-4, CPU; under 60 minutes on 2 cores); --scale\n"
+        "gpu is UHRNet at 352 x 640 on 2000 samples (--amp). Each --variant adds a row to the ablation table;\n"
+        "variants with the same generate flags share one dataset (OUT/data/<key>). Re-running the same\n"
+        "command re-uses finished datasets, runs and evaluations. Per variant: OUT/<name>/run (the training\n"
+        "run), OUT/<name>/eval (real_metrics.json, predictions.npz, real_*.png, synthetic_level.json), logs\n"
+        "OUT/data/<key>.log and OUT/<name>/train.log.\n\n"
+        "Real data: figshare-format folders (f1_80.npy + Z.npy, or fringe_pattern.npy + height_map.npy);\n"
+        "labels <= -100 are invalid and mm = label / 6. Metrics in mm: object RMSE over valid pixels more\n"
+        "than --object-mm above the reference plane, RMSE over all valid pixels, and more (see\n"
+        "uhrnet.sim2real.metrics).")
+    p.add_argument("--scale", choices=sorted(SCALES), default="cpu", help="recipe size [cpu]")
+    p.add_argument("--real", nargs="+", required=True, metavar="DIR",
+                   help="real figshare-format folder(s); evaluation only, never trained on")
+    p.add_argument("--out", required=True, metavar="DIR", help="experiment folder (re-running resumes it)")
+    p.add_argument("--meshes", nargs="+", metavar="PATH",
+                   help="meshes of the synthetic scenes (files or folders) [the meshes fppsim ships, assets/meshes]")
+    for name, typ, what in (("count", int, "synthetic samples"), ("seed", int, "generator seed"),
+                            ("workers", int, "generator processes, 0: all cores"), ("epochs", int, "training epochs"),
+                            ("batch-size", int, "images per training step"), ("lr", float, "Adam learning rate"),
+                            ("base-channels", int, "model width (channels of the first level)")):
+        key = name.replace("-", "_")
+        p.add_argument(f"--{name}", type=typ, metavar="N" if typ is int else "X",
+                       help=f"{what} [{scales(key)}]")
+    p.add_argument("--model", choices=list_models(), help=f"architecture [{scales('model')}]")
+    p.add_argument("--loss", choices=LOSSES, help=f"training loss [{scales('loss')}]")
+    p.add_argument("--device", choices=DEVICES, help=f"training device; evaluation runs on cuda if this is cuda, else on cpu [{scales('device')}]")
+    p.add_argument("--variant", action="append", default=[], metavar="SPEC",
+                   help="NAME or 'NAME: GENERATE FLAGS | TRAIN FLAGS' (flags of fppsim generate / uhrnet train; "
+                        "repeatable) [one variant 'default', the recipe]")
+    p.add_argument("--ablation", metavar="FILE", help="YAML/JSON list of variants {name, generate, train}")
+    p.add_argument("--object-mm", type=float, default=1.0, metavar="MM",
+                   help="object pixels: valid and more than this many mm above the plane [1]")
+    p.add_argument("--no-figures", action="store_true", help="skip the per-image figures")
+
+
+def run_sim2real(args) -> int:
+    from dataclasses import replace
+
+    from uhrnet.sim2real import Sim2RealConfig, markdown_report, run_sim2real
+
+    specs = [parse_variant(v) for v in args.variant]
+    if args.ablation:
+        specs += load_variants(args.ablation)
+    cfg = Sim2RealConfig(
+        out=args.out, real=args.real, **({"meshes": list(args.meshes)} if args.meshes else {}), scale=args.scale,
+        count=args.count, seed=args.seed, workers=args.workers, model=args.model, base_channels=args.base_channels,
+        loss=args.loss, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, device=args.device,
+        object_mm=args.object_mm, figures=not args.no_figures)
+    if specs:
+        cfg = replace(cfg, variants=[variant_from_flags(cfg, s) for s in specs])
+    report = run_sim2real(cfg, log=lambda line: print(line, flush=True), recipe=recipe_commands)
+    print(markdown_report(report))
+    print(f"report: {Path(args.out) / 'report.md'} and report.json")
+    return 0
+
+
+# ============================================================================ adapt
+def add_adapt(p: argparse.ArgumentParser) -> None:
+    from uhrnet.adapt import AdaptConfig
+
+    d = AdaptConfig.__dataclass_fields__
+    p.add_argument("checkpoint", metavar="RUN", help="the model to adapt: a run folder (best.pt, else last.pt) or a .pt")
+    p.add_argument("--images", nargs="+", required=True, metavar="PATH",
+                   help="UNLABELLED real fringe images: image/.npy files or folders as predict takes them, figshare "
+                        "folders (fringes only; labels are never read) and phase-shifting folders (iPattern images)")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="the adaptation's run folder: last.pt (predict/evaluate accept it), history.csv, config.json, "
+                        "images.json, figures/<image>_adapt.png; re-running resumes it")
+    p.add_argument("--rig", metavar="FILE",
+                   help="rig (fppsim JSON/YAML or OpenCV stereo YAML) [the checkpoint's rig, else fppsim's default]")
+    p.add_argument("--epochs", type=int, default=d["epochs"].default,
+                   help=f"passes over the images, one image per step [{d['epochs'].default}: about 1 s a step for the "
+                        "recipe's U-Net on 2 CPU cores]")
+    p.add_argument("--lr", type=float, default=d["lr"].default, help=f"Adam learning rate [{d['lr'].default:g}]")
+    for name, what in (("w_grad", "weight of the fringe-gradient consistency (phase steps between neighbours, rad)"),
+                       ("w_wrap", "weight of the wrapped-phase consistency (1 - cos of the residual, one phase origin "
+                                  "per image)"),
+                       ("w_drift", "weight of the anchor to the source model's prediction (mean |change| / 10 mm)"),
+                       ("max_step", "phase-step disagreements above this (rad) are ignored: aliasing walls, shadow "
+                                    "edges"),
+                       ("min_reliability", "pixels whose single-shot phase reliability is below this count in no "
+                                           "phase term")):
+        p.add_argument("--" + name.replace("_", "-"), type=float, default=d[name].default,
+                       help=f"{what} [{d[name].default:g}]")
+    p.add_argument("--seed", type=int, default=0, help="order of the images [0]")
+    p.add_argument("--overwrite", action="store_true", help="replace an adaptation already in --out")
+    p.add_argument("--no-figures", action="store_true", help="skip the before/after figures")
+    p.add_argument("--device", choices=DEVICES, default="cpu", help="[cpu]")
+    p.add_argument("--no-progress", action="store_true", help="one line per epoch instead of a progress bar")
+
+
+def run_adapt(args) -> int:
+    from uhrnet.adapt import AdaptConfig, adapt
+
+    cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
+                      epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_wrap=args.w_wrap, w_drift=args.w_drift,
+                      max_step=args.max_step, min_reliability=args.min_reliability, device=args.device, seed=args.seed,
+                      overwrite=args.overwrite, figures=not args.no_figures, progress=not args.no_progress)
+    result = adapt(cfg, log=lambda line: print(line, flush=True))
+    for im in result.images:
+        print(f"adapt {im['name']}: median phase residual {im['before_rad']:.3f} -> {im['after_rad']:.3f} rad, "
+              f"mean change {im['mean_change_mm']:.2f} mm")
+    print(f"adapt: {result.out / 'last.pt'} after {result.epochs} epoch(s); history {result.out / 'history.csv'}")
+    return 0
+
+
 # ============================================================================ main
 COMMANDS: dict[str, Command] = {
     "train": Command(add_train, run_train, "train a model on real (figshare) and/or synthetic (fppsim) data"),
@@ -344,9 +652,13 @@ COMMANDS: dict[str, Command] = {
                               "evaluate checkpoints on real phase-shifting data without height labels "
                               "(PSin/PCos/Fringe/iPattern folders): calibration-free phase residual"),
     "predict": Command(add_predict, run_predict, "predict height maps and point clouds from fringe images"),
+    "adapt": Command(add_adapt, run_adapt,
+                     "fine-tune a model on unlabelled real fringe images through the rig (fringe consistency)"),
     "bench": Command(add_bench, run_bench, "parameters, forward/training-step time and peak memory per model"),
     "export": Command(add_export, run_export,
                       "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
+    "sim2real": Command(add_sim2real, run_sim2real,
+                        "sim-to-real experiment: generate synthetic data, train on it alone, evaluate on real data"),
 }
 
 
@@ -359,7 +671,8 @@ def build_parser(load: str | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from fppsim.errors import FppsimError
-    from uhrnet.errors import DataError, UhrnetError
+    from fppsim.errors import UsageError as FppsimUsageError
+    from uhrnet.errors import DataError, UhrnetError, UsageError
 
     argv = sys.argv[1:] if argv is None else list(argv)
     chosen = next((a for a in argv if not a.startswith("-")), None)
@@ -371,7 +684,8 @@ def main(argv: list[str] | None = None) -> int:
     # FolderBusy, BackendError ... of the fppsim side are one line too (uhrnet reads through fppsim)
     return run_commands(build_parser(load=chosen if chosen in COMMANDS else ""), COMMANDS, argv,
                         (UhrnetError, DataError, FppsimError),
-                        resume_hint={"train": " (resume with --resume)"})
+                        resume_hint={"train": " (resume with --resume)"},
+                        usage_errors=(UsageError, FppsimUsageError))
 
 
 if __name__ == "__main__":

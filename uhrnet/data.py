@@ -13,7 +13,7 @@ Label units are those of the public figshare dataset: Z = 6 * height_mm + plane 
 :class:`fppsim.formats.LabelTransform` holds that preset and makes it configurable; fppsim's native
 heights (mm above the reference plane) are mapped through the same transform so real and synthetic
 samples mix. Files are read through :mod:`fppsim.formats` (the dataset contract) by the numpy
-readers of :mod:`uhrnet.reading`; splits come from :mod:`uhrnet.splits`; this module only adapts them
+readers of :mod:`fppsim.readers`; splits come from :mod:`uhrnet.splits`; this module only adapts them
 to torch (datasets, mixtures, the sampler, crops/resizing/augmentation, train/val/test sources).
 """
 
@@ -29,9 +29,11 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
-from fppsim.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids, open_figshare_pair
+from fppsim.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
+from fppsim.readers import open_figshare_pair
 from uhrnet.errors import DataError
-from uhrnet.reading import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
+from fppsim.readers import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
+                            read_native_phase,
                             read_fringe_image, read_native_pair)
 from uhrnet.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 
@@ -128,12 +130,21 @@ class FppsimDataset(Dataset):
     Native heights (mm above the reference plane) are mapped to labels with ``transform`` (figshare
     preset by default). ``label="psp"`` trains on the phase-shifting height (``height_psp``/``mask_psp``)
     instead of the exact one. ``mask_fringe`` sets the fringe to -1 on invalid pixels, as the figshare
-    data and ``fppsim export --format figshare`` do.
+    data and ``fppsim export --format figshare`` do. ``phase=True`` adds ``phase`` (1, H, W) float32, the
+    exact projector phase (rad, ``phase_true``) for the physics head; a figshare export has none, so its
+    ``native/`` folder (what ``fppsim generate --format figshare`` writes beside it) is read instead.
     """
 
     def __init__(self, folder: str | os.PathLike, transform: LabelTransform | str | dict | None = None,
-                 label: str = "true", mask_fringe: bool = True, check: bool = True, source: str = "synthetic"):
+                 label: str = "true", mask_fringe: bool = True, check: bool = True, source: str = "synthetic",
+                 phase: bool = False):
         self.root = Path(folder)
+        self.phase = bool(phase)
+        if self.phase and find_figshare_pair(self.root) is not None:
+            if not (self.root / "native" / "manifest.jsonl").is_file():
+                raise DataError(f"{self.root}: --head phase needs fppsim's native samples (phase_true); this figshare "
+                                "export has no native/ folder beside it")
+            self.root = self.root / "native"
         self.transform = LabelTransform.resolve(transform)
         self.source = source
         self.label = label
@@ -174,7 +185,10 @@ class FppsimDataset(Dataset):
             return self.arrays[i]
         sid = self.ids[int(i)]
         fringe, label = read_native_pair(self.root / sid, self.transform, self.label, self.mask_fringe)
-        return _sample(fringe, label, self.transform, sid, self.source)
+        sample = _sample(fringe, label, self.transform, sid, self.source)
+        if self.phase:
+            sample["phase"] = torch.from_numpy(read_native_phase(self.root / sid, fringe.shape))[None]
+        return sample
 
 
 def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:
@@ -361,8 +375,9 @@ class Prepared(Dataset):
     """
 
     def __init__(self, dataset: Dataset, crop: tuple[int, int] | None = None,
-                 resize: tuple[int, int] | None = None, random_crop: bool = True, augment=None):
+                 resize: tuple[int, int] | None = None, random_crop: bool = True, augment=None, phase: bool = False):
         self.dataset, self.crop, self.resize, self.random_crop = dataset, crop, resize, random_crop
+        self.phase = phase  # every sample carries "phase" (NaN where unknown, e.g. real samples) so batches collate
         self.augment = augment  # uhrnet.augment.AugmentConfig: photometric jitter of synthetic samples
         self.transform = getattr(dataset, "transform", None)
         self.ids = getattr(dataset, "ids", None)
@@ -373,6 +388,8 @@ class Prepared(Dataset):
     def __getitem__(self, key) -> dict:
         index, seed = (key if isinstance(key, tuple) else (key, None))
         sample = self.dataset[index]
+        if self.phase and "phase" not in sample:
+            sample = {**sample, "phase": torch.full_like(sample["height"], float("nan"))}
         if self.resize is not None:
             sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
         if self.augment is not None and seed is not None and sample.get("source") == "synthetic":
@@ -410,21 +427,26 @@ class Sources:
 
 def load_sources(real: Sequence[str] = (), synthetic: Sequence[str] = (), transform=None,
                  real_split: str = "reference", synthetic_split: str = "reference",
-                 synthetic_label: str = "true", check: bool = True) -> Sources:
-    """Open every folder and split each one on its own (so a real test sample never reaches training)."""
+                 synthetic_label: str = "true", check: bool = True, phase: bool = False) -> Sources:
+    """Open every folder and split each one on its own (so a real test sample never reaches training).
+    ``phase``: synthetic samples carry their exact phase (:class:`FppsimDataset`, for ``--head phase``)."""
     transform = LabelTransform.resolve(transform)
     parts = {"train": ([], []), "val": ([], []), "test": ([], [])}
     desc = {"real": [], "synthetic": [], "transform": transform.to_dict()}
     for group, folders, mode in ((0, real, real_split), (1, synthetic, synthetic_split)):
         for folder in folders:
             source = "real" if group == 0 else "synthetic"
-            kw = {"check": check}
-            if group == 1 and find_figshare_pair(folder) is None:
-                kw["label"] = synthetic_label
-            elif group == 1 and synthetic_label == "psp":
-                raise DataError(f"{folder}: --synthetic-label psp needs native samples with PSP arrays, but this is a "
-                                "figshare-format export (its Z is the exact height); use its native/ folder")
-            ds = open_dataset(folder, transform=transform, source=source, **kw)
+            if group == 1 and phase:
+                ds = FppsimDataset(folder, transform=transform, source=source, check=check, label=synthetic_label,
+                                   phase=True)
+            else:
+                kw = {"check": check}
+                if group == 1 and find_figshare_pair(folder) is None:
+                    kw["label"] = synthetic_label
+                elif group == 1 and synthetic_label == "psp":
+                    raise DataError(f"{folder}: --synthetic-label psp needs native samples with PSP arrays, but this "
+                                    "is a figshare-format export (its Z is the exact height); use its native/ folder")
+                ds = open_dataset(folder, transform=transform, source=source, **kw)
             try:
                 idx = {p: split_indices(len(ds), p, mode) for p in ("train", "val", "test")}
             except DataError as exc:

@@ -21,7 +21,9 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from fppsim.formats import LabelTransform, atomic_write_text, json_default
+from fppsim.encoding import json_default
+from fppsim.files import atomic_write_text
+from fppsim.formats import LabelTransform
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import Prepared, load_sources, parse_size
 from uhrnet.device import select_device
@@ -150,8 +152,9 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     ``row``) there. ``timing_repeats`` timed forward passes at batch 1 per model (0: no timing)."""
     from tqdm import tqdm
 
-    from uhrnet.inference import predict_labels
-    from uhrnet.metrics import count_parameters, image_metrics, inference_seconds
+    from uhrnet.prediction import predict_labels
+    from uhrnet.metrics import count_parameters, image_metrics
+    from uhrnet.timing import inference_seconds
     from uhrnet.plots import plot_comparison
 
     data = data or EvalData()

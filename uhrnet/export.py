@@ -1,7 +1,7 @@
 """``uhrnet export``: a checkpoint's model as ONNX or TorchScript, batch norms folded, checked.
 
 The exported model is the checkpoint's network in eval mode, batch norms folded into the convolutions
-(:mod:`uhrnet.optimize`), with the label head: input ``fringe`` ``(N, in_channels, H, W)`` float32,
+(:mod:`uhrnet.deploy`), with the label head: input ``fringe`` ``(N, in_channels, H, W)`` float32,
 the fringe normalised to [-1, 1] as in training; output ``label`` ``(N, out_channels, H, W)`` float32
 in label units (what ``uhrnet predict`` converts to millimetres). H and W must be multiples of 16;
 with ``dynamic=True`` the ONNX batch, height and width are free (TorchScript traces are always
@@ -28,9 +28,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim._fs import atomic_path, tmp_path, unlink_quietly
+from fppsim.files import atomic_path, tmp_path, unlink_quietly
 
 from uhrnet.errors import CheckpointError, ExportError, UsageError
+from uhrnet.models import prediction_of
 
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
@@ -79,12 +80,12 @@ def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> tor
 def deployable(model: nn.Module) -> nn.Module:
     """``model`` (e.g. a LabelHead) with batch norms folded, eval mode.
 
-    UHRNet's blocks are not merged (:func:`uhrnet.optimize.merge_multilevel_blocks`): onnxruntime runs
+    UHRNet's blocks are not merged (:func:`uhrnet.deploy.merge_multilevel_blocks`): onnxruntime runs
     convolutions in a blocked channel layout (NCHWc) and fuses a following residual add and LeakyReLU
     into them, but the merged block's channel splits force a layout conversion around every
     convolution (97 reorder nodes in UHRNet against 34 unmerged); torch runs them slower too.
     """
-    from .optimize import prepare_for_inference
+    from .deploy import prepare_for_inference
 
     return prepare_for_inference(model)
 
@@ -261,7 +262,7 @@ def check_export(path: str | Path, format: str, reference: nn.Module, input_shap
     x = check_input(c, h, w).expand(n, c, h, w).contiguous()
     with torch.no_grad():
         ref = reference.eval()(x)
-    ref = (ref[0] if isinstance(ref, (tuple, list)) else ref).float().numpy()
+    ref = prediction_of(ref).float().numpy()
     got = run_exported(path, format, x, runtime)
     if got.shape != ref.shape:
         return {"max_abs_diff": float("inf"), "output_range": float(np.ptp(ref)), "tolerance": 0.0, "passed": False,

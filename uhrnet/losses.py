@@ -229,6 +229,53 @@ class CompoundLoss(Loss):
         return f"alpha={self.alpha}"
 
 
+class PhaseHeadLoss(Loss):
+    """Training loss of the physics head (:class:`uhrnet.models.phase_head.PhaseHead`), per backbone output::
+
+        L = base(coarse label) + phase_weight * mean_valid[(c - cos Phi)^2 + (s - sin Phi)^2]
+            + invalid_weight * mean_invalid[c^2 + s^2] + height_weight * L2(final label, right order)
+
+    ``base`` is the run's height loss (e.g. compound) on the coarse height; ``(c, s)`` the predicted cosine
+    and sine, ``Phi`` the exact projector phase (``phase_true``, rad) of synthetic samples (pixels without
+    it, e.g. real ones, count in no phase term); on invalid (shadow) pixels ``(c, s)`` is pulled to 0, so
+    its length is the head's confidence. The final height (through the rig) is supervised with L2 where
+    its fringe order is right (within ``right_mm`` of the label): a wrong order is the coarse height's
+    fault, which ``base`` already penalises. ``phase_weight`` 100 makes a phase error cost about what its
+    height error would in label units (6 units/mm, ~0.9 rad/mm: ``(6/0.9)^2 / 2`` ~ 22 per rad^2 in the
+    small-error limit, times the chunked L2's patch weights and the SSIM term's scale).
+    """
+
+    def __init__(self, base: Loss, scale: float, shift: float, mm_per_unit: float, phase_weight: float = 100.0,
+                 invalid_weight: float = 10.0, height_weight: float = 1.0, right_mm: float = 1.5) -> None:
+        super().__init__()
+        self.base = base
+        self.scale, self.shift, self.mm_per_unit = float(scale), float(shift), float(mm_per_unit)
+        self.phase_weight, self.invalid_weight = float(phase_weight), float(invalid_weight)
+        self.height_weight, self.right_mm = float(height_weight), float(right_mm)
+
+    def forward(self, parts: Sequence[dict], target: torch.Tensor, mask, phase: torch.Tensor | None) -> torch.Tensor:
+        m = torch.ones_like(target) if mask is None else mask.to(target.dtype)
+        total = target.new_zeros(())
+        for p in parts:
+            coarse = p["coarse"] * self.scale + self.shift
+            total = total + self.base(coarse, target, m)
+            final = p["height"] * self.scale + self.shift
+            right = m * ((final.detach() - target).abs() * self.mm_per_unit < self.right_mm)
+            total = total + self.height_weight * ((final - target) ** 2 * right).sum() / right.sum().clamp(min=1)
+            c, s = p["cos_sin"]
+            if phase is not None:
+                has = m * torch.isfinite(phase)
+                ph = torch.nan_to_num(phase)
+                err = (c - torch.cos(ph)) ** 2 + (s - torch.sin(ph)) ** 2
+                total = total + self.phase_weight * (err * has).sum() / has.sum().clamp(min=1)
+            off = 1 - m
+            total = total + self.invalid_weight * ((c * c + s * s) * off).sum() / off.sum().clamp(min=1)
+        return total
+
+    def end_epoch(self) -> None:
+        self.base.end_epoch()
+
+
 LOSSES = ("compound", "l2", "chunked", "ssim")
 
 

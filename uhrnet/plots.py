@@ -1,4 +1,8 @@
-"""Figures: training curves like the paper's Fig. 6 and comparison panels like Figs. 7-9."""
+"""Figures: training curves like the paper's Fig. 6 and comparison panels like Figs. 7-9.
+
+Every uhrnet figure gets matplotlib from :func:`pyplot` and is written by :func:`save_figure` (both
+through :mod:`fppsim.plots`, the one place that sets matplotlib up).
+"""
 
 from __future__ import annotations
 
@@ -7,23 +11,16 @@ from typing import Sequence
 
 import numpy as np
 
+from fppsim.plots import pyplot
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
-
-    return plt
+__all__ = ["pyplot", "save_figure", "plot_history", "plot_comparison", "plot_adaptation"]
 
 
-def _save(fig, path) -> Path:
-    from fppsim.formats import atomic_path
+def save_figure(fig, path, dpi: float = 110) -> Path:
+    """Write ``fig`` to ``path`` atomically, trimmed to its content (``bbox_inches="tight"``)."""
+    from fppsim.plots import save_figure as save
 
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, bbox_inches="tight")
-    return path
+    return save(fig, path, dpi=dpi, bbox_inches="tight")
 
 
 def _column(rows: Sequence[dict], key: str) -> np.ndarray:
@@ -39,7 +36,7 @@ def _column(rows: Sequence[dict], key: str) -> np.ndarray:
 
 def plot_history(rows: Sequence[dict], path) -> Path:
     """Loss, RMSE (mm) and SSIM per epoch, train vs validation (the paper's Fig. 6)."""
-    plt = _plt()
+    plt = pyplot()
     epochs = _column(rows, "epoch")
     fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
     panels = (
@@ -61,7 +58,7 @@ def plot_history(rows: Sequence[dict], path) -> Path:
         if ax.has_data():
             ax.legend()
     fig.tight_layout()
-    path = _save(fig, path)
+    path = save_figure(fig, path)
     plt.close(fig)
     return path
 
@@ -73,7 +70,7 @@ def plot_comparison(fringe: np.ndarray, truth_mm: np.ndarray, valid: np.ndarray,
     ``truth_mm`` and the predictions are heights in mm (same reference); ``valid`` masks both. Layout:
     row 1 fringe | ground truth | predictions...; row 2 cross-section | error maps... (Figs. 7-9).
     """
-    plt = _plt()
+    plt = pyplot()
     h, w = truth_mm.shape
     row = h // 2 if row is None else int(np.clip(row, 0, h - 1))
     n = len(predictions)
@@ -123,6 +120,48 @@ def plot_comparison(fringe: np.ndarray, truth_mm: np.ndarray, valid: np.ndarray,
     if title:
         fig.suptitle(title)
     fig.tight_layout()
-    path = _save(fig, path)
+    path = save_figure(fig, path)
     plt.close(fig)
     return path
+
+
+def plot_adaptation(image, before_mm: np.ndarray, after_mm: np.ndarray, layer, path) -> Path:
+    """One figure per adapted image (:mod:`uhrnet.adapt`): the fringe, the height before and after
+    (mm, one colour range), their difference, and the wrapped phase residual ``wrap(phi - Phi(h) - o)``
+    (rad) before and after, on the image's reliable pixels. ``image``: :class:`uhrnet.adapt.ImagePhase`."""
+    import torch
+
+    plt = pyplot()
+    valid = image.reliability > 0
+    rel = image.reliability >= 0.5
+
+    def residual(h):
+        with torch.no_grad():
+            phi = layer.phase_from_height(torch.as_tensor(np.nan_to_num(h), dtype=torch.float64)).numpy()
+        d = np.angle(np.exp(1j * (image.wrapped - phi)))
+        o = np.angle(np.mean(np.exp(1j * d[rel]))) if rel.any() else 0.0
+        return np.where(rel, np.angle(np.exp(1j * (d - o))), np.nan)
+
+    show = lambda h: np.where(valid, h, np.nan)  # noqa: E731
+    both = np.concatenate([before_mm[valid], after_mm[valid]])
+    lo, hi = (np.nanpercentile(both, [1, 99]) if both.size else (0.0, 1.0))
+    diff = show(after_mm - before_mm)
+    dmax = float(np.nanpercentile(np.abs(diff), 99)) if np.isfinite(diff).any() else 1.0
+    fig, axes = plt.subplots(2, 3, figsize=(15, 6.2))
+    panels = [(image.fringe, "fringe (input)", "gray", None, None),
+              (show(before_mm), "height before (mm)", "viridis", lo, hi),
+              (show(after_mm), "height after (mm)", "viridis", lo, hi),
+              (diff, "after - before (mm)", "RdBu_r", -dmax, dmax),
+              (residual(before_mm), "phase residual before (rad)", "twilight", -np.pi, np.pi),
+              (residual(after_mm), "phase residual after (rad)", "twilight", -np.pi, np.pi)]
+    for ax, (img, title, cmap, vmin, vmax) in zip(axes.ravel(), panels):
+        im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax)
+        ax.set_title(title)
+        ax.axis("off")
+        fig.colorbar(im, ax=ax, fraction=0.03)
+    fig.suptitle(f"{image.name}: label-free adaptation")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, path)
+    plt.close(fig)
+    return Path(path)

@@ -1,9 +1,12 @@
-"""Prediction: ``uhrnet.predict(PredictConfig(...))`` turns fringe images into height maps (mm), colour
-previews and point clouds; ``uhrnet predict`` calls it.
+"""Prediction: running a trained model on images of any size (:func:`predict_labels`, which evaluation
+and the sim-to-real experiment use too), and ``uhrnet.predict(PredictConfig(...))``, which turns fringe
+image files into height maps (mm), colour previews and point clouds; ``uhrnet predict`` calls it.
 
-Inputs: 8-bit (or 16-bit) grey PNG/TIFF/BMP/JPEG images, or ``.npy`` arrays in the dataset encoding
-(intensity / 127.5 - 1, shapes (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)), or folders of them.
-For every image ``NAME`` it writes to ``out``:
+Inputs (:func:`read_inputs`): 8-bit (or 16-bit) grey PNG/TIFF/BMP/JPEG images, or ``.npy`` arrays in the
+dataset encoding (intensity / 127.5 - 1, shapes (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)), folders of
+them, figshare folders (``f1_80.npy`` + ``Z.npy`` or ``fringe_pattern.npy`` + ``height_map.npy``: only the
+fringes are read, named ``<folder>_<index>``) and phase-shifting folders (``PSin/ PCos/ Fringe/ iPattern/``:
+the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image ``NAME`` it writes to ``out``:
 
 * ``NAME_height.npy`` and ``NAME_height.tif``: float32 height above the reference plane in mm
   (label transform of the checkpoint: ``(label - plane_offset) / units_per_mm``), NaN where invalid;
@@ -12,6 +15,14 @@ For every image ``NAME`` it writes to ``out``:
   are the camera rays of the calibrated rig (``fppsim.rig``) cut at the predicted height, in world
   millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
 
+``refine="phase"`` (``--refine phase``) then moves the heights to agree with the image's own fringe
+phase (:func:`fppsim.fringe.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
+fppsim's default rig): ``refine_method="relief"`` (default, :func:`uhrnet.refine.refine_relief`: the
+relief from the phase, unwrapped region by region, the level from the network) or ``"nearest"``
+(:func:`uhrnet.refine.refine_height`: each pixel to the nearest phase-consistent height within a margin).
+``NAME_height.*`` is then the refined map, ``NAME_height_network.npy`` the network's own, and
+``refine.json`` lists per image the share of pixels moved (:attr:`PredictResult.refine`).
+
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
 input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
 prediction without any valid pixel is written and reported in :attr:`PredictResult.warnings`.
@@ -19,7 +30,7 @@ prediction without any valid pixel is written and reported in :attr:`PredictResu
 Inputs must be at least ``MIN_SIDE`` x ``MIN_SIDE`` pixels (the networks pool four times). Colour
 images are accepted when they show a grey scene (channels equal within a few gray levels): they are
 converted to their luminance, which for equal channels is exactly the grey image; other colour
-images are refused (see :func:`fppsim.formats.colour_to_grey`).
+images are refused (see :func:`fppsim.encoding.colour_to_grey`).
 """
 
 from __future__ import annotations
@@ -30,20 +41,61 @@ from typing import Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
-from fppsim.formats import as_image_stack, atomic_path, encode_fringe
+from fppsim.encoding import as_image_stack, encode_fringe
+from fppsim.files import atomic_path
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size
-from uhrnet.reading import read_fringe_image
+from fppsim.readers import read_fringe_image
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
+from uhrnet.models import prediction_of
 
-__all__ = ["PredictConfig", "PredictResult", "predict", "collect_inputs", "load_inputs", "points_from_rig",
-           "points_from_grid", "write_ply"]
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "pad_to_multiple", "collect_inputs",
+           "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "points_from_rig", "points_from_grid",
+           "write_ply"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 INPUT_EXTS = IMAGE_EXTS + (".npy",)
 MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad ``(N, C, H, W)`` at the bottom/right (edge replication) to multiples of ``multiple``;
+    returns the padded tensor and the original ``(H, W)``."""
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph or pw:
+        x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+    return x, (h, w)
+
+
+@torch.no_grad()
+def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
+                   amp: bool = False) -> torch.Tensor:
+    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size.
+
+    ``model``: a model in label units (:func:`uhrnet.checkpoint.model_from_checkpoint`); it is put in
+    eval mode. ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and
+    resample the prediction back. Inputs whose sides are not multiples of 16 are padded and cropped
+    back. ``amp``: autocast (fp16 on CUDA, bf16 on CPU).
+    """
+    model.eval()
+    device = next(model.parameters()).device
+    x = fringe.to(device, torch.float32)
+    h, w = x.shape[-2:]
+    if size is not None and tuple(size) != (h, w):
+        x = F.interpolate(x, size=tuple(size), mode="area")
+    x, (hh, ww) = pad_to_multiple(x)
+    ctx = torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16) \
+        if amp else torch.autocast(device.type, enabled=False)
+    with ctx:
+        out = model(x)
+    out = prediction_of(out).float()[..., :hh, :ww]
+    if out.shape[-2:] != (h, w):
+        out = F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)
+    return out
 
 
 @dataclass
@@ -64,10 +116,18 @@ class PredictConfig:
     ply: bool = True
     device: str = "auto"
     progress: bool = True
+    refine: str | None = None
+    refine_method: str = "relief"
 
     def __post_init__(self):
         if isinstance(self.inputs, (str, Path)):
             self.inputs = [self.inputs]
+        if self.refine not in (None, "none", "phase"):
+            raise UsageError(f"--refine must be phase or none, got {self.refine!r}")
+        from uhrnet.refine import REFINE_METHODS
+
+        if self.refine_method not in REFINE_METHODS:
+            raise UsageError(f"--refine-method must be one of {', '.join(REFINE_METHODS)}, got {self.refine_method!r}")
         if not (self.pixel_size > 0 and np.isfinite(self.pixel_size)):
             raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {self.pixel_size:g}")
         if self.range is not None and not (np.isfinite(self.range).all() and self.range[0] < self.range[1]):
@@ -84,6 +144,7 @@ class PredictResult:
     files: list[Path] = field(default_factory=list)
     names: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    refine: dict[str, dict] = field(default_factory=dict)  # name -> refine statistics (--refine phase)
 
 
 def collect_inputs(items: list[str]) -> list[Path]:
@@ -104,6 +165,60 @@ def collect_inputs(items: list[str]) -> list[Path]:
     return files
 
 
+def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[tuple]:
+    """Every fringe image of ``items`` as ``[(name, fringe float32 (H, W) in [-1, 1]), ...]``: image and
+    ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
+    phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
+    repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
+    from fppsim.formats import find_figshare_pair
+    from fppsim.readers import PSPMatError, is_psp_folder, list_psp_ids, load_ipattern, open_figshare_pair
+
+    out: list[tuple[str, np.ndarray]] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir() and is_psp_folder(p):
+            try:
+                for sid in list_psp_ids(p, roles=("image",)):
+                    f = p / "iPattern" / f"{sid}.mat"
+                    out.append((f"{p.name}_{sid}", encode_fringe(load_ipattern(f)), f))
+            except PSPMatError as exc:
+                raise DataError(str(exc)) from None
+        elif p.is_dir() and find_figshare_pair(p) is not None:
+            fringe_path, _ = find_figshare_pair(p)
+            if not fringe_path.is_file():
+                raise DataError(f"{fringe_path}: file not found (figshare folder {p} without its fringes)")
+            arr = as_image_stack(np.load(fringe_path, mmap_mode="r", allow_pickle=False), fringe_path)
+            for k in range(arr.shape[0]):
+                out.append((f"{p.name}_{k:04d}" if arr.shape[0] > 1 else p.name, _checked(arr[k], fringe_path, k),
+                            fringe_path))
+        else:
+            for path in collect_inputs([str(p)]):
+                out += [(name, fringe, path) for name, fringe in load_inputs(path)]
+    names: set[str] = set()
+    unique = []
+    for name, fringe, path in out:
+        if name in names:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
+            name = f"{path.parent.name}_{name}"
+        base, k = name, 1
+        while name in names:
+            k += 1
+            name = f"{base}_{k}"
+        names.add(name)
+        unique.append((name, fringe, path) if with_paths else (name, fringe))
+    return unique
+
+
+def _checked(img, path: Path, k: int) -> np.ndarray:
+    img = np.array(img, dtype=np.float32)
+    if not np.isfinite(img).all():
+        raise DataError(f"{path}: image {k} contains NaN/inf")
+    lo, hi = float(img.min()), float(img.max())
+    if lo < -1.001 or hi > 1.001:
+        raise DataError(f"{path}: values span [{lo:g}, {hi:g}]; expected the dataset encoding "
+                        "intensity / 127.5 - 1 in [-1, 1]")
+    return img
+
+
 def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
     """``[(name, fringe float32 (H, W) in [-1, 1]), ...]`` for one input file."""
     if path.suffix.lower() != ".npy":
@@ -117,17 +232,8 @@ def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
         arr = encode_fringe(arr)
     elif not np.issubdtype(arr.dtype, np.floating):
         raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
-    out = []
-    for k in range(arr.shape[0]):
-        img = np.array(arr[k], dtype=np.float32)
-        if not np.isfinite(img).all():
-            raise DataError(f"{path}: image {k} contains NaN/inf")
-        lo, hi = float(img.min()), float(img.max())
-        if lo < -1.001 or hi > 1.001:
-            raise DataError(f"{path}: values span [{lo:g}, {hi:g}]; expected the dataset encoding "
-                            "intensity / 127.5 - 1 in [-1, 1]")
-        out.append((path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", img))
-    return out
+    return [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
+            for k in range(arr.shape[0])]
 
 
 def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
@@ -174,10 +280,7 @@ def write_tiff(path: Path, array: np.ndarray) -> None:
 
 
 def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg", force=True)
-    from matplotlib import colormaps
+    from matplotlib import colormaps  # (colour maps only: no figure, so no backend to set up)
 
     finite = height_mm[np.isfinite(height_mm)]
     if vrange is None:
@@ -197,9 +300,7 @@ def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
-    from uhrnet.inference import predict_labels
-
-    files = collect_inputs(config.inputs)
+    inputs = read_inputs(config.inputs, with_paths=True)
     ckpt = load_checkpoint(config.checkpoint)
     device = select_device(config.device)
     model, transform = model_from_checkpoint(ckpt, device)
@@ -212,41 +313,82 @@ def predict(config: PredictConfig) -> PredictResult:
             rig = Rig.load(config.rig)
         except RigError as exc:
             raise ConfigError(str(exc)) from None
+    refine_rig = None
+    if config.refine == "phase":
+        refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = PredictResult(files=files)
-    used: set[str] = set()
-    for path in tqdm(files, desc="predict", unit="file", disable=not config.progress or len(files) < 2):
-        for name, fringe in load_inputs(path):
-            if name in used:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
-                name = f"{path.parent.name}_{name}"
-            base, k = name, 1
-            while name in used:
-                k += 1
-                name = f"{base}_{k}"
-            used.add(name)
-            if min(fringe.shape) < MIN_SIDE:
-                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
-                                  f"{MIN_SIDE}x{MIN_SIDE} pixels")
-            if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
-                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
-                                  f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
-            label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
-            height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
-            if not config.keep_all:
-                valid = transform.valid(label) & (fringe > -1 + 1e-6)
-                height = np.where(valid, height, np.float32(np.nan))
-            if not np.isfinite(height).any():
-                result.warnings.append(
-                    f"{path} ({name}): no valid pixel in the prediction (every label at or below "
-                    f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
-            with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
+    result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
+        if min(fringe.shape) < MIN_SIDE:
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
+                              f"{MIN_SIDE}x{MIN_SIDE} pixels")
+        if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
+                              f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
+        label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
+        height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
+        if not config.keep_all:
+            valid = transform.valid(label) & (fringe > -1 + 1e-6)
+            height = np.where(valid, height, np.float32(np.nan))
+        if not np.isfinite(height).any():
+            result.warnings.append(
+                f"{path} ({name}): no valid pixel in the prediction (every label at or below "
+                f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
+        if refine_rig is not None:
+            cam = refine_rig.camera
+            if (cam.height, cam.width) != fringe.shape:
+                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
+                                  f"({rig_name}) sees {cam.width}x{cam.height}")
+            with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
                 np.save(fh, height)
-            write_tiff(out / f"{name}_height.tif", height)
-            write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
-            if config.ply:
-                pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
-                grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
-                write_ply(out / f"{name}.ply", pts, grey)
-            result.names.append(name)
+            height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)
+            result.refine[name] = {**stats, "rig": rig_name}
+        with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
+            np.save(fh, height)
+        write_tiff(out / f"{name}_height.tif", height)
+        write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
+        if config.ply:
+            pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
+            grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
+            write_ply(out / f"{name}.ply", pts, grey)
+        result.names.append(name)
+    if result.refine:
+        import json
+
+        from fppsim.files import atomic_write_text
+        from fppsim.encoding import json_default
+
+        atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
     return result
+
+
+def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
+    """The rig ``--refine`` uses and its name: ``rig`` (``--rig``), else the checkpoint's own (physics head
+    or an adaptation's), else fppsim's default rig."""
+    from fppsim.rig import Rig, load_rig
+
+    if rig is not None:
+        return rig, str(rig_path)
+    own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
+    if own is not None:
+        return Rig.from_dict(own), "the checkpoint's rig"
+    return load_rig(None), "fppsim's default rig"
+
+
+def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
+    """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
+    through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
+    from fppsim.fringe import single_shot_phase
+    from uhrnet.refine import refine_height, refine_relief
+
+    ssp = single_shot_phase(fringe)
+    valid = np.isfinite(height_mm) & ssp.valid
+    if method == "nearest":
+        refined, _, stats = refine_height(np.where(valid, height_mm, np.nan), ssp.wrapped, ssp.reliability, rig,
+                                          phase_offset="estimate")
+        stats = {"method": "nearest", **stats}
+    else:
+        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid)
+    refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
+    return refined, stats

@@ -13,7 +13,8 @@ import shutil
 import sys
 from pathlib import Path
 
-from fppsim.formats import atomic_path, atomic_write_text, json_default
+from fppsim.encoding import json_default
+from fppsim.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import atomic_save
 from uhrnet.errors import ConfigError
 

@@ -27,17 +27,21 @@ DEFAULTS = {
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
-    "augment_probability": 0.8, "init": "auto",
+    "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
 }
 # what a run made before an option existed used: resuming it must not switch the option on
-LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch"}
+LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_from": None, "freeze": "none",
+          "head": "height", "rig": None}
+# LEGACY options that a resume of a run made before them must not be given with another value either
+# (the run's weights did not start from a checkpoint, nothing was frozen)
+LEGACY_LOCKED = ("init_from", "freeze", "head", "rig")
 LR_SCHEDULES = ("cosine", "constant", "flat-cosine")
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 LR_FLAT = 0.7  # flat-cosine: share of the steps at --lr before its cosine decay
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
-          "augment_probability", "init")
+          "augment_probability", "init", "init_from", "freeze", "head", "rig")
 
 
 @dataclass
@@ -55,6 +59,24 @@ class TrainConfig:
     ``he`` for models without batch norm, ``torch`` otherwise; ``he``: N(0, 2/fan_in) as the U-Net paper;
     ``torch``: PyTorch's default, what every run used before); on resume the checkpoint's weights are
     kept, and a different ``init`` is refused like every LOCKED option.
+    ``init_from``: transfer learning: a fresh run starts from the weights of this checkpoint (a ``.pt``
+    file or a run folder: its ``best.pt``, else ``last.pt``) instead of ``init``, with a fresh optimizer,
+    schedule, loss state and epoch count; the architecture (``model``, ``base_channels``,
+    ``model_option``) and what the network output means (``raw_output``, label scale) must match the
+    checkpoint's; with an ``--ema`` checkpoint its averaged weights are taken
+    (:func:`uhrnet.checkpoint.init_from_checkpoint`). The run records the resolved file as ``init_from``
+    and ``init_from_checkpoint`` = ``{"path", "sha256", "epoch", "weights", ...}``; a resume continues
+    the run (nothing is re-initialised) and refuses another ``init_from``.
+    ``freeze``: ``none`` or a part of :data:`uhrnet.models.freeze.FREEZE_CHOICES` (``encoder``,
+    ``decoder``) kept fixed at its initial weights (needs ``init_from``): left out of the optimizer, its
+    batch norms in eval mode (:mod:`uhrnet.models.freeze`).
+    ``head``: ``height`` (the network predicts height) or ``phase``: the physics head
+    (:mod:`uhrnet.models.phase_head`): the network predicts the fringe phase (cosine, sine) and a coarse
+    height, and the calibrated rig turns them into height; trained on synthetic native samples, whose
+    ``phase_true`` supervises the phase (:class:`uhrnet.losses.PhaseHeadLoss`). ``rig``: the calibration
+    file of the phase head (default: the rig recorded in the first synthetic sample's ``meta.json``, else
+    fppsim's default rig); the checkpoint carries it. The phase head needs full camera-size images (no
+    ``crop``/``resize``: each pixel is a camera ray).
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
@@ -87,6 +109,10 @@ class TrainConfig:
     grad_clip: float | None = None
     ema: float | None = None
     init: str | None = None
+    init_from: str | os.PathLike | None = None
+    freeze: str | None = None
+    head: str | None = None
+    rig: str | os.PathLike | None = None
     amp: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
@@ -110,7 +136,7 @@ def check_options(cfg: dict) -> None:
     """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
     of the first invalid option in ``cfg``."""
     from fppsim.formats import PRESETS
-    from uhrnet.reading import LABEL_SOURCES
+    from fppsim.readers import LABEL_SOURCES
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
@@ -156,6 +182,24 @@ def check_options(cfg: dict) -> None:
 
         if cfg["init"] not in INITS:
             raise UsageError(f"--init must be one of {', '.join(INITS)}, got {cfg['init']!r}")
+    if "freeze" in cfg:
+        from uhrnet.models.freeze import FREEZE_CHOICES
+
+        if cfg["freeze"] not in FREEZE_CHOICES:
+            raise UsageError(f"--freeze must be one of {', '.join(FREEZE_CHOICES)}, got {cfg['freeze']!r}")
+        if cfg["freeze"] != "none" and "init_from" in cfg and not cfg["init_from"]:
+            raise ConfigError(f"--freeze {cfg['freeze']} needs --init-from CKPT (frozen random weights never learn)")
+    if "head" in cfg:
+        from uhrnet.models.phase_head import HEADS
+
+        if cfg["head"] not in HEADS:
+            raise UsageError(f"--head must be one of {', '.join(HEADS)}, got {cfg['head']!r}")
+        if cfg["head"] == "phase" and (cfg.get("crop") or cfg.get("resize")):
+            raise ConfigError("--head phase needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
+        if cfg["head"] == "phase" and cfg.get("raw_output"):
+            raise ConfigError("--head phase predicts heights through the rig: --raw-output does not apply")
+    if cfg.get("rig") and cfg.get("head", "height") != "phase":
+        raise ConfigError("--rig belongs to --head phase (the rig that turns phase into height)")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 
@@ -177,8 +221,20 @@ def parse_kv(items, what: str) -> dict:
 def _normalise(key: str, value):
     if key in ("real", "synthetic"):
         return [str(Path(v).resolve()) for v in (value or [])]
+    if key == "rig" and value:
+        return str(Path(value).resolve())
     if key in ("label_transform", "model_option"):
         return sorted(value or [])
+    if key == "init_from":  # the checkpoint file itself, however it was named (file or run folder)
+        if not value:
+            return None
+        from uhrnet.checkpoint import checkpoint_file
+        from uhrnet.errors import CheckpointError
+
+        try:
+            return str(checkpoint_file(Path(value).resolve()))
+        except CheckpointError:  # a folder that no longer holds a checkpoint: compare the names
+            return str(Path(value).resolve())
     if key == "augment":  # runs saved before the augmentation kinds hold a boolean
         from uhrnet.augment import augment_kind
 
@@ -186,25 +242,36 @@ def _normalise(key: str, value):
     return value
 
 
+def _refuse_change(key: str, given, recorded) -> None:
+    if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, recorded):
+        flag = "--" + key.replace("_", "-")
+        raise ConfigError(
+            f"{flag} {given} differs from the checkpoint's {recorded!r}; drop {flag} to resume, "
+            "or start a new --out"
+        )
+
+
 def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
-    """Options after defaults (fresh run) or the checkpoint's options (resume)."""
+    """Options after defaults (fresh run) or the checkpoint's options (resume).
+
+    On resume ``init_from_checkpoint`` (what a run started with ``--init-from`` recorded) is carried over.
+    """
     cfg = {}
     for key, default in DEFAULTS.items():
         given = getattr(args, key, None)
         if previous is not None and key in previous:
-            if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, previous[key]):
-                flag = "--" + key.replace("_", "-")
-                raise ConfigError(
-                    f"{flag} {given} differs from the checkpoint's {previous[key]!r}; drop {flag} to resume, "
-                    "or start a new --out"
-                )
+            _refuse_change(key, given, previous[key])
             cfg[key] = previous[key] if given is None else given
-        elif previous is not None and key in LEGACY and given is None:
+        elif previous is not None and key in LEGACY and (given is None or key in LEGACY_LOCKED):
+            _refuse_change(key, given, LEGACY[key])
             cfg[key] = LEGACY[key]
         else:
             cfg[key] = default if given is None else given
     cfg["real"] = _normalise("real", cfg["real"])
     cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
+    cfg["init_from"] = _normalise("init_from", cfg["init_from"])
+    if previous is not None and previous.get("init_from_checkpoint"):
+        cfg["init_from_checkpoint"] = previous["init_from_checkpoint"]
     check_options(cfg)
     return cfg
 

@@ -7,7 +7,9 @@ process layout under torchrun in :mod:`uhrnet.distributed`; this module is the l
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
 ``RUN/history.png`` (the paper's Fig. 6); ``RUN/last.pt`` is written atomically after every epoch and
 ``RUN/best.pt`` whenever the validation RMSE improves. ``--resume`` continues a run exactly (model,
-optimizer, loss ranks, RNG streams, data order). Under ``torchrun --nproc_per_node N -m uhrnet train``
+optimizer, loss ranks, RNG streams, data order). ``--init-from CKPT`` starts a fresh run from a
+checkpoint's weights (transfer learning; :func:`uhrnet.checkpoint.init_from_checkpoint`), ``--freeze
+PART`` keeps a part of them fixed (:mod:`uhrnet.models.freeze`). Under ``torchrun --nproc_per_node N -m uhrnet train``
 it runs DistributedDataParallel (gloo on CPU, nccl on GPU); only rank 0 writes.
 """
 
@@ -24,13 +26,15 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from fppsim._fs import check_writable_dir, clean_stale_tmp, folder_lock
+from fppsim.files import check_writable_dir, clean_stale_tmp, folder_lock
 from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
 from uhrnet.data import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
 from uhrnet.distributed import DistInfo, MetricSums, all_reduce, init_distributed
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.metrics import image_metrics
+from uhrnet.models import outputs_of
+from uhrnet.models.freeze import keep_frozen_eval
 from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
 from uhrnet.train_config import LR_FLAT, LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
@@ -62,8 +66,9 @@ class Trainer:
     # -- construction -------------------------------------------------------------------------------
     def _build(self) -> None:
         cfg, info = self.cfg, self.info
+        self.phase_head = cfg["head"] == "phase"
         sources = load_sources(cfg["real"], cfg["synthetic"], self.transform, cfg["real_split"],
-                               cfg["synthetic_split"], cfg["synthetic_label"])
+                               cfg["synthetic_split"], cfg["synthetic_label"], phase=self.phase_head)
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
@@ -73,8 +78,8 @@ class Trainer:
         augment = augment_config(cfg["augment"])
         if augment is not None:
             augment = dataclasses.replace(augment, probability=float(cfg["augment_probability"]))
-        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment)
-        self.val_set = Prepared(sources.val, crop, resize, random_crop=False)
+        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment, phase=self.phase_head)
+        self.val_set = Prepared(sources.val, crop, resize, random_crop=False, phase=self.phase_head)
         if len(self.train_set) == 0:
             raise ConfigError("no training samples: every sample is in the val/test split "
                            "(check --real-split/--synthetic-split)")
@@ -101,6 +106,8 @@ class Trainer:
         options = parse_kv(cfg["model_option"], "--model-option")
         if cfg["base_channels"] is not None:
             options["base_channels"] = cfg["base_channels"]
+        if self.phase_head:
+            options.update(head="phase", rig=head_rig(cfg["rig"], cfg["synthetic"]))
         try:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
@@ -112,6 +119,16 @@ class Trainer:
         self.n_params = count_parameters(net)
         scale, shift = (1.0, 0.0) if cfg["raw_output"] else (10.0 * self.transform.units_per_mm,
                                                              self.transform.plane_offset)
+        if cfg["init_from"] and self.ckpt is None:  # a fresh run from a checkpoint's weights (a resume keeps its own)
+            from uhrnet.checkpoint import init_from_checkpoint, output_mm
+
+            record = init_from_checkpoint(net, cfg["init_from"], output_mm(scale, shift, self.transform))
+            cfg["init_from"] = record["path"]
+            cfg["init_from_checkpoint"] = record
+        from uhrnet.models.freeze import freeze
+
+        self.frozen = freeze(net, cfg["freeze"])  # before the average copies the network and DDP wraps it
+        self.n_trainable = sum(p.numel() for p in net.parameters() if p.requires_grad)
         self.model = LabelHead(net, scale, shift).to(self.device)
         self.ema = None
         self.eval_model = self.model
@@ -132,7 +149,12 @@ class Trainer:
             self.loss_fn = build_loss(cfg["loss"], data_range=self.transform.data_range).to(self.device)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"--loss {cfg['loss']}: {exc}") from None
-        self.optimizer = torch.optim.Adam(net.parameters(), lr=cfg["lr"], weight_decay=cfg["weight_decay"])
+        if self.phase_head:
+            from uhrnet.losses import PhaseHeadLoss
+
+            self.loss_fn = PhaseHeadLoss(self.loss_fn, scale, shift, self.transform.mm_per_unit).to(self.device)
+        trainable = [p for p in net.parameters() if p.requires_grad]  # --freeze: frozen weights never move
+        self.optimizer = torch.optim.Adam(trainable, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
         self.amp = bool(cfg["amp"])
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp and self.device.type == "cuda")
         self.history: list[dict] = []
@@ -177,6 +199,9 @@ class Trainer:
         return (batch["fringe"].to(self.device, non_blocking=nb), batch["height"].to(self.device, non_blocking=nb),
                 batch["mask"].to(self.device, non_blocking=nb))
 
+    def _phase(self, batch):
+        return batch["phase"].to(self.device, non_blocking=self.device.type == "cuda") if "phase" in batch else None
+
     def lr_at(self, epoch: int, step: int) -> float:
         """Learning rate of ``step`` (0-based) of ``epoch`` (0-based): a function of the position in the
         run alone, so a resumed run follows the same curve.
@@ -207,6 +232,7 @@ class Trainer:
         self.sampler.set_epoch(epoch)
         self.loader.generator = torch.Generator().manual_seed(self.cfg["seed"] * 100_003 + epoch)
         self.ddp.train()
+        keep_frozen_eval(self.frozen)  # --freeze: the frozen part's batch norms keep their statistics
         sums = MetricSums(["loss", "rmse", "ssim"])
         bar = None
         if self.info.main and self.args.progress:  # tqdm only when it shows (a bare GPU machine may lack it)
@@ -218,8 +244,11 @@ class Trainer:
             x, y, m = self._batch(batch)
             with self._autocast():
                 out = self.ddp(x)
-            outs = out if isinstance(out, (tuple, list)) else (out,)
-            loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
+            outs = outputs_of(out)  # hNet: the fused and the side outputs, all supervised
+            if self.phase_head:  # the physics head: coarse height, phase and height through the rig
+                loss = self.loss_fn(self.net.last_parts, y, m, self._phase(batch))
+            else:
+                loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
             finite = torch.isfinite(loss.detach()).to(torch.float64).reshape(1).cpu()
             if float(all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
                 raise TrainingDiverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
@@ -319,12 +348,21 @@ class Trainer:
                                         "data": self.sources.description, "n_parameters": self.n_params,
                                         "world_size": info.world})
             src = self.sources
-            print(f"uhrnet train: {cfg['model']} ({self.n_params:,} parameters), loss {cfg['loss']}, "
+            frozen = (f", {self.n_trainable:,} trainable (--freeze {cfg['freeze']})"
+                      if cfg["freeze"] != "none" else "")
+            print(f"uhrnet train: {cfg['model']} ({self.n_params:,} parameters{frozen}), loss {cfg['loss']}, "
                   f"{src.train.n_real} real + {src.train.n_synthetic} synthetic training / {len(src.val)} validation "
                   f"images at {self.image_shape[0]}x{self.image_shape[1]}, device {self.device}"
                   + (f" x {info.world} processes" if info.enabled else "") + f", run folder {self.out}", flush=True)
             if self.start_epoch:
                 print(f"resuming after epoch {self.start_epoch}", flush=True)
+            elif cfg.get("init_from_checkpoint"):
+                rec = cfg["init_from_checkpoint"]
+                kind = "moving-average (--ema)" if rec["weights"] == "ema" else "trained"
+                other = rec.get("other_options") or {}
+                other = f"; this run keeps its own {', '.join(other)} (no weight depends on it)" if other else ""
+                print(f"init-from {rec['path']}: the {kind} weights of its epoch {rec['epoch']} "
+                      f"(sha256 {rec['sha256'][:12]}){other}; fresh optimizer and schedule", flush=True)
             if cfg["synthetic_ratio"] is not None and not (src.train.n_real and src.train.n_synthetic):
                 print("note: --synthetic-ratio has no effect with only one kind of training data", flush=True)
         if self.start_epoch >= cfg["epochs"]:
@@ -372,6 +410,27 @@ class Trainer:
                 print(f"done: no best.pt written (no epoch had a finite {self.best['metric']}); last epoch in "
                       f"{self.out / 'last.pt'}, history {self.out / 'history.csv'}", flush=True)
         return 0
+
+
+def head_rig(rig: str | None, synthetic) -> dict:
+    """The phase head's rig as a dictionary: ``rig`` (a calibration file) or the rig recorded in the first
+    synthetic native sample's ``meta.json`` (a figshare export's ``native/`` folder too), else fppsim's
+    default rig."""
+    import json
+
+    from fppsim.rig import Rig, RigError, load_rig
+
+    try:
+        if rig:
+            return load_rig(rig).to_dict()
+        for folder in synthetic or ():
+            root = Path(folder) / "native" if (Path(folder) / "native").is_dir() else Path(folder)
+            meta = next(iter(sorted(root.glob("*/meta.json"))), None)
+            if meta is not None:
+                return Rig.from_dict(json.loads(meta.read_text())["rig"]).to_dict()
+        return load_rig(None).to_dict()
+    except (RigError, OSError, KeyError, ValueError) as exc:
+        raise ConfigError(f"--rig: {exc}") from None
 
 
 def train(config: TrainConfig) -> dict:

@@ -59,7 +59,8 @@ from pathlib import Path
 from typing import Sequence
 
 from ..errors import ValidateError
-from ..formats import atomic_write_text, json_default
+from ..encoding import json_default
+from ..files import atomic_write_text
 from .report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
                      validate_dataset, write_error_map)
 from .sample import ORDER_ERROR_RAD, evaluate_sample

@@ -14,7 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DatasetError, ValidateError
-from ..formats import atomic_path, atomic_write_text, json_default, load_native_sample, read_manifest, read_settings
+from ..encoding import json_default
+from ..files import atomic_path, atomic_write_text
+from ..formats import read_manifest, read_settings
+from ..readers import load_native_sample
 from .sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 
 __all__ = ["resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
@@ -173,9 +176,7 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     errors); order-error pixels magenta, exact-valid pixels PSP rejected grey, pixels outside the exact
     mask (shadow, outside the projector) black.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
+    import matplotlib  # (a bare Figure renders without pyplot or a backend: nothing to set up)
     from matplotlib import colors
     from matplotlib.cm import ScalarMappable
     from matplotlib.figure import Figure

@@ -1,4 +1,4 @@
-"""fppsim.appearance: each Optics appearance field changes the rendered image the way it should."""
+"""fppsim.optics appearance effects: each one changes the rendered image the way it should."""
 
 import numpy as np
 import pytest
@@ -24,11 +24,11 @@ def scene():
 
 
 def _render(scene, seed=0, **kw):
-    from fppsim.synth import render_images
+    from fppsim.optics import form_images
 
     rig, geom = scene
     opt = Optics(noise_sigma=0.0, shot_noise=0.0, **kw)
-    return render_images(geom, rig, opt, [(80.0, 0.0), (80.0, np.pi)], None, 1, np.random.default_rng(seed))
+    return form_images(geom, rig, opt, [(80.0, 0.0), (80.0, np.pi)], None, 1, np.random.default_rng(seed))
 
 
 def _background(imgs):
@@ -80,7 +80,7 @@ def test_vignetting_falls_off_towards_the_corners(scene):
 
 
 def test_specular_brightens_the_object_where_the_lobe_points(scene):
-    from fppsim.appearance import specular_term
+    from fppsim.optics.specular import specular_term
 
     rig, geom = scene
     obj = geom.on_object & geom.lit

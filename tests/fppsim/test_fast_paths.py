@@ -7,9 +7,11 @@ import zipfile
 import numpy as np
 import pytest
 
-from fppsim import psp
-from fppsim.formats import LabelTransform, export_figshare, save_npz, write_sample_folder
-from fppsim.pipeline import BackgroundWriter, FigshareRows, figshare_rows
+from fppsim import psp, triangulation
+from fppsim.encoding import save_npz
+from fppsim.formats import LabelTransform
+from fppsim.writers import export_figshare, write_sample_folder
+from fppsim.writers import BackgroundWriter, FigshareRows, figshare_rows
 
 
 def _float_path(stack, shifts=None):
@@ -46,10 +48,10 @@ def test_camera_rays_cache_matches_and_is_read_only():
     from fppsim.rig import Rig
 
     cam = Rig.default().camera
-    o, d = psp._camera_rays(cam)
+    o, d = triangulation._camera_rays(cam)
     o2, d2 = cam.pixel_rays(cam.pixel_grid())
     assert np.array_equal(o, o2) and np.array_equal(d, d2)
-    assert psp._camera_rays(cam)[1] is d
+    assert triangulation._camera_rays(cam)[1] is d
     with pytest.raises(ValueError):
         d[0, 0, 0] = 1.0
 
@@ -128,7 +130,7 @@ def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
     import cv2
     from PIL import Image
 
-    from fppsim.formats import encode_png
+    from fppsim.encoding import encode_png
 
     rng = np.random.default_rng(sum(shape))
     img = rng.integers(0, 256, shape, dtype=np.uint8)
@@ -146,7 +148,7 @@ def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
 @pytest.mark.parametrize("bad", [np.zeros((0, 4), np.uint8), np.zeros((3, 4), np.float32), np.zeros((3, 4), bool),
                                  np.zeros((3, 4), np.int8), np.zeros(5, np.uint8), np.zeros((3, 4, 2), np.uint8)])
 def test_encode_png_refuses_what_a_png_cannot_hold_exactly(bad):
-    from fppsim.formats import encode_png
+    from fppsim.encoding import encode_png
 
     with pytest.raises(ValueError, match=r"encode_png: .*got"):
         encode_png(bad)
@@ -296,12 +298,12 @@ def test_height_from_phase_is_the_triangulated_height(distorted):
     cam = rig.camera
     phase = rng.uniform(0, 2 * np.pi * rig.periods, (cam.height, cam.width))
     mask = rng.random(phase.shape) < 0.8
-    tri = psp.triangulate(rig, phase, mask=mask)
-    h = psp.height_from_phase(rig, phase, mask=mask)
+    tri = triangulation.triangulate(rig, phase, mask=mask)
+    h = triangulation.height_from_phase(rig, phase, mask=mask)
     assert np.array_equal(h, tri.height, equal_nan=True)
     pix = rng.uniform(0, 50, (7, 5, 2))
     ph = rng.uniform(0, 2 * np.pi * rig.periods, (7, 5))
-    assert np.array_equal(psp.height_from_phase(rig, ph, pixels=pix), psp.triangulate(rig, ph, pixels=pix).height,
+    assert np.array_equal(triangulation.height_from_phase(rig, ph, pixels=pix), triangulation.triangulate(rig, ph, pixels=pix).height,
                           equal_nan=True)
 
 
@@ -323,7 +325,7 @@ def test_plane_by_plane_geometry_equals_the_broadcast_formulas():
 
 
 def test_prefetched_noise_is_the_generator_draws_in_order():
-    from fppsim.synth import PrefetchedNormals
+    from fppsim.optics.noise import PrefetchedNormals
 
     pre = PrefetchedNormals(np.random.default_rng(5), (7, 9), 3)
     ref = np.random.default_rng(5)
@@ -357,7 +359,7 @@ def test_synthesize_with_prefetched_noise_equals_drawing_in_place(monkeypatch, t
     config = synth.SynthConfig(rig=Rig.default(), psp_freqs=(1, 8), psp_steps=3, min_object_fraction=0.0)
     r = DepthRenderer()
     images, arrays, _ = synth.synthesize(1, 7, assets, config, r)
-    monkeypatch.setattr(synth, "_noise_source", lambda rng, optics, shape, count: rng)
+    monkeypatch.setattr(synth, "noise_source", lambda rng, optics, shape, count: rng)
     images2, arrays2, _ = synth.synthesize(1, 7, assets, config, r)
     r.close()
     assert images.keys() == images2.keys() and all(np.array_equal(images[k], images2[k]) for k in images)

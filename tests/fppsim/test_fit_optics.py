@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from fppsim import fit_optics as fo
-from fppsim import fit_rig as fr
+from fppsim import readers
 from fppsim.optics import Optics, OpticsRanges
 from fppsim.rig import Rig, data_path
 
@@ -30,7 +30,7 @@ def test_plane_images_with_known_optics(tmp_path):
     images = []
     for i in range(2):
         g = fo.render_plane(rig, TRUTH, model, np.random.default_rng(i))
-        images.append(fr.FringeImage(g, g > 0, str(i)))
+        images.append(readers.FringeImage(g, g > 0, str(i)))
         cv2.imwrite(str(tmp_path / f"{i}.png"), g)
     fit = fo.fit_optics(images, rig)
     c = fit.centre
@@ -60,12 +60,12 @@ def test_brighter_and_sharper_contrast_than_the_table_solves_ambient():
     rig = Rig.default()
     sharp = Optics(**{**TRUTH.to_dict(), "projector_blur": 0.0, "camera_blur": 0.0, "ambient": 0.008})
     g = fo.render_plane(rig, sharp, rng=np.random.default_rng(0))
-    fit = fo.fit_optics([fr.FringeImage(g, np.ones(g.shape, bool), "x")], rig)  # troughs reach 0: not shadow
+    fit = fo.fit_optics([readers.FringeImage(g, np.ones(g.shape, bool), "x")], rig)  # troughs reach 0: not shadow
     assert fit.centre["projector_blur"] == 0.0 and fit.centre["camera_blur"] == 0.0
     assert fit.centre["ambient"] == pytest.approx(0.008, abs=0.006)
     assert "ambient" not in fit.fixed
     with pytest.raises(ValueError, match="640 x 352"):
-        fo.fit_optics([fr.FringeImage(g[:100], g[:100] > 0, "small")], rig)
+        fo.fit_optics([readers.FringeImage(g[:100], g[:100] > 0, "small")], rig)
 
 
 @pytest.mark.slow
@@ -79,7 +79,7 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
     rig = Rig.default()
     generate([str(ASSETS)], tmp_path / "syn", 3, seed=3, config=SynthConfig(
         rig=rig, optics=OpticsRanges.fixed(TRUTH), psp_freqs=()), fmt="figshare", progress=False)
-    images, layout = fr.load_fringe_images(tmp_path / "syn")
+    images, layout = readers.load_fringe_images(tmp_path / "syn")
     assert layout == "figshare"
     fit = fo.fit_optics(images, rig)
     c = fit.centre
@@ -106,3 +106,24 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
     for k, v in ranges.to_dict().items():
         if isinstance(v, list):
             assert v[0] - 1e-9 <= meta["optics"][k] <= v[1] + 1e-9, k
+
+
+def test_render_plane_forms_the_image_like_a_sample_appearance_included():
+    """render_plane goes through the same stage as a sample's fringe image (fppsim.optics.form_images)
+    on the plane geometry the renderer computes, so the appearance effects act on it too."""
+    from fppsim.optics import form_images
+    from fppsim.render import plane_geometry
+
+    rig = Rig.default()
+    model = fo.plane_model(rig)
+    clean = TRUTH.noise_free()
+    assert np.array_equal(fo.render_plane(rig, clean, model),
+                          form_images(plane_geometry(rig), rig, clean, [(float(rig.periods), 0.0)], None)[0])
+    np.testing.assert_array_equal(model["k"], model["geometry"].cos_incidence * model["geometry"].falloff)
+    plain = fo.render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0}), model).astype(float)
+    vig = fo.render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0, "vignetting": 0.3}), model)
+    corner = vig[:12, :12].sum() / plain[:12, :12].sum()
+    assert corner == pytest.approx(0.7, abs=0.03)
+    tex = [fo.render_plane(rig, Optics(**{**clean.to_dict(), "albedo_texture": 0.2}), model,
+                           appearance_rng=np.random.default_rng(s)) for s in (1, 1, 2)]
+    assert np.array_equal(tex[0], tex[1]) and not np.array_equal(tex[0], tex[2])

@@ -5,8 +5,10 @@ import numpy as np
 import pytest
 
 from fppsim import fit_rig as fr
+from fppsim import height_sensitivity
+from fppsim import readers
 from fppsim.rig import Rig, RigError, make_parallel_rig
-from fppsim.stats import estimate_period
+from fppsim.fringe import estimate_period
 
 from _helpers import REAL_SAMPLE as REAL
 
@@ -68,7 +70,7 @@ def test_adjust_rig_keeps_camera_and_lights_the_view():
 def test_fit_recovers_a_perturbed_rig():
     base = make_parallel_rig()
     truth = fr.adjust_rig(base, yaw=np.radians(-2.5), pitch=np.radians(1.5), periods=78.5)
-    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 3))]
+    images = [readers.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 3))]
     measured = fr.measure_bands(images)
     fit = fr.fit_rig(measured, base, ("yaw", "pitch", "periods"))
     _, _, t_true = fr.period_map(truth)
@@ -87,7 +89,7 @@ def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
     base = make_parallel_rig()
     truth = fr.adjust_rig(base, roll=np.radians(-1.3))
     assert fr.plane_tilt(base) == pytest.approx(0.0, abs=1e-6)
-    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
+    images = [readers.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
     measured = fr.measure_bands(images)
     assert float(measured.tilt_deg[0]) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
     assert abs(fr.plane_tilt(truth)) > 1.0
@@ -105,7 +107,7 @@ def test_default_fit_recovers_the_roll_of_a_yawed_rig():
 
     unrolled = fr.adjust_rig(make_default_rig(), roll=-DEFAULT_PROJECTOR_ROLL)
     truth = fr.adjust_rig(unrolled, roll=np.radians(-1.3))
-    images = [fr.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
+    images = [readers.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
     fit = fr.fit_rig(fr.measure_bands(images), unrolled)
     assert set(fit.params) == {"yaw", "roll", "periods"}
     assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.05))
@@ -117,7 +119,7 @@ def test_default_rig_fringes_lean_like_the_real_ones():
     rig = make_default_rig()
     assert fr.plane_tilt(rig) == pytest.approx(-1.34, abs=0.03)
     img = _plane_images(rig, 1, noise=0.0)[0]
-    assert fr.measure_bands([fr.FringeImage(img, np.ones(img.shape, bool))]).tilt_deg[0] == pytest.approx(-1.34, abs=0.05)
+    assert fr.measure_bands([readers.FringeImage(img, np.ones(img.shape, bool))]).tilt_deg[0] == pytest.approx(-1.34, abs=0.05)
     # rolling it back gives vertical fringes and leaves the period trend alone
     unrolled = fr.adjust_rig(rig, roll=-DEFAULT_PROJECTOR_ROLL)
     assert fr.plane_tilt(unrolled) == pytest.approx(0.0, abs=1e-3)
@@ -126,7 +128,7 @@ def test_default_rig_fringes_lean_like_the_real_ones():
 
 @pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")
 def test_fit_reproduces_the_real_trend():
-    images, layout = fr.load_fringe_images(REAL)
+    images, layout = readers.load_fringe_images(REAL)
     assert layout == "real-sample"
     fit = fr.fit_rig(fr.measure_bands(images), make_parallel_rig())
     left, right = fit.fitted_model["halves"]
@@ -165,7 +167,7 @@ def test_cli(tmp_path, capsys):
 
 
 def test_phase_folders_give_plane_and_object_masks(tmp_path):
-    from fppsim.psp_io import save_psp_folder_sample, sums_from_phase
+    from fppsim.writers import save_psp_folder_sample, sums_from_phase
 
     rig = make_parallel_rig()
     img = _plane_images(rig, 1)[0]
@@ -176,7 +178,7 @@ def test_phase_folders_give_plane_and_object_masks(tmp_path):
     valid = np.ones((h, w), bool)
     valid[100:140, 200:230] = False  # a shadow
     save_psp_folder_sample(tmp_path, "1", *sums_from_phase(phase, valid), img)
-    images, layout = fr.load_fringe_images(tmp_path)
+    images, layout = readers.load_fringe_images(tmp_path)
     assert layout == "psp-folders"
     im = images[0]
     np.testing.assert_array_equal(im.valid, valid & (img > 0))
@@ -209,13 +211,13 @@ def test_surface_phase_equals_the_rendered_projector_phase(tmp_path):
     out = _rendered(tmp_path, rig, count=1)
     a = np.load(out / "native" / "000000" / "arrays.npz")
     valid = a["mask"] > 0
-    phi = fr.surface_phase(rig, np.where(valid, a["height"], 0.0))
+    phi = height_sensitivity.surface_phase(rig, np.where(valid, a["height"], 0.0))
     err = np.abs(phi - a["phase_true"])[valid]
     # float32 storage of the height (and of a phase of up to ~500 rad) limits the agreement
     assert np.median(err) < 2e-3 and np.percentile(err, 99) < 2e-2
     # a 1 mm step shifts the phase by the centre sensitivity; the default rig's is about -0.87 rad/mm
-    assert fr.centre_sensitivity(rig) == pytest.approx(-0.87, abs=0.01)
-    assert fr.centre_sensitivity(make_parallel_rig()) == pytest.approx(-0.48, abs=0.01)
+    assert height_sensitivity.centre_sensitivity(rig) == pytest.approx(-0.87, abs=0.01)
+    assert height_sensitivity.centre_sensitivity(make_parallel_rig()) == pytest.approx(-0.48, abs=0.01)
 
 
 @pytest.mark.slow
@@ -223,16 +225,16 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
     """Images rendered with a 260 mm baseline, fitted from the 180 mm parallel rig: the scan peaks there."""
     true = fr.adjust_rig(make_parallel_rig(), baseline=260.0)
     out = _rendered(tmp_path, true, count=2)
-    images, _ = fr.load_fringe_images(out)
+    images, _ = readers.load_fringe_images(out)
     measured = fr.measure_bands(images)
     fit = fr.fit_baseline(images, measured, make_parallel_rig(), params=("yaw",),
                           baselines=np.arange(160.0, 400.0, 40.0), refine=10.0)
     assert fit is not None
     assert fit.baseline == pytest.approx(260.0, abs=10.0)
     assert max(c for _, c in fit.scan) > 0.9
-    assert fit.sensitivity == pytest.approx(fr.centre_sensitivity(true), rel=0.05)
+    assert fit.sensitivity == pytest.approx(height_sensitivity.centre_sensitivity(true), rel=0.05)
     # plain images have no labels: nothing to fit
-    plain = [fr.FringeImage(im.gray, im.valid, im.name) for im in images]
+    plain = [readers.FringeImage(im.gray, im.valid, im.name) for im in images]
     assert fr.fit_baseline(plain, measured, make_parallel_rig()) is None
 
 
@@ -240,8 +242,8 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
 def test_real_pair_sensitivity_matches_the_default_rig_not_the_parallel_one():
     from fppsim.rig import make_default_rig
 
-    images, _ = fr.load_fringe_images(REAL)
-    good = fr.sensitivity_check(make_default_rig(), images[0])
-    bad = fr.sensitivity_check(make_parallel_rig(), images[0])
+    images, _ = readers.load_fringe_images(REAL)
+    good = height_sensitivity.sensitivity_check(make_default_rig(), images[0])
+    bad = height_sensitivity.sensitivity_check(make_parallel_rig(), images[0])
     assert good.coherence > 0.95 and abs(good.slope) < 0.05
     assert bad.coherence < 0.5

@@ -239,7 +239,8 @@ def test_corrupt_sample_is_named_not_a_traceback(tmp_path, meshes, capsys):
     assert main(["compare-real", str(out), str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "arrays.npz" in err[0]
-    from fppsim.formats import DatasetError, load_native_sample
+    from fppsim.formats import DatasetError
+    from fppsim.readers import load_native_sample
 
     with pytest.raises(DatasetError, match="000000"):
         load_native_sample(out / "000000")

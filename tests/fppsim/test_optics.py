@@ -1,5 +1,7 @@
 """Image-formation model: pattern profile, parameter sampling, noise, saturation, gamma."""
 
+import re
+
 import numpy as np
 import pytest
 
@@ -64,3 +66,95 @@ def test_form_image_noise_saturation_gamma():
     ss = form_image((np.zeros((6, 9), np.float32), np.ones((6, 9), np.float32) * 90),
                     np.tile(np.array([0, 1, 2], np.float32), (6, 3)), Optics(camera_blur=0), None, scale=3)
     assert ss.shape == (2, 3) and np.all(ss == 90)
+
+
+def test_every_parameter_is_declared_once_and_the_classes_derive_from_the_declarations():
+    from dataclasses import fields
+    from pathlib import Path
+
+    from fppsim import optics
+    from fppsim.optics import EFFECTS, MODEL, OPTICS_LIMITS, OPTICS_UNITS, SITES
+    from fppsim.optics.model import interval
+
+    declared = [p for e in EFFECTS for p in e.params]
+    names = [p.name for p in declared]
+    assert len(names) == len(set(names))
+    assert [f.name for f in fields(Optics)] == names == [f.name for f in fields(OpticsRanges)]
+    assert all(e.site in SITES for e in EFFECTS)
+    numbers = [p for p in declared if p.sample is not None]
+    assert list(OPTICS_LIMITS) == OpticsRanges.range_names() == [p.name for p in numbers]
+    assert OPTICS_LIMITS == {p.name: interval(p.limits) for p in numbers}
+    assert OPTICS_UNITS == {p.name: p.unit for p in numbers if p.unit}
+    assert Optics() == Optics(**{p.name: p.default for p in declared})
+    r = OpticsRanges()
+    for p in declared:
+        assert getattr(r, p.name) == (tuple(p.sample) if p.sample is not None else p.default)
+    assert Optics.model is MODEL and OpticsRanges.model is MODEL
+    # the reach of the blurs (the camera blur's 4 sigma) sets the margin a sample renders
+    assert OpticsRanges().render_margin() == 4 and OpticsRanges(camera_blur=(0.3, 1.1)).render_margin() == 5
+    # the stage and the sample code name no effect: they run whatever the model declares
+    root = Path(optics.__file__).parents[1]
+    for module in (root / "optics" / "stage.py", root / "synth.py"):
+        text = module.read_text()
+        assert not [n for n in names if re.search(rf"\.{n}\b|['\"]{n}['\"]", text)], module
+
+
+def test_limits_refuse_values_outside_and_name_the_parameter():
+    with pytest.raises(ValueError, match=r"optics 'dirt' must be in \[0, 1\], got 1.5"):
+        Optics(dirt=1.5)
+    with pytest.raises(ValueError, match=r"optics 'vignetting' must be in \[0, 1\), got 1"):
+        OpticsRanges.from_dict({"vignetting": [0.0, 1.0]})
+    with pytest.raises(ValueError, match="optics 'pixelated' must be true or false"):
+        Optics(pixelated="yes")
+    assert Optics().noise_free().noise_sigma == 0.0 and Optics().noise_free().shot_noise == 0.0
+
+
+def _toy_effect():
+    """A fringe-contrast knob on the pattern the camera sees: P -> 0.5 + c (P - 0.5); c = 1 is off."""
+    from fppsim.optics import Effect, Param
+
+    def apply(pattern, optics, ctx):
+        return (0.5 + optics.fringe_contrast * (pattern - 0.5)).astype(pattern.dtype)
+
+    return Effect("fringe contrast", "camera_pattern",
+                  (Param("fringe_contrast", 1.0, (0.2, 0.4), "[0, 1]", off=1.0, doc="toy."),), apply)
+
+
+def test_a_new_effect_is_one_declaration_end_to_end():
+    from fppsim.optics import EFFECTS, OpticsModel, form_images
+    from fppsim.render import plane_geometry
+    from fppsim.rig import Rig
+
+    toy = OpticsModel(EFFECTS + (_toy_effect(),))
+    # derived: a field, a default range, limits, the --optics names
+    assert toy.Optics().fringe_contrast == 1.0 and toy.OpticsRanges().fringe_contrast == (0.2, 0.4)
+    assert toy.limits["fringe_contrast"] == (0.0, True, 1.0, True)
+    assert toy.OpticsRanges.range_names()[-1] == "fringe_contrast"
+    with pytest.raises(ValueError, match="optics 'fringe_contrast' must be in"):
+        toy.OpticsRanges.from_dict({"fringe_contrast": 2})
+    # appended at the end: the earlier parameters keep their random draws
+    a = OpticsRanges().sample(np.random.default_rng(7)).to_dict()
+    b = toy.OpticsRanges().sample(np.random.default_rng(7)).to_dict()
+    assert 0.2 <= b.pop("fringe_contrast") <= 0.4 and a == b
+    # the stage runs it: off gives the very images of the default model, 0 removes the fringes
+    rig = Rig.default()
+    geom = plane_geometry(rig)
+    shifts = [(80.0, 0.0), (80.0, np.pi)]
+    plain = form_images(geom, rig, Optics(), shifts, None)
+    same = form_images(geom, rig, toy.Optics(), shifts, None)
+    flat = form_images(geom, rig, toy.Optics(fringe_contrast=0.0), shifts, None)
+    assert all(np.array_equal(x, y) for x, y in zip(plain, same))
+    assert np.abs(plain[0].astype(int) - plain[1]).mean() > 20
+    assert np.abs(flat[0].astype(int) - flat[1]).max() <= 1
+
+
+def test_declarations_are_checked():
+    from fppsim.optics import Effect, OpticsModel, Param
+    from fppsim.optics.shading import SHADING
+
+    with pytest.raises(ValueError, match="unknown site 'lens'"):
+        Effect("x", "lens", (), lambda v, o, c: v)
+    with pytest.raises(ValueError, match="'gain' is declared twice"):
+        OpticsModel((SHADING, SHADING))
+    with pytest.raises(ValueError, match="must declare sample"):
+        Param("half", 0.5, (0.0, 1.0))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fppsim import psp
+from fppsim import psp, triangulation
 from fppsim.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
@@ -265,7 +265,7 @@ def test_phase_direction_against_projector_projection():
     np.testing.assert_allclose(phase, TWO_PI * 80 * uv[:, 0] / proj.width)
     # the camera pixels of these points, triangulated from their phase, give the points back
     pix, _ = rig.camera.project(X)
-    tri = psp.triangulate(rig, phase, pixels=pix)
+    tri = triangulation.triangulate(rig, phase, pixels=pix)
     np.testing.assert_allclose(tri.points, X, atol=1e-9)
     np.testing.assert_allclose(tri.column, uv[:, 0], atol=1e-9)
     np.testing.assert_allclose(tri.row, uv[:, 1], atol=1e-9)
@@ -288,7 +288,7 @@ def test_full_chain_round_trip(rig_factory):
     un = psp.unwrap_temporal(wrapped)
     assert un.reliable.all()
     np.testing.assert_allclose(un.phase, rig.phase_of_column(uv[..., 0]), atol=1e-9)
-    tri = psp.triangulate(rig, un.phase, pixels=pixels)
+    tri = triangulation.triangulate(rig, un.phase, pixels=pixels)
     assert tri.valid.all()
     assert np.max(np.abs(tri.points - X)) < 1e-6  # mm
     np.testing.assert_array_equal(tri.height, tri.points[..., 2])
@@ -303,22 +303,22 @@ def test_triangulate_full_grid_mask_and_height_from_phase():
     phase[0, 0] = np.nan
     mask = np.ones(phase.shape, bool)
     mask[5, 7] = False
-    tri = psp.triangulate(rig, phase, mask=mask)
+    tri = triangulation.triangulate(rig, phase, mask=mask)
     assert tri.points.shape == (352, 640, 3) and tri.height.shape == (352, 640)
     assert not tri.valid[0, 0] and not tri.valid[5, 7] and tri.valid.sum() == 352 * 640 - 2
     assert np.isnan(tri.points[0, 0]).all() and np.isnan(tri.height[5, 7])
     np.testing.assert_allclose(tri.points[tri.valid], X[tri.valid], atol=1e-6)
-    h = psp.height_from_phase(rig, phase, mask=mask)
+    h = triangulation.height_from_phase(rig, phase, mask=mask)
     np.testing.assert_array_equal(h, tri.height)
     # the camera depth: X = C + depth * ray
     np.testing.assert_allclose(tri.depth[tri.valid], (rig.camera.world_to_device(X))[..., 2][tri.valid], atol=1e-6)
     # phase of another frequency
-    h8 = psp.height_from_phase(rig, phase * 8 / 80, periods=8)
+    h8 = triangulation.height_from_phase(rig, phase * 8 / 80, periods=8)
     np.testing.assert_allclose(h8[tri.valid], h[tri.valid], atol=1e-6)
     with pytest.raises(ValueError, match="camera is 352 x 640"):
-        psp.triangulate(rig, phase[:10])
+        triangulation.triangulate(rig, phase[:10])
     with pytest.raises(ValueError, match="mask has shape"):
-        psp.triangulate(rig, phase, mask=mask[:10])
+        triangulation.triangulate(rig, phase, mask=mask[:10])
 
 
 @pytest.mark.parametrize("h", [0.0, 5.0, 20.0, 50.0])
@@ -326,7 +326,7 @@ def test_reference_plane_formula_matches_triangulation(h):
     """The classic formula is exact for the default parallel-axis rig (same-height centres, axes normal
     to the plane); float64 agreement to 1e-9 mm."""
     rig = make_parallel_rig()
-    L, d, f0 = psp.reference_plane_parameters(rig)
+    L, d, f0 = triangulation.reference_plane_parameters(rig)
     assert (L, d) == (500.0, 180.0)
     assert f0 == pytest.approx(80 * 1208.8 / (912 * 500))
     pixels = rig.camera.pixel_grid()[::8, ::8]
@@ -336,8 +336,8 @@ def test_reference_plane_formula_matches_triangulation(h):
     phi_obj = rig.phase_of_column(rig.projector.project(obj)[0][..., 0])
     dphi = phi_ref - phi_obj
     assert np.all(dphi >= -1e-9)  # heights above the plane: positive dphi with this sign
-    h_formula = psp.reference_plane_height(dphi, L, d, f0)
-    h_tri = psp.height_from_phase(rig, phi_obj, pixels=pixels)
+    h_formula = triangulation.reference_plane_height(dphi, L, d, f0)
+    h_tri = triangulation.height_from_phase(rig, phi_obj, pixels=pixels)
     np.testing.assert_allclose(h_formula, h, atol=1e-9)
     np.testing.assert_allclose(h_tri, h, atol=1e-9)
 
@@ -349,15 +349,15 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
     ref = rig.camera.backproject(pixels, rig.camera.plane_depth(pixels, 0.0))
     dphi = rig.phase_of_column(rig.projector.project(ref)[0][..., 0]) - \
         rig.phase_of_column(rig.projector.project(X)[0][..., 0])
-    np.testing.assert_allclose(psp.reference_plane_height(dphi, *psp.reference_plane_parameters(rig)),
+    np.testing.assert_allclose(triangulation.reference_plane_height(dphi, *triangulation.reference_plane_parameters(rig)),
                                X[..., 2], atol=1e-9)
     with pytest.raises(ValueError, match="perpendicular"):
-        psp.reference_plane_parameters(_converging_rig())
+        triangulation.reference_plane_parameters(_converging_rig())
     with pytest.raises(ValueError, match="perpendicular"):  # the figshare-like rig's projector is yawed
-        psp.reference_plane_parameters(make_figshare_like_rig())
+        triangulation.reference_plane_parameters(make_figshare_like_rig())
     # closed form on numbers: dphi = 2 pi f0 d h / (L - h)
     L, d, f0, hh = 400.0, 150.0, 0.1, 25.0
-    assert psp.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)
+    assert triangulation.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)
 
 
 def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():

@@ -1,12 +1,13 @@
-"""fppsim.psp_io folder layout: <root>/PSin, PCos, Fringe (Order), iPattern, one variable per .mat."""
+"""fppsim.readers / fppsim.writers, the .mat folder layout: <root>/PSin, PCos, Fringe (Order), iPattern, one variable per .mat."""
 
 import numpy as np
 import pytest
 import scipy.io
 
 from fppsim import psp
-from fppsim.psp_io import (PSPMatError, is_psp_folder, iter_psp_folder, list_psp_ids, load_psp_folder_sample,
-                           save_psp_folder_sample, sums_from_phase)
+from fppsim.errors import PSPMatError
+from fppsim.readers import is_psp_folder, iter_psp_folder, list_psp_ids, load_psp_folder_sample
+from fppsim.writers import save_psp_folder_sample, sums_from_phase
 
 TWO_PI = 2 * np.pi
 
@@ -106,8 +107,8 @@ def test_errors_name_the_file(tmp_path):
         list_psp_ids(tmp_path)
     (tmp_path / "x").write_bytes(b"not a mat file at all, just bytes" * 10)
     with pytest.raises(PSPMatError, match=r"x: not a MATLAB \.mat file"):
-        from fppsim.psp_io import _read_var
-        _read_var(tmp_path / "x", "PSin")
+        from fppsim.readers import read_mat_variable
+        read_mat_variable(tmp_path / "x", "PSin")
     with pytest.raises(PSPMatError, match=r"shape \(3, 3\) differs from PSin's \(2, 2\)"):
         save_psp_folder_sample(tmp_path / "w", "1", np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 3)))
     assert not (tmp_path / "w").exists()
@@ -147,8 +148,8 @@ def test_matlab_v73_without_h5py_is_one_line(tmp_path, monkeypatch):
 def test_export_native_dataset(tmp_path):
     from _helpers import write_native
 
-    from fppsim.formats import load_native_sample
-    from fppsim.psp_io import export_psp_folders
+    from fppsim.readers import load_native_sample
+    from fppsim.writers import export_psp_folders
 
     ids = write_native(tmp_path / "nat", n=3, h=16, w=24, seed=0)
     for sid in ids:  # give the samples a real projector phase

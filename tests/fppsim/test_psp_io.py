@@ -1,11 +1,13 @@
-"""fppsim.psp_io: the PSin / PCos / fringe-order .mat layout shares one code path with fppsim.psp."""
+"""fppsim.readers.load_psp_mat / fppsim.writers.save_psp_mat: the PSin / PCos / fringe-order .mat layout shares one code path with fppsim.psp."""
 
 import numpy as np
 import pytest
 import scipy.io
 
 from fppsim import psp
-from fppsim.psp_io import PSPMatError, load_psp_mat, save_psp_mat
+from fppsim.errors import PSPMatError
+from fppsim.readers import load_psp_mat
+from fppsim.writers import save_psp_mat
 
 TWO_PI = 2 * np.pi
 

@@ -103,15 +103,15 @@ def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
 def test_figshare_like_rig_rendered_plane_period_trend(figshare_rig):
     """A rendered plane measured like compare-real: halves ~11.96 | 11.49 px, bands ~12.06 -> 11.39."""
     from fppsim.optics import Optics
-    from fppsim.stats import estimate_period, quarter_periods
-    from fppsim.synth import render_images
+    from fppsim.fringe import estimate_period, quarter_periods
+    from fppsim.optics import form_images
 
     pytest.importorskip("pyrender")
     from fppsim.render import DepthRenderer, scene_geometry
 
     rig = figshare_rig
     geom = scene_geometry(rig, [], DepthRenderer(), scale=1)
-    img = render_images(geom, rig, Optics(), [(80.0, 0.0)], None, 1)[0].astype(float)
+    img = form_images(geom, rig, Optics(), [(80.0, 0.0)], None, 1)[0].astype(float)
     left, right = estimate_period(img[:, :320]), estimate_period(img[:, 320:])
     assert left == pytest.approx(11.96, abs=0.08) and right == pytest.approx(11.49, abs=0.08)
     bands = [estimate_period(img[:, i * 160:(i + 1) * 160]) for i in range(4)]

@@ -8,8 +8,8 @@ import threading
 import numpy as np
 import pytest
 
-from fppsim import psp
-from fppsim._threads import helper_pool, map_bands, row_bands
+from fppsim import psp, triangulation
+from fppsim.threads import helper_pool, map_bands, row_bands
 from fppsim.rig import Device, Rig, make_default_rig
 
 
@@ -99,14 +99,14 @@ def test_triangulate_rows_is_the_band_of_the_whole():
     rng = np.random.default_rng(6)
     phase = rng.uniform(0, 2 * np.pi * rig.periods, (rig.camera.height, rig.camera.width))
     mask = rng.random(phase.shape) < 0.8
-    whole = psp.height_from_phase(rig, phase, mask=mask)
+    whole = triangulation.height_from_phase(rig, phase, mask=mask)
     band = slice(96, 208)
-    assert np.array_equal(psp.height_from_phase(rig, phase[band], mask=mask[band], rows=band), whole[band],
+    assert np.array_equal(triangulation.height_from_phase(rig, phase[band], mask=mask[band], rows=band), whole[band],
                           equal_nan=True)
     with pytest.raises(ValueError, match="not the 112 x 640"):
-        psp.height_from_phase(rig, phase[:100], rows=band)
+        triangulation.height_from_phase(rig, phase[:100], rows=band)
     with pytest.raises(ValueError, match="without distortion"):
-        psp.height_from_phase(_distorted_rig(), phase[band], rows=band)
+        triangulation.height_from_phase(_distorted_rig(), phase[band], rows=band)
 
 
 @pytest.mark.parametrize("height,count", [(352, 2), (37, 2), (1000, 3), (16, 2), (17, 2), (5, 4), (0, 2), (100, 1)])
@@ -220,8 +220,8 @@ def test_camera_ray_cache_holds_four_cameras_when_filled_from_two_threads():
     cams = [Device(K=base.K * np.array([[1 + i / 100, 1, 1], [1, 1 + i / 100, 1], [1, 1, 1]]), R=base.R, t=base.t,
                    width=30, height=20) for i in range(12)]
     with ThreadPoolExecutor(2) as pool:
-        got = list(pool.map(psp._camera_rays, cams * 2))
-    assert len(psp._RAYS) <= 4
+        got = list(pool.map(triangulation._camera_rays, cams * 2))
+    assert len(triangulation._RAYS) <= 4
     for cam, (origin, d) in zip(cams * 2, got):
         o2, d2 = cam.pixel_rays(cam.pixel_grid())
         assert np.array_equal(origin, o2) and np.array_equal(d, d2)

@@ -12,7 +12,7 @@ from uhrnet.errors import ExportError
 from uhrnet.cli import main
 from fppsim.formats import LabelTransform
 from uhrnet.models import build_model, list_models
-from uhrnet.optimize import fold_batchnorm, fold_conv_bn, merge_multilevel_blocks, prepare_for_inference
+from uhrnet.deploy import fold_batchnorm, fold_conv_bn, merge_multilevel_blocks, prepare_for_inference
 
 TINY = {"uhrnet": 8, "unet": 4, "hnet": 2, "model_a": 2, "model_b": 8, "model_c": 8, "model_d": 8}
 

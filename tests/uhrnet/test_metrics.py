@@ -1,4 +1,4 @@
-"""uhrnet.metrics: SSIM against scikit-image, RMSE in mm, parameters, timing and memory helpers."""
+"""uhrnet.metrics: SSIM against scikit-image, RMSE in mm, parameters."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from uhrnet.metrics import count_parameters, inference_seconds, peak_memory_bytes, rmse_mm, ssim, time_call
+from uhrnet.metrics import count_parameters, rmse_mm, ssim
 
 
 def skimage_ssim(a: np.ndarray, b: np.ndarray, data_range: float) -> float:
@@ -75,16 +75,6 @@ def test_count_parameters():
     assert count_parameters(layer) == 8
     layer.bias.requires_grad_(False)
     assert count_parameters(layer) == 6 and count_parameters(layer, trainable_only=False) == 8
-
-
-def test_timing_and_memory_helpers():
-    model = torch.nn.Conv2d(1, 2, 3, padding=1).train()
-    seconds = inference_seconds(model, (1, 1, 16, 16), "cpu", warmup=1, repeats=3)
-    assert seconds > 0 and model.training
-    calls = []
-    assert len(time_call(lambda: calls.append(1), "cpu", warmup=2, repeats=3)) == 3 and len(calls) == 5
-    peak = peak_memory_bytes(lambda: torch.ones(64, 2**20).sum(), "cpu")  # a 256 MiB temporary
-    assert peak is None or peak >= 200 * 2**20
 
 
 def test_ssim_of_low_precision_inputs_is_computed_in_float32():

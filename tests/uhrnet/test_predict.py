@@ -6,7 +6,7 @@ import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.inference import predict_labels
+from uhrnet.prediction import predict_labels
 
 from _helpers import scene, train_tiny, write_figshare
 

@@ -17,8 +17,9 @@ Every model carries ``model.config``: the name it was built under plus all const
 ``build_model(**model.config)`` rebuilds the same architecture (e.g. from a checkpoint).
 
 Every ``forward(x)`` maps ``(N, C, H, W)`` to ``(N, 1, H, W)`` (H, W multiples of 16), except ``hnet`` in
-training mode, which returns ``(fused, side_1, .., side_5)``; handle both with
-``outs = out if isinstance(out, (tuple, list)) else (out,)``, the prediction being ``outs[0]``.
+training mode, which returns ``(fused, side_1, .., side_5)``. Callers never look at that shape
+themselves: :func:`prediction_of` gives the prediction of any model's output, :func:`outputs_of` every
+output (the prediction first), which is how the training loss reaches hNet's side outputs.
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
+import torch
 from torch import nn
 
 from .hnet import HNet
 from .unet import UNet
 from .uhrnet import UHRNet
 
-__all__ = ["ARCHITECTURES", "ALIASES", "HNet", "UHRNet", "UNet", "build_model", "list_models"]
+__all__ = ["ARCHITECTURES", "ALIASES", "HNet", "UHRNet", "UNet", "build_model", "list_models", "outputs_of",
+           "prediction_of"]
 
 ARCHITECTURES: dict[str, type[nn.Module]] = {"uhrnet": UHRNet, "unet": UNet, "hnet": HNet}
 
@@ -51,12 +54,31 @@ def list_models() -> list[str]:
     return [*ARCHITECTURES, *ALIASES]
 
 
-def build_model(name: str, **options: Any) -> nn.Module:
+def build_model(name: str, head: str = "height", rig: dict | None = None, min_confidence: float | None = None,
+                **options: Any) -> nn.Module:
     """Build a model by (case-insensitive) name; ``options`` go to its constructor.
+
+    ``head``: ``"height"`` (the network predicts height, as in the papers) or ``"phase"``: the physics
+    head (:class:`~uhrnet.models.phase_head.PhaseHead`), any architecture built with three outputs
+    (coarse height, cosine and sine of the fringe phase) and the calibrated ``rig`` (fppsim's rig
+    dictionary, required) turning them into height; ``min_confidence`` is its phase-trust threshold.
 
     Raises ``ValueError`` for an unknown name, an unknown option, or an option that contradicts what an
     alias fixes (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
+    from .phase_head import HEADS, PHASE_CHANNELS, PhaseHead
+
+    if head not in HEADS:
+        raise ValueError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
+    if head == "phase":
+        if rig is None:
+            raise ValueError("the phase head needs the rig (fppsim rig dictionary) that turns phase into height")
+        options = {**options, "out_channels": PHASE_CHANNELS}
+        backbone = build_model(name, **options)
+        kw = {} if min_confidence is None else {"min_confidence": min_confidence}
+        return PhaseHead(backbone, rig, **kw)
+    if rig is not None or min_confidence is not None:
+        raise ValueError("rig= and min_confidence= belong to the phase head (head='phase')")
     key = name.lower()
     if key in ALIASES:
         arch, fixed = ALIASES[key]
@@ -76,3 +98,18 @@ def build_model(name: str, **options: Any) -> nn.Module:
     model = cls(**options)
     model.config = {**model.config, "name": key}
     return model
+
+
+def outputs_of(output: torch.Tensor | tuple | list) -> tuple[torch.Tensor, ...]:
+    """Every output of one forward pass as a tuple, the prediction first.
+
+    ``output``: what ``model(x)`` returned, a ``(N, 1, H, W)`` tensor, or hNet's training-mode tuple
+    ``(fused, side_1, .., side_5)`` (each ``(N, 1, H, W)``). The training loss sums over these, so deep
+    supervision reaches the side outputs through this one function.
+    """
+    return tuple(output) if isinstance(output, (tuple, list)) else (output,)
+
+
+def prediction_of(output: torch.Tensor | tuple | list) -> torch.Tensor:
+    """The prediction ``(N, 1, H, W)`` of one forward pass, whatever the model (hNet: the fused output)."""
+    return outputs_of(output)[0]

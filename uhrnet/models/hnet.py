@@ -59,6 +59,9 @@ class GuidanceBranch(nn.Sequential):
 class HNet(nn.Module):
     """hNet; see the module docstring for the outputs in training and eval mode."""
 
+    PARTS = {"encoder": ("encoder", "bottleneck"), "decoder": ("decoder", "guidance", "side_heads", "fuse")}
+    """Child modules of each part, for ``uhrnet train --freeze`` (:mod:`uhrnet.models.freeze`)."""
+
     def __init__(
         self, in_channels: int = 1, out_channels: int = 1, base_channels: int = 32, dropout: float = 0.2
     ) -> None:

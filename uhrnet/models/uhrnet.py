@@ -95,6 +95,10 @@ class UHRNet(nn.Module):
     ``forward(x: (N, in_channels, H, W)) -> (N, out_channels, H, W)``, H and W multiples of 16.
     """
 
+    PARTS = {"encoder": ("encoder", "bottleneck"), "decoder": ("fusion", "decoder", "head")}
+    """Child modules of each part, for ``uhrnet train --freeze`` (:mod:`uhrnet.models.freeze`); the fusion
+    blocks build the decoder's skips, so they belong to the decoder."""
+
     def __init__(
         self,
         in_channels: int = 1,

@@ -19,6 +19,9 @@ from .blocks import Decoder, DoubleConv, Encoder, upsample_conv, widths_for
 class UNet(nn.Module):
     """``forward(x: (N, in_channels, H, W)) -> (N, out_channels, H, W)``."""
 
+    PARTS = {"encoder": ("encoder", "bottleneck"), "decoder": ("decoder", "head")}
+    """Child modules of each part, for ``uhrnet train --freeze`` (:mod:`uhrnet.models.freeze`)."""
+
     def __init__(self, in_channels: int = 1, out_channels: int = 1, base_channels: int = 64) -> None:
         super().__init__()
         self.config = {

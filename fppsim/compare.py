@@ -1,7 +1,8 @@
-"""Statistics that compare a synthetic FPP dataset with real figshare-format data.
+"""Compare a synthetic FPP dataset with real figshare-format data: statistics side by side.
 
-Used by ``fppsim compare-real REAL_DIR SYN_DIR``: both folders are read with :func:`iter_samples`
-(three layouts, see below), every sample is measured with :func:`sample_stats`, the per-sample values
+Used by ``fppsim compare-real REAL_DIR SYN_DIR``: both folders are read with
+:func:`fppsim.readers.iter_samples` (three layouts, see below), every sample is measured with
+:func:`sample_stats` (the fringe measurements of :mod:`fppsim.fringe`), the per-sample values
 are aggregated by their median (:func:`dataset_stats`) and :func:`format_comparison` prints a
 side-by-side table, so a user can tune the rig and optics to their own lab data.
 
@@ -14,7 +15,7 @@ Folder layouts (detected in this order):
     (``height`` mm world z, ``mask`` 1 = valid); heights become labels through a
     :class:`fppsim.formats.LabelTransform` (the figshare preset by default).
 
-All three are read by :class:`fppsim.formats.SampleReader`.
+All three are read by :class:`fppsim.readers.SampleReader`.
 
 Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 
@@ -41,26 +42,13 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 
 from __future__ import annotations
 
-from typing import Iterator
-
 import numpy as np
 
-from .formats import PRESETS, LabelTransform, SampleReader
+from .formats import PRESETS, LabelTransform
+from .fringe import estimate_period, fringe_modulation, fringe_tilt, plane_level, quarter_periods
+from .readers import iter_samples, open_samples
 
-__all__ = [
-    "open_dataset",
-    "iter_samples",
-    "estimate_period",
-    "quarter_periods",
-    "fringe_modulation",
-    "fringe_tilt",
-    "plane_level",
-    "sample_stats",
-    "dataset_stats",
-    "compare_real",
-    "format_comparison",
-    "STAT_ROWS",
-]
+__all__ = ["sample_stats", "dataset_stats", "compare_real", "format_comparison", "format_value", "STAT_ROWS"]
 
 FIGSHARE = PRESETS["figshare"]
 
@@ -88,161 +76,6 @@ STAT_ROWS: list[tuple[str, str, str]] = [
     ("object_fraction", "object coverage", "{:.2%}"),
     ("relief_p99_mm", "relief p99 above plane (mm)", "{:.1f}"),
 ]
-
-
-# --------------------------------------------------------------------------- readers
-
-
-def open_dataset(folder, label: LabelTransform = FIGSHARE) -> SampleReader:
-    """Detect the layout of ``folder`` and open it (arrays memory-mapped); ValueError if unreadable.
-
-    ``label`` turns native heights (mm) into labels; figshare-format folders already hold labels.
-    """
-    return SampleReader(folder, label)
-
-
-def _pick(n: int, max_samples: int | None) -> np.ndarray:
-    """Evenly spaced sample indices (all when max_samples is None or >= n)."""
-    if max_samples is None or max_samples >= n:
-        return np.arange(n)
-    if max_samples < 1:
-        raise ValueError(f"max_samples must be >= 1, got {max_samples}")
-    return np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))
-
-
-def iter_samples(folder, max_samples: int | None = None,
-                 label: LabelTransform = FIGSHARE) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Yield (gray uint8 (H, W), label float32 (H, W)) for up to max_samples evenly spaced samples."""
-    ds = folder if isinstance(folder, SampleReader) else open_dataset(folder, label)
-    for i in _pick(len(ds), max_samples):
-        yield ds.sample(int(i))
-
-
-# --------------------------------------------------------------------------- fringe measurements
-
-
-def _rows_for_fft(gray: np.ndarray, valid: np.ndarray | None, min_valid: float = 0.5):
-    """Rows (float64) with the invalid pixels replaced by the row's valid mean; and which rows to use."""
-    x = np.asarray(gray, np.float64)
-    if valid is None:
-        valid = np.ones(x.shape, bool)
-    nv = valid.sum(axis=1)
-    mean = np.where(nv > 0, (x * valid).sum(axis=1) / np.maximum(nv, 1), 0.0)
-    x = np.where(valid, x, mean[:, None])
-    use = nv >= min_valid * x.shape[1]
-    if not use.any():
-        use = nv >= max(8, int(nv.max() * 0.5)) if nv.max() > 0 else use
-    return x - mean[:, None], use
-
-
-def estimate_period(gray: np.ndarray, valid: np.ndarray | None = None, min_period: float = 2.5,
-                    max_period: float = 64.0, pad: int = 16) -> float:
-    """Dominant horizontal fringe period in pixels (vertical fringes), NaN if it cannot be measured.
-
-    Each row (invalid pixels set to the row's valid mean) is mean-removed, Hann-windowed and
-    zero-padded to ``pad`` x its length; the power spectra of the rows with at least half of their
-    pixels valid are summed, the peak between ``max_period`` and ``min_period`` is located and refined
-    by a parabola through the log-power of its neighbours.
-    """
-    x, use = _rows_for_fft(gray, valid)
-    if not use.any():
-        return float("nan")
-    x = x[use]
-    w = x.shape[1]
-    if w < 16:
-        return float("nan")
-    nfft = int(2 ** np.ceil(np.log2(w * pad)))
-    power = (np.abs(np.fft.rfft(x * np.hanning(w), n=nfft, axis=1)) ** 2).sum(axis=0)
-    k_lo = max(int(np.floor(nfft / min(max_period, w / 2.0))), 1)
-    k_hi = min(int(np.ceil(nfft / min_period)), len(power) - 2)
-    if k_hi <= k_lo + 1:
-        return float("nan")
-    k = k_lo + int(np.argmax(power[k_lo:k_hi + 1]))
-    if k <= k_lo or k >= k_hi or power[k] <= 0:
-        return float("nan")  # peak at the edge of the search band: no fringe there
-    a, b, c = np.log(power[k - 1:k + 2] + 1e-300)
-    den = a - 2 * b + c
-    delta = 0.5 * (a - c) / den if den < 0 else 0.0
-    return float(nfft / (k + delta))
-
-
-def quarter_periods(gray: np.ndarray, valid: np.ndarray | None = None, **kw) -> np.ndarray:
-    """Periods of the four image quarters (top-left, top-right, bottom-left, bottom-right)."""
-    h, w = gray.shape
-    out = []
-    for rs in (slice(0, h // 2), slice(h // 2, h)):
-        for cs in (slice(0, w // 2), slice(w // 2, w)):
-            out.append(estimate_period(gray[rs, cs], None if valid is None else valid[rs, cs], **kw))
-    return np.array(out)
-
-
-def fringe_modulation(gray: np.ndarray, period: float, valid: np.ndarray | None = None,
-                      band: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel fringe amplitude B and background A (gray levels) of I = A + B cos(phi).
-
-    Along each row: B = 2 |analytic signal| of the band [(1-band) f0, (1+band) f0] around the fringe
-    frequency f0 = 1/period (positive frequencies only, i.e. the Hilbert envelope of the band-passed
-    row); A = the row low-passed below (1-band) f0.  Invalid pixels are filled with the row mean first.
-    """
-    analytic, background = _analytic_rows(gray, period, valid, band)
-    return 2.0 * np.abs(analytic), background
-
-
-def fringe_tilt(gray: np.ndarray, period: float, mask: np.ndarray | None = None, band: float = 0.5) -> float:
-    """Angle of the fringe lines from the image's vertical, degrees: positive when a line leans to the
-    right going down the image (``atan(du/dv)`` along a line of constant phase).
-
-    From the rows' analytic signals (as :func:`fringe_modulation`): the phase gradients along rows
-    (``g_u``) and down columns (``g_v``), each from the angle of neighbouring samples' product (no
-    unwrapping), give ``du/dv = -g_v / g_u``; the median over ``mask`` (e.g. the reference plane, where
-    the fringes are the rig's own) is returned, NaN with fewer than 100 usable pixels. The real
-    figshare pair: about -1.35 deg; a rig whose projector is not rolled: 0.
-    """
-    x = np.asarray(gray, np.float64)
-    m = np.ones(x.shape, bool) if mask is None else np.asarray(mask, bool)
-    a, _ = _analytic_rows(x, period, m, band)
-    gu = np.angle(a[:-1, 1:] * np.conj(a[:-1, :-1]))
-    gv = np.angle(a[1:, :-1] * np.conj(a[:-1, :-1]))
-    ok = m[:-1, :-1] & m[1:, :-1] & m[:-1, 1:] & (np.abs(gu) > 0.25 * 2 * np.pi / period)
-    if ok.sum() < 100:
-        return float("nan")
-    return float(np.degrees(np.arctan(np.median(-gv[ok] / gu[ok]))))
-
-
-def _analytic_rows(gray, period, valid, band):
-    x0 = np.asarray(gray, np.float64)
-    h, w = x0.shape
-    if valid is None:
-        valid = np.ones(x0.shape, bool)
-    nv = valid.sum(axis=1)
-    mean = np.where(nv > 0, (x0 * valid).sum(axis=1) / np.maximum(nv, 1), 0.0)
-    x = np.where(valid, x0, mean[:, None])
-    # reflect-pad to reduce edge effects of the circular FFT
-    padw = min(w - 1, int(np.ceil(3 * period)))
-    xp = np.pad(x, ((0, 0), (padw, padw)), mode="reflect")
-    n = xp.shape[1]
-    spec = np.fft.fft(xp, axis=1)
-    f = np.fft.fftfreq(n)
-    f0 = 1.0 / period
-    sel = (f >= (1 - band) * f0) & (f <= (1 + band) * f0)
-    low = np.abs(f) < (1 - band) * f0
-    analytic = np.fft.ifft(spec * sel, axis=1)[:, padw:padw + w]
-    background = np.fft.ifft(spec * low, axis=1).real[:, padw:padw + w]
-    return analytic, background
-
-
-def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, window: float = 6.0) -> float:
-    """Label of the reference plane: the mode of the valid labels, refined by the median within +-window."""
-    v = np.asarray(label, np.float64)[valid]
-    if v.size == 0:
-        return float("nan")
-    lo, hi = np.floor(v.min()), np.ceil(v.max()) + bin_width
-    hist, edges = np.histogram(v, bins=max(1, int(np.ceil((hi - lo) / bin_width))), range=(lo, hi))
-    # smooth the histogram a little so a tilted plane still has one clear mode
-    hist = np.convolve(hist, np.ones(5) / 5.0, mode="same")
-    mode = 0.5 * (edges[np.argmax(hist)] + edges[np.argmax(hist) + 1])
-    near = v[np.abs(v - mode) <= window]
-    return float(np.median(near)) if near.size else float(mode)
 
 
 def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform = FIGSHARE,
@@ -309,7 +142,7 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
     Returns {'path', 'layout', 'n_total', 'n_samples', 'shape', 'stats': {key: median},
     'spread': {key: [min, max] over samples}, 'per_sample': [dict, ...]}.
     """
-    ds = open_dataset(folder, label)
+    ds = open_samples(folder, label)
     per, shape = [], None
     for gray, lab in iter_samples(ds, max_samples):
         shape = list(gray.shape)
@@ -343,7 +176,8 @@ def compare_real(real_dir, syn_dir, max_samples: int | None = 50, label: LabelTr
             "preset": {**label.to_dict(), "object_mm": object_mm}}
 
 
-def _fmt(fmt: str, v) -> str:
+def format_value(fmt: str, v) -> str:
+    """``fmt.format(v)``, or ``"nan"`` for a missing or non-finite number (table cells)."""
     try:
         return "nan" if v is None or not np.isfinite(v) else fmt.format(v)
     except (TypeError, ValueError):
@@ -369,7 +203,7 @@ def format_comparison(result: dict) -> str:
         r, s = real["stats"][key], syn["stats"][key]
         d = result.get("difference", {}).get(key, s - r)
         dfmt = fmt.replace("{:", "{:+") if "%" not in fmt else "{:+.2%}"
-        rows.append([name, _fmt(fmt, r), _fmt(fmt, s), _fmt(dfmt, d)])
+        rows.append([name, format_value(fmt, r), format_value(fmt, s), format_value(dfmt, d)])
     widths = [max(len(c), *(len(r[i]) for r in rows)) for i, c in enumerate(cols)]
     line = lambda cells: "  ".join(  # noqa: E731
         c.ljust(widths[i]) if i == 0 else c.rjust(widths[i]) for i, c in enumerate(cells))

@@ -31,8 +31,8 @@ from .errors import FolderBusy
 
 __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
-           "check_writable_dir", "write_fully", "atomic_path", "atomic_write_text", "atomic_write_bytes",
-           "fsync_dir", "unlink_quietly"]
+           "check_writable_dir", "check_output_file", "write_fully", "atomic_path", "atomic_write_text",
+           "atomic_write_bytes", "fsync_dir", "unlink_quietly"]
 
 TMP_PREFIX = ".fppsim-tmp-"
 _TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
@@ -245,6 +245,16 @@ def check_writable_dir(folder: str | os.PathLike, flag: str = "--out") -> Path:
         raise ValueError(f"{flag} {folder}: cannot write there ({exc.strerror or exc})") from None
     return folder
 
+
+def check_output_file(path: str | os.PathLike, force: bool = False) -> Path:
+    """``path`` as a Path once it may be written: it must not exist unless ``force`` (replace it), and its
+    folder must exist; one-line ValueError otherwise."""
+    out = Path(path)
+    if out.exists() and not force:
+        raise ValueError(f"{out} exists; pass --force to replace it")
+    if not out.parent.is_dir():
+        raise ValueError(f"{out.parent}: output folder does not exist")
+    return out
 
 def write_fully(fh, data) -> None:
     """``fh.write`` of a bytes-like object; a short write or ENOSPC raises ``OSError`` (never SIGBUS)."""

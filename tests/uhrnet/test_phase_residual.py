@@ -1,9 +1,10 @@
-"""uhrnet.phase_eval: calibration-free fit of real phase = plane(x, y) + a h + b h^2."""
+"""uhrnet.phase_residual: calibration-free fit of real phase = plane(x, y) + a h + b h^2."""
 
 import numpy as np
 import pytest
 
-from uhrnet.phase_eval import evaluate_phase, fit_phase, plane_terms
+from fppsim.fringe import poly_basis
+from uhrnet.phase_residual import evaluate_phase, fit_phase
 
 
 def _scene(h=60, w=100, seed=0):
@@ -39,8 +40,7 @@ def test_exact_model_recovers_coefficients():
     # relief = what the plane-only least-squares fit leaves, checked with an independent solver
     from sklearn.linear_model import LinearRegression
 
-    P, _ = plane_terms(phase.shape, 3)
-    X = P.reshape(len(P), -1).T[valid.ravel()][:, 1:]
+    X = poly_basis(*phase.shape, 3)[valid.ravel()][:, 1:]
     lr = LinearRegression().fit(X, phase[valid])
     relief = phase[valid] - lr.predict(X)
     assert fit.relief_rms_rad == pytest.approx(np.sqrt(np.mean(relief ** 2)), rel=1e-6)
@@ -88,4 +88,4 @@ def test_errors():
         v[0, :3] = True
         fit_phase(np.ones((10, 10)), np.ones((10, 10)), v)
     with pytest.raises(ValueError, match="degree"):
-        plane_terms((4, 4), -1)
+        poly_basis(4, 4, -1)

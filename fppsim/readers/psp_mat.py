@@ -1,4 +1,4 @@
-"""Real PSP data in the common "PSin / PCos / fringe-order" MATLAB .mat layout.
+"""Reading real PSP data in the common "PSin / PCos / fringe-order" MATLAB .mat layouts.
 
 Many FPP labs store a phase-shifting measurement as three same-shaped arrays:
 
@@ -16,9 +16,9 @@ path. Data written with the opposite sine sign (``PSin = +sum I_n sin delta_n``)
 A second layout, one folder per quantity and one variable per file (``<root>/PSin/<id>.mat``,
 ``PCos/``, ``Fringe/`` holding ``Order``, ``iPattern/`` holding the uint8 single-shot image), is how the
 public benchmarks republish the figshare rig's frames: :func:`list_psp_ids`, :func:`load_psp_folder_sample`,
-:func:`iter_psp_folder` read it, :func:`save_psp_folder_sample` writes it and :func:`export_psp_folders`
-converts a native fppsim dataset to it (see :data:`CONVENTIONS` for
-how wrapped phase and order combine there).
+:func:`iter_psp_folder` read it (see :data:`CONVENTIONS` for how wrapped phase and order combine
+there); the writers (``save_psp_mat``, ``save_psp_folder_sample``, ``export_psp_folders`` converting a
+native fppsim dataset) live in :mod:`fppsim.writers`.
 
 MATLAB v4/v5/v7 files are read with :func:`scipy.io.loadmat`; v7.3 (HDF5) files need ``h5py``.
 """
@@ -31,13 +31,12 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fs import atomic_path
-from .errors import PSPMatError
-from .psp import phase_from_sums
+from ..errors import PSPMatError
+from ..psp import phase_from_sums
 
-__all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "save_psp_mat",
-           "FOLDERS", "CONVENTIONS", "is_psp_folder", "list_psp_ids", "load_psp_folder_sample", "iter_psp_folder",
-           "save_psp_folder_sample", "sums_from_phase", "wrapped_from_sums", "export_psp_folders"]
+__all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "FOLDERS", "CONVENTIONS",
+           "check_convention", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable",
+           "load_ipattern", "load_psp_folder_sample", "iter_psp_folder"]
 
 SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numerator", "sin_sum", "SinSum")
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
@@ -183,41 +182,6 @@ def load_psp_mat(path: str | os.PathLike, sin_key: str | None = None, cos_key: s
                   modulation=modulation, keys={"sin": ks, "cos": kc, "order": ko}, meta=meta, path=str(path))
 
 
-def save_psp_mat(path: str | os.PathLike, psin: np.ndarray, pcos: np.ndarray, order: np.ndarray, *,
-                 n_steps: int | None = None, periods: float | None = None,
-                 keys: tuple[str, str, str] = ("PSin", "PCos", "Order"), compress: bool = True,
-                 **extra) -> None:
-    """Write PSin / PCos / order in the layout :func:`load_psp_mat` reads (MATLAB v5, atomic write).
-
-    ``psin, pcos`` as from :func:`fppsim.psp.phase_sums` (stored float64), ``order`` integer fringe
-    orders (stored int32). ``n_steps`` and ``periods`` (fringe periods across the projector) are
-    stored as scalars when given; ``extra`` adds further variables.
-    """
-    psin = np.asarray(psin, dtype=np.float64)
-    pcos = np.asarray(pcos, dtype=np.float64)
-    order = np.asarray(order)
-    if not (psin.shape == pcos.shape == order.shape):
-        raise PSPMatError(f"{path}: shapes differ: psin {psin.shape}, pcos {pcos.shape}, order {order.shape}")
-    if order.dtype.kind == "f":
-        if not np.all(np.isfinite(order)) or np.any(order != np.rint(order)):
-            raise PSPMatError(f"{path}: fringe orders must be finite integers")
-    elif order.dtype.kind not in "iub":
-        raise PSPMatError(f"{path}: fringe orders must be integers, got dtype {order.dtype}")
-    if len(keys) != 3 or len(set(keys)) != 3:
-        raise PSPMatError(f"{path}: keys must be three distinct names, got {keys}")
-    data = {keys[0]: psin, keys[1]: pcos, keys[2]: order.astype(np.int32)}
-    if n_steps is not None:
-        data["n_steps"] = np.int32(n_steps)
-    if periods is not None:
-        data["periods"] = np.float64(periods)
-    data.update(extra)
-    import scipy.io
-
-    path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
-
-
 # ====================================================================== one folder per quantity
 # The layout the public phase-retrieval benchmarks use for the figshare rig's frames:
 #   <root>/PSin/<id>.mat (PSin), <root>/PCos/<id>.mat (PCos), <root>/Fringe/<id>.mat (Order),
@@ -237,7 +201,8 @@ produces. Both read ``PSin`` as proportional to ``+sin Phi``; ``negate_sin=True`
 """
 
 
-def _check_convention(convention: str) -> str:
+def check_convention(convention: str) -> str:
+    """``convention`` if it is one of :data:`CONVENTIONS`, else :class:`PSPMatError`."""
     if convention not in CONVENTIONS:
         raise PSPMatError(f"unknown phase convention {convention!r} (known: {', '.join(CONVENTIONS)})")
     return convention
@@ -245,35 +210,12 @@ def _check_convention(convention: str) -> str:
 
 def wrapped_from_sums(psin: np.ndarray, pcos: np.ndarray, convention: str = "benchmark") -> np.ndarray:
     """Wrapped phase (rad, float64) of the sums: ``(0, 2 pi]`` for 'benchmark', ``(-pi, pi]`` for 'fppsim'."""
-    _check_convention(convention)
+    check_convention(convention)
     s = np.asarray(psin, dtype=np.float64)
     c = np.asarray(pcos, dtype=np.float64)
     if convention == "benchmark":
         return np.arctan2(-s, -c) + np.pi
     return phase_from_sums(s, c)
-
-
-def sums_from_phase(phase: np.ndarray, valid: np.ndarray | None = None, modulation=1.0,
-                    convention: str = "benchmark") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Absolute phase (rad) -> ``(PSin, PCos, Order)`` that the folder reader turns back into ``phase``.
-
-    ``modulation`` scales the sums (``(N/2) B`` of real data; any positive value keeps the phase);
-    pixels where ``valid`` is False (or the phase is not finite) get ``PSin = PCos = 0, Order = 0``,
-    the benchmark's invalid marker. Orders are int32.
-    """
-    _check_convention(convention)
-    phi = np.asarray(phase, dtype=np.float64)
-    ok = np.isfinite(phi) if valid is None else (np.asarray(valid, bool) & np.isfinite(phi))
-    p = np.where(ok, phi, 0.0)
-    if convention == "benchmark":
-        # wrapped in (0, 2 pi]: order = ceil(phi / 2 pi) - 1
-        order = np.ceil(p / (2 * np.pi)) - 1
-    else:
-        order = np.round(p / (2 * np.pi))
-    m = np.broadcast_to(np.asarray(modulation, dtype=np.float64), phi.shape)
-    psin = np.where(ok, m * np.sin(p), 0.0)
-    pcos = np.where(ok, m * np.cos(p), 0.0)
-    return psin, pcos, np.where(ok, order, 0).astype(np.int32)
 
 
 def is_psp_folder(root: str | os.PathLike) -> bool:
@@ -319,7 +261,9 @@ def _id_key(sid: str):
     return (0, int(sid), sid) if sid.isdigit() else (1, 0, sid)
 
 
-def _read_var(path: Path, name: str) -> np.ndarray:
+def read_mat_variable(path: Path, name: str) -> np.ndarray:
+    """The real numeric variable ``name`` of one .mat file (exact spelling first, then any case), squeezed;
+    :class:`PSPMatError` naming the file (and the variables it holds) otherwise."""
     if not path.is_file():
         raise PSPMatError(f"{path}: no such file")
     found = _read_mat(path)
@@ -334,6 +278,7 @@ def _read_var(path: Path, name: str) -> np.ndarray:
 
 
 def _image_u8(a: np.ndarray, path: Path) -> np.ndarray:
+    """An iPattern array as uint8 grey levels (a [0, 1] float image is scaled by 255)."""
     if a.dtype == np.uint8:
         return a
     f = a.astype(np.float64)
@@ -346,6 +291,12 @@ def _image_u8(a: np.ndarray, path: Path) -> np.ndarray:
     return np.rint(f).astype(np.uint8)
 
 
+def load_ipattern(path: str | os.PathLike) -> np.ndarray:
+    """The uint8 (H, W) single-shot image of one ``iPattern/<id>.mat`` file."""
+    path = Path(path)
+    return _image_u8(read_mat_variable(path, "iPattern"), path)
+
+
 def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = "benchmark",
                            negate_sin: bool = False, image: bool = True, order_tol: float = 1e-6) -> PspMat:
     """One id of the folder layout as a :class:`PspMat` (``image`` = the uint8 iPattern, or None).
@@ -355,14 +306,14 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
     file for a missing file or variable (listing the variables found), non-numeric data, non-integer
     orders, or a shape that differs from PSin's.
     """
-    _check_convention(convention)
+    check_convention(convention)
     root = Path(root)
     roles = ("sin", "cos", "order") + (("image",) if image else ())
     arrays, paths = {}, {}
     for r in roles:
         sub, var = FOLDERS[r]
         paths[r] = root / sub / f"{sid}.mat"
-        arrays[r] = _read_var(paths[r], var)
+        arrays[r] = read_mat_variable(paths[r], var)
     shape = arrays["sin"].shape
     if len(shape) != 2:
         raise PSPMatError(f"{paths['sin']}: PSin must be a 2-D image, got shape {shape}")
@@ -398,78 +349,3 @@ def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw)
     roles = ("sin", "cos", "order") + (("image",) if image else ())
     for sid in (list_psp_ids(root, roles) if ids is None else ids):
         yield sid, load_psp_folder_sample(root, sid, **kw)
-
-
-def _savemat_atomic(path: Path, data: dict, compress: bool = True) -> None:
-    import scipy.io
-
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        scipy.io.savemat(fh, data, do_compression=compress, oned_as="column")
-
-
-def save_psp_folder_sample(root: str | os.PathLike, sid: str, psin: np.ndarray, pcos: np.ndarray,
-                           order: np.ndarray, image: np.ndarray | None = None, compress: bool = True) -> list[Path]:
-    """Write one id in the folder layout (MATLAB v5 files, each written atomically); returns the paths.
-
-    ``psin, pcos`` float (stored float64), ``order`` integer (stored as MATLAB double, as the public
-    data do), ``image`` uint8 (H, W) iPattern. Use :func:`sums_from_phase` to make the three from an
-    absolute phase. Sub-folders are created; existing files of other ids are left alone.
-    """
-    root = Path(root)
-    sid = str(sid)
-    if not sid or "/" in sid or "\\" in sid or sid.startswith("."):
-        raise PSPMatError(f"{root}: invalid sample id {sid!r}")
-    psin = np.asarray(psin, dtype=np.float64)
-    pcos = np.asarray(pcos, dtype=np.float64)
-    order = np.asarray(order)
-    arrays = {"sin": psin, "cos": pcos, "order": order}
-    if image is not None:
-        arrays["image"] = np.asarray(image)
-    for r, a in arrays.items():
-        if a.shape != psin.shape or a.ndim != 2:
-            raise PSPMatError(f"{root}/{FOLDERS[r][0]}/{sid}.mat: shape {a.shape} differs from PSin's {psin.shape} "
-                              "(all must be the same 2-D shape)")
-    if order.dtype.kind == "f" and (not np.all(np.isfinite(order)) or np.any(order != np.rint(order))):
-        raise PSPMatError(f"{root}/Fringe/{sid}.mat: fringe orders must be finite integers")
-    if image is not None and arrays["image"].dtype != np.uint8:
-        raise PSPMatError(f"{root}/iPattern/{sid}.mat: iPattern must be uint8, got {arrays['image'].dtype}")
-    written = []
-    for r, a in arrays.items():
-        sub, var = FOLDERS[r]
-        (root / sub).mkdir(parents=True, exist_ok=True)
-        value = a.astype(np.float64) if r == "order" else a
-        path = root / sub / f"{sid}.mat"
-        _savemat_atomic(path, {var: value}, compress)
-        written.append(path)
-    return written
-
-
-def export_psp_folders(native_root: str | os.PathLike, out_root: str | os.PathLike, source: str = "psp",
-                       convention: str = "benchmark", modulation: float = 100.0) -> list[str]:
-    """Write a native fppsim dataset in the folder layout (e.g. a synthetic held-out set for
-    ``uhrnet evaluate-phase``); returns the ids written (the native sample ids).
-
-    ``source``: ``"psp"`` uses the decoded phase ``phase_psp`` and ``mask_psp`` (what a lab measures;
-    needs samples generated with PSP), ``"true"`` the exact ``phase_true`` and ``mask``. The iPattern is
-    the sample's ``fringe.png``; pixels outside the mask get ``PSin = PCos = 0``.
-    """
-    from .formats import load_native_sample, read_manifest
-
-    if source not in ("psp", "true"):
-        raise PSPMatError(f"source must be 'psp' or 'true', got {source!r}")
-    keys = ("phase_psp", "mask_psp") if source == "psp" else ("phase_true", "mask")
-    ids = []
-    for rec in read_manifest(native_root):
-        sid = str(rec.get("id"))
-        s = load_native_sample(Path(native_root) / sid, keys=keys, meta=False)
-        missing = [k for k in keys if k not in s]
-        if missing:
-            raise PSPMatError(f"{Path(native_root) / sid / 'arrays.npz'}: no {', '.join(missing)} "
-                              f"({'generate with PSP, or use source=true' if source == 'psp' else 'not a native sample'})")
-        img = s["fringe"]
-        if img.ndim != 2 or img.dtype != np.uint8:
-            raise PSPMatError(f"{Path(native_root) / sid / 'fringe.png'}: expected an 8-bit gray image")
-        phase, mask = s[keys[0]].astype(np.float64), s[keys[1]] > 0.5
-        save_psp_folder_sample(out_root, sid, *sums_from_phase(phase, mask, modulation, convention), img)
-        ids.append(sid)
-    return ids

@@ -1,11 +1,12 @@
-"""fppsim.stats: fringe/height statistics and the compare-real readers."""
+"""fppsim.compare (real vs synthetic statistics), the fringe measurements of fppsim.fringe and the
+any-layout reader fppsim.readers.open_samples that compare-real uses."""
 
 import json
 import cv2
 import numpy as np
 import pytest
 
-from fppsim import stats
+from fppsim import compare, fringe, readers
 from fppsim.formats import LabelTransform
 
 from _helpers import REAL_SAMPLE as REAL
@@ -40,27 +41,27 @@ def _scene(h=H, w=W, seed=0):
 @pytest.mark.parametrize("period", [11.6, 9.0])
 def test_period_estimate_within_one_percent(period):
     g = _fringe(period)
-    assert stats.estimate_period(g) == pytest.approx(period, rel=0.01)
+    assert fringe.estimate_period(g) == pytest.approx(period, rel=0.01)
     # invalid holes (filled with the row mean) do not bias it
     valid = np.ones(g.shape, bool)
     valid[40:120, 100:170] = False
     g2 = g.copy()
     g2[~valid] = 0
-    assert stats.estimate_period(g2, valid) == pytest.approx(period, rel=0.01)
+    assert fringe.estimate_period(g2, valid) == pytest.approx(period, rel=0.01)
     # a gamma-distorted (harmonic-rich), darker fringe
     gam = np.clip(255 * (g / 255.0) ** 2.2 * 3.0, 0, 255).astype(np.uint8)
-    assert stats.estimate_period(gam) == pytest.approx(period, rel=0.01)
-    q = stats.quarter_periods(g)
+    assert fringe.estimate_period(gam) == pytest.approx(period, rel=0.01)
+    q = fringe.quarter_periods(g)
     assert q.shape == (4,) and np.allclose(q, period, rtol=0.01)
 
 
 def test_quarters_see_a_period_that_changes_across_the_image():
     left, right = _fringe(12.0), _fringe(10.0, seed=1)
     g = np.concatenate([left, right], axis=1)
-    q = stats.quarter_periods(g)
+    q = fringe.quarter_periods(g)
     assert q[[0, 2]] == pytest.approx([12.0, 12.0], rel=0.01)
     assert q[[1, 3]] == pytest.approx([10.0, 10.0], rel=0.01)
-    s = stats.sample_stats(g, np.full(g.shape, -97.0, np.float32))
+    s = compare.sample_stats(g, np.full(g.shape, -97.0, np.float32))
     assert s["period_q_min_px"] == pytest.approx(10.0, rel=0.01)
     assert s["period_q_max_px"] == pytest.approx(12.0, rel=0.01)
     assert s["period_left_px"] == pytest.approx(12.0, rel=0.01)
@@ -69,19 +70,19 @@ def test_quarters_see_a_period_that_changes_across_the_image():
 
 def test_no_fringe_gives_nan_period():
     flat = np.full((64, 128), 80, np.uint8)
-    assert np.isnan(stats.estimate_period(flat))
+    assert np.isnan(fringe.estimate_period(flat))
 
 
 def test_modulation_and_background_of_a_known_fringe():
     g = _fringe(11.6, a=70.0, b=30.0, noise=0.5)
-    b, a = stats.fringe_modulation(g, 11.6)
+    b, a = fringe.fringe_modulation(g, 11.6)
     assert np.median(b) == pytest.approx(30.0, rel=0.03)
     assert np.median(a) == pytest.approx(70.0, rel=0.03)
 
 
 def test_sample_stats_percentiles_fractions_and_coverage_match_numpy():
     gray, label = _scene()
-    s = stats.sample_stats(gray, label)
+    s = compare.sample_stats(gray, label)
     valid = label != -105.0
     assert [s["intensity_p1"], s["intensity_p50"], s["intensity_p99"]] == pytest.approx(
         np.percentile(gray.astype(float), [1, 50, 99]))
@@ -111,11 +112,11 @@ def test_plane_modulation_right_over_left_of_a_known_ramp():
     label[60:120, 140:180] = 60.0  # object, not plane
     q = w // 4
     expected = np.median(amp[-q:]) / np.median(amp[:q])
-    s = stats.sample_stats(gray, label)
+    s = compare.sample_stats(gray, label)
     assert s["plane_modulation_lr"] == pytest.approx(expected, rel=0.03)
     assert expected > 1.8  # the ramp is steep enough for the check to mean something
     flat = np.clip(np.rint(80.0 + 30.0 * np.cos(2 * np.pi * x[None, :] / 11.6) + 0 * label), 0, 255).astype(np.uint8)
-    assert stats.sample_stats(flat, label)["plane_modulation_lr"] == pytest.approx(1.0, abs=0.02)
+    assert compare.sample_stats(flat, label)["plane_modulation_lr"] == pytest.approx(1.0, abs=0.02)
 
 
 @pytest.mark.parametrize("deg", [-1.35, 0.0, 2.0, 6.0])
@@ -129,9 +130,9 @@ def test_fringe_tilt_of_rotated_fringes(deg):
     mask = np.ones((h, w), bool)
     mask[40:100, 100:200] = False  # an object elsewhere must not matter
     gray[40:100, 100:200] = rng.integers(0, 255, (60, 100))
-    assert stats.fringe_tilt(gray, 11.6, mask) == pytest.approx(deg, abs=0.05, rel=0.02)
+    assert fringe.fringe_tilt(gray, 11.6, mask) == pytest.approx(deg, abs=0.05, rel=0.02)
     label = np.where(mask, -97.0, 80.0).astype(np.float32)
-    assert stats.sample_stats(gray, label)["fringe_tilt_deg"] == pytest.approx(deg, abs=0.05, rel=0.02)
+    assert compare.sample_stats(gray, label)["fringe_tilt_deg"] == pytest.approx(deg, abs=0.05, rel=0.02)
 
 
 def _write_native(root, samples, with_mask_key=True):
@@ -161,9 +162,9 @@ def test_three_layouts_read_the_same_samples(tmp_path):
     np.save(tmp_path / "one" / "height_map.npy", zz[0, ..., 0])
     _write_native(tmp_path / "nat", samples)
 
-    fig = stats.open_dataset(tmp_path / "fig")
-    one = stats.open_dataset(tmp_path / "one")
-    nat = stats.open_dataset(tmp_path / "nat")
+    fig = readers.open_samples(tmp_path / "fig")
+    one = readers.open_samples(tmp_path / "one")
+    nat = readers.open_samples(tmp_path / "nat")
     assert (fig.layout, len(fig)) == ("figshare", 3)
     assert (one.layout, len(one)) == ("real-sample", 1)
     assert (nat.layout, len(nat)) == ("native", 3)
@@ -180,18 +181,18 @@ def test_three_layouts_read_the_same_samples(tmp_path):
     (tmp_path / "fig3").mkdir()
     np.save(tmp_path / "fig3" / "f1_80.npy", fr[..., 0])
     np.save(tmp_path / "fig3" / "Z.npy", zz[..., 0])
-    assert len(stats.open_dataset(tmp_path / "fig3")) == 3
+    assert len(readers.open_samples(tmp_path / "fig3")) == 3
 
-    a = stats.dataset_stats(tmp_path / "fig")
-    b = stats.dataset_stats(tmp_path / "nat")
+    a = compare.dataset_stats(tmp_path / "fig")
+    b = compare.dataset_stats(tmp_path / "nat")
     for k, v in a["stats"].items():
         assert b["stats"][k] == pytest.approx(v, rel=1e-3, abs=1e-3), k
     assert a["n_samples"] == 3 and len(a["per_sample"]) == 3
-    assert stats.dataset_stats(tmp_path / "fig", max_samples=2)["n_samples"] == 2
+    assert compare.dataset_stats(tmp_path / "fig", max_samples=2)["n_samples"] == 2
 
-    res = stats.compare_real(tmp_path / "one", tmp_path / "nat", max_samples=2)
+    res = compare.compare_real(tmp_path / "one", tmp_path / "nat", max_samples=2)
     assert res["synthetic"]["n_samples"] == 2 and res["real"]["layout"] == "real-sample"
-    table = stats.format_comparison(res)
+    table = compare.format_comparison(res)
     for name in ("fringe period (px)", "invalid fraction", "height p99", "object coverage", "modulation"):
         assert name in table
     assert str(tmp_path / "one") in table and str(tmp_path / "nat") in table
@@ -201,7 +202,7 @@ def test_three_layouts_read_the_same_samples(tmp_path):
 def test_native_preset_is_configurable(tmp_path):
     gray, label = _scene()
     _write_native(tmp_path / "nat", [(gray, label)])
-    _, lab = stats.open_dataset(tmp_path / "nat", LabelTransform(units_per_mm=10.0, plane_offset=0.0, invalid_value=-1.0)).sample(0)
+    _, lab = readers.open_samples(tmp_path / "nat", LabelTransform(units_per_mm=10.0, plane_offset=0.0, invalid_value=-1.0)).sample(0)
     valid = label != -105.0
     assert np.allclose(lab[valid], (label[valid] + 97.0) / 6.0 * 10.0, atol=1e-3)
     assert np.all(lab[~valid] == -1.0)
@@ -209,24 +210,24 @@ def test_native_preset_is_configurable(tmp_path):
 
 def test_bad_folders_raise_value_error_naming_the_folder(tmp_path):
     with pytest.raises(ValueError, match="no dataset found") as e:
-        stats.open_dataset(tmp_path)
+        readers.open_samples(tmp_path)
     assert str(tmp_path) in str(e.value)
     with pytest.raises(ValueError, match="not a folder"):
-        stats.open_dataset(tmp_path / "missing")
+        readers.open_samples(tmp_path / "missing")
     (tmp_path / "bad").mkdir()
     np.save(tmp_path / "bad" / "f1_80.npy", np.zeros((2, 8, 16, 1), np.float32))
     np.save(tmp_path / "bad" / "Z.npy", np.zeros((3, 8, 16, 1), np.float32))
     with pytest.raises(ValueError, match="3 samples but f1_80.npy has 2"):
-        stats.open_dataset(tmp_path / "bad")
+        readers.open_samples(tmp_path / "bad")
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "manifest.jsonl").write_text("")
     with pytest.raises(ValueError, match="lists no sample"):
-        stats.open_dataset(tmp_path / "empty")
+        readers.open_samples(tmp_path / "empty")
 
 
 @pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")
 def test_real_sample_statistics():
-    res = stats.dataset_stats(REAL)
+    res = compare.dataset_stats(REAL)
     s = res["stats"]
     assert res["layout"] == "real-sample" and res["shape"] == [352, 640]
     assert 11.0 <= s["period_px"] <= 12.3

@@ -1,0 +1,114 @@
+"""Height sensitivity of a rig: the projector phase it predicts for a height map, and the check of that
+prediction against a labelled real image.
+
+:func:`surface_phase` is the exact forward model ``h -> Phi(h)`` of a height field (each camera ray
+meets ``z = h``, the projector sees that point); :func:`centre_sensitivity` its slope at the image
+centre (rad per mm; the real figshare rig: about -0.87). :func:`sensitivity_check` demodulates a
+labelled real fringe image with the predicted phase: what is left on the object is flat in height
+only when the rig's fringe shift per mm matches the real one (``fppsim.fit_rig.fit_baseline`` chooses
+the baseline with it). Units: mm, radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import RigError
+from .fringe import poly_basis
+from .readers import FringeImage
+from .rig import Rig
+
+__all__ = ["surface_phase", "centre_sensitivity", "SensitivityCheck", "sensitivity_check"]
+
+
+def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
+    """Projector phase (rad, ``2 pi f u_p / W_p``) the rig predicts at every camera pixel for the surface
+    ``height_mm`` (H, W) mm above the reference plane (NaN -> 0).
+
+    Exact for a height field: the point a pixel sees at height h is where its camera ray meets z = h.
+    """
+    cam = rig.camera
+    h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
+    if h.shape != (cam.height, cam.width):
+        raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
+    return _phase_at(rig, cam.pixel_grid(), h)
+
+
+def _phase_at(rig: Rig, uv: np.ndarray, height_mm: np.ndarray) -> np.ndarray:
+    """Projector phase at camera pixels ``uv`` (..., 2) whose surface lies ``height_mm`` (...) above the plane."""
+    origin, d = rig.camera.pixel_rays(uv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (height_mm - origin[2]) / d[..., 2]
+    uv_p, _ = rig.projector.project(origin + s[..., None] * d)
+    return rig.phase_of_column(uv_p[..., 0])
+
+
+def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
+    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
+    cam = rig.camera
+    centre = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
+    lo, hi = _phase_at(rig, centre, np.array([0.0, float(dh)]))
+    return float((hi - lo) / dh)
+
+
+@dataclass
+class SensitivityCheck:
+    """How well a rig's height sensitivity matches one labelled real image (:func:`sensitivity_check`).
+
+    coherence : |mean phasor| of the residual phase on object pixels (1 = the rig predicts how the real
+    fringes shift with height everywhere on the object; low = the shift per mm differs).
+    slope : residual phase per mm of height on the object (rad/mm; 0 when the sensitivity matches).
+    offset : circular mean of the object residual (rad). plane_std : residual std on the plane (rad).
+    n_object : object pixels used.
+    """
+
+    coherence: float
+    slope: float
+    offset: float
+    plane_std: float
+    n_object: int
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree: int = 3,
+                      object_mm: float = 2.0) -> SensitivityCheck | None:
+    """Compare the fringe shift a rig predicts for a labelled real image with the real fringes.
+
+    The labelled surface is re-projected through ``rig`` (:func:`surface_phase`, phase ``phi``); the real
+    fringe, less its local mean, is demodulated with ``exp(-i phi)`` and low-passed (Gaussian ``smooth``
+    px), leaving the phase the rig does NOT explain. On the plane that is the carrier mismatch, a
+    smooth field: a ``degree`` polynomial in (x, y) fitted to it (unwrapped) is removed everywhere. On
+    the object, what remains is flat in height only when the rig's phase shift per mm matches the real
+    one. Returns None when the image has no labels or too few object pixels.
+    """
+    from scipy import ndimage as ndi
+    from skimage.restoration import unwrap_phase
+
+    if image.height_mm is None or image.plane is None:
+        return None
+    h = np.where(image.valid, np.nan_to_num(image.height_mm), 0.0)
+    inner = ndi.binary_erosion(image.valid, iterations=int(np.ceil(1.5 * smooth)))
+    plane = inner & image.plane
+    obj = inner & (h > object_mm)
+    if plane.sum() < 1000 or obj.sum() < 200:
+        return None
+    g = image.gray.astype(np.float64)
+    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
+    c = g * np.exp(-1j * surface_phase(rig, h))
+    w = image.valid.astype(np.float64)
+    cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
+    d = np.angle(cs)
+    du = unwrap_phase(np.ma.array(d, mask=~plane))
+    A = poly_basis(*d.shape, degree)
+    coef = np.linalg.lstsq(A[plane.ravel()], np.asarray(du)[plane], rcond=None)[0]
+    r = np.angle(np.exp(1j * (d - (A @ coef).reshape(d.shape))))
+    ro, ho = r[obj], h[obj]
+    phasor = np.mean(np.exp(1j * ro))
+    offset = float(np.angle(phasor))
+    centred = np.angle(np.exp(1j * (ro - offset)))  # unwrapped around the mean: slope is then meaningful
+    slope = float(np.polyfit(ho, centred, 1)[0]) if np.ptp(ho) > 1.0 else float("nan")
+    return SensitivityCheck(float(np.abs(phasor)), slope, offset, float(np.std(r[plane])), int(obj.sum()))

@@ -1,0 +1,331 @@
+"""Label-free adaptation to real fringe images: ``uhrnet.adapt(AdaptConfig(...))``; ``uhrnet adapt`` calls it.
+
+A network trained on synthetic data meets real images whose fringes it reads imperfectly. Each real
+fringe image carries its own phase (:func:`fppsim.fringe.single_shot_phase`: wrapped phase ``phi`` and
+a reliability ``rho`` in [0, 1]), and the calibrated rig says which phase a height implies
+(:class:`uhrnet.rig_layer.RigLayer`: ``Phi(h)``, exact and differentiable). Fine-tuning minimises,
+over the UNLABELLED images (no height label is ever read),
+
+    L = w_grad L_grad + w_wrap L_wrap + w_drift L_drift
+
+* ``L_grad``, fringe-gradient consistency: the phase step between neighbouring pixels that the
+  predicted height implies, ``Phi(h)[x+1] - Phi(h)[x]`` (rows and columns), against the image's own
+  step ``wrap(phi[x+1] - phi[x])``, with a Charbonnier penalty, weighted by ``min(rho)`` of the pair and
+  ignored where they differ by more than ``max_step`` rad (a wall whose fringes alias, a shadow edge).
+  It fixes the relief's shape without the fringe-order ambiguity of the phase itself;
+* ``L_wrap``, wrapped-phase consistency: ``sum rho (1 - cos(phi - Phi(h) - o)) / sum rho`` with ``o`` the
+  image's phase origin (a constant per image, estimated each step as the weighted circular mean and
+  not differentiated: a real projector's pattern phase is not the rig's);
+* ``L_drift``, anchor to the source model: mean ``|h - h_source| / 10 mm`` over the image's valid pixels,
+  which keeps what the phase cannot tell (the level of an object behind walls, shadows) where it was.
+
+Batch norm and dropout stay in evaluation mode (two or three images cannot re-estimate statistics).
+The run folder holds ``last.pt`` (a checkpoint ``predict``/``evaluate`` accept, with the source's
+training record and this adaptation's), ``history.csv`` (one row per epoch: the loss terms and each
+image's median wrapped residual in rad), ``config.json`` and ``figures/<image>_adapt.png`` (before /
+after / difference and the phase residuals). Re-running the same command resumes; a folder holding
+another run is refused unless ``overwrite``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+import torch
+
+from uhrnet.errors import ConfigError, UsageError
+
+__all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
+
+ADAPT_COLUMNS = ("epoch", "loss", "grad", "wrap", "drift", "lr", "seconds")
+
+
+@dataclass
+class AdaptConfig:
+    """What to adapt and how (defaults chosen for 2 CPU cores; see the module docstring).
+
+    checkpoint : a run folder (its ``last.pt``... as predict resolves it) or a ``.pt`` file.
+    images : unlabelled fringe inputs: images / ``.npy`` (as ``uhrnet predict`` takes them), figshare
+        folders (``f1_80.npy`` or ``fringe_pattern.npy``; labels are never read) and phase-shifting
+        folders (their ``iPattern`` single-shot images).
+    out : the adaptation's run folder.
+    rig : calibration file; default the checkpoint's own rig (physics head), else fppsim's default rig.
+    epochs : passes over the images (one image per step). lr : Adam learning rate.
+    w_grad, w_wrap, w_drift : loss weights. max_step : largest phase-step disagreement (rad) that
+        counts in ``L_grad``. min_reliability : pixels below it count in neither phase term.
+    """
+
+    checkpoint: str | Path
+    images: Sequence[str | Path]
+    out: str | Path
+    rig: str | Path | None = None
+    epochs: int = 40
+    lr: float = 1e-4
+    w_grad: float = 1.0
+    w_wrap: float = 0.5
+    w_drift: float = 0.5
+    max_step: float = 1.5
+    min_reliability: float = 0.2
+    device: str = "cpu"
+    seed: int = 0
+    resume: bool = True
+    overwrite: bool = False
+    figures: bool = True
+    progress: bool = True
+
+    def __post_init__(self):
+        if isinstance(self.images, (str, Path)):
+            self.images = [self.images]
+        if not self.images:
+            raise UsageError("adapt: give at least one image (--images PATH ...)")
+        if int(self.epochs) != self.epochs or self.epochs < 1:
+            raise UsageError(f"--epochs must be an integer >= 1, got {self.epochs!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr)):
+            raise UsageError(f"--lr must be a finite rate > 0, got {self.lr!r}")
+        for name in ("w_grad", "w_wrap", "w_drift", "max_step", "min_reliability"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise UsageError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {v!r}")
+        if self.w_grad + self.w_wrap == 0:
+            raise UsageError("adapt needs a phase term: --w-grad or --w-wrap must be > 0")
+
+    def record(self) -> dict:
+        d = asdict(self)
+        d["images"] = [str(p) for p in self.images]
+        for k in ("checkpoint", "out", "rig"):
+            d[k] = None if d[k] is None else str(d[k])
+        return d
+
+
+@dataclass
+class AdaptResult:
+    out: Path
+    epochs: int
+    history: list[dict]
+    images: list[dict] = field(default_factory=list)  # name, before/after median wrapped residual (rad)
+    figures: list[Path] = field(default_factory=list)
+
+
+@dataclass
+class ImagePhase:
+    """One unlabelled image ready for adaptation (all (H, W) float32)."""
+
+    name: str
+    fringe: np.ndarray  # dataset encoding, [-1, 1]
+    wrapped: np.ndarray  # rad, fppsim's phase_true convention up to a constant
+    reliability: np.ndarray  # [0, 1]; 0 where invalid
+
+
+def image_phase(name: str, fringe: np.ndarray) -> ImagePhase:
+    """The single-shot phase of ``fringe`` (dataset encoding) with its reliability (0 on black pixels,
+    the dataset's shadow marker)."""
+    from fppsim.fringe import single_shot_phase
+
+    ssp = single_shot_phase(np.asarray(fringe, np.float64))  # finds shadows (dark runs) itself
+    rel = np.where(ssp.valid, ssp.reliability, 0.0).astype(np.float32)
+    return ImagePhase(name, np.asarray(fringe, np.float32), ssp.wrapped.astype(np.float32), rel)
+
+
+def _wrap(x: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(torch.sin(x), torch.cos(x))
+
+
+def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.Tensor, reliability: torch.Tensor,
+               layer, w_grad: float = 1.0, w_wrap: float = 0.5, w_drift: float = 0.5, max_step: float = 1.5,
+               min_reliability: float = 0.2, eps: float = 0.05) -> tuple[torch.Tensor, dict]:
+    """The adaptation loss (module docstring) for a batch ``(N, 1, H, W)``: heights in mm, the image's
+    wrapped phase (rad) and reliability; ``layer`` maps height to absolute phase. Returns the total and
+    its terms (floats)."""
+    phi = layer.phase_from_height(height_mm)
+    rho = torch.where(reliability >= min_reliability, reliability, torch.zeros_like(reliability))
+    valid = (reliability > 0).to(height_mm.dtype)
+    terms = {}
+    # gradient consistency, rows and columns
+    g_sum, g_w = height_mm.new_zeros(()), height_mm.new_zeros(())
+    for dim in (-1, -2):
+        n = phi.shape[dim]
+        a, b = (lambda t: t.narrow(dim, 1, n - 1)), (lambda t: t.narrow(dim, 0, n - 1))
+        r = (a(phi) - b(phi)) - _wrap(a(wrapped) - b(wrapped))
+        w = torch.minimum(a(rho), b(rho)) * (r.detach().abs() < max_step)
+        g_sum = g_sum + (w * (torch.sqrt(r * r + eps * eps) - eps)).sum()
+        g_w = g_w + w.sum()
+    terms["grad"] = g_sum / g_w.clamp(min=1.0)
+    # wrapped consistency with one phase origin per image
+    d = wrapped - phi
+    with torch.no_grad():
+        o = torch.atan2((rho * torch.sin(d)).sum(dim=(1, 2, 3), keepdim=True),
+                        (rho * torch.cos(d)).sum(dim=(1, 2, 3), keepdim=True))
+    terms["wrap"] = (rho * (1 - torch.cos(d - o))).sum() / rho.sum().clamp(min=1.0)
+    terms["drift"] = (valid * (height_mm - source_mm).abs()).sum() / (10.0 * valid.sum().clamp(min=1.0))
+    total = w_grad * terms["grad"] + w_wrap * terms["wrap"] + w_drift * terms["drift"]
+    return total, {k: float(v.detach()) for k, v in terms.items()}
+
+
+def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_reliability: float = 0.5) -> float:
+    """Median |wrap(phi - Phi(h) - o)| (rad) over the image's reliable pixels: 0 = the height explains
+    the image's fringes exactly (up to the phase origin ``o``)."""
+    with torch.no_grad():
+        phi = layer.phase_from_height(torch.as_tensor(height_mm, dtype=torch.float32)[None, None])[0, 0].numpy()
+    sel = (img.reliability >= min_reliability) & np.isfinite(height_mm)
+    if not sel.any():
+        return float("nan")
+    d = (img.wrapped - phi)[sel]
+    o = np.angle(np.mean(np.exp(1j * d)))
+    return float(np.median(np.abs(np.angle(np.exp(1j * (d - o))))))
+
+
+def _rig_for(cfg: AdaptConfig, ckpt: dict):
+    from fppsim.rig import Rig, RigError, load_rig
+
+    try:
+        if cfg.rig is not None:
+            return load_rig(cfg.rig), str(cfg.rig)
+        rig = ckpt["model"]["config"].get("rig")
+        if rig is not None:
+            return Rig.from_dict(rig), "the checkpoint's rig"
+        return load_rig(None), "fppsim's default rig"
+    except RigError as exc:
+        raise ConfigError(f"--rig: {exc}") from None
+
+
+def _write_history(rows: list[dict], out: Path) -> None:
+    from fppsim.files import atomic_write_text
+
+    names = list(ADAPT_COLUMNS) + sorted({k for r in rows for k in r} - set(ADAPT_COLUMNS))
+    buf = io.StringIO()
+    w = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
+    w.writeheader()
+    for r in rows:
+        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
+    atomic_write_text(out / "history.csv", buf.getvalue())
+
+
+def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
+    """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
+    run folder ``cfg.out`` and returns what happened."""
+    from fppsim.encoding import json_default
+    from fppsim.files import atomic_write_text
+    from uhrnet.checkpoint import atomic_save, load_checkpoint, model_from_checkpoint, rng_state
+    from uhrnet.device import select_device
+    from uhrnet.prediction import read_inputs
+    from uhrnet.rig_layer import RigLayer
+
+    out = Path(cfg.out)
+    source = load_checkpoint(cfg.checkpoint)
+    resume_from = None
+    if (out / "last.pt").exists() and not cfg.overwrite:
+        prev = load_checkpoint(out / "last.pt")
+        if "adapt" not in prev:
+            raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out "
+                              "(or --overwrite to replace it)")
+        same = {k: v for k, v in prev["adapt"]["config"].items() if k not in ("epochs", "progress", "figures")}
+        now = {k: v for k, v in cfg.record().items() if k not in ("epochs", "progress", "figures", "overwrite",
+                                                                    "resume")}
+        same = {k: v for k, v in same.items() if k in now}
+        if same != now or not cfg.resume:
+            raise ConfigError(f"{out} already holds an adaptation with other options: choose another --out "
+                              "or pass --overwrite")
+        resume_from = prev
+    rig, rig_name = _rig_for(cfg, source)
+    device = select_device(cfg.device)
+    images = [image_phase(name, fr) for name, fr in read_inputs([str(p) for p in cfg.images])]
+    cam = rig.camera
+    for im in images:
+        if im.fringe.shape != (cam.height, cam.width):
+            raise ConfigError(f"{im.name}: image is {im.fringe.shape[1]}x{im.fringe.shape[0]} but the rig's camera "
+                              f"({rig_name}) is {cam.width}x{cam.height}")
+    model, transform = model_from_checkpoint(source, device)
+    src_model, _ = model_from_checkpoint(source, device)
+    layer = RigLayer(rig).to(device)
+    to_mm = lambda label: (label - transform.plane_offset) * transform.mm_per_unit  # noqa: E731
+
+    def batch(im: ImagePhase):
+        t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)[None, None]  # noqa: E731
+        return t(im.fringe), t(im.wrapped), t(im.reliability)
+
+    with torch.no_grad():
+        sources = [to_mm(src_model(batch(im)[0])) for im in images]
+    del src_model
+    params = [p for p in model.parameters() if p.requires_grad]
+    optim = torch.optim.Adam(params, lr=cfg.lr)
+    history: list[dict] = []
+    start = 0
+    if resume_from is not None:
+        model.net.load_state_dict(resume_from["state_dict"])
+        optim.load_state_dict(resume_from["adapt"]["optimizer"])
+        history = list(resume_from["adapt"]["history"])
+        start = int(resume_from["adapt"]["epoch"])
+        log(f"adapt: resuming {out} at epoch {start + 1}")
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "config.json", json.dumps({**cfg.record(), "rig_used": rig_name,
+                                                        "source": source["path"]}, indent=2, default=json_default))
+    model.eval()  # batch norm statistics and dropout as trained (module docstring)
+    gen = torch.Generator().manual_seed(int(cfg.seed))
+    before = [median_wrapped_residual(s[0, 0].cpu().numpy(), im, layer.cpu()) for s, im in zip(sources, images)]
+    layer.to(device)
+    bar = None
+    if cfg.progress and start < cfg.epochs:
+        from tqdm import tqdm
+
+        bar = tqdm(total=(cfg.epochs - start) * len(images), desc="adapt", unit="step", dynamic_ncols=True)
+    for epoch in range(start, int(cfg.epochs)):
+        t0 = time.perf_counter()
+        sums = {"loss": 0.0, "grad": 0.0, "wrap": 0.0, "drift": 0.0}
+        for i in torch.randperm(len(images), generator=gen).tolist():
+            x, phi, rho = batch(images[i])
+            h = to_mm(model(x))
+            loss, terms = adapt_loss(h, sources[i], phi, rho, layer, cfg.w_grad, cfg.w_wrap, cfg.w_drift,
+                                     cfg.max_step, cfg.min_reliability)
+            if not torch.isfinite(loss):
+                raise ConfigError(f"adapt: the loss became {float(loss):g} on {images[i].name} at epoch {epoch + 1}; "
+                                  "lower --lr")
+            optim.zero_grad(set_to_none=True)
+            loss.backward()
+            optim.step()
+            sums["loss"] += float(loss.detach()) / len(images)
+            for k, v in terms.items():
+                sums[k] += v / len(images)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{float(loss):.4g}", refresh=False)
+        row = {"epoch": epoch + 1, **sums, "lr": cfg.lr, "seconds": time.perf_counter() - t0}
+        history.append(row)
+        payload = {k: v for k, v in source.items() if k not in ("path", "optimizer", "scaler", "loss", "rng")}
+        payload.update({
+            "state_dict": model.net.state_dict(), "epoch": int(source.get("epoch", 0)),
+            "adapt": {"config": cfg.record(), "epoch": epoch + 1, "history": history, "source": source["path"],
+                      "rig": rig.to_dict(), "optimizer": optim.state_dict(), "rng": rng_state()},
+        })
+        payload.pop("train_state_dict", None)
+        payload.pop("ema", None)
+        atomic_save(payload, out / "last.pt")
+        _write_history(history, out)
+        if not cfg.progress:
+            log(f"adapt epoch {epoch + 1}/{cfg.epochs}  loss {sums['loss']:.4g}  grad {sums['grad']:.4g}  "
+                f"wrap {sums['wrap']:.4g}  drift {sums['drift']:.4g}  {row['seconds']:.1f}s")
+    if bar is not None:
+        bar.close()
+    result = AdaptResult(out, int(cfg.epochs), history)
+    with torch.no_grad():
+        afters = [to_mm(model(batch(im)[0])) for im in images]
+    layer.cpu()
+    for im, s, a, b in zip(images, sources, afters, before):
+        h0, h1 = s[0, 0].cpu().numpy(), a[0, 0].cpu().numpy()
+        after = median_wrapped_residual(h1, im, layer)
+        result.images.append({"name": im.name, "before_rad": b, "after_rad": after,
+                              "mean_change_mm": float(np.mean(np.abs(h1 - h0)[im.reliability > 0]))})
+        if cfg.figures:
+            from uhrnet.plots import plot_adaptation
+
+            result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
+    atomic_write_text(out / "images.json", json.dumps(result.images, indent=2, default=json_default))
+    return result

@@ -1,0 +1,275 @@
+"""Snap a height map to the nearest height its own fringe image's wrapped phase allows (:func:`refine_height`).
+
+A single-shot fringe image fixes the projector phase of every pixel up to whole periods (the wrapped
+phase ``phi``, :func:`fppsim.fringe.single_shot_phase`); a network's height estimate ``h`` says which
+period. Through the calibrated rig (:class:`uhrnet.rig_layer.RigLayer`) the estimate implies the phase
+``Phi(h)``, and the phase-consistent height nearest to it is::
+
+    Phi' = Phi(h) + wrap(phi - o - Phi(h)),      h' = height_from_phase(Phi')
+
+with ``o`` the measured phase's origin (measured = fppsim phase + ``o``, mod 2 pi; 0 for fppsim's own
+``phase_true`` convention). ``h'`` is exact wherever ``h`` is within half a fringe period of the truth
+(the wrapped phase then picks the right period) and off by one whole period where it is not; nothing
+in the image tells the two apart. So a pixel moves only where
+
+* its reliability is ``>= min_reliability`` (the wrapped phase is trustworthy there), and
+* the move is within a margin: ``max_move_mm``, or by default ``max_move_fraction`` (0.5) of the
+  height of half a fringe period at that pixel, ``pi / |dPhi/dh|`` (from the rig's local sensitivity
+  at the estimated height; about 3.6 mm on the default rig, so 1.8 mm). With the margin a fraction
+  ``m`` of half a period, estimates within ``m/2`` periods of the truth are corrected exactly and an
+  estimate is made worse only when it is already more than ``1 - m/2`` periods off (then by at most
+  ``m/2`` periods); a smooth error beyond half a period is never "fixed" by more than the margin.
+
+Phase origin. Real frames may count phase from another origin (the public real data count fringe
+orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad). ``phase_offset="estimate"``
+estimates ``o`` per image as the circular median of ``wrap(phi - Phi(h))`` over the reliable pixels
+(:func:`circular_median`; robust to the object's pixels where ``h`` is wrong as long as most reliable
+pixels are right, e.g. the reference plane) and reports it; only ``o`` modulo 2 pi matters here. The
+estimate is always reported (``offset_estimate_rad``), also when a known offset is used.
+
+numpy in, numpy out (torch float64 inside).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["refine_height", "refine_relief", "circular_median", "REFINE_METHODS"]
+
+REFINE_METHODS = ("relief", "nearest")
+"""``relief``: :func:`refine_relief` (the default of ``--refine phase``); ``nearest``: :func:`refine_height`."""
+
+TWO_PI = 2.0 * math.pi
+
+
+def _wrap(x: np.ndarray) -> np.ndarray:
+    """Wrap (rad) into [-pi, pi)."""
+    return np.mod(np.asarray(x, dtype=np.float64) + math.pi, TWO_PI) - math.pi
+
+
+def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int = 20000) -> float:
+    """Circular median (rad, in [-pi, pi)) of ``angles``: the direction minimising the summed arc
+    distance, robust to outliers (unlike the circular mean). NaN when no angle is finite.
+
+    A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
+    then the exact median of all angles re-centred on the best candidate (the arc distance is then
+    the ordinary absolute difference).
+
+    Parameters
+    ----------
+    angles : any-shape float array, rad (NaN ignored).
+    """
+    a = np.asarray(angles, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return float("nan")
+    sample = a[:: max(1, a.size // int(max_samples))]
+    cands = np.linspace(-math.pi, math.pi, int(candidates), endpoint=False)
+    cost = [np.abs(_wrap(sample - c)).sum() for c in cands]
+    c0 = cands[int(np.argmin(cost))]
+    return float(_wrap(c0 + np.median(_wrap(a - c0))))
+
+
+def _layer_for(rig_or_layer, shape):
+    from uhrnet.rig_layer import RigLayer
+
+    layer = rig_or_layer if isinstance(rig_or_layer, RigLayer) else RigLayer(rig_or_layer)
+    if tuple(shape[-2:]) != layer.grid_shape:
+        raise ValueError(f"height map is {shape[-1]} x {shape[-2]} px but the layer's grid is "
+                         f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
+                         "(RigLayer(rig, height=..., width=..., pixels=...))")
+    return layer
+
+
+def refine_height(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None,
+                  rig_or_layer, min_reliability: float = 0.5, max_move_mm=None, phase_offset: float | str = 0.0,
+                  max_move_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Move each reliable pixel's height to the nearest height consistent with the wrapped phase.
+
+    See the module docstring for the method, the margin and the phase origin.
+
+    Parameters
+    ----------
+    height_mm : (..., H, W) float array, estimated height above the reference plane, mm (NaN = none).
+    wrapped_phase : (..., H, W) float array, the image's wrapped projector phase, rad (any 2 pi
+        representative; fppsim's ``phase_true`` convention up to ``phase_offset``).
+    reliability : (..., H, W) float array in [0, 1] (NaN = 0), or None (every pixel reliable).
+    rig_or_layer : :class:`fppsim.rig.Rig`, its dictionary, or a :class:`uhrnet.rig_layer.RigLayer`
+        whose grid is (H, W).
+    min_reliability : pixels below it are never moved.
+    max_move_mm : largest allowed move, mm (a number or an array broadcasting to the height map);
+        None: ``max_move_fraction`` of the height of half a fringe period at each pixel.
+    phase_offset : the measured phase's origin ``o`` in rad (measured = fppsim phase + o, mod 2 pi),
+        or ``"estimate"``: one circular-median estimate per image (leading index).
+    max_move_fraction : margin as a fraction of half a fringe period (when ``max_move_mm`` is None).
+
+    Returns
+    -------
+    refined : (..., H, W) array of the input's float dtype (float64 for other inputs), mm; equal to
+        ``height_mm`` (bit for bit) where not moved.
+    moved : (..., H, W) bool, the pixels that moved.
+    stats : dict with ``moved_fraction`` (moved / pixels with a finite height), ``reliable_fraction``
+        (pixels eligible: finite height and phase, reliability >= threshold), ``beyond_margin_fraction``
+        (eligible but their move exceeded the margin), ``mean_abs_move_mm`` (over moved pixels),
+        ``offset_rad`` (the origin used) and ``offset_estimate_rad`` (the circular-median estimate; both
+        floats for one image, lists for a batch), ``n_pixels`` (pixels with a finite height).
+    """
+    import torch
+
+    h_in = np.asarray(height_mm)
+    h = h_in.astype(np.float64)
+    w = np.asarray(wrapped_phase, dtype=np.float64)
+    if w.shape != h.shape:
+        raise ValueError(f"wrapped_phase has shape {w.shape}, height_mm {h.shape}")
+    if h.ndim < 2:
+        raise ValueError(f"height_mm must be (..., H, W), got shape {h.shape}")
+    rel = np.ones_like(h) if reliability is None else np.nan_to_num(np.asarray(reliability, dtype=np.float64))
+    if rel.shape != h.shape:
+        raise ValueError(f"reliability has shape {rel.shape}, height_mm {h.shape}")
+    if not (max_move_fraction > 0):
+        raise ValueError(f"max_move_fraction must be > 0, got {max_move_fraction!r}")
+    estimate = isinstance(phase_offset, str)
+    if estimate and phase_offset != "estimate":
+        raise ValueError(f"phase_offset must be a number (rad) or 'estimate', got {phase_offset!r}")
+    layer = _layer_for(rig_or_layer, h.shape)
+    dev = layer.A.device
+    with torch.no_grad():
+        th = torch.as_tensor(h, dtype=torch.float64, device=dev)
+        phi = layer.phase_from_height(th)
+        sens = layer.sensitivity(torch.nan_to_num(th))
+        phi, sens = phi.cpu().numpy(), sens.cpu().numpy()
+    d = _wrap(w - phi)
+    eligible = np.isfinite(h) & np.isfinite(d) & (rel >= min_reliability)
+
+    lead = h.shape[:-2]
+    d2 = d.reshape((-1,) + h.shape[-2:])
+    e2 = eligible.reshape(d2.shape)
+    est = np.array([circular_median(d2[i][e2[i]]) if e2[i].any() else float("nan") for i in range(d2.shape[0])])
+    if estimate:
+        used = np.nan_to_num(est)  # no reliable pixel: nothing moves anyway
+    else:
+        used = np.full(d2.shape[0], float(phase_offset))
+    step = _wrap(d2 - used[:, None, None]).reshape(h.shape)
+    with torch.no_grad():
+        target = torch.as_tensor(phi + step, dtype=torch.float64, device=dev)
+        h_new = layer.height_from_phase(target).cpu().numpy()
+    move = h_new - h
+    if max_move_mm is None:
+        with np.errstate(divide="ignore"):
+            margin = max_move_fraction * math.pi / np.abs(sens)
+    else:
+        margin = np.broadcast_to(np.asarray(max_move_mm, dtype=np.float64), h.shape)
+    within = np.isfinite(move) & (np.abs(move) <= margin)
+    moved = eligible & within
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
+
+    n = int(np.isfinite(h).sum())
+    per = lambda x: float(x[0]) if not lead else [float(v) for v in x]  # noqa: E731
+    stats = {
+        "n_pixels": n,
+        "moved_fraction": float(moved.sum() / n) if n else 0.0,
+        "reliable_fraction": float(eligible.sum() / n) if n else 0.0,
+        "beyond_margin_fraction": float((eligible & ~within).sum() / n) if n else 0.0,
+        "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
+        "offset_rad": per(used),
+        "offset_estimate_rad": per(est),
+    }
+    return refined, moved, stats
+
+
+def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
+                  valid: np.ndarray | None = None, min_reliability: float = 0.5, max_step: float = 1.0,
+                  smooth_px: float = 3.0, max_move_mm=None, max_move_fraction: float = 2.0,
+                  min_region: int = 50) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Relief from the image's phase, level from the estimate: the least move that makes a height map
+    consistent with its own fringes, region by region.
+
+    The wrapped phase is unwrapped spatially inside regions where it is continuous
+    (:func:`fppsim.unwrap.phase_regions`; boundaries where the phase is unreliable and where the phase
+    step between neighbours disagrees by more than ``max_step`` rad with the step of the estimate,
+    smoothed over ``smooth_px``, seen through the rig: an aliasing wall). Inside a region the unwrapped
+    phase fixes the relief exactly, but not the region's fringe order; the level is taken from the
+    estimate: each pixel moves to ``height_from_phase(Phi(h) + D - median_region(D))`` with
+    ``D = U - Phi(h) - o`` (``U`` the region's unwrapped phase, ``o`` the image's phase origin,
+    :func:`circular_median` over the reliable pixels). So the region's median move is 0: the estimate
+    keeps its level, the phase replaces its shape. Unlike :func:`refine_height` this needs no estimate
+    within half a period, and a rig whose height scale is slightly off changes the relief by that
+    fraction only, not the level. A pixel moves only when reliable, inside a region, and when its move
+    is within ``max_move_mm`` (default ``max_move_fraction`` fringe periods of height at the pixel,
+    ``2 pi / |dPhi/dh|``: a region that swallowed a wall is rejected where it moves pixels that far).
+
+    Parameters
+    ----------
+    height_mm : (H, W) float, the estimate, mm above the reference plane (NaN = none).
+    wrapped_phase, reliability : (H, W) the image's single-shot phase (rad) and its reliability [0, 1].
+    rig_or_layer : :class:`fppsim.rig.Rig`, its dictionary or a :class:`uhrnet.rig_layer.RigLayer`.
+    valid : (H, W) bool, pixels that may move (default: finite estimate).
+
+    Returns
+    -------
+    (refined (H, W) float, moved (H, W) bool, stats dict: ``moved_fraction`` (of the finite estimate's
+    pixels), ``reliable_fraction``, ``beyond_margin_fraction``, ``regions``, ``mean_abs_move_mm``,
+    ``offset_rad``).
+    """
+    import torch
+    from scipy import ndimage as ndi
+
+    from fppsim.unwrap import phase_regions, step_conflicts
+
+    h_in = np.asarray(height_mm)
+    h = h_in.astype(np.float64)
+    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
+        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
+    layer = _layer_for(rig_or_layer, h.shape)
+    finite = np.isfinite(h)
+    ok = finite if valid is None else finite & np.asarray(valid, bool)
+    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
+    w = np.asarray(wrapped_phase, np.float64)
+    usable = ok & (rel >= min_reliability) & np.isfinite(w)
+    filled = np.where(finite, h, 0.0)
+    if not finite.all():  # nearest finite value, so smoothing does not drag edges to 0
+        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+        filled = h[tuple(idx)] if finite.any() else filled
+    dev = layer.plane_phase().device
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=dev)  # noqa: E731
+    with torch.no_grad():
+        phi = layer.phase_from_height(t(filled)).cpu().numpy()
+        sens = layer.sensitivity(t(filled)).cpu().numpy()
+        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
+    offset = circular_median(_wrap(w - phi)[usable]) if usable.any() else 0.0
+    regions = phase_regions(w, usable, cut=step_conflicts(w, expected, max_step), min_size=min_region)
+    lab = regions.labels
+    d = regions.unwrapped - phi - offset
+    target = np.full(h.shape, np.nan)
+    if regions.count:
+        med = np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, regions.count + 1)))
+        inside = lab > 0
+        target[inside] = phi[inside] + d[inside] - med[lab[inside] - 1]
+    with torch.no_grad():
+        h_new = layer.height_from_phase(t(np.nan_to_num(target, nan=0.0))).cpu().numpy()
+    h_new[~np.isfinite(target)] = np.nan
+    move = h_new - h
+    if max_move_mm is None:
+        with np.errstate(divide="ignore"):
+            margin = max_move_fraction * 2 * math.pi / np.abs(sens)
+    else:
+        margin = np.broadcast_to(np.asarray(max_move_mm, dtype=np.float64), h.shape)
+    within = np.isfinite(move) & (np.abs(move) <= margin)
+    moved = usable & (lab > 0) & within
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
+    n = int(finite.sum())
+    stats = {
+        "method": "relief",
+        "n_pixels": n,
+        "moved_fraction": float(moved.sum() / n) if n else 0.0,
+        "reliable_fraction": float(usable.sum() / n) if n else 0.0,
+        "beyond_margin_fraction": float((usable & (lab > 0) & ~within).sum() / n) if n else 0.0,
+        "regions": regions.count,
+        "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
+        "offset_rad": float(offset),
+    }
+    return refined, moved, stats

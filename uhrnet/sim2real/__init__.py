@@ -1,0 +1,42 @@
+"""Sim-to-real experiment: generate synthetic data -> train on it alone -> evaluate on REAL data -> report.
+
+    from uhrnet.sim2real import Sim2RealConfig, Variant, run_sim2real
+
+    run_sim2real(Sim2RealConfig(out="runs/s2r", real=["../shared/real-sample"],
+                                variants=[Variant("default"), Variant("no-aug", train={"augment": "off"})]))
+
+``uhrnet sim2real`` (and ``pipelines/sim2real.py``) calls the same. The judged recipe (``scale="cpu"``)
+is exactly what these two commands do::
+
+    fppsim generate --meshes ../shared/meshes assets/meshes --out syn --count 400 --seed 100 --workers 2 \
+        --no-psp --format figshare
+    uhrnet train --synthetic syn --model unet --base-channels 16 --loss compound --epochs 10 \
+        --batch-size 2 --lr 5e-4 --device cpu --out run
+
+followed by prediction on every real figshare-format pair (``f1_80.npy`` + ``Z.npy`` or the single
+published ``fringe_pattern.npy`` + ``height_map.npy``) with the figshare label rule (label <= -100
+invalid, mm = label / 6). ``scale="gpu"`` is the full recipe (UHRNet, 352 x 640, >= 2000 samples).
+
+Variants (an ablation) change the dataset and/or the training run through overrides of
+``GenerateConfig`` / ``TrainConfig`` fields; variants with the same dataset overrides share one
+synthetic dataset. Every stage is resumable: a finished dataset, a finished run (``last.pt`` at the
+requested epochs) and a finished evaluation are re-used.
+
+Modules: :mod:`~uhrnet.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
+:mod:`~uhrnet.sim2real.run` (the stages and :func:`run_sim2real`), :mod:`~uhrnet.sim2real.metrics`
+(object RMSE, fringe twins, level response) and :mod:`~uhrnet.sim2real.report` (``report.md``, figures).
+"""
+
+from uhrnet.errors import Sim2RealError
+from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
+from uhrnet.sim2real.metrics import fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics
+from uhrnet.sim2real.report import markdown_report, plot_real
+from uhrnet.sim2real.run import (
+    evaluate_level, evaluate_real, find_real_pairs, generate_config, run_sim2real, train_config,
+)
+
+__all__ = [
+    "Sim2RealConfig", "Variant", "Sim2RealError", "SCALES", "data_key", "object_mask", "plane_level", "real_metrics",
+    "fringe_twins", "twin_metrics", "level_response", "generate_config", "train_config", "find_real_pairs",
+    "evaluate_real", "evaluate_level", "run_sim2real", "markdown_report", "plot_real",
+]

@@ -1,0 +1,91 @@
+"""The sim-to-real report: the ablation table (``report.md``) and a figure per real image."""
+
+from __future__ import annotations
+
+import shlex
+from pathlib import Path
+
+import numpy as np
+
+from fppsim.plots import pyplot, save_figure
+from uhrnet.sim2real.metrics import object_mask
+
+__all__ = ["markdown_report", "plot_real"]
+
+
+def _level_cell(level: dict | None) -> str:
+    if not level or not np.isfinite(level.get("slope", float("nan"))):
+        return ""
+    prior = level.get("prior_level_mm", float("nan"))
+    return f"{level['slope']:+.2f}" + (f" / {prior:.1f}" if np.isfinite(prior) else "")
+
+
+def markdown_report(report: dict) -> str:
+    """The ablation table (one row per variant) as Markdown."""
+    c = report["config"]
+    lines = [f"# Sim-to-real ({c['scale']} scale): synthetic-only training, evaluated on real data", "",
+             f"{c['count']} synthetic samples (seed {c['seed']}), {c['model']}"
+             + (f" base {c['base_channels']}" if c.get("base_channels") else "")
+             + f", {c['epochs']} epochs, batch {c['batch_size']}, lr {c['lr']:g}, loss {c['loss']}. "
+             f"Object pixels: valid and more than {c['object_mm']:g} mm above the plane.", "",
+             "| variant | generate | train | object RMSE (mm) | valid RMSE (mm) | flat plane, object (mm) | "
+             "true / pred. object mean (mm) | relief effect (mm) | synthetic val RMSE (mm) | "
+             "level slope / prior (mm) | minutes |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for v in report["variants"]:
+        r = v["real"]
+        mins = sum(x for x in v["timing"].values() if isinstance(x, (int, float))) / 60.0
+        sv = v.get("synthetic_val_rmse_mm")
+        lines.append(f"| {v['name']} | {shlex.join(v['generate']) or '(defaults)'} | "
+                     f"{shlex.join(v['train']) or '(defaults)'} | {r['object_rmse_mm']:.2f} | "
+                     f"{r['valid_rmse_mm']:.2f} | {r['flat_object_rmse_mm']:.2f} | "
+                     f"{r['true_object_mean_mm']:.1f} / {r['pred_object_mean_mm']:.1f} | "
+                     f"{r.get('relief_effect_mm', float('nan')):.1f} | "
+                     f"{'' if sv is None else f'{sv:.2f}'} | {_level_cell(v.get('synthetic_level'))} | {mins:.1f} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_real(fringe: np.ndarray, label: np.ndarray, valid: np.ndarray, pred: np.ndarray, units_per_mm: float,
+              metrics: dict, path, object_mm: float = 1.0, title: str = "") -> Path:
+    """Real fringe | truth | prediction | error (mm above the plane) and a cross-section row.
+
+    ``fringe`` (H, W) in [-1, 1]; ``label``, ``valid``, ``pred``: real and predicted labels (H, W);
+    ``metrics``: the image's :func:`~uhrnet.sim2real.metrics.real_metrics` (plane label, RMSEs).
+    """
+    plt = pyplot()
+    plane = metrics["plane_label"]
+    t = np.where(valid, (label - plane) / units_per_mm, np.nan)
+    p = np.where(valid, (pred - plane) / units_per_mm, np.nan)
+    e = p - t
+    obj, _ = object_mask(label, valid, units_per_mm, object_mm, plane)
+    # the cross-section goes through the row with most object pixels
+    row = int(np.argmax(obj.sum(axis=1))) if obj.any() else t.shape[0] // 2
+    fig, ax = plt.subplots(1, 5, figsize=(22, 3.6))
+    ax[0].imshow(fringe, cmap="gray", vmin=-1, vmax=1)
+    ax[0].axhline(row, color="r", lw=0.8, ls="--")
+    ax[0].set_title("real fringe")
+    hi = float(np.nanpercentile(t, 99.5)) if np.isfinite(t).any() else 1.0
+    for a, img, name in ((ax[1], t, "truth (mm above plane)"), (ax[2], p, "prediction (mm)")):
+        im = a.imshow(img, cmap="viridis", vmin=-5, vmax=max(hi, 1.0))
+        a.set_title(name)
+        fig.colorbar(im, ax=a, fraction=0.03)
+    emax = float(np.nanpercentile(np.abs(e), 99)) if np.isfinite(e).any() else 1.0
+    im = ax[3].imshow(e, cmap="coolwarm", vmin=-emax, vmax=emax)
+    ax[3].set_title(f"error: object RMSE {metrics['object_rmse_mm']:.1f} mm, valid {metrics['valid_rmse_mm']:.1f}")
+    fig.colorbar(im, ax=ax[3], fraction=0.03)
+    for a in ax[:4]:
+        a.set_xticks([])
+        a.set_yticks([])
+    ax[4].plot(t[row], "k-", lw=1.5, label="truth")
+    ax[4].plot(p[row], "C1-", lw=1, label="prediction")
+    ax[4].set_title(f"row {row}")
+    ax[4].set_xlabel("column (px)")
+    ax[4].set_ylabel("mm above plane")
+    ax[4].legend(fontsize=7)
+    ax[4].grid(alpha=0.3)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=70)
+    plt.close(fig)
+    return Path(path)
