@@ -5,10 +5,10 @@ calls one plain function a Python user can call too:
 
     generate      -> fppsim.generate(GenerateConfig)            (fppsim.generation)
     merge         -> fppsim.generation.merge(out, shards)
-    compare-real  -> fppsim.compare.compare_real(real, synthetic)
+    compare-real  -> fppsim.compare.compare_real(real, synthetic, json_path=...)
     validate-psp  -> fppsim.validate.validate_psp(ValidateConfig)
     fit-rig       -> fppsim.fit_rig.fit_rig_images(FitRigConfig)
-    fit-optics    -> fppsim.fit_optics.fit_optics(...)
+    fit-optics    -> fppsim.fit_optics.fit_optics_images(FitOpticsConfig)
     label-real    -> fppsim.label_real.label_real(LabelRealConfig)
 
 Units: millimetres and radians; images are 8-bit. Usage errors (bad flags, and a library
@@ -21,7 +21,6 @@ which ``uhrnet`` (:mod:`uhrnet.cli`) uses too.
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import sys
 from pathlib import Path
@@ -253,16 +252,10 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 
 
 def run_compare_real(args) -> int:
-    import json
-
-    from .encoding import json_default
-    from .files import atomic_write_text
     from .compare import compare_real, format_comparison
 
-    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples)
+    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json)
     print(format_comparison(result))
-    if args.json:
-        atomic_write_text(args.json, json.dumps(result, indent=1, default=json_default))
     return 0
 
 
@@ -378,26 +371,11 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_optics(args) -> int:
-    from .files import atomic_write_text, check_output_file
-    from .fit_optics import compare_before_after, fit_optics, format_optics_fit, ranges_yaml
-    from .readers import load_fringe_images
-    from .rig import load_rig
+    from .fit_optics import FitOpticsConfig, fit_optics_images
 
-    if args.max_images < 1 or args.compare < 0:
-        raise ValueError("--max-images must be >= 1 and --compare >= 0")
-    out = check_output_file(args.out, args.force)
-    rig = load_rig(args.rig)
-    images, layout = load_fringe_images(args.real, args.max_images)
-    fit = fit_optics(images, rig)
-    print(f"{args.real}: {len(images)} image(s), layout {layout}")
-    print(format_optics_fit(fit))
-    atomic_write_text(out, ranges_yaml(fit))
-    print(f"optics ranges: {out}")
-    if args.json:
-        atomic_write_text(args.json, json.dumps(fit.to_dict(), indent=1))
-    if args.compare:
-        print()
-        print(compare_before_after(args.real, fit, rig, args.compare, meshes=args.meshes, seed=args.seed))
+    fit_optics_images(FitOpticsConfig(
+        real=args.real, out=args.out, rig=args.rig, max_images=args.max_images, compare=args.compare,
+        meshes=args.meshes, seed=args.seed, json=args.json, force=args.force), echo=print)
     return 0
 
 

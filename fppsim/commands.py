@@ -16,7 +16,7 @@ from typing import Callable
 
 from .files import signals_raise
 
-__all__ = ["Command", "build_command_parser", "one_line", "run_commands"]
+__all__ = ["Command", "ReportLines", "build_command_parser", "one_line", "run_commands"]
 
 
 @dataclass(frozen=True)
@@ -26,6 +26,20 @@ class Command:
     add: Callable[[argparse.ArgumentParser], None]
     run: Callable[[argparse.Namespace], int]
     help: str
+
+
+class ReportLines(list):
+    """The lines a library function reports (what its command prints), kept in order; :meth:`say` also
+    hands each line to ``echo`` (the command line passes ``print``) as soon as it is known."""
+
+    def __init__(self, echo: Callable[[str], None] | None = None):
+        super().__init__()
+        self.echo = echo
+
+    def say(self, line: str) -> None:
+        self.append(line)
+        if self.echo is not None:
+            self.echo(line)
 
 
 def build_command_parser(prog: str, description: str, commands: dict[str, Command],

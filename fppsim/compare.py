@@ -42,8 +42,13 @@ Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 
 from __future__ import annotations
 
+import json
+import os
+
 import numpy as np
 
+from .encoding import json_default
+from .files import atomic_write_text
 from .formats import PRESETS, LabelTransform
 from .fringe import estimate_period, fringe_modulation, fringe_tilt, plane_level, quarter_periods
 from .readers import iter_samples, open_samples
@@ -161,25 +166,28 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
 
 
 def compare_real(real_dir, syn_dir, max_samples: int | None = 50, label: LabelTransform = FIGSHARE,
-                 object_mm: float = 2.0) -> dict:
-    """Statistics of a real and a synthetic dataset, side by side.
+                 object_mm: float = 2.0, json_path: str | os.PathLike | None = None) -> dict:
+    """Statistics of a real and a synthetic dataset, side by side (``fppsim compare-real``).
 
     ``label`` converts native fppsim heights (mm) to labels; figshare-format
     folders already hold labels.  Returns {'real': dataset_stats(...), 'synthetic': dataset_stats(...),
-    'difference': {key: synthetic - real}}.
+    'difference': {key: synthetic - real}}, also written to ``json_path`` (atomically) when given.
     """
     kw = dict(max_samples=max_samples, label=label, object_mm=object_mm)
     real = dataset_stats(real_dir, **kw)
     syn = dataset_stats(syn_dir, **kw)
     diff = {k: syn["stats"][k] - real["stats"][k] for k in real["stats"]}
-    return {"real": real, "synthetic": syn, "difference": diff,
-            "preset": {**label.to_dict(), "object_mm": object_mm}}
+    result = {"real": real, "synthetic": syn, "difference": diff,
+              "preset": {**label.to_dict(), "object_mm": object_mm}}
+    if json_path is not None:
+        atomic_write_text(json_path, json.dumps(result, indent=1, default=json_default))
+    return result
 
 
-def format_value(fmt: str, v) -> str:
-    """``fmt.format(v)``, or ``"nan"`` for a missing or non-finite number (table cells)."""
+def format_value(fmt: str, v, missing: str = "nan") -> str:
+    """``fmt.format(v)``, or ``missing`` for a missing or non-finite number (table cells)."""
     try:
-        return "nan" if v is None or not np.isfinite(v) else fmt.format(v)
+        return missing if v is None or not np.isfinite(v) else fmt.format(v)
     except (TypeError, ValueError):
         return str(v)
 

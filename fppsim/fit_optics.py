@@ -33,17 +33,23 @@ The ranges are [min, max] of the per-image estimates, widened to at least +-10 %
 
 from __future__ import annotations
 
+import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Callable, Sequence
 
 import numpy as np
 
+from .commands import ReportLines
+from .files import atomic_write_text, check_output_file
 from .optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
+from .readers import load_fringe_images
 from .render import plane_geometry, projector_incidence
-from .rig import Rig, data_path
+from .rig import Rig, data_path, load_rig
 
 __all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
-           "format_optics_fit", "compare_before_after"]
+           "format_optics_fit", "compare_before_after", "FitOpticsConfig", "FitOpticsResult", "fit_optics_images"]
 
 FITTED = ("gain", "ambient", "albedo_plane", "albedo_object", "projector_blur", "camera_blur", "noise_sigma",
           "shot_noise")
@@ -371,3 +377,78 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
         if j == 0:
             text.append("  ".join("-" * x for x in w))
     return "\n".join(text)
+
+
+# ============================================================================================ the command
+@dataclass
+class FitOpticsConfig:
+    """What ``fppsim fit-optics`` does (the fields are its flags).
+
+    real : real fringe images (any layout :func:`fppsim.readers.load_fringe_images` reads); with height
+        labels the plane and object pixels are told apart.
+    out : the fitted optics ranges as YAML for ``fppsim generate --optics-file``; refused if it exists
+        unless ``force``.
+    rig : the images' rig (:class:`fppsim.rig.Rig` or a rig file, e.g. from ``fppsim fit-rig``); None:
+        the packaged default rig.
+    max_images : evenly spaced images read (>= 1).
+    compare : render this many samples with the default and with the fitted ranges and compare them
+        with the real images (:func:`compare_before_after`); 0 skips it.
+    meshes : meshes of the ``compare`` renders (None: the packaged meshes). seed : their seed.
+    json : also write the per-image estimates there (:meth:`OpticsFit.to_dict`).
+    """
+
+    real: str | os.PathLike
+    out: str | os.PathLike
+    rig: Rig | str | os.PathLike | None = None
+    max_images: int = 20
+    compare: int = 4
+    meshes: Sequence[str | os.PathLike] | None = None
+    seed: int = 0
+    json: str | os.PathLike | None = None
+    force: bool = False
+
+    def __post_init__(self):
+        if self.max_images < 1 or self.compare < 0:
+            raise ValueError("--max-images must be >= 1 and --compare >= 0")
+
+
+@dataclass
+class FitOpticsResult:
+    """What :func:`fit_optics_images` did: the images' ``layout`` and count, the ``fit`` (its ranges are
+    written to ``out``), the before/after ``comparison`` table (None when skipped) and the report
+    ``lines`` (what ``fppsim fit-optics`` prints)."""
+
+    layout: str
+    n_images: int
+    fit: OpticsFit
+    out: Path
+    comparison: str | None
+    lines: list[str]
+
+
+def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | None = None) -> FitOpticsResult:
+    """Read real fringe images, fit the optics ranges to them (:func:`fit_optics`), write the ranges to
+    ``config.out`` (:func:`ranges_yaml`) and the estimates to ``config.json``, then compare renders with
+    the default and the fitted ranges (:func:`compare_before_after`) unless ``config.compare`` is 0.
+    ``echo`` receives every report line as soon as it is known (the command line passes ``print``); the
+    lines are also in the result. Raises ValueError when no image has enough plane pixels with fringes.
+    """
+    lines = ReportLines(echo)
+    say = lines.say
+    out = check_output_file(config.out, config.force)
+    rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
+    images, layout = load_fringe_images(config.real, config.max_images)
+    fit = fit_optics(images, rig)
+    say(f"{config.real}: {len(images)} image(s), layout {layout}")
+    say(format_optics_fit(fit))
+    atomic_write_text(out, ranges_yaml(fit))
+    say(f"optics ranges: {out}")
+    if config.json:
+        atomic_write_text(config.json, json.dumps(fit.to_dict(), indent=1))
+    comparison = None
+    if config.compare:
+        say("")
+        comparison = compare_before_after(config.real, fit, rig, config.compare, meshes=config.meshes,
+                                          seed=config.seed)
+        say(comparison)
+    return FitOpticsResult(layout, len(images), fit, out, comparison, list(lines))

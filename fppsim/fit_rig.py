@@ -35,6 +35,7 @@ from typing import Callable
 
 import numpy as np
 
+from .commands import ReportLines
 from .files import atomic_write_text, check_output_file
 from .fringe import estimate_period, fringe_tilt
 from .height_sensitivity import centre_sensitivity, sensitivity_check
@@ -543,13 +544,8 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     :func:`fit_rig`), write it to ``config.out`` (and the JSON report). ``echo`` receives every report
     line as soon as it is known (the command line passes ``print``); the lines are also in the result.
     """
-    lines: list[str] = []
-
-    def say(line: str) -> None:
-        lines.append(line)
-        if echo is not None:
-            echo(line)
-
+    lines = ReportLines(echo)
+    say = lines.say
     out = check_output_file(config.out, config.force)
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images)
@@ -584,7 +580,7 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     say(format_fit(fit))
     fit.rig.save(out)
     say(f"rig: {out}")
-    result = FitRigResult(layout, len(images), fit, bfit, out, lines, dfit)
+    result = FitRigResult(layout, len(images), fit, bfit, out, list(lines), dfit)
     if config.json:
         atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
     return result

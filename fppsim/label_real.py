@@ -17,13 +17,13 @@ turns such scans into training samples in the figshare layout (``f1_80.npy`` + `
 
 2. add a constant phase offset (the scan's phase origin need not be the rig's projector column 0:
    the public frames count fringe orders from the first fringe the camera sees), chosen by the
-   policy: ``auto`` fits it on the reference plane (:func:`fit_phase_offset`), ``none`` adds 0, a
-   number adds that many radians;
+   policy: ``auto`` fits it on the reference plane (:func:`fppsim.reference_plane.fit_phase_offset`),
+   ``none`` adds 0, a number adds that many radians;
 3. triangulate through the rig (:func:`fppsim.triangulation.height_from_phase`): height = world z (mm) above the
    reference plane z = 0;
-4. measure the reference plane (:func:`plane_flatness`): its level (median height of the plane
-   pixels, which must come out at 0 mm), its flatness about 0 and about a fitted tilted plane, and
-   its tilt. A wrong rig shows there first: a scan whose plane is not flat is reported (and the run
+4. measure the reference plane (:func:`fppsim.reference_plane.plane_flatness`): its level (median height
+   of the plane pixels, which must come out at 0 mm), its flatness about 0 and about a fitted tilted
+   plane, and its tilt. A wrong rig shows there first: a scan whose plane is not flat is reported (and the run
    warns "the rig does not fit these scans");
 5. write ``f1_80.npy`` (float32 (N, H, W, 1), ``I/127.5 - 1``, -1 where invalid), ``Z.npy`` (float32
    (N, H, W, 1), ``label = mm * units_per_mm + plane_offset`` of the label preset, the invalid marker
@@ -41,7 +41,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
 
@@ -49,13 +49,14 @@ import numpy as np
 
 from .encoding import encode_fringe, json_default, read_gray_image
 from .errors import ConfigError, DatasetError, UsageError
-from .files import atomic_write_text, clean_stale_tmp, folder_lock, tmp_path, write_fully
+from .files import atomic_write_text, clean_stale_tmp, folder_lock
 from .formats import LabelTransform, manifest_ids
-from .fringe import plane_level, poly_basis
 from .psp import decode_stacks
 from .readers import CONVENTIONS, FOLDERS, list_psp_ids, load_psp_folder_sample
+from .reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from .rig import Rig, load_rig
 from .triangulation import height_from_phase
+from .writers import NpyRowStream
 
 __all__ = ["LabelRealConfig", "LabelRealReport", "PlaneFit", "Scan", "label_real", "reference_plane_phase",
            "fit_phase_offset", "plane_flatness", "detect_layout", "iter_scans", "LAYOUTS", "REPORT_NAME",
@@ -156,153 +157,6 @@ class LabelRealConfig:
             self.ids = [str(i) for i in self.ids]
             if not self.ids:
                 raise UsageError("--ids: give at least one id")
-
-
-# ============================================================================================ plane
-def reference_plane_phase(rig: Rig, periods: float | None = None, z: float = 0.0) -> np.ndarray:
-    """Absolute projector phase (rad) the plane at height ``z`` (mm) shows at each camera pixel.
-
-    Parameters
-    ----------
-    rig : the calibrated rig.
-    periods : fringe periods across the projector (default ``rig.periods``).
-    z : world height of the plane (mm); 0 = the reference plane.
-
-    Returns
-    -------
-    float64 (H, W) of the camera: ``2 pi f u_p / W_p`` of the projector column ``u_p`` (projector
-    distortion applied) where the camera ray of the pixel meets the plane; NaN where it does not.
-    """
-    cam = rig.camera
-    origin, d = cam.pixel_rays(cam.pixel_grid())
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (z - origin[..., 2]) / d[..., 2]
-    ok = np.isfinite(s) & (s > 0)
-    X = origin + np.where(ok, s, 0.0)[..., None] * d
-    uv, zp = rig.projector.project(X)
-    return np.where(ok & (zp > 0), rig.phase_of_column(uv[..., 0], periods), np.nan)
-
-
-@dataclass
-class PlaneFit:
-    """The reference plane of one height map (see :func:`plane_flatness`).
-
-    level_mm : median height of the plane pixels (mm); 0 when phase origin and rig are right.
-    rms_mm : RMS of the plane pixels' heights about 0 mm (level and flatness in one number).
-    rms_fit_mm : RMS of the plane pixels about the fitted plane ``a + b x + c y`` (flatness alone).
-    tilt_x_mm, tilt_y_mm : rise of the fitted plane across the image width / height (mm).
-    share : plane pixels / valid pixels.
-    pixels : bool (H, W) plane pixels.
-    residual : float64 (H, W) height minus the fitted plane on plane pixels, NaN elsewhere (mm).
-    """
-
-    level_mm: float
-    rms_mm: float
-    rms_fit_mm: float
-    tilt_x_mm: float
-    tilt_y_mm: float
-    share: float
-    pixels: np.ndarray = field(repr=False)
-    residual: np.ndarray = field(repr=False)
-
-    def to_dict(self) -> dict:
-        return {k: getattr(self, k) for k in ("level_mm", "rms_mm", "rms_fit_mm", "tilt_x_mm", "tilt_y_mm", "share")}
-
-
-def plane_flatness(height: np.ndarray, valid: np.ndarray, window_mm: float = 3.0, iterations: int = 3) -> PlaneFit:
-    """Find the reference plane of a height map and measure its level, flatness and tilt.
-
-    Parameters
-    ----------
-    height : float (H, W) heights above the reference plane (mm).
-    valid : bool (H, W) pixels with a height.
-    window_mm : plane pixels lie within this of the plane (mm).
-    iterations : refits of the plane ``a + b x + c y`` on the pixels within ``window_mm`` of the last fit.
-
-    Returns
-    -------
-    :class:`PlaneFit`. The plane is the dominant flat mode: the histogram mode of the heights
-    (:func:`fppsim.fringe.plane_level`), then pixels within ``window_mm`` of a least-squares plane,
-    refitted ``iterations`` times (a tilted plane is followed; objects above it are left out). All
-    numbers are NaN when no plane pixel is found.
-    """
-    h = np.asarray(height, dtype=np.float64)
-    valid = np.asarray(valid, dtype=bool) & np.isfinite(h)
-    H, W = h.shape
-    nan = float("nan")
-    empty = PlaneFit(nan, nan, nan, nan, nan, 0.0, np.zeros((H, W), bool), np.full((H, W), np.nan))
-    if not valid.any():
-        return empty
-    level0 = plane_level(h, valid, bin_width=0.1, window=window_mm)
-    x, y = poly_basis(H, W, 1)[:, 1:].T.reshape(2, H, W)  # pixel coordinates in [-1, 1] (the one plane basis)
-    fit = np.full((H, W), level0)
-    coef = np.array([level0, 0.0, 0.0])
-    sel = valid & (np.abs(h - fit) < window_mm)
-    for _ in range(int(iterations)):
-        if sel.sum() < 3:
-            break
-        A = np.stack([np.ones(int(sel.sum())), x[sel], y[sel]], axis=1)
-        coef = np.linalg.lstsq(A, h[sel], rcond=None)[0]
-        fit = coef[0] + coef[1] * x + coef[2] * y
-        sel = valid & (np.abs(h - fit) < window_mm)
-    if not sel.any():
-        return empty
-    res = np.where(sel, h - fit, np.nan)
-    hp = h[sel]
-    return PlaneFit(level_mm=float(np.median(hp)), rms_mm=float(np.sqrt(np.mean(hp ** 2))),
-                    rms_fit_mm=float(np.sqrt(np.nanmean(res[sel] ** 2))), tilt_x_mm=float(2 * coef[1]),
-                    tilt_y_mm=float(2 * coef[2]), share=float(sel.sum() / valid.sum()), pixels=sel, residual=res)
-
-
-def fit_phase_offset(phase: np.ndarray, valid: np.ndarray, rig: Rig, periods: float | None = None,
-                     window_mm: float = 3.0, iterations: int = 4, plane_phase: np.ndarray | None = None) -> float:
-    """Constant phase offset (rad) that puts the scan's reference plane at 0 mm through ``rig``.
-
-    Parameters
-    ----------
-    phase : float (H, W) absolute phase of the scan (rad); NaN where invalid.
-    valid : bool (H, W) pixels with a phase.
-    rig, periods : the rig and the phase's fringe periods across the projector (default ``rig.periods``).
-    window_mm : plane pixels lie within this height of 0 mm once the offset is applied.
-    iterations : refinements (see Notes).
-    plane_phase : :func:`reference_plane_phase` of ``rig`` (computed when None).
-
-    Returns
-    -------
-    offset ``c`` (rad, float) such that ``phase + c`` is the phase the rig predicts for the plane on the
-    plane pixels; NaN when no valid pixel exists.
-
-    Notes
-    -----
-    With ``d = plane_phase - phase`` a plane pixel has ``d = c`` exactly (for a correct rig) and object
-    pixels differ from it. Start from the histogram mode of ``d`` (the plane is the dominant flat
-    mode), then repeat: triangulate ``phase + c``, take the pixels within ``window_mm`` of 0 mm, set
-    ``c`` to the median of their ``d``. A rig that does not fit leaves ``d`` varying over the plane;
-    the median then centres it and :func:`plane_flatness` shows the misfit.
-    """
-    phi = np.asarray(phase, dtype=np.float64)
-    f = rig.periods if periods is None else float(periods)
-    pp = reference_plane_phase(rig, f) if plane_phase is None else plane_phase
-    d = pp - phi
-    ok = np.asarray(valid, dtype=bool) & np.isfinite(d)
-    if not ok.any():
-        return float("nan")
-    # the window in radians at the image centre: the phase change of 1 mm of height there
-    H, W = phi.shape
-    sens = abs(float(reference_plane_phase(rig, f, z=1.0)[H // 2, W // 2] - pp[H // 2, W // 2]))
-    sens = sens if math.isfinite(sens) and sens > 0 else 1.0
-    c = plane_level(d, ok, bin_width=max(0.02, 0.05 * sens), window=window_mm * sens)
-    for _ in range(int(iterations)):
-        h = height_from_phase(rig, phi + c, periods=f, mask=ok)
-        near = ok & (np.abs(h) < window_mm)
-        if not near.any():
-            break
-        new = float(np.median(d[near]))
-        if abs(new - c) < 1e-9:
-            c = new
-            break
-        c = new
-    return float(c)
 
 
 # ============================================================================================ scans
@@ -563,35 +417,6 @@ def _check_targets(out: Path, targets: list[str]) -> list[str]:
     return sorted(p for p in own - set(targets) if (out / p).is_file())
 
 
-class _NpyStream:
-    """float32 (N, H, W, 1) .npy written row by row into our temp file, renamed into place by :meth:`commit`."""
-
-    def __init__(self, final: Path, shape: tuple[int, int, int, int]):
-        self.final, self.tmp = final, tmp_path(final)
-        self.fh = open(self.tmp, "wb")
-        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
-                  "shape": shape}
-        np.lib.format.write_array_header_1_0(self.fh, header)
-
-    def write(self, row: np.ndarray) -> None:
-        write_fully(self.fh, np.ascontiguousarray(row, dtype=np.float32))
-
-    def close(self) -> None:
-        if not self.fh.closed:
-            self.fh.flush()
-            os.fsync(self.fh.fileno())
-            self.fh.close()
-
-    def commit(self) -> None:
-        self.close()
-        os.replace(self.tmp, self.final)
-
-    def discard(self) -> None:
-        if not self.fh.closed:
-            self.fh.close()
-        self.tmp.unlink(missing_ok=True)
-
-
 # ============================================================================================ report
 @dataclass
 class LabelRealReport:
@@ -738,7 +563,8 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
             (out / PREVIEW_DIR).mkdir(exist_ok=True)
         streams = []
         try:
-            streams = [_NpyStream(out / FRINGE_NAME, (len(ids), H, W, 1)), _NpyStream(out / LABEL_NAME, (len(ids), H, W, 1))]
+            for name in (FRINGE_NAME, LABEL_NAME):
+                streams.append(NpyRowStream(out / name, (len(ids), H, W, 1)))
             cache: dict = {}
             bar = tqdm(total=len(ids), desc="label-real", unit="scan", disable=not cfg.progress, dynamic_ncols=True)
             with bar:

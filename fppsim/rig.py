@@ -462,7 +462,7 @@ class Rig:
 
     @classmethod
     def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
-                           periods: float = 80.0) -> "Rig":
+                           periods: float | None = None) -> "Rig":
         """Import an OpenCV stereo calibration (:func:`fppsim.rig_files.rig_from_opencv_stereo`)."""
         from .rig_files import rig_from_opencv_stereo
 

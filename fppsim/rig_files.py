@@ -57,7 +57,7 @@ def save_rig(rig: Rig, path: str | os.PathLike) -> None:
 
 
 def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None = None,
-                           periods: float = 80.0) -> Rig:
+                           periods: float | None = None) -> Rig:
     """Import an OpenCV stereo calibration (cv2.FileStorage YAML/XML), camera = device 1.
 
     Recognised nodes (first match wins): camera matrix ``M1|K1|cameraMatrix1|camera_matrix``,
@@ -68,6 +68,7 @@ def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None
     The reference plane: ``R_plane`` and ``T_plane`` (board-on-plane -> camera, as from solvePnP);
     without them the plane is perpendicular to the camera axis at ``plane_distance`` mm
     (node ``plane_distance``; required in that case).
+    Fringe periods across the projector width: ``periods`` (argument, else node ``periods``, else 80).
     """
     import cv2
 
@@ -116,6 +117,8 @@ def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None
         ph = size(1140, "projector_height")
         if plane_distance is None:
             plane_distance = node("plane_distance", required=False)
+        if periods is None:
+            periods = node("periods", required=False)
     except cv2.error as exc:  # e.g. an opencv-matrix whose data count differs from rows x cols
         detail = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
         detail = detail.split(" error: ", 1)[-1][:160]  # drop OpenCV's source path and line
@@ -136,6 +139,9 @@ def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None
         Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
     else:
         raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
+    periods = 80.0 if periods is None else float(periods)
+    if not (periods > 0 and np.isfinite(periods)):
+        raise RigError(f"{path}: periods must be > 0, got {periods}")
     d1, d2 = _five_coefficients(D1, path, "camera"), _five_coefficients(D2, path, "projector")
     try:
         cam = Device(K=K1, dist=d1, R=Rw, t=tw, width=cw, height=ch)

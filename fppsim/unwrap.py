@@ -105,7 +105,8 @@ def phase_regions(wrapped: np.ndarray, usable: np.ndarray, cut: np.ndarray | Non
     from skimage.restoration import unwrap_phase
 
     w = np.asarray(wrapped, np.float64)
-    ok = np.asarray(usable, bool) & np.isfinite(w) & (phase_quality(w) <= max_quality)
+    finite = np.isfinite(w)  # NaN would spread along whole rows through the quality filter's running sums
+    ok = np.asarray(usable, bool) & finite & (phase_quality(np.where(finite, w, 0.0)) <= max_quality)
     if cut is not None:
         ok &= ~np.asarray(cut, bool)
     labels, n = ndi.label(ok)
@@ -119,7 +120,8 @@ def phase_regions(wrapped: np.ndarray, usable: np.ndarray, cut: np.ndarray | Non
     if len(keep):
         inside = labels > 0
         # disconnected regions come out independently, each with its own multiple of 2 pi
-        unwrapped[inside] = np.asarray(unwrap_phase(np.ma.array(w, mask=~inside)).data)[inside]
+        # (masked values must be finite: skimage's unwrapper never returns on NaN, even masked)
+        unwrapped[inside] = np.asarray(unwrap_phase(np.ma.array(np.where(inside, w, 0.0), mask=~inside)).data)[inside]
     return PhaseRegions(labels, unwrapped, sizes[keep].astype(np.int64))
 
 

@@ -4,7 +4,8 @@
   :mod:`fppsim.encoding`);
 * figshare: :func:`figshare_rows` (one sample's rows) is what both :func:`export_figshare` (from native
   folders on disk) and :class:`FigshareRows` (filled from memory while generating, so a figshare run
-  need not read every sample back) write, so both give identical files;
+  need not read every sample back) write, so both give identical files; :class:`NpyRowStream` writes
+  one ``.npy`` row by row (ordinary writes: a full disk raises ENOSPC) and publishes it atomically;
 * :class:`BackgroundWriter` runs sample writes (PNG encoding, deflate, file IO: all release the GIL)
   on one thread while the caller synthesises the next sample;
 * phase-shifting ``.mat`` files (read by :mod:`fppsim.readers`): :func:`save_psp_mat`,
@@ -31,8 +32,8 @@ from .files import atomic_path, clean_stale_tmp, tmp_path, write_fully
 from .formats import LabelTransform, is_own_sample, read_manifest
 from .readers import FOLDERS, check_convention, load_native_sample
 
-__all__ = ["write_sample_folder", "figshare_rows", "export_figshare", "FigshareRows", "BackgroundWriter",
-           "sums_from_phase", "save_psp_mat", "save_psp_folder_sample", "export_psp_folders"]
+__all__ = ["write_sample_folder", "figshare_rows", "export_figshare", "FigshareRows", "NpyRowStream",
+           "BackgroundWriter", "sums_from_phase", "save_psp_mat", "save_psp_folder_sample", "export_psp_folders"]
 
 
 # ============================================================================================ native
@@ -65,6 +66,40 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
 
 
 # ============================================================================================ figshare
+class NpyRowStream:
+    """A float32 ``.npy`` of ``shape`` written row by row into a temporary sibling of ``final``, renamed
+    into place by :meth:`commit` (after :meth:`close` flushed and fsynced it); :meth:`discard` removes the
+    temporary file (harmless after a commit). Ordinary writes, so a full disk raises ENOSPC (a memmap into
+    a sparse file would die of SIGBUS instead)."""
+
+    def __init__(self, final: str | os.PathLike, shape: tuple[int, ...]):
+        self.final = Path(final)
+        self.tmp = tmp_path(self.final)
+        self.fh = open(self.tmp, "wb")
+        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
+                  "shape": tuple(shape)}
+        np.lib.format.write_array_header_1_0(self.fh, header)
+
+    def write(self, rows: np.ndarray) -> None:
+        """Append ``rows`` (as float32, C order): the next row(s) of the array."""
+        write_fully(self.fh, np.ascontiguousarray(rows, dtype=np.float32))
+
+    def close(self) -> None:
+        if not self.fh.closed:
+            self.fh.flush()
+            os.fsync(self.fh.fileno())
+            self.fh.close()
+
+    def commit(self) -> None:
+        self.close()
+        os.replace(self.tmp, self.final)
+
+    def discard(self) -> None:
+        if not self.fh.closed:
+            self.fh.close()
+        self.tmp.unlink(missing_ok=True)
+
+
 def figshare_rows(fringe: np.ndarray, arrays: dict, transform: LabelTransform,
                   use_psp_height: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """One native sample's figshare ``(fringe, label)`` rows, float32 (H, W): what :func:`export_figshare`
@@ -103,31 +138,26 @@ def export_figshare(root: str | os.PathLike, out: str | os.PathLike, transform: 
 
     out.mkdir(parents=True, exist_ok=True)
     clean_stale_tmp(out)
-    tmp_f, tmp_z = tmp_path(out / "f1_80.npy"), tmp_path(out / "Z.npy")
-    # ordinary writes, sample by sample: a full disk raises ENOSPC here (a memmap into a sparse file
-    # would die of SIGBUS instead); the temp files are removed on any failure
-    header = {"descr": np.lib.format.dtype_to_descr(np.dtype(np.float32)), "fortran_order": False,
-              "shape": (N, H, W, 1)}
+    # sample by sample (a full disk raises ENOSPC); the temp files are removed on any failure
+    streams: list[NpyRowStream] = []
     try:
-        with open(tmp_f, "wb") as ff, open(tmp_z, "wb") as fz:
-            for fh in (ff, fz):
-                np.lib.format.write_array_header_1_0(fh, header)
-            fr1 = np.empty((1, H, W, 1), np.float32)
-            zz1 = np.empty((1, H, W, 1), np.float32)
-            for folder in folders:
-                fill(folder, fr1, zz1)
-                write_fully(ff, fr1)
-                write_fully(fz, zz1)
-            for fh in (ff, fz):
-                fh.flush()
-                os.fsync(fh.fileno())
-        os.replace(tmp_f, out / "f1_80.npy")
-        os.replace(tmp_z, out / "Z.npy")
+        for name in ("f1_80.npy", "Z.npy"):
+            streams.append(NpyRowStream(out / name, (N, H, W, 1)))
+        fr1 = np.empty((1, H, W, 1), np.float32)
+        zz1 = np.empty((1, H, W, 1), np.float32)
+        for folder in folders:
+            fill(folder, fr1, zz1)
+            streams[0].write(fr1)
+            streams[1].write(zz1)
+        for stream in streams:
+            stream.close()
+        for stream in streams:
+            stream.commit()
     except OSError as exc:
         raise DatasetError(f"cannot write the figshare arrays in {out}: {exc.strerror or exc}") from None
     finally:
-        tmp_f.unlink(missing_ok=True)
-        tmp_z.unlink(missing_ok=True)
+        for stream in streams:
+            stream.discard()
     return N
 
 

@@ -94,3 +94,68 @@ def train_tiny(out, *data_args, model: str = "unet", epochs: int = 1, extra=()) 
                "--loss", "l2", "--lr", "1e-3", "--out", str(out), "--no-progress", *map(str, extra)])
     assert rc == 0
     return Path(out)
+
+
+def tiny_rig(width: int = 64, height: int = 32):
+    """A window of the default rig's camera (same focal length, centred): ``width`` x ``height`` px with
+    the default fringe period (about 11.6 px) and phase sensitivity (about 0.87 rad/mm), for tiny
+    physics-head, adaptation and refinement tests."""
+    from fppsim.rig import Device, Rig, make_default_rig
+
+    r = make_default_rig()
+    c = r.camera
+    K = c.K.copy()
+    K[0, 2] -= (c.width - width) / 2
+    K[1, 2] -= (c.height - height) / 2
+    cam = Device(K=K, R=c.R, t=c.t, width=width, height=height, dist=c.dist)
+    return Rig(cam, r.projector, periods=r.periods)
+
+
+def distorted_rig():
+    """The default rig with strong lens distortion on both devices (OpenCV k1, k2, p1, p2, k3), for
+    checks that every projection and ray goes through the distortion model."""
+    from fppsim.rig import Device, Rig, make_default_rig
+
+    def with_dist(dev, dist):
+        return Device(K=dev.K, R=dev.R, t=dev.t, width=dev.width, height=dev.height, dist=dist)
+
+    r = make_default_rig()
+    return Rig(with_dist(r.camera, [-0.08, 0.05, 1e-3, -5e-4, 0.01]),
+               with_dist(r.projector, [0.06, -0.03, -8e-4, 6e-4, 0.002]), periods=80.0, name="distorted")
+
+
+def rig_fringe(rig, height_mm: np.ndarray, valid: np.ndarray | None = None, offset: float = 0.0) -> np.ndarray:
+    """8-bit single-shot image ``120 + 100 cos(phase_true + offset)`` of a height map seen by ``rig``
+    (fppsim's forward model, :func:`fppsim.height_sensitivity.surface_phase`); 0 where not ``valid``."""
+    from fppsim.height_sensitivity import surface_phase
+
+    f8 = np.round(120 + 100 * np.cos(surface_phase(rig, height_mm) + offset)).astype(np.uint8)
+    if valid is not None:
+        f8[~valid] = 0
+    return f8
+
+
+def write_native_rig(folder, rig, n: int = 6, seed: int = 0) -> list[str]:
+    """Native samples of ``rig``'s camera size whose fringe, ``phase_true`` and ``meta.json`` rig are
+    consistent (the image is :func:`rig_fringe` of the sample's height): data ``--head phase`` trains on."""
+    from fppsim.formats import reconcile, sample_id
+    from fppsim.height_sensitivity import surface_phase
+    from fppsim.writers import write_sample_folder
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(seed)
+    h, w = rig.camera.height, rig.camera.width
+    ids = []
+    for i in range(n):
+        sid = sample_id(i)
+        _, hmm, valid = scene(rng, h, w)
+        hmm = (hmm / 4.0).astype(np.float32)  # 2.5-10 mm blobs: a few fringe periods of relief
+        arrays = {"height": hmm, "depth": (500.0 - hmm).astype(np.float32),
+                  "phase_true": surface_phase(rig, hmm).astype(np.float32), "mask": valid.astype(np.float32)}
+        meta = {"index": i, "seed": i, "version": "test", "rig": rig.to_dict(), "objects": [],
+                "stats": {"valid_fraction": float(valid.mean())}}
+        write_sample_folder(folder, sid, {"fringe.png": rig_fringe(rig, hmm, valid)}, arrays, meta)
+        ids.append(sid)
+    reconcile(folder)
+    return ids

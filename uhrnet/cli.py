@@ -223,7 +223,10 @@ def add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine-method", choices=REFINE_METHODS, default="relief",
                    help="relief: unwrap the phase region by region, take each region's relief from the phase and "
                         "its level from the network (no fringe-order guess; margin: moves up to 2 fringe periods "
-                        "of height); nearest: each pixel to the nearest phase-consistent height, only where the "
+                        "of height); orders: the same regions with whole fringe orders, voted across projector "
+                        "shadows (one projector ray lights the shadow's far edge and the object's edge) or rounded "
+                        "from the network: levels from the phase through the rig, exact only as far as the rig's "
+                        "depth scale is; nearest: each pixel to the nearest phase-consistent height, only where the "
                         "move is under a quarter fringe period (about 1.8 mm on the default rig) [relief]")
     p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
                    help="x, y spacing of the point cloud without --rig [1.0]")
@@ -390,17 +393,27 @@ def run_export(args) -> int:
 
 # ============================================================================ sim2real
 class VariantFlags(NamedTuple):
-    """An ablation row as written: its name and its extra ``fppsim generate`` / ``uhrnet train`` flags."""
+    """An ablation row as written: its name, its extra ``fppsim generate`` / ``uhrnet train`` flags, the
+    ``uhrnet adapt`` flags of its adaptation step (None: no adaptation) and its refinement methods."""
 
     name: str
     generate: list[str]
     train: list[str]
+    adapt: list[str] | None = None
+    refine: tuple[str, ...] = ()
+
+
+VARIANT_SYNTAX = "NAME[: GENERATE FLAGS [| TRAIN FLAGS [| adapt [ADAPT FLAGS]] [| refine [METHOD,...]]]]"
 
 
 def parse_variant(text: str) -> VariantFlags:
-    """``NAME`` or ``NAME: generate flags | train flags`` (shell-quoted; either side may be empty).
+    """``NAME`` or ``NAME: generate flags | train flags | step | step`` (shell-quoted; any part may be empty),
+    a step being ``adapt [uhrnet adapt flags]`` (adapt the trained model on the unlabelled real images) or
+    ``refine [METHOD[,METHOD...]]`` (extra rows after ``--refine phase``; bare ``refine``: relief).
 
-    ``"aug-off: | --no-augment"`` -> VariantFlags("aug-off", [], ["--no-augment"]).
+    ``"aug-off: | --no-augment"`` -> VariantFlags("aug-off", [], ["--no-augment"]);
+    ``"ph: | --head phase | adapt --epochs 20 | refine relief,nearest"`` -> VariantFlags("ph", [],
+    ["--head", "phase"], ["--epochs", "20"], ("relief", "nearest")).
     """
     from uhrnet.sim2real import Sim2RealError, Variant
 
@@ -409,9 +422,19 @@ def parse_variant(text: str) -> VariantFlags:
     Variant(name)  # the name is checked before the flags
     if not sep:
         return VariantFlags(name, [], [])
-    gen, bar, tr = rest.partition("|")
+    gen, bar, tail = rest.partition("|")
+    parts = tail.split("|") if bar else []
+    adapt, refine = None, []
     try:
-        return VariantFlags(name, shlex.split(gen), shlex.split(tr) if bar else [])
+        for step in (shlex.split(p) for p in parts[1:]):
+            if step and step[0] == "adapt" and adapt is None:
+                adapt = step[1:]
+            elif step and step[0] == "refine":
+                refine += [m for m in ",".join(step[1:]).split(",") if m] or ["relief"]
+            elif step:
+                raise Sim2RealError(f"variant {name!r}: a step after the train flags is 'adapt [FLAGS]' or 'refine "
+                                    f"[METHOD,...]' (once each), got {shlex.join(step)!r}")
+        return VariantFlags(name, shlex.split(gen), shlex.split(parts[0]) if parts else [], adapt, tuple(refine))
     except ValueError as exc:
         raise Sim2RealError(f"variant {name!r}: {exc}") from None
 
@@ -439,15 +462,18 @@ def load_variants(path: str | Path) -> list[VariantFlags]:
             continue
         if not isinstance(item, dict) or "name" not in item:
             raise Sim2RealError(f"{p}: item {i} must be a string or a mapping with a 'name'")
-        unknown = set(item) - {"name", "generate", "train"}
+        unknown = set(item) - {"name", "generate", "train", "adapt", "refine"}
         if unknown:
             raise Sim2RealError(f"{p}: item {i} has unknown keys {sorted(unknown)}")
         args = {}
-        for k in ("generate", "train"):
-            v = item.get(k) or []
-            args[k] = shlex.split(v) if isinstance(v, str) else [str(a) for a in v]
-        Variant(str(item["name"]))
-        out.append(VariantFlags(str(item["name"]), args["generate"], args["train"]))
+        for k in ("generate", "train", "adapt", "refine"):
+            v = item.get(k) if isinstance(item.get(k), (str, list)) else []  # adapt/refine: true = the defaults
+            args[k] = shlex.split(v.replace(",", " ") if k == "refine" else v) if isinstance(v, str) \
+                else [str(a) for a in v]
+        adapt = None if item.get("adapt") in (None, False) else ([] if item["adapt"] is True else args["adapt"])
+        refine = tuple(args["refine"] or (["relief"] if item.get("refine") is True else []))
+        Variant(str(item["name"]), refine=list(refine))
+        out.append(VariantFlags(str(item["name"]), args["generate"], args["train"], adapt, refine))
     return out
 
 
@@ -516,18 +542,45 @@ def variant_from_flags(cfg, flags: VariantFlags):
         head, parser = train_flags(cfg, "DATA", "RUN"), build_parser("train")
         tr = changed(train_options(_parse(parser, head, f"{where}: train")),
                      train_options(_parse(parser, head + flags.train, f"{where}: train")))
-    return Variant(flags.name, gen, tr, generate_flags=list(flags.generate), train_flags=list(flags.train))
+    ad = None
+    if flags.adapt is not None:
+        head, parser = ["adapt", "RUN", "--images", "IMAGES", "--out", "OUT"], build_parser("adapt")
+        ad = changed(adapt_options(_parse(parser, head, f"{where}: adapt")),
+                     adapt_options(_parse(parser, head + flags.adapt, f"{where}: adapt")))
+    return Variant(flags.name, gen, tr, generate_flags=list(flags.generate), train_flags=list(flags.train),
+                   adapt=ad, refine=list(flags.refine), adapt_flags=None if ad is None else list(flags.adapt))
+
+
+def adapt_options(args) -> dict:
+    """The ``AdaptConfig`` fields the ``adapt`` flags ``args`` give (not the checkpoint, images and folder)."""
+    from dataclasses import fields
+
+    from uhrnet.adapt import AdaptConfig
+
+    out = {f.name: getattr(args, f.name) for f in fields(AdaptConfig)
+           if hasattr(args, f.name) and f.name not in ("checkpoint", "images", "out")}
+    return {**out, "figures": not args.no_figures, "progress": not args.no_progress}
 
 
 def recipe_commands(cfg, variant, data, run) -> dict:
-    """Both stages of ``variant`` as the command lines that run them (``report.json``'s ``recipe``)."""
-    return {"generate": shlex.join(generate_flags(cfg, data) + list(variant.generate_flags or [])),
-            "train": shlex.join(train_flags(cfg, data, run) + list(variant.train_flags or []))}
+    """The stages of ``variant`` as the command lines that run them (``report.json``'s ``recipe``)."""
+    from uhrnet.sim2real import adapt_config
+
+    out = {"generate": shlex.join(generate_flags(cfg, data) + list(variant.generate_flags or [])),
+           "train": shlex.join(train_flags(cfg, data, run) + list(variant.train_flags or []))}
+    if variant.adapt is not None:
+        a = adapt_config(cfg, variant, Path(run) / "last.pt", Path(cfg.out) / variant.name / "adapt")
+        out["adapt"] = shlex.join(["adapt", str(a.checkpoint), "--images", *map(str, a.images), "--out", str(a.out),
+                                   *(["--rig", str(a.rig)] if cfg.rig else []), "--device", a.device,
+                                   "--no-progress", *([] if a.figures else ["--no-figures"]),
+                                   *(variant.adapt_flags or [])])
+    return out
 
 
 def add_sim2real(p: argparse.ArgumentParser) -> None:
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
+    from uhrnet.refine import REFINE_METHODS
     from uhrnet.sim2real import SCALES
 
     def scales(key):
@@ -543,10 +596,27 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         "command re-uses finished datasets, runs and evaluations. Per variant: OUT/<name>/run (the training\n"
         "run), OUT/<name>/eval (real_metrics.json, predictions.npz, real_*.png, synthetic_level.json), logs\n"
         "OUT/data/<key>.log and OUT/<name>/train.log.\n\n"
+        f"Variants: --variant SPEC, SPEC =\n  {VARIANT_SYNTAX}\nwith the flags of fppsim generate, "
+        "uhrnet train and uhrnet adapt; the steps add rows without training again:\n"
+        "  --variant 'phase-head: | --head phase'            the physics head (one more training run)\n"
+        "  --variant 'default: | | adapt'                    + the model adapted on the UNLABELLED real images\n"
+        "  --variant 'ph: | --head phase | adapt --epochs 20 | refine relief,nearest'\n"
+        "gives the rows ph, ph +refine relief, ph +refine nearest, ph +adapt, ph +adapt +refine relief, ...\n"
+        "adapt: uhrnet adapt of the run's last.pt on --adapt-images (default: the --real and --real-phase\n"
+        "folders; only their fringe images are read, never a label) -> OUT/<name>/adapt (adapt.log); refine:\n"
+        "the predictions after uhrnet predict --refine phase --refine-method METHOD through --rig.\n"
+        "Rows are evaluated in OUT/<name>/eval, eval-refine-<m>, eval-adapt, eval-adapt-refine-<m>.\n\n"
+        "Re-using runs: --reuse-run NAME=RUN_DIR takes a finished uhrnet train folder (last.pt at --epochs)\n"
+        "as variant NAME's training run, read in place (nothing is written there): its config.json must hold\n"
+        "the variant's training options (everything a resume locks, epochs, lr; not the data path or\n"
+        "device) and its dataset --count samples of --seed; that dataset is then the variant's. A run folder\n"
+        "copied to OUT/<name>/run is taken the same way (one of other options is refused).\n\n"
         "Real data: figshare-format folders (f1_80.npy + Z.npy, or fringe_pattern.npy + height_map.npy);\n"
         "labels <= -100 are invalid and mm = label / 6. Metrics in mm: object RMSE over valid pixels more\n"
-        "than --object-mm above the reference plane, RMSE over all valid pixels, and more (see\n"
-        "uhrnet.sim2real.metrics).")
+        "than --object-mm above the reference plane, median |error|, share within 1 mm, coverage (share of\n"
+        "object pixels predicted valid), RMSE over all valid pixels, and more (see uhrnet.sim2real.metrics).\n"
+        "--real-phase: real phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/, no labels): the\n"
+        "calibration-free phase residual (rad) of every row on every frame, as uhrnet evaluate-phase reports.")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu", help="recipe size [cpu]")
     p.add_argument("--real", nargs="+", required=True, metavar="DIR",
                    help="real figshare-format folder(s); evaluation only, never trained on")
@@ -564,12 +634,36 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss", choices=LOSSES, help=f"training loss [{scales('loss')}]")
     p.add_argument("--device", choices=DEVICES, help=f"training device; evaluation runs on cuda if this is cuda, else on cpu [{scales('device')}]")
     p.add_argument("--variant", action="append", default=[], metavar="SPEC",
-                   help="NAME or 'NAME: GENERATE FLAGS | TRAIN FLAGS' (flags of fppsim generate / uhrnet train; "
-                        "repeatable) [one variant 'default', the recipe]")
-    p.add_argument("--ablation", metavar="FILE", help="YAML/JSON list of variants {name, generate, train}")
+                   help=f"{VARIANT_SYNTAX} (flags of fppsim generate / uhrnet train / uhrnet adapt; "
+                        f"refine methods: {', '.join(REFINE_METHODS)}; see above; repeatable) [one variant "
+                        "'default', the recipe]")
+    p.add_argument("--ablation", metavar="FILE",
+                   help="YAML/JSON list of variants {name, generate, train, adapt (flags, or true), refine}")
+    p.add_argument("--real-phase", nargs="+", default=[], metavar="DIR",
+                   help="real phase-shifting folder(s) (PSin/ PCos/ Fringe/ iPattern/, no labels): phase residual "
+                        "of every row per frame; adaptation images too; evaluation only, never trained on")
+    p.add_argument("--rig", metavar="FILE",
+                   help="the real data's rig for refine and adapt [the checkpoint's rig, else fppsim's default]")
+    p.add_argument("--adapt-images", nargs="+", metavar="PATH",
+                   help="unlabelled images the adapt steps fine-tune on [the --real and --real-phase folders]")
+    p.add_argument("--reuse-run", action="append", default=[], metavar="NAME=RUN_DIR",
+                   help="use this finished training run as variant NAME's (see above; repeatable)")
     p.add_argument("--object-mm", type=float, default=1.0, metavar="MM",
                    help="object pixels: valid and more than this many mm above the plane [1]")
     p.add_argument("--no-figures", action="store_true", help="skip the per-image figures")
+
+
+def parse_reuse(items: list[str]) -> dict[str, str]:
+    """``--reuse-run NAME=RUN_DIR`` items as ``{NAME: RUN_DIR}``."""
+    from uhrnet.errors import UsageError
+
+    out = {}
+    for item in items:
+        name, sep, run = item.partition("=")
+        if not sep or not name.strip() or not run.strip() or name.strip() in out:
+            raise UsageError(f"--reuse-run expects NAME=RUN_DIR once per variant, got {item!r}")
+        out[name.strip()] = run.strip()
+    return out
 
 
 def run_sim2real(args) -> int:
@@ -584,7 +678,8 @@ def run_sim2real(args) -> int:
         out=args.out, real=args.real, **({"meshes": list(args.meshes)} if args.meshes else {}), scale=args.scale,
         count=args.count, seed=args.seed, workers=args.workers, model=args.model, base_channels=args.base_channels,
         loss=args.loss, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, device=args.device,
-        object_mm=args.object_mm, figures=not args.no_figures)
+        object_mm=args.object_mm, figures=not args.no_figures, real_phase=list(args.real_phase), rig=args.rig,
+        adapt_images=args.adapt_images, reuse=parse_reuse(args.reuse_run))
     if specs:
         cfg = replace(cfg, variants=[variant_from_flags(cfg, s) for s in specs])
     report = run_sim2real(cfg, log=lambda line: print(line, flush=True), recipe=recipe_commands)
@@ -608,7 +703,7 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", metavar="FILE",
                    help="rig (fppsim JSON/YAML or OpenCV stereo YAML) [the checkpoint's rig, else fppsim's default]")
     p.add_argument("--epochs", type=int, default=d["epochs"].default,
-                   help=f"passes over the images, one image per step [{d['epochs'].default}: about 1 s a step for the "
+                   help=f"passes over the images, one image per step [{d['epochs'].default}; about 1 s a step for the "
                         "recipe's U-Net on 2 CPU cores]")
     p.add_argument("--lr", type=float, default=d["lr"].default, help=f"Adam learning rate [{d['lr'].default:g}]")
     for name, what in (("w_grad", "weight of the fringe-gradient consistency (phase steps between neighbours, rad)"),

@@ -47,7 +47,7 @@ from fppsim.encoding import as_image_stack, encode_fringe
 from fppsim.files import atomic_path
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size
-from fppsim.readers import read_fringe_image
+from fppsim.readers import IMAGE_EXTS, read_fringe_image
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import prediction_of
@@ -56,8 +56,7 @@ __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "pad_t
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "points_from_rig", "points_from_grid",
            "write_ply"]
 
-IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
-INPUT_EXTS = IMAGE_EXTS + (".npy",)
+INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
 MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
 
 
@@ -171,7 +170,7 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
     from fppsim.formats import find_figshare_pair
-    from fppsim.readers import PSPMatError, is_psp_folder, list_psp_ids, load_ipattern, open_figshare_pair
+    from fppsim.readers import PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
@@ -389,6 +388,7 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
                                           phase_offset="estimate")
         stats = {"method": "nearest", **stats}
     else:
-        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid)
+        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid,
+                                          level="orders" if method == "orders" else "network", shadow=~ssp.valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

@@ -38,8 +38,11 @@ import numpy as np
 
 __all__ = ["refine_height", "refine_relief", "circular_median", "REFINE_METHODS"]
 
-REFINE_METHODS = ("relief", "nearest")
-"""``relief``: :func:`refine_relief` (the default of ``--refine phase``); ``nearest``: :func:`refine_height`."""
+REFINE_METHODS = ("relief", "orders", "nearest")
+"""``relief``: :func:`refine_relief` with each region's level from the estimate (the default of ``--refine
+phase``); ``orders``: :func:`refine_relief` with whole fringe orders (from shadow bridges, else rounded from the
+estimate), exact levels where the rig's absolute phase-to-height mapping is right; ``nearest``:
+:func:`refine_height`."""
 
 TWO_PI = 2.0 * math.pi
 
@@ -183,7 +186,8 @@ def refine_height(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
 def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
                   valid: np.ndarray | None = None, min_reliability: float = 0.5, max_step: float = 1.0,
                   smooth_px: float = 3.0, max_move_mm=None, max_move_fraction: float = 2.0,
-                  min_region: int = 50) -> tuple[np.ndarray, np.ndarray, dict]:
+                  min_region: int = 50, level: str = "network",
+                  shadow: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relief from the image's phase, level from the estimate: the least move that makes a height map
     consistent with its own fringes, region by region.
 
@@ -197,7 +201,16 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     :func:`circular_median` over the reliable pixels). So the region's median move is 0: the estimate
     keeps its level, the phase replaces its shape. Unlike :func:`refine_height` this needs no estimate
     within half a period, and a rig whose height scale is slightly off changes the relief by that
-    fraction only, not the level. A pixel moves only when reliable, inside a region, and when its move
+    fraction only, not the level.
+
+    ``level="orders"`` instead gives every region a whole fringe order, so its level comes from the
+    phase through the rig: the order across a projector shadow is voted by the rows crossing it
+    (:func:`fppsim.unwrap.shadow_bridges`: the ray grazing an object's edge lands on the plane at the
+    shadow's far side, so both carry one phase), starting from the largest region with its order
+    rounded from the estimate; regions no trusted bridge reaches round their own. Exact where the
+    rig's absolute phase-to-height mapping is (a rig off by a few per cent in its depth scale moves
+    every bridged level by that much); ``shadow`` (H, W) bool are the unlit pixels (default: the
+    pixels neither ``valid`` nor reliable). A pixel moves only when reliable, inside a region, and when its move
     is within ``max_move_mm`` (default ``max_move_fraction`` fringe periods of height at the pixel,
     ``2 pi / |dPhi/dh|``: a region that swallowed a wall is rejected where it moves pixels that far).
 
@@ -244,8 +257,30 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     lab = regions.labels
     d = regions.unwrapped - phi - offset
     target = np.full(h.shape, np.nan)
+    bridged = 0
     if regions.count:
         med = np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, regions.count + 1)))
+        if level == "orders":
+            from fppsim.unwrap import shadow_bridges
+
+            orders = np.round(med / TWO_PI)
+            unlit = ~(ok | usable) if shadow is None else np.asarray(shadow, bool)
+            fixed = {1: orders[0]}
+            bridges = shadow_bridges(regions, unlit)
+            grew = True
+            while grew:  # spread whole orders from the largest region over trusted bridges
+                grew = False
+                for b in bridges:
+                    if b.a in fixed and b.b not in fixed:
+                        fixed[b.b], grew = fixed[b.a] - b.periods, True
+                    elif b.b in fixed and b.a not in fixed:
+                        fixed[b.a], grew = fixed[b.b] + b.periods, True
+            bridged = len(fixed) - 1
+            for region, order in fixed.items():
+                orders[region - 1] = order
+            med = TWO_PI * orders
+        elif level != "network":
+            raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
         inside = lab > 0
         target[inside] = phi[inside] + d[inside] - med[lab[inside] - 1]
     with torch.no_grad():
@@ -263,7 +298,8 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
     n = int(finite.sum())
     stats = {
-        "method": "relief",
+        "method": "relief" if level == "network" else "orders",
+        "bridged_regions": bridged,
         "n_pixels": n,
         "moved_fraction": float(moved.sum() / n) if n else 0.0,
         "reliable_fraction": float(usable.sum() / n) if n else 0.0,

@@ -13,9 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ..compare import format_value
 from ..errors import DatasetError, ValidateError
 from ..encoding import json_default
-from ..files import atomic_path, atomic_write_text
+from ..files import atomic_write_text
 from ..formats import read_manifest, read_settings
 from ..readers import load_native_sample
 from .sample import BREAKDOWN, breakdown_fractions, evaluate_sample
@@ -182,6 +183,8 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
+    from ..plots import save_figure
+
     path = Path(path)
     ok = accepted & ~wrong
     if vmax is None:
@@ -209,9 +212,7 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
                         Patch(color=(0.55, 0.55, 0.55), label="PSP rejected"),
                         Patch(color=(0, 0, 0), label="not valid (exact mask)")],
                loc="lower left", bbox_to_anchor=(0.1 / fw, 0.0), ncol=3, fontsize=7, frameon=False)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp)
-    return path
+    return save_figure(fig, path)
 
 
 # ====================================================================== dataset validation
@@ -245,8 +246,8 @@ def validate_dataset(dataset, out, maps: bool = True, progress: bool = True, edg
         row = {"id": sid, "index": meta.get("index"), "seed": meta.get("seed"), "optics": meta.get("optics"),
                "noise_free": meta.get("noise_free"), **st}
         if maps:
-            title = (f"{sid}: RMSE {_fmt(st['rmse_mm_incl_order_errors'])} mm "
-                     f"(excl. order errors {_fmt(st['rmse_mm_excl_order_errors'])} mm), "
+            title = (f"{sid}: RMSE {_mm_cell(st['rmse_mm_incl_order_errors'])} mm "
+                     f"(excl. order errors {_mm_cell(st['rmse_mm_excl_order_errors'])} mm), "
                      f"{st['n_order_errors_accepted']} order-error px, "
                      f"{_pct(st['rejected_fraction'])} % rejected")
             write_error_map(out / "maps" / f"{sid}.png", m["error_mm"], m["valid"], m["accepted"], m["wrong"], title)
@@ -274,17 +275,19 @@ def validate_dataset(dataset, out, maps: bool = True, progress: bool = True, edg
 
 
 # ====================================================================== tables
-def _fmt(v, spec=".4f"):
-    return "-" if v is None else format(v, spec)
+def _mm_cell(v, spec="{:.4f}"):
+    """A length (mm) in a table cell; "-" when undefined."""
+    return format_value(spec, v, missing="-")
 
 
 def _pct(v):
     return "-" if v is None else f"{100 * v:.3f}"
 
 
-_COLS = [("RMSE mm", "rmse_mm_incl_order_errors", _fmt), ("RMSE_ok mm", "rmse_mm_excl_order_errors", _fmt),
-         ("p99_ok mm", "p99_abs_mm_excl_order_errors", _fmt), ("max_ok mm", "max_abs_mm_excl_order_errors", _fmt),
-         ("max mm", "max_abs_mm_incl_order_errors", lambda v: _fmt(v, ".3f")),
+_COLS = [("RMSE mm", "rmse_mm_incl_order_errors", _mm_cell), ("RMSE_ok mm", "rmse_mm_excl_order_errors", _mm_cell),
+         ("p99_ok mm", "p99_abs_mm_excl_order_errors", _mm_cell),
+         ("max_ok mm", "max_abs_mm_excl_order_errors", _mm_cell),
+         ("max mm", "max_abs_mm_incl_order_errors", lambda v: _mm_cell(v, "{:.3f}")),
          ("order err %", "order_error_fraction", _pct), ("rejected %", "rejected_fraction", _pct)]
 _LEGEND = ("RMSE/max: all accepted pixels; *_ok: excluding order errors (|phase_psp - phase_true| > pi); "
            "order err %: accepted pixels with a wrong order; rejected %: exact-valid pixels PSP rejected "

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp, triangulation
+from _helpers import distorted_rig
 from fppsim.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
@@ -211,16 +212,6 @@ def test_unwrap_seam_nan_and_errors():
 
 
 # ---------------------------------------------------------------------------------------- geometry
-def _with_dist(dev, dist):
-    return Device(K=dev.K, R=dev.R, t=dev.t, width=dev.width, height=dev.height, dist=dist)
-
-
-def _distorted_rig():
-    r = make_default_rig()
-    return Rig(_with_dist(r.camera, [-0.08, 0.05, 1e-3, -5e-4, 0.01]),
-               _with_dist(r.projector, [0.06, -0.03, -8e-4, 6e-4, 0.002]), periods=80.0, name="distorted")
-
-
 def _converging_rig():
     r = make_default_rig()
     a = np.arctan2(180.0, 480.0)  # projector at +x, axis turned onto the scene centre
@@ -271,7 +262,7 @@ def test_phase_direction_against_projector_projection():
     np.testing.assert_allclose(tri.row, uv[:, 1], atol=1e-9)
 
 
-@pytest.mark.parametrize("rig_factory", [make_default_rig, _distorted_rig, _converging_rig])
+@pytest.mark.parametrize("rig_factory", [make_default_rig, distorted_rig, _converging_rig])
 def test_full_chain_round_trip(rig_factory):
     """Known 3D points -> projector columns -> phase-shifted stacks at (1, 8, 80) -> N-step phase ->
     temporal unwrapping -> triangulation: recovers the points (checks every sign convention at once)."""

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 import torch
 
+from _helpers import distorted_rig
 from fppsim.height_sensitivity import centre_sensitivity, surface_phase
-from fppsim.rig import Device, Rig, data_path, make_default_rig
+from fppsim.rig import Rig, data_path, make_default_rig
 from uhrnet.rig_layer import RigLayer, wrap
 
 try:  # the triangulation may live in its own module
@@ -18,21 +19,11 @@ except ImportError:
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
-def _with_dist(dev, dist):
-    return Device(K=dev.K, R=dev.R, t=dev.t, width=dev.width, height=dev.height, dist=dist)
-
-
-def _distorted_rig():
-    r = make_default_rig()
-    return Rig(_with_dist(r.camera, [-0.08, 0.05, 1e-3, -5e-4, 0.01]),
-               _with_dist(r.projector, [0.06, -0.03, -8e-4, 6e-4, 0.002]), periods=80.0, name="distorted")
-
-
 RIGS = {
     "default": make_default_rig,
     "parallel": lambda: Rig.load(data_path("parallel_rig.json")),
     "figshare_like": lambda: Rig.load(data_path("figshare_like_rig.json")),
-    "distorted": _distorted_rig,
+    "distorted": distorted_rig,
 }
 
 
@@ -82,7 +73,7 @@ def test_validity_matches_fppsim_over_a_wide_range():
     """Random phases reaching far outside any plausible scene: the same valid pixels as fppsim."""
     rng = np.random.default_rng(1)
     every = (slice(None, None, 3), slice(None, None, 3))  # a strided grid keeps it fast
-    for rig, span in ((make_default_rig(), (-800.0, 400.0)), (_distorted_rig(), (-300.0, 120.0))):
+    for rig, span in ((make_default_rig(), (-800.0, 400.0)), (distorted_rig(), (-300.0, 120.0))):
         layer = RigLayer(rig, pixels=every)
         uv = rig.camera.pixel_grid()[every]
         phase = layer.plane_phase().numpy() + rng.uniform(*span, layer.grid_shape)
@@ -107,7 +98,7 @@ def test_parallel_rig_closed_form():
 
 
 def test_windows_and_resized_grids_match_fppsim_pixels():
-    rig = _distorted_rig()
+    rig = distorted_rig()
     cam = rig.camera
     rows, cols = slice(100, 140), slice(300, 380, 2)
     crop = RigLayer(rig, pixels=(rows, cols))
@@ -130,7 +121,7 @@ def test_windows_and_resized_grids_match_fppsim_pixels():
         half.height_from_phase(torch.zeros(cam.height, cam.width))
 
 
-@pytest.mark.parametrize("rig_factory", [make_default_rig, _distorted_rig])
+@pytest.mark.parametrize("rig_factory", [make_default_rig, distorted_rig])
 def test_gradcheck(rig_factory):
     rig = rig_factory()
     layer = RigLayer(rig, pixels=(slice(170, 173), slice(310, 314)))
@@ -182,7 +173,7 @@ def test_order_and_wrap_helpers():
 
 
 def test_dtype_device_and_serialisation():
-    rig = _distorted_rig()
+    rig = distorted_rig()
     layer = RigLayer(rig, pixels=(slice(10, 20), slice(30, 50)))
     assert layer.state_dict() == {}  # the geometry follows from the rig, not from checkpoints
     layer.float()
@@ -204,7 +195,7 @@ def test_dtype_device_and_serialisation():
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 def test_cuda_matches_cpu():
-    rig = _distorted_rig()
+    rig = distorted_rig()
     layer = RigLayer(rig)
     h = torch.from_numpy(_surface(rig.camera))[None, None]
     cpu = layer.height_from_phase(layer.phase_from_height(h))

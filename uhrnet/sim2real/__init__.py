@@ -18,25 +18,41 @@ published ``fringe_pattern.npy`` + ``height_map.npy``) with the figshare label r
 invalid, mm = label / 6). ``scale="gpu"`` is the full recipe (UHRNet, 352 x 640, >= 2000 samples).
 
 Variants (an ablation) change the dataset and/or the training run through overrides of
-``GenerateConfig`` / ``TrainConfig`` fields; variants with the same dataset overrides share one
-synthetic dataset. Every stage is resumable: a finished dataset, a finished run (``last.pt`` at the
-requested epochs) and a finished evaluation are re-used.
+``GenerateConfig`` / ``TrainConfig`` fields (``train={"head": "phase"}``: the physics head); variants with
+the same dataset overrides share one synthetic dataset. A variant may add rows without training again:
+``adapt`` (``AdaptConfig`` overrides, ``{}`` for the defaults) fine-tunes its model on the UNLABELLED real
+images (:mod:`uhrnet.adapt`; only fringe images are read), ``refine`` (``["relief", "nearest"]``) measures
+its predictions after ``--refine phase`` with each method; rows: the network, each refinement, the adapted
+network and each refinement of it::
+
+    Variant("phase-head", train={"head": "phase"}, adapt={"epochs": 20}, refine=["relief"])
+
+``real_phase`` (real phase-shifting folders: ``PSin/ PCos/ Fringe/ iPattern/``) adds the calibration-free
+phase residual of every row on every frame (``uhrnet evaluate-phase``'s metric). ``reuse={"name": RUN}``
+takes a finished training run (same training options, dataset of ``count`` samples and ``seed``) instead of
+training; a run folder copied to ``out/<name>/run`` is taken the same way. Every stage is resumable: a
+finished dataset, a finished run (``last.pt`` at the requested epochs), a finished adaptation and a
+finished evaluation are re-used.
 
 Modules: :mod:`~uhrnet.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
-:mod:`~uhrnet.sim2real.run` (the stages and :func:`run_sim2real`), :mod:`~uhrnet.sim2real.metrics`
-(object RMSE, fringe twins, level response) and :mod:`~uhrnet.sim2real.report` (``report.md``, figures).
+:mod:`~uhrnet.sim2real.run` (the stages and :func:`run_sim2real`), :mod:`~uhrnet.sim2real.evaluate` (one
+checkpoint on the real pairs, the real phase frames and the synthetic validation split),
+:mod:`~uhrnet.sim2real.metrics` (object RMSE, median error, coverage, fringe twins, level response) and
+:mod:`~uhrnet.sim2real.report` (``report.md``, figures).
 """
 
 from uhrnet.errors import Sim2RealError
 from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
 from uhrnet.sim2real.metrics import fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics
 from uhrnet.sim2real.report import markdown_report, plot_real
-from uhrnet.sim2real.run import (
-    evaluate_level, evaluate_real, find_real_pairs, generate_config, run_sim2real, train_config,
+from uhrnet.sim2real.evaluate import (
+    evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs, refine_labels,
 )
+from uhrnet.sim2real.run import adapt_config, generate_config, run_differences, run_sim2real, train_config
 
 __all__ = [
     "Sim2RealConfig", "Variant", "Sim2RealError", "SCALES", "data_key", "object_mask", "plane_level", "real_metrics",
-    "fringe_twins", "twin_metrics", "level_response", "generate_config", "train_config", "find_real_pairs",
-    "evaluate_real", "evaluate_level", "run_sim2real", "markdown_report", "plot_real",
+    "fringe_twins", "twin_metrics", "level_response", "generate_config", "train_config", "adapt_config",
+    "run_differences", "find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real",
+    "evaluate_real_phase", "evaluate_level", "run_sim2real", "markdown_report", "plot_real",
 ]

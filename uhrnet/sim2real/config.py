@@ -1,10 +1,14 @@
 """What a sim-to-real experiment runs: :class:`Sim2RealConfig`, its :data:`SCALES` and :class:`Variant`.
 
-A variant changes the recipe through *overrides* of the two library configs: ``generate`` maps
+A variant changes the recipe through *overrides* of the library configs: ``generate`` maps
 :class:`fppsim.generation.GenerateConfig` fields to values (e.g. ``{"pedestal": 0.0}``), ``train``
-maps :class:`uhrnet.train_config.TrainConfig` fields (e.g. ``{"augment": "off"}``). The ``uhrnet
-sim2real`` command turns ``--variant`` / ``--ablation`` flag text into such overrides with the two
-commands' own parsers; this module never reads flags.
+maps :class:`uhrnet.train_config.TrainConfig` fields (e.g. ``{"augment": "off"}``, ``{"head": "phase"}``).
+Two optional post-steps add rows without training again: ``adapt`` (a dict of
+:class:`uhrnet.adapt.AdaptConfig` overrides, ``{}`` for its defaults; None: no adaptation) fine-tunes the
+trained model on the UNLABELLED real images, and ``refine`` (names of :data:`uhrnet.refine.REFINE_METHODS`)
+measures the predictions after ``--refine phase`` with each method. The ``uhrnet sim2real`` command turns
+``--variant`` / ``--ablation`` flag text into such overrides with the commands' own parsers; this module
+never reads flags.
 """
 
 from __future__ import annotations
@@ -30,8 +34,9 @@ SCALES: dict[str, dict] = {
             "train": {"amp": True}},
 }
 
-# fields the experiment sets itself (folder layout, resuming, progress output)
-_OWN = {"generate": ("out", "progress"), "train": ("out", "resume", "overwrite", "progress")}
+# fields the experiment sets itself (folder layout, resuming, progress output, the images adapted on)
+_OWN = {"generate": ("out", "progress"), "train": ("out", "resume", "overwrite", "progress"),
+        "adapt": ("checkpoint", "images", "out", "resume", "overwrite", "progress", "device", "figures")}
 
 
 def _packaged_meshes() -> str:
@@ -44,6 +49,8 @@ def _packaged_meshes() -> str:
 def _field_names(kind: str) -> set[str]:
     if kind == "generate":
         from fppsim.generation import GenerateConfig as cls
+    elif kind == "adapt":
+        from uhrnet.adapt import AdaptConfig as cls
     else:
         from uhrnet.train_config import TrainConfig as cls
     return {f.name for f in fields(cls)}
@@ -55,8 +62,11 @@ class Variant:
 
     generate : ``GenerateConfig`` field -> value; variants with equal ``generate`` share one dataset.
     train : ``TrainConfig`` field -> value.
-    generate_flags, train_flags : the same changes as the user wrote them (e.g. ``["--pedestal", "0"]``),
-        shown in the report; None: shown as ``field=value``.
+    adapt : ``AdaptConfig`` field -> value of the adaptation post-step (``{}``: its defaults); None: none.
+    refine : refinement methods (:data:`uhrnet.refine.REFINE_METHODS`), one extra row each (and one per
+        method on the adapted model).
+    generate_flags, train_flags, adapt_flags : the same changes as the user wrote them (e.g.
+        ``["--pedestal", "0"]``), shown in the report; None: shown as ``field=value``.
     """
 
     name: str
@@ -64,11 +74,23 @@ class Variant:
     train: dict = field(default_factory=dict)
     generate_flags: list[str] | None = None
     train_flags: list[str] | None = None
+    adapt: dict | None = None
+    refine: list[str] = field(default_factory=list)
+    adapt_flags: list[str] | None = None
 
     def __post_init__(self):
         if not self.name or any(c in self.name for c in "/\\ \t") or self.name.startswith("."):
             raise Sim2RealError(f"variant name {self.name!r} must be a non-empty word without slashes or spaces")
-        for kind, config in (("generate", "GenerateConfig"), ("train", "TrainConfig")):
+        from uhrnet.refine import REFINE_METHODS
+
+        self.refine = [self.refine] if isinstance(self.refine, str) else list(self.refine or [])
+        bad = [m for m in self.refine if m not in REFINE_METHODS]
+        if bad or len(set(self.refine)) != len(self.refine):
+            raise Sim2RealError(f"variant {self.name!r}: refine methods must be distinct names of "
+                                f"{', '.join(REFINE_METHODS)}, got {', '.join(self.refine)}")
+        for kind, config in (("generate", "GenerateConfig"), ("train", "TrainConfig"), ("adapt", "AdaptConfig")):
+            if kind == "adapt" and self.adapt is None:
+                continue
             given = dict(getattr(self, kind) or {})
             setattr(self, kind, given)
             unknown = sorted(set(given) - _field_names(kind)) if given else []
@@ -79,11 +101,11 @@ class Variant:
                 raise Sim2RealError(f"variant {self.name!r}: {kind} {', '.join(own)} is set by the experiment")
 
     def described(self, kind: str) -> list[str]:
-        """The ``generate`` or ``train`` changes as text: the flags given, else ``field=value`` items."""
-        flags = self.generate_flags if kind == "generate" else self.train_flags
+        """The ``generate``, ``train`` or ``adapt`` changes as text: the flags given, else ``field=value`` items."""
+        flags = {"generate": self.generate_flags, "train": self.train_flags, "adapt": self.adapt_flags}[kind]
         if flags is not None:
             return list(flags)
-        return [f"{k}={json.dumps(v, default=json_default)}" for k, v in getattr(self, kind).items()]
+        return [f"{k}={json.dumps(v, default=json_default)}" for k, v in (getattr(self, kind) or {}).items()]
 
 
 @dataclass
@@ -99,6 +121,16 @@ class Sim2RealConfig:
     variants : the ablation rows (default: one row ``default``, the recipe itself).
     object_mm : object pixels are valid pixels more than this far (mm) above the plane.
     figures : write a figure per real image.
+    real_phase : real phase-shifting folders (``PSin/ PCos/ Fringe/ iPattern/``, no labels): every row gets
+        the calibration-free phase residual of each frame (evaluation only).
+    rig : calibration file of the real data for ``refine`` and ``adapt`` (default: the checkpoint's own rig,
+        else fppsim's default rig).
+    adapt_images : what adaptation fine-tunes on (default: the ``real`` folders and the ``real_phase``
+        folders; only their fringe images are read, never a label).
+    reuse : variant name -> a finished training run folder used instead of training (``uhrnet train``'s
+        folder: ``last.pt`` at the requested epochs, ``config.json`` with the variant's training options;
+        its dataset must have ``count`` samples and, where recorded, ``seed``). A run folder copied to
+        ``out/<variant>/run`` is taken the same way.
     """
 
     out: str
@@ -118,6 +150,10 @@ class Sim2RealConfig:
     variants: list[Variant] = field(default_factory=lambda: [Variant("default")])
     object_mm: float = 1.0
     figures: bool = True
+    real_phase: list[str] = field(default_factory=list)
+    rig: str | None = None
+    adapt_images: list[str] | None = None
+    reuse: dict[str, str] = field(default_factory=dict)
 
     def __post_init__(self):
         if self.scale not in SCALES:
@@ -136,6 +172,13 @@ class Sim2RealConfig:
             raise Sim2RealError(f"workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
             raise Sim2RealError(f"object_mm must be > 0 mm, got {self.object_mm}")
+        self.real_phase = [str(f) for f in (self.real_phase or [])]
+        self.reuse = {str(k): str(v) for k, v in (self.reuse or {}).items()}
+        unknown = sorted(set(self.reuse) - set(names))
+        if unknown:
+            raise Sim2RealError(f"reuse: no variant named {', '.join(unknown)} (variants: {', '.join(names)})")
+        if self.adapt_images is not None and not self.adapt_images:
+            raise Sim2RealError("adapt_images: give at least one image or folder (None: the real folders)")
 
 
 def data_key(generate: dict) -> str:

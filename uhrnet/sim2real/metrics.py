@@ -9,7 +9,10 @@ Metrics on each real image (heights in mm):
 - ``flat_object_rmse_mm``: the same object RMSE of a predictor that outputs the plane everywhere
   (a network that finds nothing scores this);
 - ``true_object_mean_mm`` / ``pred_object_mean_mm``: mean height above the plane on the object pixels;
-- ``object_fraction``: object pixels / all pixels.
+- ``object_fraction``: object pixels / all pixels;
+- ``object_median_abs_mm``: median |error| over the object pixels; ``object_within_1mm``: share of the
+  object pixels whose |error| is at most 1 mm; ``object_coverage``: share of the object pixels the
+  prediction marks valid (finite and above the label transform's invalid threshold, when given).
 
 Does the network read the fringes at all? Each real image is also predicted as two twins that keep
 its envelope (local background and fringe modulation, i.e. shading, albedo and shadows) but not its
@@ -49,8 +52,9 @@ def object_mask(label: np.ndarray, valid: np.ndarray, units_per_mm: float = 6.0,
 
 
 def real_metrics(pred: np.ndarray, label: np.ndarray, valid: np.ndarray, units_per_mm: float = 6.0,
-                 object_mm: float = 1.0) -> dict:
-    """Metrics of one predicted label map against the real label map (all label units, H x W)."""
+                 object_mm: float = 1.0, invalid_threshold: float | None = None) -> dict:
+    """Metrics of one predicted label map against the real label map (all label units, H x W); a predicted
+    label at or below ``invalid_threshold`` (None: only NaN) is a pixel the prediction does not cover."""
     pred = np.asarray(pred, np.float64)
     label = np.asarray(label, np.float64)
     valid = np.asarray(valid, bool)
@@ -60,6 +64,7 @@ def real_metrics(pred: np.ndarray, label: np.ndarray, valid: np.ndarray, units_p
     def rms(e, m):
         return float(np.sqrt(np.mean(e[m] ** 2))) if m.any() else float("nan")
 
+    covered = np.isfinite(pred) if invalid_threshold is None else np.isfinite(pred) & (pred > invalid_threshold)
     flat = (plane - label) / units_per_mm
     above_t = (label - plane) / units_per_mm
     above_p = (pred - plane) / units_per_mm
@@ -75,6 +80,9 @@ def real_metrics(pred: np.ndarray, label: np.ndarray, valid: np.ndarray, units_p
         "object_fraction": float(obj.mean()),
         "valid_fraction": float(valid.mean()),
         "plane_label": plane,
+        "object_median_abs_mm": float(np.median(np.abs(err[obj]))) if obj.any() else float("nan"),
+        "object_within_1mm": float(np.mean(np.abs(err[obj]) <= 1.0)) if obj.any() else float("nan"),
+        "object_coverage": float(np.mean(covered[obj])) if obj.any() else float("nan"),
     }
 
 

@@ -42,7 +42,56 @@ def markdown_report(report: dict) -> str:
                      f"{r['true_object_mean_mm']:.1f} / {r['pred_object_mean_mm']:.1f} | "
                      f"{r.get('relief_effect_mm', float('nan')):.1f} | "
                      f"{'' if sv is None else f'{sv:.2f}'} | {_level_cell(v.get('synthetic_level'))} | {mins:.1f} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _rows_table(report)) + "\n"
+
+
+def _frame_name(frame: dict) -> str:
+    return f"{Path(frame['folder']).name}/{frame['id']}"
+
+
+def _rows_table(report: dict) -> list[str]:
+    """Every evaluation row (network, refined, adapted, adapted and refined) of every variant: the real pairs'
+    object metrics, the phase residual of each real phase-shifting frame, and where adaptation read images."""
+    rows = [r for v in report["variants"] for r in v.get("rows") or []]
+    if not rows:
+        return []
+    frames = []
+    for r in rows:
+        for f in r.get("real_phase") or []:
+            if _frame_name(f) not in frames:
+                frames.append(_frame_name(f))
+    lines = ["", "## Every row on real data", "",
+             "Real pairs: object RMSE, median |error| and share of object pixels within 1 mm (errors in mm over "
+             "the object pixels), coverage = share of object pixels the prediction marks valid. Phase frames: "
+             "calibration-free phase residual (rad) of the prediction, as `uhrnet evaluate-phase` reports it "
+             "(lower is better; the flat plane h = 0 is in the last line).", "",
+             "| row | object RMSE (mm) | median abs. error (mm) | within 1 mm | coverage |"
+             + "".join(f" {f} residual (rad) |" for f in frames),
+             "|---|---|---|---|---|" + "---|" * len(frames)]
+
+    def cell(x, fmt):
+        return "" if x is None or not np.isfinite(x) else format(x, fmt)
+
+    for r in rows:
+        m = r["real"]
+        by = {_frame_name(f): f for f in r.get("real_phase") or []}
+        lines.append(f"| {r['row']} | {cell(m.get('object_rmse_mm'), '.2f')} | {cell(m.get('object_median_abs_mm'), '.2f')}"
+                     f" | {cell(m.get('object_within_1mm'), '.1%')} | {cell(m.get('object_coverage'), '.1%')} |"
+                     + "".join(f" {cell(by[f]['rmse_rad'], '.3f') if f in by else ''} |" for f in frames))
+    if frames:
+        flat = {}
+        for r in rows:
+            for f in r.get("real_phase") or []:
+                flat.setdefault(_frame_name(f), f["flat_rmse_rad"])
+        m = report["variants"][0]["real"]
+        lines.append(f"| flat plane (h = 0) | {cell(m.get('flat_object_rmse_mm'), '.2f')} | | | |"
+                     + "".join(f" {cell(flat.get(f), '.3f')} |" for f in frames))
+    notes = [f"- {v['name']} +adapt: adapted on: {', '.join(v['adapt']['images'])} (no labels; "
+             f"{v['adapt']['epochs']} epochs{', ' + shlex.join(v['adapt']['flags']) if v['adapt'].get('flags') else ''})"
+             for v in report["variants"] if v.get("adapt")]
+    reused = [f"- {v['name']}: reused the finished run {v['run']} (trained on {v['data']})"
+              for v in report["variants"] if v.get("reused")]
+    return lines + ([""] + notes if notes else []) + ([""] + reused if reused else [])
 
 
 def plot_real(fringe: np.ndarray, label: np.ndarray, valid: np.ndarray, pred: np.ndarray, units_per_mm: float,

@@ -1,19 +1,27 @@
-"""Running a sim-to-real experiment: generate -> train (synthetic only) -> evaluate on REAL data -> report.
+"""Running a sim-to-real experiment: generate -> train (synthetic only) -> [adapt] -> evaluate on REAL data -> report.
 
-Every variant of :class:`~uhrnet.sim2real.config.Sim2RealConfig` runs three stages through the
+Every variant of :class:`~uhrnet.sim2real.config.Sim2RealConfig` runs these stages through the
 libraries, in this process:
 
 1. ``fppsim.generate(GenerateConfig)`` (:func:`generate_config`): the recipe's figshare-format dataset
    without phase-shifting images, plus the variant's ``generate`` overrides, in ``out/data/<key>``;
    variants with the same overrides share it. Log: ``out/data/<key>.log``.
 2. ``uhrnet.train(TrainConfig)`` (:func:`train_config`) on that dataset alone, in ``out/<variant>/run``
-   (``history.csv``, checkpoints). Log: ``out/<variant>/train.log``.
-3. :func:`evaluate_real` on every real folder and :func:`evaluate_level` on the synthetic validation
-   split, in ``out/<variant>/eval``.
+   (``history.csv``, checkpoints). Log: ``out/<variant>/train.log``. A finished run given in
+   ``cfg.reuse`` (or copied to ``out/<variant>/run``) replaces stages 1 and 2 when its training options are
+   the variant's (:func:`run_differences`); its own dataset is then the variant's.
+3. With ``variant.adapt``: ``uhrnet.adapt(AdaptConfig)`` (:func:`adapt_config`) of the run's ``last.pt`` on
+   the UNLABELLED real images (``cfg.adapt_images``, default the ``real`` and ``real_phase`` folders; only
+   fringe images are read), in ``out/<variant>/adapt``. Log: ``out/<variant>/adapt.log``.
+4. Evaluation rows, each in its own folder: the network (``out/<variant>/eval``, with :func:`evaluate_level`
+   on the synthetic validation split), each ``refine`` method (``eval-refine-<method>``), the adapted
+   network (``eval-adapt``) and each method on it (``eval-adapt-refine-<method>``):
+   :func:`evaluate_real` on every real pair and, with ``cfg.real_phase``, :func:`evaluate_real_phase`.
 
 Every stage is resumable: a finished dataset (as many samples as asked), a finished run (``last.pt``
-at the requested epochs) and an evaluation newer than ``last.pt`` are re-used; an interrupted run is
-resumed. ``out/report.json`` and ``out/report.md`` are rewritten after every variant.
+at the requested epochs), a finished adaptation and an evaluation newer than its checkpoint (of the same
+real folders) are re-used; an interrupted run is resumed. ``out/report.json`` and ``out/report.md`` are
+rewritten after every variant.
 """
 
 from __future__ import annotations
@@ -33,11 +41,13 @@ from fppsim.encoding import json_default
 from fppsim.files import atomic_write_text
 from uhrnet.errors import Sim2RealError, UhrnetError
 from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
-from uhrnet.sim2real.metrics import level_response, real_metrics, twin_metrics
-from uhrnet.sim2real.report import markdown_report, plot_real
+from uhrnet.sim2real.evaluate import (
+    evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs,
+)
+from uhrnet.sim2real.report import markdown_report
 
-__all__ = ["generate_config", "train_config", "find_real_pairs", "evaluate_real", "evaluate_level",
-           "run_sim2real"]
+__all__ = ["generate_config", "train_config", "adapt_config", "run_differences", "find_real_pairs", "evaluate_real",
+           "evaluate_real_phase", "evaluate_level", "run_sim2real"]
 
 Recipe = Callable[[Sim2RealConfig, Variant, Path, Path], dict]
 
@@ -72,95 +82,6 @@ def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: s
         return TrainConfig(**{**base, **variant.train, **({"resume": "auto"} if resume else {})})
     except (UhrnetError, ValueError) as exc:
         raise Sim2RealError(f"variant {variant.name!r}: train: {exc}") from None
-
-
-def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
-    """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
-    from uhrnet.data import FigshareArrays, find_figshare_pair
-    from uhrnet.errors import DataError
-
-    out = []
-    for f in folders:
-        if find_figshare_pair(f) is None:
-            raise Sim2RealError(f"{f}: no figshare-format pair (f1_80.npy + Z.npy, or fringe_pattern.npy + "
-                                "height_map.npy)")
-        try:
-            out.append((str(f), FigshareArrays(f, source="real")))
-        except DataError as exc:
-            raise Sim2RealError(str(exc)) from None
-    return out
-
-
-def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, object_mm: float = 1.0,
-                  device: str = "cpu", figures: bool = True, title: str = "") -> dict:
-    """Predict every real image with ``checkpoint`` and measure it (:mod:`uhrnet.sim2real.metrics`).
-
-    Writes ``out/real_metrics.json``, ``out/predictions.npz`` (float32 predicted labels, one array per
-    image: ``<folder index>_<sample index>``) and, with ``figures``, ``out/real_<k>.png``.
-    Returns the JSON document: per-image rows and their means.
-    """
-    import torch
-
-    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.device import select_device
-    from uhrnet.data import parse_size
-    from uhrnet.prediction import predict_labels
-
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    ck = load_checkpoint(checkpoint)
-    dev = select_device(device)
-    model, transform = model_from_checkpoint(ck, dev)
-    size = parse_size(ck.get("args", {}).get("resize"))
-    rows, preds = [], {}
-    for fi, (folder, ds) in enumerate(find_real_pairs(real)):
-        for i in range(len(ds)):
-            s = ds[i]
-            pred = predict_labels(model, s["fringe"][None], size)[0, 0].cpu().numpy()
-            label = s["height"][0].numpy()
-            valid = s["mask"][0].numpy() > 0.5
-            m = real_metrics(pred, label, valid, transform.units_per_mm, object_mm)
-            m.update(twin_metrics(model, s["fringe"][0].numpy(), pred, label, valid, transform.units_per_mm,
-                                  object_mm, m["plane_label"], size))
-            key = f"{fi}_{i:06d}"
-            preds[key] = pred.astype(np.float32)
-            rows.append({"folder": folder, "index": i, "key": key, **m})
-            if figures:
-                plot_real(s["fringe"][0].numpy(), label, valid, pred, transform.units_per_mm, m,
-                          out / f"real_{key}.png", object_mm, title=title)
-    np.savez_compressed(out / "predictions.npz", **preds)
-    keys = [k for k in rows[0] if k not in ("folder", "index", "key")]
-    mean = {k: float(np.nanmean([r[k] for r in rows])) for k in keys}
-    doc = {"checkpoint": str(checkpoint), "epoch": ck.get("epoch"), "object_mm": object_mm,
-           "label_transform": transform.to_dict(), "images": len(rows), "mean": mean, "per_image": rows}
-    del model
-    torch.cuda.empty_cache() if torch.cuda.is_available() else None
-    atomic_write_text(out / "real_metrics.json", json.dumps(doc, indent=2))
-    return doc
-
-
-def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | Path, object_mm: float = 5.0,
-                   device: str = "cpu") -> dict:
-    """:func:`level_response` of ``checkpoint`` on the validation split of the ``synthetic`` folders
-    (split as the run split them); writes and returns ``out/synthetic_level.json``."""
-    import torch
-
-    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.data import load_sources, parse_size
-    from uhrnet.device import select_device
-
-    ck = load_checkpoint(checkpoint)
-    model, transform = model_from_checkpoint(ck, select_device(device))
-    args = ck.get("args", {})
-    val = load_sources(synthetic=list(synthetic), transform=transform,
-                       synthetic_split=args.get("synthetic_split") or "reference").val
-    with torch.no_grad():
-        doc = level_response(model, (val[i] for i in range(len(val))), transform.units_per_mm, object_mm,
-                             size=parse_size(args.get("resize")))
-    doc = {"checkpoint": str(checkpoint), "epoch": ck.get("epoch"), "object_mm": object_mm, **doc}
-    Path(out).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(out) / "synthetic_level.json", json.dumps(doc, indent=1))
-    return doc
 
 
 # --------------------------------------------------------------------------------------------------
@@ -223,70 +144,215 @@ def _fresh(result: Path, source: Path) -> bool:
     return result.is_file() and result.stat().st_mtime >= source.stat().st_mtime
 
 
+def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, out: str | Path,
+                 overwrite: bool = False):
+    """The :class:`uhrnet.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
+    on ``cfg.adapt_images`` (default: the real and real phase-shifting folders; never their labels) through
+    ``cfg.rig``, then the variant's ``adapt`` overrides."""
+    from uhrnet.adapt import AdaptConfig
+
+    images = list(cfg.adapt_images) if cfg.adapt_images else [*cfg.real, *cfg.real_phase]
+    base = dict(checkpoint=str(checkpoint), images=images, out=str(out), rig=cfg.rig, progress=False,
+                figures=cfg.figures, device="cuda" if cfg.device == "cuda" else "cpu", overwrite=overwrite)
+    try:
+        return AdaptConfig(**{**base, **(variant.adapt or {})})
+    except (UhrnetError, ValueError) as exc:
+        raise Sim2RealError(f"variant {variant.name!r}: adapt: {exc}") from None
+
+
+def _norm(value):
+    return json.loads(json.dumps(value, default=json_default))
+
+
+def run_differences(run: str | Path, tr, count: int | None = None, seed: int | None = None) -> list[str]:
+    """How the finished run in folder ``run`` differs from the training run ``tr`` (a ``TrainConfig``) would
+    make: its recorded training options (``config.json``: every option a resume locks, and epochs, lr,
+    weight decay, gradient clipping, AMP; not the dataset's path, device or workers) and its dataset (sample
+    count ``count`` and, where the dataset records it, generator ``seed``). Empty: the same run."""
+    from fppsim.formats import read_settings
+    from uhrnet.train_config import DEFAULTS, LEGACY, LOCKED
+
+    run = Path(run)
+    try:
+        recorded = json.loads((run / "config.json").read_text())
+    except (OSError, ValueError) as exc:
+        return [f"no readable config.json ({exc})"]
+    wanted = {**DEFAULTS, **{f.name: getattr(tr, f.name) for f in fields(tr) if getattr(tr, f.name) is not None}}
+    diffs = []
+    for key in [k for k in LOCKED if k != "synthetic"] + ["epochs", "lr", "weight_decay", "grad_clip", "amp"]:
+        have = _norm(recorded.get(key, LEGACY.get(key, DEFAULTS.get(key))))
+        want = _norm(wanted.get(key))
+        if have != want:
+            diffs.append(f"{key} {have!r} (wanted {want!r})")
+    folders = recorded.get("synthetic") or []
+    if count is not None:
+        n = sum(int(d.get("n", 0)) for d in (recorded.get("data") or {}).get("synthetic") or [])
+        if n != count:
+            diffs.append(f"{n} synthetic samples (wanted {count})")
+    for folder in folders:
+        for root in (Path(folder), Path(folder) / "native"):
+            settings = read_settings(root) if root.is_dir() else None
+            if settings is not None and seed is not None and settings.get("seed") not in (None, seed):
+                diffs.append(f"dataset {folder} seed {settings.get('seed')} (wanted {seed})")
+                break
+    return diffs
+
+
+def _finished_run(cfg: Sim2RealConfig, var: Variant, run: Path, tr, gen) -> list[str] | None:
+    """The dataset folders of ``run`` when it is a finished run of ``var`` (None: not finished; a reused run
+    must be); a finished run of other options is refused."""
+    reused = var.name in cfg.reuse
+    what = f"--reuse-run {var.name}={run}" if reused else str(run)
+    if not _run_done(run, tr.epochs):
+        if reused:
+            hist = _history(run)
+            at = f"epoch {int(hist[-1]['epoch'])} of {tr.epochs}" if hist else "no finished epoch"
+            raise Sim2RealError(f"{what}: not a finished run ({at}; last.pt and history.csv needed)")
+        return None
+    diffs = run_differences(run, tr, gen.count, gen.seed)
+    if diffs:
+        raise Sim2RealError(f"{what}: a finished run of other training options than variant {var.name!r}: "
+                            + "; ".join(diffs[:4]) + ("" if reused else " (move it away to train afresh)"))
+    return [str(f) for f in json.loads((run / "config.json").read_text()).get("synthetic") or []]
+
+
+def _adapt_done(acfg, source: Path) -> bool:
+    out = Path(acfg.out)
+    hist = out / "history.csv"
+    if not ((out / "last.pt").is_file() and (out / "images.json").is_file() and hist.is_file()):
+        return False
+    try:
+        done = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
+        return False
+    skip = ("epochs", "progress", "figures", "overwrite", "resume")
+    same = all(_norm(done.get(k)) == _norm(v) for k, v in acfg.record().items() if k not in skip)
+    rows = list(csv.DictReader(hist.open()))
+    return same and len(rows) >= acfg.epochs and _fresh(out / "last.pt", source)
+
+
+def _rows(var: Variant, out: Path, last: Path, adapted: Path | None) -> list[dict]:
+    """The evaluation rows of a variant: name, kind, checkpoint, refine method, folder."""
+    base = out / var.name
+    rows = [{"row": var.name, "kind": "network", "checkpoint": last, "refine": None, "eval": base / "eval"}]
+    rows += [{"row": f"{var.name} +refine {m}", "kind": "refine", "checkpoint": last, "refine": m,
+              "eval": base / f"eval-refine-{m}"} for m in var.refine]
+    if adapted is not None:
+        rows.append({"row": f"{var.name} +adapt", "kind": "adapt", "checkpoint": adapted, "refine": None,
+                     "eval": base / "eval-adapt"})
+        rows += [{"row": f"{var.name} +adapt +refine {m}", "kind": "adapt+refine", "checkpoint": adapted,
+                  "refine": m, "eval": base / f"eval-adapt-refine-{m}"} for m in var.refine]
+    return rows
+
+
+def _done_json(path: Path, source: Path, folders: Sequence[str], key: str) -> dict | None:
+    """A result file newer than ``source`` that covers exactly ``folders`` (its rows' ``folder``), else None."""
+    if not _fresh(path, source):
+        return None
+    doc = json.loads(path.read_text())
+    return doc if {r["folder"] for r in doc.get(key, [])} == {str(f) for f in folders} else None
+
+
+def _evaluate_row(cfg: Sim2RealConfig, row: dict, device: str, say, timing: dict) -> dict:
+    """Real-pair metrics (and phase residuals) of one row, re-used when fresh; the report's row entry."""
+    ck, ev, method = row["checkpoint"], row["eval"], row["refine"]
+    metrics = _done_json(ev / "real_metrics.json", ck, cfg.real, "per_image")
+    if metrics is None:
+        say(f"[{row['row']}] evaluate on {len(cfg.real)} real folder(s)")
+        t0 = time.perf_counter()
+        metrics = evaluate_real(ck, cfg.real, ev, cfg.object_mm, device=device, figures=cfg.figures,
+                                title=f"sim2real {row['row']} ({cfg.scale})", refine=method, rig=cfg.rig)
+        timing["evaluate_s" if ev.name == "eval" else f"evaluate_{ev.name}_s"] = time.perf_counter() - t0
+    phase = None
+    if cfg.real_phase:
+        phase = _done_json(ev / "real_phase.json", ck, cfg.real_phase, "frames")
+        if phase is None:
+            say(f"[{row['row']}] phase residual on {len(cfg.real_phase)} real phase-shifting folder(s)")
+            phase = evaluate_real_phase(ck, cfg.real_phase, ev, device=device, refine=method, rig=cfg.rig)
+    return {"row": row["row"], "kind": row["kind"], "refine": method, "checkpoint": str(ck), "eval": str(ev),
+            "real": metrics["mean"], "images": metrics["images"],
+            "real_phase": None if phase is None else [
+                {k: f[k] for k in ("folder", "id", "rmse_rad", "flat_rmse_rad", "explained")} for f in phase["frames"]]}
+
+
 def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print, recipe: Recipe | None = None) -> dict:
-    """Run every variant of ``cfg`` (generate -> train -> evaluate on real), write ``report.json`` and
-    ``report.md`` in ``cfg.out``; returns the report document. Stages already done are re-used.
+    """Run every variant of ``cfg`` (generate -> train -> [adapt] -> evaluate on real), write ``report.json``
+    and ``report.md`` in ``cfg.out``; returns the report document. Stages already done are re-used.
 
     ``log`` gets one line per stage (None: silent). ``recipe(cfg, variant, data, run)`` returns the
-    ``{"generate": ..., "train": ...}`` text stored as ``report["recipe"][variant]`` and at the top of
-    the stage logs (the ``uhrnet sim2real`` command passes the equivalent command lines); without it
-    the stages' configs are stored.
+    ``{"generate": ..., "train": ...[, "adapt": ...]}`` text stored as ``report["recipe"][variant]`` and at
+    the top of the stage logs (the ``uhrnet sim2real`` command passes the equivalent command lines); without
+    it the stages' configs are stored.
     """
     from fppsim.generation import generate
+    from uhrnet.adapt import adapt
     from uhrnet.trainer import train
 
     say = log or (lambda line: None)
     out = Path(cfg.out)
     find_real_pairs(cfg.real)  # fail early on bad real folders, before anything is written
+    find_phase_frames(cfg.real_phase)
     plans = []
     for var in cfg.variants:  # every variant's configs are checked before the first stage runs
         data = out / "data" / data_key(var.generate)
-        run = out / var.name / "run"
-        plans.append((var, data, run, generate_config(cfg, var, data), train_config(cfg, var, data, run)))
+        run = Path(cfg.reuse[var.name]) if var.name in cfg.reuse else out / var.name / "run"
+        gen, tr = generate_config(cfg, var, data), train_config(cfg, var, data, run)
+        if var.adapt is not None:
+            adapt_config(cfg, var, run / "last.pt", out / var.name / "adapt")
+        plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
     report = {"config": {f.name: getattr(cfg, f.name) for f in fields(cfg) if f.name != "variants"},
               "recipe": {}, "variants": []}
     device = "cuda" if cfg.device == "cuda" else "cpu"
-    for var, data, run, gen, tr in plans:
-        ev = out / var.name / "eval"
+    for var, data, run, gen, tr, trained_on in plans:
         timing = {}
         text = recipe(cfg, var, data, run) if recipe is not None else None
         described = text or {"generate": _as_dict(gen), "train": _as_dict(tr)}
-        if not _dataset_done(data, gen.count):
-            say(f"[{var.name}] generate -> {data}")
+        if trained_on is None:
+            if not _dataset_done(data, gen.count):
+                say(f"[{var.name}] generate -> {data}")
 
-            def run_generate(gen=gen):
-                for line in generate(gen).lines():
-                    print(line)
+                def run_generate(gen=gen):
+                    for line in generate(gen).lines():
+                        print(line)
 
-            timing["generate_s"] = _stage("generate", run_generate, data.parent / f"{data.name}.log",
-                                          _header("generate", described))
-        if not _run_done(run, tr.epochs):
+                timing["generate_s"] = _stage("generate", run_generate, data.parent / f"{data.name}.log",
+                                              _header("generate", described))
             say(f"[{var.name}] train -> {run}")
             if run.is_dir() and any(run.iterdir()):  # an interrupted run: continue it (or restart it)
                 tr = train_config(cfg, var, data, run, resume=True)
             timing["train_s"] = _stage("train", lambda tr=tr: train(tr), out / var.name / "train.log",
                                        _header("train", described))
+            trained_on = [str(data)]
         last = run / "last.pt"
-        done = ev / "real_metrics.json"
-        if _fresh(done, last):
-            metrics = json.loads(done.read_text())
-        else:
-            say(f"[{var.name}] evaluate on {len(cfg.real)} real folder(s)")
-            t0 = time.perf_counter()
-            metrics = evaluate_real(last, cfg.real, ev, cfg.object_mm, device=device, figures=cfg.figures,
-                                    title=f"sim2real {var.name} ({cfg.scale})")
-            timing["evaluate_s"] = time.perf_counter() - t0
+        adapted, adapt_entry = None, None
+        if var.adapt is not None:
+            acfg = adapt_config(cfg, var, last, out / var.name / "adapt")
+            if not _adapt_done(acfg, last):
+                if (Path(acfg.out) / "last.pt").is_file() and not _fresh(Path(acfg.out) / "last.pt", last):
+                    acfg = adapt_config(cfg, var, last, acfg.out, overwrite=True)  # the run was trained again
+                say(f"[{var.name}] adapt on {len(acfg.images)} unlabelled real input(s) -> {acfg.out}")
+                timing["adapt_s"] = _stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
+                                           _header("adapt", described) if "adapt" in described else
+                                           f"# adapt: {json.dumps(acfg.record(), default=json_default)}")
+            adapted = Path(acfg.out) / "last.pt"
+            hist = list(csv.DictReader((Path(acfg.out) / "history.csv").open()))
+            adapt_entry = {"run": str(acfg.out), "images": [str(i) for i in acfg.images], "labels_read": False,
+                           "flags": var.described("adapt"), "epochs": len(hist),
+                           "per_image": json.loads((Path(acfg.out) / "images.json").read_text())}
+        rows = [_evaluate_row(cfg, row, device, say, timing) for row in _rows(var, out, last, adapted)]
+        ev = out / var.name / "eval"
         lvl = ev / "synthetic_level.json"
-        level = json.loads(lvl.read_text()) if _fresh(lvl, last) else evaluate_level(last, [str(data)], ev, device=device)
+        level = json.loads(lvl.read_text()) if _fresh(lvl, last) else evaluate_level(last, trained_on, ev, device=device)
         hist = _history(run)
         entry = {"name": var.name, "generate": var.described("generate"), "train": var.described("train"),
-                 "data": str(data), "run": str(run), "timing": timing, "real": metrics["mean"],
-                 "images": metrics["images"],
+                 "data": trained_on[0] if len(trained_on) == 1 else trained_on, "run": str(run),
+                 "reused": var.name in cfg.reuse, "timing": timing, "real": rows[0]["real"],
+                 "images": rows[0]["images"], "real_phase": rows[0]["real_phase"],
                  "synthetic_level": {k: level[k] for k in ("slope", "intercept_mm", "prior_level_mm",
                                                            "shape_rmse_mm", "n_objects")},
                  "synthetic_val_rmse_mm": hist[-1].get("val_rmse_mm") if hist else None,
-                 "history": hist}
+                 "history": hist, "adapt": adapt_entry, "refine": list(var.refine), "rows": rows}
         timing_file = out / var.name / "timing.json"
         if timing:
             old = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
@@ -294,8 +360,9 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             atomic_write_text(timing_file, json.dumps(old, indent=1))
         entry["timing"] = json.loads(timing_file.read_text()) if timing_file.is_file() else timing
         report["variants"].append(entry)
-        say(f"[{var.name}] object RMSE {metrics['mean']['object_rmse_mm']:.2f} mm, valid RMSE "
-            f"{metrics['mean']['valid_rmse_mm']:.2f} mm")
+        for r in rows:
+            say(f"[{r['row']}] object RMSE {r['real']['object_rmse_mm']:.2f} mm, valid RMSE "
+                f"{r['real']['valid_rmse_mm']:.2f} mm")
         report["recipe"][var.name] = described
         atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
         atomic_write_text(out / "report.md", markdown_report(report))

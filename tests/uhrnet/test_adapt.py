@@ -1,0 +1,134 @@
+"""uhrnet.adapt: label-free fine-tuning on tiny images of a tiny rig (run folder, resume, refusals, labels never
+read) and the adaptation loss against analytic truth through the rig layer."""
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from uhrnet.adapt import AdaptConfig, adapt, adapt_loss
+from uhrnet.cli import main
+from uhrnet.errors import ConfigError
+from uhrnet.rig_layer import RigLayer
+
+from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _bump(rig, peak=6.0, cx=30.0, cy=15.0, sigma=8.0):
+    cam = rig.camera
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    return peak * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma ** 2))
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    """A tiny height-head run (32 x 64 figshare data), the tiny rig as a file, and an unlabelled real-like folder
+    of 2 images of that rig whose Z.npy is garbage (adaptation must never read it)."""
+    tmp = tmp_path_factory.mktemp("adapt")
+    torch.set_num_threads(1)
+    write_figshare(tmp / "syn", n=6, h=32, w=64, seed=1)
+    run = train_tiny(tmp / "run", "--synthetic", tmp / "syn", "--synthetic-split", "train", extra=["--no-augment"])
+    rig = tiny_rig()
+    rig.save(tmp / "rig.json")
+    real = tmp / "real"
+    real.mkdir()
+    fr = np.stack([rig_fringe(rig, _bump(rig, 6.0)), rig_fringe(rig, _bump(rig, 4.0, cx=40.0))])
+    np.save(real / "f1_80.npy", (fr.astype(np.float32) / 127.5 - 1)[..., None])
+    (real / "Z.npy").write_bytes(b"not a label file")
+    return tmp, run, rig
+
+
+def _cfg(tmp, run, out, **kw):
+    base = dict(checkpoint=run, images=[tmp / "real"], out=out, rig=tmp / "rig.json", epochs=2, progress=False)
+    return AdaptConfig(**{**base, **kw})
+
+
+def _history(out):
+    return list(csv.DictReader((out / "history.csv").open()))
+
+
+def test_adapt_writes_its_run_folder_never_reads_labels_and_resumes(setup, tmp_path, monkeypatch, capsys):
+    tmp, run, rig = setup
+    opened = []
+    real_load = np.load
+
+    def spy(file, *a, **k):
+        opened.append(str(file))
+        return real_load(file, *a, **k)
+
+    monkeypatch.setattr(np, "load", spy)
+    out = tmp_path / "ad"
+    result = adapt(_cfg(tmp, run, out), log=lambda line: None)
+    assert not [p for p in opened if p.endswith("Z.npy")]  # the label file is never opened
+    assert any(p.endswith("f1_80.npy") for p in opened)
+    for name in ("last.pt", "history.csv", "images.json", "config.json"):
+        assert (out / name).is_file(), name
+    assert len(list((out / "figures").glob("*_adapt.png"))) == 2
+    rows = _history(out)
+    assert [int(r["epoch"]) for r in rows] == [1, 2] and all(math.isfinite(float(r["loss"])) for r in rows)
+    images = json.loads((out / "images.json").read_text())
+    assert [im["name"] for im in images] == ["real_0000", "real_0001"]
+    assert all({"before_rad", "after_rad", "mean_change_mm"} <= set(im) for im in images)
+    assert result.epochs == 2 and len(result.history) == 2
+    # predict takes the adaptation's folder as a checkpoint
+    monkeypatch.setattr(np, "load", real_load)
+    capsys.readouterr()
+    assert main(["predict", str(out), str(tmp / "real"), "--out", str(tmp_path / "p"), "--no-progress",
+                 "--no-ply"]) == 0
+    assert np.load(tmp_path / "p" / "real_0001_height.npy").shape == (32, 64)
+    # resume: the same options with more epochs continue the history
+    adapt(_cfg(tmp, run, out, epochs=3), log=lambda line: None)
+    again = _history(out)
+    assert [int(r["epoch"]) for r in again] == [1, 2, 3]
+    assert again[:2] == rows
+    # the same folder with other options is refused (one line, names the folder)
+    with pytest.raises(ConfigError, match="other options") as exc:
+        adapt(_cfg(tmp, run, out, epochs=3, lr=1e-3), log=lambda line: None)
+    assert str(out) in str(exc.value) and "\n" not in str(exc.value)
+    assert len(_history(out)) == 3
+
+
+def test_adapt_refuses_a_training_run_folder_and_a_rig_of_another_size(setup, tmp_path):
+    tmp, run, rig = setup
+    with pytest.raises(ConfigError, match="not an adaptation"):
+        adapt(_cfg(tmp, run, run), log=lambda line: None)
+    with pytest.raises(ConfigError, match="rig's camera"):
+        adapt(_cfg(tmp, run, tmp_path / "x", rig=None), log=lambda line: None)  # fppsim's default rig: 640 x 352
+
+
+def test_adapt_loss_is_zero_where_the_height_explains_the_image_and_its_gradient_points_back():
+    rig = tiny_rig()
+    layer = RigLayer(rig)
+    h = torch.from_numpy(_bump(rig, 6.0))[None, None]
+    origin = 1.7  # the image counts phase from another origin: only wrapped differences matter
+    with torch.no_grad():
+        wrapped = torch.remainder(layer.phase_from_height(h) + origin + math.pi, 2 * math.pi) - math.pi
+    rel = torch.ones_like(h)
+    total, terms = adapt_loss(h, h, wrapped, rel, layer)
+    assert float(total) < 1e-9 and all(abs(v) < 1e-9 for v in terms.values())
+    # a wrong relief (within half a period) costs, and gradient descent moves it back towards h
+    err = torch.from_numpy(_bump(rig, 1.5, cx=20.0, sigma=5.0))[None, None]
+    x = (h + err).clone().requires_grad_(True)
+    total, terms = adapt_loss(x, (h + err), wrapped, rel, layer, w_drift=0.0)
+    assert float(total.detach()) > 1e-3 and terms["grad"] > 0 and terms["wrap"] > 0
+    total.backward()
+    assert float((x.grad * err).sum()) > 0  # the gradient points along the error
+    y = (h + err).clone().requires_grad_(True)
+    opt = torch.optim.Adam([y], lr=0.05)
+    for _ in range(100):
+        loss, _ = adapt_loss(y, h + err, wrapped, rel, layer, w_drift=0.0)
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    # (the phase terms see the relief, not a constant: the image's phase origin is estimated)
+    relief = lambda d: float((d - d.median()).abs().mean())  # noqa: E731
+    assert relief(y.detach() - h) < 0.3 * relief(err)
+    # the drift term alone pulls to the source prediction
+    z = (h + err).clone().requires_grad_(True)
+    loss, terms = adapt_loss(z, h, wrapped, torch.zeros_like(rel) + 1e-3, layer, w_grad=0.0, w_wrap=0.0)
+    assert terms["drift"] == pytest.approx(float(err.abs().mean()) / 10.0, rel=1e-6)

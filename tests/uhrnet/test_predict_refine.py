@@ -1,0 +1,157 @@
+"""uhrnet.prediction.read_inputs on phase-shifting and figshare folders, `uhrnet predict --refine phase`, and
+uhrnet.refine.refine_relief on an analytic pedestal scene (fppsim's own forward model as the truth)."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from fppsim.height_sensitivity import surface_phase
+from fppsim.rig import make_default_rig
+from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from uhrnet.cli import main
+from uhrnet.prediction import read_inputs
+from uhrnet.refine import refine_relief
+from uhrnet.rig_layer import RigLayer
+
+from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def wrap_phase(x):
+    """Wrap rad into (-pi, pi] (independent of the code under test)."""
+    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
+
+
+def _bump(rig, peak, cx, cy=15.0, sigma=7.0):
+    yy, xx = np.mgrid[0:rig.camera.height, 0:rig.camera.width].astype(float)
+    return peak * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma ** 2))
+
+
+def test_read_inputs_of_phase_shifting_and_figshare_folders(tmp_path):
+    rig = tiny_rig()
+    psp = tmp_path / "scan"
+    images = {}
+    for sid, peak in (("12", 5.0), ("3", 8.0)):
+        h = _bump(rig, peak, 30.0)
+        images[sid] = rig_fringe(rig, h)
+        save_psp_folder_sample(psp, sid, *sums_from_phase(surface_phase(rig, h)), images[sid])
+    fr, _ = write_figshare(tmp_path / "fig", n=2, h=32, w=64, seed=4)
+    write_figshare(tmp_path / "one", n=1, h=32, w=64, seed=5, fringe_name="fringe_pattern.npy",
+                   label_name="height_map.npy")
+    got = read_inputs([psp, tmp_path / "fig", tmp_path / "one"], with_paths=True)
+    names = [g[0] for g in got]
+    assert sorted(names[:2]) == ["scan_12", "scan_3"] and names[2:] == ["fig_0000", "fig_0001", "one"]
+    for name, fringe, path in got[:2]:
+        sid = name.split("_")[1]
+        np.testing.assert_allclose(fringe, images[sid].astype(np.float32) / 127.5 - 1, atol=1e-6)
+        assert path == psp / "iPattern" / f"{sid}.mat"
+    np.testing.assert_array_equal(got[3][1], fr[1, ..., 0])
+    assert all(g[1].dtype == np.float32 and g[1].shape == (32, 64) for g in got)
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("refine_predict")
+    torch.set_num_threads(1)
+    write_figshare(tmp / "syn", n=6, h=32, w=64, seed=1)
+    return train_tiny(tmp / "run", "--synthetic", tmp / "syn", "--synthetic-split", "train", extra=["--no-augment"])
+
+
+@pytest.mark.parametrize("method", ["relief", "nearest"])
+def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp_path, method, capsys):
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    real = tmp_path / "real"
+    real.mkdir()
+    fr = np.stack([rig_fringe(rig, _bump(rig, 5.0, 30.0)), rig_fringe(rig, _bump(rig, 3.0, 40.0))])
+    np.save(real / "f1_80.npy", (fr.astype(np.float32) / 127.5 - 1)[..., None])
+    out = tmp_path / "out"
+    assert main(["predict", str(run), str(real), "--out", str(out), "--refine", "phase", "--refine-method", method,
+                 "--rig", str(tmp_path / "rig.json"), "--no-progress", "--no-ply"]) == 0
+    doc = json.loads((out / "refine.json").read_text())
+    assert sorted(doc) == ["real_0000", "real_0001"]
+    for name, stats in doc.items():
+        assert 0.0 <= stats["moved_fraction"] <= 1.0 and stats["method"] == method
+        net = np.load(out / f"{name}_height_network.npy")
+        refined = np.load(out / f"{name}_height.npy")
+        assert net.shape == refined.shape == (32, 64)
+        np.testing.assert_array_equal(np.isnan(net), np.isnan(refined))  # invalid stays invalid
+        changed = np.isfinite(net) & (net != refined)  # (a moved pixel may land where it was)
+        assert changed.sum() <= stats["moved_fraction"] * np.isfinite(net).sum() + 0.5
+    # without --refine: no refine.json, no network copy
+    assert main(["predict", str(run), str(real), "--out", str(tmp_path / "plain"), "--no-progress", "--no-ply"]) == 0
+    assert not (tmp_path / "plain" / "refine.json").exists()
+    assert not list((tmp_path / "plain").glob("*_height_network.npy"))
+    # a rig that does not see the image's size is refused in one line
+    capsys.readouterr()
+    assert main(["predict", str(run), str(real), "--out", str(tmp_path / "x"), "--refine", "phase", "--no-progress",
+                 "--no-ply"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sees 640x352" in err[0]
+
+
+@pytest.fixture(scope="module")
+def pedestal():
+    """The default rig; a disc standing 30 mm on the plane (near-vertical walls) with 4 mm of relief on top;
+    the projector shadow left of it (its phase NaN: fppsim.unwrap once hung in skimage's unwrapper on masked
+    NaN, and its quality filter spread NaN along whole rows); the measured phase counted from another origin
+    (+72 rad, DESIGN.md section 9)."""
+    rig = make_default_rig()
+    cam = rig.camera
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    disc = (xx - 360) ** 2 + (yy - 176) ** 2 < 70 ** 2
+    relief = 4.0 * np.exp(-((xx - 380) ** 2 + (yy - 160) ** 2) / (2 * 30.0 ** 2))
+    h = np.where(disc, 30.0 + relief, 0.0)
+    shadow = ~disc & (np.abs(yy - 176) < 70) & (xx > 270) & (xx < 300)
+    wrapped = wrap_phase(surface_phase(rig, h) + 72.0)
+    rel = np.where(shadow, 0.0, 1.0)
+    wrapped[shadow] = np.nan
+    return rig, RigLayer(rig), h, disc, shadow, wrapped, rel, (xx, yy)
+
+
+def test_refine_relief_takes_the_relief_from_the_phase_and_the_level_from_the_estimate(pedestal):
+    rig, layer, h, disc, shadow, wrapped, rel, (xx, yy) = pedestal
+    level_error = 2.0  # the network puts the object 2 mm too high ...
+    relief_error = 1.2 * np.sin(xx / 17.0) * np.cos(yy / 23.0)  # ... and gets its relief wrong by up to 1.2 mm
+    estimate = h + np.where(disc, level_error + relief_error, 0.3 * np.cos(xx / 40.0))
+    refined, moved, stats = refine_relief(estimate, wrapped, rel, layer, valid=~shadow)
+    inner = np.hypot(xx - 360, yy - 176) < 60  # away from the wall (the step check cuts near it)
+    assert moved[inner].mean() > 0.99 and stats["regions"] >= 2 and stats["method"] == "relief"
+    rel_true = h[inner] - np.median(h[inner])
+    rel_new = refined[inner] - np.median(refined[inner])
+    assert np.abs(rel_new - rel_true).max() < 0.05  # the relief: exact (the phase's)
+    assert np.median(refined[inner] - h[inner]) == pytest.approx(level_error, abs=0.2)  # the level: the estimate's
+    assert np.median(refined[inner] - estimate[inner]) == pytest.approx(0.0, abs=0.05)
+    assert np.array_equal(refined[shadow], estimate[shadow])  # no phase: untouched
+    plane = ~disc & ~shadow & (np.hypot(xx - 360, yy - 176) > 80)
+    assert moved[plane].mean() > 0.99  # (a few pixels beside the shadow's edge keep the estimate)
+    plane &= moved
+    assert np.abs((refined - h)[plane] - np.median((refined - h)[plane])).max() < 0.05
+
+
+def test_a_region_merged_with_the_plane_is_rejected_by_the_margin():
+    """A plateau 30 mm up behind a 6 px ramp whose fringes alias (4.9 rad per pixel, which the wrapped phase shows
+    as a smooth -1.4): without the step check (max_step huge) plane and plateau are one region, unwrapped six
+    periods too low across the ramp; the plateau's pixels would move by six fringe periods of height, beyond the
+    margin (2 periods), so they keep the estimate while the plane is refined. With the step check (the estimate
+    steps by several radians there) the plateau is its own region and is refined."""
+    rig = make_default_rig()
+    cam = rig.camera
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    h = 30.0 * np.clip((xx - 400.0) / 6.0, 0.0, 1.0)
+    wrapped = wrap_phase(surface_phase(rig, h) + 72.0)
+    estimate = h + 0.3 * np.cos(xx / 40.0) * np.cos(yy / 30.0)
+    layer = RigLayer(rig)
+    merged, moved, stats = refine_relief(estimate, wrapped, None, layer, max_step=1e9)
+    plateau, plane = xx > 415, xx < 390
+    assert stats["regions"] == 1
+    assert not moved[plateau].any() and np.array_equal(merged[plateau], estimate[plateau])
+    assert stats["beyond_margin_fraction"] >= plateau.mean()
+    assert moved[plane].mean() > 0.99
+    assert np.abs((merged - h)[plane] - np.median((merged - h)[plane])).max() < 0.05
+    refined, moved, stats = refine_relief(estimate, wrapped, None, layer)
+    assert stats["regions"] >= 2 and moved[plateau].mean() > 0.99
+    assert np.abs((refined - h)[plateau] - np.median((refined - h)[plateau])).max() < 0.05
