@@ -30,7 +30,7 @@ from .encoding import encode_fringe, encode_png, save_npz
 from .errors import DatasetError, PSPMatError
 from .files import atomic_path, clean_stale_tmp, tmp_path, write_fully
 from .formats import LabelTransform, is_own_sample, read_manifest
-from .readers import FOLDERS, check_convention, load_native_sample
+from .readers import FOLDERS, check_convention, load_native_sample, wrapped_from_sums
 
 __all__ = ["write_sample_folder", "figshare_rows", "export_figshare", "FigshareRows", "NpyRowStream",
            "BackgroundWriter", "sums_from_phase", "save_psp_mat", "save_psp_folder_sample", "export_psp_folders"]
@@ -309,14 +309,13 @@ def sums_from_phase(phase: np.ndarray, valid: np.ndarray | None = None, modulati
     phi = np.asarray(phase, dtype=np.float64)
     ok = np.isfinite(phi) if valid is None else (np.asarray(valid, bool) & np.isfinite(phi))
     p = np.where(ok, phi, 0.0)
-    if convention == "benchmark":
-        # wrapped in (0, 2 pi]: order = ceil(phi / 2 pi) - 1
-        order = np.ceil(p / (2 * np.pi)) - 1
-    else:
-        order = np.round(p / (2 * np.pi))
     m = np.broadcast_to(np.asarray(modulation, dtype=np.float64), phi.shape)
     psin = np.where(ok, m * np.sin(p), 0.0)
     pcos = np.where(ok, m * np.cos(p), 0.0)
+    # the order from the wrapped phase the reader will compute (benchmark (0, 2 pi], fppsim (-pi, pi]), not
+    # from rounding phi / 2 pi: at a wrap (phi = k pi exactly, common in phases decoded from 8-bit images)
+    # sin(phi) is a rounding residue of either sign, and the two roundings could disagree by one period
+    order = np.rint((p - wrapped_from_sums(psin, pcos, convention)) / (2 * np.pi))
     return psin, pcos, np.where(ok, order, 0).astype(np.int32)
 
 

@@ -11,10 +11,16 @@ to ../shared/meshes (when present) and assets/meshes.
 
 --scale cpu is the judged recipe (400 samples of ../shared/meshes + assets/meshes, seed 100, U-Net base
 16, compound loss, 10 epochs, batch 2, lr 5e-4, CPU; under 60 minutes on 2 cores); --scale gpu is UHRNet
-at 352 x 640 on 2000 samples. Each --variant NAME[: GENERATE ARGS | TRAIN ARGS] adds a row to the
-ablation table (--ablation FILE reads a YAML list of {name, generate, train}); variants with the same
-generate arguments share one dataset. Re-running the same command re-uses finished datasets, runs and
+at 352 x 640 on 2000 samples. Each --variant NAME[: GENERATE ARGS | TRAIN ARGS [| adapt [ADAPT ARGS]]
+[| refine [METHOD,...]]] adds a row to the ablation table, plus rows for the model adapted on the
+unlabelled real images and for each refinement (--ablation FILE reads a YAML list of {name, generate,
+train, adapt, refine}); variants with the same generate arguments share one dataset. --real-phase DIR
+adds the phase residual on real phase-shifting frames; --reuse-run NAME=RUN_DIR takes a finished training
+run instead of training. Re-running the same command re-uses finished datasets, runs, adaptations and
 evaluations. Writes OUT/report.json, OUT/report.md and per variant OUT/<name>/eval/real_*.png.
+
+    python pipelines/sim2real.py --real ../shared/real-sample --real-phase ../shared/real-phase/FP1523 \
+        --out runs/phys --variant "base: | | adapt | refine relief" --variant "phase-head: | --head phase"
 Real data: figshare-format folders (f1_80.npy + Z.npy, or fringe_pattern.npy + height_map.npy);
 labels <= -100 are invalid and mm = label / 6.
 """

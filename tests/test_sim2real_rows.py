@@ -33,7 +33,10 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     var = variant_from_flags(cfg, v)
     assert var.train == {"head": "phase"} and var.adapt == {"epochs": 20, "lr": 1e-3}
     assert var.refine == ["relief", "nearest"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
-    assert variant_from_flags(cfg, parse_variant("a: | | adapt --epochs 40")).adapt == {}  # 40 is the default
+    from uhrnet.adapt import AdaptConfig
+
+    default = AdaptConfig.__dataclass_fields__["epochs"].default
+    assert variant_from_flags(cfg, parse_variant(f"a: | | adapt --epochs {default}")).adapt == {}  # the default
     assert variant_from_flags(cfg, parse_variant("n: | --no-augment")).adapt is None
     with pytest.raises(Sim2RealError, match="set by the experiment"):
         variant_from_flags(cfg, parse_variant("a: | | adapt --overwrite"))
@@ -116,7 +119,6 @@ def _listing(folder):
     return sorted((str(p.relative_to(folder)), p.stat().st_mtime_ns) for p in Path(folder).rglob("*"))
 
 
-@pytest.mark.slow
 def test_reused_runs_give_every_row_with_phase_residuals_and_resume(world, tmp_path, capsys):
     """Both runs re-used (nothing generated or trained), the height run adapted and refined: rows base,
     base +refine relief, base +adapt, base +adapt +refine relief, ph, ph +refine nearest; then re-run: all re-used."""
@@ -149,6 +151,9 @@ def test_reused_runs_give_every_row_with_phase_residuals_and_resume(world, tmp_p
     refined = json.loads((out / "base" / "eval-refine-relief" / "real_metrics.json").read_text())
     assert refined["refine"] == "relief" and "refine_moved_fraction" in refined["mean"]
     assert "relief_effect_mm" not in refined["mean"]  # the fringe twins measure the network alone
+    assert refined["mean"]["refine_moved_fraction"] > 0
+    net, ref = (np.load(out / "base" / e / "predictions.npz") for e in ("eval", "eval-refine-relief"))
+    assert any((net[k] != ref[k]).any() for k in net.files)  # the refined row measures the refined heights
     md = (out / "report.md").read_text()
     assert "| base +adapt +refine relief |" in md and "phase/1201 residual (rad)" in md
     assert f"adapted on: {tmp / 'real'}, {tmp / 'phase'} (no labels" in md and "| flat plane (h = 0) |" in md
@@ -170,7 +175,6 @@ def _cfg(tmp, out, **kw):
     return Sim2RealConfig(**{**base, **kw})
 
 
-@pytest.mark.slow
 def test_a_copied_run_is_taken_and_runs_of_other_options_are_refused(world, tmp_path):
     tmp, base, _ = world
     out = tmp_path / "o"
@@ -195,3 +199,19 @@ def test_a_copied_run_is_taken_and_runs_of_other_options_are_refused(world, tmp_
         _cfg(tmp, tmp_path / "p", reuse={"w": str(base)})
     assert not (tmp_path / "p").exists()
     assert main(["sim2real", "--real", "r", "--out", "o", "--reuse-run", "nameonly"]) == 2
+
+
+@pytest.mark.slow
+def test_a_phase_head_variant_generates_and_trains_in_the_experiment(tmp_path, capsys):
+    """`--variant "ph: | --head phase"` end to end (about 10 s on 2 cores): the generated figshare set's native/
+    folder gives the phase head its exact phase and rig; the checkpoint is evaluated like any other."""
+    write_figshare(tmp_path / "real", n=1, h=352, w=640, seed=2)
+    out = tmp_path / "o"
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6", "--epochs", "1",
+                 "--base-channels", "4", "--batch-size", "2", "--workers", "1", "--no-figures",
+                 "--variant", "ph: | --head phase --no-augment"]) == 0
+    v = json.loads((out / "report.json").read_text())["variants"][0]
+    assert v["train"] == ["--head", "phase", "--no-augment"] and v["images"] == 1
+    config = json.loads((out / "ph" / "run" / "config.json").read_text())
+    assert config["head"] == "phase" and config["synthetic"] == [v["data"]]
+    assert np.isfinite(v["real"]["object_rmse_mm"]) and "| ph |" in capsys.readouterr().out

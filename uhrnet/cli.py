@@ -679,9 +679,9 @@ def run_sim2real(args) -> int:
         count=args.count, seed=args.seed, workers=args.workers, model=args.model, base_channels=args.base_channels,
         loss=args.loss, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr, device=args.device,
         object_mm=args.object_mm, figures=not args.no_figures, real_phase=list(args.real_phase), rig=args.rig,
-        adapt_images=args.adapt_images, reuse=parse_reuse(args.reuse_run))
-    if specs:
-        cfg = replace(cfg, variants=[variant_from_flags(cfg, s) for s in specs])
+        adapt_images=args.adapt_images)
+    reuse = parse_reuse(args.reuse_run)  # names the variants: checked once they are known
+    cfg = replace(cfg, variants=[variant_from_flags(cfg, s) for s in specs] if specs else cfg.variants, reuse=reuse)
     report = run_sim2real(cfg, log=lambda line: print(line, flush=True), recipe=recipe_commands)
     print(markdown_report(report))
     print(f"report: {Path(args.out) / 'report.md'} and report.json")

@@ -88,7 +88,7 @@ def _rows_table(report: dict) -> list[str]:
                      + "".join(f" {cell(flat.get(f), '.3f')} |" for f in frames))
     notes = [f"- {v['name']} +adapt: adapted on: {', '.join(v['adapt']['images'])} (no labels; "
              f"{v['adapt']['epochs']} epochs{', ' + shlex.join(v['adapt']['flags']) if v['adapt'].get('flags') else ''})"
-             for v in report["variants"] if v.get("adapt")]
+             ": its rows on these images are not held out" for v in report["variants"] if v.get("adapt")]
     reused = [f"- {v['name']}: reused the finished run {v['run']} (trained on {v['data']})"
               for v in report["variants"] if v.get("reused")]
     return lines + ([""] + notes if notes else []) + ([""] + reused if reused else [])
