@@ -19,7 +19,9 @@ Judged on real frames no arm trained on (the pair is training data for b-d and i
   * millimetres: ``fppsim label-real`` of the same frame through --rig (default: the packaged default rig,
     fitted to this data; phase offset fitted on the plane) gives a height label; each arm's RMSE against it
     over the object pixels (valid, more than 1 mm above the plane) and over all valid pixels
-    (:func:`uhrnet.sim2real.evaluate_real`).
+    (:func:`uhrnet.sim2real.evaluate_real`); a second mm column labels the frame through --check-rig
+    (default assets/figshare_depth_rig.json: the default rig reads real heights about 8 % low at 40 mm,
+    docs/experiments/physics.md section 3, so arms that learn the pair's own scale are also scored on it).
 
 The pair is scored for syn-only only (as in DESIGN.md section 9); for b-d its RMSE is shown as the fit of
 the training data. Writes OUT/report.json, OUT/report.md and OUT/few_scans.png; OUT/runs/<arm>/ (training
@@ -33,6 +35,11 @@ datasets, runs and evaluations are reused; an interrupted training run continues
     # a tiny smoke run
     python pipelines/few_scans.py --out /tmp/fs --count 6 --pretrain-epochs 1 --epochs 1 --samples-per-epoch 2 \\
         --base-channels 4 --workers 1
+
+Cost on 2 CPU cores (U-Net base 16, batch 2, 352 x 640): about 3.5 s a step. The default setting: 160
+samples, 4 x 64 pretraining steps, 129 steps per arm b-c and 6 x 129 / 2 = 387 for mixed-scratch: a bit over
+an hour. With ``--syn-run`` on the 400-sample recipe the default epoch is 321 draws (19 minutes an arm) and
+mixed-scratch gets 10 + 2 such epochs (about 2 hours): bound it with --samples-per-epoch / --scratch-epochs.
 
 Units: heights in mm, phases in rad. Labels: the figshare preset (label = 6 mm - 97, invalid -105).
 """
@@ -80,6 +87,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="held-out real phase-shifting frame(s) (PSin/ PCos/ Fringe/ iPattern/) [%(default)s]")
     g.add_argument("--rig", default=None,
                    help="rig of the real frames for label-real's mm labels [assets/default_rig.json]")
+    depth_rig = ROOT / "assets" / "figshare_depth_rig.json"
+    g.add_argument("--check-rig", default=str(depth_rig) if depth_rig.is_file() else None,
+                   help="a second rig whose label-real labels give a second mm column ('none': skip); the "
+                        "default reads real heights about 8 %% low at 40 mm (docs/experiments/physics.md), "
+                        "the depth-fitted rig was fitted on the real pair [%(default)s]")
     g = p.add_argument_group("synthetic-only arm (a)")
     g.add_argument("--syn-run", default=None,
                    help="reuse this synthetic-only run folder (read only; best.pt is the start of the fine-tunes) "
@@ -116,6 +128,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     if unknown or not arms:
         p.error(f"--arms: unknown {', '.join(unknown) or '(none given)'}; choose from {', '.join(ARMS)}")
     args.arms = [a for a in ARMS if a in arms]  # canonical order
+    if args.check_rig is not None and args.check_rig.lower() == "none":
+        args.check_rig = None
     for name in ("count", "workers", "pretrain_epochs", "epochs", "batch_size", "base_channels"):
         if getattr(args, name) < 1:
             p.error(f"--{name.replace('_', '-')} must be >= 1")
@@ -264,8 +278,9 @@ def fresh(result: Path, ckpt: Path) -> bool:
     return result.is_file() and result.stat().st_mtime >= ckpt.stat().st_mtime
 
 
-def evaluate_arm(args, out: Path, arm: str, ckpt: Path, heldout_labels: Path) -> dict:
-    """Phase residual on --phase-root, mm on its label-real labels and on the pair (see the docstring)."""
+def evaluate_arm(args, out: Path, arm: str, ckpt: Path, labelled: dict) -> dict:
+    """Phase residual on --phase-root, mm on its label-real labels (``labelled``: key -> folder, one per rig)
+    and on the pair (see the docstring)."""
     from uhrnet.phase_residual import PhaseEvalConfig, evaluate_phase_folder
     from uhrnet.sim2real import evaluate_real
 
@@ -277,7 +292,7 @@ def evaluate_arm(args, out: Path, arm: str, ckpt: Path, heldout_labels: Path) ->
             checkpoints=[str(ckpt)], phase_root=args.phase_root, out=ev / "phase", names=[arm], figures=3,
             device=args.device)))
     res["phase"] = json.loads(phase_json.read_text())["models"][0]
-    for key, folder in (("heldout", heldout_labels), ("pair", Path(args.real_pair))):
+    for key, folder in (*labelled.items(), ("pair", Path(args.real_pair))):
         doc = ev / key / "real_metrics.json"
         if not fresh(doc, ckpt):
             stage(out, f"evaluate-{key}-{arm}", lambda: evaluate_real(
@@ -287,18 +302,18 @@ def evaluate_arm(args, out: Path, arm: str, ckpt: Path, heldout_labels: Path) ->
     return res
 
 
-def label_heldout(args, out: Path) -> tuple[Path, dict]:
-    """``fppsim label-real PHASE_ROOT --out OUT/labels/heldout [--rig RIG]`` (phase offset auto)."""
+def label_heldout(args, out: Path, rig: str | None, name: str) -> tuple[Path, dict]:
+    """``fppsim label-real PHASE_ROOT --out OUT/labels/NAME [--rig RIG]`` (phase offset auto)."""
     from fppsim.label_real import LabelRealConfig, label_real
 
-    dest = out / "labels" / "heldout"
+    dest = out / "labels" / name
     report = dest / "label_real.json"
     if report.is_file():
         doc = json.loads(report.read_text())
         if doc.get("status") == "done" and doc.get("root") == str(args.phase_root) and \
-                doc.get("rig", {}).get("source") == (str(args.rig) if args.rig else "default (assets/default_rig.json)"):
+                doc.get("rig", {}).get("source") == (str(rig) if rig else "default (assets/default_rig.json)"):
             return dest, doc
-    stage(out, "label-real", lambda: label_real(LabelRealConfig(root=args.phase_root, out=dest, rig=args.rig)))
+    stage(out, f"label-real-{name}", lambda: label_real(LabelRealConfig(root=args.phase_root, out=dest, rig=rig)))
     return dest, json.loads(report.read_text())
 
 
@@ -317,31 +332,40 @@ def markdown(doc: dict) -> str:
         f"`fppsim label-real` heights of the same frame through {h['rig']} (phase offset fitted on the plane: "
         f"{fmt(h['phase_offset_rad'], 1)} rad; plane {fmt(h['plane_level_mm'])} mm, RMS {fmt(h['plane_rms_mm'])} mm"
         f"{'' if h['fits'] else ', DOES NOT FIT: ' + '; '.join(h['problems'])}); object pixels are valid and more "
-        f"than {OBJECT_MM:g} mm above the plane. The real pair ({c['real_pair']}) is training data for b-d: "
-        "its column is a fit there, not a score.", "",
+        f"than {OBJECT_MM:g} mm above the plane (input: label-real's f1_80.npy, the iPattern image with -1 where "
+        f"the phase is missing, as in the figshare layout; evaluate-phase feeds the raw iPattern). The real pair "
+        f"({c['real_pair']}) is training data for b-d: its column is a fit there, not a score.", "",
         f"Synthetic-only run: {doc['syn_run']['run']} ({doc['syn_run']['epochs']} epochs on "
         f"{doc['syn_run']['synthetic']}); fine-tunes start from its best.pt; arms b-d: "
         f"{doc['draws_per_epoch']} draws per epoch, batch {doc['batch_size']}, their last.pt is scored.", "",
+    ]
+    ck = h.get("check")
+    if ck:
+        lines += [f"Second mm column: the same frame labelled through {ck['rig']} (objects' 99th percentile "
+                  f"{fmt(ck['object_p99_mm'], 1)} mm there, {fmt(h.get('object_p99_mm'), 1)} mm through the first rig).", ""]
+    lines += [
         "| arm | what | epochs x draws | lr | phase residual (rad) | explained | object RMSE (mm) | valid RMSE (mm) "
-        "| object bias (mm) | pair object RMSE (mm) | minutes |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| object bias (mm) |" + (" object RMSE, second rig (mm) |" if ck else "") + " pair object RMSE (mm) | minutes |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|" + ("---:|" if ck else "") + "---:|---:|",
     ]
     for a in doc["arms"]:
         r = a["results"]
         held = r["heldout"]["mean"]
         pair = r["pair"]["mean"]["object_rmse_mm"]
         pair_cell = fmt(pair) if a["name"] == "syn-only" else f"({fmt(pair)}, trained on)"
+        check_cell = f" {fmt(r['heldout_check']['mean']['object_rmse_mm'])} |" if ck else ""
         lines.append(
             f"| {a['name']} | {DESCRIPTION[a['name']]} | {a['epochs']} x {a['draws'] or 'all'} | {a['lr']:g} | "
             f"{fmt(r['phase']['rmse_rad'], 3)} | {fmt(r['phase']['explained'], 3)} | {fmt(held['object_rmse_mm'])} | "
-            f"{fmt(held['valid_rmse_mm'])} | {fmt(held['object_bias_mm'])} | {pair_cell} | "
+            f"{fmt(held['valid_rmse_mm'])} | {fmt(held['object_bias_mm'])} |{check_cell} {pair_cell} | "
             f"{fmt((a.get('seconds') or 0) / 60, 1)} |")
     flat = doc["arms"][0]["results"] if doc["arms"] else None
     if flat:
+        check_cell = f" {fmt(flat['heldout_check']['mean']['flat_object_rmse_mm'])} |" if ck else ""
         lines.append(f"| plane | predicts the reference plane everywhere | | | "
                      f"{fmt(flat['phase']['flat_rmse_rad'], 3)} | 0 | "
                      f"{fmt(flat['heldout']['mean']['flat_object_rmse_mm'])} | "
-                     f"{fmt(flat['heldout']['mean']['flat_valid_rmse_mm'])} | | "
+                     f"{fmt(flat['heldout']['mean']['flat_valid_rmse_mm'])} | |{check_cell} "
                      f"{fmt(flat['pair']['mean']['flat_object_rmse_mm'])} | |")
     lines += ["", f"![few scans]({doc['figure']})", "",
               "Command: `" + " ".join(doc["argv"]) + "`", ""]
@@ -417,7 +441,7 @@ def run(args, argv: list[str]) -> dict:
                                                              or (syn_run / "last.pt").is_file()):
                 raise PipelineError(f"--syn-run {syn_run}: not a finished uhrnet run (config.json + best.pt)")
             syn_cfg = json.loads((syn_run / "config.json").read_text())
-            syn_data = Path(args.syn_data or (syn_cfg.get("synthetic") or [None])[0] or "")
+            syn_data = args.syn_data or (syn_cfg.get("synthetic") or [None])[0]
             syn_info = {"run": str(syn_run), "reused": True, "epochs": run_epochs(syn_run),
                         "seconds": sum(r.get("seconds") or 0 for r in run_history(syn_run))}
         else:
@@ -431,6 +455,7 @@ def run(args, argv: list[str]) -> dict:
             syn_cfg = json.loads((syn_run / "config.json").read_text())
         if not syn_data or not Path(syn_data).is_dir():
             raise PipelineError(f"synthetic data {syn_data or '(none recorded)'}: no such folder (give --syn-data)")
+        syn_data = Path(syn_data)
         syn_info["synthetic"] = str(syn_data)
         syn_ckpt = syn_run / "best.pt" if (syn_run / "best.pt").is_file() else syn_run / "last.pt"
 
@@ -441,14 +466,22 @@ def run(args, argv: list[str]) -> dict:
         print(f"real pair: {n_real} training sample(s); synthetic: {n_syn} training samples; arms b-d: {draws} "
               f"draws per epoch, batch {syn_cfg.get('batch_size', 2)}")
 
-        heldout_labels, label_doc = label_heldout(args, out)
+        heldout_labels, label_doc = label_heldout(args, out, args.rig, "heldout")
+        labelled = {"heldout": heldout_labels}
+        check = None
+        if args.check_rig:
+            check_labels, check_doc = label_heldout(args, out, args.check_rig, "heldout_check")
+            labelled["heldout_check"] = check_labels
+            check = {"rig": check_doc["rig"]["source"], "labels": str(check_labels),
+                     "plane_level_mm": check_doc["scans"][0]["plane"]["level_mm"],
+                     "object_p99_mm": check_doc["scans"][0]["object"]["p99_mm"]}
         scan = label_doc["scans"][0]
         heldout = {"phase_root": str(args.phase_root), "labels": str(heldout_labels),
                    "rig": label_doc["rig"]["source"], "ids": label_doc["ids"],
                    "phase_offset_rad": scan["phase_offset_rad"], "plane_level_mm": scan["plane"]["level_mm"],
                    "plane_rms_mm": scan["plane"]["rms_mm"], "fits": all(s["fits"] for s in label_doc["scans"]),
                    "problems": [p for s in label_doc["scans"] for p in s["problems"]],
-                   "warnings": label_doc["warnings"]}
+                   "warnings": label_doc["warnings"], "object_p99_mm": scan["object"]["p99_mm"], "check": check}
 
         arms = []
         for arm in args.arms:
@@ -465,7 +498,7 @@ def run(args, argv: list[str]) -> dict:
                          "seconds": sum(r.get("seconds") or 0 for r in run_history(run_dir)),
                          "options": {k: v for k, v in options.items() if v is not None}, "reused": info.get("reused")}
             entry["eval"] = str(out / "eval" / arm)
-            entry["results"] = evaluate_arm(args, out, arm, Path(entry["checkpoint"]), heldout_labels)
+            entry["results"] = evaluate_arm(args, out, arm, Path(entry["checkpoint"]), labelled)
             r = entry["results"]
             print(f"{arm}: phase residual {fmt(r['phase']['rmse_rad'], 3)} rad, held-out object RMSE "
                   f"{fmt(r['heldout']['mean']['object_rmse_mm'])} mm (valid {fmt(r['heldout']['mean']['valid_rmse_mm'])}),"
@@ -478,7 +511,7 @@ def run(args, argv: list[str]) -> dict:
                "n_train": {"real": n_real, "synthetic": n_syn}, "heldout": heldout, "arms": arms,
                "figure": "few_scans.png"}
         for a in arms:  # the per-image rows are in eval/<arm>/; keep the report short
-            for key in ("heldout", "pair"):
+            for key in (*labelled, "pair"):
                 a["results"][key] = {"mean": a["results"][key]["mean"], "images": a["results"][key]["images"],
                                      "file": str(Path(a["eval"]) / key / "real_metrics.json")}
         figure(doc, out, heldout_labels)

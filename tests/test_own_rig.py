@@ -2,7 +2,7 @@
 
 The user's rig here is a small one (camera 128 x 64 px at f = 246 px, 500 mm above the plane;
 projector 228 x 285 px, 250 mm to the side, yawed 2.9 deg, 16 fringe periods: about 12 camera px
-per period and 0.13 rad of phase per mm, one period per 47 mm of height; the default rig has 7.2 mm),
+per period and 0.13 rad of phase per mm, one period per 49 mm of height; the default rig has 7.2 mm),
 delivered as an OpenCV stereo calibration (cv2.FileStorage YAML with M1 D1 M2 D2 R T, the plane
 distance, the sizes and the periods), read by every command through ``--rig``.
 
@@ -26,7 +26,9 @@ the CLIs' ``main``:
    2/9, 3/11, 4/13): fine-tuned / synthetic-only 0.74, 0.68, 0.59, 0.77; fine-tuned / control 0.82,
    0.73, 0.68, 0.76 (held-out RMSE 10.3-11.4 mm against 14.7-18.0 mm; a plane predictor 15-19 mm).
 
-Everything is seeded; torch runs on one thread. About 40-60 s on 2 shared cores.
+Everything is seeded; torch runs on one thread. About 40-60 s on 2 shared cores (marked slow).
+A fast test checks the guide's way to hand one's own decoded scans to label-real (fppsim's writer of
+the public PSin/PCos/Fringe/iPattern layout) at phases exactly on a wrap.
 """
 
 from __future__ import annotations

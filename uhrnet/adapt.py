@@ -190,15 +190,12 @@ def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_r
 
 
 def _rig_for(cfg: AdaptConfig, ckpt: dict):
-    from fppsim.rig import Rig, RigError, load_rig
+    """The rig and its name: ``--rig``, else the checkpoint's own, else fppsim's default (as predict's refine)."""
+    from fppsim.rig import RigError, load_rig
+    from uhrnet.prediction import refine_rig_for
 
     try:
-        if cfg.rig is not None:
-            return load_rig(cfg.rig), str(cfg.rig)
-        rig = ckpt["model"]["config"].get("rig")
-        if rig is not None:
-            return Rig.from_dict(rig), "the checkpoint's rig"
-        return load_rig(None), "fppsim's default rig"
+        return refine_rig_for(ckpt, load_rig(cfg.rig) if cfg.rig is not None else None, cfg.rig)
     except RigError as exc:
         raise ConfigError(f"--rig: {exc}") from None
 
