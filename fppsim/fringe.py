@@ -15,7 +15,25 @@ Units: pixels for periods, degrees for the tilt (as reported), radians for phase
 
 from __future__ import annotations
 
+import importlib
+from dataclasses import dataclass
+
 import numpy as np
+
+
+class _OnFirstUse:
+    """A module imported on first attribute access: ``uhrnet train`` reaches this module through
+    fppsim.readers, and must run on a GPU machine that has torch and numpy but no SciPy."""
+
+    def __init__(self, name: str):
+        self._name = name
+
+    def __getattr__(self, attr):
+        return getattr(importlib.import_module(self._name), attr)
+
+
+_sfft = _OnFirstUse("scipy.fft")
+_ndi = _OnFirstUse("scipy.ndimage")
 
 __all__ = ["estimate_period", "quarter_periods", "fringe_modulation", "fringe_tilt", "plane_level",
            "poly_basis", "poly_terms", "phase_plane_masks"]
@@ -201,12 +219,7 @@ def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, pla
 
 
 # ====================================================================== single-shot phase (issue 25 item 1)
-# Section owned by the single-shot phase work: `SingleShotPhase`, `single_shot_phase` and their private helpers.
-from dataclasses import dataclass  # noqa: E402
-
-from scipy import fft as _sfft  # noqa: E402
-from scipy import ndimage as _ndi  # noqa: E402
-
+# `SingleShotPhase`, `single_shot_phase` and their private helpers.
 __all__ += ["SingleShotPhase", "SINGLE_SHOT_METHODS", "single_shot_phase"]
 
 SINGLE_SHOT_METHODS = ("ftp", "rows")

@@ -21,8 +21,8 @@ over the UNLABELLED images (no height label is ever read),
 
 Batch norm and dropout stay in evaluation mode (two or three images cannot re-estimate statistics).
 The run folder holds ``last.pt`` (a checkpoint ``predict``/``evaluate`` accept, with the source's
-training record and this adaptation's), ``history.csv`` (one row per epoch: the loss terms and each
-image's median wrapped residual in rad), ``config.json`` and ``figures/<image>_adapt.png`` (before /
+training record and this adaptation's), ``history.csv`` (one row per epoch: the loss terms), ``images.json`` (each image's median
+wrapped residual before and after, rad), ``config.json`` and ``figures/<image>_adapt.png`` (before /
 after / difference and the phase residuals). Re-running the same command resumes; a folder holding
 another run is refused unless ``overwrite``.
 """
@@ -106,9 +106,9 @@ class AdaptConfig:
 
     def record(self) -> dict:
         d = asdict(self)
-        d["images"] = [str(p) for p in self.images]
+        d["images"] = [str(Path(p).resolve()) for p in self.images]
         for k in ("checkpoint", "out", "rig"):
-            d[k] = None if d[k] is None else str(d[k])
+            d[k] = None if d[k] is None else str(Path(d[k]).resolve())
         return d
 
 
@@ -131,12 +131,12 @@ class ImagePhase:
     reliability: np.ndarray  # [0, 1]; 0 where invalid
 
 
-def image_phase(name: str, fringe: np.ndarray) -> ImagePhase:
-    """The single-shot phase of ``fringe`` (dataset encoding) with its reliability (0 on black pixels,
-    the dataset's shadow marker)."""
-    from fppsim.fringe import single_shot_phase
+def image_phase(name: str, fringe: np.ndarray, rig) -> ImagePhase:
+    """The single-shot phase of ``fringe`` (dataset encoding) in ``rig``'s phase direction, with its
+    reliability (0 on shadows: dark runs, the dataset's marker)."""
+    from uhrnet.prediction import fringe_phase
 
-    ssp = single_shot_phase(np.asarray(fringe, np.float64))  # finds shadows (dark runs) itself
+    ssp = fringe_phase(np.asarray(fringe, np.float64), rig, name)
     rel = np.where(ssp.valid, ssp.reliability, 0.0).astype(np.float32)
     return ImagePhase(name, np.asarray(fringe, np.float32), ssp.wrapped.astype(np.float32), rel)
 
@@ -214,7 +214,15 @@ def _write_history(rows: list[dict], out: Path) -> None:
 
 def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
-    run folder ``cfg.out`` and returns what happened."""
+    run folder ``cfg.out`` (locked while it runs) and returns what happened."""
+    from fppsim.files import folder_lock
+
+    Path(cfg.out).mkdir(parents=True, exist_ok=True)
+    with folder_lock(cfg.out, "uhrnet adapt"):
+        return _adapt(cfg, log)
+
+
+def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     from fppsim.encoding import json_default
     from fppsim.files import atomic_write_text
     from uhrnet.checkpoint import atomic_save, load_checkpoint, model_from_checkpoint, rng_state
@@ -230,9 +238,9 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
         if "adapt" not in prev:
             raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out "
                               "(or --overwrite to replace it)")
-        same = {k: v for k, v in prev["adapt"]["config"].items() if k not in ("epochs", "progress", "figures")}
-        now = {k: v for k, v in cfg.record().items() if k not in ("epochs", "progress", "figures", "overwrite",
-                                                                    "resume")}
+        free = ("epochs", "progress", "figures", "overwrite", "resume", "device")  # may change on resume
+        same = {k: v for k, v in prev["adapt"]["config"].items() if k not in free}
+        now = {k: v for k, v in cfg.record().items() if k not in free}
         same = {k: v for k, v in same.items() if k in now}
         if same != now or not cfg.resume:
             raise ConfigError(f"{out} already holds an adaptation with other options: choose another --out "
@@ -240,12 +248,13 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
         resume_from = prev
     rig, rig_name = _rig_for(cfg, source)
     device = select_device(cfg.device)
-    images = [image_phase(name, fr) for name, fr in read_inputs([str(p) for p in cfg.images])]
     cam = rig.camera
-    for im in images:
-        if im.fringe.shape != (cam.height, cam.width):
-            raise ConfigError(f"{im.name}: image is {im.fringe.shape[1]}x{im.fringe.shape[0]} but the rig's camera "
+    images = []
+    for name, fr in read_inputs([str(p) for p in cfg.images]):
+        if fr.shape != (cam.height, cam.width):
+            raise ConfigError(f"{name}: image is {fr.shape[1]}x{fr.shape[0]} but the rig's camera "
                               f"({rig_name}) is {cam.width}x{cam.height}")
+        images.append(image_phase(name, fr, rig))
     model, transform = model_from_checkpoint(source, device)
     src_model, _ = model_from_checkpoint(source, device)
     layer = RigLayer(rig).to(device)
@@ -317,7 +326,7 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
                 f"wrap {sums['wrap']:.4g}  drift {sums['drift']:.4g}  {row['seconds']:.1f}s")
     if bar is not None:
         bar.close()
-    result = AdaptResult(out, int(cfg.epochs), history)
+    result = AdaptResult(out, max(int(cfg.epochs), start), history)
     with torch.no_grad():
         afters = [to_mm(model(batch(im)[0])) for im in images]
     layer.cpu()

@@ -247,6 +247,8 @@ def run_predict(args) -> int:
                            range=tuple(args.range) if args.range is not None else None, colormap=args.colormap,
                            ply=not args.no_ply, device=args.device, progress=not args.no_progress,
                            refine=None if args.refine == "none" else args.refine, refine_method=args.refine_method)
+    if args.refine == "none" and args.refine_method != "relief":
+        print("uhrnet predict: warning: --refine-method has no effect without --refine phase", file=sys.stderr)
     result = predict(config)
     for line in result.warnings:
         print(f"uhrnet predict: warning: {line}", file=sys.stderr)

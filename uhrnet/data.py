@@ -130,7 +130,7 @@ class FppsimDataset(Dataset):
     Native heights (mm above the reference plane) are mapped to labels with ``transform`` (figshare
     preset by default). ``label="psp"`` trains on the phase-shifting height (``height_psp``/``mask_psp``)
     instead of the exact one. ``mask_fringe`` sets the fringe to -1 on invalid pixels, as the figshare
-    data and ``fppsim export --format figshare`` do. ``phase=True`` adds ``phase`` (1, H, W) float32, the
+    data and ``fppsim generate --format figshare`` do. ``phase=True`` adds ``phase`` (1, H, W) float32, the
     exact projector phase (rad, ``phase_true``) for the physics head; a figshare export has none, so its
     ``native/`` folder (what ``fppsim generate --format figshare`` writes beside it) is read instead.
     """

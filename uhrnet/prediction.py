@@ -53,7 +53,7 @@ from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import prediction_of
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "pad_to_multiple", "collect_inputs",
-           "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "points_from_rig", "points_from_grid",
+           "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
            "write_ply"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
@@ -322,6 +322,10 @@ def predict(config: PredictConfig) -> PredictResult:
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
+        head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
+        if head_rig is not None and tuple(fringe.shape) != (head_rig["camera"]["height"], head_rig["camera"]["width"]):
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the checkpoint's phase head "
+                              f"sees {head_rig['camera']['width']}x{head_rig['camera']['height']} (its rig's camera)")
         if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
                               f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
@@ -375,16 +379,31 @@ def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     return load_rig(None), "fppsim's default rig"
 
 
+def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
+    """The single-shot phase of ``fringe`` (dataset encoding) in the rig's direction: the phase must grow
+    along the camera rows as the rig's reference-plane phase does (:func:`fppsim.fringe.single_shot_phase`
+    cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
+    from fppsim.fringe import single_shot_phase
+    from uhrnet.rig_layer import RigLayer
+
+    with torch.no_grad():
+        plane = RigLayer(rig).plane_phase()
+    direction = 1 if float(torch.nanmean(plane[:, 1:] - plane[:, :-1])) >= 0 else -1
+    try:
+        return single_shot_phase(fringe, direction=direction)
+    except ValueError as exc:
+        raise DataError(f"{name}: {exc}") from None
+
+
 def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
-    from fppsim.fringe import single_shot_phase
     from uhrnet.refine import refine_height, refine_relief
 
-    ssp = single_shot_phase(fringe)
+    ssp = fringe_phase(fringe, rig)
     valid = np.isfinite(height_mm) & ssp.valid
-    if method == "nearest":
-        refined, _, stats = refine_height(np.where(valid, height_mm, np.nan), ssp.wrapped, ssp.reliability, rig,
+    if method == "nearest":  # unreliable pixels keep the network's height (refine_height leaves them alone)
+        refined, _, stats = refine_height(height_mm, ssp.wrapped, np.where(valid, ssp.reliability, 0.0), rig,
                                           phase_offset="estimate")
         stats = {"method": "nearest", **stats}
     else:

@@ -210,7 +210,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     rounded from the estimate; regions no trusted bridge reaches round their own. Exact where the
     rig's absolute phase-to-height mapping is (a rig off by a few per cent in its depth scale moves
     every bridged level by that much); ``shadow`` (H, W) bool are the unlit pixels (default: the
-    pixels neither ``valid`` nor reliable). A pixel moves only when reliable, inside a region, and when its move
+    pixels outside ``valid``). A pixel moves only when reliable, inside a region, and when its move
     is within ``max_move_mm`` (default ``max_move_fraction`` fringe periods of height at the pixel,
     ``2 pi / |dPhi/dh|``: a region that swallowed a wall is rejected where it moves pixels that far).
 
@@ -232,6 +232,8 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
 
     from fppsim.unwrap import phase_regions, step_conflicts
 
+    if level not in ("network", "orders"):
+        raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
     h_in = np.asarray(height_mm)
     h = h_in.astype(np.float64)
     if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
@@ -264,7 +266,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
             from fppsim.unwrap import shadow_bridges
 
             orders = np.round(med / TWO_PI)
-            unlit = ~(ok | usable) if shadow is None else np.asarray(shadow, bool)
+            unlit = ~ok if shadow is None else np.asarray(shadow, bool)
             fixed = {1: orders[0]}
             bridges = shadow_bridges(regions, unlit)
             grew = True
@@ -279,8 +281,6 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
             for region, order in fixed.items():
                 orders[region - 1] = order
             med = TWO_PI * orders
-        elif level != "network":
-            raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
         inside = lab > 0
         target[inside] = phi[inside] + d[inside] - med[lab[inside] - 1]
     with torch.no_grad():

@@ -413,9 +413,9 @@ class Trainer:
 
 
 def head_rig(rig: str | None, synthetic) -> dict:
-    """The phase head's rig as a dictionary: ``rig`` (a calibration file) or the rig recorded in the first
-    synthetic native sample's ``meta.json`` (a figshare export's ``native/`` folder too), else fppsim's
-    default rig."""
+    """The phase head's rig as a dictionary: ``rig`` (a calibration file) or the nominal rig of the first
+    synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
+    ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no single rig its phases fit: refused."""
     import json
 
     from fppsim.rig import Rig, RigError, load_rig
@@ -425,7 +425,17 @@ def head_rig(rig: str | None, synthetic) -> dict:
             return load_rig(rig).to_dict()
         for folder in synthetic or ():
             root = Path(folder) / "native" if (Path(folder) / "native").is_dir() else Path(folder)
-            meta = next(iter(sorted(root.glob("*/meta.json"))), None)
+            settings = root / "dataset.json"
+            if settings.is_file():
+                d = json.loads(settings.read_text())
+                jitter = (d.get("config") or {}).get("rig_jitter")
+                values = jitter.values() if isinstance(jitter, dict) else jitter if isinstance(jitter, (list, tuple)) else [jitter or 0]
+                if any(float(v) for v in values):
+                    raise ConfigError(f"{root}: rendered with --rig-jitter {jitter}: its phases fit no single rig, "
+                                      "so the phase head cannot be trained on it (regenerate without jitter)")
+                if d.get("rig"):
+                    return Rig.from_dict(d["rig"]).to_dict()
+            meta = next(iter(sorted(root.glob("*/meta.json"))), None)  # samples written without dataset.json
             if meta is not None:
                 return Rig.from_dict(json.loads(meta.read_text())["rig"]).to_dict()
         return load_rig(None).to_dict()

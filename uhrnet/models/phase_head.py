@@ -11,7 +11,7 @@ Height follows through the calibrated rig (:class:`uhrnet.rig_layer.RigLayer`, a
 phase <-> height layer equal to fppsim's triangulation)::
 
     Phi_c = phase_from_height(10 c)                              coarse height's absolute phase, rad
-    o     = arg sum_valid r exp(i (phi_w - Phi_c))               one phase offset per image (detached)
+    o     = arg sum r exp(i (phi_w - Phi_c))                     one phase offset per image (detached)
     k     = round((Phi_c - phi_w + o) / 2 pi)                    fringe order from the coarse height
     h     = height_from_phase(phi_w - o + 2 pi k)                height, mm
 
