@@ -196,6 +196,11 @@ def detect_layout(root: str | os.PathLike) -> str:
         return "public"
     if (root / "manifest.jsonl").is_file():
         return "native"
+    inner = sorted(d.name for d in root.iterdir() if d.is_dir() and (
+        any((d / sub).is_dir() for sub, _ in FOLDERS.values()) or (d / "manifest.jsonl").is_file()))
+    if inner:  # a folder of scan folders: their ids may repeat, so one ROOT at a time
+        raise DatasetError(f"{root}: holds scan folders ({', '.join(inner[:4])}{', ...' if len(inner) > 4 else ''}), "
+                           f"not scans: pass one of them as ROOT (e.g. {root / inner[0]})")
     raise DatasetError(f"{root}: no scans found (expected PSin/ PCos/ Fringe/ iPattern/ folders of <id>.mat, or an "
                        "fppsim dataset generated with phase-shifting images: manifest.jsonl + <id>/psp/)")
 
