@@ -15,25 +15,10 @@ Units: pixels for periods, degrees for the tilt (as reported), radians for phase
 
 from __future__ import annotations
 
-import importlib
 from dataclasses import dataclass
 
 import numpy as np
 
-
-class _OnFirstUse:
-    """A module imported on first attribute access: ``uhrnet train`` reaches this module through
-    fppsim.readers, and must run on a GPU machine that has torch and numpy but no SciPy."""
-
-    def __init__(self, name: str):
-        self._name = name
-
-    def __getattr__(self, attr):
-        return getattr(importlib.import_module(self._name), attr)
-
-
-_sfft = _OnFirstUse("scipy.fft")
-_ndi = _OnFirstUse("scipy.ndimage")
 
 __all__ = ["estimate_period", "quarter_periods", "fringe_modulation", "fringe_tilt", "plane_level",
            "poly_basis", "poly_terms", "phase_plane_masks"]
@@ -351,6 +336,7 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
     local method (the window straddles the step) and get low reliability.
     About 0.4 s for 352 x 640 on one core.
     """
+    from scipy import ndimage as ndi
     x = np.asarray(image)
     if x.ndim == 3 and x.shape[-1] == 1:
         x = x[..., 0]
@@ -386,7 +372,7 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
     bg = _local_background(x, valid, guess)
     g = np.where(valid, x - bg, 0.0)
     # amplitude-normalised for the carrier search: every pixel counts alike, not the bright ones
-    env = np.sqrt(2.0 * _ndi.gaussian_filter(g * g, guess) / np.maximum(_ndi.gaussian_filter(valid * 1.0, guess), 1e-6))
+    env = np.sqrt(2.0 * ndi.gaussian_filter(g * g, guess) / np.maximum(ndi.gaussian_filter(valid * 1.0, guess), 1e-6))
     fx0, fy0 = _carrier_peak(np.where(valid, g / np.maximum(env, 1e-9 * env.max() + 1e-300), 0.0), period)
     f0 = float(np.hypot(fx0, fy0))
     per = 1.0 / f0
@@ -409,20 +395,22 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
 def _dark_runs(x: np.ndarray, period: float, dark: float) -> np.ndarray:
     """Dark pixels whose one-period run to the left or to the right along the row is all dark, and the dark
     pixels within a quarter period of those (a fringe trough is dark for less than a period along a row)."""
+    from scipy import ndimage as ndi
     lo = float(x.min())
     d = (x <= lo + dark * max(float(np.percentile(x, 99.5)) - lo, 1e-12)).astype(np.float64)
     n = max(int(np.ceil(period)), 2)
     k = np.ones(n) / n
-    left = _ndi.correlate1d(d, k, axis=1, mode="nearest", origin=(n - 1) // 2)  # run ending at the pixel
-    right = _ndi.correlate1d(d, k, axis=1, mode="nearest", origin=-(n // 2))  # run starting at the pixel
+    left = ndi.correlate1d(d, k, axis=1, mode="nearest", origin=(n - 1) // 2)  # run ending at the pixel
+    right = ndi.correlate1d(d, k, axis=1, mode="nearest", origin=-(n // 2))  # run starting at the pixel
     seeds = (d > 0) & ((left > 1 - 1e-9) | (right > 1 - 1e-9))
     # and the dark pixels within a quarter period of those (the shorter chords at a shadow's top and bottom)
-    return seeds | ((d > 0) & _ndi.binary_dilation(seeds, iterations=max(1, int(np.ceil(period / 4)))))
+    return seeds | ((d > 0) & ndi.binary_dilation(seeds, iterations=max(1, int(np.ceil(period / 4)))))
 
 
 def _local_background(x: np.ndarray, valid: np.ndarray, period: float) -> np.ndarray:
     """Fringe background: a one-period box along rows (a zero of its response at the carrier) and a
     Gaussian (period/4) down columns, normalised over valid pixels; filled into the rest at growing scales."""
+    from scipy import ndimage as ndi
     half = period / 2.0
     n = int(np.ceil(half + 0.5))
     t = np.arange(-n, n + 1, dtype=np.float64)
@@ -430,8 +418,8 @@ def _local_background(x: np.ndarray, valid: np.ndarray, period: float) -> np.nda
     k /= k.sum()
     v = valid.astype(np.float64)
     sy = max(period / 4.0, 1.0)
-    num = _ndi.gaussian_filter1d(_ndi.correlate1d(x * v, k, axis=1, mode="constant"), sy, axis=0, mode="constant")
-    den = _ndi.gaussian_filter1d(_ndi.correlate1d(v, k, axis=1, mode="constant"), sy, axis=0, mode="constant")
+    num = ndi.gaussian_filter1d(ndi.correlate1d(x * v, k, axis=1, mode="constant"), sy, axis=0, mode="constant")
+    den = ndi.gaussian_filter1d(ndi.correlate1d(v, k, axis=1, mode="constant"), sy, axis=0, mode="constant")
     have = valid & (den > 0.3)
     out = np.where(have, num / np.maximum(den, 1e-12), 0.0)
     s = period
@@ -439,8 +427,8 @@ def _local_background(x: np.ndarray, valid: np.ndarray, period: float) -> np.nda
         if s > 4 * max(x.shape):
             out[~have] = out[have].mean() if have.any() else float(x[valid].mean())
             break
-        num = _ndi.gaussian_filter(out * have, s, mode="constant")
-        den = _ndi.gaussian_filter(have * 1.0, s, mode="constant")
+        num = ndi.gaussian_filter(out * have, s, mode="constant")
+        den = ndi.gaussian_filter(have * 1.0, s, mode="constant")
         new = ~have & (den > 1e-3)
         out[new] = num[new] / den[new]
         have |= new
@@ -452,11 +440,12 @@ def _carrier_peak(g: np.ndarray, period: float | None, min_period: float = 2.5,
                   max_period: float = 64.0) -> tuple[float, float]:
     """(fx, fy) cycles/px of the strongest spectral peak with fx > 0 (Hann window, 4x zero padding,
     parabolic refinement on the log power); within +-20 % of 1/period when given."""
+    from scipy import fft as sfft
     h, w = g.shape
-    ny, nx = _sfft.next_fast_len(4 * h), _sfft.next_fast_len(4 * w, real=True)
-    p = np.abs(_sfft.rfft2(g * np.outer(np.hanning(h), np.hanning(w)), s=(ny, nx))) ** 2
-    fy = _sfft.fftfreq(ny)[:, None]
-    fx = _sfft.rfftfreq(nx)[None, :]
+    ny, nx = sfft.next_fast_len(4 * h), sfft.next_fast_len(4 * w, real=True)
+    p = np.abs(sfft.rfft2(g * np.outer(np.hanning(h), np.hanning(w)), s=(ny, nx))) ** 2
+    fy = sfft.fftfreq(ny)[:, None]
+    fx = sfft.rfftfreq(nx)[None, :]
     fr = np.hypot(fx, fy)
     sel = (fx > 0) & (fr >= 1.0 / max_period) & (fr <= 1.0 / min_period)
     if period is not None:
@@ -473,53 +462,57 @@ def _carrier_peak(g: np.ndarray, period: float | None, min_period: float = 2.5,
 
     dx = vertex(p[iy, ix - 1], p[iy, ix], p[iy, ix + 1]) if 0 < ix < p.shape[1] - 1 else 0.0
     dy = vertex(p[iy - 1, ix], p[iy, ix], p[(iy + 1) % ny, ix])
-    return float((ix + dx) / nx), float(_sfft.fftfreq(ny)[iy] + dy / ny)
+    return float((ix + dx) / nx), float(sfft.fftfreq(ny)[iy] + dy / ny)
 
 
 def _analytic(g: np.ndarray, fx0: float, fy0: float, period: float, method: str,
               band: tuple[float, float]) -> np.ndarray:
     """(B/2) e^{i phi} of the zero-mean fringe g by a sideband filter (ftp) or per row (rows)."""
+    from scipy import fft as sfft
     h, w = g.shape
     pad = int(np.ceil(2 * period))
-    ny, nx = _sfft.next_fast_len(h + 2 * pad), _sfft.next_fast_len(w + 2 * pad)
+    ny, nx = sfft.next_fast_len(h + 2 * pad), sfft.next_fast_len(w + 2 * pad)
     gp = np.zeros((ny, nx))
     gp[pad:pad + h, pad:pad + w] = g
     f0 = np.hypot(fx0, fy0)
-    fx = _sfft.fftfreq(nx)[None, :]
+    fx = sfft.fftfreq(nx)[None, :]
     if method == "ftp":
-        fy = _sfft.fftfreq(ny)[:, None]
+        fy = sfft.fftfreq(ny)[:, None]
         ux, uy = fx0 / f0, fy0 / f0  # unit vector along the carrier
         along = ((fx - fx0) * ux + (fy - fy0) * uy) / (band[0] * f0)
         across = (-(fx - fx0) * uy + (fy - fy0) * ux) / (band[1] * f0)
         r = np.hypot(along, across)
         win = np.where(r <= 0.7, 1.0, np.cos(0.5 * np.pi * np.clip((r - 0.7) / 0.3, 0.0, 1.0)) ** 2)
-        a = _sfft.ifft2(_sfft.fft2(gp) * win)
+        a = sfft.ifft2(sfft.fft2(gp) * win)
     else:
         win = np.sqrt(np.clip(1.0 - np.abs(fx / fx0 - 1.0) / band[0], 0.0, 1.0))
-        a = _sfft.ifft(_sfft.fft(gp, axis=1) * win, axis=1)
+        a = sfft.ifft(sfft.fft(gp, axis=1) * win, axis=1)
     return a[pad:pad + h, pad:pad + w]
 
 
 def _gauss_c(z: np.ndarray, sigma: float) -> np.ndarray:
-    return _ndi.gaussian_filter(z.real, sigma, mode="constant") + 1j * _ndi.gaussian_filter(z.imag, sigma, mode="constant")
+    from scipy import ndimage as ndi
+    return ndi.gaussian_filter(z.real, sigma, mode="constant") + 1j * ndi.gaussian_filter(z.imag, sigma, mode="constant")
 
 
 def _demodulate(g: np.ndarray, a: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
     """One local demodulation pass (see ``refine`` of :func:`single_shot_phase`)."""
+    from scipy import ndimage as ndi
     rot = np.exp(-1j * np.angle(a))
     z = np.where(valid, g - np.conj(a), 0.0) * rot
-    wsum = _ndi.gaussian_filter(valid * 1.0, sigma, mode="constant")
+    wsum = ndi.gaussian_filter(valid * 1.0, sigma, mode="constant")
     return np.conj(rot) * _gauss_c(z, sigma) / np.maximum(wsum, 1e-6)
 
 
 def _phase_error(g: np.ndarray, a: np.ndarray, valid: np.ndarray, fx0: float, fy0: float,
                  period: float) -> np.ndarray:
     """The error model of :func:`single_shot_phase` (rad)."""
+    from scipy import ndimage as ndi
     f0 = np.hypot(fx0, fy0)
     v = valid * 1.0
     s = max(period / 2.0, 1.0)
     resid = np.where(valid, g - 2.0 * a.real, 0.0)
-    rms = np.sqrt(_ndi.gaussian_filter(resid ** 2, s, mode="constant") / np.maximum(_ndi.gaussian_filter(v, s, mode="constant"), 1e-6))
+    rms = np.sqrt(ndi.gaussian_filter(resid ** 2, s, mode="constant") / np.maximum(ndi.gaussian_filter(v, s, mode="constant"), 1e-6))
     noise = rms / np.maximum(2.0 * np.abs(a), 1e-12)
     # local frequency (cycles/px) from neighbour products: no unwrapping
     fxl = np.empty(g.shape)
@@ -528,9 +521,9 @@ def _phase_error(g: np.ndarray, a: np.ndarray, valid: np.ndarray, fx0: float, fy
     dy = np.angle(a[1:, :] * np.conj(a[:-1, :])) / (2 * np.pi)
     fxl[:, :-1], fxl[:, -1] = dx, dx[:, -1]
     fyl[:-1, :], fyl[-1, :] = dy, dy[-1, :]
-    curv = _ndi.gaussian_filter(np.hypot(*np.gradient(fxl)) + np.hypot(*np.gradient(fyl)), 1.0) / f0
+    curv = ndi.gaussian_filter(np.hypot(*np.gradient(fxl)) + np.hypot(*np.gradient(fyl)), 1.0) / f0
     detune = np.hypot(fxl - fx0, fyl - fy0) / f0
-    dist = _ndi.distance_transform_edt(np.pad(valid, 1))[1:-1, 1:-1]
+    dist = ndi.distance_transform_edt(np.pad(valid, 1))[1:-1, 1:-1]
     edge = np.exp(-dist / period)
     c = _ERR_COEF
     return np.sqrt(_ERR_FLOOR ** 2 + (c["noise"] * noise) ** 2 + (c["curvature"] * curv) ** 2

@@ -415,9 +415,11 @@ class Trainer:
 def head_rig(rig: str | None, synthetic) -> dict:
     """The phase head's rig as a dictionary: ``rig`` (a calibration file) or the nominal rig of the first
     synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
-    ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no single rig its phases fit: refused."""
+    ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
+    single rig its phases fit: refused."""
     import json
 
+    from fppsim.formats import read_settings  # its DatasetError is a ValueError
     from fppsim.rig import Rig, RigError, load_rig
 
     try:
@@ -425,9 +427,8 @@ def head_rig(rig: str | None, synthetic) -> dict:
             return load_rig(rig).to_dict()
         for folder in synthetic or ():
             root = Path(folder) / "native" if (Path(folder) / "native").is_dir() else Path(folder)
-            settings = root / "dataset.json"
-            if settings.is_file():
-                d = json.loads(settings.read_text())
+            d = read_settings(root)
+            if d is not None:
                 jitter = (d.get("config") or {}).get("rig_jitter")
                 values = jitter.values() if isinstance(jitter, dict) else jitter if isinstance(jitter, (list, tuple)) else [jitter or 0]
                 if any(float(v) for v in values):
