@@ -31,9 +31,9 @@ datasets, runs and evaluations are reused; an interrupted training run continues
     # the judged setting (U-Net base 16 pretrained 4 epochs on 160 recipe samples, fine-tuned 2 epochs)
     python pipelines/few_scans.py --out runs/few_scans
     # reuse an existing synthetic-only run (its synthetic data is mixed into the fine-tunes)
-    python pipelines/few_scans.py --out runs/few_scans_base --syn-run /work/runs/base --samples-per-epoch 129
+    python pipelines/few_scans.py --out runs/few_scans_base --syn-run runs/recipe --samples-per-epoch 129
     # a tiny smoke run
-    python pipelines/few_scans.py --out /tmp/fs --count 6 --pretrain-epochs 1 --epochs 1 --samples-per-epoch 2 \\
+    python pipelines/few_scans.py --out runs/few_scans_smoke --count 6 --pretrain-epochs 1 --epochs 1 --samples-per-epoch 2 \\
         --base-channels 4 --workers 1
 
 Cost on 2 CPU cores (U-Net base 16, batch 2, 352 x 640): about 3.5 s a step. The default setting: 160
