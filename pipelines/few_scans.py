@@ -426,6 +426,7 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
 # ============================================================================================ main
 def run(args, argv: list[str]) -> dict:
     from fppsim.files import atomic_write_text, folder_lock
+    from uhrnet.checkpoint import checkpoint_file
     from uhrnet.data import load_sources
 
     out = Path(args.out)
@@ -457,7 +458,7 @@ def run(args, argv: list[str]) -> dict:
             raise PipelineError(f"synthetic data {syn_data or '(none recorded)'}: no such folder (give --syn-data)")
         syn_data = Path(syn_data)
         syn_info["synthetic"] = str(syn_data)
-        syn_ckpt = syn_run / "best.pt" if (syn_run / "best.pt").is_file() else syn_run / "last.pt"
+        syn_ckpt = checkpoint_file(syn_run)
 
         sources = load_sources(real=[args.real_pair], synthetic=[str(syn_data)], real_split="train",
                                synthetic_split="reference")

@@ -23,6 +23,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fppsim.encoding import encode_fringe
 from fppsim.files import atomic_write_text
 from uhrnet.errors import Sim2RealError
 
@@ -186,7 +187,7 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
             s = load_psp_folder_sample(folder, sid)
         except PSPMatError as exc:
             raise Sim2RealError(str(exc)) from None
-        fringe = s.image.astype(np.float32) / 127.5 - 1.0
+        fringe = encode_fringe(s.image)
         label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
         row = {"folder": folder, "id": sid}
         if refine_rig is not None:

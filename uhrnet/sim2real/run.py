@@ -99,10 +99,7 @@ def _dataset_done(data: Path, count: int) -> bool:
 
 
 def _run_done(run: Path, epochs: int) -> bool:
-    hist = run / "history.csv"
-    if not (run / "last.pt").is_file() or not hist.is_file():
-        return False
-    rows = list(csv.DictReader(hist.open()))
+    rows = _history(run) if (run / "last.pt").is_file() else []
     return bool(rows) and int(rows[-1]["epoch"]) >= epochs
 
 
