@@ -49,17 +49,18 @@ __all__ = ["demodulated_residual", "depth_masks", "shadow_edges", "shadow_bridge
 
 # ====================================================================== measuring one image
 def demodulated_residual(rig: Rig, gray: np.ndarray, valid: np.ndarray, height_mm: np.ndarray,
-                         smooth: float = 4.0) -> np.ndarray:
+                         smooth: float = 4.0, *, rig_phase: np.ndarray | None = None) -> np.ndarray:
     """Wrapped phase (rad, (H, W)) of the real fringe relative to the phase ``rig`` predicts for the
     labelled surface: ``angle(G_smooth[(I - I_local_mean) exp(-i Phi_rig(h))])`` over ``valid`` pixels
     (``smooth``: Gaussian sigma, px; the local mean is a Gaussian of 1.5 x ``smooth``). Positive where
-    the real phase is ahead of the rig's."""
+    the real phase is ahead of the rig's. ``rig_phase``: ``surface_phase(rig, h)`` of the valid-masked
+    height, when the caller already has it."""
     from scipy import ndimage as ndi
 
     g = np.asarray(gray, dtype=np.float64)
     g = g - ndi.gaussian_filter(g, 1.5 * smooth)
     h = np.where(valid, np.nan_to_num(np.asarray(height_mm, dtype=np.float64)), 0.0)
-    c = g * np.exp(-1j * surface_phase(rig, h))
+    c = g * np.exp(-1j * (surface_phase(rig, h) if rig_phase is None else rig_phase))
     w = np.asarray(valid, dtype=np.float64)
     cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
     return np.angle(cs)
@@ -122,16 +123,18 @@ def _edge_values(phase: np.ndarray, edges: np.ndarray, k: int = 3, shadow_left: 
 
 
 def shadow_bridge(rig: Rig, residual: np.ndarray, edges: np.ndarray, height_mm: np.ndarray, plane_offset: float,
-                  object_offset: float, shadow_left: bool = True) -> np.ndarray:
+                  object_offset: float, shadow_left: bool = True, *,
+                  rig_phase: np.ndarray | None = None) -> np.ndarray:
     """Per shadow crossing: absolute real phase at the plane side minus at the object side (rad), with the
     object's residual taken on the branch around ``object_offset`` (``plane_offset`` likewise). About 0
     for the branch that is right; ``2 pi n`` off when the object is really ``n`` fringes further.
 
     The real phase is modelled as ``Phi_rig(h) + residual`` (the residual unwrapped around the offsets),
-    extrapolated to the shadow's boundaries (:func:`shadow_edges`)."""
+    extrapolated to the shadow's boundaries (:func:`shadow_edges`); ``rig_phase`` as in
+    :func:`demodulated_residual`."""
     if not len(edges):
         return np.zeros(0)
-    P = surface_phase(rig, np.nan_to_num(height_mm))
+    P = surface_phase(rig, np.nan_to_num(height_mm)) if rig_phase is None else rig_phase
     rp = np.angle(np.exp(1j * (residual - plane_offset))) + plane_offset
     ro = np.angle(np.exp(1j * (residual - object_offset))) + object_offset
     a, _ = _edge_values(P + rp, edges, shadow_left=shadow_left)
@@ -209,7 +212,8 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
     plane, obj = depth_masks(valid, h, smooth)
     if plane.sum() < 1000 or obj.sum() < min_object:
         return None
-    d = demodulated_residual(rig, image.gray, valid, h, smooth)
+    P = surface_phase(rig, h)  # one projection serves the residual and the shadow bridges
+    d = demodulated_residual(rig, image.gray, valid, h, smooth, rig_phase=P)
     o = float(np.angle(np.mean(np.exp(1j * d[plane]))))
     r = np.angle(np.exp(1j * (d - o)))
     ro, ho = r[obj], h[obj]
@@ -221,7 +225,7 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
     edges = shadow_edges(valid, valid & (np.abs(h) < 1.5), valid & (h > 5.0), left)
     fringes, offset, bridge, iqr, share = 0, float("nan"), float("nan"), float("nan"), float("nan")
     if len(edges) >= min_edges:
-        b = shadow_bridge(rig, d, edges, h, o, o + wrapped, left)
+        b = shadow_bridge(rig, d, edges, h, o, o + wrapped, left, rig_phase=P)
         # each crossing votes for a whole number of fringes; the most common wins (crossings whose first
         # lit object pixel is not the occluding edge, e.g. a shadow cast by a higher part, vote wrong)
         votes = np.round((b - bridge_ref) / (2 * np.pi)).astype(np.int64)

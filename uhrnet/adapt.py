@@ -256,17 +256,16 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
                               f"({rig_name}) is {cam.width}x{cam.height}")
         images.append(image_phase(name, fr, rig))
     model, transform = model_from_checkpoint(source, device)
-    src_model, _ = model_from_checkpoint(source, device)
     layer = RigLayer(rig).to(device)
+    # times mm_per_unit, not LabelTransform.height_mm's division: the float bits of the recorded adaptations
     to_mm = lambda label: (label - transform.plane_offset) * transform.mm_per_unit  # noqa: E731
 
     def batch(im: ImagePhase):
         t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)[None, None]  # noqa: E731
         return t(im.fringe), t(im.wrapped), t(im.reliability)
 
-    with torch.no_grad():
-        sources = [to_mm(src_model(batch(im)[0])) for im in images]
-    del src_model
+    with torch.no_grad():  # the source model's heights: taken before any resumed or adapted weights load
+        sources = [to_mm(model(batch(im)[0])) for im in images]
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.Adam(params, lr=cfg.lr)
     history: list[dict] = []

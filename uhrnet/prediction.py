@@ -318,11 +318,11 @@ def predict(config: PredictConfig) -> PredictResult:
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
     for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
-        head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
         if head_rig is not None and tuple(fringe.shape) != (head_rig["camera"]["height"], head_rig["camera"]["width"]):
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the checkpoint's phase head "
                               f"sees {head_rig['camera']['width']}x{head_rig['camera']['height']} (its rig's camera)")

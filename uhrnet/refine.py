@@ -248,7 +248,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if not finite.all():  # nearest finite value, so smoothing does not drag edges to 0
         idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
         filled = h[tuple(idx)] if finite.any() else filled
-    dev = layer.plane_phase().device
+    dev = layer.A.device
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=dev)  # noqa: E731
     with torch.no_grad():
         phi = layer.phase_from_height(t(filled)).cpu().numpy()

@@ -66,7 +66,6 @@ class PhaseHead(nn.Module):
         self.layer = RigLayer.from_dict(rig)
         self.min_confidence = float(min_confidence)
         self.config = {**backbone.config, "head": "phase", "rig": rig, "min_confidence": self.min_confidence}
-        self.PARTS = getattr(backbone, "PARTS", None)
         self.last_parts: list[dict] = []
 
     def _combine(self, out: torch.Tensor) -> dict:
