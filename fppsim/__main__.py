@@ -1,0 +1,5 @@
+import sys
+
+from fppsim.cli import main
+
+sys.exit(main())

@@ -1,0 +1,199 @@
+#!/usr/bin/env python
+"""Helpers of pipelines/gpu_check.sh (standard library only until ``report``, which reads numpy-free JSON/CSV).
+
+    python pipelines/gpu_check.py wheels DIR                    the carried wheels this Python can install
+    python pipelines/gpu_check.py env OUT BUDGET TINY PLATFORM  OUT/step_env.json: machine, versions, sizes
+    python pipelines/gpu_check.py step OUT NAME RC START LIMIT  OUT/step_NAME.json: exit code, seconds
+    python pipelines/gpu_check.py report OUT                    OUT/gpu_check.json + OUT/gpu_check.md
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+PAPER_MS = {"uhrnet": 22.4, "unet": 8.1, "hnet": None}  # Table 3 of the paper, an RTX 2080 Ti
+
+
+def wheels(folder: Path) -> list[str]:
+    """The newest wheel per project in ``folder`` whose tags this interpreter supports (pip refuses a whole
+    install over one foreign wheel, and .whl/ holds wheels for two Pythons)."""
+    from pip._vendor.packaging.tags import sys_tags
+    from pip._vendor.packaging.utils import parse_wheel_filename
+
+    supported = list(sys_tags())
+    rank = {t: i for i, t in enumerate(supported)}
+    best: dict[str, tuple[int, Path]] = {}
+    for f in sorted(folder.glob("*.whl")):
+        name, _, _, tags = parse_wheel_filename(f.name)
+        r = min((rank[t] for t in tags if t in rank), default=None)
+        if r is not None and (name not in best or r < best[name][0]):
+            best[name] = (r, f)
+    return [str(p) for _, p in sorted(best.values(), key=lambda rp: str(rp[1]))]
+
+
+def _json(path: Path) -> dict | None:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def env(out: Path, budget: str, tiny: str, gl: str) -> dict:
+    import torch
+
+    cuda = torch.cuda.is_available()
+    info = {"device": torch.cuda.get_device_name(0) if cuda else "cpu (no CUDA device)", "torch": torch.__version__,
+            "cuda": torch.version.cuda, "python": platform.python_version(), "cpu_cores": os.cpu_count(),
+            "gl_platform": gl, "budget_s": int(budget), "tiny_dry_run": tiny not in ("", "0"),
+            "started_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
+    (out / "step_env.json").write_text(json.dumps(info, indent=1) + "\n")
+    return info
+
+
+def step(out: Path, name: str, rc: str, start: str, limit: str) -> dict:
+    res = {"exit_code": int(rc), "seconds": round(time.time() - float(start), 2), "limit_s": int(limit),
+           "timed_out": int(rc) in (124, 137)}
+    log = out / f"{name}.log"
+    if log.is_file():
+        res["log_tail"] = log.read_text(errors="replace").splitlines()[-4:]
+    (out / f"step_{name}.json").write_text(json.dumps(res, indent=1) + "\n")
+    return res
+
+
+def _forward(out: Path, tag: str) -> dict | None:
+    data = _json(out / f"forward_{tag}.json")
+    if not data:
+        return None
+    return {r["model"]: {"forward_ms": r["forward_ms"], "parameters": r.get("parameters")} for r in data["results"]}
+
+
+def _history(run: Path) -> list[dict]:
+    try:
+        with open(run / "history.csv", newline="") as fh:
+            return list(csv.DictReader(fh))
+    except OSError:
+        return []
+
+
+def _count(syn: Path) -> int | None:
+    """Samples in a figshare-layout folder (the header of f1_80.npy; no numpy needed)."""
+    try:
+        import numpy as np
+
+        return int(np.load(syn / "f1_80.npy", mmap_mode="r").shape[0])
+    except (OSError, ValueError, ImportError):
+        return None
+
+
+def report(out: Path) -> dict:
+    steps = {p.stem[5:]: _json(p) for p in sorted(out.glob("step_*.json"))}
+    env_info = steps.pop("env", None) or {}
+    work = out / "work"
+    res: dict = {"kind": "gpu_check", **env_info, "steps": steps}
+    res["forward_ms"] = {tag: f for tag in ("fp32", "fp16") if (f := _forward(out, tag))}
+    gen = steps.get("generate") or {}
+    n = _count(work / "syn")
+    if gen.get("exit_code") == 0 and n:
+        res["generate"] = {"samples": n, "seconds": gen["seconds"], "samples_per_s": n / gen["seconds"],
+                           "note": "whole command (process start, mesh loading, all workers), figshare layout, --no-psp"}
+    hist = _history(work / "run")
+    cfg = _json(work / "run" / "config.json") or {}
+    if hist:
+        secs = [float(r["seconds"]) for r in hist if r.get("seconds")]
+        tr = cfg.get("train_samples") or cfg.get("n_train")
+        train = {"epochs": len(hist), "epoch_seconds": secs,
+                 "val_rmse_mm": [float(r["val_rmse_mm"]) for r in hist if r.get("val_rmse_mm")]}
+        if n and secs:
+            # the reference split trains on 80 % of the samples; later epochs exclude cuDNN's autotuning
+            n_train = tr or round(0.8 * n)
+            steady = secs[1:] or secs
+            train.update(train_samples=n_train, samples_per_s=n_train / (sum(steady) / len(steady)))
+        res["train"] = train
+    ddp = steps.get("ddp") or {}
+    if ddp:
+        log = (out / "ddp.log").read_text(errors="replace") if (out / "ddp.log").is_file() else ""
+        res["ddp"] = {"exit_code": ddp.get("exit_code"), "seconds": ddp.get("seconds"),
+                      "backend": "gloo" if env_info.get("device", "cpu").startswith("cpu") else "nccl",
+                      "world_size": 1, "checkpoint_written": (work / "ddp" / "last.pt").is_file(),
+                      "distributed_in_log": "distributed" in log.lower() or "world" in log.lower()}
+    s2r = _json(work / "s2r" / "report.json")
+    if s2r:
+        v = s2r["variants"][0]
+        row = (v.get("rows") or [{}])[0]
+        res["sim2real"] = {"samples": s2r["config"]["count"], "epochs": s2r["config"]["epochs"],
+                           "model": s2r["config"]["model"], "pair_object_rmse_mm": v["real"]["object_rmse_mm"],
+                           "pair_object_median_abs_mm": (row.get("real") or {}).get("object_median_abs_mm"),
+                           "phase_residual_rad": {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"]
+                                                  for f in row.get("real_phase") or []}}
+    (out / "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
+    (out / "gpu_check.md").write_text(markdown(res))
+    return res
+
+
+def markdown(res: dict) -> str:
+    lines = [f"# GPU check: {res.get('device', '?')}", "",
+             f"torch {res.get('torch')} (CUDA {res.get('cuda')}), Python {res.get('python')}, "
+             f"{res.get('cpu_cores')} CPU cores, GL {res.get('gl_platform')}, budget {res.get('budget_s')} s"
+             + (" (TINY dry run: sizes are not meaningful)" if res.get("tiny_dry_run") else ""), "",
+             "| step | exit | seconds | limit (s) |", "|---|---|---|---|"]
+    for name, s in res["steps"].items():
+        if s:
+            lines.append(f"| {name} | {s['exit_code']}{' (timed out)' if s['timed_out'] else ''} | "
+                         f"{s['seconds']:.0f} | {s['limit_s']} |")
+    if res["forward_ms"]:
+        lines += ["", "Forward ms per image, batch 1 (median):", "",
+                  "| model | " + " | ".join(res["forward_ms"]) + " | paper (RTX 2080 Ti) |",
+                  "|---|" + "---|" * len(res["forward_ms"]) + "---|"]
+        models = list(next(iter(res["forward_ms"].values())))
+        for m in models:
+            cells = [f"{res['forward_ms'][t][m]['forward_ms']:.2f}" if m in res["forward_ms"][t] else ""
+                     for t in res["forward_ms"]]
+            lines.append(f"| {m} | " + " | ".join(cells) + f" | {PAPER_MS.get(m) or ''} |")
+    if "generate" in res:
+        g = res["generate"]
+        lines += ["", f"Generation: {g['samples']} samples in {g['seconds']:.1f} s = **{g['samples_per_s']:.1f} "
+                      f"samples/s** ({g['note']})."]
+    if "train" in res:
+        t = res["train"]
+        sps = f" = **{t['samples_per_s']:.1f} training samples/s**" if "samples_per_s" in t else ""
+        lines += ["", f"Training (UHRNet, AMP): {t['epochs']} epochs, epoch seconds "
+                      f"{', '.join(f'{s:.1f}' for s in t['epoch_seconds'])}{sps}; "
+                      f"val RMSE {', '.join(f'{v:.2f}' for v in t['val_rmse_mm'])} mm."]
+    if "ddp" in res:
+        d = res["ddp"]
+        lines += ["", f"DDP ({d['backend']}, world size 1): exit {d['exit_code']}, {d['seconds']:.0f} s, "
+                      f"checkpoint written: {d['checkpoint_written']}."]
+    if "sim2real" in res:
+        s = res["sim2real"]
+        ph = ", ".join(f"{k} {v:.3f} rad" for k, v in s["phase_residual_rad"].items())
+        lines += ["", f"Sim-to-real point: {s['model']}, {s['samples']} samples, {s['epochs']} epochs: real pair "
+                      f"object RMSE **{s['pair_object_rmse_mm']:.2f} mm**" + (f"; phase residual {ph}" if ph else "")
+                  + "."]
+    return "\n".join(lines) + "\n"
+
+
+def main(argv: list[str]) -> int:
+    cmds = {"wheels": 1, "env": 4, "step": 5, "report": 1}
+    if not argv or argv[0] not in cmds or len(argv) != cmds[argv[0]] + 1:
+        print(__doc__, file=sys.stderr)
+        return 2
+    cmd, *args = argv
+    if cmd == "wheels":
+        print("\n".join(wheels(Path(args[0]))))
+    elif cmd == "env":
+        env(Path(args[0]), *args[1:])
+    elif cmd == "step":
+        step(Path(args[0]), *args[1:])
+    else:
+        print(markdown(report(Path(args[0]))))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

@@ -1,0 +1,188 @@
+#!/usr/bin/env bash
+# The GPU check: everything this project wants measured on a GPU, in one offline run that fits the
+# ~15 minutes a GPU machine is lent (starts included). It needs no network on the GPU machine: what its
+# image lacks (trimesh, pyrender2, PyOpenGL, pyglet, freetype-py, zlib-ng; the GL loader libraries for
+# EGL) travels with the checkout, fetched beforehand by `prepare` on a machine that has a network.
+#
+#   bash pipelines/gpu_check.sh prepare          networked machine, once: wheels -> .whl/, EGL/X11 loader
+#                                                debs -> .gl/, ../shared real data -> .gpu_data/ (all git-ignored)
+#   bash pipelines/gpu_check.sh [run] [OUTDIR]   GPU machine, offline   [OUTDIR: out/gpu_check]
+#
+# Steps (each under its own time limit, cut to what the budget has left; a failed step is reported, the
+# others still run):
+#   1. forward ms per 352 x 640 image, batch 1, UHRNet / U-Net / hNet (the paper's Table 3 column), fp32
+#      and fp16 + channels_last                                     (uhrnet bench)
+#   2. synthetic data generated there, rendered through EGL (all cores; samples/s)   (fppsim generate)
+#   3. a short AMP training run of UHRNet on it (training samples/s)                 (uhrnet train --amp)
+#   4. one DistributedDataParallel epoch on nccl, world size 1        (torchrun -m uhrnet train)
+#   5. one point of the sim-to-real curve at GPU scale: step 3's model scored on the real pair and real
+#      phase frames in .gpu_data/                                      (uhrnet sim2real --reuse-run)
+# OUTDIR/gpu_check.json and OUTDIR/gpu_check.md hold the numbers, OUTDIR/*.log each step's output
+# (a handful of small files; no checkpoints or datasets: those stay in OUTDIR/work).
+#
+# Environment (optional):
+#   GPU_CHECK_BUDGET  seconds the whole run may take   [600: 10 minutes + a machine start fits in 15]
+#                     (sizes: >= 600 s: 2000 samples, 3 epochs; less: 1200 samples, 2 epochs)
+#   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
+#   PYTHON            the interpreter that holds PyTorch                 [python3]
+# On the lent machine (the device tool): carry .whl .gl .gpu_data and run
+#   bash pipelines/gpu_check.sh run "$OUT"
+set -euo pipefail
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+PY="${PYTHON:-python3}"
+MODE="${1:-run}"
+case "$MODE" in
+  prepare|run) shift || true ;;
+  -h|--help) sed -n '2,29p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  *) MODE=run ;;  # bash gpu_check.sh OUTDIR
+esac
+log() { printf '[gpu_check %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
+
+# The packages the GPU image lacks, at the versions this project is tested with.
+WHEELS=(trimesh==5.2.0 pyrender2==0.2.2 PyOpenGL==3.1.10 pyglet==2.1.19 freetype-py==2.5.1 zlib-ng==1.1.0)
+GL_DEBS=(libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2)          # unpacked over / (glvnd loaders only)
+X11_DEBS=(libxrender1 libx11-6 libxcb1 libxau6 libxdmcp6 libxext6 libbsd0 libmd0)  # pyglet's, beside / if missing
+
+if [ "$MODE" = prepare ]; then
+  mkdir -p .whl .gl/x11
+  plat=(--platform manylinux_2_28_x86_64 --platform manylinux_2_27_x86_64 --platform manylinux_2_17_x86_64
+        --platform manylinux2014_x86_64 --platform manylinux_2_12_x86_64 --platform manylinux2010_x86_64
+        --platform manylinux_2_5_x86_64 --platform manylinux1_x86_64)
+  # the GPU image's Python (3.12) and this machine's (for the CPU dry run)
+  for v in 3.12 "$("$PY" -c 'import sys; print(f"{sys.version_info[0]}.{sys.version_info[1]}")')"; do
+    log "wheels for Python $v -> .whl/"
+    "$PY" -m pip download -q --no-deps --only-binary=:all: --python-version "$v" --implementation cp \
+      "${plat[@]}" -d .whl "${WHEELS[@]}"
+  done
+  if command -v apt-get >/dev/null; then
+    o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/gpu_check_apt)
+    mkdir -p /tmp/gpu_check_apt/partial
+    log "EGL and X11 loader packages -> .gl/"
+    apt-get "${o[@]}" update -qq
+    (cd .gl && apt-get "${o[@]}" download "${GL_DEBS[@]}" 2>/dev/null)
+    (cd .gl/x11 && apt-get "${o[@]}" download "${X11_DEBS[@]}" 2>/dev/null)
+  else
+    log "no apt-get here: .gl/ not filled (the GPU machine must then have libEGL/libOpenGL already)"
+  fi
+  mkdir -p .gpu_data
+  for d in real-sample real-phase meshes; do
+    src="../shared/$d"
+    [ -d "$src" ] || continue
+    rm -rf ".gpu_data/$d"   # .gpu_data is this script's own copy
+    cp -r "$src" ".gpu_data/$d"
+  done
+  log "ready: carry .whl .gl .gpu_data ($(du -sh .whl .gl .gpu_data 2>/dev/null | awk '{print $1}' | paste -sd+ -) ); then: bash pipelines/gpu_check.sh run OUTDIR"
+  exit 0
+fi
+
+OUTDIR="${1:-$ROOT/out/gpu_check}"
+mkdir -p "$OUTDIR"
+OUTDIR="$(cd "$OUTDIR" && pwd)"
+WORK="$OUTDIR/work"
+TINY="${GPU_CHECK_TINY:-0}"
+BUDGET="${GPU_CHECK_BUDGET:-600}"
+[[ "$BUDGET" =~ ^[0-9]+$ ]] && [ "$BUDGET" -ge 60 ] \
+  || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
+T0=$(date +%s)
+left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
+# a step may take CAP seconds, but never what the later steps need (RESERVE)
+limit() { local cap=$1 reserve=$2 l; l=$(( $(left) - reserve )); [ "$l" -lt "$cap" ] && cap=$l; echo $(( cap < 5 ? 5 : cap )); }
+"$PY" -c 'import torch, numpy' 2>/dev/null || { echo "gpu_check: $PY has no PyTorch (set PYTHON=...)" >&2; exit 2; }
+[ -f "$OUTDIR/gpu_check.json" ] && rm -f "$OUTDIR"/step_*.json "$OUTDIR"/gpu_check.json "$OUTDIR"/gpu_check.md  # own files
+rm -rf "$WORK"   # this script's scratch folder
+mkdir -p "$WORK"
+
+# 0. The environment: carried wheels into a private site folder (never pip's network), GL loaders.
+SITE="$WORK/site"
+export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
+if compgen -G ".whl/*.whl" >/dev/null; then
+  mapfile -t whl < <("$PY" pipelines/gpu_check.py wheels .whl)
+  if [ ${#whl[@]} -gt 0 ]; then
+    log "installing ${#whl[@]} carried wheels into $SITE (no index, no network)"
+    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --disable-pip-version-check \
+      --target "$SITE" "${whl[@]}" >"$OUTDIR/setup.log" 2>&1 || { log "wheel install failed (see setup.log)"; }
+    export PYTHONPATH="$PYTHONPATH:$SITE"   # after the image's own packages: theirs win where both exist
+  fi
+fi
+CUDA=$("$PY" -c 'import torch; print(int(torch.cuda.is_available()))')
+if [ "$CUDA" = 1 ]; then
+  export PYOPENGL_PLATFORM=egl
+  if [ "$(id -u)" = 0 ] && compgen -G ".gl/*.deb" >/dev/null && ! ldconfig -p | grep -q 'libEGL.so.1 '; then
+    for f in .gl/*.deb; do dpkg -x "$f" /; done   # the README's recipe: glvnd loaders only
+    ldconfig
+  fi
+  nv=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  [ -f "$nv" ] && export __EGL_VENDOR_LIBRARY_FILENAMES="${__EGL_VENDOR_LIBRARY_FILENAMES:-$nv}"
+else
+  # the CPU dry run renders through OSMesa where it exists, else Mesa's EGL
+  if ldconfig -p 2>/dev/null | grep -q libOSMesa; then export PYOPENGL_PLATFORM=osmesa; else export PYOPENGL_PLATFORM=egl; fi
+  [ "$TINY" = 0 ] && log "no CUDA device: run with GPU_CHECK_TINY=1 for a dry run of the plumbing"
+fi
+if ! ldconfig -p 2>/dev/null | grep -q 'libXrender.so.1 ' && compgen -G ".gl/x11/*.deb" >/dev/null; then
+  # pyglet (imported by pyrender) loads libX11/libXrender even headless; unpacked beside /, not over it
+  for f in .gl/x11/*.deb; do dpkg -x "$f" "$WORK/x11"; done
+  export LD_LIBRARY_PATH="$WORK/x11/usr/lib/x86_64-linux-gnu${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+fi
+NPROC=$(nproc)
+if [ "$TINY" != 0 ]; then
+  H=64; W=128; COUNT=8; EPOCHS=1; BATCH=2; WIDTH=(--base-channels 4); DEV=cpu; REPEATS=(--repeats 1 --warmup 1)
+  GENW=2; AMP=(); [ "$CUDA" = 1 ] && { DEV=cuda; AMP=(--amp); }   # bf16 autocast on a CPU is slow
+elif [ "$BUDGET" -ge 600 ]; then
+  H=352; W=640; COUNT=2000; EPOCHS=3; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 30 --warmup 10)
+  GENW=$NPROC; AMP=(--amp)
+else
+  H=352; W=640; COUNT=1200; EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 20 --warmup 5)
+  GENW=$NPROC; AMP=(--amp)
+fi
+[ "$DEV" = cuda ] && [ "$CUDA" = 0 ] && { echo "gpu_check: no CUDA device here (GPU_CHECK_TINY=1 dry-runs on the CPU)" >&2; exit 2; }
+"$PY" pipelines/gpu_check.py env "$OUTDIR" "$BUDGET" "$TINY" "$PYOPENGL_PLATFORM" >/dev/null
+
+# run_step NAME LIMIT CMD...: time a command into OUTDIR/NAME.log and OUTDIR/step_NAME.json
+run_step() {
+  local name=$1 lim=$2 start rc; shift 2
+  log "step $name (limit ${lim} s): $*"
+  start=$(date +%s.%N)
+  set +e; timeout "$lim" "$@" >"$OUTDIR/$name.log" 2>&1; rc=$?; set -e
+  "$PY" pipelines/gpu_check.py step "$OUTDIR" "$name" "$rc" "$start" "$lim" >/dev/null
+  [ "$rc" = 0 ] || log "step $name failed (exit $rc; see $name.log)"
+  return 0
+}
+
+MESHES=(assets/meshes); [ -d .gpu_data/meshes ] && MESHES+=(.gpu_data/meshes)
+REAL=(); [ -d .gpu_data/real-sample ] && REAL=(.gpu_data/real-sample)
+PHASE=(); for d in .gpu_data/real-phase/*/; do [ -d "$d/PSin" ] && PHASE+=("${d%/}"); done
+
+# 1. Table 3's speed column
+run_step forward_fp32 "$(limit 90 400)" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device "$DEV" \
+  --height "$H" --width "$W" "${REPEATS[@]}" "${WIDTH[@]}" --json "$OUTDIR/forward_fp32.json"
+if [ "$DEV" = cuda ]; then
+  run_step forward_fp16 "$(limit 60 360)" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device cuda \
+    --height "$H" --width "$W" "${REPEATS[@]}" --amp fp16 --channels-last --json "$OUTDIR/forward_fp16.json"
+fi
+# 2. data generated there, through EGL on the GPU (the recipe's generator settings, figshare layout)
+run_step generate "$(limit 150 240)" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
+  --count "$COUNT" --seed 100 --workers "$GENW" --no-psp --format figshare --backend "$PYOPENGL_PLATFORM" --no-preview
+# 3. UHRNet, AMP, on that data (the sim-to-real gpu scale's loss, batch and lr); 5 reuses the run
+TRAIN=(--synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --loss compound --epochs "$EPOCHS" --batch-size "$BATCH"
+       --lr 3e-4 --seed 0 "${AMP[@]}" --device "$DEV" --no-progress)
+run_step train "$(limit 330 90)" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"
+# 4. DDP on nccl (gloo without CUDA), world size 1, one short epoch (gloo on the loopback: the dry run's
+#    network namespace has no other interface)
+export GLOO_SOCKET_IFNAME="${GLOO_SOCKET_IFNAME:-lo}"
+run_step ddp "$(limit "$([ "$TINY" != 0 ] && echo 240 || echo 90)" 45)" "$PY" -m torch.distributed.run --standalone --nproc_per_node 1 -m uhrnet train \
+  --synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --epochs 1 --samples-per-epoch $(( 4 * BATCH )) \
+  --batch-size "$BATCH" "${AMP[@]}" --seed 0 --no-progress --out "$WORK/ddp"
+# 5. the sim-to-real point: step 3's run scored on the real data that travelled
+if [ ${#REAL[@]} -gt 0 ] && [ -f "$WORK/run/last.pt" ]; then
+  S2R=(--scale "$([ "$DEV" = cuda ] && echo gpu || echo cpu)" --real "${REAL[@]}" --out "$WORK/s2r" --count "$COUNT" --seed 100 --epochs "$EPOCHS"
+       --batch-size "$BATCH" --lr 3e-4 --model uhrnet --device "$DEV" --reuse-run "default=$WORK/run" --no-figures)
+  [ ${#PHASE[@]} -gt 0 ] && S2R+=(--real-phase "${PHASE[@]}")
+  [ "$TINY" != 0 ] && S2R+=(--base-channels 4)
+  run_step sim2real "$(limit 120 5)" "$PY" -m uhrnet sim2real "${S2R[@]}"
+else
+  log "step sim2real skipped: $([ ${#REAL[@]} -eq 0 ] && echo 'no .gpu_data/real-sample (run prepare)' || echo 'no trained run')"
+fi
+"$PY" pipelines/gpu_check.py report "$OUTDIR" >/dev/null
+log "done in $(( $(date +%s) - T0 )) s of a ${BUDGET} s budget: $OUTDIR/gpu_check.md"
+cat "$OUTDIR/gpu_check.md"
