@@ -390,7 +390,8 @@ def run_export(args) -> int:
                           width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
                           optimize=not args.no_optimize, runtime=args.runtime)
     summary = export_checkpoint(config)
-    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
+    shape = f"{summary['entries']} entries" if "entries" in summary else f"input {summary['input_shape']}"
+    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, {shape})")
     if summary["check"] is not None:
         r = summary["check"]
         where = f" ({summary['runtime']})" if summary.get("runtime") else ""

@@ -25,6 +25,7 @@ from uhrnet.reference_weights import (
     from_reference_state_dict,
     key_table,
     read_reference_file,
+    reference_output_affine,
     to_reference_state_dict,
 )
 
@@ -228,6 +229,16 @@ def test_library_errors_name_the_first_bad_key():
         from_reference_state_dict(build_model("uhrnet", base_channels=8).state_dict(), base_channels=8)
     with pytest.raises(CheckpointError, match="missing key"):
         to_reference_state_dict(ref, base_channels=8)
+
+
+def test_label_head_and_transform_become_figshare_labels():
+    figshare = PRESETS["figshare"].to_dict()
+    ckpt = {"output": {"scale": 60.0, "shift": -97.0}, "label_transform": figshare}
+    assert reference_output_affine(ckpt) == (60.0, -97.0)  # uhrnet train's head, already figshare labels
+    # labels of 10 units per mm with the plane at 0: Z = 6 * (label / 10) - 97
+    other = {**figshare, "name": "mine", "units_per_mm": 10.0, "plane_offset": 0.0}
+    a, b = reference_output_affine({"output": {"scale": 1.0, "shift": 0.0}, "label_transform": other})
+    assert a == pytest.approx(0.6, rel=1e-12) and b == pytest.approx(-97.0, rel=1e-12)
 
 
 def test_reads_bare_wrapped_and_dataparallel_files(tmp_path):
