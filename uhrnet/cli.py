@@ -9,6 +9,7 @@ config of the library, which validates itself, and calls one plain function a Py
     predict         -> uhrnet.predict(PredictConfig)
     bench           -> uhrnet.bench.bench(BenchConfig)
     export          -> uhrnet.export.export_checkpoint(ExportConfig)
+    import-weights  -> uhrnet.reference_weights.import_weights(ImportWeightsConfig)
     sim2real        -> uhrnet.sim2real.run_sim2real(Sim2RealConfig)
 
 Choices (models, losses, label presets, split modes) are listed from the library's registries. Only
@@ -353,7 +354,7 @@ def run_evaluate_phase(args) -> int:
 
 # ============================================================================ export
 def add_export(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, FORMATS, OPSET_RANGE, RUNTIMES
+    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, EXPORT_FORMATS, OPSET_RANGE, RUNTIMES
 
     parser.description = (
         "Export a checkpoint's model (batch norms folded: the same function) as ONNX or "
@@ -361,11 +362,15 @@ def add_export(parser: argparse.ArgumentParser) -> None:
         f"--check runs the export (ONNX: under --runtime; TorchScript: torch.jit.load) and the checkpoint's model on a seeded input "
         f"(uniform in [-1, 1], seed 0) and fails (exit 1) unless max |difference| <= {CHECK_RTOL:g} x the range "
         "(max - min) of the checkpoint model's output; the export is checked under a temporary name and only a "
-        "passing one replaces --out. --out may not be a uhrnet checkpoint."
+        "passing one replaces --out. --out may not be a uhrnet checkpoint. "
+        "--format reference writes {'state_dict': ...} for the authors' reference code (fead1/UHRNet: "
+        "UHRNet().load_state_dict(strict=True)): only UHRNet at base width 64, height head, 1 in / 1 out channel; "
+        "the network then outputs figshare labels (Z; Z / 6 = mm); --check reads the file back and compares."
     )
     parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
-    parser.add_argument("--format", choices=FORMATS, default="onnx", help="default: onnx")
-    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt)")
+    parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx",
+                        help="onnx, torchscript, or reference (the reference code's weights file) (default: onnx)")
+    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt / .pth)")
     parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
     parser.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime",
                         help="what runs the ONNX file for --check: onnxruntime (default) or openvino (its CPU "
@@ -385,11 +390,42 @@ def run_export(args) -> int:
                           width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
                           optimize=not args.no_optimize, runtime=args.runtime)
     summary = export_checkpoint(config)
-    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, input {summary['input_shape']})")
+    shape = f"{summary['entries']} entries" if "entries" in summary else f"input {summary['input_shape']}"
+    print(f"wrote {summary['path']} ({summary['format']}, {summary['model']}, {shape})")
     if summary["check"] is not None:
         r = summary["check"]
         where = f" ({summary['runtime']})" if summary.get("runtime") else ""
         print(f"check passed{where}: max |exported - checkpoint| = {r['max_abs_diff']:.3g} <= {r['tolerance']:.3g}")
+    return 0
+
+
+# ============================================================================ import-weights
+def add_import_weights(parser: argparse.ArgumentParser) -> None:
+    from uhrnet.reference_weights import IMPORT_FORMATS, REFERENCE_FORMAT
+
+    parser.description = (
+        "Turn published weights into a uhrnet run folder (best.pt = last.pt, config.json) that predict, "
+        "evaluate, evaluate-phase, adapt and export read. --format reference: the authors' reference code "
+        "(fead1/UHRNet, UHRNet_weight.pth): a state dict, bare or under 'state_dict' (a DataParallel 'module.' "
+        "prefix is dropped), every key and shape checked; the model is uhrnet (base 64, fusion blocks), its "
+        "output figshare labels (figshare label preset: mm = (Z - plane offset) / 6, so differences are the "
+        "reference evaluation's Z / 6). Fine-tune it with train --init-from RUN --raw-output."
+    )
+    parser.add_argument("source", type=Path, metavar="FILE", help="weights file (e.g. UHRNet_weight.pth)")
+    parser.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder to write")
+    parser.add_argument("--format", choices=IMPORT_FORMATS, default=REFERENCE_FORMAT,
+                        help=f"layout of FILE (default: {REFERENCE_FORMAT})")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace a run already in --out (without it such a folder is refused)")
+
+
+def run_import_weights(args) -> int:
+    from uhrnet.reference_weights import ImportWeightsConfig, import_weights
+
+    result = import_weights(ImportWeightsConfig(source=args.source, out=args.out, format=args.format,
+                                                overwrite=args.overwrite))
+    print(f"import-weights: {result['entries']} entries, {result['parameters']:,} parameters from "
+          f"{result['source']} (sha256 {result['sha256'][:12]}) -> {result['checkpoint']} (uhrnet, figshare labels)")
     return 0
 
 
@@ -753,7 +789,10 @@ COMMANDS: dict[str, Command] = {
                      "fine-tune a model on unlabelled real fringe images through the rig (fringe consistency)"),
     "bench": Command(add_bench, run_bench, "parameters, forward/training-step time and peak memory per model"),
     "export": Command(add_export, run_export,
-                      "export a checkpoint as ONNX or TorchScript (batch norms folded), with --check"),
+                      "export a checkpoint as ONNX or TorchScript (batch norms folded), or as the reference "
+                      "code's weights (--format reference), with --check"),
+    "import-weights": Command(add_import_weights, run_import_weights,
+                              "make a run folder from the reference code's UHRNet weights (UHRNet_weight.pth)"),
     "sim2real": Command(add_sim2real, run_sim2real,
                         "sim-to-real experiment: generate synthetic data, train on it alone, evaluate on real data"),
 }

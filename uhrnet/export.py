@@ -14,6 +14,9 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 (max - min of the reference output)``, with ``CHECK_RTOL = 1e-4`` (a floor of 1e-6 on the range).
 :func:`export_checkpoint` checks the file under a staging name next to ``out`` and moves it onto
 ``out`` only when it passes, so a failed check leaves an existing ``out`` as it was.
+
+``format="reference"`` writes the weights for the authors' reference code instead
+(:func:`uhrnet.reference_weights.export_reference`: ``{'state_dict': ...}`` for their ``UHRNet()``).
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from uhrnet.models import prediction_of
 
 CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
+WEIGHT_FORMATS = ("reference",)  # weights for another code base (uhrnet.reference_weights), not a traced graph
+EXPORT_FORMATS = FORMATS + WEIGHT_FORMATS
 RUNTIMES = ("onnxruntime", "openvino")  # what runs an ONNX file
 DEFAULT_OPSET = 17
 # torch's TorchScript-based ONNX exporter writes opsets 7-20; each gave the eager output under both
@@ -63,8 +68,8 @@ class ExportConfig:
         lo, hi = OPSET_RANGE
         if self.format == "onnx" and not lo <= self.opset <= hi:
             raise UsageError(f"--opset must be between {lo} and {hi}, got {self.opset}")
-        if self.format not in FORMATS:
-            raise ExportError(f"unknown format {self.format!r}; choose from {', '.join(FORMATS)}")
+        if self.format not in EXPORT_FORMATS:
+            raise ExportError(f"unknown format {self.format!r}; choose from {', '.join(EXPORT_FORMATS)}")
         if self.runtime not in RUNTIMES:
             raise ExportError(f"unknown runtime {self.runtime!r}; choose from {', '.join(RUNTIMES)}")
         if self.runtime != "onnxruntime" and self.format != "onnx":
@@ -285,6 +290,10 @@ def export_checkpoint(config: ExportConfig) -> dict:
         raise ExportError(f"{out}: is the checkpoint being exported; choose another --out")
     if out.is_file() and _is_checkpoint(out):
         raise ExportError(f"{out}: is a uhrnet checkpoint; choose another --out (an export would replace it)")
+    if config.format in WEIGHT_FORMATS:
+        from .reference_weights import export_reference
+
+        return export_reference(ckpt, out, config.check, (1, 1, config.height, config.width))
     model, _ = model_from_checkpoint(ckpt)
     in_channels = int(ckpt["model"]["config"].get("in_channels", 1))
     shape = (1, in_channels, config.height, config.width)
