@@ -23,8 +23,9 @@ Batch norm and dropout stay in evaluation mode (two or three images cannot re-es
 The run folder holds ``last.pt`` (a checkpoint ``predict``/``evaluate`` accept, with the source's
 training record and this adaptation's), ``history.csv`` (one row per epoch: the loss terms), ``images.json`` (each image's median
 wrapped residual before and after, rad), ``config.json`` and ``figures/<image>_adapt.png`` (before /
-after / difference and the phase residuals). Re-running the same command resumes; a folder holding
-another run is refused unless ``overwrite``.
+after / difference and the phase residuals); with ``tensorboard`` the loss terms per step and epoch and
+the first image's height per epoch in ``tensorboard/`` (:mod:`uhrnet.tb_log`). Re-running the same
+command resumes; a folder holding another run is refused unless ``overwrite``.
 """
 
 from __future__ import annotations
@@ -87,6 +88,7 @@ class AdaptConfig:
     overwrite: bool = False
     figures: bool = True
     progress: bool = True
+    tensorboard: bool = False  # also log to out/tensorboard/ (uhrnet.tb_log; the optional tensorboard package)
 
     def __post_init__(self):
         if isinstance(self.images, (str, Path)):
@@ -103,6 +105,10 @@ class AdaptConfig:
                 raise UsageError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {v!r}")
         if self.w_grad + self.w_wrap == 0:
             raise UsageError("adapt needs a phase term: --w-grad or --w-wrap must be > 0")
+        if self.tensorboard:
+            from uhrnet.tb_log import require_tensorboard
+
+            require_tensorboard()
 
     def record(self) -> dict:
         d = asdict(self)
@@ -238,7 +244,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         if "adapt" not in prev:
             raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out "
                               "(or --overwrite to replace it)")
-        free = ("epochs", "progress", "figures", "overwrite", "resume", "device")  # may change on resume
+        free = ("epochs", "progress", "figures", "overwrite", "resume", "device", "tensorboard")  # may change on resume
         same = {k: v for k, v in prev["adapt"]["config"].items() if k not in free}
         now = {k: v for k, v in cfg.record().items() if k not in free}
         same = {k: v for k, v in same.items() if k in now}
@@ -288,10 +294,13 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         from tqdm import tqdm
 
         bar = tqdm(total=(cfg.epochs - start) * len(images), desc="adapt", unit="step", dynamic_ncols=True)
+    from uhrnet.tb_log import TB_FOLDER, RunLog
+
+    tb = RunLog(out / TB_FOLDER if cfg.tensorboard and start < cfg.epochs else None, start * len(images))
     for epoch in range(start, int(cfg.epochs)):
         t0 = time.perf_counter()
         sums = {"loss": 0.0, "grad": 0.0, "wrap": 0.0, "drift": 0.0}
-        for i in torch.randperm(len(images), generator=gen).tolist():
+        for k, i in enumerate(torch.randperm(len(images), generator=gen).tolist()):
             x, phi, rho = batch(images[i])
             h = to_mm(model(x))
             loss, terms = adapt_loss(h, sources[i], phi, rho, layer, cfg.w_grad, cfg.w_wrap, cfg.w_drift,
@@ -302,6 +311,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
             optim.zero_grad(set_to_none=True)
             loss.backward()
             optim.step()
+            tb.step(epoch * len(images) + k + 1, loss.detach(), cfg.lr, terms)
             sums["loss"] += float(loss.detach()) / len(images)
             for k, v in terms.items():
                 sums[k] += v / len(images)
@@ -310,6 +320,11 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
                 bar.set_postfix(loss=f"{float(loss):.4g}", refresh=False)
         row = {"epoch": epoch + 1, **sums, "lr": cfg.lr, "seconds": time.perf_counter() - t0}
         history.append(row)
+        if tb.enabled:  # the first image's height and its change from the source model's, flushed before last.pt
+            with torch.no_grad():
+                tb.height_images((epoch + 1) * len(images), "adapt_image", to_mm(model(batch(images[0])[0])),
+                                 sources[0], images[0].reliability > 0, "change", images[0].name)
+            tb.epoch((epoch + 1) * len(images), row)
         payload = {k: v for k, v in source.items() if k not in ("path", "optimizer", "scaler", "loss", "rng")}
         payload.update({
             "state_dict": model.net.state_dict(), "epoch": int(source.get("epoch", 0)),
@@ -325,6 +340,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
                 f"wrap {sums['wrap']:.4g}  drift {sums['drift']:.4g}  {row['seconds']:.1f}s")
     if bar is not None:
         bar.close()
+    tb.close()
     result = AdaptResult(out, max(int(cfg.epochs), start), history)
     with torch.no_grad():
         afters = [to_mm(model(batch(im)[0])) for im in images]

@@ -140,6 +140,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "config are replaced); without it such a folder is refused")
     r.add_argument("--device", choices=DEVICES, help="[auto: cuda when available]")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
+    r.add_argument("--tensorboard", action="store_true",
+                   help="also log losses, learning rate, validation RMSE/SSIM and a prediction image per epoch to "
+                        "RUN_DIR/tensorboard/ (needs the optional tensorboard package)")
 
 
 def train_options(args) -> dict:
@@ -759,6 +762,9 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-figures", action="store_true", help="skip the before/after figures")
     p.add_argument("--device", choices=DEVICES, default="cpu", help="[cpu]")
     p.add_argument("--no-progress", action="store_true", help="one line per epoch instead of a progress bar")
+    p.add_argument("--tensorboard", action="store_true",
+                   help="also log the loss and its terms, the learning rate and the first image's height per epoch "
+                        "to DIR/tensorboard/ (needs the optional tensorboard package)")
 
 
 def run_adapt(args) -> int:
@@ -767,7 +773,8 @@ def run_adapt(args) -> int:
     cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
                       epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_wrap=args.w_wrap, w_drift=args.w_drift,
                       max_step=args.max_step, min_reliability=args.min_reliability, device=args.device, seed=args.seed,
-                      overwrite=args.overwrite, figures=not args.no_figures, progress=not args.no_progress)
+                      overwrite=args.overwrite, figures=not args.no_figures, progress=not args.no_progress,
+                      tensorboard=args.tensorboard)
     result = adapt(cfg, log=lambda line: print(line, flush=True))
     for im in result.images:
         print(f"adapt {im['name']}: median phase residual {im['before_rad']:.3f} -> {im['after_rad']:.3f} rad, "

@@ -78,7 +78,9 @@ class TrainConfig:
     fppsim's default rig); the checkpoint carries it. The phase head needs full camera-size images (no
     ``crop``/``resize``: each pixel is a camera ray).
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
-    ``best.pt`` and every later use of the checkpoint see (0: off). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    ``best.pt`` and every later use of the checkpoint see (0: off). ``tensorboard``: also log to
+    ``out/tensorboard/`` (:mod:`uhrnet.tb_log`; needs the optional ``tensorboard`` package; like
+    ``progress``, free to change on resume). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
     """
 
@@ -120,8 +122,13 @@ class TrainConfig:
     resume: str | None = None
     overwrite: bool = False
     progress: bool = True
+    tensorboard: bool = False
 
     def __post_init__(self):
+        if self.tensorboard:  # a missing optional package stops the run before anything is read or written
+            from uhrnet.tb_log import require_tensorboard
+
+            require_tensorboard()
         for key in ("real", "synthetic"):
             value = getattr(self, key)
             if isinstance(value, (str, os.PathLike)):

@@ -6,8 +6,9 @@ process layout under torchrun in :mod:`uhrnet.distributed`; this module is the l
 
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
 ``RUN/history.png`` (the paper's Fig. 6); ``RUN/last.pt`` is written atomically after every epoch and
-``RUN/best.pt`` whenever the validation RMSE improves. ``--resume`` continues a run exactly (model,
-optimizer, loss ranks, RNG streams, data order). ``--init-from CKPT`` starts a fresh run from a
+``RUN/best.pt`` whenever the validation RMSE improves; ``--tensorboard`` logs the same numbers, the
+loss per step and a prediction image per epoch to ``RUN/tensorboard/`` (:mod:`uhrnet.tb_log`).
+``--resume`` continues a run exactly (model, optimizer, loss ranks, RNG streams, data order). ``--init-from CKPT`` starts a fresh run from a
 checkpoint's weights (transfer learning; :func:`uhrnet.checkpoint.init_from_checkpoint`), ``--freeze
 PART`` keeps a part of them fixed (:mod:`uhrnet.models.freeze`). Under ``torchrun --nproc_per_node N -m uhrnet train``
 it runs DistributedDataParallel (gloo on CPU, nccl on GPU); only rank 0 writes.
@@ -36,6 +37,7 @@ from uhrnet.metrics import image_metrics
 from uhrnet.models import outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
 from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
+from uhrnet.tb_log import TB_FOLDER, RunLog
 from uhrnet.train_config import LR_FLAT, LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
 __all__ = ["TrainConfig", "Trainer", "train"]
@@ -61,6 +63,7 @@ class Trainer:
         if self.device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
+        self.tb = RunLog()  # --tensorboard: fit() opens it on rank 0
         self._build()
 
     # -- construction -------------------------------------------------------------------------------
@@ -263,6 +266,7 @@ class Trainer:
             self.scaler.update()
             if self.ema is not None:
                 self.ema.update()
+            self.tb.step(epoch * len(self.loader) + step + 1, loss.detach(), self.optimizer.param_groups[0]["lr"])
             sums.add("loss", loss.detach().double().cpu().reshape(1))
             r, s = image_metrics(outs[0], y, m, self.transform)
             sums.add("rmse", r)
@@ -369,6 +373,9 @@ class Trainer:
             if info.main:
                 print(f"already trained {self.start_epoch} epochs (--epochs {cfg['epochs']}); nothing to do")
             return 0
+        if info.main and self.args.tensorboard:
+            self.tb = RunLog(self.out / TB_FOLDER, self.start_epoch * len(self.loader), self.loss_fn)
+            print(f"tensorboard: tensorboard --logdir {self.out / TB_FOLDER}", flush=True)
         for epoch in range(self.start_epoch, cfg["epochs"]):
             t0 = time.perf_counter()
             try:
@@ -393,6 +400,9 @@ class Trainer:
             self.history.append(row)
             rng = self._gather_rng()
             if info.main:
+                self.tb.validation_images((epoch + 1) * len(self.loader), self.eval_model, self.val_set,
+                                          self.transform, self.device)
+                self.tb.epoch((epoch + 1) * len(self.loader), row)  # flushed before the checkpoint
                 save_epoch(self.out, self._payload(epoch + 1, rng), is_best)
                 write_history(self.history, self.out)
                 val = (f"  val RMSE {row['val_rmse_mm']:.3f} mm  val SSIM {row['val_ssim']:.4f}"
@@ -400,6 +410,7 @@ class Trainer:
                 print(f"epoch {epoch + 1}/{cfg['epochs']}  loss {row['train_loss']:.4g}  train RMSE "
                       f"{row['train_rmse_mm']:.3f} mm{val}  {row['seconds']:.1f}s" + ("  *best" if is_best else ""),
                       flush=True)
+        self.tb.close()
         if info.enabled:
             dist.barrier()
         if info.main:
