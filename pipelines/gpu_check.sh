@@ -22,7 +22,7 @@
 #
 # Environment (optional):
 #   GPU_CHECK_BUDGET  seconds the whole run may take   [600: 10 minutes + a machine start fits in 15]
-#                     (sizes: >= 600 s: 2000 samples, 3 epochs; less: 1200 samples, 2 epochs)
+#                     (sizes: >= 600 s: 2000 samples, 3 epochs; >= 400 s: 1200, 2; less: 800, 2)
 #   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
 # On the lent machine (the device tool): carry .whl .gl .gpu_data and run
@@ -86,7 +86,7 @@ BUDGET="${GPU_CHECK_BUDGET:-600}"
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
 T0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
-# a step may take CAP seconds, but never what the later steps need (RESERVE)
+# a step may take CAP seconds, but never what the later steps need (RESERVE: a share of the budget)
 limit() { local cap=$1 reserve=$2 l; l=$(( $(left) - reserve )); [ "$l" -lt "$cap" ] && cap=$l; echo $(( cap < 5 ? 5 : cap )); }
 "$PY" -c 'import torch, numpy' 2>/dev/null || { echo "gpu_check: $PY has no PyTorch (set PYTHON=...)" >&2; exit 2; }
 [ -f "$OUTDIR/gpu_check.json" ] && rm -f "$OUTDIR"/step_*.json "$OUTDIR"/gpu_check.json "$OUTDIR"/gpu_check.md  # own files
@@ -132,8 +132,8 @@ elif [ "$BUDGET" -ge 600 ]; then
   H=352; W=640; COUNT=2000; EPOCHS=3; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 30 --warmup 10)
   GENW=$NPROC; AMP=(--amp)
 else
-  H=352; W=640; COUNT=1200; EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 20 --warmup 5)
-  GENW=$NPROC; AMP=(--amp)
+  H=352; W=640; COUNT=$([ "$BUDGET" -ge 400 ] && echo 1200 || echo 800); EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda
+  REPEATS=(--repeats 20 --warmup 5); GENW=$NPROC; AMP=(--amp)
 fi
 [ "$DEV" = cuda ] && [ "$CUDA" = 0 ] && { echo "gpu_check: no CUDA device here (GPU_CHECK_TINY=1 dry-runs on the CPU)" >&2; exit 2; }
 "$PY" pipelines/gpu_check.py env "$OUTDIR" "$BUDGET" "$TINY" "$PYOPENGL_PLATFORM" >/dev/null
@@ -154,23 +154,23 @@ REAL=(); [ -d .gpu_data/real-sample ] && REAL=(.gpu_data/real-sample)
 PHASE=(); for d in .gpu_data/real-phase/*/; do [ -d "$d/PSin" ] && PHASE+=("${d%/}"); done
 
 # 1. Table 3's speed column
-run_step forward_fp32 "$(limit 90 400)" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device "$DEV" \
+run_step forward_fp32 "$(limit 90 $(( BUDGET * 70 / 100 )))" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device "$DEV" \
   --height "$H" --width "$W" "${REPEATS[@]}" "${WIDTH[@]}" --json "$OUTDIR/forward_fp32.json"
 if [ "$DEV" = cuda ]; then
-  run_step forward_fp16 "$(limit 60 360)" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device cuda \
+  run_step forward_fp16 "$(limit 60 $(( BUDGET * 62 / 100 )))" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device cuda \
     --height "$H" --width "$W" "${REPEATS[@]}" --amp fp16 --channels-last --json "$OUTDIR/forward_fp16.json"
 fi
 # 2. data generated there, through EGL on the GPU (the recipe's generator settings, figshare layout)
-run_step generate "$(limit 150 240)" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
+run_step generate "$(limit 150 $(( BUDGET * 45 / 100 )))" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
   --count "$COUNT" --seed 100 --workers "$GENW" --no-psp --format figshare --backend "$PYOPENGL_PLATFORM" --no-preview
 # 3. UHRNet, AMP, on that data (the sim-to-real gpu scale's loss, batch and lr); 5 reuses the run
 TRAIN=(--synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --loss compound --epochs "$EPOCHS" --batch-size "$BATCH"
        --lr 3e-4 --seed 0 "${AMP[@]}" --device "$DEV" --no-progress)
-run_step train "$(limit 330 90)" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"
+run_step train "$(limit 330 $(( BUDGET * 15 / 100 )))" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"
 # 4. DDP on nccl (gloo without CUDA), world size 1, one short epoch (gloo on the loopback: the dry run's
 #    network namespace has no other interface)
 export GLOO_SOCKET_IFNAME="${GLOO_SOCKET_IFNAME:-lo}"
-run_step ddp "$(limit "$([ "$TINY" != 0 ] && echo 240 || echo 90)" 45)" "$PY" -m torch.distributed.run --standalone --nproc_per_node 1 -m uhrnet train \
+run_step ddp "$(limit "$([ "$TINY" != 0 ] && echo 240 || echo 90)" $(( BUDGET * 8 / 100 )))" "$PY" -m torch.distributed.run --standalone --nproc_per_node 1 -m uhrnet train \
   --synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --epochs 1 --samples-per-epoch $(( 4 * BATCH )) \
   --batch-size "$BATCH" "${AMP[@]}" --seed 0 --no-progress --out "$WORK/ddp"
 # 5. the sim-to-real point: step 3's run scored on the real data that travelled
@@ -179,7 +179,7 @@ if [ ${#REAL[@]} -gt 0 ] && [ -f "$WORK/run/last.pt" ]; then
        --batch-size "$BATCH" --lr 3e-4 --model uhrnet --device "$DEV" --reuse-run "default=$WORK/run" --no-figures)
   [ ${#PHASE[@]} -gt 0 ] && S2R+=(--real-phase "${PHASE[@]}")
   [ "$TINY" != 0 ] && S2R+=(--base-channels 4)
-  run_step sim2real "$(limit 120 5)" "$PY" -m uhrnet sim2real "${S2R[@]}"
+  run_step sim2real "$(limit 120 3)" "$PY" -m uhrnet sim2real "${S2R[@]}"
 else
   log "step sim2real skipped: $([ ${#REAL[@]} -eq 0 ] && echo 'no .gpu_data/real-sample (run prepare)' || echo 'no trained run')"
 fi

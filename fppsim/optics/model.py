@@ -291,6 +291,9 @@ class OpticsModel:
             "OpticsRanges", [(p.name, tuple[float, float] if p.is_number else type(p.default),
                               field(default=tuple(map(float, p.sample)) if p.is_number else p.default)) for p in params],
             bases=(_RangesMethods,), namespace=ns | {"__doc__": self._doc_ranges()})
+        # Python >= 3.12's make_dataclass sets __module__ to its caller (this module) over the namespace's;
+        # pickling (spawned generator workers) looks the classes up where they are published
+        self.Optics.__module__ = self.OpticsRanges.__module__ = ns["__module__"]
 
     def at(self, site: str) -> tuple[Effect, ...]:
         """The effects acting at ``site``, in order."""

@@ -158,3 +158,17 @@ def test_declarations_are_checked():
         OpticsModel((SHADING, SHADING))
     with pytest.raises(ValueError, match="must declare sample"):
         Param("half", 0.5, (0.0, 1.0))
+
+
+def test_optics_classes_pickle_by_their_published_name():
+    """Spawned generator workers receive OpticsRanges by pickle: the derived classes must be found where
+    fppsim.optics publishes them (Python 3.12's make_dataclass had set __module__ to fppsim.optics.model,
+    which broke `generate --workers 2` there)."""
+    import pickle
+
+    from fppsim.optics import Optics, OpticsRanges
+
+    for cls in (Optics, OpticsRanges):
+        assert cls.__module__ == "fppsim.optics"
+        obj = cls()
+        assert pickle.loads(pickle.dumps(obj)) == obj
