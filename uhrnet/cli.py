@@ -411,8 +411,8 @@ def add_import_weights(parser: argparse.ArgumentParser) -> None:
         "evaluate, evaluate-phase, adapt and export read. --format reference: the authors' reference code "
         "(fead1/UHRNet, UHRNet_weight.pth): a state dict, bare or under 'state_dict' (a DataParallel 'module.' "
         "prefix is dropped), every key and shape checked; the model is uhrnet (base 64, fusion blocks), its "
-        "output figshare labels (figshare label preset: mm = (Z - plane offset) / 6, so differences are the "
-        "reference evaluation's Z / 6). Fine-tune it with train --init-from RUN --raw-output."
+        "output figshare labels (figshare label preset, mm = (Z - plane offset) / 6: by default Z / 6, the "
+        "reference evaluation's own millimetres). Fine-tune it with train --init-from RUN --raw-output."
     )
     parser.add_argument("source", type=Path, metavar="FILE", help="weights file (e.g. UHRNet_weight.pth)")
     parser.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder to write")
@@ -420,13 +420,17 @@ def add_import_weights(parser: argparse.ArgumentParser) -> None:
                         help=f"layout of FILE (default: {REFERENCE_FORMAT})")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a run already in --out (without it such a folder is refused)")
+    parser.add_argument("--plane-offset", type=float, default=0.0, metavar="LABEL",
+                        help="label of height 0: 0 gives Z / 6 mm exactly as the reference code's evaluation; "
+                             "-97 gives heights above the figshare reference plane like the rest of uhrnet "
+                             "(default: 0)")
 
 
 def run_import_weights(args) -> int:
     from uhrnet.reference_weights import ImportWeightsConfig, import_weights
 
     result = import_weights(ImportWeightsConfig(source=args.source, out=args.out, format=args.format,
-                                                overwrite=args.overwrite))
+                                                overwrite=args.overwrite, plane_offset=args.plane_offset))
     print(f"import-weights: {result['entries']} entries, {result['parameters']:,} parameters from "
           f"{result['source']} (sha256 {result['sha256'][:12]}) -> {result['checkpoint']} (uhrnet, figshare labels)")
     return 0

@@ -23,7 +23,9 @@ folder that ``predict``, ``evaluate``, ``evaluate-phase``, ``adapt``, ``export``
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import math
 import pickle
 import re
 from collections.abc import Mapping
@@ -251,10 +253,15 @@ class ImportWeightsConfig:
     out: Path
     format: str = REFERENCE_FORMAT
     overwrite: bool = False
+    plane_offset: float = 0.0  # label of height 0: 0 -> predict writes Z / 6 exactly as the reference evaluation
 
     def __post_init__(self):
         if self.format not in IMPORT_FORMATS:
             raise UsageError(f"--format must be one of {', '.join(IMPORT_FORMATS)}, got {self.format!r}")
+        self.plane_offset = float(self.plane_offset)
+        if not math.isfinite(self.plane_offset) or self.plane_offset <= PRESETS["figshare"].invalid_threshold:
+            raise UsageError(f"--plane-offset must be a finite label above the invalid threshold "
+                             f"{PRESETS['figshare'].invalid_threshold:g}, got {self.plane_offset!r}")
         self.source, self.out = Path(self.source), Path(self.out)
 
 
@@ -262,9 +269,11 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     """Turn a reference weights file into a run folder ``config.out``: ``best.pt`` (and the identical
     ``last.pt``) with the ``uhrnet`` model (base 64, fusion), its weights mapped by
     :func:`from_reference_state_dict`, network output = label (``output`` scale 1, shift 0) and the
-    ``figshare`` label transform, so ``predict`` writes ``(Z - plane_offset) / 6`` mm (height above the
-    reference plane; differences are the reference evaluation's ``Z / 6``); plus ``config.json`` naming the
-    source and its SHA-256. ``epoch`` is 0 and there is nothing to ``--resume``.
+    ``figshare`` label transform with ``plane_offset`` = ``config.plane_offset``, so ``predict`` writes
+    ``(Z - plane_offset) / 6`` mm: with the default 0 exactly the reference evaluation's ``Z / 6`` (the
+    reference code's own numbers); -97 gives heights above the figshare reference plane as the rest of this
+    project reports them (differences, and so RMSE, are the same either way); plus ``config.json`` naming
+    the source and its SHA-256. ``epoch`` is 0 and there is nothing to ``--resume``.
 
     Returns ``{"out", "checkpoint", "entries", "parameters", "source", "sha256"}``. Raises
     :class:`CheckpointError` for a file that does not fit, :class:`ConfigError` for an ``out`` that holds a
@@ -280,7 +289,7 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     ours = from_reference_state_dict(state, what=str(config.source))
     net = build_model("uhrnet", **REFERENCE_CONFIG)
     net.load_state_dict(ours)  # strict: the keys and shapes were checked above
-    transform = PRESETS["figshare"]
+    transform = dataclasses.replace(PRESETS["figshare"], plane_offset=config.plane_offset)
     out = config.out
     try:
         check_writable_dir(out)
@@ -329,6 +338,16 @@ def check_exportable(ckpt: dict) -> None:
             raise ExportError(f"{where} is UHRNet with {key}={want}; this checkpoint has {key}={config.get(key)!r}")
 
 
+def _reference_labels(ckpt: dict, transform: LabelTransform) -> LabelTransform:
+    """The label transform of the reference's output ``Z`` for this checkpoint: the figshare preset, except
+    that weights imported from the reference output its ``Z`` by construction whatever plane offset
+    ``import-weights --plane-offset`` chose for reading ``Z`` as mm."""
+    figshare = PRESETS["figshare"]
+    if (ckpt.get("imported") or {}).get("format") == REFERENCE_FORMAT:
+        return dataclasses.replace(figshare, plane_offset=transform.plane_offset)
+    return figshare
+
+
 def reference_output_affine(ckpt: dict) -> tuple[float, float]:
     """``(a, b)``: figshare label ``Z = a * net(x) + b`` for the checkpoint's bare network (the reference's
     network outputs ``Z`` itself). Combines the checkpoint's label head (``output`` scale, shift) with its
@@ -337,7 +356,8 @@ def reference_output_affine(ckpt: dict) -> tuple[float, float]:
 
     out = ckpt.get("output", {"scale": 1.0, "shift": 0.0})
     scale, shift = float(out["scale"]), float(out["shift"])
-    transform, figshare = LabelTransform.from_dict(ckpt["label_transform"]), PRESETS["figshare"]
+    transform = LabelTransform.from_dict(ckpt["label_transform"])
+    figshare = _reference_labels(ckpt, transform)
     if transform.same_labels(figshare):
         return scale, shift
     a_mm, b_mm = output_mm(scale, shift, transform)
@@ -406,7 +426,7 @@ def _check_reference_file(path: Path, ckpt: dict, input_shape: tuple[int, int, i
     model, transform = model_from_checkpoint(ckpt)
     n, c, h, w = input_shape
     x = check_input(c, h, w).expand(n, c, h, w).contiguous()
-    figshare = PRESETS["figshare"]
+    figshare = _reference_labels(ckpt, transform)
     with torch.no_grad():
         got = bare.eval()(x).double().numpy()
         label = model(x).double()

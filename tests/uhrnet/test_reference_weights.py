@@ -259,7 +259,9 @@ def test_import_weights_then_predict_gives_the_reference_heights(tmp_path, refer
     assert "763 entries, 30,330,977 parameters" in capsys.readouterr().out
     ckpt = load_checkpoint(run)
     assert ckpt["path"].endswith("best.pt") and (run / "last.pt").is_file() and (run / "config.json").is_file()
-    assert ckpt["label_transform"] == PRESETS["figshare"].to_dict() and ckpt["output"] == {"scale": 1.0, "shift": 0.0}
+    # figshare labels read with the plane at Z = 0, so predict's mm are the reference evaluation's Z / 6
+    assert ckpt["label_transform"] == {**PRESETS["figshare"].to_dict(), "plane_offset": 0.0}
+    assert ckpt["output"] == {"scale": 1.0, "shift": 0.0}
     g = torch.Generator().manual_seed(0)
     fringe = (torch.rand(64, 64, generator=g) * 2 - 1).numpy().astype(np.float32)
     np.save(tmp_path / "img.npy", fringe)
@@ -268,8 +270,22 @@ def test_import_weights_then_predict_gives_the_reference_heights(tmp_path, refer
     mm = np.load(tmp_path / "pred" / "img_height.npy")
     with torch.no_grad():
         z = reference_forward(torch.load(reference_file)["state_dict"], torch.from_numpy(fringe)[None, None])[0, 0]
-    # figshare labels: Z / 6 mm per unit (the reference evaluation's), heights above the plane at Z = -97
-    np.testing.assert_allclose(mm, (z.numpy().astype(np.float64) + 97.0) / 6.0, rtol=0, atol=1e-4)
+    # the reference evaluation's millimetres: Z / 6
+    np.testing.assert_allclose(mm, z.numpy().astype(np.float64) / 6.0, rtol=0, atol=1e-4)
+    # --plane-offset -97: heights above the figshare plane instead, as uhrnet's own runs report them
+    assert main(["import-weights", str(reference_file), "--out", str(tmp_path / "run97"), "--plane-offset", "-97"]) == 0
+    assert main(["predict", str(tmp_path / "run97"), str(tmp_path / "img.npy"), "--out", str(tmp_path / "pred97"),
+                 "--keep-all", "--no-ply", "--device", "cpu", "--no-progress"]) == 0
+    mm97 = np.load(tmp_path / "pred97" / "img_height.npy")
+    np.testing.assert_allclose(mm97, (z.numpy().astype(np.float64) + 97.0) / 6.0, rtol=0, atol=1e-4)
+    # either way the exported file is the reference's own weights again
+    for r in ("run", "run97"):
+        out = tmp_path / f"{r}.pth"
+        assert main(["export", str(tmp_path / r), "--format", "reference", "--out", str(out)]) == 0
+        back = torch.load(out)["state_dict"]
+        ref = torch.load(reference_file)["state_dict"]
+        assert all(torch.equal(back[k], ref[k]) for k in ref)
+    assert main(["import-weights", str(reference_file), "--out", str(tmp_path / "bad"), "--plane-offset", "-101"]) == 2
 
 
 @pytest.mark.slow
