@@ -27,6 +27,7 @@
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
 # On the lent machine (the device tool): carry .whl .gl .gpu_data and run
 #   bash pipelines/gpu_check.sh run "$OUT"
+# Offline dry run on a CPU: docs/USAGE.md ("GPU, offline").
 set -euo pipefail
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
@@ -34,7 +35,7 @@ PY="${PYTHON:-python3}"
 MODE="${1:-run}"
 case "$MODE" in
   prepare|run) shift || true ;;
-  -h|--help) sed -n '2,29p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  -h|--help) sed -n '2,30p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
   *) MODE=run ;;  # bash gpu_check.sh OUTDIR
 esac
 log() { printf '[gpu_check %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
@@ -76,14 +77,14 @@ if [ "$MODE" = prepare ]; then
   exit 0
 fi
 
-OUTDIR="${1:-$ROOT/out/gpu_check}"
-mkdir -p "$OUTDIR"
-OUTDIR="$(cd "$OUTDIR" && pwd)"
-WORK="$OUTDIR/work"
 TINY="${GPU_CHECK_TINY:-0}"
 BUDGET="${GPU_CHECK_BUDGET:-600}"
 [[ "$BUDGET" =~ ^[0-9]+$ ]] && [ "$BUDGET" -ge 60 ] \
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
+OUTDIR="${1:-$ROOT/out/gpu_check}"
+mkdir -p "$OUTDIR"
+OUTDIR="$(cd "$OUTDIR" && pwd)"
+WORK="$OUTDIR/work"
 T0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
 # a step may take CAP seconds, but never what the later steps need (RESERVE: a share of the budget)
