@@ -83,7 +83,11 @@ def test_the_command_line_lives_in_one_module_per_package():
 
 # ---------------------------------------------------------------------------- seams (issue 24)
 MAX_LINES = 650
-ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples")
+ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "mean_phasor", "lowpass", "demodulate",
+                  "demodulated_residual", "object_residual")
+TWINS = {"wrap": ["fppsim/phase.py", "uhrnet/rig_layer.py"], "circular_mean": ["fppsim/phase.py", "uhrnet/rig_layer.py"],
+         "_wrap": [], "wrap_phase": []}
+"""Phase helpers: one numpy definition (fppsim.phase) and one torch twin (uhrnet.rig_layer), no private copies."""
 
 
 def _library_modules():
@@ -109,13 +113,16 @@ def test_no_library_module_is_longer_than_the_limit():
 
 def test_shared_helpers_are_defined_once():
     """One plane level, one polynomial plane basis, one name per dataset opener (a torch Dataset:
-    ``uhrnet.data.open_dataset``; a numpy reader: ``fppsim.readers.open_samples``)."""
-    where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION}
+    ``uhrnet.data.open_dataset``; a numpy reader: ``fppsim.readers.open_samples``), one home for the phase
+    helpers and the camera ray cut at a height."""
+    where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION + tuple(TWINS)}
     for pkg in PACKAGES + ("pipelines",):
         for path in sorted((ROOT / pkg).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text())):
                 if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.name in where:
                     where[node.name].append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    twins = {k: sorted(p.split(":")[0] for p in where.pop(k)) for k in TWINS}
+    assert twins == TWINS, twins
     assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
     assert where["open_dataset"][0].startswith("uhrnet/data.py") and where["open_samples"][0].startswith("fppsim/readers/")
     assert where["plane_level"][0].startswith("fppsim/fringe.py") and where["poly_basis"][0].startswith("fppsim/fringe.py")

@@ -42,7 +42,9 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from fppsim.phase import circular_mean, wrap
 from uhrnet.errors import ConfigError, UsageError
+from uhrnet.rig_layer import circular_mean as circular_mean_t, wrap as wrap_t
 
 __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
 
@@ -141,10 +143,6 @@ def image_phase(name: str, fringe: np.ndarray, rig) -> ImagePhase:
     return ImagePhase(name, np.asarray(fringe, np.float32), ssp.wrapped.astype(np.float32), rel)
 
 
-def _wrap(x: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(x), torch.cos(x))
-
-
 def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.Tensor, reliability: torch.Tensor,
                layer, w_grad: float = 1.0, w_wrap: float = 0.5, w_drift: float = 0.5, max_step: float = 1.5,
                min_reliability: float = 0.2, eps: float = 0.05) -> tuple[torch.Tensor, dict]:
@@ -160,7 +158,7 @@ def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.
     for dim in (-1, -2):
         n = phi.shape[dim]
         a, b = (lambda t: t.narrow(dim, 1, n - 1)), (lambda t: t.narrow(dim, 0, n - 1))
-        r = (a(phi) - b(phi)) - _wrap(a(wrapped) - b(wrapped))
+        r = (a(phi) - b(phi)) - wrap_t(a(wrapped) - b(wrapped))
         w = torch.minimum(a(rho), b(rho)) * (r.detach().abs() < max_step)
         g_sum = g_sum + (w * (torch.sqrt(r * r + eps * eps) - eps)).sum()
         g_w = g_w + w.sum()
@@ -168,8 +166,7 @@ def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.
     # wrapped consistency with one phase origin per image
     d = wrapped - phi
     with torch.no_grad():
-        o = torch.atan2((rho * torch.sin(d)).sum(dim=(1, 2, 3), keepdim=True),
-                        (rho * torch.cos(d)).sum(dim=(1, 2, 3), keepdim=True))
+        o = circular_mean_t(d, rho)
     terms["wrap"] = (rho * (1 - torch.cos(d - o))).sum() / rho.sum().clamp(min=1.0)
     terms["drift"] = (valid * (height_mm - source_mm).abs()).sum() / (10.0 * valid.sum().clamp(min=1.0))
     total = w_grad * terms["grad"] + w_wrap * terms["wrap"] + w_drift * terms["drift"]
@@ -185,8 +182,7 @@ def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_r
     if not sel.any():
         return float("nan")
     d = (img.wrapped - phi)[sel]
-    o = np.angle(np.mean(np.exp(1j * d)))
-    return float(np.median(np.abs(np.angle(np.exp(1j * (d - o))))))
+    return float(np.median(np.abs(wrap(d - circular_mean(d)))))
 
 
 def _rig_for(cfg: AdaptConfig, ckpt: dict):

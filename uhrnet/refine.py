@@ -36,6 +36,8 @@ import math
 
 import numpy as np
 
+from fppsim.phase import wrap
+
 __all__ = ["refine_height", "refine_relief", "circular_median", "REFINE_METHODS"]
 
 REFINE_METHODS = ("relief", "orders", "nearest")
@@ -47,13 +49,8 @@ estimate), exact levels where the rig's absolute phase-to-height mapping is righ
 TWO_PI = 2.0 * math.pi
 
 
-def _wrap(x: np.ndarray) -> np.ndarray:
-    """Wrap (rad) into [-pi, pi)."""
-    return np.mod(np.asarray(x, dtype=np.float64) + math.pi, TWO_PI) - math.pi
-
-
 def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int = 20000) -> float:
-    """Circular median (rad, in [-pi, pi)) of ``angles``: the direction minimising the summed arc
+    """Circular median (rad, in (-pi, pi]) of ``angles``: the direction minimising the summed arc
     distance, robust to outliers (unlike the circular mean). NaN when no angle is finite.
 
     A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
@@ -70,9 +67,9 @@ def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int 
         return float("nan")
     sample = a[:: max(1, a.size // int(max_samples))]
     cands = np.linspace(-math.pi, math.pi, int(candidates), endpoint=False)
-    cost = [np.abs(_wrap(sample - c)).sum() for c in cands]
+    cost = [np.abs(wrap(sample - c)).sum() for c in cands]
     c0 = cands[int(np.argmin(cost))]
-    return float(_wrap(c0 + np.median(_wrap(a - c0))))
+    return float(wrap(c0 + np.median(wrap(a - c0))))
 
 
 def _layer_for(rig_or_layer, shape):
@@ -143,7 +140,7 @@ def refine_height(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         phi = layer.phase_from_height(th)
         sens = layer.sensitivity(torch.nan_to_num(th))
         phi, sens = phi.cpu().numpy(), sens.cpu().numpy()
-    d = _wrap(w - phi)
+    d = wrap(w - phi)
     eligible = np.isfinite(h) & np.isfinite(d) & (rel >= min_reliability)
 
     lead = h.shape[:-2]
@@ -154,7 +151,7 @@ def refine_height(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         used = np.nan_to_num(est)  # no reliable pixel: nothing moves anyway
     else:
         used = np.full(d2.shape[0], float(phase_offset))
-    step = _wrap(d2 - used[:, None, None]).reshape(h.shape)
+    step = wrap(d2 - used[:, None, None]).reshape(h.shape)
     with torch.no_grad():
         target = torch.as_tensor(phi + step, dtype=torch.float64, device=dev)
         h_new = layer.height_from_phase(target).cpu().numpy()
@@ -254,7 +251,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         phi = layer.phase_from_height(t(filled)).cpu().numpy()
         sens = layer.sensitivity(t(filled)).cpu().numpy()
         expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
-    offset = circular_median(_wrap(w - phi)[usable]) if usable.any() else 0.0
+    offset = circular_median(wrap(w - phi)[usable]) if usable.any() else 0.0
     regions = phase_regions(w, usable, cut=step_conflicts(w, expected, max_step), min_size=min_region)
     lab = regions.labels
     d = regions.unwrapped - phi - offset

@@ -60,14 +60,23 @@ from torch import nn
 
 from fppsim.rig import Rig
 
-__all__ = ["RigLayer", "wrap"]
+__all__ = ["RigLayer", "wrap", "circular_mean"]
 
 TWO_PI = 2.0 * math.pi
 
 
 def wrap(phase: torch.Tensor) -> torch.Tensor:
-    """Wrap phases (rad) into ``[-pi, pi)``; any shape and floating dtype; differentiable (slope 1)."""
-    return torch.remainder(phase + math.pi, TWO_PI) - math.pi
+    """Wrap phases (rad) into ``(-pi, pi]``, the torch twin of :func:`fppsim.phase.wrap` (equal in float64;
+    values already there unchanged); any shape and floating dtype; differentiable (slope 1)."""
+    w = phase - TWO_PI * torch.ceil((phase - math.pi) / TWO_PI)
+    return torch.where(w <= -math.pi, w + TWO_PI, torch.where(w > math.pi, w - TWO_PI, w))
+
+
+def circular_mean(phase: torch.Tensor, weights: torch.Tensor, dim=(1, 2, 3)) -> torch.Tensor:
+    """Weighted circular mean (rad, ``atan2(sum w sin, sum w cos)``) over ``dim`` (kept, size 1): one
+    phase per image of an ``(N, 1, H, W)`` batch; the torch twin of :func:`fppsim.phase.circular_mean`."""
+    return torch.atan2((weights * torch.sin(phase)).sum(dim=dim, keepdim=True),
+                       (weights * torch.cos(phase)).sum(dim=dim, keepdim=True))
 
 
 def _slice_tuple(s: slice) -> list:

@@ -35,6 +35,8 @@ import math
 import torch
 from torch import nn
 
+from uhrnet.rig_layer import RigLayer, circular_mean
+
 __all__ = ["PhaseHead", "HEADS", "PHASE_CHANNELS"]
 
 HEADS = ("height", "phase")
@@ -56,8 +58,6 @@ class PhaseHead(nn.Module):
 
     def __init__(self, backbone: nn.Module, rig: dict, min_confidence: float = 0.3) -> None:
         super().__init__()
-        from uhrnet.rig_layer import RigLayer
-
         if backbone.config.get("out_channels") != PHASE_CHANNELS:
             raise ValueError(f"the phase head needs a backbone with {PHASE_CHANNELS} outputs, "
                              f"got {backbone.config.get('out_channels')}")
@@ -78,8 +78,7 @@ class PhaseHead(nn.Module):
         with torch.no_grad():  # one constant per image: the pattern phase a real projector may add
             d = wrapped - phi_c
             w = conf.clamp(max=1.0)
-            offset = torch.atan2((w * torch.sin(d)).sum(dim=(1, 2, 3), keepdim=True),
-                                 (w * torch.cos(d)).sum(dim=(1, 2, 3), keepdim=True))
+            offset = circular_mean(d, w)
             order = torch.round((phi_c - wrapped + offset) / TWO_PI)
         phase = wrapped - offset + TWO_PI * order
         height_mm = self.layer.height_from_phase(phase)
