@@ -127,15 +127,9 @@ def shadow_bridge(rig: Rig, residual: np.ndarray, edges: np.ndarray, height_mm: 
 
 def sensitivity_at(rig: Rig, height_mm: float, dh: float = 0.5) -> float:
     """Phase change (rad per mm) at the camera's image centre for a surface at ``height_mm`` (central
-    difference over +-``dh``); :func:`fppsim.height_sensitivity.centre_sensitivity` is the one at 0 mm."""
-    cam = rig.camera
-    uv = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
-    origin, d = cam.pixel_rays(uv)
-    z = np.array([height_mm - dh, height_mm + dh], dtype=np.float64)
-    s = (z - origin[2]) / d[:, 2]
-    up, _ = rig.projector.project(origin + s[:, None] * d)
-    ph = rig.phase_of_column(up[:, 0])
-    return float((ph[1] - ph[0]) / (2 * dh))
+    difference over +-``dh``, :meth:`fppsim.rig.Rig.sensitivity`); :func:`fppsim.height_sensitivity.centre_sensitivity`
+    is the one at 0 mm."""
+    return rig.sensitivity(height_mm - dh, height_mm + dh)
 
 
 @dataclass

@@ -35,24 +35,13 @@ def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
     if h.shape != (cam.height, cam.width):
         raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
-    return _phase_at(rig, cam.pixel_grid(), h)
-
-
-def _phase_at(rig: Rig, uv: np.ndarray, height_mm: np.ndarray) -> np.ndarray:
-    """Projector phase at camera pixels ``uv`` (..., 2) whose surface lies ``height_mm`` (...) above the plane."""
-    origin, d = rig.camera.pixel_rays(uv)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (height_mm - origin[2]) / d[..., 2]
-    uv_p, _ = rig.projector.project(origin + s[..., None] * d)
-    return rig.phase_of_column(uv_p[..., 0])
+    return rig.phase_at_height(h)
 
 
 def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
-    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
-    cam = rig.camera
-    centre = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
-    lo, hi = _phase_at(rig, centre, np.array([0.0, float(dh)]))
-    return float((hi - lo) / dh)
+    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre
+    (:meth:`fppsim.rig.Rig.sensitivity`)."""
+    return rig.sensitivity(0.0, float(dh))
 
 
 def demodulated_residual(rig: Rig, gray: np.ndarray, valid: np.ndarray, height_mm: np.ndarray,

@@ -226,10 +226,21 @@ class Device:
 
     def plane_depth(self, uv: np.ndarray, plane_z: float = 0.0) -> np.ndarray:
         """Device-frame depth (mm) at which pixel rays meet the world plane z = plane_z (inf if never)."""
-        origin, d = self.pixel_rays(uv)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (plane_z - origin[2]) / d[..., 2]
+        s, _ = self.ray_cut(uv, plane_z)
         return np.where(np.isfinite(s) & (s > 0), s, np.inf)
+
+    def ray_cut(self, uv: np.ndarray, z=0.0, rays: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Where the rays of pixels ``uv`` (..., 2) meet the world plane ``z = z`` (mm: a number, or an
+        array broadcasting with ``uv[..., 0]`` such as a height map): the one ray cut of both packages.
+
+        Returns ``(depth, X)``: the device-frame depth (...,) mm (``<= 0``, inf or NaN where the ray does
+        not meet the plane in front of the device) and the world points (..., 3) mm. ``rays``: the
+        ``(origin, directions)`` of :meth:`pixel_rays` for ``uv``, when the caller already has them.
+        """
+        origin, d = self.pixel_rays(uv) if rays is None else rays
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            s = (np.asarray(z, dtype=np.float64) - origin[2]) / d[..., 2]
+            return s, along_rays(origin, s, d)
 
     def expanded(self, margin: int) -> "Device":
         """The same device with ``margin`` extra pixels on every side (pixel (u, v) becomes (u+m, v+m))."""
@@ -359,6 +370,37 @@ class Rig:
         """Projector column ``u_p = Phi * W_p / (2*pi*f)`` of an absolute phase (rad)."""
         f = self.periods if periods is None else periods
         return np.asarray(phase, dtype=np.float64) * self.projector.width / (2.0 * np.pi * f)
+
+    # -------------------------------------------------------------- height -> phase (the forward model)
+    def phase_at_height(self, height, uv: np.ndarray | None = None, periods: float | None = None) -> np.ndarray:
+        """Absolute projector phase (rad, ``2 pi f u_p / W_p``, projector distortion applied) at camera
+        pixels ``uv`` (..., 2) (default: the whole camera grid, (H, W)) whose surface lies ``height`` mm
+        above the reference plane (a number or an array broadcasting with ``uv[..., 0]``): each camera
+        ray cut at its height (:meth:`Device.ray_cut`), that point projected into the projector. NaN
+        where the ray does not meet ``z = height`` in front of the camera or the point is behind the
+        projector. :class:`uhrnet.rig_layer.RigLayer` is its torch twin."""
+        cam = self.camera
+        s, X = cam.ray_cut(cam.pixel_grid() if uv is None else uv, height)
+        with np.errstate(invalid="ignore"):
+            uv_p, zp = self.projector.project(X)
+        return np.where(np.isfinite(s) & (s > 0) & (zp > 0), self.phase_of_column(uv_p[..., 0], periods), np.nan)
+
+    def sensitivity(self, lo: float = 0.0, hi: float = 1.0, uv: np.ndarray | None = None,
+                    periods: float | None = None):
+        """Phase change per mm of height (rad/mm) between surfaces ``lo`` and ``hi`` mm above the plane,
+        ``(Phi(hi) - Phi(lo)) / (hi - lo)`` (:meth:`phase_at_height`), at camera pixels ``uv`` (..., 2)
+        (an array of that shape) or, by default, at the image centre ``(W // 2, H // 2)`` (a float).
+        Negative when raised surfaces lower the phase (the default rig: about -0.87 at the centre)."""
+        cam = self.camera
+        if uv is None:
+            px = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
+            z = np.array([lo, hi], dtype=np.float64)
+        else:
+            one = np.asarray(uv, dtype=np.float64)
+            px, z = np.stack([one, one]), np.array([lo, hi], dtype=np.float64).reshape((2,) + (1,) * (one.ndim - 1))
+        ph = self.phase_at_height(z, px, periods)
+        slope = (ph[1] - ph[0]) / (hi - lo)
+        return float(slope) if uv is None else slope
 
     # -------------------------------------------------------------- io
     def to_dict(self) -> dict:

@@ -84,7 +84,7 @@ def test_the_command_line_lives_in_one_module_per_package():
 # ---------------------------------------------------------------------------- seams (issue 24)
 MAX_LINES = 650
 ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "mean_phasor", "lowpass", "demodulate",
-                  "demodulated_residual", "object_residual")
+                  "demodulated_residual", "object_residual", "phase_at_height", "ray_cut")
 TWINS = {"wrap": ["fppsim/phase.py", "uhrnet/rig_layer.py"], "circular_mean": ["fppsim/phase.py", "uhrnet/rig_layer.py"],
          "_wrap": [], "wrap_phase": []}
 """Phase helpers: one numpy definition (fppsim.phase) and one torch twin (uhrnet.rig_layer), no private copies."""

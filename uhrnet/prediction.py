@@ -241,11 +241,7 @@ def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
     h, w = height_mm.shape
     if (cam.width, cam.height) != (w, h):
         raise ConfigError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    origin, d = cam.pixel_rays(np.stack([uu, vv], axis=-1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (height_mm.astype(np.float64) - origin[2]) / d[..., 2]
-    return origin + s[..., None] * d
+    return cam.ray_cut(cam.pixel_grid(), height_mm.astype(np.float64))[1]
 
 
 def points_from_grid(height_mm: np.ndarray, pixel_size: float) -> np.ndarray:

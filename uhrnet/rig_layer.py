@@ -150,10 +150,9 @@ class RigLayer(nn.Module):
         self.grid_shape = tuple(int(n) for n in uv.shape[:2])
 
         origin, d = cam.pixel_rays(uv)  # fppsim's rays: camera distortion removed as fppsim does
+        _, P0 = cam.ray_cut(uv, 0.0, rays=(origin, d))  # the ray's point on the plane (fppsim's ray cut)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv_dz = 1.0 / d[..., 2]
-            s0 = (0.0 - origin[2]) * inv_dz  # camera depth of the plane point
-            P0 = origin + s0[..., None] * d
             e = d * inv_dz[..., None]  # dX/dh
         ray_ok = np.isfinite(P0).all(-1) & np.isfinite(e).all(-1)
         P0 = np.where(ray_ok[..., None], P0, 0.0)

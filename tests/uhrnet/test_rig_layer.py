@@ -173,6 +173,17 @@ def test_order_and_wrap_helpers():
     assert torch.allclose(layer.nearest_phase(wrapped, guess, offset=off), Phi, atol=1e-9)
 
 
+def test_layer_is_the_torch_twin_of_the_rig_forward_model(case):
+    """RigLayer.phase_from_height / sensitivity equal fppsim.rig.Rig.phase_at_height / sensitivity (the one
+    numpy ray cut, Device.ray_cut) on every pixel."""
+    name, rig, layer, h, phase = case
+    np.testing.assert_allclose(layer.phase_from_height(torch.from_numpy(h)).numpy(), rig.phase_at_height(h),
+                               rtol=0, atol=1e-9)
+    grid = rig.camera.pixel_grid()
+    s = layer.sensitivity(torch.full(layer.grid_shape, 5.0, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(s, rig.sensitivity(5.0 - 1e-4, 5.0 + 1e-4, grid), rtol=1e-5, atol=1e-7)
+
+
 def test_torch_phase_helpers_equal_fppsim_phase():
     """uhrnet.rig_layer.wrap / circular_mean are the torch twins of fppsim.phase.wrap / circular_mean."""
     rng = np.random.default_rng(3)
