@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RigError
+from .rig_files import checked_matrix, read_rig_file, rig_from_opencv_stereo, save_rig
 
 __all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "make_default_rig",
            "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
@@ -42,23 +43,6 @@ def data_path(*parts: str) -> Path:
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
-
-
-def checked_matrix(value, shape, name: str) -> np.ndarray:
-    """``value`` as a float64 array of ``shape`` (any nesting with that many numbers), all finite;
-    :class:`RigError` naming ``name`` otherwise."""
-    if isinstance(value, (dict, str, bytes)) or value is None:
-        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {type(value).__name__}")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {value!r:.80}") from None
-    if arr.size != int(np.prod(shape)):
-        raise RigError(f"{name} must have {int(np.prod(shape))} numbers (shape {shape}), got shape {arr.shape}")
-    arr = arr.reshape(shape)
-    if not np.all(np.isfinite(arr)):
-        raise RigError(f"{name} contains NaN or inf")
-    return arr
 
 
 @dataclass
@@ -490,25 +474,27 @@ class Rig:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write JSON or YAML (by extension), atomically (:func:`fppsim.rig_files.save_rig`)."""
-        from .rig_files import save_rig
-
-        save_rig(self, path)
+        save_rig(self.to_dict(), path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":
         """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration
         (:func:`fppsim.rig_files.read_rig_file`)."""
-        from .rig_files import read_rig_file
-
-        return read_rig_file(path)
+        return cls._from_file(path, read_rig_file(path))
 
     @classmethod
     def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
                            periods: float | None = None) -> "Rig":
         """Import an OpenCV stereo calibration (:func:`fppsim.rig_files.rig_from_opencv_stereo`)."""
-        from .rig_files import rig_from_opencv_stereo
+        return cls._from_file(path, rig_from_opencv_stereo(path, plane_distance, periods))
 
-        return rig_from_opencv_stereo(path, plane_distance, periods)
+    @classmethod
+    def _from_file(cls, path, doc) -> "Rig":
+        """The rig of a file's document, checked; errors name the file."""
+        try:
+            return cls.from_dict(doc)
+        except RigError as exc:
+            raise RigError(f"{Path(path)}: {exc}") from None
 
     @classmethod
     def default(cls) -> "Rig":

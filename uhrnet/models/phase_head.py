@@ -37,6 +37,8 @@ from torch import nn
 
 from uhrnet.rig_layer import RigLayer, circular_mean
 
+from .outputs import outputs_of
+
 __all__ = ["PhaseHead", "HEADS", "PHASE_CHANNELS"]
 
 HEADS = ("height", "phase")
@@ -89,8 +91,6 @@ class PhaseHead(nn.Module):
 
     def parts(self, x: torch.Tensor) -> list[dict]:
         """Every intermediate (module docstring) for each backbone output (hNet trains several)."""
-        from uhrnet.models import outputs_of
-
         cam = self.layer.grid_shape
         if tuple(x.shape[-2:]) != tuple(cam):
             raise ValueError(f"the phase head's rig sees {cam[1]}x{cam[0]} px images; got {x.shape[-1]}x{x.shape[-2]}")
