@@ -460,12 +460,9 @@ class Rig:
         if frac < min_lit:
             raise RigError(f"the projector lights {100 * frac:.1f}% of the camera's view of the reference plane "
                            f"(need >= {100 * min_lit:.0f}%): check the projector pose (R, t) and resolution")
-        centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
-        origin, d = cam.pixel_rays(centre)
-        s0 = (0.0 - origin[2]) / d[0, 2]
-        s1 = (1.0 - origin[2]) / d[0, 2]
-        u0 = proj.project(origin + s0 * d[0])[0][0]
-        u1 = proj.project(origin + s1 * d[0])[0][0]
+        centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]] * 2)
+        _, X = cam.ray_cut(centre, np.array([0.0, 1.0]))  # the view centre's ray at 0 and 1 mm
+        u0, u1 = proj.project(X)[0][:, 0]
         shift = abs(float(u1 - u0))
         if not shift >= min_shift_px:
             base = float(np.linalg.norm(cam.center - proj.center))
