@@ -15,8 +15,8 @@ Measurement (:func:`depth_check`), per labelled image (:class:`fppsim.readers.Fr
 
 1. The real fringe, less its local mean, is demodulated with ``exp(-i Phi_rig(h))``
    (:func:`fppsim.height_sensitivity.surface_phase` of the labelled surface) and low-passed: the
-   residual phase ``r = wrap(phi_real - Phi_rig)`` (:func:`demodulated_residual`; no carrier band,
-   no unwrapping: what the rig explains is removed before filtering).
+   residual phase ``r = wrap(phi_real - Phi_rig)`` (:func:`fppsim.height_sensitivity.demodulated_residual`;
+   no carrier band, no unwrapping: what the rig explains is removed before filtering).
 2. One constant ``o`` (the circular mean of ``r`` on the plane) is removed: for the right rig the
    wrapped residual is then about 0 on the plane AND on the object.
 3. A wrapped residual is blind to whole fringes. Projector shadows fix them: the plane pixel at the
@@ -39,33 +39,16 @@ import numpy as np
 
 from .errors import RigError
 from .fit_rig import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig
-from .height_sensitivity import centre_sensitivity, surface_phase
+from .height_sensitivity import centre_sensitivity, demodulated_residual, object_residual, surface_phase
+from .phase import circular_mean, wrap
 from .readers import FringeImage
 from .rig import Rig
 
-__all__ = ["demodulated_residual", "depth_masks", "shadow_edges", "shadow_bridge", "sensitivity_at", "DepthCheck",
+__all__ = ["depth_masks", "shadow_edges", "shadow_bridge", "sensitivity_at", "DepthCheck",
            "depth_check", "DepthFit", "fit_depth", "format_depth_fit", "format_depth_checks"]
 
 
 # ====================================================================== measuring one image
-def demodulated_residual(rig: Rig, gray: np.ndarray, valid: np.ndarray, height_mm: np.ndarray,
-                         smooth: float = 4.0, *, rig_phase: np.ndarray | None = None) -> np.ndarray:
-    """Wrapped phase (rad, (H, W)) of the real fringe relative to the phase ``rig`` predicts for the
-    labelled surface: ``angle(G_smooth[(I - I_local_mean) exp(-i Phi_rig(h))])`` over ``valid`` pixels
-    (``smooth``: Gaussian sigma, px; the local mean is a Gaussian of 1.5 x ``smooth``). Positive where
-    the real phase is ahead of the rig's. ``rig_phase``: ``surface_phase(rig, h)`` of the valid-masked
-    height, when the caller already has it."""
-    from scipy import ndimage as ndi
-
-    g = np.asarray(gray, dtype=np.float64)
-    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
-    h = np.where(valid, np.nan_to_num(np.asarray(height_mm, dtype=np.float64)), 0.0)
-    c = g * np.exp(-1j * (surface_phase(rig, h) if rig_phase is None else rig_phase))
-    w = np.asarray(valid, dtype=np.float64)
-    cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
-    return np.angle(cs)
-
-
 def depth_masks(valid: np.ndarray, height_mm: np.ndarray, smooth: float = 4.0, plane_mm: float = 1.0,
                 object_mm: float = 2.0, steep_mm: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
     """Plane and object pixels fit for the residual: valid pixels at least 1.5 x ``smooth`` px from an
@@ -131,12 +114,12 @@ def shadow_bridge(rig: Rig, residual: np.ndarray, edges: np.ndarray, height_mm: 
 
     The real phase is modelled as ``Phi_rig(h) + residual`` (the residual unwrapped around the offsets),
     extrapolated to the shadow's boundaries (:func:`shadow_edges`); ``rig_phase`` as in
-    :func:`demodulated_residual`."""
+    :func:`fppsim.height_sensitivity.demodulated_residual`."""
     if not len(edges):
         return np.zeros(0)
     P = surface_phase(rig, np.nan_to_num(height_mm)) if rig_phase is None else rig_phase
-    rp = np.angle(np.exp(1j * (residual - plane_offset))) + plane_offset
-    ro = np.angle(np.exp(1j * (residual - object_offset))) + object_offset
+    rp = wrap(residual - plane_offset) + plane_offset
+    ro = wrap(residual - object_offset) + object_offset
     a, _ = _edge_values(P + rp, edges, shadow_left=shadow_left)
     _, b = _edge_values(P + ro, edges, shadow_left=shadow_left)
     return a - b
@@ -144,15 +127,9 @@ def shadow_bridge(rig: Rig, residual: np.ndarray, edges: np.ndarray, height_mm: 
 
 def sensitivity_at(rig: Rig, height_mm: float, dh: float = 0.5) -> float:
     """Phase change (rad per mm) at the camera's image centre for a surface at ``height_mm`` (central
-    difference over +-``dh``); :func:`fppsim.height_sensitivity.centre_sensitivity` is the one at 0 mm."""
-    cam = rig.camera
-    uv = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
-    origin, d = cam.pixel_rays(uv)
-    z = np.array([height_mm - dh, height_mm + dh], dtype=np.float64)
-    s = (z - origin[2]) / d[:, 2]
-    up, _ = rig.projector.project(origin + s[:, None] * d)
-    ph = rig.phase_of_column(up[:, 0])
-    return float((ph[1] - ph[0]) / (2 * dh))
+    difference over +-``dh``, :meth:`fppsim.rig.Rig.sensitivity`); :func:`fppsim.height_sensitivity.centre_sensitivity`
+    is the one at 0 mm."""
+    return rig.sensitivity(height_mm - dh, height_mm + dh)
 
 
 @dataclass
@@ -214,13 +191,10 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
         return None
     P = surface_phase(rig, h)  # one projection serves the residual and the shadow bridges
     d = demodulated_residual(rig, image.gray, valid, h, smooth, rig_phase=P)
-    o = float(np.angle(np.mean(np.exp(1j * d[plane]))))
-    r = np.angle(np.exp(1j * (d - o)))
+    o = circular_mean(d, mask=plane)
+    r = wrap(d - o)
     ro, ho = r[obj], h[obj]
-    phasor = np.mean(np.exp(1j * ro))
-    wrapped = float(np.angle(phasor))
-    centred = np.angle(np.exp(1j * (ro - wrapped))) + wrapped
-    slope = float(np.polyfit(ho, centred, 1)[0]) if np.ptp(ho) > 1.0 else float("nan")
+    coherence, wrapped, slope = object_residual(ro, ho)
     left = _shadow_left(rig)
     edges = shadow_edges(valid, valid & (np.abs(h) < 1.5), valid & (h > 5.0), left)
     fringes, offset, bridge, iqr, share = 0, float("nan"), float("nan"), float("nan"), float("nan")
@@ -241,7 +215,7 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
     # so the cost adds the fringe count (a wrong branch must never look right)
     cost = float(np.mean(1.0 - np.cos(ro))) + float(abs(fringes))
     return DepthCheck(float(np.median(np.abs(r[plane]))), float(np.median(np.abs(ro))), offset, wrapped, fringes,
-                      slope, float(np.abs(phasor)), bridge, iqr, int(plane.sum()), int(obj.sum()), int(len(edges)),
+                      slope, coherence, bridge, iqr, int(plane.sum()), int(obj.sum()), int(len(edges)),
                       cost, share)
 
 

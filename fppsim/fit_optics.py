@@ -72,11 +72,8 @@ def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     ray cut at its height, normals from the neighbours, the light as :func:`fppsim.render.projector_incidence`
     gives it to rendered surfaces."""
     cam, proj = rig.camera, rig.projector
-    uv = cam.pixel_grid()
     h = np.where(np.isfinite(height_mm), height_mm, 0.0)
-    origin, d = cam.pixel_rays(uv)
-    s = (h - origin[2]) / d[..., 2]
-    P = origin + s[..., None] * d
+    _, P = cam.ray_cut(cam.pixel_grid(), h)
     du = np.gradient(P, axis=1)
     dv = np.gradient(P, axis=0)
     n = np.cross(du, dv)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .phase import lowpass
 
 __all__ = ["estimate_period", "quarter_periods", "fringe_modulation", "fringe_tilt", "plane_level",
            "poly_basis", "poly_terms", "phase_plane_masks"]
@@ -304,10 +305,10 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
     pixels (Spearman 0.56) but underestimates by about 1.5x (its PSP reference is noisy too).
 
     Convention: fppsim renders the single-shot ``fringe.png`` with the pattern ``0.5 + 0.5 cos(2 pi f
-    u_p / W_p + 0)`` (phase shift 0), so ``wrapped ~ fppsim.psp.wrap_phase(phase_true)``: measured offset
+    u_p / W_p + 0)`` (phase shift 0), so ``wrapped ~ fppsim.phase.wrap(phase_true)``: measured offset
     ``median wrap(wrapped - phase_true)`` 0.000 rad (sample-to-sample SD 0.001). On the real figshare-rig
     frame FP1523/1201 (public layout, absolute phase ``atan2(-PSin, -PCos) + pi + 2 pi Order``):
-    ``wrapped ~ wrap_phase(absolute)`` with an offset of -0.011 rad and the same sign, i.e. the single-shot
+    ``wrapped ~ wrap(absolute)`` with an offset of -0.011 rad and the same sign, i.e. the single-shot
     image is the public convention's ``A + B cos(Phi)``, and ``wrapped = atan2(PSin, PCos)`` up to noise.
 
     Accuracy (rad, ``|wrap(wrapped - truth - offset)|``, median / 90th / 99th percentile; default settings;
@@ -490,18 +491,13 @@ def _analytic(g: np.ndarray, fx0: float, fy0: float, period: float, method: str,
     return a[pad:pad + h, pad:pad + w]
 
 
-def _gauss_c(z: np.ndarray, sigma: float) -> np.ndarray:
-    from scipy import ndimage as ndi
-    return ndi.gaussian_filter(z.real, sigma, mode="constant") + 1j * ndi.gaussian_filter(z.imag, sigma, mode="constant")
-
-
 def _demodulate(g: np.ndarray, a: np.ndarray, valid: np.ndarray, sigma: float) -> np.ndarray:
     """One local demodulation pass (see ``refine`` of :func:`single_shot_phase`)."""
     from scipy import ndimage as ndi
     rot = np.exp(-1j * np.angle(a))
     z = np.where(valid, g - np.conj(a), 0.0) * rot
     wsum = ndi.gaussian_filter(valid * 1.0, sigma, mode="constant")
-    return np.conj(rot) * _gauss_c(z, sigma) / np.maximum(wsum, 1e-6)
+    return np.conj(rot) * lowpass(z, sigma, mode="constant") / np.maximum(wsum, 1e-6)
 
 
 def _phase_error(g: np.ndarray, a: np.ndarray, valid: np.ndarray, fx0: float, fy0: float,

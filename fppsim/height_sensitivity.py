@@ -17,10 +17,12 @@ import numpy as np
 
 from .errors import RigError
 from .fringe import poly_basis
+from .phase import demodulate, mean_phasor, wrap
 from .readers import FringeImage
 from .rig import Rig
 
-__all__ = ["surface_phase", "centre_sensitivity", "SensitivityCheck", "sensitivity_check"]
+__all__ = ["surface_phase", "centre_sensitivity", "demodulated_residual", "object_residual", "SensitivityCheck",
+           "sensitivity_check"]
 
 
 def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
@@ -33,24 +35,41 @@ def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
     h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
     if h.shape != (cam.height, cam.width):
         raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
-    return _phase_at(rig, cam.pixel_grid(), h)
-
-
-def _phase_at(rig: Rig, uv: np.ndarray, height_mm: np.ndarray) -> np.ndarray:
-    """Projector phase at camera pixels ``uv`` (..., 2) whose surface lies ``height_mm`` (...) above the plane."""
-    origin, d = rig.camera.pixel_rays(uv)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (height_mm - origin[2]) / d[..., 2]
-    uv_p, _ = rig.projector.project(origin + s[..., None] * d)
-    return rig.phase_of_column(uv_p[..., 0])
+    return rig.phase_at_height(h)
 
 
 def centre_sensitivity(rig: Rig, dh: float = 1.0) -> float:
-    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre."""
-    cam = rig.camera
-    centre = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
-    lo, hi = _phase_at(rig, centre, np.array([0.0, float(dh)]))
-    return float((hi - lo) / dh)
+    """Phase change (rad per mm) of a surface raised by ``dh`` mm at the camera's image centre
+    (:meth:`fppsim.rig.Rig.sensitivity`)."""
+    return rig.sensitivity(0.0, float(dh))
+
+
+def demodulated_residual(rig: Rig, gray: np.ndarray, valid: np.ndarray, height_mm: np.ndarray,
+                         smooth: float = 4.0, *, rig_phase: np.ndarray | None = None) -> np.ndarray:
+    """Wrapped phase (rad, (H, W)) of the real fringe relative to the phase ``rig`` predicts for the
+    labelled surface: ``angle(G_smooth[(I - I_local_mean) exp(-i Phi_rig(h))])`` over ``valid`` pixels
+    (``smooth``: Gaussian sigma, px; the local mean is a Gaussian of 1.5 x ``smooth``). Positive where
+    the real phase is ahead of the rig's. ``rig_phase``: ``surface_phase(rig, h)`` of the valid-masked
+    height, when the caller already has it."""
+    from scipy import ndimage as ndi  # optional heavy dependency (SciPy)
+
+    g = np.asarray(gray, dtype=np.float64)
+    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
+    h = np.where(valid, np.nan_to_num(np.asarray(height_mm, dtype=np.float64)), 0.0)
+    P = surface_phase(rig, h) if rig_phase is None else rig_phase
+    return np.angle(demodulate(g, P, smooth, np.asarray(valid, dtype=np.float64)))
+
+
+def object_residual(residual: np.ndarray, height_mm: np.ndarray) -> tuple[float, float, float]:
+    """How a residual phase (rad) behaves over object pixels of known height (mm), both 1-D:
+    ``(coherence, offset, slope)``: |mean phasor| (1 = the residual is one constant), its circular mean
+    (rad) and its slope against height (rad/mm, the residual unwrapped around the mean; NaN when the
+    heights span 1 mm or less)."""
+    phasor = mean_phasor(residual)
+    offset = float(np.angle(phasor))
+    centred = wrap(residual - offset) + offset
+    slope = float(np.polyfit(height_mm, centred, 1)[0]) if np.ptp(height_mm) > 1.0 else float("nan")
+    return float(abs(phasor)), offset, slope
 
 
 @dataclass
@@ -85,7 +104,7 @@ def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree:
     the object, what remains is flat in height only when the rig's phase shift per mm matches the real
     one. Returns None when the image has no labels or too few object pixels.
     """
-    from scipy import ndimage as ndi
+    from scipy import ndimage as ndi  # optional heavy dependencies (SciPy, scikit-image)
     from skimage.restoration import unwrap_phase
 
     if image.height_mm is None or image.plane is None:
@@ -96,19 +115,10 @@ def sensitivity_check(rig: Rig, image: FringeImage, smooth: float = 4.0, degree:
     obj = inner & (h > object_mm)
     if plane.sum() < 1000 or obj.sum() < 200:
         return None
-    g = image.gray.astype(np.float64)
-    g = g - ndi.gaussian_filter(g, 1.5 * smooth)
-    c = g * np.exp(-1j * surface_phase(rig, h))
-    w = image.valid.astype(np.float64)
-    cs = ndi.gaussian_filter(c.real * w, smooth) + 1j * ndi.gaussian_filter(c.imag * w, smooth)
-    d = np.angle(cs)
+    d = demodulated_residual(rig, image.gray, image.valid, h, smooth)
     du = unwrap_phase(np.ma.array(d, mask=~plane))
     A = poly_basis(*d.shape, degree)
     coef = np.linalg.lstsq(A[plane.ravel()], np.asarray(du)[plane], rcond=None)[0]
-    r = np.angle(np.exp(1j * (d - (A @ coef).reshape(d.shape))))
-    ro, ho = r[obj], h[obj]
-    phasor = np.mean(np.exp(1j * ro))
-    offset = float(np.angle(phasor))
-    centred = np.angle(np.exp(1j * (ro - offset)))  # unwrapped around the mean: slope is then meaningful
-    slope = float(np.polyfit(ho, centred, 1)[0]) if np.ptp(ho) > 1.0 else float("nan")
-    return SensitivityCheck(float(np.abs(phasor)), slope, offset, float(np.std(r[plane])), int(obj.sum()))
+    r = wrap(d - (A @ coef).reshape(d.shape))
+    coherence, offset, slope = object_residual(r[obj], h[obj])
+    return SensitivityCheck(coherence, slope, offset, float(np.std(r[plane])), int(obj.sum()))

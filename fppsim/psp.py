@@ -34,11 +34,12 @@ from math import erfc
 
 import numpy as np
 
+from .phase import wrap
 from .triangulation import height_from_phase
 
 __all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "ladder_stability_bound",
            "order_consistency", "order_error_probability", "phase_from_sums", "phase_noise_std", "phase_shifts",
-           "phase_sums", "quality_mask", "synthesize_stack", "unwrap_temporal", "wrap_phase", "wrapped_phase"]
+           "phase_sums", "quality_mask", "synthesize_stack", "unwrap_temporal", "wrapped_phase"]
 
 DEFAULT_FREQS = (1, 8, 80)
 """Default frequency ladder (periods across the projector width)."""
@@ -53,17 +54,6 @@ def phase_shifts(n_steps: int) -> np.ndarray:
     if n != n_steps or n < 3:
         raise ValueError(f"phase shifting needs an integer number of steps >= 3, got {n_steps!r}")
     return TWO_PI * np.arange(n) / n
-
-
-def wrap_phase(phase: np.ndarray) -> np.ndarray:
-    """Wrap phases (rad) into ``(-pi, pi]`` (float64, NaN stays NaN); values already there are unchanged."""
-    p = np.asarray(phase, dtype=np.float64)
-    if p.ndim and p.size and p.min() > -np.pi + 1e-9 and p.max() <= np.pi:
-        # Already wrapped (and finite): (p - pi) / 2pi then lies in (-1, 0], ceil gives -0.0 or 0.0 and
-        # the formula below returns p + 0.0 (the same bits; -0.0 becomes +0.0 there as here).
-        return p + 0.0
-    w = p - TWO_PI * np.ceil((p - np.pi) / TWO_PI)
-    return np.where(w <= -np.pi, w + TWO_PI, np.where(w > np.pi, w - TWO_PI, w))
 
 
 def phase_from_sums(psin: np.ndarray, pcos: np.ndarray) -> np.ndarray:
@@ -454,7 +444,7 @@ def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_m
     residual = np.zeros(shape)
     k = np.zeros(shape, dtype=np.int64)
     for i in range(1, f.size):
-        phi = wrap_phase(np.where(finite, phases[i], 0.0))
+        phi = wrap(np.where(finite, phases[i], 0.0))
         pred = (f[i] / f[i - 1]) * Phi
         kf = np.round((pred - phi) / TWO_PI)
         Phi = phi + TWO_PI * kf
@@ -463,7 +453,7 @@ def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_m
         k = kf.astype(np.int64)
         reliable &= res <= max_residual
     if f.size == 1:  # order of the 1-period pattern relative to its wrapped phase
-        k = np.round((Phi - wrap_phase(phi0)) / TWO_PI).astype(np.int64)
+        k = np.round((Phi - wrap(phi0)) / TWO_PI).astype(np.int64)
     Phi = np.where(finite, Phi, np.nan)
     k = np.where(finite, k, 0)
     return Unwrapped(phase=Phi, order=k, reliable=reliable, residual=residual, freqs=tuple(freqs))

@@ -34,16 +34,10 @@ def reference_plane_phase(rig: Rig, periods: float | None = None, z: float = 0.0
     Returns
     -------
     float64 (H, W) of the camera: ``2 pi f u_p / W_p`` of the projector column ``u_p`` (projector
-    distortion applied) where the camera ray of the pixel meets the plane; NaN where it does not.
+    distortion applied) where the camera ray of the pixel meets the plane; NaN where it does not
+    (:meth:`fppsim.rig.Rig.phase_at_height`).
     """
-    cam = rig.camera
-    origin, d = cam.pixel_rays(cam.pixel_grid())
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (z - origin[..., 2]) / d[..., 2]
-    ok = np.isfinite(s) & (s > 0)
-    X = origin + np.where(ok, s, 0.0)[..., None] * d
-    uv, zp = rig.projector.project(X)
-    return np.where(ok & (zp > 0), rig.phase_of_column(uv[..., 0], periods), np.nan)
+    return rig.phase_at_height(float(z), periods=periods)
 
 
 @dataclass
@@ -151,8 +145,7 @@ def fit_phase_offset(phase: np.ndarray, valid: np.ndarray, rig: Rig, periods: fl
     if not ok.any():
         return float("nan")
     # the window in radians at the image centre: the phase change of 1 mm of height there
-    H, W = phi.shape
-    sens = abs(float(reference_plane_phase(rig, f, z=1.0)[H // 2, W // 2] - pp[H // 2, W // 2]))
+    sens = abs(rig.sensitivity(0.0, 1.0, periods=f))
     sens = sens if math.isfinite(sens) and sens > 0 else 1.0
     c = plane_level(d, ok, bin_width=max(0.02, 0.05 * sens), window=window_mm * sens)
     for _ in range(int(iterations)):

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import RigError
+from .rig_files import checked_matrix, read_rig_file, rig_from_opencv_stereo, save_rig
 
 __all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "make_default_rig",
            "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
@@ -42,23 +43,6 @@ def data_path(*parts: str) -> Path:
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
-
-
-def checked_matrix(value, shape, name: str) -> np.ndarray:
-    """``value`` as a float64 array of ``shape`` (any nesting with that many numbers), all finite;
-    :class:`RigError` naming ``name`` otherwise."""
-    if isinstance(value, (dict, str, bytes)) or value is None:
-        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {type(value).__name__}")
-    try:
-        arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {value!r:.80}") from None
-    if arr.size != int(np.prod(shape)):
-        raise RigError(f"{name} must have {int(np.prod(shape))} numbers (shape {shape}), got shape {arr.shape}")
-    arr = arr.reshape(shape)
-    if not np.all(np.isfinite(arr)):
-        raise RigError(f"{name} contains NaN or inf")
-    return arr
 
 
 @dataclass
@@ -226,10 +210,21 @@ class Device:
 
     def plane_depth(self, uv: np.ndarray, plane_z: float = 0.0) -> np.ndarray:
         """Device-frame depth (mm) at which pixel rays meet the world plane z = plane_z (inf if never)."""
-        origin, d = self.pixel_rays(uv)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (plane_z - origin[2]) / d[..., 2]
+        s, _ = self.ray_cut(uv, plane_z)
         return np.where(np.isfinite(s) & (s > 0), s, np.inf)
+
+    def ray_cut(self, uv: np.ndarray, z=0.0, rays: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Where the rays of pixels ``uv`` (..., 2) meet the world plane ``z = z`` (mm: a number, or an
+        array broadcasting with ``uv[..., 0]`` such as a height map): the one ray cut of both packages.
+
+        Returns ``(depth, X)``: the device-frame depth (...,) mm (``<= 0``, inf or NaN where the ray does
+        not meet the plane in front of the device) and the world points (..., 3) mm. ``rays``: the
+        ``(origin, directions)`` of :meth:`pixel_rays` for ``uv``, when the caller already has them.
+        """
+        origin, d = self.pixel_rays(uv) if rays is None else rays
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            s = (np.asarray(z, dtype=np.float64) - origin[2]) / d[..., 2]
+            return s, along_rays(origin, s, d)
 
     def expanded(self, margin: int) -> "Device":
         """The same device with ``margin`` extra pixels on every side (pixel (u, v) becomes (u+m, v+m))."""
@@ -360,6 +355,37 @@ class Rig:
         f = self.periods if periods is None else periods
         return np.asarray(phase, dtype=np.float64) * self.projector.width / (2.0 * np.pi * f)
 
+    # -------------------------------------------------------------- height -> phase (the forward model)
+    def phase_at_height(self, height, uv: np.ndarray | None = None, periods: float | None = None) -> np.ndarray:
+        """Absolute projector phase (rad, ``2 pi f u_p / W_p``, projector distortion applied) at camera
+        pixels ``uv`` (..., 2) (default: the whole camera grid, (H, W)) whose surface lies ``height`` mm
+        above the reference plane (a number or an array broadcasting with ``uv[..., 0]``): each camera
+        ray cut at its height (:meth:`Device.ray_cut`), that point projected into the projector. NaN
+        where the ray does not meet ``z = height`` in front of the camera or the point is behind the
+        projector. :class:`uhrnet.rig_layer.RigLayer` is its torch twin."""
+        cam = self.camera
+        s, X = cam.ray_cut(cam.pixel_grid() if uv is None else uv, height)
+        with np.errstate(invalid="ignore"):
+            uv_p, zp = self.projector.project(X)
+        return np.where(np.isfinite(s) & (s > 0) & (zp > 0), self.phase_of_column(uv_p[..., 0], periods), np.nan)
+
+    def sensitivity(self, lo: float = 0.0, hi: float = 1.0, uv: np.ndarray | None = None,
+                    periods: float | None = None):
+        """Phase change per mm of height (rad/mm) between surfaces ``lo`` and ``hi`` mm above the plane,
+        ``(Phi(hi) - Phi(lo)) / (hi - lo)`` (:meth:`phase_at_height`), at camera pixels ``uv`` (..., 2)
+        (an array of that shape) or, by default, at the image centre ``(W // 2, H // 2)`` (a float).
+        Negative when raised surfaces lower the phase (the default rig: about -0.87 at the centre)."""
+        cam = self.camera
+        if uv is None:
+            px = np.array([[cam.width // 2, cam.height // 2]] * 2, dtype=np.float64)
+            z = np.array([lo, hi], dtype=np.float64)
+        else:
+            one = np.asarray(uv, dtype=np.float64)
+            px, z = np.stack([one, one]), np.array([lo, hi], dtype=np.float64).reshape((2,) + (1,) * (one.ndim - 1))
+        ph = self.phase_at_height(z, px, periods)
+        slope = (ph[1] - ph[0]) / (hi - lo)
+        return float(slope) if uv is None else slope
+
     # -------------------------------------------------------------- io
     def to_dict(self) -> dict:
         return {
@@ -434,12 +460,9 @@ class Rig:
         if frac < min_lit:
             raise RigError(f"the projector lights {100 * frac:.1f}% of the camera's view of the reference plane "
                            f"(need >= {100 * min_lit:.0f}%): check the projector pose (R, t) and resolution")
-        centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
-        origin, d = cam.pixel_rays(centre)
-        s0 = (0.0 - origin[2]) / d[0, 2]
-        s1 = (1.0 - origin[2]) / d[0, 2]
-        u0 = proj.project(origin + s0 * d[0])[0][0]
-        u1 = proj.project(origin + s1 * d[0])[0][0]
+        centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]] * 2)
+        _, X = cam.ray_cut(centre, np.array([0.0, 1.0]))  # the view centre's ray at 0 and 1 mm
+        u0, u1 = proj.project(X)[0][:, 0]
         shift = abs(float(u1 - u0))
         if not shift >= min_shift_px:
             base = float(np.linalg.norm(cam.center - proj.center))
@@ -448,25 +471,27 @@ class Rig:
 
     def save(self, path: str | os.PathLike) -> None:
         """Write JSON or YAML (by extension), atomically (:func:`fppsim.rig_files.save_rig`)."""
-        from .rig_files import save_rig
-
-        save_rig(self, path)
+        save_rig(self.to_dict(), path)
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Rig":
         """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration
         (:func:`fppsim.rig_files.read_rig_file`)."""
-        from .rig_files import read_rig_file
-
-        return read_rig_file(path)
+        return cls._from_file(path, read_rig_file(path))
 
     @classmethod
     def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
                            periods: float | None = None) -> "Rig":
         """Import an OpenCV stereo calibration (:func:`fppsim.rig_files.rig_from_opencv_stereo`)."""
-        from .rig_files import rig_from_opencv_stereo
+        return cls._from_file(path, rig_from_opencv_stereo(path, plane_distance, periods))
 
-        return rig_from_opencv_stereo(path, plane_distance, periods)
+    @classmethod
+    def _from_file(cls, path, doc) -> "Rig":
+        """The rig of a file's document, checked; errors name the file."""
+        try:
+            return cls.from_dict(doc)
+        except RigError as exc:
+            raise RigError(f"{Path(path)}: {exc}") from None
 
     @classmethod
     def default(cls) -> "Rig":

@@ -1,9 +1,12 @@
 """Rig calibration files: fppsim's JSON/YAML documents and OpenCV stereo calibrations.
 
-:func:`read_rig_file` reads either (``Rig.load`` calls it), :func:`save_rig` writes the fppsim
-document (``Rig.save``), :func:`rig_from_opencv_stereo` imports a ``cv2.stereoCalibrate`` result stored
-with ``cv2.FileStorage`` (YAML/XML), the reference plane given by a board pose on it
-(:func:`rotation_to_plane_frame`) or a distance. The geometry itself is :mod:`fppsim.rig`. Units: mm.
+:func:`read_rig_file` reads either as a rig document (the dictionary of ``Rig.to_dict``; ``Rig.load``
+builds the rig from it), :func:`save_rig` writes a document (``Rig.save``), :func:`rig_from_opencv_stereo`
+converts a ``cv2.stereoCalibrate`` result stored with ``cv2.FileStorage`` (YAML/XML) to a document, the
+reference plane given by a board pose on it (:func:`rotation_to_plane_frame`) or a distance. The
+geometry itself is :mod:`fppsim.rig`, which builds on this module (documents in, documents out: no
+import of the rig here). :func:`checked_matrix` checks matrices read from files or given as numbers.
+Units: mm.
 """
 
 from __future__ import annotations
@@ -16,14 +19,31 @@ import numpy as np
 
 from .errors import RigError
 from .files import atomic_write_text
-from .rig import Device, Rig, checked_matrix
 
-__all__ = ["read_rig_file", "save_rig", "rig_from_opencv_stereo", "rotation_to_plane_frame"]
+__all__ = ["checked_matrix", "read_rig_file", "save_rig", "rig_from_opencv_stereo", "rotation_to_plane_frame"]
 
 
-def read_rig_file(path: str | os.PathLike) -> Rig:
-    """Read a rig from JSON/YAML (fppsim format) or an OpenCV FileStorage stereo calibration; RigError
-    naming the file otherwise."""
+def checked_matrix(value, shape, name: str) -> np.ndarray:
+    """``value`` as a float64 array of ``shape`` (any nesting with that many numbers), all finite;
+    :class:`RigError` naming ``name`` otherwise."""
+    if isinstance(value, (dict, str, bytes)) or value is None:
+        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {type(value).__name__}")
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise RigError(f"{name} must be {int(np.prod(shape))} numbers (shape {shape}), got {value!r:.80}") from None
+    if arr.size != int(np.prod(shape)):
+        raise RigError(f"{name} must have {int(np.prod(shape))} numbers (shape {shape}), got shape {arr.shape}")
+    arr = arr.reshape(shape)
+    if not np.all(np.isfinite(arr)):
+        raise RigError(f"{name} contains NaN or inf")
+    return arr
+
+
+def read_rig_file(path: str | os.PathLike) -> dict:
+    """The rig document (``Rig.to_dict`` form) of a JSON/YAML file (fppsim format) or of an OpenCV
+    FileStorage stereo calibration (:func:`rig_from_opencv_stereo`); RigError naming the file otherwise.
+    ``Rig.load`` builds and checks the rig (errors then name the file too)."""
     path = Path(path)
     if not path.is_file():
         raise RigError(f"rig file not found: {path}")
@@ -38,16 +58,12 @@ def read_rig_file(path: str | os.PathLike) -> Rig:
             doc = json.loads(text)
     except Exception as exc:  # json/yaml parse errors have long messages: keep the first line
         raise RigError(f"{path}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
-    try:
-        return Rig.from_dict(doc)
-    except RigError as exc:
-        raise RigError(f"{path}: {exc}") from None
+    return doc
 
 
-def save_rig(rig: Rig, path: str | os.PathLike) -> None:
-    """Write ``rig`` as JSON or YAML (by the extension of ``path``), atomically."""
+def save_rig(doc: dict, path: str | os.PathLike) -> None:
+    """Write a rig document (``Rig.to_dict``) as JSON or YAML (by the extension of ``path``), atomically."""
     path = Path(path)
-    doc = rig.to_dict()
     if path.suffix.lower() in (".yaml", ".yml"):
         import yaml
         text = yaml.safe_dump(doc, sort_keys=False)
@@ -57,8 +73,9 @@ def save_rig(rig: Rig, path: str | os.PathLike) -> None:
 
 
 def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None = None,
-                           periods: float | None = None) -> Rig:
-    """Import an OpenCV stereo calibration (cv2.FileStorage YAML/XML), camera = device 1.
+                           periods: float | None = None) -> dict:
+    """The rig document (``Rig.to_dict`` form) of an OpenCV stereo calibration (cv2.FileStorage
+    YAML/XML), camera = device 1.
 
     Recognised nodes (first match wins): camera matrix ``M1|K1|cameraMatrix1|camera_matrix``,
     distortion ``D1|dist1|distCoeffs1``, projector ``M2|K2|cameraMatrix2|projector_matrix``,
@@ -70,7 +87,7 @@ def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None
     (node ``plane_distance``; required in that case).
     Fringe periods across the projector width: ``periods`` (argument, else node ``periods``, else 80).
     """
-    import cv2
+    import cv2  # optional heavy dependency (OpenCV)
 
     path = Path(path)
     try:
@@ -139,21 +156,11 @@ def rig_from_opencv_stereo(path: str | os.PathLike, plane_distance: float | None
         Rw, tw = np.diag([1.0, -1.0, -1.0]), np.array([0.0, 0.0, float(plane_distance)])
     else:
         raise RigError(f"{path}: no reference plane: add R_plane/T_plane or plane_distance (mm)")
-    periods = 80.0 if periods is None else float(periods)
-    if not (periods > 0 and np.isfinite(periods)):
-        raise RigError(f"{path}: periods must be > 0, got {periods}")
     d1, d2 = _five_coefficients(D1, path, "camera"), _five_coefficients(D2, path, "projector")
-    try:
-        cam = Device(K=K1, dist=d1, R=Rw, t=tw, width=cw, height=ch)
-    except RigError as exc:
-        raise RigError(f"{path}: camera: {exc}") from None
-    try:
-        proj = Device(K=K2, dist=d2, R=R @ Rw, t=R @ tw + T, width=pw, height=ph)
-    except RigError as exc:
-        raise RigError(f"{path}: projector: {exc}") from None
-    rig = Rig(camera=cam, projector=proj, periods=periods, name=path.stem)
-    rig.check()
-    return rig
+    # checked and built by Rig.from_dict (errors: "camera: ...", "projector: ...", periods)
+    return {"name": path.stem, "periods": 80.0 if periods is None else periods,
+            "camera": {"K": K1, "dist": d1, "R": Rw, "t": tw, "width": cw, "height": ch},
+            "projector": {"K": K2, "dist": d2, "R": R @ Rw, "t": R @ tw + T, "width": pw, "height": ph}}
 
 
 def _five_coefficients(D, path, name) -> np.ndarray:

@@ -28,11 +28,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from .phase import wrap
+
 __all__ = ["PhaseRegions", "phase_regions", "phase_quality", "step_conflicts", "Bridge", "shadow_bridges"]
-
-
-def _wrap(x):
-    return (x + np.pi) % (2 * np.pi) - np.pi
 
 
 def phase_quality(wrapped: np.ndarray) -> np.ndarray:
@@ -40,9 +38,9 @@ def phase_quality(wrapped: np.ndarray) -> np.ndarray:
     differences along rows and columns, averaged over 3 x 3. Near 0 on smooth fringes; large on
     steps, aliasing walls and noise (the quality map of reliability-guided unwrapping)."""
     w = np.asarray(wrapped, np.float64)
-    dx = _wrap(np.diff(w, axis=1, append=w[:, -1:]))
-    dy = _wrap(np.diff(w, axis=0, append=w[-1:]))
-    q = np.abs(_wrap(np.diff(dx, axis=1, prepend=dx[:, :1]))) + np.abs(_wrap(np.diff(dy, axis=0, prepend=dy[:1])))
+    dx = wrap(np.diff(w, axis=1, append=w[:, -1:]))
+    dy = wrap(np.diff(w, axis=0, append=w[-1:]))
+    q = np.abs(wrap(np.diff(dx, axis=1, prepend=dx[:, :1]))) + np.abs(wrap(np.diff(dy, axis=0, prepend=dy[:1])))
     return ndi.uniform_filter(q, 3)
 
 
@@ -60,7 +58,7 @@ def step_conflicts(wrapped: np.ndarray, expected: np.ndarray, max_step: float = 
     e = np.asarray(expected, np.float64)
     out = np.zeros(w.shape, bool)
     for axis in (0, 1):
-        bad = np.abs(_wrap(np.diff(w, axis=axis)) - np.diff(e, axis=axis)) > max_step
+        bad = np.abs(wrap(np.diff(w, axis=axis)) - np.diff(e, axis=axis)) > max_step
         bad &= np.isfinite(np.diff(e, axis=axis))
         if axis == 0:
             out[:-1] |= bad

@@ -21,18 +21,18 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 
 def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     assert parse_variant("adapt: | | adapt") == VariantFlags("adapt", [], [], [], ())
-    v = parse_variant("ph: --pedestal 0 | --head phase | adapt --epochs 20 --lr 1e-3 | refine relief,nearest")
+    v = parse_variant("ph: --pedestal 0 | --head phase | adapt --epochs 20 --lr 1e-3 | refine relief,orders")
     assert v == VariantFlags("ph", ["--pedestal", "0"], ["--head", "phase"], ["--epochs", "20", "--lr", "1e-3"],
-                             ("relief", "nearest"))
+                             ("relief", "orders"))
     assert parse_variant("r: | | refine").refine == ("relief",) and parse_variant("r: | | refine").adapt is None
-    assert parse_variant("r: | | refine nearest | adapt").adapt == []
+    assert parse_variant("r: | | refine orders | adapt").adapt == []
     for bad, match in (("x: | | bogus", "a step after the train flags"), ("x: | | adapt | adapt", "once each")):
         with pytest.raises(Sim2RealError, match=match):
             parse_variant(bad)
     cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["m"])
     var = variant_from_flags(cfg, v)
     assert var.train == {"head": "phase"} and var.adapt == {"epochs": 20, "lr": 1e-3}
-    assert var.refine == ["relief", "nearest"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
+    assert var.refine == ["relief", "orders"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
     from uhrnet.adapt import AdaptConfig
 
     default = AdaptConfig.__dataclass_fields__["epochs"].default
@@ -53,10 +53,10 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     assert a[a.index("--out") + 1] == str(tmp_path / "o" / "ph" / "adapt") and a[-4:] == ["--epochs", "20", "--lr", "1e-3"]
     assert "adapt" not in recipe_commands(cfg, variant_from_flags(cfg, parse_variant("n")), "D", "R")
     p = tmp_path / "abl.yaml"
-    p.write_text("- name: a\n  adapt: true\n  refine: relief, nearest\n- name: b\n  train: --head phase\n"
+    p.write_text("- name: a\n  adapt: true\n  refine: relief, orders\n- name: b\n  train: --head phase\n"
                  "  adapt: --epochs 5\n  refine: true\n- name: c\n")
     a, b, c = load_variants(p)
-    assert (a.adapt, a.refine) == ([], ("relief", "nearest")) and (b.adapt, b.refine) == (["--epochs", "5"], ("relief",))
+    assert (a.adapt, a.refine) == ([], ("relief", "orders")) and (b.adapt, b.refine) == (["--epochs", "5"], ("relief",))
     assert (c.adapt, c.refine) == (None, ())
 
 
@@ -121,12 +121,12 @@ def _listing(folder):
 
 def test_reused_runs_give_every_row_with_phase_residuals_and_resume(world, tmp_path, capsys):
     """Both runs re-used (nothing generated or trained), the height run adapted and refined: rows base,
-    base +refine relief, base +adapt, base +adapt +refine relief, ph, ph +refine nearest; then re-run: all re-used."""
+    base +refine relief, base +adapt, base +adapt +refine relief, ph, ph +refine orders; then re-run: all re-used."""
     tmp, base, phase = world
     before = _listing(base), _listing(phase)
     out = tmp_path / "o"
     argv = _argv(tmp, out, "--real-phase", tmp / "phase", "--rig", tmp / "rig.json",
-                 "--variant", "base: | | adapt --epochs 1 | refine relief", "--variant", "ph: | --head phase | refine nearest",
+                 "--variant", "base: | | adapt --epochs 1 | refine relief", "--variant", "ph: | --head phase | refine orders",
                  "--reuse-run", f"base={base}", "--reuse-run", f"ph={phase}")
     assert main(argv) == 0
     text = capsys.readouterr().out
@@ -136,7 +136,7 @@ def test_reused_runs_give_every_row_with_phase_residuals_and_resume(world, tmp_p
     report = json.loads((out / "report.json").read_text())
     b, ph = report["variants"]
     assert [r["row"] for r in b["rows"]] == ["base", "base +refine relief", "base +adapt", "base +adapt +refine relief"]
-    assert [r["row"] for r in ph["rows"]] == ["ph", "ph +refine nearest"]
+    assert [r["row"] for r in ph["rows"]] == ["ph", "ph +refine orders"]
     assert b["reused"] and b["run"] == str(base) and b["data"] == str(tmp / "syn") and ph["data"] == str(tmp / "nat")
     assert b["real"] == b["rows"][0]["real"] and b["images"] == 2 and "relief_effect_mm" in b["real"]
     assert b["adapt"]["images"] == [str(tmp / "real"), str(tmp / "phase")] and b["adapt"]["labels_read"] is False

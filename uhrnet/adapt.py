@@ -6,18 +6,20 @@ a reliability ``rho`` in [0, 1]), and the calibrated rig says which phase a heig
 (:class:`uhrnet.rig_layer.RigLayer`: ``Phi(h)``, exact and differentiable). Fine-tuning minimises,
 over the UNLABELLED images (no height label is ever read),
 
-    L = w_grad L_grad + w_wrap L_wrap + w_drift L_drift
+    L = w_grad L_grad + w_drift L_drift
 
 * ``L_grad``, fringe-gradient consistency: the phase step between neighbouring pixels that the
   predicted height implies, ``Phi(h)[x+1] - Phi(h)[x]`` (rows and columns), against the image's own
   step ``wrap(phi[x+1] - phi[x])``, with a Charbonnier penalty, weighted by ``min(rho)`` of the pair and
   ignored where they differ by more than ``max_step`` rad (a wall whose fringes alias, a shadow edge).
   It fixes the relief's shape without the fringe-order ambiguity of the phase itself;
-* ``L_wrap``, wrapped-phase consistency: ``sum rho (1 - cos(phi - Phi(h) - o)) / sum rho`` with ``o`` the
-  image's phase origin (a constant per image, estimated each step as the weighted circular mean and
-  not differentiated: a real projector's pattern phase is not the rig's);
 * ``L_drift``, anchor to the source model: mean ``|h - h_source| / 10 mm`` over the image's valid pixels,
   which keeps what the phase cannot tell (the level of an object behind walls, shadows) where it was.
+
+A wrapped-phase term ``sum rho (1 - cos(phi - Phi(h) - o)) / sum rho`` (``--w-wrap``, off by default) was
+removed on 2026-11-26: it pulls each pixel to the nearest height the rig calls phase-consistent, and the
+default rig's depth scale is about 3.4 mm off at 40 mm on the real data, so it pulled raised objects the
+wrong way (FP1523 residual 1.644 with it against 1.614 rad without, docs/experiments/physics.md).
 
 Batch norm and dropout stay in evaluation mode (two or three images cannot re-estimate statistics).
 The run folder holds ``last.pt`` (a checkpoint ``predict``/``evaluate`` accept, with the source's
@@ -43,11 +45,13 @@ from typing import Callable, Sequence
 import numpy as np
 import torch
 
+from fppsim.phase import circular_mean, wrap
 from uhrnet.errors import ConfigError, UsageError
+from uhrnet.rig_layer import wrap as wrap_t
 
 __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
 
-ADAPT_COLUMNS = ("epoch", "loss", "grad", "wrap", "drift", "lr", "seconds")
+ADAPT_COLUMNS = ("epoch", "loss", "grad", "drift", "lr", "seconds")
 
 
 @dataclass
@@ -61,14 +65,11 @@ class AdaptConfig:
     out : the adaptation's run folder.
     rig : calibration file; default the checkpoint's own rig (physics head), else fppsim's default rig.
     epochs : passes over the images (one image per step). lr : Adam learning rate.
-    w_grad, w_wrap, w_drift : loss weights. Defaults chosen on a frame the adaptation did not see
+    w_grad, w_drift : loss weights. Defaults chosen on a frame the adaptation did not see
         (adapting the recipe's U-Net on the real pair alone, scoring FP1523's calibration-free phase
-        residual: 1.682 rad before; lr 1e-4 / 40 epochs with w_wrap 0.5: 1.644; w_wrap 0: 1.614; lr 3e-4,
-        w_wrap 0: 1.583; and 80 epochs: 1.573; w_drift 0.1 let objects sink, 1.733). The wrapped term
-        is off by default: it pulls each pixel to the nearest height the rig calls phase-consistent, and
-        the default rig's depth scale is about 3.4 mm off at 40 mm on the real data (docs/experiments/
-        physics.md), so it pulls raised objects the wrong way. max_step : largest phase-step disagreement (rad) that
-        counts in ``L_grad``. min_reliability : pixels below it count in neither phase term.
+        residual: 1.682 rad before; lr 1e-4 / 40 epochs: 1.614; lr 3e-4: 1.583; and 80 epochs: 1.573;
+        w_drift 0.1 let objects sink, 1.733). max_step : largest phase-step disagreement (rad) that
+        counts in ``L_grad``. min_reliability : pixels below it count in no phase term.
     """
 
     checkpoint: str | Path
@@ -78,7 +79,6 @@ class AdaptConfig:
     epochs: int = 80
     lr: float = 3e-4
     w_grad: float = 1.0
-    w_wrap: float = 0.0
     w_drift: float = 0.5
     max_step: float = 1.5
     min_reliability: float = 0.2
@@ -99,12 +99,12 @@ class AdaptConfig:
             raise UsageError(f"--epochs must be an integer >= 1, got {self.epochs!r}")
         if not (self.lr > 0 and math.isfinite(self.lr)):
             raise UsageError(f"--lr must be a finite rate > 0, got {self.lr!r}")
-        for name in ("w_grad", "w_wrap", "w_drift", "max_step", "min_reliability"):
+        for name in ("w_grad", "w_drift", "max_step", "min_reliability"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise UsageError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {v!r}")
-        if self.w_grad + self.w_wrap == 0:
-            raise UsageError("adapt needs a phase term: --w-grad or --w-wrap must be > 0")
+        if self.w_grad == 0:
+            raise UsageError("adapt needs its phase term: --w-grad must be > 0")
         if self.tensorboard:
             from uhrnet.tb_log import require_tensorboard
 
@@ -147,12 +147,8 @@ def image_phase(name: str, fringe: np.ndarray, rig) -> ImagePhase:
     return ImagePhase(name, np.asarray(fringe, np.float32), ssp.wrapped.astype(np.float32), rel)
 
 
-def _wrap(x: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(x), torch.cos(x))
-
-
 def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.Tensor, reliability: torch.Tensor,
-               layer, w_grad: float = 1.0, w_wrap: float = 0.5, w_drift: float = 0.5, max_step: float = 1.5,
+               layer, w_grad: float = 1.0, w_drift: float = 0.5, max_step: float = 1.5,
                min_reliability: float = 0.2, eps: float = 0.05) -> tuple[torch.Tensor, dict]:
     """The adaptation loss (module docstring) for a batch ``(N, 1, H, W)``: heights in mm, the image's
     wrapped phase (rad) and reliability; ``layer`` maps height to absolute phase. Returns the total and
@@ -166,19 +162,13 @@ def adapt_loss(height_mm: torch.Tensor, source_mm: torch.Tensor, wrapped: torch.
     for dim in (-1, -2):
         n = phi.shape[dim]
         a, b = (lambda t: t.narrow(dim, 1, n - 1)), (lambda t: t.narrow(dim, 0, n - 1))
-        r = (a(phi) - b(phi)) - _wrap(a(wrapped) - b(wrapped))
+        r = (a(phi) - b(phi)) - wrap_t(a(wrapped) - b(wrapped))
         w = torch.minimum(a(rho), b(rho)) * (r.detach().abs() < max_step)
         g_sum = g_sum + (w * (torch.sqrt(r * r + eps * eps) - eps)).sum()
         g_w = g_w + w.sum()
     terms["grad"] = g_sum / g_w.clamp(min=1.0)
-    # wrapped consistency with one phase origin per image
-    d = wrapped - phi
-    with torch.no_grad():
-        o = torch.atan2((rho * torch.sin(d)).sum(dim=(1, 2, 3), keepdim=True),
-                        (rho * torch.cos(d)).sum(dim=(1, 2, 3), keepdim=True))
-    terms["wrap"] = (rho * (1 - torch.cos(d - o))).sum() / rho.sum().clamp(min=1.0)
     terms["drift"] = (valid * (height_mm - source_mm).abs()).sum() / (10.0 * valid.sum().clamp(min=1.0))
-    total = w_grad * terms["grad"] + w_wrap * terms["wrap"] + w_drift * terms["drift"]
+    total = w_grad * terms["grad"] + w_drift * terms["drift"]
     return total, {k: float(v.detach()) for k, v in terms.items()}
 
 
@@ -191,8 +181,7 @@ def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_r
     if not sel.any():
         return float("nan")
     d = (img.wrapped - phi)[sel]
-    o = np.angle(np.mean(np.exp(1j * d)))
-    return float(np.median(np.abs(np.angle(np.exp(1j * (d - o))))))
+    return float(np.median(np.abs(wrap(d - circular_mean(d)))))
 
 
 def _rig_for(cfg: AdaptConfig, ckpt: dict):
@@ -299,12 +288,12 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     tb = RunLog(out / TB_FOLDER if cfg.tensorboard and start < cfg.epochs else None, start * len(images))
     for epoch in range(start, int(cfg.epochs)):
         t0 = time.perf_counter()
-        sums = {"loss": 0.0, "grad": 0.0, "wrap": 0.0, "drift": 0.0}
+        sums = {"loss": 0.0, "grad": 0.0, "drift": 0.0}
         for k, i in enumerate(torch.randperm(len(images), generator=gen).tolist()):
             x, phi, rho = batch(images[i])
             h = to_mm(model(x))
-            loss, terms = adapt_loss(h, sources[i], phi, rho, layer, cfg.w_grad, cfg.w_wrap, cfg.w_drift,
-                                     cfg.max_step, cfg.min_reliability)
+            loss, terms = adapt_loss(h, sources[i], phi, rho, layer, cfg.w_grad, cfg.w_drift, cfg.max_step,
+                                     cfg.min_reliability)
             if not torch.isfinite(loss):
                 raise ConfigError(f"adapt: the loss became {float(loss):g} on {images[i].name} at epoch {epoch + 1}; "
                                   "lower --lr")
@@ -313,8 +302,8 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
             optim.step()
             tb.step(epoch * len(images) + k + 1, loss.detach(), cfg.lr, terms)
             sums["loss"] += float(loss.detach()) / len(images)
-            for k, v in terms.items():
-                sums[k] += v / len(images)
+            for name, v in terms.items():
+                sums[name] += v / len(images)
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{float(loss):.4g}", refresh=False)
@@ -337,7 +326,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         _write_history(history, out)
         if not cfg.progress:
             log(f"adapt epoch {epoch + 1}/{cfg.epochs}  loss {sums['loss']:.4g}  grad {sums['grad']:.4g}  "
-                f"wrap {sums['wrap']:.4g}  drift {sums['drift']:.4g}  {row['seconds']:.1f}s")
+                f"drift {sums['drift']:.4g}  {row['seconds']:.1f}s")
     if bar is not None:
         bar.close()
     tb.close()

@@ -10,11 +10,6 @@ re-exposed with a seeded random draw of:
 - contrast: the fringe modulation around a local (blurred) background is scaled;
 - envelope: the local background and the fringe modulation are each multiplied by their own finer
   smooth random field (object-sized, 20-90 px), so shading cannot stand in for the fringe phase;
-- tilt (kind ``shading-tilt``): a planar gain ramp across the whole image in a random direction,
-  ``exp(a * d / W)`` with ``d`` the distance along that direction from the image centre: the
-  projector's falloff over the field differs between rigs (fppsim's default rig: 1.11x from the left
-  edge to the right on the plane, 1.92x before its irradiance model was corrected; the real figshare
-  pair: about 1.14x), and the local fields above are too small to hide it;
 - blur: a Gaussian of random width (focus);
 - noise: Gaussian read noise plus shot noise, then 8-bit quantisation (the data are 8-bit).
 
@@ -45,9 +40,6 @@ class AugmentConfig:
         ``exp(+-envelope)``);
         0 turns them off (and leaves the other draws exactly as without them).
     envelope_scale : range of their feature size as a fraction of the image height.
-    tilt : largest log-gain change across the image width of the planar ramp, applied before the
-        gamma (so the final image's log-gain changes by up to gamma x tilt); 0: off, and the other
-        draws exactly as without it.
     """
 
     probability: float = 0.8
@@ -60,7 +52,6 @@ class AugmentConfig:
     shot: tuple[float, float] = (0.0, 0.1)
     envelope: float = 0.9
     envelope_scale: tuple[float, float] = (0.06, 0.25)
-    tilt: float = 0.0
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -69,7 +60,6 @@ class AugmentConfig:
 AUGMENTS = {
     "shading": AugmentConfig(),                   # photometric jitter + random shading fields
     "photometric": AugmentConfig(envelope=0.0),   # the jitter alone (the default before the shading fields)
-    "shading-tilt": AugmentConfig(tilt=0.7),      # shading + a random planar gain ramp over the image
     "off": None,
 }
 
@@ -105,14 +95,6 @@ def _smooth_field(shape, rng: np.random.Generator, scale: float = 0.25) -> np.nd
 
     t = torch.from_numpy(coarse)[None, None]
     return F.interpolate(t, size=(h, w), mode="bicubic", align_corners=True)[0, 0].clamp(-1, 1).numpy()
-
-
-def _ramp(shape, amplitude: float, angle: float) -> np.ndarray:
-    """``exp(amplitude * d / W)``, ``d`` the signed distance (px) from the image centre along ``angle``."""
-    h, w = shape
-    y = (np.arange(h) - (h - 1) / 2.0)[:, None]
-    x = (np.arange(w) - (w - 1) / 2.0)[None, :]
-    return np.exp(amplitude * (x * np.cos(angle) + y * np.sin(angle)) / w)
 
 
 def augment_fringe(fringe: np.ndarray, valid: np.ndarray, rng: np.random.Generator,
@@ -153,8 +135,6 @@ def augment_fringe(fringe: np.ndarray, valid: np.ndarray, rng: np.random.Generat
         background = _gauss(I, 6.0)
         I = background * scale_b + contrast * scale_m * (I - background)
     I = I * gain * (1.0 + field_amp * _smooth_field(I.shape, rng))
-    if cfg.tilt > 0:
-        I = I * _ramp(I.shape, rng.uniform(0.0, cfg.tilt), rng.uniform(0.0, 2 * np.pi))
     I = 255.0 * (np.clip(I, 0.0, None) / 255.0) ** gamma
     I = _gauss(I, blur)
     var = noise ** 2 + shot * np.clip(I, 0.0, None)

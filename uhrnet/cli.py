@@ -41,7 +41,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.splits import SPLIT_MODES
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
-    from uhrnet.train_config import LR_FLAT, LR_FLOOR, LR_SCHEDULES
+    from uhrnet.train_config import LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
 
@@ -71,9 +71,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    metavar="KIND",
                    help="augmentation of synthetic samples (uhrnet.augment; real samples never): 'photometric' "
                         "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "
-                        "the fringe background and modulation so that shading cannot stand in for the phase; "
-                        "'shading-tilt' adds a random planar gain ramp over the whole image (the projector's "
-                        "falloff across the field differs between rigs); 'off' [shading]")
+                        "the fringe background and modulation so that shading cannot stand in for the phase; 'off' [shading]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
                    help="no augmentation (same as --augment off)")
     d.add_argument("--augment-probability", type=float, metavar="P",
@@ -89,7 +87,6 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--lr-schedule", choices=LR_SCHEDULES,
                    help="learning rate over the run: cosine decays it per step from --lr to "
                         f"{LR_FLOOR:g} x --lr at the last step of --epochs, so the last epoch is the settled one; "
-                        f"flat-cosine keeps --lr for the first {LR_FLAT * 100:.0f} %% of the steps and decays over the rest; "
                         "constant keeps --lr [cosine]")
     m.add_argument("--weight-decay", type=float, help="Adam weight decay [0]")
     m.add_argument("--grad-clip", type=float, metavar="NORM", help="clip the gradient norm [off]")
@@ -230,8 +227,7 @@ def add_predict(p: argparse.ArgumentParser) -> None:
                         "of height); orders: the same regions with whole fringe orders, voted across projector "
                         "shadows (one projector ray lights the shadow's far edge and the object's edge) or rounded "
                         "from the network: levels from the phase through the rig, exact only as far as the rig's "
-                        "depth scale is; nearest: each pixel to the nearest phase-consistent height, only where the "
-                        "move is under a quarter fringe period (about 1.8 mm on the default rig) [relief]")
+                        "depth scale is [relief]")
     p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
                    help="x, y spacing of the point cloud without --rig [1.0]")
     p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
@@ -457,8 +453,8 @@ def parse_variant(text: str) -> VariantFlags:
     ``refine [METHOD[,METHOD...]]`` (extra rows after ``--refine phase``; bare ``refine``: relief).
 
     ``"aug-off: | --no-augment"`` -> VariantFlags("aug-off", [], ["--no-augment"]);
-    ``"ph: | --head phase | adapt --epochs 20 | refine relief,nearest"`` -> VariantFlags("ph", [],
-    ["--head", "phase"], ["--epochs", "20"], ("relief", "nearest")).
+    ``"ph: | --head phase | adapt --epochs 20 | refine relief,orders"`` -> VariantFlags("ph", [],
+    ["--head", "phase"], ["--epochs", "20"], ("relief", "orders")).
     """
     from uhrnet.sim2real import Sim2RealError, Variant
 
@@ -645,8 +641,8 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         "uhrnet train and uhrnet adapt; the steps add rows without training again:\n"
         "  --variant 'phase-head: | --head phase'            the physics head (one more training run)\n"
         "  --variant 'default: | | adapt'                    + the model adapted on the UNLABELLED real images\n"
-        "  --variant 'ph: | --head phase | adapt --epochs 20 | refine relief,nearest'\n"
-        "gives the rows ph, ph +refine relief, ph +refine nearest, ph +adapt, ph +adapt +refine relief, ...\n"
+        "  --variant 'ph: | --head phase | adapt --epochs 20 | refine relief,orders'\n"
+        "gives the rows ph, ph +refine relief, ph +refine orders, ph +adapt, ph +adapt +refine relief, ...\n"
         "adapt: uhrnet adapt of the run's last.pt on --adapt-images (default: the --real and --real-phase\n"
         "folders; only their fringe images are read, never a label) -> OUT/<name>/adapt (adapt.log); refine:\n"
         "the predictions after uhrnet predict --refine phase --refine-method METHOD through --rig.\n"
@@ -752,8 +748,6 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
                         "recipe's U-Net on 2 CPU cores]")
     p.add_argument("--lr", type=float, default=d["lr"].default, help=f"Adam learning rate [{d['lr'].default:g}]")
     for name, what in (("w_grad", "weight of the fringe-gradient consistency (phase steps between neighbours, rad)"),
-                       ("w_wrap", "weight of the wrapped-phase consistency (1 - cos of the residual, one phase origin "
-                                  "per image)"),
                        ("w_drift", "weight of the anchor to the source model's prediction (mean |change| / 10 mm)"),
                        ("max_step", "phase-step disagreements above this (rad) are ignored: aliasing walls, shadow "
                                     "edges"),
@@ -775,7 +769,7 @@ def run_adapt(args) -> int:
     from uhrnet.adapt import AdaptConfig, adapt
 
     cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
-                      epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_wrap=args.w_wrap, w_drift=args.w_drift,
+                      epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_drift=args.w_drift,
                       max_step=args.max_step, min_reliability=args.min_reliability, device=args.device, seed=args.seed,
                       overwrite=args.overwrite, figures=not args.no_figures, progress=not args.no_progress,
                       tensorboard=args.tensorboard)

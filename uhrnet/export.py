@@ -85,7 +85,7 @@ def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> tor
 def deployable(model: nn.Module) -> nn.Module:
     """``model`` (e.g. a LabelHead) with batch norms folded, eval mode.
 
-    UHRNet's blocks are not merged (:func:`uhrnet.deploy.merge_multilevel_blocks`): onnxruntime runs
+    UHRNet's blocks are not merged (the removed ``MergedMultiLevelConvBlock``): onnxruntime runs
     convolutions in a blocked channel layout (NCHWc) and fuses a following residual add and LeakyReLU
     into them, but the merged block's channel splits force a layout conversion around every
     convolution (97 reorder nodes in UHRNet against 34 unmerged); torch runs them slower too.

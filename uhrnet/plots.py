@@ -11,6 +11,7 @@ from typing import Sequence
 
 import numpy as np
 
+from fppsim.phase import circular_mean, wrap
 from fppsim.plots import pyplot
 
 __all__ = ["pyplot", "save_figure", "plot_history", "plot_comparison", "plot_adaptation"]
@@ -138,9 +139,9 @@ def plot_adaptation(image, before_mm: np.ndarray, after_mm: np.ndarray, layer, p
     def residual(h):
         with torch.no_grad():
             phi = layer.phase_from_height(torch.as_tensor(np.nan_to_num(h), dtype=torch.float64)).numpy()
-        d = np.angle(np.exp(1j * (image.wrapped - phi)))
-        o = np.angle(np.mean(np.exp(1j * d[rel]))) if rel.any() else 0.0
-        return np.where(rel, np.angle(np.exp(1j * (d - o))), np.nan)
+        d = wrap(image.wrapped - phi)
+        o = circular_mean(d, mask=rel) if rel.any() else 0.0
+        return np.where(rel, wrap(d - o), np.nan)
 
     show = lambda h: np.where(valid, h, np.nan)  # noqa: E731
     both = np.concatenate([before_mm[valid], after_mm[valid]])

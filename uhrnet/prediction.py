@@ -18,8 +18,8 @@ the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image `
 ``refine="phase"`` (``--refine phase``) then moves the heights to agree with the image's own fringe
 phase (:func:`fppsim.fringe.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
 fppsim's default rig): ``refine_method="relief"`` (default, :func:`uhrnet.refine.refine_relief`: the
-relief from the phase, unwrapped region by region, the level from the network) or ``"nearest"``
-(:func:`uhrnet.refine.refine_height`: each pixel to the nearest phase-consistent height within a margin).
+relief from the phase, unwrapped region by region, the level from the network) or ``"orders"`` (the
+same regions, whole fringe orders voted across projector shadows).
 ``NAME_height.*`` is then the refined map, ``NAME_height_network.npy`` the network's own, and
 ``refine.json`` lists per image the share of pixels moved (:attr:`PredictResult.refine`).
 
@@ -241,11 +241,7 @@ def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
     h, w = height_mm.shape
     if (cam.width, cam.height) != (w, h):
         raise ConfigError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    origin, d = cam.pixel_rays(np.stack([uu, vv], axis=-1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        s = (height_mm.astype(np.float64) - origin[2]) / d[..., 2]
-    return origin + s[..., None] * d
+    return cam.ray_cut(cam.pixel_grid(), height_mm.astype(np.float64))[1]
 
 
 def points_from_grid(height_mm: np.ndarray, pixel_size: float) -> np.ndarray:
@@ -398,16 +394,11 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
-    from uhrnet.refine import refine_height, refine_relief
+    from uhrnet.refine import refine_relief
 
     ssp = fringe_phase(fringe, rig)
     valid = np.isfinite(height_mm) & ssp.valid
-    if method == "nearest":  # unreliable pixels keep the network's height (refine_height leaves them alone)
-        refined, _, stats = refine_height(height_mm, ssp.wrapped, np.where(valid, ssp.reliability, 0.0), rig,
-                                          phase_offset="estimate")
-        stats = {"method": "nearest", **stats}
-    else:
-        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid,
-                                          level="orders" if method == "orders" else "network", shadow=~ssp.valid)
+    refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid,
+                                      level="orders" if method == "orders" else "network", shadow=~ssp.valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

@@ -1,31 +1,21 @@
-"""Snap a height map to the nearest height its own fringe image's wrapped phase allows (:func:`refine_height`).
+"""Make a height map consistent with its own fringe image's phase, region by region (:func:`refine_relief`).
 
 A single-shot fringe image fixes the projector phase of every pixel up to whole periods (the wrapped
 phase ``phi``, :func:`fppsim.fringe.single_shot_phase`); a network's height estimate ``h`` says which
 period. Through the calibrated rig (:class:`uhrnet.rig_layer.RigLayer`) the estimate implies the phase
-``Phi(h)``, and the phase-consistent height nearest to it is::
-
-    Phi' = Phi(h) + wrap(phi - o - Phi(h)),      h' = height_from_phase(Phi')
-
-with ``o`` the measured phase's origin (measured = fppsim phase + ``o``, mod 2 pi; 0 for fppsim's own
-``phase_true`` convention). ``h'`` is exact wherever ``h`` is within half a fringe period of the truth
-(the wrapped phase then picks the right period) and off by one whole period where it is not; nothing
-in the image tells the two apart. So a pixel moves only where
-
-* its reliability is ``>= min_reliability`` (the wrapped phase is trustworthy there), and
-* the move is within a margin: ``max_move_mm``, or by default ``max_move_fraction`` (0.5) of the
-  height of half a fringe period at that pixel, ``pi / |dPhi/dh|`` (from the rig's local sensitivity
-  at the estimated height; about 3.6 mm on the default rig, so 1.8 mm). With the margin a fraction
-  ``m`` of half a period, estimates within ``m/2`` periods of the truth are corrected exactly and an
-  estimate is made worse only when it is already more than ``1 - m/2`` periods off (then by at most
-  ``m/2`` periods); a smooth error beyond half a period is never "fixed" by more than the margin.
+``Phi(h)``. :func:`refine_relief` unwraps the phase inside regions where it is continuous and takes
+their relief from it, their level from the estimate (``relief``) or from whole fringe orders voted
+across projector shadows (``orders``).
 
 Phase origin. Real frames may count phase from another origin (the public real data count fringe
-orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad). ``phase_offset="estimate"``
-estimates ``o`` per image as the circular median of ``wrap(phi - Phi(h))`` over the reliable pixels
-(:func:`circular_median`; robust to the object's pixels where ``h`` is wrong as long as most reliable
-pixels are right, e.g. the reference plane) and reports it; only ``o`` modulo 2 pi matters here. The
-estimate is always reported (``offset_estimate_rad``), also when a known offset is used.
+orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad): measured = fppsim phase +
+``o``, mod 2 pi. ``o`` is estimated per image as the circular median of ``wrap(phi - Phi(h))`` over the
+reliable pixels (:func:`circular_median`; robust to the object's pixels where ``h`` is wrong as long as
+most reliable pixels are right, e.g. the reference plane).
+
+Snapping each pixel to the nearest phase-consistent height (``--refine-method nearest``,
+``refine_height``) was removed on 2026-11-26: on the real pair it made the recipe model worse (6.92 mm
+against 6.06 mm unrefined; relief 5.57 mm, docs/experiments/physics.md).
 
 numpy in, numpy out (torch float64 inside).
 """
@@ -36,24 +26,20 @@ import math
 
 import numpy as np
 
-__all__ = ["refine_height", "refine_relief", "circular_median", "REFINE_METHODS"]
+from fppsim.phase import wrap
 
-REFINE_METHODS = ("relief", "orders", "nearest")
+__all__ = ["refine_relief", "circular_median", "REFINE_METHODS"]
+
+REFINE_METHODS = ("relief", "orders")
 """``relief``: :func:`refine_relief` with each region's level from the estimate (the default of ``--refine
 phase``); ``orders``: :func:`refine_relief` with whole fringe orders (from shadow bridges, else rounded from the
-estimate), exact levels where the rig's absolute phase-to-height mapping is right; ``nearest``:
-:func:`refine_height`."""
+estimate), exact levels where the rig's absolute phase-to-height mapping is right."""
 
 TWO_PI = 2.0 * math.pi
 
 
-def _wrap(x: np.ndarray) -> np.ndarray:
-    """Wrap (rad) into [-pi, pi)."""
-    return np.mod(np.asarray(x, dtype=np.float64) + math.pi, TWO_PI) - math.pi
-
-
 def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int = 20000) -> float:
-    """Circular median (rad, in [-pi, pi)) of ``angles``: the direction minimising the summed arc
+    """Circular median (rad, in (-pi, pi]) of ``angles``: the direction minimising the summed arc
     distance, robust to outliers (unlike the circular mean). NaN when no angle is finite.
 
     A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
@@ -70,9 +56,9 @@ def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int 
         return float("nan")
     sample = a[:: max(1, a.size // int(max_samples))]
     cands = np.linspace(-math.pi, math.pi, int(candidates), endpoint=False)
-    cost = [np.abs(_wrap(sample - c)).sum() for c in cands]
+    cost = [np.abs(wrap(sample - c)).sum() for c in cands]
     c0 = cands[int(np.argmin(cost))]
-    return float(_wrap(c0 + np.median(_wrap(a - c0))))
+    return float(wrap(c0 + np.median(wrap(a - c0))))
 
 
 def _layer_for(rig_or_layer, shape):
@@ -84,103 +70,6 @@ def _layer_for(rig_or_layer, shape):
                          f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
                          "(RigLayer(rig, height=..., width=..., pixels=...))")
     return layer
-
-
-def refine_height(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None,
-                  rig_or_layer, min_reliability: float = 0.5, max_move_mm=None, phase_offset: float | str = 0.0,
-                  max_move_fraction: float = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
-    """Move each reliable pixel's height to the nearest height consistent with the wrapped phase.
-
-    See the module docstring for the method, the margin and the phase origin.
-
-    Parameters
-    ----------
-    height_mm : (..., H, W) float array, estimated height above the reference plane, mm (NaN = none).
-    wrapped_phase : (..., H, W) float array, the image's wrapped projector phase, rad (any 2 pi
-        representative; fppsim's ``phase_true`` convention up to ``phase_offset``).
-    reliability : (..., H, W) float array in [0, 1] (NaN = 0), or None (every pixel reliable).
-    rig_or_layer : :class:`fppsim.rig.Rig`, its dictionary, or a :class:`uhrnet.rig_layer.RigLayer`
-        whose grid is (H, W).
-    min_reliability : pixels below it are never moved.
-    max_move_mm : largest allowed move, mm (a number or an array broadcasting to the height map);
-        None: ``max_move_fraction`` of the height of half a fringe period at each pixel.
-    phase_offset : the measured phase's origin ``o`` in rad (measured = fppsim phase + o, mod 2 pi),
-        or ``"estimate"``: one circular-median estimate per image (leading index).
-    max_move_fraction : margin as a fraction of half a fringe period (when ``max_move_mm`` is None).
-
-    Returns
-    -------
-    refined : (..., H, W) array of the input's float dtype (float64 for other inputs), mm; equal to
-        ``height_mm`` (bit for bit) where not moved.
-    moved : (..., H, W) bool, the pixels that moved.
-    stats : dict with ``moved_fraction`` (moved / pixels with a finite height), ``reliable_fraction``
-        (pixels eligible: finite height and phase, reliability >= threshold), ``beyond_margin_fraction``
-        (eligible but their move exceeded the margin), ``mean_abs_move_mm`` (over moved pixels),
-        ``offset_rad`` (the origin used) and ``offset_estimate_rad`` (the circular-median estimate; both
-        floats for one image, lists for a batch), ``n_pixels`` (pixels with a finite height).
-    """
-    import torch
-
-    h_in = np.asarray(height_mm)
-    h = h_in.astype(np.float64)
-    w = np.asarray(wrapped_phase, dtype=np.float64)
-    if w.shape != h.shape:
-        raise ValueError(f"wrapped_phase has shape {w.shape}, height_mm {h.shape}")
-    if h.ndim < 2:
-        raise ValueError(f"height_mm must be (..., H, W), got shape {h.shape}")
-    rel = np.ones_like(h) if reliability is None else np.nan_to_num(np.asarray(reliability, dtype=np.float64))
-    if rel.shape != h.shape:
-        raise ValueError(f"reliability has shape {rel.shape}, height_mm {h.shape}")
-    if not (max_move_fraction > 0):
-        raise ValueError(f"max_move_fraction must be > 0, got {max_move_fraction!r}")
-    estimate = isinstance(phase_offset, str)
-    if estimate and phase_offset != "estimate":
-        raise ValueError(f"phase_offset must be a number (rad) or 'estimate', got {phase_offset!r}")
-    layer = _layer_for(rig_or_layer, h.shape)
-    dev = layer.A.device
-    with torch.no_grad():
-        th = torch.as_tensor(h, dtype=torch.float64, device=dev)
-        phi = layer.phase_from_height(th)
-        sens = layer.sensitivity(torch.nan_to_num(th))
-        phi, sens = phi.cpu().numpy(), sens.cpu().numpy()
-    d = _wrap(w - phi)
-    eligible = np.isfinite(h) & np.isfinite(d) & (rel >= min_reliability)
-
-    lead = h.shape[:-2]
-    d2 = d.reshape((-1,) + h.shape[-2:])
-    e2 = eligible.reshape(d2.shape)
-    est = np.array([circular_median(d2[i][e2[i]]) if e2[i].any() else float("nan") for i in range(d2.shape[0])])
-    if estimate:
-        used = np.nan_to_num(est)  # no reliable pixel: nothing moves anyway
-    else:
-        used = np.full(d2.shape[0], float(phase_offset))
-    step = _wrap(d2 - used[:, None, None]).reshape(h.shape)
-    with torch.no_grad():
-        target = torch.as_tensor(phi + step, dtype=torch.float64, device=dev)
-        h_new = layer.height_from_phase(target).cpu().numpy()
-    move = h_new - h
-    if max_move_mm is None:
-        with np.errstate(divide="ignore"):
-            margin = max_move_fraction * math.pi / np.abs(sens)
-    else:
-        margin = np.broadcast_to(np.asarray(max_move_mm, dtype=np.float64), h.shape)
-    within = np.isfinite(move) & (np.abs(move) <= margin)
-    moved = eligible & within
-    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
-    refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
-
-    n = int(np.isfinite(h).sum())
-    per = lambda x: float(x[0]) if not lead else [float(v) for v in x]  # noqa: E731
-    stats = {
-        "n_pixels": n,
-        "moved_fraction": float(moved.sum() / n) if n else 0.0,
-        "reliable_fraction": float(eligible.sum() / n) if n else 0.0,
-        "beyond_margin_fraction": float((eligible & ~within).sum() / n) if n else 0.0,
-        "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
-        "offset_rad": per(used),
-        "offset_estimate_rad": per(est),
-    }
-    return refined, moved, stats
 
 
 def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
@@ -199,8 +88,8 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     estimate: each pixel moves to ``height_from_phase(Phi(h) + D - median_region(D))`` with
     ``D = U - Phi(h) - o`` (``U`` the region's unwrapped phase, ``o`` the image's phase origin,
     :func:`circular_median` over the reliable pixels). So the region's median move is 0: the estimate
-    keeps its level, the phase replaces its shape. Unlike :func:`refine_height` this needs no estimate
-    within half a period, and a rig whose height scale is slightly off changes the relief by that
+    keeps its level, the phase replaces its shape. Unlike snapping each pixel to the nearest
+    phase-consistent height this needs no estimate within half a period, and a rig whose height scale is slightly off changes the relief by that
     fraction only, not the level.
 
     ``level="orders"`` instead gives every region a whole fringe order, so its level comes from the
@@ -254,7 +143,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         phi = layer.phase_from_height(t(filled)).cpu().numpy()
         sens = layer.sensitivity(t(filled)).cpu().numpy()
         expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
-    offset = circular_median(_wrap(w - phi)[usable]) if usable.any() else 0.0
+    offset = circular_median(wrap(w - phi)[usable]) if usable.any() else 0.0
     regions = phase_regions(w, usable, cut=step_conflicts(w, expected, max_step), min_size=min_region)
     lab = regions.labels
     d = regions.unwrapped - phi - offset

@@ -60,14 +60,23 @@ from torch import nn
 
 from fppsim.rig import Rig
 
-__all__ = ["RigLayer", "wrap"]
+__all__ = ["RigLayer", "wrap", "circular_mean"]
 
 TWO_PI = 2.0 * math.pi
 
 
 def wrap(phase: torch.Tensor) -> torch.Tensor:
-    """Wrap phases (rad) into ``[-pi, pi)``; any shape and floating dtype; differentiable (slope 1)."""
-    return torch.remainder(phase + math.pi, TWO_PI) - math.pi
+    """Wrap phases (rad) into ``(-pi, pi]``, the torch twin of :func:`fppsim.phase.wrap` (equal in float64;
+    values already there unchanged); any shape and floating dtype; differentiable (slope 1)."""
+    w = phase - TWO_PI * torch.ceil((phase - math.pi) / TWO_PI)
+    return torch.where(w <= -math.pi, w + TWO_PI, torch.where(w > math.pi, w - TWO_PI, w))
+
+
+def circular_mean(phase: torch.Tensor, weights: torch.Tensor, dim=(1, 2, 3)) -> torch.Tensor:
+    """Weighted circular mean (rad, ``atan2(sum w sin, sum w cos)``) over ``dim`` (kept, size 1): one
+    phase per image of an ``(N, 1, H, W)`` batch; the torch twin of :func:`fppsim.phase.circular_mean`."""
+    return torch.atan2((weights * torch.sin(phase)).sum(dim=dim, keepdim=True),
+                       (weights * torch.cos(phase)).sum(dim=dim, keepdim=True))
 
 
 def _slice_tuple(s: slice) -> list:
@@ -141,10 +150,9 @@ class RigLayer(nn.Module):
         self.grid_shape = tuple(int(n) for n in uv.shape[:2])
 
         origin, d = cam.pixel_rays(uv)  # fppsim's rays: camera distortion removed as fppsim does
+        _, P0 = cam.ray_cut(uv, 0.0, rays=(origin, d))  # the ray's point on the plane (fppsim's ray cut)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv_dz = 1.0 / d[..., 2]
-            s0 = (0.0 - origin[2]) * inv_dz  # camera depth of the plane point
-            P0 = origin + s0[..., None] * d
             e = d * inv_dz[..., None]  # dX/dh
         ray_ok = np.isfinite(P0).all(-1) & np.isfinite(e).all(-1)
         P0 = np.where(ray_ok[..., None], P0, 0.0)

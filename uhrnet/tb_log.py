@@ -14,7 +14,7 @@ removes the event files an earlier run in the folder left. Tags:
 * ``train/loss``, ``train/lr``: each step (rank 0's batch loss; adapt: the step's image);
   ``train/loss_terms/<name>``: each step, the unweighted terms of the loss where it has parts (the
   compound loss: ``chunked`` and ``ssim``, total = chunked + alpha * ssim; the phase head: ``base...``;
-  adapt: ``grad``, ``wrap``, ``drift``);
+  adapt: ``grad``, ``drift``);
 * ``epoch/<column>``: each of the epoch's ``history.csv`` numbers (``epoch/val_rmse_mm``,
   ``epoch/val_ssim``, ``epoch/train_loss``, ``epoch/lr`` ...; adapt: ``epoch/loss``, ``epoch/grad`` ...) and
   ``epoch`` itself, at the epoch's last step;

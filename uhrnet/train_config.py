@@ -15,7 +15,7 @@ from fppsim.formats import LabelTransform
 from uhrnet.data import parse_size
 from uhrnet.errors import ConfigError, DataError, UsageError
 
-__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "LR_FLAT", "check_options", "resolve_config",
+__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "check_options", "resolve_config",
            "label_transform_from", "parse_kv"]
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
@@ -35,9 +35,8 @@ LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_fr
 # LEGACY options that a resume of a run made before them must not be given with another value either
 # (the run's weights did not start from a checkpoint, nothing was frozen)
 LEGACY_LOCKED = ("init_from", "freeze", "head", "rig")
-LR_SCHEDULES = ("cosine", "constant", "flat-cosine")
+LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
-LR_FLAT = 0.7  # flat-cosine: share of the steps at --lr before its cosine decay
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",

@@ -38,7 +38,7 @@ from uhrnet.models import outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
 from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
 from uhrnet.tb_log import TB_FOLDER, RunLog
-from uhrnet.train_config import LR_FLAT, LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
+from uhrnet.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
 __all__ = ["TrainConfig", "Trainer", "train"]
 
@@ -210,9 +210,7 @@ class Trainer:
         run alone, so a resumed run follows the same curve.
 
         cosine: ``lr * (f + (1 - f) * (1 + cos(pi * t / (T - 1))) / 2)`` with ``t`` the global step,
-        ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``; flat-cosine:
-        ``lr`` for the first ``s = floor(LR_FLAT * (T - 1))`` steps, then the same cosine over the rest,
-        ``t`` and ``T - 1`` replaced by ``t - s`` and ``T - 1 - s``.
+        ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``.
         """
         base = self.cfg["lr"]
         if self.cfg["lr_schedule"] == "constant":
@@ -220,10 +218,7 @@ class Trainer:
         per = max(1, len(self.loader))
         total = max(2, per * self.cfg["epochs"])
         t = min(epoch * per + step, total - 1)
-        start = int(LR_FLAT * (total - 1)) if self.cfg["lr_schedule"] == "flat-cosine" else 0
-        if t <= start:
-            return base
-        frac = (t - start) / (total - 1 - start)
+        frac = t / (total - 1)
         return base * (LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * frac)))
 
     def _set_lr(self, epoch: int, step: int) -> None:

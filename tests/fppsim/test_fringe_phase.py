@@ -8,7 +8,7 @@ import pytest
 
 from _helpers import SHARED
 from fppsim.fringe import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
-from fppsim.psp import wrap_phase
+from fppsim.phase import wrap as wrap_phase
 
 REAL_PHASE = SHARED / "real-phase" / "FP1523"
 

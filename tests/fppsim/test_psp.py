@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from fppsim import psp, triangulation
+from fppsim.phase import wrap
 from _helpers import distorted_rig
 from fppsim.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
@@ -73,7 +74,7 @@ def test_non_uniform_shifts_least_squares():
 
 
 def test_wrap_phase_range():
-    w = psp.wrap_phase(np.array([-np.pi, np.pi, 3 * np.pi, -3 * np.pi, 0.5, 7.0, np.nan]))
+    w = wrap(np.array([-np.pi, np.pi, 3 * np.pi, -3 * np.pi, 0.5, 7.0, np.nan]))
     np.testing.assert_allclose(w[:6], [np.pi, np.pi, np.pi, np.pi, 0.5, 7.0 - TWO_PI], atol=1e-12)
     assert np.isnan(w[6])
     # exact -pi from atan2 is mapped to +pi
@@ -115,7 +116,7 @@ def test_unwrap_noise_free_range_and_order():
     W = 912
     u = np.linspace(0, W, 20001)[:-1]  # [0, W)
     true = _ladder_phases(u, W, (1, 8, 80))
-    wrapped = {f: psp.wrap_phase(p) for f, p in true.items()}
+    wrapped = {f: wrap(p) for f, p in true.items()}
     out = psp.unwrap_temporal(wrapped, seam_margin=0.0)
     np.testing.assert_allclose(out.phase, true[80], atol=1e-9)
     assert out.phase.min() >= 0 and out.phase.max() < TWO_PI * 80
@@ -126,7 +127,7 @@ def test_unwrap_noise_free_range_and_order():
     seq = psp.unwrap_temporal([wrapped[1], wrapped[8], wrapped[80]], seam_margin=0.0)
     np.testing.assert_array_equal(seq.phase, out.phase)
     t2 = _ladder_phases(u, W, (1, 4, 16, 80))
-    out2 = psp.unwrap_temporal({f: psp.wrap_phase(p) for f, p in t2.items()}, seam_margin=0.0)
+    out2 = psp.unwrap_temporal({f: wrap(p) for f, p in t2.items()}, seam_margin=0.0)
     np.testing.assert_allclose(out2.phase, t2[80], atol=1e-9)
     assert out2.freqs == (1, 4, 16, 80)
     # a ladder of one frequency: the 1-period phase in [0, 2 pi)
@@ -143,7 +144,7 @@ def test_unwrap_zero_order_errors_below_bound(freqs):
     true = _ladder_phases(u, W, freqs)
     away = (true[1] > eps) & (true[1] < TWO_PI - eps)  # the 0/2pi seam of the 1-period phase
     noise = {f: rng.uniform(-eps, eps, n) for f in freqs}  # worst case: bounded noise at the bound
-    out = psp.unwrap_temporal({f: psp.wrap_phase(true[f] + noise[f]) for f in freqs})
+    out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     fmax = freqs[-1]
     err = out.phase - (true[fmax] + noise[fmax])
     assert np.max(np.abs(err[away])) < 1e-9  # zero order errors
@@ -151,7 +152,7 @@ def test_unwrap_zero_order_errors_below_bound(freqs):
     # 6.6 standard deviations of the residual noise sig * sqrt(r^2 + 1) away)
     sig = psp.ladder_stability_bound(freqs) / 12
     noise = {f: rng.normal(0, sig, n) for f in freqs}
-    out = psp.unwrap_temporal({f: psp.wrap_phase(true[f] + noise[f]) for f in freqs})
+    out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     err = out.phase - (true[fmax] + noise[fmax])
     assert np.max(np.abs(err[away])) < 1e-9
     margin = (np.pi / 2) / freqs[1]  # default seam margin: max_residual / (f_1 / f_0)
@@ -167,14 +168,14 @@ def test_unwrap_flags_order_errors_above_bound():
     eps = 0.4
     assert eps > psp.ladder_stability_bound(freqs)
     noise = {f: rng.uniform(-eps, eps, n) for f in freqs}
-    out = psp.unwrap_temporal({f: psp.wrap_phase(true[f] + noise[f]) for f in freqs})
+    out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     wrong = np.abs(out.phase - (true[80] + noise[80])) > 1.0
     assert wrong.sum() > 100
     assert not out.reliable[wrong].any()
     # Gaussian noise: the wrong-order fraction matches order_error_probability, >= 95% of them flagged
     sig = 0.12
     noise = {f: rng.normal(0, sig, n) for f in freqs}
-    out = psp.unwrap_temporal({f: psp.wrap_phase(true[f] + noise[f]) for f in freqs})
+    out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     wrong = np.abs(out.phase - (true[80] + noise[80])) > 1.0
     expected = psp.order_error_probability(sig, freqs)
     assert 0.005 < expected < 0.02
@@ -188,7 +189,7 @@ def test_unwrap_seam_nan_and_errors():
     # a pixel seeing u_p slightly left of column 0: the 1-period phase wraps to ~2 pi
     u = np.array([-0.3, 0.2, 40.0, 450.0, 911.4])  # seam margin (pi/2)/8 rad = 28.5 columns
     true = _ladder_phases(u, W, (1, 8, 80))
-    wrapped = {f: psp.wrap_phase(p) for f, p in true.items()}
+    wrapped = {f: wrap(p) for f, p in true.items()}
     out = psp.unwrap_temporal(wrapped)
     assert not out.reliable[0] and not out.reliable[1] and not out.reliable[4]  # within the seam margin
     assert out.reliable[2] and out.reliable[3]

@@ -277,3 +277,24 @@ def test_irradiance_falloff_normalisation_and_bad_points():
     turned = Device(K=proj.K, R=R, t=-R @ proj.center, width=proj.width, height=proj.height)
     with pytest.raises(RigError, match="behind"):
         turned.irradiance_falloff(np.zeros(3))
+
+
+def test_ray_cut_at_a_height_and_the_forward_model(rig):
+    """Device.ray_cut: the camera ray of each pixel cut at z = h (mm) lands on that plane and projects back to
+    its pixel; Rig.phase_at_height projects those points; Rig.sensitivity is the slope of it."""
+    cam = rig.camera
+    uv = cam.pixel_grid()[::37, ::53]
+    h = np.linspace(-20.0, 60.0, uv[..., 0].size).reshape(uv.shape[:-1])
+    depth, X = cam.ray_cut(uv, h)
+    assert (depth > 0).all()
+    np.testing.assert_allclose(X[..., 2], h, atol=1e-9)
+    np.testing.assert_allclose(cam.project(X)[0], uv, atol=1e-6)
+    assert np.array_equal(cam.plane_depth(uv, 12.5), cam.ray_cut(uv, 12.5)[0])
+    phase = rig.phase_at_height(h, uv)
+    np.testing.assert_allclose(phase, rig.phase_of_column(rig.projector.project(X)[0][..., 0]), atol=1e-9)
+    assert rig.phase_at_height(0.0).shape == (cam.height, cam.width)
+    assert np.isnan(rig.phase_at_height(cam.center[2] + 1.0, uv)).all()  # the plane is behind the camera
+    s = rig.sensitivity(10.0, 10.5, uv)
+    np.testing.assert_allclose(s, (rig.phase_at_height(10.5, uv) - rig.phase_at_height(10.0, uv)) / 0.5, atol=1e-9)
+    centre = np.array([cam.width // 2, cam.height // 2], dtype=np.float64)
+    assert rig.sensitivity() == pytest.approx(float(rig.sensitivity(0.0, 1.0, centre[None])[0]), abs=1e-12)

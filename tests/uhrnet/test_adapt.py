@@ -115,20 +115,20 @@ def test_adapt_loss_is_zero_where_the_height_explains_the_image_and_its_gradient
     err = torch.from_numpy(_bump(rig, 1.5, cx=20.0, sigma=5.0))[None, None]
     x = (h + err).clone().requires_grad_(True)
     total, terms = adapt_loss(x, (h + err), wrapped, rel, layer, w_drift=0.0)
-    assert float(total.detach()) > 1e-3 and terms["grad"] > 0 and terms["wrap"] > 0
+    assert float(total.detach()) > 1e-3 and terms["grad"] > 0 and set(terms) == {"grad", "drift"}
     total.backward()
     assert float((x.grad * err).sum()) > 0  # the gradient points along the error
     y = (h + err).clone().requires_grad_(True)
     opt = torch.optim.Adam([y], lr=0.05)
-    for _ in range(100):
+    for _ in range(300):  # the gradient term alone (0.55 of the error left after 100 steps, 0.08 after 300)
         loss, _ = adapt_loss(y, h + err, wrapped, rel, layer, w_drift=0.0)
         opt.zero_grad()
         loss.backward()
         opt.step()
-    # (the phase terms see the relief, not a constant: the image's phase origin is estimated)
+    # (the phase term sees the relief, not a constant: it compares phase steps, blind to the image's origin)
     relief = lambda d: float((d - d.median()).abs().mean())  # noqa: E731
     assert relief(y.detach() - h) < 0.3 * relief(err)
     # the drift term alone pulls to the source prediction
     z = (h + err).clone().requires_grad_(True)
-    loss, terms = adapt_loss(z, h, wrapped, torch.zeros_like(rel) + 1e-3, layer, w_grad=0.0, w_wrap=0.0)
+    loss, terms = adapt_loss(z, h, wrapped, torch.zeros_like(rel) + 1e-3, layer, w_grad=0.0)
     assert terms["drift"] == pytest.approx(float(err.abs().mean()) / 10.0, rel=1e-6)

@@ -109,47 +109,11 @@ def test_shading_fields_vary_background_and_modulation_independently_and_keep_th
     assert abs(np.angle(np.exp(1j * (ph1 - ph0)))) < 0.05
 
 
-def test_tilt_is_a_planar_log_gain_ramp_and_off_changes_nothing():
-    h, w = 96, 192
-    f = np.full((h, w), 100 / 127.5 - 1, np.float32)
-    v = np.ones((h, w), bool)
-    for seed in range(4):
-        rng = np.random.default_rng(seed)
-        out = augment_fringe(f, v, rng, _only(tilt=0.7))
-        logI = np.log((out.astype(np.float64) + 1) * 127.5)
-        # least-squares plane through log I: exactly planar up to 8-bit rounding, slope within the range
-        yy, xx = np.mgrid[0:h, 0:w]
-        A = np.stack([np.ones(h * w), xx.ravel(), yy.ravel()], 1)
-        coef, *_ = np.linalg.lstsq(A, logI.ravel(), rcond=None)
-        assert np.abs(logI.ravel() - A @ coef).max() < 0.01
-        assert np.hypot(coef[1], coef[2]) * w <= 0.7 + 1e-3
-        assert np.mean(logI) == pytest.approx(np.log(100), abs=0.05)  # centred on the image: no net gain
-    f, v = _fringe()
-
-
-    class Counting:  # counts the draws augment_fringe takes from its generator
-        def __init__(self, seed):
-            self.rng, self.calls = np.random.default_rng(seed), []
-
-        def __getattr__(self, name):
-            self.calls.append(name)
-            return getattr(self.rng, name)
-
-    off, on = Counting(9), Counting(9)
-    a = augment_fringe(f, v, off, AugmentConfig(probability=1.0, tilt=0.0))
-    c = augment_fringe(f, v, on, AugmentConfig(probability=1.0, tilt=0.7))
-    # the tilt adds exactly its two uniform draws (amplitude, direction) before the noise; off, none
-    assert on.calls == off.calls[:-1] + ["uniform", "uniform"] + off.calls[-1:]
-    assert off.calls[-1] == "standard_normal"
-    assert not np.array_equal(a, c)
-
-
 def test_augmentation_kinds_and_the_booleans_of_older_runs():
     from uhrnet.augment import AUGMENTS, augment_config
 
     assert augment_config("shading").envelope > 0 and augment_config("photometric").envelope == 0
     assert augment_config("off") is None and augment_config(False) is None
-    assert augment_config("shading-tilt").tilt > 0 and augment_config("shading").tilt == 0
     assert augment_config(True) == AUGMENTS["photometric"]
     with pytest.raises(ValueError, match="choose from"):
         augment_config("strong")

@@ -12,7 +12,7 @@ from uhrnet.errors import ExportError
 from uhrnet.cli import main
 from fppsim.formats import LabelTransform
 from uhrnet.models import build_model, list_models
-from uhrnet.deploy import fold_batchnorm, fold_conv_bn, merge_multilevel_blocks, prepare_for_inference
+from uhrnet.deploy import fold_batchnorm, fold_conv_bn, prepare_for_inference
 
 TINY = {"uhrnet": 8, "unet": 4, "hnet": 2, "model_a": 2, "model_b": 8, "model_c": 8, "model_d": 8}
 
@@ -67,7 +67,7 @@ def test_fold_conv_bn_without_bias_and_refuses_batch_statistics():
 
 
 @pytest.mark.parametrize("name", list_models())
-def test_folded_and_merged_models_equal_the_original(name):
+def test_folded_models_equal_the_original(name):
     torch.manual_seed(1)
     model = randomise_bn(build_model(name, base_channels=TINY[name]))
     x = torch.randn(2, 1, 32, 48)
@@ -80,13 +80,6 @@ def test_folded_and_merged_models_equal_the_original(name):
         assert rel_err(fast(x.contiguous(memory_format=torch.channels_last)), expected) < 1e-5
     # the original is untouched (copies by default)
     assert any(isinstance(m, nn.BatchNorm2d) for m in model.modules()) == (name not in ("unet", "hnet", "model_a"))
-
-
-def test_merge_reduces_uhrnet_block_convolutions():
-    model = build_model("uhrnet", base_channels=8)
-    merged = merge_multilevel_blocks(model)
-    count = lambda m: sum(isinstance(x, nn.Conv2d) for x in m.modules())  # noqa: E731
-    assert count(merged) == count(model) - 9 * 6  # 9 blocks, 11 convs -> 5 each
 
 
 def write_checkpoint(path, name: str, seed: int = 0):

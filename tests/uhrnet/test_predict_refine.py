@@ -60,7 +60,7 @@ def run(tmp_path_factory):
     return train_tiny(tmp / "run", "--synthetic", tmp / "syn", "--synthetic-split", "train", extra=["--no-augment"])
 
 
-@pytest.mark.parametrize("method", ["relief", "nearest"])
+@pytest.mark.parametrize("method", ["relief", "orders"])
 def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp_path, method, capsys):
     rig = tiny_rig()
     rig.save(tmp_path / "rig.json")

@@ -9,7 +9,8 @@ import torch
 from _helpers import distorted_rig
 from fppsim.height_sensitivity import centre_sensitivity, surface_phase
 from fppsim.rig import Rig, data_path, make_default_rig
-from uhrnet.rig_layer import RigLayer, wrap
+from fppsim import phase as np_phase
+from uhrnet.rig_layer import RigLayer, circular_mean, wrap
 
 try:  # the triangulation may live in its own module
     from fppsim.triangulation import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
@@ -165,11 +166,39 @@ def test_order_and_wrap_helpers():
     Phi = layer.phase_from_height(h)
     off = 2.5
     wrapped = wrap(Phi + off)
-    assert wrapped.min() >= -np.pi and wrapped.max() < np.pi
+    assert wrapped.min() > -np.pi and wrapped.max() <= np.pi
     guess = h + 1.0  # within half a period (~3.6 mm) of the truth
     k = layer.fringe_order(wrapped, guess, offset=off)
     assert torch.allclose(layer.absolute_phase(wrapped, k, offset=off), Phi, atol=1e-9)
     assert torch.allclose(layer.nearest_phase(wrapped, guess, offset=off), Phi, atol=1e-9)
+
+
+def test_layer_is_the_torch_twin_of_the_rig_forward_model(case):
+    """RigLayer.phase_from_height / sensitivity equal fppsim.rig.Rig.phase_at_height / sensitivity (the one
+    numpy ray cut, Device.ray_cut) on every pixel."""
+    name, rig, layer, h, phase = case
+    np.testing.assert_allclose(layer.phase_from_height(torch.from_numpy(h)).numpy(), rig.phase_at_height(h),
+                               rtol=0, atol=1e-9)
+    grid = rig.camera.pixel_grid()
+    s = layer.sensitivity(torch.full(layer.grid_shape, 5.0, dtype=torch.float64)).numpy()
+    np.testing.assert_allclose(s, rig.sensitivity(5.0 - 1e-4, 5.0 + 1e-4, grid), rtol=1e-5, atol=1e-7)
+
+
+def test_torch_phase_helpers_equal_fppsim_phase():
+    """uhrnet.rig_layer.wrap / circular_mean are the torch twins of fppsim.phase.wrap / circular_mean."""
+    rng = np.random.default_rng(3)
+    edges = np.array([-np.pi, np.pi, 3 * np.pi, -3 * np.pi, 0.0, -0.0, np.nextafter(-np.pi, 0), 1e-300, np.nan])
+    for p in (rng.uniform(-np.pi, np.pi, 4000), rng.uniform(-40, 40, 4000), edges):
+        got, ref = wrap(torch.from_numpy(p)).numpy(), np_phase.wrap(p)
+        assert np.array_equal(got, ref, equal_nan=True)
+    x = torch.tensor([3 * np.pi, 0.5], requires_grad=True)
+    wrap(x).sum().backward()
+    assert torch.equal(x.grad, torch.ones(2))
+    p, w = rng.uniform(-9, 9, (2, 1, 5, 7)), rng.uniform(0, 1, (2, 1, 5, 7))
+    got = circular_mean(torch.from_numpy(p), torch.from_numpy(w))
+    assert got.shape == (2, 1, 1, 1)
+    for i in range(2):
+        assert got[i].item() == pytest.approx(np_phase.circular_mean(p[i], weights=w[i]), abs=1e-12)
 
 
 def test_dtype_device_and_serialisation():

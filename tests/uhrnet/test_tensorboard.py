@@ -190,18 +190,18 @@ def test_adapt_logs_its_loss_terms_and_resumes_the_log(tmp_path, capsys):
     np.save(real / "f1_80.npy", (np.stack([rig_fringe(rig, b) for b in bumps]) / 127.5 - 1)[..., None].astype(np.float32))
     out = tmp_path / "ad"
     cmd = ["adapt", str(source), "--images", str(real), "--out", str(out), "--rig", str(tmp_path / "rig.json"),
-           "--w-wrap", "0.5", "--no-figures", "--no-progress", "--tensorboard"]
+           "--no-figures", "--no-progress", "--tensorboard"]  # w_drift 0.5 (default)
     assert main(cmd + ["--epochs", "2"]) == 0
     assert main(cmd + ["--epochs", "3"]) == 0  # re-running with more epochs resumes
     capsys.readouterr()
     acc = _read(out / "tensorboard")
     steps, loss = _scalars(acc, "train/loss")
     assert steps == list(range(1, 7))  # 2 images a epoch, 3 epochs, each step once
-    terms = {t: np.asarray(_scalars(acc, f"train/loss_terms/{t}")[1]) for t in ("grad", "wrap", "drift")}
-    np.testing.assert_allclose(loss, terms["grad"] + 0.5 * terms["wrap"] + 0.5 * terms["drift"], rtol=1e-5)
+    terms = {t: np.asarray(_scalars(acc, f"train/loss_terms/{t}")[1]) for t in ("grad", "drift")}
+    np.testing.assert_allclose(loss, terms["grad"] + 0.5 * terms["drift"], rtol=1e-5)
     assert _scalars(acc, "train/lr")[1] == pytest.approx([3e-4] * 6)
     rows = _history(out)
-    for column in ("loss", "grad", "wrap", "drift"):
+    for column in ("loss", "grad", "drift"):
         steps, values = _scalars(acc, f"epoch/{column}")
         assert steps == [2, 4, 6], column
         np.testing.assert_allclose(values, [float(r[column]) for r in rows], rtol=1e-5, err_msg=column)

@@ -279,28 +279,6 @@ def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
     assert lrs[-1] == pytest.approx(0.05e-3, rel=1e-9)  # the run's last step sits at the floor
 
 
-def test_flat_cosine_schedule_follows_the_formula():
-    """flat-cosine: --lr for the first floor(0.7 (T-1)) steps, then a cosine from --lr to 0.05 x --lr at
-    the last step; written out independently of the trainer's code."""
-    import math
-    from types import SimpleNamespace
-
-    from uhrnet.trainer import Trainer
-
-    for per, epochs in ((160, 10), (7, 3), (1, 2)):
-        T = per * epochs
-        start = math.floor(0.7 * (T - 1))
-        fake = SimpleNamespace(cfg={"lr": 5e-4, "lr_schedule": "flat-cosine", "epochs": epochs}, loader=range(per))
-        got = [Trainer.lr_at(fake, e, s) for e in range(epochs) for s in range(per)]
-        want = [5e-4 if t <= start else
-                5e-4 * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * (t - start) / (T - 1 - start)))) for t in range(T)]
-        assert np.allclose(got, want, rtol=1e-12, atol=0)
-        assert got[-1] == pytest.approx(0.05 * 5e-4, rel=1e-12) and got[0] == 5e-4
-        assert all(a >= b for a, b in zip(got, got[1:]))  # never rises
-    fake.cfg["lr_schedule"] = "cosine"  # the plain cosine is unchanged by the new branch
-    assert Trainer.lr_at(fake, 0, 0) == pytest.approx(5e-4) and Trainer.lr_at(fake, 1, 0) == pytest.approx(0.05 * 5e-4)
-
-
 def test_augment_option_on_resume_of_older_runs():
     from uhrnet.train_config import TrainConfig, resolve_config
     from uhrnet.errors import ConfigError, UsageError

@@ -27,10 +27,11 @@ from __future__ import annotations
 import inspect
 from typing import Any
 
-import torch
 from torch import nn
 
 from .hnet import HNet
+from .outputs import outputs_of, prediction_of
+from .phase_head import HEADS, PHASE_CHANNELS, PhaseHead
 from .unet import UNet
 from .uhrnet import UHRNet
 
@@ -66,8 +67,6 @@ def build_model(name: str, head: str = "height", rig: dict | None = None, min_co
     Raises ``ValueError`` for an unknown name, an unknown option, or an option that contradicts what an
     alias fixes (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
-    from .phase_head import HEADS, PHASE_CHANNELS, PhaseHead
-
     if head not in HEADS:
         raise ValueError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
     if head == "phase":
@@ -98,18 +97,3 @@ def build_model(name: str, head: str = "height", rig: dict | None = None, min_co
     model = cls(**options)
     model.config = {**model.config, "name": key}
     return model
-
-
-def outputs_of(output: torch.Tensor | tuple | list) -> tuple[torch.Tensor, ...]:
-    """Every output of one forward pass as a tuple, the prediction first.
-
-    ``output``: what ``model(x)`` returned, a ``(N, 1, H, W)`` tensor, or hNet's training-mode tuple
-    ``(fused, side_1, .., side_5)`` (each ``(N, 1, H, W)``). The training loss sums over these, so deep
-    supervision reaches the side outputs through this one function.
-    """
-    return tuple(output) if isinstance(output, (tuple, list)) else (output,)
-
-
-def prediction_of(output: torch.Tensor | tuple | list) -> torch.Tensor:
-    """The prediction ``(N, 1, H, W)`` of one forward pass, whatever the model (hNet: the fused output)."""
-    return outputs_of(output)[0]

@@ -35,6 +35,10 @@ import math
 import torch
 from torch import nn
 
+from uhrnet.rig_layer import RigLayer, circular_mean
+
+from .outputs import outputs_of
+
 __all__ = ["PhaseHead", "HEADS", "PHASE_CHANNELS"]
 
 HEADS = ("height", "phase")
@@ -56,8 +60,6 @@ class PhaseHead(nn.Module):
 
     def __init__(self, backbone: nn.Module, rig: dict, min_confidence: float = 0.3) -> None:
         super().__init__()
-        from uhrnet.rig_layer import RigLayer
-
         if backbone.config.get("out_channels") != PHASE_CHANNELS:
             raise ValueError(f"the phase head needs a backbone with {PHASE_CHANNELS} outputs, "
                              f"got {backbone.config.get('out_channels')}")
@@ -78,8 +80,7 @@ class PhaseHead(nn.Module):
         with torch.no_grad():  # one constant per image: the pattern phase a real projector may add
             d = wrapped - phi_c
             w = conf.clamp(max=1.0)
-            offset = torch.atan2((w * torch.sin(d)).sum(dim=(1, 2, 3), keepdim=True),
-                                 (w * torch.cos(d)).sum(dim=(1, 2, 3), keepdim=True))
+            offset = circular_mean(d, w)
             order = torch.round((phi_c - wrapped + offset) / TWO_PI)
         phase = wrapped - offset + TWO_PI * order
         height_mm = self.layer.height_from_phase(phase)
@@ -90,8 +91,6 @@ class PhaseHead(nn.Module):
 
     def parts(self, x: torch.Tensor) -> list[dict]:
         """Every intermediate (module docstring) for each backbone output (hNet trains several)."""
-        from uhrnet.models import outputs_of
-
         cam = self.layer.grid_shape
         if tuple(x.shape[-2:]) != tuple(cam):
             raise ValueError(f"the phase head's rig sees {cam[1]}x{cam[0]} px images; got {x.shape[-1]}x{x.shape[-2]}")

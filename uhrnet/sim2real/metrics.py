@@ -37,7 +37,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from fppsim.fringe import plane_level  # re-exported: the one plane level of both packages
+from fppsim.fringe import plane_level, poly_basis  # plane_level re-exported: the one plane level of both packages
+from fppsim.phase import lowpass
 from uhrnet.errors import Sim2RealError
 
 __all__ = ["plane_level", "object_mask", "real_metrics", "fringe_twins", "twin_metrics", "level_response"]
@@ -107,8 +108,6 @@ def fringe_twins(fringe: np.ndarray, valid: np.ndarray, plane: np.ndarray, degre
     from scipy import ndimage as ndi
     from skimage.restoration import unwrap_phase
 
-    from fppsim.fringe import poly_basis
-
     f = np.asarray(fringe, np.float64)
     valid = np.asarray(valid, bool)
     plane = np.asarray(plane, bool) & valid
@@ -125,7 +124,7 @@ def fringe_twins(fringe: np.ndarray, valid: np.ndarray, plane: np.ndarray, degre
     x = np.arange(wid, dtype=np.float64)[None, :]
     c = ac * np.exp(-2j * np.pi * k * x / wid)
     wp = plane.astype(np.float64)
-    cs = ndi.gaussian_filter(c.real * wp, smooth) + 1j * ndi.gaussian_filter(c.imag * wp, smooth)
+    cs = lowpass(c, smooth, wp)
     inner = ndi.binary_erosion(plane, iterations=int(np.ceil(smooth)))
     fit_on = inner if inner.sum() >= 100 else plane
     d = np.asarray(unwrap_phase(np.ma.array(np.angle(cs), mask=~fit_on)))
