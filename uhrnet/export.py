@@ -33,10 +33,13 @@ from torch import nn
 
 from fppsim.files import atomic_path, tmp_path, unlink_quietly
 
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.deploy import prepare_for_inference
 from uhrnet.errors import CheckpointError, ExportError, UsageError
+from uhrnet.export_check import CHECK_RTOL, check_input, compare_outputs
 from uhrnet.models import prediction_of
+from uhrnet.reference_weights import export_reference
 
-CHECK_RTOL = 1e-4
 FORMATS = ("onnx", "torchscript")
 WEIGHT_FORMATS = ("reference",)  # weights for another code base (uhrnet.reference_weights), not a traced graph
 EXPORT_FORMATS = FORMATS + WEIGHT_FORMATS
@@ -76,12 +79,6 @@ class ExportConfig:
             raise ExportError(f"--runtime {self.runtime} runs ONNX files; it does not apply to --format {self.format}")
 
 
-def check_input(in_channels: int, height: int, width: int, seed: int = 0) -> torch.Tensor:
-    """The seeded check input: ``(1, in_channels, height, width)`` float32 uniform in [-1, 1]."""
-    g = torch.Generator().manual_seed(seed)
-    return torch.rand((1, in_channels, height, width), generator=g) * 2 - 1
-
-
 def deployable(model: nn.Module) -> nn.Module:
     """``model`` (e.g. a LabelHead) with batch norms folded, eval mode.
 
@@ -90,7 +87,6 @@ def deployable(model: nn.Module) -> nn.Module:
     into them, but the merged block's channel splits force a layout conversion around every
     convolution (97 reorder nodes in UHRNet against 34 unmerged); torch runs them slower too.
     """
-    from .deploy import prepare_for_inference
 
     return prepare_for_inference(model)
 
@@ -272,17 +268,13 @@ def check_export(path: str | Path, format: str, reference: nn.Module, input_shap
     if got.shape != ref.shape:
         return {"max_abs_diff": float("inf"), "output_range": float(np.ptp(ref)), "tolerance": 0.0, "passed": False,
                 "shape": list(got.shape)}
-    diff = float(np.max(np.abs(got.astype(np.float64) - ref)))
-    span = float(np.ptp(ref))
-    tol = rtol * max(span, 1e-6)
-    return {"max_abs_diff": diff, "output_range": span, "tolerance": tol, "passed": bool(diff <= tol)}
+    return compare_outputs(got, ref, rtol)
 
 
 def export_checkpoint(config: ExportConfig) -> dict:
     """Export a checkpoint (file or run folder) as ``config`` says; with ``config.check``, raise
     :class:`ExportError` when the export differs from the checkpoint's model beyond the tolerance.
     Returns a summary dict (path, format, check result)."""
-    from .checkpoint import load_checkpoint, model_from_checkpoint
 
     ckpt = load_checkpoint(config.checkpoint)
     out = Path(config.out)
@@ -291,8 +283,6 @@ def export_checkpoint(config: ExportConfig) -> dict:
     if out.is_file() and _is_checkpoint(out):
         raise ExportError(f"{out}: is a uhrnet checkpoint; choose another --out (an export would replace it)")
     if config.format in WEIGHT_FORMATS:
-        from .reference_weights import export_reference
-
         return export_reference(ckpt, out, config.check, (1, 1, config.height, config.width))
     model, _ = model_from_checkpoint(ckpt)
     in_channels = int(ckpt["model"]["config"].get("in_channels", 1))
@@ -322,7 +312,6 @@ def export_checkpoint(config: ExportConfig) -> dict:
 
 
 def _is_checkpoint(path: Path) -> bool:
-    from .checkpoint import load_checkpoint
 
     if path.suffix.lower() == ".onnx":
         return False

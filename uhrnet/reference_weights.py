@@ -35,8 +35,15 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fppsim.files import check_writable_dir, clean_stale_tmp, folder_lock, tmp_path, unlink_quietly
 from fppsim.formats import PRESETS, LabelTransform
+from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, model_from_checkpoint, output_mm
 from uhrnet.errors import CheckpointError, ConfigError, ExportError, UsageError
+from uhrnet.export_check import check_input, compare_outputs
+from uhrnet.metrics import count_parameters
+from uhrnet.models import ALIASES, build_model
+from uhrnet.models.uhrnet import UHRNet
+from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_run_config
 
 __all__ = ["REFERENCE_FORMAT", "REFERENCE_CONFIG", "MODULES", "FUSION", "key_table", "model_shapes",
            "to_reference_state_dict", "from_reference_state_dict", "read_reference_file", "ImportWeightsConfig",
@@ -107,7 +114,6 @@ _MIX = {f"fusion.{level}.mix.0.weight": order for level, (_, _, _, order) in enu
 def model_shapes(base_channels: int = 64) -> dict[str, tuple[int, ...]]:
     """Shape of every state-dict entry of ours (``uhrnet``, fusion, 1 in / 1 out) at ``base_channels``,
     in our order; built on the meta device (no memory, no time)."""
-    from uhrnet.models.uhrnet import UHRNet
 
     with torch.device("meta"):
         net = UHRNet(in_channels=1, out_channels=1, base_channels=base_channels, fusion=True)
@@ -279,11 +285,6 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     :class:`CheckpointError` for a file that does not fit, :class:`ConfigError` for an ``out`` that holds a
     run (without ``overwrite``) or cannot be written.
     """
-    from fppsim.files import check_writable_dir, clean_stale_tmp, folder_lock
-    from uhrnet.checkpoint import FORMAT, VERSION
-    from uhrnet.metrics import count_parameters
-    from uhrnet.models import build_model
-    from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_run_config
 
     state, info = read_reference_file(config.source)
     ours = from_reference_state_dict(state, what=str(config.source))
@@ -323,7 +324,6 @@ def import_weights(config: ImportWeightsConfig) -> dict:
 def check_exportable(ckpt: dict) -> None:
     """Refuse (:class:`ExportError`, one line) a checkpoint the reference ``UHRNet()`` cannot hold: another
     architecture, the phase head, fusion off (model_b), a base width other than 64, other channel counts."""
-    from uhrnet.models import ALIASES
 
     config = dict(ckpt["model"]["config"])
     name = str(config.get("name", "?"))
@@ -352,7 +352,6 @@ def reference_output_affine(ckpt: dict) -> tuple[float, float]:
     """``(a, b)``: figshare label ``Z = a * net(x) + b`` for the checkpoint's bare network (the reference's
     network outputs ``Z`` itself). Combines the checkpoint's label head (``output`` scale, shift) with its
     label transform, converted to the figshare preset through millimetres when it differs."""
-    from uhrnet.checkpoint import output_mm
 
     out = ckpt.get("output", {"scale": 1.0, "shift": 0.0})
     scale, shift = float(out["scale"]), float(out["shift"])
@@ -388,8 +387,6 @@ def export_reference(ckpt: dict, out: Path, check: bool = False,
     figshare labels) on the seeded input of :func:`uhrnet.export.check_input`; it replaces ``out`` only when
     ``max |difference| <= CHECK_RTOL x output range``, else :class:`ExportError`. Returns the summary
     ``uhrnet export`` prints."""
-    from fppsim.files import tmp_path, unlink_quietly
-    from uhrnet.checkpoint import atomic_save
 
     check_exportable(ckpt)
     payload = {"state_dict": _reference_state_of(ckpt)}
@@ -416,9 +413,6 @@ def export_reference(ckpt: dict, out: Path, check: bool = False,
 def _check_reference_file(path: Path, ckpt: dict, input_shape: tuple[int, int, int, int]) -> dict:
     """The exported file read back as the reference reads it (no label head: figshare labels) against the
     checkpoint's model converted to figshare labels, on the seeded check input."""
-    from uhrnet.checkpoint import model_from_checkpoint
-    from uhrnet.export import CHECK_RTOL, check_input
-    from uhrnet.models import build_model
 
     state, _ = read_reference_file(path)
     bare = build_model("uhrnet", **REFERENCE_CONFIG)
@@ -432,7 +426,4 @@ def _check_reference_file(path: Path, ckpt: dict, input_shape: tuple[int, int, i
         label = model(x).double()
         want = (label if transform.same_labels(figshare)
                 else figshare.units_per_mm * transform.height_mm(label) + figshare.plane_offset).numpy()
-    span = float(np.ptp(want))
-    tol = CHECK_RTOL * max(span, 1e-6)
-    diff = float(np.max(np.abs(got - want)))
-    return {"max_abs_diff": diff, "output_range": span, "tolerance": tol, "passed": bool(diff <= tol)}
+    return compare_outputs(got, want)
