@@ -100,6 +100,18 @@ def _resolve_paths(flags: list[str]) -> list[str]:
     return out
 
 
+def _typed(key: str, value, where: str):
+    """An arm's sim2real option as its flag would parse it (YAML reads ``5e-4`` as text, ``lr: 5e-4`` is meant)."""
+    kind = float if key == "lr" else str if key in ("scale", "model", "loss") else int
+    try:
+        if kind is int and (isinstance(value, bool) or float(value) != int(float(value))):
+            raise ValueError
+        return kind(int(float(value))) if kind is int else kind(value)
+    except (TypeError, ValueError):
+        what = {float: "a number", int: "an integer", str: "text"}[kind]
+        raise UsageProblem(f"{where}: {key} must be {what}, got {value!r}") from None
+
+
 def load_arms(path: str | Path) -> list[dict]:
     """The arms of an arms file (module docstring), each with ``generate`` / ``train`` as flag lists,
     ``series`` as a list and the ``defaults`` applied; :class:`UsageProblem` names what is wrong."""
@@ -137,7 +149,9 @@ def load_arms(path: str | Path) -> list[dict]:
         arm = {"name": name, "description": str(item.get("description") or ""), "series": series,
                "generate": _resolve_paths(_flags(item.get("generate"), f"{p}: arm {name!r}: generate")),
                "train": _resolve_paths(_flags(item.get("train"), f"{p}: arm {name!r}: train"))}
-        arm.update({k: item[k] for k in CONFIG_FLAGS if item.get(k) is not None})
+        for key in CONFIG_FLAGS:
+            if item.get(key) is not None:
+                arm[key] = _typed(key, item[key], f"{p}: arm {name!r}")
         arms.append(arm)
     return arms
 

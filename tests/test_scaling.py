@@ -114,10 +114,14 @@ def test_bad_arms_files_are_refused(tmp_path):
                           ("arms: [{name: x, cuont: 4}]", "unknown keys ['cuont']"),
                           ("arms: [{name: x}, {name: x}]", "unique word"),
                           ("arms: [{name: x, series: [time]}]", "series must be"),
-                          ("arms: [{name: x, train: '--a \"b'}]", "train")):
+                          ("arms: [{name: x, train: '--a \"b'}]", "train"),
+                          ("arms: [{name: x, count: 1.5}]", "count must be an integer"),
+                          ("arms: [{name: x, lr: fast}]", "lr must be a number")):
         (tmp_path / "a.yaml").write_text(text)
         with pytest.raises(scaling.UsageProblem, match=message.replace("[", r"\[").replace("]", r"\]")):
             scaling.load_arms(tmp_path / "a.yaml")
+    (tmp_path / "a.yaml").write_text("arms: [{name: x, lr: 5e-4, count: '400'}]")  # YAML reads 5e-4 as text
+    assert {k: scaling.load_arms(tmp_path / "a.yaml")[0][k] for k in ("lr", "count")} == {"lr": 5e-4, "count": 400}
     args = scaling.parse_args(["--arms-file", str(tmp_path / "b.yaml"), "--out", str(tmp_path), "--real", "r",
                                "--real-phase", "none", "--list"])
     (tmp_path / "b.yaml").write_text("arms: [{name: x, count: 6, train: --no-such-flag}]")
