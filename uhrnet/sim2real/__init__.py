@@ -37,13 +37,15 @@ finished evaluation are re-used.
 Modules: :mod:`~uhrnet.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
 :mod:`~uhrnet.sim2real.run` (the stages and :func:`run_sim2real`), :mod:`~uhrnet.sim2real.evaluate` (one
 checkpoint on the real pairs, the real phase frames and the synthetic validation split),
-:mod:`~uhrnet.sim2real.metrics` (object RMSE, median error, coverage, fringe twins, level response) and
+:mod:`~uhrnet.sim2real.metrics` (object RMSE and its level / relief split, median error, coverage, fringe
+twins, level response) and
 :mod:`~uhrnet.sim2real.report` (``report.md``, figures).
 """
 
 from uhrnet.errors import Sim2RealError
 from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
 from uhrnet.sim2real.metrics import fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics
+from uhrnet.sim2real.metrics import error_split, object_regions
 from uhrnet.sim2real.report import markdown_report, plot_real
 from uhrnet.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs, refine_labels,
@@ -55,4 +57,5 @@ __all__ = [
     "fringe_twins", "twin_metrics", "level_response", "generate_config", "train_config", "adapt_config",
     "run_differences", "find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real",
     "evaluate_real_phase", "evaluate_level", "run_sim2real", "markdown_report", "plot_real",
+    "error_split", "object_regions",
 ]

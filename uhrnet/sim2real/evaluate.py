@@ -115,6 +115,8 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     """Predict every real image with ``checkpoint`` (then ``refine`` it, module docstring) and measure it
     (:mod:`uhrnet.sim2real.metrics`; the fringe twins for the network's own prediction only).
 
+    Each per-image row also lists its object regions' errors (``object_region_errors``: area in px, median
+    and mean error in mm, largest first; :func:`~uhrnet.sim2real.metrics.error_split`).
     Writes ``out/real_metrics.json``, ``out/predictions.npz`` (float32 predicted labels, one array per
     image: ``<folder index>_<sample index>``) and, with ``figures``, ``out/real_<k>.png``.
     Returns the JSON document: per-image rows and their means.
@@ -122,7 +124,7 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     import torch
 
     from uhrnet.prediction import predict_labels
-    from uhrnet.sim2real.metrics import real_metrics, twin_metrics
+    from uhrnet.sim2real.metrics import error_split, object_mask, real_metrics, twin_metrics
     from uhrnet.sim2real.report import plot_real
 
     out = Path(out)
@@ -143,18 +145,20 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
             label = s["height"][0].numpy()
             valid = s["mask"][0].numpy() > 0.5
             m = real_metrics(pred, label, valid, transform.units_per_mm, object_mm, transform.invalid_threshold)
+            obj, _ = object_mask(label, valid, transform.units_per_mm, object_mm, m["plane_label"])
+            regions = error_split((pred.astype(np.float64) - label) / transform.units_per_mm, obj)["per_region"]
             if refine_rig is None:
                 m.update(twin_metrics(model, fringe, pred, label, valid, transform.units_per_mm, object_mm,
                                       m["plane_label"], size))
             m.update(extra)
             key = f"{fi}_{i:06d}"
             preds[key] = pred.astype(np.float32)
-            rows.append({"folder": folder, "index": i, "key": key, **m})
+            rows.append({"folder": folder, "index": i, "key": key, **m, "object_region_errors": regions})
             if figures:
                 plot_real(fringe, label, valid, pred, transform.units_per_mm, m, out / f"real_{key}.png", object_mm,
                           title=title)
     np.savez_compressed(out / "predictions.npz", **preds)
-    keys = [k for k in rows[0] if k not in ("folder", "index", "key")]
+    keys = [k for k in rows[0] if k not in ("folder", "index", "key", "object_region_errors")]
     mean = {k: float(np.nanmean([r[k] for r in rows])) for k in keys}
     doc = {"checkpoint": str(checkpoint), "epoch": ck.get("epoch"), "object_mm": object_mm, "refine": refine,
            "rig": rig_name, "label_transform": transform.to_dict(), "images": len(rows), "mean": mean,

@@ -62,12 +62,16 @@ def _rows_table(report: dict) -> list[str]:
                 frames.append(_frame_name(f))
     lines = ["", "## Every row on real data", "",
              "Real pairs: object RMSE, median |error| and share of object pixels within 1 mm (errors in mm over "
-             "the object pixels), coverage = share of object pixels the prediction marks valid. Phase frames: "
+             "the object pixels), coverage = share of object pixels the prediction marks valid. Level / relief: "
+             "the object RMSE split over the object's connected regions into each region's median error (level) "
+             "and the rest (relief); the median split does not add up exactly, the mean split (each region's "
+             "mean error) does: level^2 + relief^2 = RMSE^2 (`uhrnet.sim2real.metrics.error_split`). Phase frames: "
              "calibration-free phase residual (rad) of the prediction, as `uhrnet evaluate-phase` reports it "
              "(lower is better; the flat plane h = 0 is in the last line).", "",
-             "| row | object RMSE (mm) | median abs. error (mm) | within 1 mm | coverage |"
+             "| row | object RMSE (mm) | level (mm) | relief (mm) | level / relief, mean split (mm) | "
+             "median abs. error (mm) | within 1 mm | coverage |"
              + "".join(f" {f} residual (rad) |" for f in frames),
-             "|---|---|---|---|---|" + "---|" * len(frames)]
+             "|---|---|---|---|---|---|---|---|" + "---|" * len(frames)]
 
     def cell(x, fmt):
         return "" if x is None or not np.isfinite(x) else format(x, fmt)
@@ -75,7 +79,10 @@ def _rows_table(report: dict) -> list[str]:
     for r in rows:
         m = r["real"]
         by = {_frame_name(f): f for f in r.get("real_phase") or []}
-        lines.append(f"| {r['row']} | {cell(m.get('object_rmse_mm'), '.2f')} | {cell(m.get('object_median_abs_mm'), '.2f')}"
+        lines.append(f"| {r['row']} | {cell(m.get('object_rmse_mm'), '.2f')}"
+                     f" | {cell(m.get('object_level_rmse_mm'), '.2f')}"
+                     f" | {cell(m.get('object_relief_rmse_mm'), '.2f')} | {_split_cell(m)}"
+                     f" | {cell(m.get('object_median_abs_mm'), '.2f')}"
                      f" | {cell(m.get('object_within_1mm'), '.1%')} | {cell(m.get('object_coverage'), '.1%')} |"
                      + "".join(f" {cell(by[f]['rmse_rad'], '.3f') if f in by else ''} |" for f in frames))
     if frames:
@@ -84,14 +91,47 @@ def _rows_table(report: dict) -> list[str]:
             for f in r.get("real_phase") or []:
                 flat.setdefault(_frame_name(f), f["flat_rmse_rad"])
         m = report["variants"][0]["real"]
-        lines.append(f"| flat plane (h = 0) | {cell(m.get('flat_object_rmse_mm'), '.2f')} | | | |"
+        lines.append(f"| flat plane (h = 0) | {cell(m.get('flat_object_rmse_mm'), '.2f')} | | | | | | |"
                      + "".join(f" {cell(flat.get(f), '.3f')} |" for f in frames))
     notes = [f"- {v['name']} +adapt: adapted on: {', '.join(v['adapt']['images'])} (no labels; "
              f"{v['adapt']['epochs']} epochs{', ' + shlex.join(v['adapt']['flags']) if v['adapt'].get('flags') else ''})"
              ": its rows on these images are not held out" for v in report["variants"] if v.get("adapt")]
     reused = [f"- {v['name']}: reused the finished run {v['run']} (trained on {v['data']})"
               for v in report["variants"] if v.get("reused")]
-    return lines + ([""] + notes if notes else []) + ([""] + reused if reused else [])
+    return lines + _split_table(rows) + ([""] + notes if notes else []) + ([""] + reused if reused else [])
+
+
+def _fmt(x, fmt: str) -> str:
+    return "" if x is None or not np.isfinite(x) else format(x, fmt)
+
+
+def _split_cell(m: dict) -> str:
+    """``level / relief`` of the mean split, blank where not measured."""
+    a, b = _fmt(m.get("object_level_rmse_mean_mm"), ".2f"), _fmt(m.get("object_relief_rmse_mean_mm"), ".2f")
+    return f"{a} / {b}" if a and b else ""
+
+
+def _split_table(rows: list[dict]) -> list[str]:
+    """Every row on every labelled real image: object RMSE, its level / relief split and the largest regions'
+    median errors (``real_per_image`` of the report's rows; nothing for rows measured before the split)."""
+    items = [(r["row"], i) for r in rows for i in r.get("real_per_image") or []
+             if i.get("object_level_rmse_mm") is not None]
+    if not items:
+        return []
+    lines = ["", "## Object error per labelled real image: level and relief", "",
+             "Level: RMS of each connected object region's median error; relief: RMS of the error minus it; the "
+             "mean split adds up (level^2 + relief^2 = RMSE^2). Regions: connected object regions of at least "
+             "50 px (8-connectivity); the largest three with their area and median error (prediction - truth).", "",
+             "| row | image | object RMSE (mm) | level (mm) | relief (mm) | level / relief, mean split (mm) | "
+             "regions | largest regions: px, median error (mm) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for name, i in items:
+        regions = "; ".join(f"{g['area_px']} px {g['median_mm']:+.1f}"
+                            for g in (i.get("object_region_errors") or [])[:3])
+        lines.append(f"| {name} | {Path(i['folder']).name}/{i['index']} | {_fmt(i.get('object_rmse_mm'), '.2f')} | "
+                     f"{_fmt(i.get('object_level_rmse_mm'), '.2f')} | {_fmt(i.get('object_relief_rmse_mm'), '.2f')} | "
+                     f"{_split_cell(i)} | {i.get('object_regions', '')} | {regions} |")
+    return lines
 
 
 def plot_real(fringe: np.ndarray, label: np.ndarray, valid: np.ndarray, pred: np.ndarray, units_per_mm: float,

@@ -1,0 +1,181 @@
+"""pipelines/scaling.py (issue 32): the arms file, the exact equivalent `uhrnet sim2real` commands, bad input
+refused before anything runs, and a tiny study end to end (2 arms x 2 seeds) that resumes without training."""
+
+import importlib.util
+import json
+import shlex
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from fppsim.height_sensitivity import surface_phase
+from fppsim.writers import save_psp_folder_sample, sums_from_phase
+
+from _helpers import rig_fringe, tiny_rig, write_figshare
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location("scaling", ROOT / "pipelines" / "scaling.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+scaling = _load()
+
+TINY = """
+defaults: {base_channels: 4, epochs: 1, batch_size: 2, workers: 1, loss: l2}
+arms:
+  - name: a6
+    series: [samples, steps]
+    count: 6
+    train: --resize 32x64 --no-augment
+  - name: a8
+    series: [samples]
+    count: 8
+    train: [--resize, 32x64, --no-augment, --samples-per-epoch, "4"]
+"""
+
+
+@pytest.fixture
+def world(tmp_path):
+    """A tiny arms file, 2 labelled real pairs (32 x 64) and one real phase-shifting frame (folder of folders)."""
+    (tmp_path / "arms.yaml").write_text(TINY)
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    rig = tiny_rig()
+    yy, xx = np.mgrid[0:32, 0:64].astype(float)
+    h = 6.0 * np.exp(-((xx - 25.0) ** 2 + (yy - 15.0) ** 2) / 98.0)
+    save_psp_folder_sample(tmp_path / "phase" / "F1", "1201", *sums_from_phase(surface_phase(rig, h) + 72.0),
+                           rig_fringe(rig, h))
+    return tmp_path
+
+
+def _argv(w, *extra):
+    return ["--arms-file", str(w / "arms.yaml"), "--seeds", "0", "1", "--real", str(w / "real"),
+            "--real-phase", str(w / "phase"), "--out", str(w / "study"), "--meshes", str(ROOT / "assets" / "meshes"),
+            "--no-figures", *extra]
+
+
+def test_shipped_arms_file_fixed_step_budget_and_commands(tmp_path):
+    arms = {a["name"]: a for a in scaling.load_arms(scaling.DEFAULT_ARMS)}
+    assert {"n100", "n400", "n1600", "n6400", "n400-e20", "n400-e40", "depth-rig"} <= set(arms)
+    args = scaling.parse_args(["--out", str(tmp_path / "o"), "--real", "R", "--real-phase", "none", "--meshes", "M"])
+    args.real_phase, args.meshes = [], ["M"]
+    steps = {}
+    for name in ("n100", "n400", "n1600", "n6400", "n400-e40"):
+        cfg, argv = scaling.arm_config(arms[name], 1, args)
+        steps[name] = scaling.steps_of(cfg, cfg.variants[0])
+        assert cfg.variants[0].train["seed"] == 1 and argv[-1].endswith("--seed 1")
+        assert cfg.out == str(tmp_path / "o" / name)
+    # the recipe: 80 % of 400 samples, 10 epochs, batch 2 = 1,600 steps; every count arm the same budget
+    assert steps == {"n100": 1600, "n400": 1600, "n1600": 1600, "n6400": 1600, "n400-e40": 6400}
+    cfg, _ = scaling.arm_config(arms["depth-rig"], 0, args)
+    assert cfg.variants[0].generate["rig"].endswith("figshare_depth_rig.json")
+
+
+def test_commands_are_exactly_what_the_driver_runs(world, monkeypatch):
+    """Each recorded command, run through `uhrnet sim2real`'s own parser, gives the very config the driver runs."""
+    import uhrnet.sim2real
+    from uhrnet.cli import main
+
+    args = scaling.parse_args(_argv(world))
+    arms, configs = scaling.check(args)
+    seen = []
+    monkeypatch.setattr(uhrnet.sim2real, "run_sim2real", lambda cfg, **kw: seen.append(cfg) or {"variants": []})
+    monkeypatch.setattr(uhrnet.sim2real, "markdown_report", lambda report: "")
+    for (name, seed), (cfg, argv) in configs.items():
+        assert argv[:2] == ["uhrnet", "sim2real"] and shlex.split(shlex.join(argv)) == argv
+        assert main(argv[1:]) == 0
+        assert seen[-1] == cfg, (name, seed)
+    assert configs["a6", 1][0].real_phase == [str(world / "phase" / "F1")]  # the folder of scan folders, expanded
+    assert not (world / "study").exists()
+
+
+@pytest.mark.parametrize("change, message", [
+    (["--arms", "a6", "nope"], "unknown or repeated arm(s) nope"),
+    (["--seeds", "0", "0"], "--seeds: distinct"),
+    (["--real", "/no/such/real"], "no figshare-format pair"),
+    (["--resize", "banana"], "resize"),
+    (["--report-only"], "does not exist"),
+])
+def test_bad_input_is_one_line_and_exit_2_before_anything_runs(world, capsys, change, message):
+    assert scaling.main(_argv(world) + change) == 2  # a flag given again overrides the first
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("scaling.py: error:") and message in err[0]
+    assert not (world / "study").exists()
+
+
+def test_bad_arms_files_are_refused(tmp_path):
+    for text, message in (("- name: x", "a mapping with a non-empty list"),
+                          ("arms: [{name: x, cuont: 4}]", "unknown keys ['cuont']"),
+                          ("arms: [{name: x}, {name: x}]", "unique word"),
+                          ("arms: [{name: x, series: [time]}]", "series must be"),
+                          ("arms: [{name: x, train: '--a \"b'}]", "train"),
+                          ("arms: [{name: x, count: 1.5}]", "count must be an integer"),
+                          ("arms: [{name: x, lr: fast}]", "lr must be a number")):
+        (tmp_path / "a.yaml").write_text(text)
+        with pytest.raises(scaling.UsageProblem, match=message.replace("[", r"\[").replace("]", r"\]")):
+            scaling.load_arms(tmp_path / "a.yaml")
+    (tmp_path / "a.yaml").write_text("arms: [{name: x, lr: 5e-4, count: '400'}]")  # YAML reads 5e-4 as text
+    assert {k: scaling.load_arms(tmp_path / "a.yaml")[0][k] for k in ("lr", "count")} == {"lr": 5e-4, "count": 400}
+    args = scaling.parse_args(["--arms-file", str(tmp_path / "b.yaml"), "--out", str(tmp_path), "--real", "r",
+                               "--real-phase", "none", "--list"])
+    (tmp_path / "b.yaml").write_text("arms: [{name: x, count: 6, train: --no-such-flag}]")
+    with pytest.raises(scaling.UsageProblem, match="variant 's0': train"):
+        scaling.check(args)
+
+
+@pytest.mark.slow
+def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
+    """2 arms x 2 seeds of tiny sim2real runs (about 30 s on 2 cores): scaling.json's schema, figures; the same
+    command again trains nothing (files untouched); --report-only rebuilds the report alone."""
+    out = world / "study"
+    assert scaling.main(_argv(world)) == 0
+    text = capsys.readouterr().out
+    assert "[1/4 a6 seed 0] start" in text and "[4/4 a8 seed 1] done in" in text and "pair object RMSE" in text
+    doc = json.loads((out / "scaling.json").read_text())
+    assert [a["name"] for a in doc["arms"]] == ["a6", "a8"] and doc["seeds"] == [0, 1]
+    a6, a8 = doc["arms"]
+    assert (a6["count"], a6["steps"], a8["steps"]) == (6, 2, 2)  # 4 training samples / batch 2; 4 draws / 2
+    assert len(a6["commands"]) == 2 and a6["commands"][1].startswith("uhrnet sim2real ")
+    assert "--variant 's1:  | --resize 32x64 --no-augment --seed 1'" in a6["commands"][1]
+    for arm in doc["arms"]:
+        assert [s["seed"] for s in arm["seeds"]] == [0, 1] and arm["missing_seeds"] == []
+        for s in arm["seeds"]:
+            for key in ("pair_object_rmse_mm", "pair_level_rmse_mm", "pair_relief_rmse_mm",
+                        "pair_level_rmse_mean_mm", "pair_relief_rmse_mean_mm"):
+                assert np.isfinite(s[key]), key
+            assert s["pair_images"] == 2 and len(s["pair_regions_per_image"]) == 2
+            for r in json.loads((Path(s["folder"]) / "eval" / "real_metrics.json").read_text())["per_image"]:
+                assert r["object_level_rmse_mean_mm"] ** 2 + r["object_relief_rmse_mean_mm"] ** 2 == pytest.approx(
+                    r["object_rmse_mm"] ** 2)
+            assert set(s["phase_residual_rad"]) == {"F1/1201"} and np.isfinite(s["phase_residual_rad"]["F1/1201"])
+            assert Path(s["folder"]) == out / arm["name"] / f"s{s['seed']}"
+        summ = arm["summary"]
+        vals = [s["pair_object_rmse_mm"] for s in arm["seeds"]]
+        assert summ["pair_object_rmse_mm"] == {"mean": pytest.approx(np.mean(vals)),
+                                               "std": pytest.approx(np.std(vals, ddof=1)), "n": 2}
+        assert summ["phase_residual_rad"]["F1/1201"]["n"] == 2
+    assert (out / "scaling_samples.png").stat().st_size > 0 and (out / "scaling_steps.png").is_file()
+    md = (out / "scaling.md").read_text()
+    assert "| a6 | 6 | 2 | 2 |" in md
+    arm_md = (out / "a6" / "report.md").read_text()  # the arm's own sim2real report lists both seeds
+    assert "| s0 |" in arm_md and "| s1 |" in arm_md and "level and relief" in arm_md
+
+    runs = sorted(p for p in out.rglob("*") if p.is_file() and "scaling" not in p.name)
+    before = {p: p.stat().st_mtime_ns for p in runs}
+    assert scaling.main(_argv(world)) == 0
+    text = capsys.readouterr().out
+    assert text.count("finished before: re-used") == 4 and "start" not in text
+    assert {p: p.stat().st_mtime_ns for p in runs} == before
+    assert json.loads((out / "scaling.json").read_text())["arms"] == doc["arms"]
+
+    (out / "scaling.json").unlink()
+    assert scaling.main(_argv(world, "--report-only", "--seeds", "0", "1", "2")) == 0
+    again = json.loads((out / "scaling.json").read_text())
+    assert [a["missing_seeds"] for a in again["arms"]] == [[2], [2]] and again["arms"][0]["seeds"] == a6["seeds"]
+    assert {p: p.stat().st_mtime_ns for p in runs} == before
