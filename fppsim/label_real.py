@@ -54,7 +54,7 @@ from .formats import LabelTransform, manifest_ids
 from .psp import decode_stacks
 from .readers import CONVENTIONS, FOLDERS, list_psp_ids, load_psp_folder_sample
 from .reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
-from .rig import Rig, load_rig
+from .rig import Rig, RigError, load_rig, usable_rig
 from .triangulation import height_from_phase
 from .writers import NpyRowStream
 
@@ -254,7 +254,9 @@ def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
         raise DatasetError(f"{folder / 'meta.json'}: 'psp' must hold freqs, steps and shifts_rad") from None
     if rig is None:
         try:
-            rig = Rig.from_dict(meta["rig"])
+            rig = usable_rig(Rig.from_dict(meta["rig"]), f"{folder / 'meta.json'}: its rig")
+        except RigError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{folder / 'meta.json'}: no usable rig ({exc}); pass --rig") from None
     image = read_gray_image(folder / "fringe.png")
@@ -292,7 +294,7 @@ def iter_scans(cfg: LabelRealConfig, layout: str | None = None, ids: Sequence[st
 def _config_rig(cfg: LabelRealConfig, layout: str) -> tuple[Rig | None, str]:
     """``(rig, source)``; rig None = each native sample's recorded rig."""
     if isinstance(cfg.rig, Rig):
-        return cfg.rig, "given"
+        return usable_rig(cfg.rig, "rig"), "given"
     if cfg.rig is not None:
         return load_rig(cfg.rig), str(cfg.rig)
     if layout == "native":

@@ -52,7 +52,7 @@ from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import prediction_of
 
-__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "pad_to_multiple", "collect_inputs",
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
            "write_ply"]
 
@@ -73,14 +73,19 @@ def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, 
 @torch.no_grad()
 def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
                    amp: bool = False) -> torch.Tensor:
-    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size.
-
-    ``model``: a model in label units (:func:`uhrnet.checkpoint.model_from_checkpoint`); it is put in
-    eval mode. ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and
-    resample the prediction back. Inputs whose sides are not multiples of 16 are padded and cropped
-    back. ``amp``: autocast (fp16 on CUDA, bf16 on CPU).
-    """
+    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size
+    (:func:`labels_at_input_size`); ``model`` (a model in label units,
+    :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
     model.eval()
+    return labels_at_input_size(model, fringe, size, amp)
+
+
+def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
+                         amp: bool = False) -> torch.Tensor:
+    """THE image-size rule of every use of a model on whole images (predict, evaluate, adapt; differentiable):
+    ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and resample the
+    prediction back; sides that are not multiples of 16 are padded (edge replication) and cropped back.
+    ``amp``: autocast (fp16 on CUDA, bf16 on CPU). Returns ``(N, 1, H, W)`` float32 at the input's size."""
     device = next(model.parameters()).device
     x = fringe.to(device, torch.float32)
     h, w = x.shape[-2:]
@@ -306,10 +311,10 @@ def predict(config: PredictConfig) -> PredictResult:
     size = parse_size(ckpt.get("args", {}).get("resize"))
     rig = None
     if config.rig:
-        from fppsim.rig import Rig, RigError
+        from fppsim.rig import RigError, load_rig
 
         try:
-            rig = Rig.load(config.rig)
+            rig = load_rig(config.rig)
         except RigError as exc:
             raise ConfigError(str(exc)) from None
     refine_rig = None
@@ -369,13 +374,13 @@ def predict(config: PredictConfig) -> PredictResult:
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     """The rig ``--refine`` uses and its name: ``rig`` (``--rig``), else the checkpoint's own (physics head
     or an adaptation's), else fppsim's default rig."""
-    from fppsim.rig import Rig, load_rig
+    from fppsim.rig import Rig, load_rig, usable_rig
 
     if rig is not None:
         return rig, str(rig_path)
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
     if own is not None:
-        return Rig.from_dict(own), "the checkpoint's rig"
+        return usable_rig(Rig.from_dict(own), f"{ckpt.get('path', 'the checkpoint')}: its rig"), "the checkpoint's rig"
     return load_rig(None), "fppsim's default rig"
 
 
