@@ -109,6 +109,11 @@ class Trainer:
             options["base_channels"] = cfg["base_channels"]
         if self.phase_head:
             options.update(head="phase", rig=head_rig(cfg["rig"], cfg["synthetic"]))
+            cam = options["rig"]["camera"]
+            if (int(cam["height"]), int(cam["width"])) != tuple(shape):
+                where = f"--rig {cfg['rig']}" if cfg["rig"] else "the synthetic data's rig"
+                raise ConfigError(f"{where}: its camera is {cam['width']}x{cam['height']} but the training images are "
+                                  f"{shape[1]}x{shape[0]}; the phase head needs the rig of these images")
         try:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:

@@ -1,0 +1,288 @@
+"""Issue 30: nothing lost, nothing silent, for train --init-from / --head phase, adapt and predict --refine.
+
+Each test is one case of the issue, run as a user would (the command line, one error line, the exit
+status) on a tiny model: files the tool did not write survive, a run never writes over the weights it
+starts from, a full disk names the file, unusable rigs are refused wherever they enter, and adapt
+resumes only what it can continue and sees images as predict does.
+"""
+
+import errno
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from uhrnet.cli import main
+
+from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare, write_native_rig
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _bump(rig, peak=6.0, cx=30.0, cy=15.0, sigma=8.0):
+    cam = rig.camera
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    return peak * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma ** 2))
+
+
+def _images(folder: Path, rig) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    fr = np.stack([rig_fringe(rig, _bump(rig, 6.0)), rig_fringe(rig, _bump(rig, 4.0, cx=40.0))])
+    np.save(folder / "f1_80.npy", (fr.astype(np.float32) / 127.5 - 1)[..., None])
+    return folder
+
+
+def _zero_baseline(path: Path) -> Path:
+    d = tiny_rig().to_dict()
+    d["projector"] = dict(d["camera"])  # the projector where the camera is
+    d["projector"]["width"], d["projector"]["height"] = 912, 1140
+    path.write_text(json.dumps(d))
+    return path
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("lost")
+    torch.set_num_threads(1)
+    write_figshare(tmp / "syn", n=6, h=32, w=64, seed=1)
+    run = train_tiny(tmp / "run", "--synthetic", tmp / "syn", "--synthetic-split", "train", extra=["--no-augment"])
+    rig = tiny_rig()
+    rig.save(tmp / "rig.json")
+    _images(tmp / "real", rig)
+    return tmp, run
+
+
+def _snapshot(folder: Path) -> dict:
+    return {p.relative_to(folder): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _one_error(capsys, *needles) -> str:
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1, err
+    assert "Traceback" not in err[0]
+    for n in needles:
+        assert n in err[0], (n, err[0])
+    return err[0]
+
+
+def _adapt(tmp, run, out, *extra):
+    return main(["adapt", str(run), "--images", str(tmp / "real"), "--rig", str(tmp / "rig.json"), "--out", str(out),
+                 "--epochs", "1", "--no-progress", *map(str, extra)])
+
+
+# ------------------------------------------------------------------------------------------- case 1
+@pytest.mark.parametrize("command", ["adapt", "train"])
+def test_disk_full_while_saving_a_checkpoint_is_one_line_naming_the_file(setup, tmp_path, monkeypatch, capsys, command):
+    """torch.save reports a full disk as RuntimeError('... unexpected pos ...') from the OSError."""
+    import uhrnet.checkpoint as cp
+
+    tmp, run = setup
+    real_save = torch.save
+
+    def full_disk(obj, f):
+        try:
+            real_save(obj, f)
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        except OSError:
+            raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704 vs 598")
+
+    monkeypatch.setattr(cp.torch, "save", full_disk)
+    out = tmp_path / "out"
+    if command == "adapt":
+        rc = _adapt(tmp, run, out)
+    else:
+        rc = main(["train", "--synthetic", str(tmp / "syn"), "--synthetic-split", "train", "--model", "unet",
+                   "--base-channels", "4", "--epochs", "1", "--loss", "l2", "--no-progress", "--out", str(out)])
+    assert rc == 1
+    _one_error(capsys, str(out / "last.pt"), "No space left on device")
+    assert not list(out.glob(".fppsim-tmp-*")) and not (out / "last.pt").exists()
+
+
+# ------------------------------------------------------------------------------------------- case 2
+def test_adapt_pads_images_whose_sides_are_not_multiples_of_16_as_predict_does(setup, tmp_path, capsys):
+    tmp, run = setup
+    rig = tiny_rig(width=70, height=38)
+    rig.save(tmp_path / "odd.json")
+    _images(tmp_path / "odd", rig)
+    out = tmp_path / "ad"
+    assert main(["adapt", str(run), "--images", str(tmp_path / "odd"), "--rig", str(tmp_path / "odd.json"),
+                 "--out", str(out), "--epochs", "1", "--no-progress", "--no-figures"]) == 0
+    assert main(["predict", str(out), str(tmp_path / "odd"), "--out", str(tmp_path / "p"), "--no-progress",
+                 "--no-ply"]) == 0
+    assert np.load(tmp_path / "p" / "odd_0000_height.npy").shape == (38, 70)
+
+
+# ------------------------------------------------------------------------------------------- case 3
+def test_phase_head_rig_of_another_camera_size_is_refused_and_the_rerun_then_works(tmp_path, capsys):
+    rig = tiny_rig()
+    write_native_rig(tmp_path / "syn", rig, n=4)
+    tiny_rig(width=32, height=16).save(tmp_path / "small_cam.json")
+    rig.save(tmp_path / "rig.json")
+    out = tmp_path / "run"
+    base = ["train", "--synthetic", str(tmp_path / "syn"), "--synthetic-split", "train", "--head", "phase",
+            "--model", "unet", "--base-channels", "4", "--epochs", "1", "--loss", "l2", "--no-progress",
+            "--no-augment", "--out", str(out)]
+    assert main(base + ["--rig", str(tmp_path / "small_cam.json")]) == 1
+    _one_error(capsys, "small_cam.json", "32x16", "64x32")
+    assert not out.exists()  # a failed run leaves no folder behind
+    out.mkdir()
+    assert main(base + ["--rig", str(tmp_path / "small_cam.json")]) == 1
+    capsys.readouterr()
+    assert main(base + ["--rig", str(tmp_path / "rig.json")]) == 0  # nothing blocks the corrected re-run
+
+
+# ------------------------------------------------------------------------------------------- case 4
+@pytest.mark.parametrize("name", ["config.json", "history.csv", "images.json", "figures/real_0000_adapt.png"])
+def test_adapt_never_replaces_files_it_did_not_write(setup, tmp_path, capsys, name):
+    tmp, run = setup
+    out = tmp_path / "ad"
+    (out / name).parent.mkdir(parents=True)
+    (out / name).write_text("someone else's")
+    assert _adapt(tmp, run, out) == 1
+    _one_error(capsys, str(out / name), "not written by uhrnet adapt")
+    assert _snapshot(out) == {Path(name): b"someone else's"}
+
+
+def test_adapt_replaces_its_own_files_on_resume_and_overwrite(setup, tmp_path, capsys):
+    tmp, run = setup
+    out = tmp_path / "ad"
+    assert _adapt(tmp, run, out) == 0
+    assert _adapt(tmp, run, out, "--epochs", "2") == 0  # resumes its own run
+    assert _adapt(tmp, run, out, "--lr", "1e-3", "--overwrite") == 0
+    assert json.loads((out / "config.json").read_text())["lr"] == 1e-3
+
+
+# ------------------------------------------------------------------------------------------- case 5
+def test_adapt_into_the_training_run_is_refused_even_with_overwrite(setup, tmp_path, capsys):
+    tmp, run = setup
+    before = _snapshot(run)
+    for extra in ((), ("--overwrite",)):
+        assert _adapt(tmp, run, run, *extra) == 1
+        line = _one_error(capsys, str(run), "replace the weights")
+        assert "--overwrite" not in line
+    assert main(["adapt", str(run / "best.pt"), "--images", str(tmp / "real"), "--rig", str(tmp / "rig.json"),
+                 "--out", str(run), "--epochs", "1", "--no-progress", "--overwrite"]) == 1
+    capsys.readouterr()
+    copy = tmp_path / "copy"  # another folder holding a training run (its ownership record says so)
+    shutil.copytree(run, copy)
+    assert _adapt(tmp, run, copy, "--overwrite") == 1
+    _one_error(capsys, "written by uhrnet train, not uhrnet adapt")
+    assert _snapshot(run) == before and _snapshot(copy) == before
+
+
+# ------------------------------------------------------------------------------------------- case 6
+def test_init_from_its_own_out_is_refused_even_with_overwrite(setup, tmp_path, capsys):
+    tmp, run = setup
+    mine = tmp_path / "pre"
+    shutil.copytree(run, mine)
+    before = _snapshot(mine)
+    for init in (mine, mine / "best.pt"):
+        assert main(["train", "--synthetic", str(tmp / "syn"), "--synthetic-split", "train", "--model", "unet",
+                     "--base-channels", "4", "--epochs", "1", "--loss", "l2", "--no-progress", "--init-from", str(init),
+                     "--out", str(mine), "--overwrite"]) == 1
+        _one_error(capsys, "--init-from", "replace the weights")
+    assert _snapshot(mine) == before
+
+
+def test_train_never_replaces_foreign_files_even_with_overwrite(setup, tmp_path, capsys):
+    tmp, run = setup
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "history.png").write_text("a figure of mine")
+    assert main(["train", "--synthetic", str(tmp / "syn"), "--synthetic-split", "train", "--model", "unet",
+                 "--base-channels", "4", "--epochs", "1", "--loss", "l2", "--no-progress", "--out", str(out),
+                 "--overwrite"]) == 1
+    _one_error(capsys, str(out / "history.png"), "not written by uhrnet train")
+    assert _snapshot(out) == {Path("history.png"): b"a figure of mine"}
+
+
+# ------------------------------------------------------------------------------------------- case 7
+def test_a_rig_that_cannot_measure_is_refused_wherever_it_enters(setup, tmp_path, capsys):
+    tmp, run = setup
+    zero = _zero_baseline(tmp_path / "zerobase.json")
+    assert main(["predict", str(run), str(tmp / "real"), "--out", str(tmp_path / "p"), "--refine", "phase",
+                 "--rig", str(zero), "--no-progress", "--no-ply"]) == 1
+    _one_error(capsys, "zerobase.json", "fringes do not move with height")
+    assert not list((tmp_path / "p").glob("*_height.npy")) if (tmp_path / "p").exists() else True
+    assert main(["adapt", str(run), "--images", str(tmp / "real"), "--rig", str(zero), "--out", str(tmp_path / "a"),
+                 "--epochs", "1", "--no-progress"]) == 1
+    _one_error(capsys, "zerobase.json", "fringes do not move with height")
+    assert not (tmp_path / "a").exists()
+    write_native_rig(tmp_path / "syn", tiny_rig(), n=2)
+    assert main(["train", "--synthetic", str(tmp_path / "syn"), "--synthetic-split", "train", "--head", "phase",
+                 "--rig", str(zero), "--model", "unet", "--base-channels", "4", "--epochs", "1", "--no-progress",
+                 "--out", str(tmp_path / "t")]) == 1
+    _one_error(capsys, "zerobase.json", "fringes do not move with height")
+
+
+# ------------------------------------------------------------------------------------------- case 8
+def test_adapt_resume_refuses_a_changed_source_keeps_its_epochs_and_names_the_option(setup, tmp_path, capsys):
+    tmp, run = setup
+    src = tmp_path / "src"
+    shutil.copytree(run, src)
+    out = tmp_path / "ad"
+    assert _adapt(tmp, src, out, "--epochs", "2") == 0
+    assert _adapt(tmp, src, out, "--epochs", "1") == 0  # fewer epochs: nothing to do, the record says 2
+    assert json.loads((out / "config.json").read_text())["epochs"] == 2
+    assert _adapt(tmp, src, out, "--epochs", "3", "--lr", "1e-3") == 1
+    _one_error(capsys, "--lr 0.001", "0.0003")
+    before = _snapshot(out)
+    ck = torch.load(src / "best.pt", weights_only=True)  # the source retrained meanwhile
+    ck["state_dict"] = {k: v + 0.01 if v.is_floating_point() else v for k, v in ck["state_dict"].items()}
+    torch.save(ck, src / "best.pt")
+    assert _adapt(tmp, src, out, "--epochs", "3") == 1
+    _one_error(capsys, str(src / "best.pt"), "changed since")
+    assert _snapshot(out) == before
+
+
+# ------------------------------------------------------------------------------------------- case 9
+def test_adapt_runs_the_network_at_the_training_runs_resize_as_predict_does(tmp_path, monkeypatch, capsys):
+    import uhrnet.checkpoint as cp
+
+    write_figshare(tmp_path / "syn", n=4, h=32, w=64, seed=1)
+    run = train_tiny(tmp_path / "run", "--synthetic", tmp_path / "syn", "--synthetic-split", "train",
+                     extra=["--no-augment", "--resize", "16x32"])
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    _images(tmp_path / "real", rig)
+    seen = []
+    real = cp.model_from_checkpoint
+
+    def spy(*a, **k):
+        model, transform = real(*a, **k)
+        model.register_forward_pre_hook(lambda mod, args: seen.append(tuple(args[0].shape[-2:])))
+        return model, transform
+
+    monkeypatch.setattr(cp, "model_from_checkpoint", spy)
+    assert main(["adapt", str(run), "--images", str(tmp_path / "real"), "--rig", str(tmp_path / "rig.json"),
+                 "--out", str(tmp_path / "ad"), "--epochs", "1", "--no-progress", "--no-figures"]) == 0
+    assert seen and set(seen) == {(16, 32)}
+
+
+# ------------------------------------------------------------------------------------------- case 10
+@pytest.mark.parametrize("flag,value", [("--min-reliability", "2"), ("--min-reliability", "1"), ("--max-step", "0")])
+def test_adapt_ranges_that_adapt_nothing_are_usage_errors(setup, tmp_path, capsys, flag, value):
+    tmp, run = setup
+    assert _adapt(tmp, run, tmp_path / "ad", flag, value) == 2
+    _one_error(capsys, flag)
+    assert not (tmp_path / "ad").exists()
+
+
+# ------------------------------------------------------------------------------------------- smaller
+def test_failed_runs_leave_no_empty_out_folder(setup, tmp_path, capsys):
+    tmp, run = setup
+    out = tmp_path / "new" / "ad"
+    assert main(["adapt", str(run), "--images", str(tmp / "real"), "--out", str(out), "--epochs", "1",
+                 "--no-progress"]) == 1  # fppsim's default rig: 640 x 352, not these images' size
+    _one_error(capsys, "rig's camera")
+    assert not out.exists()
+
+
+def test_phase_head_with_resize_is_a_usage_error(tmp_path, capsys):
+    assert main(["train", "--synthetic", str(tmp_path), "--head", "phase", "--resize", "96x160",
+                 "--out", str(tmp_path / "run")]) == 2
+    _one_error(capsys, "--head phase", "--resize")
