@@ -175,12 +175,12 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
     from fppsim.formats import find_figshare_pair
-    from fppsim.readers import PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
+    from fppsim.readers import FOLDERS, PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
         p = Path(item)
-        if p.is_dir() and is_psp_folder(p):
+        if p.is_dir() and (is_psp_folder(p) or (p / FOLDERS["image"][0]).is_dir()):  # only iPattern/ is read
             try:
                 for sid in list_psp_ids(p, roles=("image",)):
                     f = p / "iPattern" / f"{sid}.mat"

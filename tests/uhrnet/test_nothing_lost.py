@@ -286,3 +286,49 @@ def test_phase_head_with_resize_is_a_usage_error(tmp_path, capsys):
     assert main(["train", "--synthetic", str(tmp_path), "--head", "phase", "--resize", "96x160",
                  "--out", str(tmp_path / "run")]) == 2
     _one_error(capsys, "--head phase", "--resize")
+
+
+def test_a_full_disk_names_the_file_whatever_writes_it(tmp_path, monkeypatch):
+    import fppsim.files as files
+
+    def full(fh, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as write_fully reports a short write
+
+    monkeypatch.setattr(files, "write_fully", full)
+    with pytest.raises(OSError) as exc:
+        files.atomic_write_text(tmp_path / "history.csv", "epoch\n")
+    assert exc.value.filename == str(tmp_path / "history.csv") and exc.value.errno == errno.ENOSPC
+    assert not list(tmp_path.iterdir())
+
+
+def test_adapt_reads_a_scan_folder_that_holds_only_ipattern(setup, tmp_path, capsys):
+    from fppsim.writers import save_psp_folder_sample
+
+    tmp, run = setup
+    rig = tiny_rig()
+    scan = tmp_path / "scan"
+    f8 = rig_fringe(rig, _bump(rig, 5.0))
+    save_psp_folder_sample(scan, "1201", np.zeros(f8.shape), np.ones(f8.shape), np.zeros(f8.shape), f8)
+    for sub in ("PSin", "PCos", "Fringe"):
+        shutil.rmtree(scan / sub)
+    assert main(["adapt", str(run), "--images", str(scan), "--rig", str(tmp / "rig.json"), "--out",
+                 str(tmp_path / "ad"), "--epochs", "1", "--no-progress", "--no-figures"]) == 0
+    assert [im["name"] for im in json.loads((tmp_path / "ad" / "images.json").read_text())] == ["scan_1201"]
+
+
+@pytest.mark.parametrize("count,needle", [("0", "--count must be >= 1"), ("4", "needs at least 6 samples")])
+def test_sim2real_counts_it_cannot_use_are_usage_errors_before_generating(tmp_path, capsys, count, needle):
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "o"), "--count", count]) == 2
+    _one_error(capsys, needle)
+    assert not (tmp_path / "o").exists()
+
+
+def test_adapt_defaults_like_train_and_states_its_ranges(capsys):
+    from uhrnet.adapt import AdaptConfig
+    from uhrnet.train_config import DEFAULTS
+
+    assert AdaptConfig.__dataclass_fields__["device"].default == DEFAULTS["device"] == "auto"
+    with pytest.raises(SystemExit):
+        main(["adapt", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "reliability (0 to 1) is below this (in [0, 1))" in text and "(rad, > 0)" in text
