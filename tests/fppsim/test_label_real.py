@@ -315,3 +315,16 @@ def test_an_interrupted_rerun_leaves_the_earlier_result_whole(public, tmp_path, 
                                    phase_offset="auto"))
     after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
     assert after == before  # arrays, previews and report: all still the earlier run's
+
+
+def test_a_rig_that_cannot_measure_is_refused(tmp_path, capsys):
+    """Issue 30 case 7: the one usability check (fppsim.rig.usable_rig) wherever a rig enters, here --rig."""
+    from _helpers import tiny_rig
+
+    d = tiny_rig().to_dict()
+    d["projector"] = {**d["camera"], "width": 912, "height": 1140}  # the projector where the camera is
+    (tmp_path / "zero.json").write_text(json.dumps(d))
+    rc, err = _cli_error([_small_public(tmp_path / "pub"), "--out", tmp_path / "o", "--rig", tmp_path / "zero.json"],
+                         capsys)
+    assert rc == 1 and "zero.json" in err and "fringes do not move with height" in err
+    assert not (tmp_path / "o").exists()
