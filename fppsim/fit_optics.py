@@ -436,6 +436,8 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     lines = ReportLines(echo)
     say = lines.say
     out = check_output_file(config.out, config.force)
+    if config.json:  # an existing report is someone's file too: replaced only with force
+        check_output_file(config.json, config.force)
     rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
     images, layout = load_fringe_images(config.real, config.max_images)
     fit = fit_optics(images, rig)

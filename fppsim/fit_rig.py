@@ -562,6 +562,8 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     lines = ReportLines(echo)
     say = lines.say
     out = check_output_file(config.out, config.force)
+    if config.json:  # an existing report is someone's file too: replaced only with force
+        check_output_file(config.json, config.force)
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images)
     measured = measure_bands(images, config.col_bands, config.row_bands)

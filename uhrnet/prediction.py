@@ -322,6 +322,12 @@ def predict(config: PredictConfig) -> PredictResult:
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
+    from fppsim.owned import claim
+
+    names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
+             ("_height.npy", "_height.tif", "_height.png")
+             + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
+    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
     head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
     for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):

@@ -221,3 +221,14 @@ def test_labels_made_through_the_base_rig_confirm_it(tmp_path, capsys, params):
     assert fd._pooled(checks, "plane_residual") <= 1.05 * fd._pooled(base_checks, "plane_residual")
     if depth["kept_base"]:
         assert "the base rig is kept" in capsys.readouterr().out
+
+
+def test_fit_rig_json_report_is_not_replaced_without_force(rendered_default, tmp_path, capsys):
+    from fppsim.cli import main
+
+    (tmp_path / "fit.json").write_text("my notes")
+    assert main(["fit-rig", str(rendered_default), "--out", str(tmp_path / "rig.json"), "--params", "yaw",
+                 "--json", str(tmp_path / "fit.json")]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "fit.json exists" in err[0] and "--force" in err[0]
+    assert (tmp_path / "fit.json").read_text() == "my notes" and not (tmp_path / "rig.json").exists()

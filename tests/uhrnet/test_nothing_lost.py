@@ -332,3 +332,18 @@ def test_adapt_defaults_like_train_and_states_its_ranges(capsys):
         main(["adapt", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "reliability (0 to 1) is below this (in [0, 1))" in text and "(rad, > 0)" in text
+
+
+def test_predict_never_replaces_files_it_did_not_write(setup, tmp_path, capsys):
+    tmp, run = setup
+    out = tmp_path / "p"
+    out.mkdir()
+    (out / "real_0001_height_network.npy").write_text("mine")
+    args = ["predict", str(run), str(tmp / "real"), "--out", str(out), "--no-progress", "--no-ply"]
+    assert main(args) == 0  # without --refine that name is not written
+    assert main(args + ["--refine", "phase", "--rig", str(tmp / "rig.json")]) == 1
+    _one_error(capsys, str(out / "real_0001_height_network.npy"), "not written by uhrnet predict")
+    assert (out / "real_0001_height_network.npy").read_text() == "mine"
+    (out / "real_0001_height_network.npy").unlink()
+    assert main(args + ["--refine", "phase", "--rig", str(tmp / "rig.json")]) == 0
+    assert main(args + ["--refine", "phase", "--rig", str(tmp / "rig.json")]) == 0  # its own files: replaced
