@@ -187,6 +187,13 @@ class Sim2RealConfig:
             raise Sim2RealError(f"reuse: no variant named {', '.join(unknown)} (variants: {', '.join(names)})")
         if self.adapt_images is not None and not self.adapt_images:
             raise Sim2RealError("adapt_images: give at least one image or folder (None: the real folders)")
+        if self.rig is not None:  # a rig that cannot measure is refused now, not after generating and training
+            from fppsim.rig import RigError, load_rig
+
+            try:
+                load_rig(self.rig)
+            except RigError as exc:
+                raise Sim2RealError(f"--rig: {exc}") from None
 
 
 def data_key(generate: dict) -> str:
