@@ -351,6 +351,7 @@ def test_predict_never_replaces_files_it_did_not_write(setup, tmp_path, capsys):
 
 def test_sim2real_refuses_an_unusable_rig_before_generating(tmp_path, capsys):
     zero = _zero_baseline(tmp_path / "zerobase.json")
+    write_figshare(tmp_path / "real", n=2, h=32, w=64)
     assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "o"), "--rig", str(zero)]) == 1
     _one_error(capsys, "zerobase.json", "fringes do not move with height")
     assert not (tmp_path / "o").exists()
