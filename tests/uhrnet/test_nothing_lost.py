@@ -355,3 +355,13 @@ def test_sim2real_refuses_an_unusable_rig_before_generating(tmp_path, capsys):
     assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "o"), "--rig", str(zero)]) == 1
     _one_error(capsys, "zerobase.json", "fringes do not move with height")
     assert not (tmp_path / "o").exists()
+
+
+def test_sim2real_never_replaces_a_report_it_did_not_write(tmp_path, capsys):
+    write_figshare(tmp_path / "real", n=2, h=32, w=64)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "report.md").write_text("my report")
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6"]) == 1
+    _one_error(capsys, str(out / "report.md"), "not written by uhrnet sim2real")
+    assert (out / "report.md").read_text() == "my report" and not (out / "data").exists()
