@@ -409,7 +409,9 @@ class FitOpticsConfig:
 
     def __post_init__(self):
         if self.max_images < 1 or self.compare < 0:
-            raise ValueError("--max-images must be >= 1 and --compare >= 0")
+            from .errors import UsageError  # option values wrong on their own: exit 2
+
+            raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
 
 
 @dataclass

@@ -518,14 +518,17 @@ class FitRigConfig:
     force: bool = False
 
     def __post_init__(self):
-        if self.col_bands < 1 or self.row_bands < 1 or self.max_images < 1:
-            raise ValueError("--col-bands, --row-bands and --max-images must be >= 1")
+        from .errors import UsageError  # option values wrong on their own: exit 2
+
+        for key in ("col_bands", "row_bands", "max_images"):
+            if getattr(self, key) < 1:
+                raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(self, key)}")
         unknown = [p for p in self.params if p not in PARAMETERS]
         if unknown or not self.params:
-            raise RigError(f"unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
-                           f"(known: {', '.join(PARAMETERS)})")
+            raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                             f"(known: {', '.join(PARAMETERS)})")
         if self.sensitivity not in ("auto", "off"):
-            raise ValueError(f"sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+            raise UsageError(f"--sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
 
 
 @dataclass

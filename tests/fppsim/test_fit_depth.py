@@ -232,3 +232,12 @@ def test_fit_rig_json_report_is_not_replaced_without_force(rendered_default, tmp
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and "fit.json exists" in err[0] and "--force" in err[0]
     assert (tmp_path / "fit.json").read_text() == "my notes" and not (tmp_path / "rig.json").exists()
+
+
+@pytest.mark.parametrize("flag,value", [("--col-bands", "0"), ("--row-bands", "0"), ("--max-images", "0")])
+def test_fit_rig_bad_option_values_exit_2(tmp_path, capsys, flag, value):
+    from fppsim.cli import main
+
+    assert main(["fit-rig", str(tmp_path), "--out", str(tmp_path / "rig.json"), flag, value]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and flag in err[0] and not (tmp_path / "rig.json").exists()
