@@ -320,17 +320,8 @@ def predict(config: PredictConfig) -> PredictResult:
     refine_rig = None
     if config.refine == "phase":
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    from fppsim.owned import claim
-
-    names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
-             ("_height.npy", "_height.tif", "_height.png")
-             + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
-    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
-    result = PredictResult(files=sorted({p for _, _, p in inputs}))
     head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
-    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
+    for name, fringe, path in inputs:  # every size is checked before anything is written
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
@@ -340,6 +331,19 @@ def predict(config: PredictConfig) -> PredictResult:
         if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
                               f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
+        if refine_rig is not None and (refine_rig.camera.height, refine_rig.camera.width) != fringe.shape:
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
+                              f"({rig_name}) sees {refine_rig.camera.width}x{refine_rig.camera.height}")
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from fppsim.owned import claim
+
+    names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
+             ("_height.npy", "_height.tif", "_height.png")
+             + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
+    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
+    result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
         label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
         height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
         if not config.keep_all:
@@ -350,10 +354,6 @@ def predict(config: PredictConfig) -> PredictResult:
                 f"{path} ({name}): no valid pixel in the prediction (every label at or below "
                 f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
         if refine_rig is not None:
-            cam = refine_rig.camera
-            if (cam.height, cam.width) != fringe.shape:
-                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
-                                  f"({rig_name}) sees {cam.width}x{cam.height}")
             with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
                 np.save(fh, height)
             height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)

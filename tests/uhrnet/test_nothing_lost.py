@@ -365,3 +365,13 @@ def test_sim2real_never_replaces_a_report_it_did_not_write(tmp_path, capsys):
     assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6"]) == 1
     _one_error(capsys, str(out / "report.md"), "not written by uhrnet sim2real")
     assert (out / "report.md").read_text() == "my report" and not (out / "data").exists()
+
+
+def test_predict_checks_every_size_before_writing(setup, tmp_path, capsys):
+    tmp, run = setup
+    tiny_rig(width=70, height=38).save(tmp_path / "odd.json")
+    out = tmp_path / "p"
+    assert main(["predict", str(run), str(tmp / "real"), "--out", str(out), "--refine", "phase", "--rig",
+                 str(tmp_path / "odd.json"), "--no-ply", "--no-progress"]) == 1
+    _one_error(capsys, "odd.json", "70x38")
+    assert not out.exists()
