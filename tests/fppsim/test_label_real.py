@@ -328,3 +328,24 @@ def test_a_rig_that_cannot_measure_is_refused(tmp_path, capsys):
                          capsys)
     assert rc == 1 and "zero.json" in err and "fringes do not move with height" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_full_disk_while_labelling_names_the_array_and_keeps_the_earlier_result(public, tmp_path, monkeypatch,
+                                                                                   capsys):
+    import errno
+    import os
+
+    import fppsim.writers as writers
+
+    out = tmp_path / "o"
+    assert main(["label-real", str(public), "--out", str(out), "--rig", str(PARALLEL), "-q", "--no-preview"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    capsys.readouterr()
+
+    def full(fh, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(writers, "write_fully", full)
+    rc, err = _cli_error([public, "--out", out, "--rig", PARALLEL], capsys)
+    assert rc == 1 and str(out / "f1_80.npy") in err and "No space left on device" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
