@@ -423,11 +423,12 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     row, fit, checks = cache[best_key]
     base_cost = _pooled(base_checks, "cost")
     if not row["cost"] < base_cost:  # never a rig worse than the start on this objective: keep the base
-        note = (f"no distance and baseline{' (with ' + ', '.join(period_params) + ' refitted to the plane)' if period_params else ''}"
-                f" explains the labels better than the base rig (cost {row['cost']:.4f} at best vs {base_cost:.4f}): "
-                "the base rig is kept (labels made through it can only confirm it)")
+        refit = f" (with {', '.join(period_params)} refitted to the plane)" if period_params else ""
+        note = (f"no distance and baseline{refit} explains the labels better than the base rig (cost "
+                f"{row['cost']:.4f} at best vs {base_cost:.4f}): the base rig is kept (labels made through it can only confirm it)")
         s0, s40 = centre_sensitivity(base), sensitivity_at(base, 40.0)
-        return DepthFit(distance=b0["distance"], baseline=b0["baseline"], fit=unfitted(measured, base, "the base rig kept (see the note above)"),
+        return DepthFit(distance=b0["distance"], baseline=b0["baseline"],
+                        fit=unfitted(measured, base, "the base rig kept (see the note above)"),
                         scan=[v[0] for _, v in done], checks=base_checks, base_checks=base_checks,
                         sensitivity=s0, sensitivity_40=s40, base_distance=b0["distance"],
                         base_baseline=b0["baseline"], base_sensitivity=s0, base_sensitivity_40=s40, notes=[note],
@@ -460,11 +461,12 @@ def format_depth_fit(fit: DepthFit) -> str:
     lines.append(_check_line("fitted", fit.checks, fit.sensitivity, fit.sensitivity_40))
     if fit.kept:
         lines.append(f"kept: distance {fit.distance:.1f} mm, baseline {fit.baseline:.1f} mm (the base rig); "
-                     f"{abs(fit.sensitivity):.3f} rad/mm at the plane, {abs(fit.sensitivity_40):.3f} at 40 mm (image centre)")
+                     f"{abs(fit.sensitivity):.3f} rad/mm at the plane, {abs(fit.sensitivity_40):.3f} at 40 mm "
+                     "(image centre)")
     else:
-        lines.append(f"chosen: distance {fit.base_distance:.1f} -> {fit.distance:.1f} mm, baseline {fit.base_baseline:.1f} "
-                     f"-> {fit.baseline:.1f} mm; {abs(fit.sensitivity):.3f} rad/mm at the plane, "
-                     f"{abs(fit.sensitivity_40):.3f} at 40 mm (image centre)")
+        lines.append(f"chosen: distance {fit.base_distance:.1f} -> {fit.distance:.1f} mm, baseline "
+                     f"{fit.base_baseline:.1f} -> {fit.baseline:.1f} mm; {abs(fit.sensitivity):.3f} rad/mm at the "
+                     f"plane, {abs(fit.sensitivity_40):.3f} at 40 mm (image centre)")
     lines += [f"note: {n}" for n in fit.notes]
     if not fit.kept:
         lines.append("(the period fit below starts from the rig moved to this distance and baseline: its 'base rig' "

@@ -404,7 +404,8 @@ def format_fit(fit: RigFit) -> str:
     for p, v in fit.params.items():
         b = fit.base_params[p]
         unit = {"baseline": " mm", "distance": " mm", "focal": " px"}.get(p, "")
-        shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") else (lambda x: f"{x:.3f}{unit}")
+        shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") \
+            else (lambda x: f"{x:.3f}{unit}")
         what = PARAMETERS[p].split(';')[0].replace(" (rad)", "")  # shown in degrees here
         lines.append(f"{p:<10} {shown(b):>14} -> {shown(v):>14}   ({what})")
     lines.append(f"plane coverage by the projector: {fit.coverage:.1%}; optimiser: {fit.message}")

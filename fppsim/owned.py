@@ -56,8 +56,8 @@ def _write(folder: Path, record: dict[str, str]) -> None:
         unlink_quietly(folder / RECORD)
 
 
-def claim(folder: str | os.PathLike, tool: str, names: Iterable[str],
-          legacy: Callable[[], Iterable[str]] | None = None, hint: str = "move it away or choose another --out") -> None:
+def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Callable[[], Iterable[str]] | None = None,
+          hint: str = "move it away or choose another --out") -> None:
     """Record ``names`` (paths relative to ``folder``) as ``tool``'s before ``tool`` writes them.
 
     Raises :class:`ForeignFiles` naming the first path that exists and is not ``tool``'s (``hint`` ends the

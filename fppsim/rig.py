@@ -26,7 +26,8 @@ import numpy as np
 
 from .errors import RigError
 
-__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "usable_rig", "make_default_rig",
+__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "usable_rig",
+           "make_default_rig",
            "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
 
 

@@ -51,7 +51,8 @@ def atomic_save(obj, path: str | os.PathLike) -> Path:
             cause = cause.__cause__ or cause.__context__
         if cause is not None and cause.errno:
             raise OSError(cause.errno, cause.strerror or os.strerror(cause.errno), str(path)) from None
-        raise CheckpointError(f"{path}: cannot write the checkpoint ({str(exc).splitlines()[0] if str(exc) else exc})") from None
+        first = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise CheckpointError(f"{path}: cannot write the checkpoint ({first})") from None
     return path
 
 
