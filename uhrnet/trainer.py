@@ -350,7 +350,9 @@ class Trainer:
         cfg, info = self.cfg, self.info
         if info.main:
             self.out.mkdir(parents=True, exist_ok=True)
-            write_run_config(self.out, {**cfg, "label_transform_resolved": self.transform.to_dict(),
+            # the epochs the weights hold: a resume with fewer --epochs trains nothing and must not say otherwise
+            write_run_config(self.out, {**cfg, "epochs": max(int(cfg["epochs"]), self.start_epoch),
+                                        "label_transform_resolved": self.transform.to_dict(),
                                         "data": self.sources.description, "n_parameters": self.n_params,
                                         "world_size": info.world})
             src = self.sources

@@ -375,3 +375,17 @@ def test_predict_checks_every_size_before_writing(setup, tmp_path, capsys):
                  str(tmp_path / "odd.json"), "--no-ply", "--no-progress"]) == 1
     _one_error(capsys, "odd.json", "70x38")
     assert not out.exists()
+
+
+def test_train_resume_with_fewer_epochs_keeps_the_epochs_the_weights_hold(setup, tmp_path, capsys):
+    tmp, run = setup
+    mine = tmp_path / "run"
+    shutil.copytree(run, mine)
+    assert main(["train", "--resume", "--epochs", "1", "--out", str(mine), "--no-progress"]) == 0
+    assert json.loads((mine / "config.json").read_text())["epochs"] == 1
+    ck = torch.load(mine / "last.pt", weights_only=True)
+    ck["epoch"] = 3  # as if trained for 3 epochs
+    torch.save(ck, mine / "last.pt")
+    assert main(["train", "--resume", "--epochs", "1", "--out", str(mine), "--no-progress"]) == 0
+    assert "nothing to do" in capsys.readouterr().out
+    assert json.loads((mine / "config.json").read_text())["epochs"] == 3
