@@ -107,7 +107,7 @@ def output_folder(folder: str | os.PathLike, what: str, flag: str = "--out", err
     failure drop the run's unwritten claims and remove the folder again if this run created it and left
     it empty. ``error``: the exception class a folder that cannot be written raises (one line)."""
     folder = Path(folder)
-    created = not folder.exists()
+    created = [] if folder.exists() else [folder, *[a for a in folder.parents if not a.exists()]]  # leaf first
     try:
         check_writable_dir(folder, flag)
     except ValueError as exc:
@@ -122,13 +122,10 @@ def output_folder(folder: str | os.PathLike, what: str, flag: str = "--out", err
                 raise
     except BaseException:
         if created:
-            for sub in sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+            subs = sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts))
+            for made in subs + created:  # only empty folders this run made (figures/, --out and its parents)
                 try:
-                    sub.rmdir()  # only empty sub-folders this run made (e.g. figures/)
+                    made.rmdir()
                 except OSError:
                     pass
-            try:
-                folder.rmdir()
-            except OSError:
-                pass
         raise
