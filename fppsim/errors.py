@@ -8,7 +8,8 @@ own errors, and every other :class:`FppsimError` to exit status 1. No library mo
 from __future__ import annotations
 
 __all__ = ["FppsimError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
-           "ValidateError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy"]
+           "ValidateError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy",
+           "ForeignFiles"]
 
 
 class FppsimError(Exception):
@@ -61,3 +62,7 @@ class BackendError(FppsimError, RuntimeError):
 
 class FolderBusy(FppsimError, RuntimeError):
     """Another process holds the output folder's lock (one line naming the folder)."""
+
+
+class ForeignFiles(DatasetError):
+    """An output path a tool would write already holds a file it did not write (:mod:`fppsim.owned`)."""

@@ -85,6 +85,11 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with open(tmp, "rb+") as fh:
             os.fsync(fh.fileno())
         os.replace(tmp, path)
+    except OSError as exc:
+        unlink_quietly(tmp)
+        if exc.filename is None and exc.errno:  # disk full, quota ... : name the file it happened to
+            raise OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(path)) from None
+        raise
     except BaseException:
         unlink_quietly(tmp)
         raise

@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import RigError
-from .fit_rig import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig
+from .fit_rig import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
 from .height_sensitivity import centre_sensitivity, demodulated_residual, object_residual, surface_phase
 from .phase import circular_mean, wrap
 from .readers import FringeImage
@@ -147,8 +147,8 @@ class DepthCheck:
         ``round((bridge_i - bridge_ref) / 2 pi)``; the most common count wins). bridge_iqr : its
         interquartile range; vote_share : the share of crossings that voted for it. n_plane, n_object,
         n_edges : pixels and shadow crossings used. ``object_offset`` is NaN (and ``fringes`` 0) without
-        shadow crossings. cost : ``mean(1 - cos r)`` over object pixels plus ``|fringes|`` (what
-        :func:`fit_depth` minimises; a wrong fringe count never looks right).
+        shadow crossings. cost : ``mean(1 - cos r)`` over object pixels plus the same over plane pixels plus
+        ``|fringes|`` (what :func:`fit_depth` minimises; a wrong fringe count never looks right).
     """
 
     plane_residual: float
@@ -213,14 +213,16 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
         iqr = float(np.subtract(*np.percentile(b, [75, 25])))
     # the residual the object would have with the absolute offset: 1 - cos is blind to whole fringes,
     # so the cost adds the fringe count (a wrong branch must never look right)
-    cost = float(np.mean(1.0 - np.cos(ro))) + float(abs(fringes))
+    # (the plane's residual counts too: a rig that explains the object by bending the plane is no better)
+    cost = float(np.mean(1.0 - np.cos(ro))) + float(np.mean(1.0 - np.cos(r[plane]))) + float(abs(fringes))
     return DepthCheck(float(np.median(np.abs(r[plane]))), float(np.median(np.abs(ro))), offset, wrapped, fringes,
                       slope, coherence, bridge, iqr, int(plane.sum()), int(obj.sum()), int(len(edges)),
                       cost, share)
 
 
 _CHECK_HEADER = (f"{'rig':<14}{'plane |r|':>10}{'object |r|':>11}{'offset':>9}{'slope':>9}{'coher.':>8}"
-                 f"{'s(0)':>8}{'s(40)':>8}")
+                 f"{'s(0)':>8}{'s(40)':>8}\n"
+                 f"{'':<14}{'rad':>10}{'rad':>11}{'rad':>9}{'rad/mm':>9}{'0..1':>8}{'rad/mm':>8}{'rad/mm':>8}")
 
 
 def _check_line(name: str, checks: list, s0: float, s40: float) -> str:
@@ -261,9 +263,10 @@ class DepthFit:
     base_sensitivity: float = float("nan")
     base_sensitivity_40: float = float("nan")
     notes: list = field(default_factory=list)
+    kept: bool = False  # nothing improved on the base rig: ``fit.rig`` is the base rig itself
 
     def to_dict(self) -> dict:
-        return {"distance_mm": self.distance, "baseline_mm": self.baseline,
+        return {"distance_mm": self.distance, "baseline_mm": self.baseline, "kept_base": self.kept,
                 "base_distance_mm": self.base_distance, "base_baseline_mm": self.base_baseline,
                 "base_centre_sensitivity_rad_per_mm": self.base_sensitivity,
                 "base_sensitivity_40mm_rad_per_mm": self.base_sensitivity_40,
@@ -301,7 +304,7 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     labelled = [im for im in images if im.height_mm is not None]
     if not labelled:
         return None
-    period_params = tuple(p for p in params if p not in ("distance", "baseline")) or ("yaw",)
+    period_params = tuple(p for p in params if p not in ("distance", "baseline"))  # none: the plane stays as is
     unknown = [p for p in period_params if p not in PARAMETERS]
     if unknown:
         raise RigError(f"unknown parameter(s) {', '.join(unknown)} (known: {', '.join(PARAMETERS)})")
@@ -324,7 +327,8 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
 
     def at(distance: float, baseline: float):
         rig = adjust_rig(base, distance=distance, baseline=baseline)
-        fit = fit_rig(measured, rig, period_params)
+        fit = fit_rig(measured, rig, period_params) if period_params else \
+            unfitted(measured, rig, "only distance and baseline fitted")
         return fit, checks_of(fit.rig)
 
     cache: dict = {}
@@ -391,6 +395,18 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     done = sorted((k, v) for k, v in cache.items() if v is not None)
     best_key = min(done, key=lambda kv: kv[1][0]["cost"])[0]
     row, fit, checks = cache[best_key]
+    base_cost = _pooled(base_checks, "cost")
+    if not row["cost"] < base_cost:  # never a rig worse than the start on this objective: keep the base
+        refit = f" (with {', '.join(period_params)} refitted to the plane)" if period_params else ""
+        note = (f"no distance and baseline{refit} explains the labels better than the base rig (cost "
+                f"{row['cost']:.4f} at best vs {base_cost:.4f}): the base rig is kept (labels made through it can only confirm it)")
+        s0, s40 = centre_sensitivity(base), sensitivity_at(base, 40.0)
+        return DepthFit(distance=b0["distance"], baseline=b0["baseline"],
+                        fit=unfitted(measured, base, "the base rig kept (see the note above)"),
+                        scan=[v[0] for _, v in done], checks=base_checks, base_checks=base_checks,
+                        sensitivity=s0, sensitivity_40=s40, base_distance=b0["distance"],
+                        base_baseline=b0["baseline"], base_sensitivity=s0, base_sensitivity_40=s40, notes=[note],
+                        kept=True)
     fit.rig.name = (f"fit-rig depth fit: camera {row['distance_mm']:.1f} mm above the plane, baseline "
                     f"{row['baseline_mm']:.1f} mm, {abs(row['sensitivity_0']):.3f} rad/mm at the plane "
                     f"({', '.join(period_params)} refitted to the plane; started from: {base.name})")
@@ -408,7 +424,8 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
 def format_depth_fit(fit: DepthFit) -> str:
     """Plain-text summary of :func:`fit_depth`: the distance scan and the base vs fitted rig."""
     lines = ["phase-height relation from the labels (object residual after the baseline that zeroes its offset)",
-             f"{'distance mm':>12}{'baseline mm':>12}{'cost':>8}{'obj |r|':>9}{'slope':>9}{'s(0)':>8}{'s(40)':>8}"]
+             f"{'distance':>12}{'baseline':>12}{'cost':>8}{'obj |r|':>9}{'slope':>9}{'s(0)':>8}{'s(40)':>8}",
+             f"{'mm':>12}{'mm':>12}{'':>8}{'rad':>9}{'rad/mm':>9}{'rad/mm':>8}{'rad/mm':>8}"]
     for r in fit.scan:
         lines.append(f"{r['distance_mm']:>12.1f}{r['baseline_mm']:>12.1f}{r['cost']:>8.4f}{r['object_residual']:>9.3f}"
                      f"{r['slope']:>+9.4f}{abs(r['sensitivity_0']):>8.3f}{abs(r['sensitivity_40']):>8.3f}")
@@ -416,10 +433,16 @@ def format_depth_fit(fit: DepthFit) -> str:
     lines.append(_CHECK_HEADER)
     lines.append(_check_line("base", fit.base_checks, fit.base_sensitivity, fit.base_sensitivity_40))
     lines.append(_check_line("fitted", fit.checks, fit.sensitivity, fit.sensitivity_40))
-    lines.append(f"chosen: distance {fit.base_distance:.1f} -> {fit.distance:.1f} mm, baseline {fit.base_baseline:.1f} "
-                 f"-> {fit.baseline:.1f} mm; {abs(fit.sensitivity):.3f} rad/mm at the plane, "
-                 f"{abs(fit.sensitivity_40):.3f} at 40 mm (image centre)")
+    if fit.kept:
+        lines.append(f"kept: distance {fit.distance:.1f} mm, baseline {fit.baseline:.1f} mm (the base rig); "
+                     f"{abs(fit.sensitivity):.3f} rad/mm at the plane, {abs(fit.sensitivity_40):.3f} at 40 mm "
+                     "(image centre)")
+    else:
+        lines.append(f"chosen: distance {fit.base_distance:.1f} -> {fit.distance:.1f} mm, baseline "
+                     f"{fit.base_baseline:.1f} -> {fit.baseline:.1f} mm; {abs(fit.sensitivity):.3f} rad/mm at the "
+                     f"plane, {abs(fit.sensitivity_40):.3f} at 40 mm (image centre)")
     lines += [f"note: {n}" for n in fit.notes]
-    lines.append("(the period fit below starts from the rig moved to this distance and baseline: its 'base rig' "
-                 "column is that rig, not --base)")
+    if not fit.kept:
+        lines.append("(the period fit below starts from the rig moved to this distance and baseline: its 'base rig' "
+                     "column is that rig, not --base)")
     return "\n".join(lines)

@@ -406,7 +406,9 @@ class FitOpticsConfig:
 
     def __post_init__(self):
         if self.max_images < 1 or self.compare < 0:
-            raise ValueError("--max-images must be >= 1 and --compare >= 0")
+            from .errors import UsageError  # option values wrong on their own: exit 2
+
+            raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
 
 
 @dataclass
@@ -433,6 +435,8 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     lines = ReportLines(echo)
     say = lines.say
     out = check_output_file(config.out, config.force)
+    if config.json:  # an existing report is someone's file too: replaced only with force
+        check_output_file(config.json, config.force)
     rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
     images, layout = load_fringe_images(config.real, config.max_images)
     fit = fit_optics(images, rig)

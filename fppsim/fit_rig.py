@@ -43,8 +43,8 @@ from .readers import FringeImage, load_fringe_images
 from .rig import Device, Rig, RigError, load_rig, rotation
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
-           "plane_tilt", "format_fit", "BaselineFit", "fit_baseline", "format_baseline_fit", "FitRigConfig", "FitRigResult",
-           "fit_rig_images"]
+           "plane_tilt", "format_fit", "unfitted", "BaselineFit", "fit_baseline", "format_baseline_fit", "FitRigConfig",
+           "FitRigResult", "fit_rig_images"]
 
 PARAMETERS = {
     "yaw": "rotation of the projector about its own y axis (rad); tilts the pattern's depth left to right",
@@ -352,6 +352,10 @@ def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", 
 
     sol = least_squares(fun, np.zeros(len(params)), method="trf", x_scale=1.0, diff_step=1e-4, xtol=1e-10,
                         ftol=1e-12, gtol=1e-12, max_nfev=200)
+    message = str(sol.message)
+    if not 0.5 * float(np.sum(fun(sol.x) ** 2)) < 0.5 * float(np.sum(fun(np.zeros(len(params))) ** 2)):
+        sol.x = np.zeros(len(params))  # never a rig worse than the start on this objective
+        message = "no change of " + ", ".join(params) + " improves on the base rig: kept it"
     rig = make(sol.x)
     rig.name = f"{base.name} (fit-rig: {', '.join(params)})"
     rig.check()
@@ -365,7 +369,15 @@ def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", 
     values = {p: float(v) for p, v in zip(params, sol.x * scale + x0)}
     return RigFit(rig=rig, params=values, base_params={p: b0[p] for p in params}, measured=measured,
                   base_model=base_model, fitted_model=fitted_model, rms_base=rms(base_model),
-                  rms_fitted=rms(fitted_model), coverage=coverage, success=bool(sol.success), message=str(sol.message))
+                  rms_fitted=rms(fitted_model), coverage=coverage, success=bool(sol.success), message=message)
+
+
+def unfitted(measured: BandPeriods, rig: Rig, message: str, step: int = 4) -> RigFit:
+    """The :class:`RigFit` of ``rig`` as it is (no parameter fitted): its band periods against ``measured``."""
+    model = band_model(rig, len(measured.columns), len(measured.rows), step)
+    rms = float(np.sqrt(np.mean(_residual(model, measured)[:-1] ** 2)))
+    return RigFit(rig=rig, params={}, base_params={}, measured=measured, base_model=model, fitted_model=model,
+                  rms_base=rms, rms_fitted=rms, coverage=plane_coverage(rig), success=True, message=message)
 
 
 def format_fit(fit: RigFit) -> str:
@@ -373,7 +385,8 @@ def format_fit(fit: RigFit) -> str:
     m = fit.measured
     H, W = m.shape if m.shape else (fit.rig.camera.height, fit.rig.camera.width)
     lines = [f"fringe period on the reference plane (camera px), median of {m.n_images} image(s)",
-             f"{'band':<22}{'measured':>10}{'base rig':>10}{'fitted':>10}"]
+             f"{'band (camera px)':<22}{'measured':>10}{'base rig':>10}{'fitted':>10}",
+             f"{'':<22}{'px':>10}{'px':>10}{'px':>10}"]
 
     def rows(kind, edges, label):
         for i, (a, b) in enumerate(zip(edges[:-1], edges[1:])):
@@ -386,12 +399,15 @@ def format_fit(fit: RigFit) -> str:
         lines.append(f"{name:<22}{m.halves[i]:>10.3f}{fit.base_model['halves'][i]:>10.3f}{fit.fitted_model['halves'][i]:>10.3f}")
     lines.append(f"{'fringe tilt (deg)':<22}{float(np.asarray(m.tilt_deg)[0]):>10.3f}"
                  f"{float(fit.base_model['tilt_deg'][0]):>10.3f}{float(fit.fitted_model['tilt_deg'][0]):>10.3f}")
-    lines.append(f"{'RMS residual (bands)':<22}{'':>10}{fit.rms_base:>10.3f}{fit.rms_fitted:>10.3f}")
+    lines.append(f"{'RMS residual (px)':<22}{'':>10}{fit.rms_base:>10.3f}{fit.rms_fitted:>10.3f}")
     lines.append("")
     for p, v in fit.params.items():
         b = fit.base_params[p]
-        shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") else (lambda x: f"{x:.3f}")
-        lines.append(f"{p:<10} {shown(b):>14} -> {shown(v):>14}   ({PARAMETERS[p].split(';')[0]})")
+        unit = {"baseline": " mm", "distance": " mm", "focal": " px"}.get(p, "")
+        shown = (lambda x: f"{np.degrees(x):+.3f} deg") if p in ("yaw", "pitch", "roll") \
+            else (lambda x: f"{x:.3f}{unit}")
+        what = PARAMETERS[p].split(';')[0].replace(" (rad)", "")  # shown in degrees here
+        lines.append(f"{p:<10} {shown(b):>14} -> {shown(v):>14}   ({what})")
     lines.append(f"plane coverage by the projector: {fit.coverage:.1%}; optimiser: {fit.message}")
     return "\n".join(lines)
 
@@ -503,14 +519,17 @@ class FitRigConfig:
     force: bool = False
 
     def __post_init__(self):
-        if self.col_bands < 1 or self.row_bands < 1 or self.max_images < 1:
-            raise ValueError("--col-bands, --row-bands and --max-images must be >= 1")
+        from .errors import UsageError  # option values wrong on their own: exit 2
+
+        for key in ("col_bands", "row_bands", "max_images"):
+            if getattr(self, key) < 1:
+                raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(self, key)}")
         unknown = [p for p in self.params if p not in PARAMETERS]
         if unknown or not self.params:
-            raise RigError(f"unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
-                           f"(known: {', '.join(PARAMETERS)})")
+            raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                             f"(known: {', '.join(PARAMETERS)})")
         if self.sensitivity not in ("auto", "off"):
-            raise ValueError(f"sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+            raise UsageError(f"--sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
 
 
 @dataclass
@@ -547,6 +566,8 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     lines = ReportLines(echo)
     say = lines.say
     out = check_output_file(config.out, config.force)
+    if config.json:  # an existing report is someone's file too: replaced only with force
+        check_output_file(config.json, config.force)
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images)
     measured = measure_bands(images, config.col_bands, config.row_bands)

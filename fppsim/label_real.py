@@ -30,8 +30,10 @@ turns such scans into training samples in the figshare layout (``f1_80.npy`` + `
    where the phase or the triangulation is missing), ``label_real.json`` (the report) and
    ``previews/<id>.png`` (single-shot image, height map, plane residual), all atomically.
 
-Output files fppsim did not write are never replaced: ``label_real.json`` names the files a run
-wrote, and a later run replaces only those.
+Output files fppsim did not write are never replaced: the folder's ownership record
+(:mod:`fppsim.owned`) names the files label-real wrote, and a later run replaces only those. A run
+replaces the arrays, the previews and then the report only once every scan is labelled: a run that
+stops half-way leaves an earlier result (arrays, previews and ``label_real.json``) as it was.
 
 Units: millimetres for heights, radians for phases, pixels for images.
 """
@@ -41,6 +43,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -49,12 +52,13 @@ import numpy as np
 
 from .encoding import encode_fringe, json_default, read_gray_image
 from .errors import ConfigError, DatasetError, UsageError
-from .files import atomic_write_text, clean_stale_tmp, folder_lock
+from .files import atomic_write_text, tmp_path
 from .formats import LabelTransform, manifest_ids
+from .owned import output_folder
 from .psp import decode_stacks
 from .readers import CONVENTIONS, FOLDERS, list_psp_ids, load_psp_folder_sample
 from .reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
-from .rig import Rig, load_rig
+from .rig import Rig, RigError, load_rig, usable_rig
 from .triangulation import height_from_phase
 from .writers import NpyRowStream
 
@@ -157,6 +161,9 @@ class LabelRealConfig:
             self.ids = [str(i) for i in self.ids]
             if not self.ids:
                 raise UsageError("--ids: give at least one id")
+            twice = sorted({i for i in self.ids if self.ids.count(i) > 1})
+            if twice:
+                raise UsageError(f"--ids: {', '.join(twice)} given more than once (each scan is one row)")
 
 
 # ============================================================================================ scans
@@ -254,7 +261,9 @@ def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
         raise DatasetError(f"{folder / 'meta.json'}: 'psp' must hold freqs, steps and shifts_rad") from None
     if rig is None:
         try:
-            rig = Rig.from_dict(meta["rig"])
+            rig = usable_rig(Rig.from_dict(meta["rig"]), f"{folder / 'meta.json'}: its rig")
+        except RigError:
+            raise
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{folder / 'meta.json'}: no usable rig ({exc}); pass --rig") from None
     image = read_gray_image(folder / "fringe.png")
@@ -292,7 +301,7 @@ def iter_scans(cfg: LabelRealConfig, layout: str | None = None, ids: Sequence[st
 def _config_rig(cfg: LabelRealConfig, layout: str) -> tuple[Rig | None, str]:
     """``(rig, source)``; rig None = each native sample's recorded rig."""
     if isinstance(cfg.rig, Rig):
-        return cfg.rig, "given"
+        return usable_rig(cfg.rig, "rig"), "given"
     if cfg.rig is not None:
         return load_rig(cfg.rig), str(cfg.rig)
     if layout == "native":
@@ -328,6 +337,10 @@ def _label_scan(cfg: LabelRealConfig, scan: Scan, policy: str | float, cache: di
         offset, source = float(policy), "given"
     height = height_from_phase(scan.rig, scan.phase + offset, periods=scan.periods, mask=scan.valid)
     valid = scan.valid & np.isfinite(height)
+    if not valid.any():
+        raise DatasetError(f"{scan.source}: none of its {int(scan.valid.sum())} phase pixels triangulates through "
+                           "the rig (the phase lies outside the projector's columns): check --rig, --periods and "
+                           "--phase-offset")
     height = np.where(valid, height, np.nan)
     plane = plane_flatness(height, valid, cfg.plane_window_mm)
     n_valid = int(valid.sum())
@@ -391,34 +404,30 @@ def _preview(path: Path, scan: Scan, height: np.ndarray, plane: PlaneFit, rec: d
 
 
 # ============================================================================================ outputs
-def _own_files(out: Path) -> set[str]:
-    """Relative paths the last label-real run listed in ``out/label_real.json`` (plus that report);
-    raises :class:`DatasetError` when the report exists but is not ours."""
-    report = out / REPORT_NAME
-    if not report.exists():
-        return set()
+def _legacy_files(out: Path) -> set[str]:
+    """A folder labelled before the ownership record: the files its ``label_real.json`` listed (plus that
+    report) when label-real wrote it, else nothing."""
     try:
-        doc = json.loads(report.read_text())
+        doc = json.loads((out / REPORT_NAME).read_text())
         if not isinstance(doc, dict) or doc.get("tool") != TOOL:
-            raise ValueError
+            return set()
         files = doc.get("files", {})
         own = {REPORT_NAME, str(files.get("fringe", FRINGE_NAME)), str(files.get("label", LABEL_NAME))}
         own.update(str(p) for p in files.get("previews", []))
         own.update(str(p) for p in files.get("earlier", []))
         return own
     except (OSError, ValueError, TypeError, AttributeError):
-        raise DatasetError(f"{report} exists and was not written by {TOOL}: move it away, or use another --out") from None
+        return set()
 
 
 def _check_targets(out: Path, targets: list[str]) -> list[str]:
-    """Refuse when a target exists that no earlier label-real run wrote; returns the files earlier runs
-    wrote that are still there and are not targets now (so a later run may still replace them)."""
-    own = _own_files(out)
-    foreign = [t for t in targets if (out / t).exists() and t not in own]
-    if foreign:
-        more = f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else ""
-        raise DatasetError(f"{out / foreign[0]} exists and was not written by {TOOL}{more}: move it away, "
-                           "or use another --out")
+    """Claim ``targets`` (:func:`fppsim.owned.claim`: refused when one exists that label-real did not
+    write); returns the files earlier runs wrote that are still there and are not targets now (so a
+    later run may still replace them)."""
+    from .owned import claim, owners
+
+    claim(out, TOOL, targets, legacy=lambda: _legacy_files(out), hint="move it away, or use another --out")
+    own = {n for n, tool in (owners(out) or {}).items() if tool == TOOL}
     return sorted(p for p in own - set(targets) if (out / p).is_file())
 
 
@@ -491,8 +500,8 @@ class LabelRealReport:
     def lines(self) -> list[str]:
         """Human-readable summary lines (the CLI prints them)."""
         s = self.summary()
-        out = [f"{self.root}: {s['scans']} scan(s), layout {self.layout}, rig {self.rig['name']} "
-               f"({self.rig['source']}), phase offset {self.policy}"]
+        rig = self.rig.get("file") or f"{self.rig['name']} ({self.rig['source']})"  # a user's file by its path
+        out = [f"{self.root}: {s['scans']} scan(s), layout {self.layout}, rig {rig}, phase offset {self.policy}"]
         for r in self.scans:
             p = r["plane"]
             lvl = "n/a" if p["level_mm"] is None else f"{p['level_mm']:+.2f}"
@@ -551,23 +560,22 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     scans = iter_scans(cfg, layout, ids, rig)
     first = next(scans)  # read (and check) the first scan before anything is created
     H, W = first.image.shape
-    out.mkdir(parents=True, exist_ok=True)
     report = LabelRealReport(out=out, root=str(cfg.root), layout=layout,
-                             rig={"name": (rig or first.rig).name, "source": rig_source},
+                             rig={"name": (rig or first.rig).name, "source": rig_source,
+                                  **({"file": str(cfg.rig)} if isinstance(cfg.rig, (str, os.PathLike)) else {})},
                              policy=policy if isinstance(policy, str) else "given", label=cfg.label.to_dict(),
                              ids=ids, scans=[], warnings=[],
                              files={"fringe": FRINGE_NAME, "label": LABEL_NAME, "previews": previews})
-    with folder_lock(out, TOOL):
+    with output_folder(out, TOOL, error=DatasetError):
         earlier = _check_targets(out, [FRINGE_NAME, LABEL_NAME, REPORT_NAME] + previews)
         if earlier:
             report.files["earlier"] = earlier
-        clean_stale_tmp(out)
-        # claim the outputs first: a run that stops half-way leaves files a re-run may replace
-        atomic_write_text(out / REPORT_NAME, json.dumps(report.to_dict("running"), indent=1, default=json_default))
-        if previews:
-            (out / PREVIEW_DIR).mkdir(exist_ok=True)
+        # the previews wait in a folder of our own temp name (removed if we are killed) until the arrays are in
+        staging = tmp_path(out / PREVIEW_DIR)
         streams = []
         try:
+            if previews:
+                staging.mkdir()
             for name in (FRINGE_NAME, LABEL_NAME):
                 streams.append(NpyRowStream(out / name, (len(ids), H, W, 1)))
             cache: dict = {}
@@ -584,23 +592,23 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                     streams[1].write(cfg.label.label_from_height_mm(np.nan_to_num(height), valid))
                     if cfg.previews:
                         rec["preview"] = previews[k]
-                        _preview(out / previews[k], scan, height, plane, rec)
+                        _preview(staging / Path(previews[k]).name, scan, height, plane, rec)
                     report.scans.append(_finite(rec))
                     bar.update(1)
             for s in streams:
                 s.close()
             for s in streams:
                 s.commit()
+            if previews:
+                (out / PREVIEW_DIR).mkdir(exist_ok=True)
+                for name in previews:
+                    os.replace(staging / Path(name).name, out / name)
         except BaseException:
             for s in streams:
                 s.discard()
-            report.warnings.append(f"stopped before the end: {FRINGE_NAME} and {LABEL_NAME} not (re)written")
-            try:
-                atomic_write_text(out / REPORT_NAME, json.dumps(report.to_dict("failed"), indent=1,
-                                                                default=json_default))
-            except OSError:
-                pass
             raise
+        finally:
+            shutil.rmtree(staging, ignore_errors=True)
         warning = _rig_warning(report, cfg)
         if warning:
             report.warnings.append(warning)

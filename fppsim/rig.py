@@ -27,7 +27,8 @@ import numpy as np
 from .errors import RigError
 from .rig_files import checked_matrix, read_rig_file, rig_from_opencv_stereo, save_rig
 
-__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "make_default_rig",
+__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "usable_rig",
+           "make_default_rig",
            "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
 
 
@@ -503,9 +504,21 @@ def default_rig_path() -> Path:
     return data_path("default_rig.json")
 
 
-def load_rig(path: str | os.PathLike | None) -> Rig:
-    """Rig from a file, or the default rig when ``path`` is None."""
-    return Rig.default() if path is None else Rig.load(path)
+def load_rig(path: str | os.PathLike | None, usable: bool = True) -> Rig:
+    """Rig from a file, or the default rig when ``path`` is None; with ``usable`` (every command that
+    measures or renders through it) it must pass :func:`usable_rig`."""
+    rig = Rig.default() if path is None else Rig.load(path)
+    return usable_rig(rig, path) if usable else rig
+
+
+def usable_rig(rig: Rig, source=None) -> Rig:
+    """``rig`` once :meth:`Rig.check_usable` passed: THE check of every rig that enters a command (a file,
+    a checkpoint's or a dataset's record); :class:`RigError` naming ``source`` otherwise."""
+    try:
+        rig.check_usable()
+    except RigError as exc:
+        raise RigError(f"{source}: {exc}" if source is not None else str(exc)) from None
+    return rig
 
 
 # The real figshare rig is close to, but not exactly, parallel: its fringe period falls steadily from

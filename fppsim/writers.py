@@ -82,13 +82,29 @@ class NpyRowStream:
 
     def write(self, rows: np.ndarray) -> None:
         """Append ``rows`` (as float32, C order): the next row(s) of the array."""
-        write_fully(self.fh, np.ascontiguousarray(rows, dtype=np.float32))
+        try:
+            write_fully(self.fh, np.ascontiguousarray(rows, dtype=np.float32))
+        except OSError as exc:
+            raise self._named(exc) from None
 
     def close(self) -> None:
         if not self.fh.closed:
-            self.fh.flush()
-            os.fsync(self.fh.fileno())
-            self.fh.close()
+            try:
+                self.fh.flush()
+                os.fsync(self.fh.fileno())
+                self.fh.close()
+            except OSError as exc:
+                try:
+                    self.fh.close()
+                except OSError:
+                    pass
+                raise self._named(exc) from None
+
+    def _named(self, exc: OSError) -> OSError:
+        """A full disk (or any write error) names the array being written."""
+        if exc.filename is None and exc.errno:
+            return OSError(exc.errno, exc.strerror or os.strerror(exc.errno), str(self.final))
+        return exc
 
     def commit(self) -> None:
         self.close()

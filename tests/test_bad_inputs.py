@@ -180,6 +180,9 @@ def test_uhrnet_bad_files_and_folders(tmp_path, tiny_run, capsys):
     empty.mkdir()
     (empty / "last.pt").write_bytes(b"")
     assert uhrnet_main(base + ["--out", str(empty), "--resume"]) == 1
+    _one_error_line(capsys, "last.pt", "not written by uhrnet train")  # nobody says it is a run of ours
+    (empty / ".fppsim-owned.json").write_text('{"files": {"last.pt": "uhrnet train"}}')  # ours, and broken
+    assert uhrnet_main(base + ["--out", str(empty), "--resume"]) == 1
     _one_error_line(capsys, "last.pt", "empty file")
     img = tmp_path / "img.png"
     cv2.imwrite(str(img), np.full((32, 64), 100, np.uint8))
@@ -244,15 +247,16 @@ def test_a_run_folder_is_never_replaced_without_overwrite(tmp_path, capsys):
         (run / name).write_text(f"precious {name}")
     base = ["train", "--real", str(tmp_path / "real"), "--model", "unet", "--base-channels", "4", "--epochs", "1",
             "--loss", "l2", "--no-progress", "--out", str(run)]
-    for keep in ("best.pt", "history.csv", "config.json"):
-        assert uhrnet_main(base) == 1
-        _one_error_line(capsys, "already holds a run", keep, "--overwrite")
+    for keep in ("best.pt", "history.csv", "config.json"):  # files it did not write: never, --overwrite or not
+        for extra in ([], ["--overwrite"]):
+            assert uhrnet_main(base + extra) == 1
+            _one_error_line(capsys, str(run / keep), "not written by uhrnet train")
         assert all((run / n).read_text() == f"precious {n}" for n in ("best.pt", "history.csv", "config.json")
                    if (run / n).exists())
         (run / keep).unlink()
     assert uhrnet_main(base) == 0  # an empty folder is fine
     assert uhrnet_main(base) == 1  # now it holds a run
-    capsys.readouterr()
+    _one_error_line(capsys, "already holds a run", "--overwrite")
     assert uhrnet_main(base + ["--overwrite"]) == 0
 
 

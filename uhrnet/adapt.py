@@ -25,9 +25,14 @@ Batch norm and dropout stay in evaluation mode (two or three images cannot re-es
 The run folder holds ``last.pt`` (a checkpoint ``predict``/``evaluate`` accept, with the source's
 training record and this adaptation's), ``history.csv`` (one row per epoch: the loss terms), ``images.json`` (each image's median
 wrapped residual before and after, rad), ``config.json`` and ``figures/<image>_adapt.png`` (before /
-after / difference and the phase residuals); with ``tensorboard`` the loss terms per step and epoch and
-the first image's height per epoch in ``tensorboard/`` (:mod:`uhrnet.tb_log`). Re-running the same
-command resumes; a folder holding another run is refused unless ``overwrite``.
+after / difference and the phase residuals). Re-running the same command resumes (refused, naming the
+option, when an option differs or the source checkpoint changed since); a folder holding another
+adaptation is replaced only with ``overwrite``; files this command did not write (a training run's, a
+person's) are never replaced (:mod:`uhrnet.run_folder`), and ``out`` may not be the source's folder.
+The model sees each image as ``predict`` does (:func:`uhrnet.prediction.labels_at_input_size`: the
+source's ``--resize``, padding to multiples of 16).
+With ``tensorboard`` the loss terms per step and epoch and the first image's height per epoch go to
+``tensorboard/`` (:mod:`uhrnet.tb_log`).
 """
 
 from __future__ import annotations
@@ -52,6 +57,7 @@ from uhrnet.rig_layer import wrap as wrap_t
 __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
 
 ADAPT_COLUMNS = ("epoch", "loss", "grad", "drift", "lr", "seconds")
+ADAPT_TOOL = "uhrnet adapt"
 
 
 @dataclass
@@ -69,7 +75,9 @@ class AdaptConfig:
         (adapting the recipe's U-Net on the real pair alone, scoring FP1523's calibration-free phase
         residual: 1.682 rad before; lr 1e-4 / 40 epochs: 1.614; lr 3e-4: 1.583; and 80 epochs: 1.573;
         w_drift 0.1 let objects sink, 1.733). max_step : largest phase-step disagreement (rad) that
-        counts in ``L_grad``. min_reliability : pixels below it count in no phase term.
+        counts in ``L_grad`` (> 0). min_reliability : pixels below it count in no phase term (in [0, 1): the
+        reliability of a pixel lies in [0, 1]).
+    device : ``auto`` (cuda when available, as ``uhrnet train``), ``cpu`` or ``cuda``.
     """
 
     checkpoint: str | Path
@@ -82,7 +90,7 @@ class AdaptConfig:
     w_drift: float = 0.5
     max_step: float = 1.5
     min_reliability: float = 0.2
-    device: str = "cpu"
+    device: str = "auto"
     seed: int = 0
     resume: bool = True
     overwrite: bool = False
@@ -103,6 +111,13 @@ class AdaptConfig:
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
                 raise UsageError(f"--{name.replace('_', '-')} must be a finite number >= 0, got {v!r}")
+        if not self.max_step > 0:
+            raise UsageError(f"--max-step must be > 0 rad (0 ignores every phase step), got {self.max_step!r}")
+        if not self.min_reliability < 1:
+            raise UsageError(f"--min-reliability must be in [0, 1) (reliabilities lie in [0, 1]), got "
+                             f"{self.min_reliability!r}")
+        if self.device not in ("auto", "cpu", "cuda"):
+            raise UsageError(f"--device must be auto, cpu or cuda, got {self.device!r}")
         if self.w_grad == 0:
             raise UsageError("adapt needs its phase term: --w-grad must be > 0")
         if self.tensorboard:
@@ -210,47 +225,73 @@ def _write_history(rows: list[dict], out: Path) -> None:
 def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
-    from fppsim.files import folder_lock
+    from fppsim.owned import output_folder
+    from uhrnet.run_folder import refuse_own_source
 
-    Path(cfg.out).mkdir(parents=True, exist_ok=True)
-    with folder_lock(cfg.out, "uhrnet adapt"):
+    refuse_own_source(Path(cfg.out), cfg.checkpoint, "RUN")
+    with output_folder(cfg.out, ADAPT_TOOL, error=ConfigError):
         return _adapt(cfg, log)
+
+
+def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
+    """The adaptation in ``out`` to continue, or None for a fresh one; refused (one line naming the
+    option) when it was made with other options or from another state of the source checkpoint."""
+    from uhrnet.checkpoint import load_checkpoint
+
+    if not (out / "last.pt").exists() or cfg.overwrite:
+        return None
+    prev = load_checkpoint(out / "last.pt")
+    if "adapt" not in prev:
+        raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out")
+    if not cfg.resume:
+        raise ConfigError(f"{out} already holds an adaptation: pass --overwrite to replace it, or choose another --out")
+    free = ("epochs", "progress", "figures", "overwrite", "resume", "device", "tensorboard")  # may change on resume
+    recorded = prev["adapt"]["config"]
+    for key, value in cfg.record().items():
+        if key in free or key not in recorded or recorded[key] == value:
+            continue
+        flag = "RUN" if key == "checkpoint" else "--" + key.replace("_", "-")
+        shown = lambda v: " ".join(map(str, v)) if isinstance(v, list) else v  # noqa: E731
+        raise ConfigError(f"{out} already holds an adaptation with other options: {flag} {shown(value)} differs from "
+                          f"its {shown(recorded[key])}; drop {flag} to resume, or choose another --out (or --overwrite)")
+    was = prev["adapt"].get("source_sha256")
+    if was is not None and was != source["sha256"]:
+        raise ConfigError(f"{source['path']} changed since the adaptation in {out} started from it (sha256 "
+                          f"{was[:12]} -> {source['sha256'][:12]}): choose another --out, or --overwrite to adapt "
+                          "the new weights afresh")
+    return prev
 
 
 def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     from fppsim.encoding import json_default
     from fppsim.files import atomic_write_text
     from uhrnet.checkpoint import atomic_save, load_checkpoint, model_from_checkpoint, rng_state
+    from uhrnet.data import parse_size
     from uhrnet.device import select_device
-    from uhrnet.prediction import read_inputs
+    from uhrnet.prediction import labels_at_input_size, read_inputs
     from uhrnet.rig_layer import RigLayer
+    from uhrnet.run_folder import claim_run_folder
 
     out = Path(cfg.out)
-    source = load_checkpoint(cfg.checkpoint)
-    resume_from = None
-    if (out / "last.pt").exists() and not cfg.overwrite:
-        prev = load_checkpoint(out / "last.pt")
-        if "adapt" not in prev:
-            raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out "
-                              "(or --overwrite to replace it)")
-        free = ("epochs", "progress", "figures", "overwrite", "resume", "device", "tensorboard")  # may change on resume
-        same = {k: v for k, v in prev["adapt"]["config"].items() if k not in free}
-        now = {k: v for k, v in cfg.record().items() if k not in free}
-        same = {k: v for k, v in same.items() if k in now}
-        if same != now or not cfg.resume:
-            raise ConfigError(f"{out} already holds an adaptation with other options: choose another --out "
-                              "or pass --overwrite")
-        resume_from = prev
+    source = load_checkpoint(cfg.checkpoint, digest=True)
     rig, rig_name = _rig_for(cfg, source)
     device = select_device(cfg.device)
     cam = rig.camera
     images = []
-    for name, fr in read_inputs([str(p) for p in cfg.images]):
+    for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
         if fr.shape != (cam.height, cam.width):
-            raise ConfigError(f"{name}: image is {fr.shape[1]}x{fr.shape[0]} but the rig's camera "
+            raise ConfigError(f"{path}: image {name} is {fr.shape[1]}x{fr.shape[0]} but the rig's camera "
                               f"({rig_name}) is {cam.width}x{cam.height}")
         images.append(image_phase(name, fr, rig))
+    if not any((im.reliability >= max(cfg.min_reliability, 1e-12)).any() for im in images):
+        raise ConfigError(f"no pixel of the {len(images)} image(s) has a fringe phase reliability >= "
+                          f"{cfg.min_reliability:g} (--min-reliability): nothing to adapt to")
+    names = ["last.pt", "history.csv", "config.json", "images.json"]
+    names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
+    claim_run_folder(out, ADAPT_TOOL, names, kind="adapt")  # never replaces a file it did not write
+    resume_from = _resume_from(cfg, out, source)
     model, transform = model_from_checkpoint(source, device)
+    size = parse_size(source.get("args", {}).get("resize"))  # as predict and evaluate run it
     layer = RigLayer(rig).to(device)
     # times mm_per_unit, not LabelTransform.height_mm's division: the float bits of the recorded adaptations
     to_mm = lambda label: (label - transform.plane_offset) * transform.mm_per_unit  # noqa: E731
@@ -259,8 +300,12 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         t = lambda a: torch.as_tensor(a, dtype=torch.float32, device=device)[None, None]  # noqa: E731
         return t(im.fringe), t(im.wrapped), t(im.reliability)
 
+    def heights(x):
+        return to_mm(labels_at_input_size(model, x, size))
+
+    model.eval()  # batch norm statistics and dropout as trained (module docstring)
     with torch.no_grad():  # the source model's heights: taken before any resumed or adapted weights load
-        sources = [to_mm(model(batch(im)[0])) for im in images]
+        sources = [heights(batch(im)[0]) for im in images]
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.Adam(params, lr=cfg.lr)
     history: list[dict] = []
@@ -271,10 +316,12 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         history = list(resume_from["adapt"]["history"])
         start = int(resume_from["adapt"]["epoch"])
         log(f"adapt: resuming {out} at epoch {start + 1}")
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "config.json", json.dumps({**cfg.record(), "rig_used": rig_name,
-                                                        "source": source["path"]}, indent=2, default=json_default))
-    model.eval()  # batch norm statistics and dropout as trained (module docstring)
+    if start > cfg.epochs:
+        log(f"adapt: {out} already holds {start} epochs (--epochs {cfg.epochs}); nothing to do")
+    record = {**cfg.record(), "epochs": max(int(cfg.epochs), start)}  # what the weights in last.pt hold
+    atomic_write_text(out / "config.json", json.dumps({**record, "rig_used": rig_name, "source": source["path"],
+                                                        "source_sha256": source["sha256"]}, indent=2,
+                                                       default=json_default))
     gen = torch.Generator().manual_seed(int(cfg.seed))
     before = [median_wrapped_residual(s[0, 0].cpu().numpy(), im, layer.cpu()) for s, im in zip(sources, images)]
     layer.to(device)
@@ -291,7 +338,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         sums = {"loss": 0.0, "grad": 0.0, "drift": 0.0}
         for k, i in enumerate(torch.randperm(len(images), generator=gen).tolist()):
             x, phi, rho = batch(images[i])
-            h = to_mm(model(x))
+            h = heights(x)
             loss, terms = adapt_loss(h, sources[i], phi, rho, layer, cfg.w_grad, cfg.w_drift, cfg.max_step,
                                      cfg.min_reliability)
             if not torch.isfinite(loss):
@@ -311,13 +358,14 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         history.append(row)
         if tb.enabled:  # the first image's height and its change from the source model's, flushed before last.pt
             with torch.no_grad():
-                tb.height_images((epoch + 1) * len(images), "adapt_image", to_mm(model(batch(images[0])[0])),
+                tb.height_images((epoch + 1) * len(images), "adapt_image", heights(batch(images[0])[0]),
                                  sources[0], images[0].reliability > 0, "change", images[0].name)
             tb.epoch((epoch + 1) * len(images), row)
-        payload = {k: v for k, v in source.items() if k not in ("path", "optimizer", "scaler", "loss", "rng")}
+        payload = {k: v for k, v in source.items() if k not in ("path", "sha256", "optimizer", "scaler", "loss", "rng")}
         payload.update({
             "state_dict": model.net.state_dict(), "epoch": int(source.get("epoch", 0)),
             "adapt": {"config": cfg.record(), "epoch": epoch + 1, "history": history, "source": source["path"],
+                      "source_sha256": source["sha256"],
                       "rig": rig.to_dict(), "optimizer": optim.state_dict(), "rng": rng_state()},
         })
         payload.pop("train_state_dict", None)
@@ -332,7 +380,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     tb.close()
     result = AdaptResult(out, max(int(cfg.epochs), start), history)
     with torch.no_grad():
-        afters = [to_mm(model(batch(im)[0])) for im in images]
+        afters = [heights(batch(im)[0]) for im in images]
     layer.cpu()
     for im, s, a, b in zip(images, sources, afters, before):
         h0, h1 = s[0, 0].cpu().numpy(), a[0, 0].cpu().numpy()

@@ -749,16 +749,16 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lr", type=float, default=d["lr"].default, help=f"Adam learning rate [{d['lr'].default:g}]")
     for name, what in (("w_grad", "weight of the fringe-gradient consistency (phase steps between neighbours, rad)"),
                        ("w_drift", "weight of the anchor to the source model's prediction (mean |change| / 10 mm)"),
-                       ("max_step", "phase-step disagreements above this (rad) are ignored: aliasing walls, shadow "
-                                    "edges"),
-                       ("min_reliability", "pixels whose single-shot phase reliability is below this count in no "
-                                           "phase term")):
+                       ("max_step", "phase-step disagreements above this (rad, > 0) are ignored: aliasing walls, "
+                                    "shadow edges"),
+                       ("min_reliability", "pixels whose single-shot phase reliability (0 to 1) is below this (in "
+                                           "[0, 1)) count in no phase term")):
         p.add_argument("--" + name.replace("_", "-"), type=float, default=d[name].default,
                        help=f"{what} [{d[name].default:g}]")
     p.add_argument("--seed", type=int, default=0, help="order of the images [0]")
     p.add_argument("--overwrite", action="store_true", help="replace an adaptation already in --out")
     p.add_argument("--no-figures", action="store_true", help="skip the before/after figures")
-    p.add_argument("--device", choices=DEVICES, default="cpu", help="[cpu]")
+    p.add_argument("--device", choices=DEVICES, default="auto", help="[auto: cuda when available, as train]")
     p.add_argument("--no-progress", action="store_true", help="one line per epoch instead of a progress bar")
     p.add_argument("--tensorboard", action="store_true",
                    help="also log the loss and its terms, the learning rate and the first image's height per epoch "

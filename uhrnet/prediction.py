@@ -52,7 +52,7 @@ from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import prediction_of
 
-__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "pad_to_multiple", "collect_inputs",
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
            "write_ply"]
 
@@ -73,14 +73,19 @@ def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, 
 @torch.no_grad()
 def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
                    amp: bool = False) -> torch.Tensor:
-    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size.
-
-    ``model``: a model in label units (:func:`uhrnet.checkpoint.model_from_checkpoint`); it is put in
-    eval mode. ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and
-    resample the prediction back. Inputs whose sides are not multiples of 16 are padded and cropped
-    back. ``amp``: autocast (fp16 on CUDA, bf16 on CPU).
-    """
+    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size
+    (:func:`labels_at_input_size`); ``model`` (a model in label units,
+    :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
     model.eval()
+    return labels_at_input_size(model, fringe, size, amp)
+
+
+def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
+                         amp: bool = False) -> torch.Tensor:
+    """THE image-size rule of every use of a model on whole images (predict, evaluate, adapt; differentiable):
+    ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and resample the
+    prediction back; sides that are not multiples of 16 are padded (edge replication) and cropped back.
+    ``amp``: autocast (fp16 on CUDA, bf16 on CPU). Returns ``(N, 1, H, W)`` float32 at the input's size."""
     device = next(model.parameters()).device
     x = fringe.to(device, torch.float32)
     h, w = x.shape[-2:]
@@ -170,12 +175,12 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
     from fppsim.formats import find_figshare_pair
-    from fppsim.readers import PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
+    from fppsim.readers import FOLDERS, PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
         p = Path(item)
-        if p.is_dir() and is_psp_folder(p):
+        if p.is_dir() and (is_psp_folder(p) or (p / FOLDERS["image"][0]).is_dir()):  # only iPattern/ is read
             try:
                 for sid in list_psp_ids(p, roles=("image",)):
                     f = p / "iPattern" / f"{sid}.mat"
@@ -302,20 +307,17 @@ def predict(config: PredictConfig) -> PredictResult:
     size = parse_size(ckpt.get("args", {}).get("resize"))
     rig = None
     if config.rig:
-        from fppsim.rig import Rig, RigError
+        from fppsim.rig import RigError, load_rig
 
         try:
-            rig = Rig.load(config.rig)
+            rig = load_rig(config.rig)
         except RigError as exc:
             raise ConfigError(str(exc)) from None
     refine_rig = None
     if config.refine == "phase":
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
-    out = Path(config.out)
-    out.mkdir(parents=True, exist_ok=True)
-    result = PredictResult(files=sorted({p for _, _, p in inputs}))
     head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
-    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
+    for name, fringe, path in inputs:  # every size is checked before anything is written
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
@@ -325,6 +327,19 @@ def predict(config: PredictConfig) -> PredictResult:
         if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
                               f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
+        if refine_rig is not None and (refine_rig.camera.height, refine_rig.camera.width) != fringe.shape:
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
+                              f"({rig_name}) sees {refine_rig.camera.width}x{refine_rig.camera.height}")
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from fppsim.owned import claim
+
+    names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
+             ("_height.npy", "_height.tif", "_height.png")
+             + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
+    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
+    result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
         label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
         height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
         if not config.keep_all:
@@ -335,10 +350,6 @@ def predict(config: PredictConfig) -> PredictResult:
                 f"{path} ({name}): no valid pixel in the prediction (every label at or below "
                 f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
         if refine_rig is not None:
-            cam = refine_rig.camera
-            if (cam.height, cam.width) != fringe.shape:
-                raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
-                                  f"({rig_name}) sees {cam.width}x{cam.height}")
             with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
                 np.save(fh, height)
             height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)
@@ -365,13 +376,13 @@ def predict(config: PredictConfig) -> PredictResult:
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     """The rig ``--refine`` uses and its name: ``rig`` (``--rig``), else the checkpoint's own (physics head
     or an adaptation's), else fppsim's default rig."""
-    from fppsim.rig import Rig, load_rig
+    from fppsim.rig import Rig, load_rig, usable_rig
 
     if rig is not None:
         return rig, str(rig_path)
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
     if own is not None:
-        return Rig.from_dict(own), "the checkpoint's rig"
+        return usable_rig(Rig.from_dict(own), f"{ckpt.get('path', 'the checkpoint')}: its rig"), "the checkpoint's rig"
     return load_rig(None), "fppsim's default rig"
 
 

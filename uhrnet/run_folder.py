@@ -1,6 +1,9 @@
 """What a training run leaves in its folder: ``history.csv``/``history.png``, ``last.pt``/``best.pt``
-(written atomically; best is a copy of last), ``config.json``; and the rule that a folder holding a
-run is never replaced without ``--overwrite``.
+(written atomically; best is a copy of last), ``config.json``; and the run-folder protocol of every
+uhrnet command that writes a run (``train``, ``adapt``): the names it writes are claimed in the folder's
+ownership record first (:mod:`fppsim.owned`: a file another tool or a person put there is never
+replaced, ``--overwrite`` or not), a folder holding a run is never replaced without ``--overwrite``, and
+the run never writes into the folder of the checkpoint it starts from (:func:`refuse_own_source`).
 """
 
 from __future__ import annotations
@@ -18,10 +21,12 @@ from fppsim.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import atomic_save
 from uhrnet.errors import ConfigError
 
-__all__ = ["RUN_FILES", "HISTORY_COLUMNS", "write_history", "save_epoch", "write_run_config", "check_run_folder",
-           "package_version"]
+__all__ = ["RUN_FILES", "TRAINED_FILES", "TRAIN_TOOL", "HISTORY_COLUMNS", "write_history", "save_epoch",
+           "write_run_config", "check_run_folder", "claim_run_folder", "refuse_own_source", "package_version"]
 
-RUN_FILES = ("best.pt", "last.pt", "history.csv", "config.json")  # a folder holding any of them is a run
+TRAIN_TOOL = "uhrnet train"
+RUN_FILES = ("best.pt", "last.pt", "history.csv", "history.png", "config.json")  # what a training run writes
+TRAINED_FILES = ("best.pt", "last.pt", "history.csv")  # a folder holding any of them holds a trained run
 
 HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
                    "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
@@ -67,17 +72,51 @@ def write_run_config(out: Path, config: dict) -> None:
 def check_run_folder(out: Path, resume, overwrite: bool) -> str:
     """How to treat ``out``: ``"resume"``, ``"fresh"`` (a ``--resume`` of a run killed before its first
     checkpoint: nothing was trained, so it starts afresh) or ``"new"``; a folder that already holds a
-    run is refused (:class:`ConfigError`) unless ``resume`` or ``overwrite``."""
-    if resume == "auto" and not (out / "last.pt").exists() and not any((out / n).exists() for n in ("best.pt", "history.csv")):
+    trained run is refused (:class:`ConfigError`) unless ``resume`` or ``overwrite`` (a ``config.json``
+    alone, left by a run that failed before its first epoch, is no run)."""
+    if resume == "auto" and not any((out / n).exists() for n in TRAINED_FILES):
         return "fresh"
     if resume:
         return "resume"
     if not overwrite:
-        existing = [n for n in RUN_FILES if (out / n).exists()]
+        existing = [n for n in TRAINED_FILES if (out / n).exists()]
         if existing:
             raise ConfigError(f"{out} already holds a run ({', '.join(existing)}): pass --resume to continue "
                               "it, --overwrite to replace it, or choose another --out")
     return "new"
+
+
+def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> None:
+    """Claim ``names`` in ``out`` for ``tool`` (:func:`fppsim.owned.claim`); a folder written before the
+    ownership record is recognised by its ``last.pt`` / ``best.pt``: a uhrnet checkpoint whose ``kind``
+    (``"adapt"``: an adaptation, None: a training run) is ``tool``'s."""
+    from fppsim.owned import claim
+
+    def legacy():
+        for name in ("last.pt", "best.pt"):
+            if (out / name).is_file():
+                from uhrnet.checkpoint import load_checkpoint
+
+                try:
+                    ck = load_checkpoint(out / name)
+                except Exception:  # not a checkpoint at all: nothing here is provably ours
+                    return ()
+                return names if ("adapt" in ck) == (kind == "adapt") else ()
+        return ()
+
+    claim(out, tool, names, legacy=legacy)
+
+
+def refuse_own_source(out: Path, source, flag: str) -> None:
+    """:class:`ConfigError` when the checkpoint ``source`` (a file or a run folder) lies in ``out``: the
+    run would replace the weights it starts from."""
+    from fppsim.owned import same_folder
+
+    src = Path(source)
+    folder = src if src.is_dir() else src.parent
+    if same_folder(folder, out):
+        raise ConfigError(f"--out {out} is the folder of {flag} {source}: writing there would replace the weights "
+                          "this run starts from; choose another --out")
 
 
 def _atomic_copy(src: Path, dst: Path) -> None:

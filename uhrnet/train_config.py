@@ -201,7 +201,7 @@ def check_options(cfg: dict) -> None:
         if cfg["head"] not in HEADS:
             raise UsageError(f"--head must be one of {', '.join(HEADS)}, got {cfg['head']!r}")
         if cfg["head"] == "phase" and (cfg.get("crop") or cfg.get("resize")):
-            raise ConfigError("--head phase needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
+            raise UsageError("--head phase needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
         if cfg["head"] == "phase" and "synthetic" in cfg and not cfg["synthetic"]:
             raise ConfigError("--head phase learns the phase from synthetic samples (phase_true): give --synthetic DIR")
         if cfg["head"] == "phase" and cfg.get("raw_output"):

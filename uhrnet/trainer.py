@@ -27,7 +27,7 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from fppsim.files import check_writable_dir, clean_stale_tmp, folder_lock
+from fppsim.owned import output_folder
 from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
 from uhrnet.data import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
@@ -36,7 +36,8 @@ from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.metrics import image_metrics
 from uhrnet.models import outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
-from uhrnet.run_folder import check_run_folder, package_version, save_epoch, write_history, write_run_config
+from uhrnet.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
+                               refuse_own_source, save_epoch, write_history, write_run_config)
 from uhrnet.tb_log import TB_FOLDER, RunLog
 from uhrnet.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
@@ -111,6 +112,11 @@ class Trainer:
             options["base_channels"] = cfg["base_channels"]
         if self.phase_head:
             options.update(head="phase", rig=head_rig(cfg["rig"], cfg["synthetic"]))
+            cam = options["rig"]["camera"]
+            if (int(cam["height"]), int(cam["width"])) != tuple(shape):
+                where = f"--rig {cfg['rig']}" if cfg["rig"] else "the synthetic data's rig"
+                raise ConfigError(f"{where}: its camera is {cam['width']}x{cam['height']} but the training images are "
+                                  f"{shape[1]}x{shape[0]}; the phase head needs the rig of these images")
         try:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
@@ -343,7 +349,9 @@ class Trainer:
         cfg, info = self.cfg, self.info
         if info.main:
             self.out.mkdir(parents=True, exist_ok=True)
-            write_run_config(self.out, {**cfg, "label_transform_resolved": self.transform.to_dict(),
+            # the epochs the weights hold: a resume with fewer --epochs trains nothing and must not say otherwise
+            write_run_config(self.out, {**cfg, "epochs": max(int(cfg["epochs"]), self.start_epoch),
+                                        "label_transform_resolved": self.transform.to_dict(),
                                         "data": self.sources.description, "n_parameters": self.n_params,
                                         "world_size": info.world})
             src = self.sources
@@ -426,7 +434,7 @@ def head_rig(rig: str | None, synthetic) -> dict:
     import json
 
     from fppsim.formats import read_settings  # its DatasetError is a ValueError
-    from fppsim.rig import Rig, RigError, load_rig
+    from fppsim.rig import Rig, RigError, load_rig, usable_rig
 
     try:
         if rig:
@@ -441,10 +449,10 @@ def head_rig(rig: str | None, synthetic) -> dict:
                     raise ConfigError(f"{root}: rendered with --rig-jitter {jitter}: its phases fit no single rig, "
                                       "so the phase head cannot be trained on it (regenerate without jitter)")
                 if d.get("rig"):
-                    return Rig.from_dict(d["rig"]).to_dict()
+                    return usable_rig(Rig.from_dict(d["rig"]), f"{root}/dataset.json: its rig").to_dict()
             meta = next(iter(sorted(root.glob("*/meta.json"))), None)  # samples written without dataset.json
             if meta is not None:
-                return Rig.from_dict(json.loads(meta.read_text())["rig"]).to_dict()
+                return usable_rig(Rig.from_dict(json.loads(meta.read_text())["rig"]), f"{meta}: its rig").to_dict()
         return load_rig(None).to_dict()
     except (RigError, OSError, KeyError, ValueError) as exc:
         raise ConfigError(f"--rig: {exc}") from None
@@ -461,12 +469,12 @@ def train(config: TrainConfig) -> dict:
             trainer = Trainer(config, info)
             trainer.fit()
         else:
-            try:
-                check_writable_dir(config.out)
-            except ValueError as exc:
-                raise ConfigError(str(exc)) from None
-            with folder_lock(config.out, "uhrnet train"):  # two trainings in one folder would overwrite each other
-                clean_stale_tmp(config.out)  # checkpoint temp files of a killed run
+            if config.init_from:
+                refuse_own_source(Path(config.out), config.init_from, "--init-from")
+            # created, locked (two trainings in one folder would overwrite each other), temp files of a killed
+            # run removed; the run's file names claimed before anything is written (run_folder)
+            with output_folder(config.out, "uhrnet train", error=ConfigError):
+                claim_run_folder(Path(config.out), TRAIN_TOOL, RUN_FILES)
                 trainer = Trainer(config, info)
                 trainer.fit()
         return {"out": trainer.out, "best": dict(trainer.best), "history": [dict(r) for r in trainer.history]}

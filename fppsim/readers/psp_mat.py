@@ -326,6 +326,13 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
         psin = -psin
     of = arrays["order"].astype(np.float64)
     valid = np.isfinite(psin) & np.isfinite(pcos) & np.isfinite(of) & ~((psin == 0) & (pcos == 0))
+    if not valid.any():  # name the file that leaves no pixel a phase
+        for r, a in (("sin", psin), ("cos", pcos), ("order", of)):
+            if not np.isfinite(a).any():
+                raise PSPMatError(f"{paths[r]}: {FOLDERS[r][1]} holds no finite value (all NaN or inf): no pixel "
+                                  "has a phase")
+        raise PSPMatError(f"{paths['sin']}: no pixel has a phase (PSin and PCos are 0, the invalid marker, or NaN "
+                          f"wherever {paths['order'].parent.name}/ and {paths['cos'].parent.name}/ are finite)")
     of = np.where(np.isfinite(of), of, 0.0)
     ok = np.rint(of)
     bad = valid & (np.abs(of - ok) > order_tol)

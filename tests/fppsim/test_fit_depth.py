@@ -12,6 +12,7 @@ from fppsim.height_sensitivity import centre_sensitivity
 from fppsim.rig import Rig, RigError, make_default_rig
 
 from _helpers import REAL_SAMPLE as REAL
+from _helpers import SHARED
 
 
 def _truth() -> Rig:
@@ -158,3 +159,85 @@ def test_real_pair_phase_height_relation():
     np.testing.assert_allclose(model["columns"], [12.06, 11.85, 11.61, 11.39], atol=0.02)
     assert float(model["tilt_deg"][0]) == pytest.approx(-1.34, abs=0.03)
     assert "distance" in fd.format_depth_fit(fit)
+
+
+@pytest.fixture(scope="module")
+def rendered_default(tmp_path_factory):
+    """One figshare-layout sample rendered through the default rig itself: labels that can only confirm it."""
+    from fppsim.generation import generate_dataset
+    from fppsim.optics import OpticsRanges
+    from fppsim.rig import data_path
+    from fppsim.synth import SynthConfig
+
+    out = tmp_path_factory.mktemp("depth_default") / "syn"
+    generate_dataset([str(data_path("meshes"))], out, 1, seed=5,
+                     config=SynthConfig(rig=make_default_rig(), optics=OpticsRanges(), psp_freqs=()), fmt="figshare",
+                     progress=False)
+    return out
+
+
+def _cost(rig, images) -> float:
+    return fd._pooled([fd.depth_check(rig, im) for im in images], "cost")
+
+
+def test_distance_alone_fits_distance_and_baseline_only(rendered_default, tmp_path, capsys):
+    """Issue 30 case 12: ``--params distance`` moves nothing but the distance and the baseline (no yaw), and the
+    rig it returns is never worse than its start on the fit's own objective."""
+    from fppsim.cli import main
+
+    out, rep = tmp_path / "rig.json", tmp_path / "fit.json"
+    assert main(["fit-rig", str(rendered_default), "--out", str(out), "--params", "distance", "--json", str(rep)]) == 0
+    text = capsys.readouterr().out
+    base, rig = make_default_rig(), Rig.load(out)
+    images, _ = readers.load_fringe_images(rendered_default)
+    assert _cost(rig, images) <= _cost(base, images) + 1e-12
+    depth = json.loads(rep.read_text())["depth"]
+    moved = fr.adjust_rig(base, distance=depth["distance_mm"], baseline=depth["baseline_mm"])
+    np.testing.assert_allclose(rig.projector.R, moved.projector.R, atol=1e-12)
+    np.testing.assert_allclose(rig.projector.K, moved.projector.K, atol=1e-9)
+    assert rig.periods == base.periods
+    assert "(rad)" not in text.split("fringe tilt")[-1]  # angles are shown in degrees, and labelled so
+
+
+@pytest.mark.skipif(not (SHARED / "real-phase" / "FP1523").is_dir(), reason="../shared/real-phase absent")
+@pytest.mark.parametrize("params", ["yaw,roll,periods,distance", "distance"])
+def test_labels_made_through_the_base_rig_confirm_it(tmp_path, capsys, params):
+    """Issue 30 case 12: label-real output of the shared frame through the default rig; fit-rig keeps that rig
+    (the labels can only confirm it) and says so, instead of moving the camera to 604 mm."""
+    from fppsim.cli import main
+
+    lr = tmp_path / "lr"
+    assert main(["label-real", str(SHARED / "real-phase" / "FP1523"), "--out", str(lr), "-q", "--no-preview"]) == 0
+    out, rep = tmp_path / "rig.json", tmp_path / "fit.json"
+    assert main(["fit-rig", str(lr), "--out", str(out), "--params", params, "--json", str(rep)]) == 0
+    base, rig = make_default_rig(), Rig.load(out)
+    images, _ = readers.load_fringe_images(lr)
+    assert _cost(rig, images) <= _cost(base, images) + 1e-12
+    depth = json.loads(rep.read_text())["depth"]
+    assert depth["distance_mm"] == pytest.approx(500.0, abs=2.0)
+    assert depth["baseline_mm"] == pytest.approx(330.0, abs=2.0)
+    checks = [fd.depth_check(rig, im) for im in images]
+    base_checks = [fd.depth_check(base, im) for im in images]
+    assert fd._pooled(checks, "plane_residual") <= 1.05 * fd._pooled(base_checks, "plane_residual")
+    if depth["kept_base"]:
+        assert "the base rig is kept" in capsys.readouterr().out
+
+
+def test_fit_rig_json_report_is_not_replaced_without_force(rendered_default, tmp_path, capsys):
+    from fppsim.cli import main
+
+    (tmp_path / "fit.json").write_text("my notes")
+    assert main(["fit-rig", str(rendered_default), "--out", str(tmp_path / "rig.json"), "--params", "yaw",
+                 "--json", str(tmp_path / "fit.json")]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "fit.json exists" in err[0] and "--force" in err[0]
+    assert (tmp_path / "fit.json").read_text() == "my notes" and not (tmp_path / "rig.json").exists()
+
+
+@pytest.mark.parametrize("flag,value", [("--col-bands", "0"), ("--row-bands", "0"), ("--max-images", "0")])
+def test_fit_rig_bad_option_values_exit_2(tmp_path, capsys, flag, value):
+    from fppsim.cli import main
+
+    assert main(["fit-rig", str(tmp_path), "--out", str(tmp_path / "rig.json"), flag, value]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and flag in err[0] and not (tmp_path / "rig.json").exists()

@@ -266,3 +266,86 @@ def test_existing_outputs_are_not_clobbered(public, tmp_path, capsys):
     assert not [p for p in out.iterdir() if p.name.startswith(".fppsim-tmp-")]
     with pytest.raises(DatasetError, match="no scan with id 42"):
         label_real(LabelRealConfig(**cfg, ids=["42"]))
+
+
+# ------------------------------------------------------------------------------------------ issue 30, case 11
+@pytest.mark.parametrize("folder,var,offset", [("PSin", "PSin", "none"), ("Fringe", "Order", "auto"),
+                                               ("Fringe", "Order", "1.5")])
+def test_a_quantity_that_is_all_nan_is_named_and_nothing_is_written(tmp_path, capsys, folder, var, offset):
+    import scipy.io
+
+    from _helpers import tiny_rig
+
+    tiny_rig().save(tmp_path / "rig.json")
+    root = _small_public(tmp_path / "pub")
+    scipy.io.savemat(root / folder / "7.mat", {var: np.full((32, 64), np.nan)})
+    rc, err = _cli_error([root, "--out", tmp_path / "o", "--rig", tmp_path / "rig.json", "--phase-offset", offset],
+                         capsys)
+    assert rc == 1 and f"{folder}/7.mat" in err and "no finite value" in err and "rig" not in err.split(":")[-1]
+    assert not (tmp_path / "o").exists()
+
+
+def test_duplicate_ids_are_a_usage_error(public, tmp_path, capsys):
+    rc, err = _cli_error([public, "--out", tmp_path / "o", "--rig", PARALLEL, "--ids", "000001", "000001"], capsys)
+    assert rc == 2 and "--ids" in err and "000001" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_an_interrupted_rerun_leaves_the_earlier_result_whole(public, tmp_path, monkeypatch, capsys):
+    import fppsim.label_real as lr
+
+    out = tmp_path / "o"
+    assert main(["label-real", str(public), "--out", str(out), "--rig", str(PARALLEL), "-q"]) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    assert f"rig {PARALLEL}," in line  # a user's rig file is named by its path, not its internal name
+    before = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert {Path("previews/000000.png"), Path("previews/000001.png"), Path("label_real.json")} <= set(before)
+    real = lr._label_scan
+    calls = []
+
+    def stop_on_the_second(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real(*a, **k)
+
+    monkeypatch.setattr(lr, "_label_scan", stop_on_the_second)
+    with pytest.raises(KeyboardInterrupt):  # a re-run with other options, stopped half-way
+        label_real(LabelRealConfig(root=public, out=out, rig=REPO / "assets" / "default_rig.json",
+                                   phase_offset="auto"))
+    after = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert after == before  # arrays, previews and report: all still the earlier run's
+
+
+def test_a_rig_that_cannot_measure_is_refused(tmp_path, capsys):
+    """Issue 30 case 7: the one usability check (fppsim.rig.usable_rig) wherever a rig enters, here --rig."""
+    from _helpers import tiny_rig
+
+    d = tiny_rig().to_dict()
+    d["projector"] = {**d["camera"], "width": 912, "height": 1140}  # the projector where the camera is
+    (tmp_path / "zero.json").write_text(json.dumps(d))
+    rc, err = _cli_error([_small_public(tmp_path / "pub"), "--out", tmp_path / "o", "--rig", tmp_path / "zero.json"],
+                         capsys)
+    assert rc == 1 and "zero.json" in err and "fringes do not move with height" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_full_disk_while_labelling_names_the_array_and_keeps_the_earlier_result(public, tmp_path, monkeypatch,
+                                                                                   capsys):
+    import errno
+    import os
+
+    import fppsim.writers as writers
+
+    out = tmp_path / "o"
+    assert main(["label-real", str(public), "--out", str(out), "--rig", str(PARALLEL), "-q", "--no-preview"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    capsys.readouterr()
+
+    def full(fh, data):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(writers, "write_fully", full)
+    rc, err = _cli_error([public, "--out", out, "--rig", PARALLEL], capsys)
+    assert rc == 1 and str(out / "f1_80.npy") in err and "No space left on device" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before

@@ -95,7 +95,7 @@ def test_adapt_writes_its_run_folder_never_reads_labels_and_resumes(setup, tmp_p
 
 def test_adapt_refuses_a_training_run_folder_and_a_rig_of_another_size(setup, tmp_path):
     tmp, run, rig = setup
-    with pytest.raises(ConfigError, match="not an adaptation"):
+    with pytest.raises(ConfigError, match="would replace the weights this run starts from"):
         adapt(_cfg(tmp, run, run), log=lambda line: None)
     with pytest.raises(ConfigError, match="rig's camera"):
         adapt(_cfg(tmp, run, tmp_path / "x", rig=None), log=lambda line: None)  # fppsim's default rig: 640 x 352

@@ -203,7 +203,7 @@ def test_head_phase_refusals_are_one_line(tmp_path, capsys):
     write_figshare(tmp_path / "fig", n=4, h=32, w=64)
     base = ["train", "--synthetic", str(tmp_path / "fig"), "--head", "phase", "--base-channels", "4", "--epochs", "1",
             "--no-progress"]
-    assert main([*base, "--crop", "16x32", "--out", str(tmp_path / "a")]) == 1
+    assert main([*base, "--crop", "16x32", "--out", str(tmp_path / "a")]) == 2  # options that never go together
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--head phase needs whole camera images" in err[0] and "--crop" in err[0]
     assert main([*base, "--out", str(tmp_path / "b")]) == 1

@@ -19,7 +19,7 @@ import os
 from dataclasses import dataclass, field, fields
 
 from fppsim.encoding import json_default
-from uhrnet.errors import Sim2RealError
+from uhrnet.errors import Sim2RealError, UsageError
 
 __all__ = ["SCALES", "Variant", "Sim2RealConfig", "data_key", "generate_workers"]
 
@@ -166,12 +166,20 @@ class Sim2RealConfig:
         names = [v.name for v in self.variants]
         if len(set(names)) != len(names):
             raise Sim2RealError(f"variant names must be unique, got {names}")
-        if self.count < 1 or self.epochs < 1:
-            raise Sim2RealError("count and epochs must be >= 1")
+        for key in ("count", "epochs"):  # option values wrong on their own: exit 2, before anything is generated
+            if getattr(self, key) < 1:
+                raise UsageError(f"--{key} must be >= 1, got {getattr(self, key)}")
         if self.workers < 0:
-            raise Sim2RealError(f"workers must be >= 0 (0: all cores), got {self.workers}")
+            raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
-            raise Sim2RealError(f"object_mm must be > 0 mm, got {self.object_mm}")
+            raise UsageError(f"--object-mm must be > 0 mm, got {self.object_mm}")
+        from uhrnet.splits import MIN_REFERENCE_SPLIT
+
+        for v in self.variants:  # the synthetic validation split is the reference one unless a variant says otherwise
+            n = int(v.generate.get("count", self.count))
+            if v.train.get("synthetic_split", "reference") == "reference" and n < MIN_REFERENCE_SPLIT:
+                raise UsageError(f"--count {n}: the reference 80/10/10 split of the synthetic data needs at least "
+                                 f"{MIN_REFERENCE_SPLIT} samples" + ("" if v.name == "default" else f" (variant {v.name!r})"))
         self.real_phase = [str(f) for f in (self.real_phase or [])]
         self.reuse = {str(k): str(v) for k, v in (self.reuse or {}).items()}
         unknown = sorted(set(self.reuse) - set(names))
@@ -179,6 +187,13 @@ class Sim2RealConfig:
             raise Sim2RealError(f"reuse: no variant named {', '.join(unknown)} (variants: {', '.join(names)})")
         if self.adapt_images is not None and not self.adapt_images:
             raise Sim2RealError("adapt_images: give at least one image or folder (None: the real folders)")
+        if self.rig is not None:  # a rig that cannot measure is refused now, not after generating and training
+            from fppsim.rig import RigError, load_rig
+
+            try:
+                load_rig(self.rig)
+            except RigError as exc:
+                raise Sim2RealError(f"--rig: {exc}") from None
 
 
 def data_key(generate: dict) -> str:

@@ -306,6 +306,10 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             adapt_config(cfg, var, run / "last.pt", out / var.name / "adapt")
         plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
+    from fppsim.owned import claim
+
+    # the experiment's own files (its stages claim theirs): never one it did not write
+    claim(out, "uhrnet sim2real", ["report.json", "report.md"] + [f"{v.name}/timing.json" for v in cfg.variants])
     report = {"config": {f.name: getattr(cfg, f.name) for f in fields(cfg) if f.name != "variants"},
               "recipe": {}, "variants": []}
     device = "cuda" if cfg.device == "cuda" else "cpu"
