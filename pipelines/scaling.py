@@ -5,7 +5,7 @@ Each ARM is a set of ``uhrnet sim2real`` options (sample count, epochs, extra ``
 ``uhrnet train`` flags) read from an arms file (default ``pipelines/scaling_arms.yaml``); each arm runs once
 per training SEED (``uhrnet train --seed``; the synthetic data, generator seed 100, is the same for every
 seed of an arm, so the spread is the training seed's). Every (arm, seed) is a sim-to-real experiment run in
-this process through the library (``uhrnet.workflows.sim2real.run_sim2real(Sim2RealConfig)``):
+this process through the workflow layer (``uhrnet.workflows.sim2real.run_sim2real(Sim2RealConfig)``):
 
     OUT/<arm>/                 the arm's sim2real folder: data/<key> (its synthetic set, shared by its seeds),
                                report.md / report.json (every finished seed of the arm)
