@@ -19,7 +19,7 @@ Judged on real frames no arm trained on (the pair is training data for b-d and i
   * millimetres: ``fppsim label-real`` of the same frame through --rig (default: the packaged default rig,
     fitted to this data; phase offset fitted on the plane) gives a height label; each arm's RMSE against it
     over the object pixels (valid, more than 1 mm above the plane) and over all valid pixels
-    (:func:`uhrnet.sim2real.evaluate_real`); a second mm column labels the frame through --check-rig
+    (:func:`uhrnet.workflows.sim2real.evaluate_real`); a second mm column labels the frame through --check-rig
     (default assets/figshare_depth_rig.json: the default rig reads real heights about 8 % low at 40 mm,
     docs/experiments/physics.md section 3, so arms that learn the pair's own scale are also scored on it).
 
@@ -47,8 +47,6 @@ Units: heights in mm, phases in rad. Labels: the figshare preset (label = 6 mm -
 from __future__ import annotations
 
 import argparse
-import contextlib
-import csv
 import json
 import math
 import sys
@@ -57,6 +55,9 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from uhrnet.errors import Sim2RealError  # noqa: E402 (after the path)
+from uhrnet.workflows.stages import dataset_count, fresh, run_epochs, run_history, run_stage  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 ARMS = ("syn-only", "real-only", "ft-real", "ft-mixed", "ft-mixed-freeze", "mixed-scratch")
@@ -147,48 +148,12 @@ def default_meshes() -> list[str]:
 
 
 # ============================================================================================ stages
-def stage(out: Path, name: str, fn, echo=print):
-    """Run ``fn()`` with its printed output in ``OUT/logs/<name>.log``; returns (result, seconds)."""
+def stage(out: Path, name: str, fn, echo=print) -> float:
+    """Run ``fn()`` with its printed output in ``OUT/logs/<name>.log`` (the workflow layer's
+    :func:`~uhrnet.workflows.stages.run_stage`); returns the seconds taken."""
     log = out / "logs" / f"{name}.log"
-    log.parent.mkdir(parents=True, exist_ok=True)
     echo(f"[{time.strftime('%H:%M:%S')}] {name} ... (log {log})")
-    t0 = time.perf_counter()
-    with open(log, "a") as fh:
-        fh.write(f"==== {time.strftime('%Y-%m-%d %H:%M:%S')} {name}\n")
-        fh.flush()
-        try:
-            with contextlib.redirect_stdout(fh), contextlib.redirect_stderr(fh):
-                result = fn()
-        except Exception as exc:  # noqa: BLE001 - one line naming the stage, the log has the rest
-            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            fh.write(f"error: {type(exc).__name__}: {first}\n")
-            raise PipelineError(f"{name} failed: {first} (log {log})") from exc
-    return result, time.perf_counter() - t0
-
-
-def run_history(run: Path) -> list[dict]:
-    hist = run / "history.csv"
-    if not hist.is_file():
-        return []
-    with hist.open() as fh:
-        return [{k: (float(v) if v not in ("", None) else None) for k, v in r.items()} for r in csv.DictReader(fh)]
-
-
-def run_epochs(run: Path) -> int:
-    rows = run_history(run)
-    return int(rows[-1]["epoch"]) if rows and (run / "last.pt").is_file() else 0
-
-
-def dataset_count(folder: Path) -> int:
-    import numpy as np
-
-    z = folder / "Z.npy"
-    if not z.is_file():
-        return 0
-    try:
-        return int(np.load(z, mmap_mode="r").shape[0])
-    except (ValueError, OSError):
-        return 0
+    return run_stage(name, fn, log, f"==== {time.strftime('%Y-%m-%d %H:%M:%S')} {name}")
 
 
 def generate_synthetic(args, out: Path) -> Path:
@@ -250,7 +215,7 @@ def train_run(out: Path, name: str, run: Path, epochs: int, **options) -> dict:
         cfg = TrainConfig(out=run, resume="auto", epochs=epochs, progress=False)
     else:
         cfg = TrainConfig(out=run, epochs=epochs, progress=False, overwrite=run.exists(), **options)
-    _, seconds = stage(out, f"train-{name}", lambda: train(cfg))
+    seconds = stage(out, f"train-{name}", lambda: train(cfg))
     return {"run": str(run), "epochs": run_epochs(run), "seconds": seconds}
 
 
@@ -274,15 +239,11 @@ def arm_options(args, arm: str, syn_cfg: dict, syn_ckpt: Path, syn_data: Path, d
     return epochs, {**model, **opts}
 
 
-def fresh(result: Path, ckpt: Path) -> bool:
-    return result.is_file() and result.stat().st_mtime >= ckpt.stat().st_mtime
-
-
 def evaluate_arm(args, out: Path, arm: str, ckpt: Path, labelled: dict) -> dict:
     """Phase residual on --phase-root, mm on its label-real labels (``labelled``: key -> folder, one per rig)
     and on the pair (see the docstring)."""
     from uhrnet.phase_residual import PhaseEvalConfig, evaluate_phase_folder
-    from uhrnet.sim2real import evaluate_real
+    from uhrnet.workflows.sim2real import evaluate_real
 
     ev = out / "eval" / arm
     res = {}
@@ -526,7 +487,7 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     try:
         run(args, argv)
-    except PipelineError as exc:
+    except (PipelineError, Sim2RealError) as exc:  # Sim2RealError: a stage failed (uhrnet.workflows.stages)
         print(f"few_scans.py: error: {exc}", file=sys.stderr)
         return 1
     print(f"report: {Path(args.out) / 'report.md'} (also report.json, few_scans.png)")

@@ -5,7 +5,7 @@ Each ARM is a set of ``uhrnet sim2real`` options (sample count, epochs, extra ``
 ``uhrnet train`` flags) read from an arms file (default ``pipelines/scaling_arms.yaml``); each arm runs once
 per training SEED (``uhrnet train --seed``; the synthetic data, generator seed 100, is the same for every
 seed of an arm, so the spread is the training seed's). Every (arm, seed) is a sim-to-real experiment run in
-this process through the library (``uhrnet.sim2real.run_sim2real(Sim2RealConfig)``):
+this process through the workflow layer (``uhrnet.workflows.sim2real.run_sim2real(Sim2RealConfig)``):
 
     OUT/<arm>/                 the arm's sim2real folder: data/<key> (its synthetic set, shared by its seeds),
                                report.md / report.json (every finished seed of the arm)
@@ -27,7 +27,7 @@ the JSON, table and figures from the finished folders without running anything.
 Results per seed (``scaling.json``): ``pair_object_rmse_mm`` (object RMSE on the labelled real pair(s), mean
 over images), its split into ``pair_level_rmse_mm`` (each connected object region's median error) and
 ``pair_relief_rmse_mm`` (the rest), the exact mean split (``pair_level_rmse_mean_mm`` /
-``pair_relief_rmse_mean_mm``: level^2 + relief^2 = RMSE^2; :func:`uhrnet.sim2real.metrics.error_split`) and
+``pair_relief_rmse_mean_mm``: level^2 + relief^2 = RMSE^2; :func:`uhrnet.workflows.sim2real.metrics.error_split`) and
 ``phase_residual_rad`` (``uhrnet evaluate-phase``'s calibration-free residual on each held-out real
 phase-shifting frame). Per arm: mean and sample standard deviation (ddof 1) over the finished seeds.
 
@@ -183,8 +183,9 @@ def seed_folder(out: Path, arm: dict, seed: int) -> Path:
 def arm_config(arm: dict, seed: int, args) -> tuple[object, list[str]]:
     """``(Sim2RealConfig, argv)``: the sim-to-real experiment of ``arm`` at training ``seed`` (its one variant
     ``s<seed>``, in ``OUT/<arm>``) and the ``uhrnet sim2real`` command line that runs exactly the same."""
-    from uhrnet.cli import VariantFlags, variant_from_flags
-    from uhrnet.sim2real import Sim2RealConfig
+    from uhrnet.cli import variant_commands
+    from uhrnet.workflows.sim2real import Sim2RealConfig
+    from uhrnet.workflows.sim2real.variants import VariantFlags, variant_from_flags
 
     out = Path(args.out) / arm["name"]
     given = {k: arm[k] for k in CONFIG_FLAGS if k in arm}
@@ -196,7 +197,7 @@ def arm_config(arm: dict, seed: int, args) -> tuple[object, list[str]]:
                          figures=not args.no_figures, **given)
     train = list(arm["train"]) + (["--resize", args.resize] if args.resize else []) + ["--seed", str(seed)]
     flags = VariantFlags(f"s{seed}", list(arm["generate"]), train)
-    variant = variant_from_flags(cfg, flags)
+    variant = variant_from_flags(cfg, flags, variant_commands())
     cfg = replace(cfg, variants=[variant])
     argv = ["uhrnet", "sim2real", "--real", *cfg.real, "--out", str(out), "--meshes", *cfg.meshes]
     for key, flag in CONFIG_FLAGS.items():
@@ -440,7 +441,9 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check(args) -> tuple[list[dict], dict]:
     """Arms chosen and every (arm, seed)'s ``(Sim2RealConfig, argv)``; :class:`UsageProblem` before anything runs."""
     from uhrnet.errors import UhrnetError
-    from uhrnet.sim2real import Sim2RealError, find_phase_frames, find_real_pairs, generate_config, train_config
+    from uhrnet.workflows.sim2real import (
+        Sim2RealError, find_phase_frames, find_real_pairs, generate_config, train_config,
+    )
 
     arms = load_arms(args.arms_file)
     by_name = {a["name"]: a for a in arms}
@@ -479,10 +482,10 @@ def check(args) -> tuple[list[dict], dict]:
 
 def run(args, arms: list[dict], configs: dict) -> int:
     """Every (arm, seed) not finished yet, in order; 1 if one failed (the others still run)."""
-    from uhrnet.cli import recipe_commands
+    from uhrnet.workflows.sim2real.variants import recipe_commands
     from uhrnet.errors import UhrnetError
     from fppsim.errors import FppsimError
-    from uhrnet.sim2real import run_sim2real
+    from uhrnet.workflows.sim2real import run_sim2real
 
     out, t_start, failed = Path(args.out), time.perf_counter(), []
     todo = [(arm, seed) for arm in arms for seed in args.seeds]

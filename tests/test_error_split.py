@@ -1,10 +1,10 @@
-"""The level / relief split of the object error on real data (uhrnet.sim2real.metrics.error_split, issue 32):
+"""The level / relief split of the object error on real data (uhrnet.workflows.sim2real.metrics.error_split, issue 32):
 synthetic label maps whose regions, offsets and relief are known by construction."""
 
 import numpy as np
 import pytest
 
-from uhrnet.sim2real import error_split, markdown_report, object_regions, real_metrics
+from uhrnet.workflows.sim2real import error_split, markdown_report, object_regions, real_metrics
 
 PLANE = -97.0  # figshare labels: label = 6 * mm - 97
 

@@ -1,6 +1,7 @@
 """Architecture rules: every module imports on its own, no import cycles, the library never imports a CLI
 nor runs a subprocess, no library module over 650 lines, one definition of each shared helper, no
-private name used across modules, a command framework that names no package."""
+private name used across modules, a command framework that names no package, rendering code imported in
+uhrnet only by the workflow layer (``uhrnet.workflows``), which only the command layer imports."""
 
 from __future__ import annotations
 
@@ -251,3 +252,67 @@ KNOWN_CYCLES = [["fppsim.fit_depth", "fppsim.fit_rig"]]
 """Left for now (issue 29): ``fit_rig.fit_rig_images`` (the fit-rig workflow) calls ``fit_depth.fit_depth``,
 which builds on ``fit_rig``'s period fit; the workflow moves above both once the concurrent fit-rig error
 handling has merged. Nothing may be added here."""
+
+
+# ---------------------------------------------------------------------------- the workflow layer (issue 29)
+WORKFLOWS = ("uhrnet.workflows",)
+"""Experiments that compose both packages (render with fppsim, train and evaluate with uhrnet): above the
+library, below the commands."""
+COMMAND_LAYER = ("uhrnet.cli",)
+"""The only package modules that may import the workflow layer (``pipelines/`` and tests may too)."""
+RENDERING = ("fppsim.generation", "fppsim.render", "fppsim.scene", "fppsim.shapes", "fppsim.meshio", "fppsim.jitter",
+             "fppsim.synth", "fppsim.optics", "fppsim.preview", "fppsim.validate", "fppsim.fit_optics")
+"""fppsim's rendering side (docs/ARCHITECTURE.md's data flow: scenes, depth rendering, image formation, one
+sample, a whole run; and what renders to validate or fit the simulator)."""
+
+
+def _within(module: str, prefixes: tuple[str, ...]) -> bool:
+    return any(module == p or module.startswith(p + ".") for p in prefixes)
+
+
+def test_uhrnet_imports_rendering_code_only_in_the_workflow_layer():
+    """No uhrnet module outside ``uhrnet.workflows`` imports a rendering module of fppsim, at any depth of
+    the file (imports inside functions too); and no uhrnet library module (the command layer aside) reaches
+    one through other modules either."""
+    graph = _import_graph()
+    assert all(m in graph for m in RENDERING), [m for m in RENDERING if m not in graph]  # the list names modules
+    outside = [m for m in graph if m.split(".")[0] == "uhrnet" and not _within(m, WORKFLOWS)]
+    direct = {m: sorted(d for d in graph[m] if _within(d, RENDERING)) for m in outside}
+    assert not {m: d for m, d in direct.items() if d}, {m: d for m, d in direct.items() if d}
+    reached = {}
+    for module in outside:
+        if _is_cli(module):
+            continue
+        seen, todo = set(), [module]
+        while todo:
+            for dep in graph.get(todo.pop(), ()):
+                if dep not in seen:
+                    seen.add(dep)
+                    todo.append(dep)
+        if bad := sorted(d for d in seen if _within(d, RENDERING)):
+            reached[module] = bad
+    assert not reached, reached
+
+
+def test_only_the_command_layer_imports_the_workflow_layer():
+    """No library module (fppsim, uhrnet outside ``uhrnet.workflows``) imports the workflow layer, at any
+    depth, nor names it in a string (a lazy attribute table, ``importlib.import_module``); ``uhrnet.cli`` may."""
+    graph = _import_graph()
+    offenders = [f"{m} imports {sorted(d for d in deps if _within(d, WORKFLOWS))}" for m, deps in graph.items()
+                 if not _within(m, WORKFLOWS + COMMAND_LAYER) and any(_within(d, WORKFLOWS) for d in deps)]
+    for module, path in _modules():
+        if _within(module, WORKFLOWS + COMMAND_LAYER):
+            continue
+        tree = ast.parse(path.read_text())
+        docstrings = {ast.get_docstring(n, clean=False) for n in ast.walk(tree)
+                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))}
+        offenders += [f"{module} names {n.value!r}" for n in ast.walk(tree)
+                      if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value not in docstrings
+                      and _within(n.value, WORKFLOWS)]
+    assert not offenders, offenders
+
+
+def test_no_experiment_package_in_the_library():
+    """The sim-to-real experiment lives in ``uhrnet.workflows.sim2real``; no ``uhrnet.sim2real`` shim."""
+    assert not list((ROOT / "uhrnet" / "sim2real").glob("*.py"))
+    assert (ROOT / "uhrnet" / "workflows" / "sim2real" / "__init__.py").is_file()

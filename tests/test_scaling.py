@@ -79,14 +79,15 @@ def test_shipped_arms_file_fixed_step_budget_and_commands(tmp_path):
 
 def test_commands_are_exactly_what_the_driver_runs(world, monkeypatch):
     """Each recorded command, run through `uhrnet sim2real`'s own parser, gives the very config the driver runs."""
-    import uhrnet.sim2real
+    import uhrnet.workflows.sim2real
     from uhrnet.cli import main
 
     args = scaling.parse_args(_argv(world))
     arms, configs = scaling.check(args)
     seen = []
-    monkeypatch.setattr(uhrnet.sim2real, "run_sim2real", lambda cfg, **kw: seen.append(cfg) or {"variants": []})
-    monkeypatch.setattr(uhrnet.sim2real, "markdown_report", lambda report: "")
+    monkeypatch.setattr(uhrnet.workflows.sim2real, "run_sim2real",
+                        lambda cfg, **kw: seen.append(cfg) or {"variants": []})
+    monkeypatch.setattr(uhrnet.workflows.sim2real, "markdown_report", lambda report: "")
     for (name, seed), (cfg, argv) in configs.items():
         assert argv[:2] == ["uhrnet", "sim2real"] and shlex.split(shlex.join(argv)) == argv
         assert main(argv[1:]) == 0

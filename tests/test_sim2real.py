@@ -1,4 +1,4 @@
-"""uhrnet.sim2real: object mask, metrics on real data, variants/ablation parsing (``uhrnet sim2real``),
+"""uhrnet.workflows.sim2real: object mask, metrics on real data, variants/ablation parsing (``uhrnet sim2real``),
 stage configs, report, evaluation, and a whole tiny experiment run twice (resumed)."""
 
 from pathlib import Path
@@ -6,8 +6,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from uhrnet.cli import VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags
-from uhrnet.sim2real import (
+from uhrnet.cli import variant_commands
+from uhrnet.workflows.sim2real.variants import (
+    VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags,
+)
+from uhrnet.workflows.sim2real import (
     SCALES, Sim2RealConfig, Sim2RealError, Variant, data_key, evaluate_level, evaluate_real, generate_config,
     level_response, markdown_report, object_mask, plane_level, real_metrics, train_config,
 )
@@ -119,19 +122,19 @@ def test_config_scales_and_stage_configs(tmp_path):
 def test_variant_flags_become_config_overrides_and_the_recipe_command_lines(tmp_path):
     cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
     v = variant_from_flags(cfg, parse_variant("both: --pedestal 0 --rig-jitter 0.02,0.03 --seed 100 | "
-                                              "--no-augment --lr 1e-3 --epochs 10"))
+                                              "--no-augment --lr 1e-3 --epochs 10"), variant_commands())
     # flags that repeat the recipe (--seed 100, --epochs 10) change nothing
     assert v.generate == {"pedestal": 0.0, "rig_jitter": (0.02, 0.03)}
     assert v.train == {"augment": "off", "lr": 1e-3}
     assert v.described("generate") == ["--pedestal", "0", "--rig-jitter", "0.02,0.03", "--seed", "100"]
     assert Variant("x", {"pedestal": 0.0}).described("generate") == ["pedestal=0.0"]
-    assert variant_from_flags(cfg, parse_variant("rig: --rig assets/parallel_rig.json")).generate == \
+    assert variant_from_flags(cfg, parse_variant("rig: --rig assets/parallel_rig.json"), variant_commands()).generate == \
         {"rig": "assets/parallel_rig.json"}
-    assert variant_from_flags(cfg, parse_variant("p: --no-psp --format figshare")).generate == {}
+    assert variant_from_flags(cfg, parse_variant("p: --no-psp --format figshare"), variant_commands()).generate == {}
     with pytest.raises(Sim2RealError, match="variant 'bad': generate: unrecognized arguments: --bogus"):
-        variant_from_flags(cfg, parse_variant("bad: --bogus"))
+        variant_from_flags(cfg, parse_variant("bad: --bogus"), variant_commands())
     with pytest.raises(Sim2RealError, match="variant 'bad': train: argument --lr"):
-        variant_from_flags(cfg, parse_variant("bad: | --lr x"))
+        variant_from_flags(cfg, parse_variant("bad: | --lr x"), variant_commands())
     r = recipe_commands(cfg, v, tmp_path / "syn", tmp_path / "run")
     g, t = r["generate"].split(), r["train"].split()
     assert g[:3] == ["generate", "--meshes", "../shared/meshes"] and "--no-psp" in g
@@ -220,7 +223,7 @@ def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, 
 def test_fringe_twins_keep_the_envelope_and_drop_the_relief():
     from scipy import ndimage as ndi
 
-    from uhrnet.sim2real import fringe_twins
+    from uhrnet.workflows.sim2real import fringe_twins
 
     h, w = 96, 192
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)

@@ -11,8 +11,13 @@ import pytest
 
 from fppsim.height_sensitivity import surface_phase
 from fppsim.writers import save_psp_folder_sample, sums_from_phase
-from uhrnet.cli import VariantFlags, load_variants, main, parse_variant, recipe_commands, variant_from_flags
-from uhrnet.sim2real import Sim2RealConfig, Sim2RealError, Variant, markdown_report, real_metrics, run_sim2real
+from uhrnet.cli import main, variant_commands
+from uhrnet.workflows.sim2real.variants import (
+    VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags,
+)
+from uhrnet.workflows.sim2real import (
+    Sim2RealConfig, Sim2RealError, Variant, markdown_report, real_metrics, run_sim2real,
+)
 
 from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare, write_native_rig
 
@@ -30,20 +35,20 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
         with pytest.raises(Sim2RealError, match=match):
             parse_variant(bad)
     cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["m"])
-    var = variant_from_flags(cfg, v)
+    var = variant_from_flags(cfg, v, variant_commands())
     assert var.train == {"head": "phase"} and var.adapt == {"epochs": 20, "lr": 1e-3}
     assert var.refine == ["relief", "orders"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
     from uhrnet.adapt import AdaptConfig
 
     default = AdaptConfig.__dataclass_fields__["epochs"].default
-    assert variant_from_flags(cfg, parse_variant(f"a: | | adapt --epochs {default}")).adapt == {}  # the default
-    assert variant_from_flags(cfg, parse_variant("n: | --no-augment")).adapt is None
+    assert variant_from_flags(cfg, parse_variant(f"a: | | adapt --epochs {default}"), variant_commands()).adapt == {}  # the default
+    assert variant_from_flags(cfg, parse_variant("n: | --no-augment"), variant_commands()).adapt is None
     with pytest.raises(Sim2RealError, match="set by the experiment"):
-        variant_from_flags(cfg, parse_variant("a: | | adapt --overwrite"))
+        variant_from_flags(cfg, parse_variant("a: | | adapt --overwrite"), variant_commands())
     with pytest.raises(Sim2RealError, match="variant 'a': adapt: argument --lr"):
-        variant_from_flags(cfg, parse_variant("a: | | adapt --lr x"))
+        variant_from_flags(cfg, parse_variant("a: | | adapt --lr x"), variant_commands())
     with pytest.raises(Sim2RealError, match="refine methods"):
-        variant_from_flags(cfg, parse_variant("a: | | refine sharpen"))
+        variant_from_flags(cfg, parse_variant("a: | | refine sharpen"), variant_commands())
     with pytest.raises(Sim2RealError, match="AdaptConfig has no field"):
         Variant("a", adapt={"epoch": 3})
     r = recipe_commands(Sim2RealConfig(out=str(tmp_path / "o"), real=["R"], real_phase=["P"], meshes=["m"]), var,
@@ -51,7 +56,7 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     a = r["adapt"].split()
     assert a[:2] == ["adapt", str(tmp_path / "run" / "last.pt")] and a[a.index("--images") + 1:][:2] == ["R", "P"]
     assert a[a.index("--out") + 1] == str(tmp_path / "o" / "ph" / "adapt") and a[-4:] == ["--epochs", "20", "--lr", "1e-3"]
-    assert "adapt" not in recipe_commands(cfg, variant_from_flags(cfg, parse_variant("n")), "D", "R")
+    assert "adapt" not in recipe_commands(cfg, variant_from_flags(cfg, parse_variant("n"), variant_commands()), "D", "R")
     p = tmp_path / "abl.yaml"
     p.write_text("- name: a\n  adapt: true\n  refine: relief, orders\n- name: b\n  train: --head phase\n"
                  "  adapt: --epochs 5\n  refine: true\n- name: c\n")

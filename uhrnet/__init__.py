@@ -6,7 +6,9 @@ Library entry points (the ``uhrnet`` command line calls the same)::
     report = uhrnet.evaluate(["run"], uhrnet.EvalData(split="test"), out="eval")
     uhrnet.predict(uhrnet.PredictConfig(checkpoint="run", inputs=["img.png"], out="pred"))
     uhrnet.evaluate_phase_folder(uhrnet.PhaseEvalConfig(checkpoints=["run"], phase_root="psp", out="ph"))
-    uhrnet.run_sim2real(uhrnet.Sim2RealConfig(out="s2r", real=["real"]))
+
+Experiments that compose both packages (``uhrnet sim2real``: generate -> train -> evaluate on real
+data) are not part of the library: they live in :mod:`uhrnet.workflows`, above it.
 
 Data files are read through :mod:`fppsim.readers` (the dataset contract: :mod:`fppsim.formats`). Attributes are imported
 lazily (``import uhrnet`` does not import torch).
@@ -24,8 +26,6 @@ _LAZY = {
     "PredictConfig": ("uhrnet.prediction", "PredictConfig"),
     "evaluate_phase_folder": ("uhrnet.phase_residual", "evaluate_phase_folder"),
     "PhaseEvalConfig": ("uhrnet.phase_residual", "PhaseEvalConfig"),
-    "run_sim2real": ("uhrnet.sim2real", "run_sim2real"),
-    "Sim2RealConfig": ("uhrnet.sim2real", "Sim2RealConfig"),
     "build_model": ("uhrnet.models", "build_model"),
     "build_loss": ("uhrnet.losses", "build_loss"),
 }

@@ -10,7 +10,7 @@ config of the library, which validates itself, and calls one plain function a Py
     bench           -> uhrnet.bench.bench(BenchConfig)
     export          -> uhrnet.export.export_checkpoint(ExportConfig)
     import-weights  -> uhrnet.reference_weights.import_weights(ImportWeightsConfig)
-    sim2real        -> uhrnet.sim2real.run_sim2real(Sim2RealConfig)
+    sim2real        -> uhrnet.workflows.sim2real.run_sim2real(Sim2RealConfig)
 
 Choices (models, losses, label presets, split modes) are listed from the library's registries. Only
 the chosen command's flags are declared (its library module imported), so ``uhrnet --help`` stays fast.
@@ -21,10 +21,8 @@ SIGTERM/Ctrl-C exit 128 + signum (``train`` says how to resume).
 from __future__ import annotations
 
 import argparse
-import shlex
 import sys
 from pathlib import Path
-from typing import NamedTuple
 
 from fppsim.commands import Command, build_command_parser, one_line, run_commands  # noqa: F401 (one_line re-exported)
 
@@ -433,163 +431,16 @@ def run_import_weights(args) -> int:
 
 
 # ============================================================================ sim2real
-class VariantFlags(NamedTuple):
-    """An ablation row as written: its name, its extra ``fppsim generate`` / ``uhrnet train`` flags, the
-    ``uhrnet adapt`` flags of its adaptation step (None: no adaptation) and its refinement methods."""
-
-    name: str
-    generate: list[str]
-    train: list[str]
-    adapt: list[str] | None = None
-    refine: tuple[str, ...] = ()
-
-
-VARIANT_SYNTAX = "NAME[: GENERATE FLAGS [| TRAIN FLAGS [| adapt [ADAPT FLAGS]] [| refine [METHOD,...]]]]"
-
-
-def parse_variant(text: str) -> VariantFlags:
-    """``NAME`` or ``NAME: generate flags | train flags | step | step`` (shell-quoted; any part may be empty),
-    a step being ``adapt [uhrnet adapt flags]`` (adapt the trained model on the unlabelled real images) or
-    ``refine [METHOD[,METHOD...]]`` (extra rows after ``--refine phase``; bare ``refine``: relief).
-
-    ``"aug-off: | --no-augment"`` -> VariantFlags("aug-off", [], ["--no-augment"]);
-    ``"ph: | --head phase | adapt --epochs 20 | refine relief,orders"`` -> VariantFlags("ph", [],
-    ["--head", "phase"], ["--epochs", "20"], ("relief", "orders")).
-    """
-    from uhrnet.sim2real import Sim2RealError, Variant
-
-    name, sep, rest = text.partition(":")
-    name = name.strip()
-    Variant(name)  # the name is checked before the flags
-    if not sep:
-        return VariantFlags(name, [], [])
-    gen, bar, tail = rest.partition("|")
-    parts = tail.split("|") if bar else []
-    adapt, refine = None, []
-    try:
-        for step in (shlex.split(p) for p in parts[1:]):
-            if step and step[0] == "adapt" and adapt is None:
-                adapt = step[1:]
-            elif step and step[0] == "refine":
-                refine += [m for m in ",".join(step[1:]).split(",") if m] or ["relief"]
-            elif step:
-                raise Sim2RealError(f"variant {name!r}: a step after the train flags is 'adapt [FLAGS]' or 'refine "
-                                    f"[METHOD,...]' (once each), got {shlex.join(step)!r}")
-        return VariantFlags(name, shlex.split(gen), shlex.split(parts[0]) if parts else [], adapt, tuple(refine))
-    except ValueError as exc:
-        raise Sim2RealError(f"variant {name!r}: {exc}") from None
-
-
-def load_variants(path: str | Path) -> list[VariantFlags]:
-    """Variants from a YAML/JSON list of ``{name, generate: [...] or "...", train: [...] or "..."}`` (or of
-    :func:`parse_variant` strings)."""
-    import yaml
-
-    from uhrnet.sim2real import Sim2RealError, Variant
-
-    p = Path(path)
-    if not p.is_file():
-        raise Sim2RealError(f"ablation file not found: {p}")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise Sim2RealError(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None
-    if not isinstance(doc, list) or not doc:
-        raise Sim2RealError(f"{p}: expected a non-empty list of variants")
-    out = []
-    for i, item in enumerate(doc):
-        if isinstance(item, str):
-            out.append(parse_variant(item))
-            continue
-        if not isinstance(item, dict) or "name" not in item:
-            raise Sim2RealError(f"{p}: item {i} must be a string or a mapping with a 'name'")
-        unknown = set(item) - {"name", "generate", "train", "adapt", "refine"}
-        if unknown:
-            raise Sim2RealError(f"{p}: item {i} has unknown keys {sorted(unknown)}")
-        args = {}
-        for k in ("generate", "train", "adapt", "refine"):
-            v = item.get(k) if isinstance(item.get(k), (str, list)) else []  # adapt/refine: true = the defaults
-            args[k] = shlex.split(v.replace(",", " ") if k == "refine" else v) if isinstance(v, str) \
-                else [str(a) for a in v]
-        adapt = None if item.get("adapt") in (None, False) else ([] if item["adapt"] is True else args["adapt"])
-        refine = tuple(args["refine"] or (["relief"] if item.get("refine") is True else []))
-        Variant(str(item["name"]), refine=list(refine))
-        out.append(VariantFlags(str(item["name"]), args["generate"], args["train"], adapt, refine))
-    return out
-
-
-def generate_flags(cfg, data) -> list[str]:
-    """The recipe's ``fppsim generate`` command line for the dataset folder ``data`` (no variant)."""
-    from uhrnet.sim2real.config import generate_workers
-
-    return ["generate", "--meshes", *cfg.meshes, "--out", str(data), "--count", str(cfg.count), "--seed",
-            str(cfg.seed), "--workers", str(generate_workers(cfg)), "--no-psp", "--format", "figshare", "-q"]
-
-
-def train_flags(cfg, data, run) -> list[str]:
-    """The recipe's ``uhrnet train`` command line on ``data`` into ``run`` (no variant)."""
-    from uhrnet.sim2real import SCALES
-
-    flags = ["train", "--synthetic", str(data), "--model", cfg.model,
-             *(["--base-channels", str(cfg.base_channels)] if cfg.base_channels is not None else []),
-             "--loss", cfg.loss, "--epochs", str(cfg.epochs), "--batch-size", str(cfg.batch_size),
-             "--lr", str(cfg.lr), "--device", cfg.device, "--out", str(run), "--no-progress"]
-    for key, value in SCALES[cfg.scale]["train"].items():  # TrainConfig fields are the flags' names
-        flag = "--" + key.replace("_", "-")
-        flags += [flag] if value is True else [flag, *map(str, value)] if isinstance(value, (list, tuple)) \
-            else [flag, str(value)]
-    return flags
-
-
-def _parse(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
-    """``parser.parse_args(argv)``, its error as a :class:`Sim2RealError` naming ``where``."""
-    import contextlib
-    import io
-
-    from uhrnet.sim2real import Sim2RealError
-
-    err = io.StringIO()
-    try:
-        with contextlib.redirect_stderr(err):
-            return parser.parse_args(argv)
-    except SystemExit:
-        lines = [line for line in err.getvalue().splitlines() if line.strip()]
-        raise Sim2RealError(f"{where}: {lines[-1].split(': error: ')[-1] if lines else 'bad flags'}") from None
-
-
-def variant_from_flags(cfg, flags: VariantFlags):
-    """The :class:`uhrnet.sim2real.Variant` of ``flags``: each side appended to the recipe's command
-    line (:func:`generate_flags`, :func:`train_flags`) and parsed by that command's own parser; the
-    config fields that then differ from the recipe's are the variant's overrides."""
+def variant_commands() -> dict:
+    """How ``--variant`` flags are read (:func:`uhrnet.workflows.sim2real.variants.variant_from_flags`): each
+    command's own parser and the config fields its flags give."""
     from fppsim.cli import build_parser as fppsim_parser
     from fppsim.cli import generate_options
-    from uhrnet.sim2real import Sim2RealError, Variant
+    from uhrnet.workflows.sim2real.variants import FlagReader
 
-    def changed(base: dict, given: dict) -> dict:
-        return {k: v for k, v in given.items() if k not in base or v != base[k]}
-
-    where = f"variant {flags.name!r}"
-    gen, tr = {}, {}
-    if flags.generate:
-        head, parser = generate_flags(cfg, "DATA"), fppsim_parser()
-        try:
-            gen = changed(generate_options(_parse(parser, head, f"{where}: generate")),
-                          generate_options(_parse(parser, head + flags.generate, f"{where}: generate")))
-        except Sim2RealError:
-            raise
-        except (OSError, ValueError) as exc:  # e.g. an unreadable --optics-file
-            raise Sim2RealError(f"{where}: generate: {exc}") from None
-    if flags.train:
-        head, parser = train_flags(cfg, "DATA", "RUN"), build_parser("train")
-        tr = changed(train_options(_parse(parser, head, f"{where}: train")),
-                     train_options(_parse(parser, head + flags.train, f"{where}: train")))
-    ad = None
-    if flags.adapt is not None:
-        head, parser = ["adapt", "RUN", "--images", "IMAGES", "--out", "OUT"], build_parser("adapt")
-        ad = changed(adapt_options(_parse(parser, head, f"{where}: adapt")),
-                     adapt_options(_parse(parser, head + flags.adapt, f"{where}: adapt")))
-    return Variant(flags.name, gen, tr, generate_flags=list(flags.generate), train_flags=list(flags.train),
-                   adapt=ad, refine=list(flags.refine), adapt_flags=None if ad is None else list(flags.adapt))
+    return {"generate": FlagReader(fppsim_parser, generate_options),
+            "train": FlagReader(lambda: build_parser("train"), train_options),
+            "adapt": FlagReader(lambda: build_parser("adapt"), adapt_options)}
 
 
 def adapt_options(args) -> dict:
@@ -603,26 +454,12 @@ def adapt_options(args) -> dict:
     return {**out, "figures": not args.no_figures, "progress": not args.no_progress}
 
 
-def recipe_commands(cfg, variant, data, run) -> dict:
-    """The stages of ``variant`` as the command lines that run them (``report.json``'s ``recipe``)."""
-    from uhrnet.sim2real import adapt_config
-
-    out = {"generate": shlex.join(generate_flags(cfg, data) + list(variant.generate_flags or [])),
-           "train": shlex.join(train_flags(cfg, data, run) + list(variant.train_flags or []))}
-    if variant.adapt is not None:
-        a = adapt_config(cfg, variant, Path(run) / "last.pt", Path(cfg.out) / variant.name / "adapt")
-        out["adapt"] = shlex.join(["adapt", str(a.checkpoint), "--images", *map(str, a.images), "--out", str(a.out),
-                                   *(["--rig", str(a.rig)] if cfg.rig else []), "--device", a.device,
-                                   "--no-progress", *([] if a.figures else ["--no-figures"]),
-                                   *(variant.adapt_flags or [])])
-    return out
-
-
 def add_sim2real(p: argparse.ArgumentParser) -> None:
     from uhrnet.losses import LOSSES
     from uhrnet.models import list_models
     from uhrnet.refine import REFINE_METHODS
-    from uhrnet.sim2real import SCALES
+    from uhrnet.workflows.sim2real import SCALES
+    from uhrnet.workflows.sim2real.variants import VARIANT_SYNTAX
 
     def scales(key):
         return ", ".join(f"{s}: {'the model default' if v[key] is None else v[key]}" for s, v in SCALES.items())
@@ -655,7 +492,7 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         "Real data: figshare-format folders (f1_80.npy + Z.npy, or fringe_pattern.npy + height_map.npy);\n"
         "labels <= -100 are invalid and mm = label / 6. Metrics in mm: object RMSE over valid pixels more\n"
         "than --object-mm above the reference plane, median |error|, share within 1 mm, coverage (share of\n"
-        "object pixels predicted valid), RMSE over all valid pixels, and more (see uhrnet.sim2real.metrics).\n"
+        "object pixels predicted valid), RMSE over all valid pixels, and more (see uhrnet.workflows.sim2real.metrics).\n"
         "--real-phase: real phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/, no labels): the\n"
         "calibration-free phase residual (rad) of every row on every frame, as uhrnet evaluate-phase reports.")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu", help="recipe size [cpu]")
@@ -710,7 +547,8 @@ def parse_reuse(items: list[str]) -> dict[str, str]:
 def run_sim2real(args) -> int:
     from dataclasses import replace
 
-    from uhrnet.sim2real import Sim2RealConfig, markdown_report, run_sim2real
+    from uhrnet.workflows.sim2real import Sim2RealConfig, markdown_report, run_sim2real
+    from uhrnet.workflows.sim2real.variants import load_variants, parse_variant, recipe_commands, variant_from_flags
 
     specs = [parse_variant(v) for v in args.variant]
     if args.ablation:
@@ -722,7 +560,8 @@ def run_sim2real(args) -> int:
         object_mm=args.object_mm, figures=not args.no_figures, real_phase=list(args.real_phase), rig=args.rig,
         adapt_images=args.adapt_images)
     reuse = parse_reuse(args.reuse_run)  # names the variants: checked once they are known
-    cfg = replace(cfg, variants=[variant_from_flags(cfg, s) for s in specs] if specs else cfg.variants, reuse=reuse)
+    commands = variant_commands()
+    cfg = replace(cfg, variants=[variant_from_flags(cfg, s, commands) for s in specs] if specs else cfg.variants, reuse=reuse)
     report = run_sim2real(cfg, log=lambda line: print(line, flush=True), recipe=recipe_commands)
     print(markdown_report(report))
     print(f"report: {Path(args.out) / 'report.md'} and report.json")

@@ -1,6 +1,6 @@
 """Sim-to-real experiment: generate synthetic data -> train on it alone -> evaluate on REAL data -> report.
 
-    from uhrnet.sim2real import Sim2RealConfig, Variant, run_sim2real
+    from uhrnet.workflows.sim2real import Sim2RealConfig, Variant, run_sim2real
 
     run_sim2real(Sim2RealConfig(out="runs/s2r", real=["../shared/real-sample"],
                                 variants=[Variant("default"), Variant("no-aug", train={"augment": "off"})]))
@@ -34,23 +34,27 @@ training; a run folder copied to ``out/<name>/run`` is taken the same way. Every
 finished dataset, a finished run (``last.pt`` at the requested epochs), a finished adaptation and a
 finished evaluation are re-used.
 
-Modules: :mod:`~uhrnet.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
-:mod:`~uhrnet.sim2real.run` (the stages and :func:`run_sim2real`), :mod:`~uhrnet.sim2real.evaluate` (one
-checkpoint on the real pairs, the real phase frames and the synthetic validation split),
-:mod:`~uhrnet.sim2real.metrics` (object RMSE and its level / relief split, median error, coverage, fringe
+Modules: :mod:`~uhrnet.workflows.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
+:mod:`~uhrnet.workflows.sim2real.variants` (the ``--variant SPEC`` / ``--ablation`` grammar -> :class:`Variant`),
+:mod:`~uhrnet.workflows.sim2real.run` (the stages and :func:`run_sim2real`),
+:mod:`~uhrnet.workflows.sim2real.evaluate` (one checkpoint on the real pairs, the real phase frames and the
+synthetic validation split),
+:mod:`~uhrnet.workflows.sim2real.metrics` (object RMSE and its level / relief split, median error, coverage, fringe
 twins, level response) and
-:mod:`~uhrnet.sim2real.report` (``report.md``, figures).
+:mod:`~uhrnet.workflows.sim2real.report` (``report.md``, figures).
 """
 
 from uhrnet.errors import Sim2RealError
-from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
-from uhrnet.sim2real.metrics import fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics
-from uhrnet.sim2real.metrics import error_split, object_regions
-from uhrnet.sim2real.report import markdown_report, plot_real
-from uhrnet.sim2real.evaluate import (
+from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
+from uhrnet.workflows.sim2real.metrics import (
+    fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics,
+)
+from uhrnet.workflows.sim2real.metrics import error_split, object_regions
+from uhrnet.workflows.sim2real.report import markdown_report, plot_real
+from uhrnet.workflows.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs, refine_labels,
 )
-from uhrnet.sim2real.run import adapt_config, generate_config, run_differences, run_sim2real, train_config
+from uhrnet.workflows.sim2real.run import adapt_config, generate_config, run_differences, run_sim2real, train_config
 
 __all__ = [
     "Sim2RealConfig", "Variant", "Sim2RealError", "SCALES", "data_key", "object_mask", "plane_level", "real_metrics",

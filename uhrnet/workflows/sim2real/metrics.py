@@ -46,7 +46,7 @@ object's mean error on its true mean height: slope 0, the level is read; slope -
 predicts one level, the training prior (``prior_level_mm``), whatever the object.
 
 Label maps are (H, W) arrays in label units (figshare: 6 per mm). Running a checkpoint over a folder
-and writing the results is :mod:`uhrnet.sim2real.run`'s job.
+and writing the results is :mod:`uhrnet.workflows.sim2real.run`'s job.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Running a sim-to-real experiment: generate -> train (synthetic only) -> [adapt] -> evaluate on REAL data -> report.
 
-Every variant of :class:`~uhrnet.sim2real.config.Sim2RealConfig` runs these stages through the
+Every variant of :class:`~uhrnet.workflows.sim2real.config.Sim2RealConfig` runs these stages through the
 libraries, in this process:
 
 1. ``fppsim.generate(GenerateConfig)`` (:func:`generate_config`): the recipe's figshare-format dataset
@@ -29,22 +29,20 @@ from __future__ import annotations
 import csv
 import json
 import time
-from contextlib import redirect_stderr, redirect_stdout
 from dataclasses import fields
 from pathlib import Path
 from typing import Callable, Sequence
-
-import numpy as np
 
 from fppsim.errors import FppsimError
 from fppsim.encoding import json_default
 from fppsim.files import atomic_write_text
 from uhrnet.errors import Sim2RealError, UhrnetError
-from uhrnet.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
-from uhrnet.sim2real.evaluate import (
+from uhrnet.workflows.stages import dataset_count, fresh, run_done, run_history, run_stage
+from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
+from uhrnet.workflows.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs,
 )
-from uhrnet.sim2real.report import markdown_report
+from uhrnet.workflows.sim2real.report import markdown_report
 
 __all__ = ["generate_config", "train_config", "adapt_config", "run_differences", "find_real_pairs", "evaluate_real",
            "evaluate_real_phase", "evaluate_level", "run_sim2real"]
@@ -88,46 +86,6 @@ def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: s
 # The experiment
 
 
-def _dataset_done(data: Path, count: int) -> bool:
-    z = data / "Z.npy"
-    if not z.is_file():
-        return False
-    try:
-        return int(np.load(z, mmap_mode="r").shape[0]) == count
-    except (ValueError, OSError):
-        return False
-
-
-def _run_done(run: Path, epochs: int) -> bool:
-    rows = _history(run) if (run / "last.pt").is_file() else []
-    return bool(rows) and int(rows[-1]["epoch"]) >= epochs
-
-
-def _history(run: Path) -> list[dict]:
-    hist = run / "history.csv"
-    if not hist.is_file():
-        return []
-    return [{k: (float(v) if v not in ("", None) else None) for k, v in r.items()} for r in csv.DictReader(hist.open())]
-
-
-def _stage(name: str, fn: Callable[[], object], log: Path, header: str) -> float:
-    """Run ``fn()`` with its printed output appended to ``log``; seconds taken. A failure is raised as
-    :class:`Sim2RealError` naming the stage, its first line and the log."""
-    t0 = time.perf_counter()
-    log.parent.mkdir(parents=True, exist_ok=True)
-    with open(log, "a") as fh:
-        fh.write(header.rstrip("\n") + "\n")
-        fh.flush()
-        try:
-            with redirect_stdout(fh), redirect_stderr(fh):
-                fn()
-        except (UhrnetError, FppsimError, ValueError, OSError) as exc:
-            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
-            fh.write(f"error: {first}\n")
-            raise Sim2RealError(f"{name} failed: {first} (log {log})") from exc
-    return time.perf_counter() - t0
-
-
 def _as_dict(config) -> dict:
     """A config dataclass as JSON-ready values (a label transform as its dict)."""
     out = {}
@@ -135,10 +93,6 @@ def _as_dict(config) -> dict:
         value = getattr(config, f.name)
         out[f.name] = value.to_dict() if hasattr(value, "to_dict") else value
     return out
-
-
-def _fresh(result: Path, source: Path) -> bool:
-    return result.is_file() and result.stat().st_mtime >= source.stat().st_mtime
 
 
 def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, out: str | Path,
@@ -200,9 +154,9 @@ def _finished_run(cfg: Sim2RealConfig, var: Variant, run: Path, tr, gen) -> list
     must be); a finished run of other options is refused."""
     reused = var.name in cfg.reuse
     what = f"--reuse-run {var.name}={run}" if reused else str(run)
-    if not _run_done(run, tr.epochs):
+    if not run_done(run, tr.epochs):
         if reused:
-            hist = _history(run)
+            hist = run_history(run)
             at = f"epoch {int(hist[-1]['epoch'])} of {tr.epochs}" if hist else "no finished epoch"
             raise Sim2RealError(f"{what}: not a finished run ({at}; last.pt and history.csv needed)")
         return None
@@ -225,7 +179,7 @@ def _adapt_done(acfg, source: Path) -> bool:
     skip = ("epochs", "progress", "figures", "overwrite", "resume")
     same = all(_norm(done.get(k)) == _norm(v) for k, v in acfg.record().items() if k not in skip)
     rows = list(csv.DictReader(hist.open()))
-    return same and len(rows) >= acfg.epochs and _fresh(out / "last.pt", source)
+    return same and len(rows) >= acfg.epochs and fresh(out / "last.pt", source)
 
 
 def _rows(var: Variant, out: Path, last: Path, adapted: Path | None) -> list[dict]:
@@ -244,7 +198,7 @@ def _rows(var: Variant, out: Path, last: Path, adapted: Path | None) -> list[dic
 
 def _done_json(path: Path, source: Path, folders: Sequence[str], key: str) -> dict | None:
     """A result file newer than ``source`` that covers exactly ``folders`` (its rows' ``folder``), else None."""
-    if not _fresh(path, source):
+    if not fresh(path, source):
         return None
     doc = json.loads(path.read_text())
     return doc if {r["folder"] for r in doc.get(key, [])} == {str(f) for f in folders} else None
@@ -318,19 +272,19 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         text = recipe(cfg, var, data, run) if recipe is not None else None
         described = text or {"generate": _as_dict(gen), "train": _as_dict(tr)}
         if trained_on is None:
-            if not _dataset_done(data, gen.count):
+            if not dataset_count(data) == gen.count:
                 say(f"[{var.name}] generate -> {data}")
 
                 def run_generate(gen=gen):
                     for line in generate(gen).lines():
                         print(line)
 
-                timing["generate_s"] = _stage("generate", run_generate, data.parent / f"{data.name}.log",
+                timing["generate_s"] = run_stage("generate", run_generate, data.parent / f"{data.name}.log",
                                               _header("generate", described))
             say(f"[{var.name}] train -> {run}")
             if run.is_dir() and any(run.iterdir()):  # an interrupted run: continue it (or restart it)
                 tr = train_config(cfg, var, data, run, resume=True)
-            timing["train_s"] = _stage("train", lambda tr=tr: train(tr), out / var.name / "train.log",
+            timing["train_s"] = run_stage("train", lambda tr=tr: train(tr), out / var.name / "train.log",
                                        _header("train", described))
             trained_on = [str(data)]
         last = run / "last.pt"
@@ -338,10 +292,10 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         if var.adapt is not None:
             acfg = adapt_config(cfg, var, last, out / var.name / "adapt")
             if not _adapt_done(acfg, last):
-                if (Path(acfg.out) / "last.pt").is_file() and not _fresh(Path(acfg.out) / "last.pt", last):
+                if (Path(acfg.out) / "last.pt").is_file() and not fresh(Path(acfg.out) / "last.pt", last):
                     acfg = adapt_config(cfg, var, last, acfg.out, overwrite=True)  # the run was trained again
                 say(f"[{var.name}] adapt on {len(acfg.images)} unlabelled real input(s) -> {acfg.out}")
-                timing["adapt_s"] = _stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
+                timing["adapt_s"] = run_stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
                                            _header("adapt", described) if "adapt" in described else
                                            f"# adapt: {json.dumps(acfg.record(), default=json_default)}")
             adapted = Path(acfg.out) / "last.pt"
@@ -352,8 +306,8 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         rows = [_evaluate_row(cfg, row, device, say, timing) for row in _rows(var, out, last, adapted)]
         ev = out / var.name / "eval"
         lvl = ev / "synthetic_level.json"
-        level = json.loads(lvl.read_text()) if _fresh(lvl, last) else evaluate_level(last, trained_on, ev, device=device)
-        hist = _history(run)
+        level = json.loads(lvl.read_text()) if fresh(lvl, last) else evaluate_level(last, trained_on, ev, device=device)
+        hist = run_history(run)
         entry = {"name": var.name, "generate": var.described("generate"), "train": var.described("train"),
                  "data": trained_on[0] if len(trained_on) == 1 else trained_on, "run": str(run),
                  "reused": var.name in cfg.reuse, "timing": timing, "real": rows[0]["real"],

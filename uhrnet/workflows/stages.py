@@ -1,0 +1,75 @@
+"""What the stages of every workflow share (``uhrnet sim2real``, ``pipelines/few_scans.py``): running a
+stage with its printed output in a log, reading what a training run has finished, counting a figshare
+dataset's samples, and whether a result is newer than what it was made from (the resume checks).
+"""
+
+from __future__ import annotations
+
+import csv
+import time
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from fppsim.errors import FppsimError
+from uhrnet.errors import Sim2RealError, UhrnetError
+
+__all__ = ["run_stage", "run_history", "run_epochs", "run_done", "dataset_count", "fresh"]
+
+
+def dataset_count(folder: str | Path) -> int:
+    """Samples of the figshare-format dataset in ``folder`` (its ``Z.npy``); 0 when there is none (or it
+    cannot be read)."""
+    z = Path(folder) / "Z.npy"
+    if not z.is_file():
+        return 0
+    try:
+        return int(np.load(z, mmap_mode="r").shape[0])
+    except (ValueError, OSError):
+        return 0
+
+
+def run_history(run: str | Path) -> list[dict]:
+    """The rows of a training run's ``history.csv`` (numbers as floats, empty cells None); [] without one."""
+    hist = Path(run) / "history.csv"
+    if not hist.is_file():
+        return []
+    with hist.open() as fh:
+        return [{k: (float(v) if v not in ("", None) else None) for k, v in r.items()} for r in csv.DictReader(fh)]
+
+
+def run_epochs(run: str | Path) -> int:
+    """Epochs the training run in folder ``run`` has finished (``last.pt`` and its history); 0: none."""
+    rows = run_history(run) if (Path(run) / "last.pt").is_file() else []
+    return int(rows[-1]["epoch"]) if rows else 0
+
+
+def run_done(run: str | Path, epochs: int) -> bool:
+    """Whether the training run in folder ``run`` has finished ``epochs`` epochs (``last.pt`` at them)."""
+    rows = run_history(run) if (Path(run) / "last.pt").is_file() else []
+    return bool(rows) and int(rows[-1]["epoch"]) >= epochs
+
+
+def fresh(result: Path, source: Path) -> bool:
+    """Whether the file ``result`` exists and is not older than ``source`` (e.g. an evaluation of a checkpoint)."""
+    return result.is_file() and result.stat().st_mtime >= source.stat().st_mtime
+
+
+def run_stage(name: str, fn: Callable[[], object], log: Path, header: str) -> float:
+    """Run ``fn()`` with its printed output appended to ``log``; seconds taken. A failure is raised as
+    :class:`Sim2RealError` naming the stage, its first line and the log."""
+    t0 = time.perf_counter()
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with open(log, "a") as fh:
+        fh.write(header.rstrip("\n") + "\n")
+        fh.flush()
+        try:
+            with redirect_stdout(fh), redirect_stderr(fh):
+                fn()
+        except (UhrnetError, FppsimError, ValueError, OSError) as exc:
+            first = (str(exc).strip().splitlines() or [type(exc).__name__])[0]
+            fh.write(f"error: {first}\n")
+            raise Sim2RealError(f"{name} failed: {first} (log {log})") from exc
+    return time.perf_counter() - t0
