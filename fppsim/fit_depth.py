@@ -38,7 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .errors import RigError
-from .fit_rig import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
+from .fit_periods import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
 from .height_sensitivity import centre_sensitivity, demodulated_residual, object_residual, surface_phase
 from .phase import circular_mean, wrap
 from .readers import FringeImage

@@ -248,10 +248,7 @@ def test_no_import_cycle_at_any_depth():
     assert _cycles(_import_graph()) == KNOWN_CYCLES
 
 
-KNOWN_CYCLES = [["fppsim.fit_depth", "fppsim.fit_rig"]]
-"""Left for now (issue 29): ``fit_rig.fit_rig_images`` (the fit-rig workflow) calls ``fit_depth.fit_depth``,
-which builds on ``fit_rig``'s period fit; the workflow moves above both once the concurrent fit-rig error
-handling has merged. Nothing may be added here."""
+KNOWN_CYCLES: list = []  # none; nothing may be added here
 
 
 # ---------------------------------------------------------------------------- the workflow layer (issue 29)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fppsim import fit_depth as fd
-from fppsim import fit_rig as fr
+from fppsim import fit_periods as fr  # the period fit
 from fppsim import readers
 from fppsim.height_sensitivity import centre_sensitivity
 from fppsim.rig import Rig, RigError, make_default_rig

@@ -4,7 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from fppsim import fit_rig as fr
+from fppsim import fit_periods as fr  # the period fit
+from fppsim.fit_rig import fit_baseline
 from fppsim import height_sensitivity
 from fppsim import readers
 from fppsim.rig import Rig, RigError, make_parallel_rig
@@ -227,7 +228,7 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
     out = _rendered(tmp_path, true, count=2)
     images, _ = readers.load_fringe_images(out)
     measured = fr.measure_bands(images)
-    fit = fr.fit_baseline(images, measured, make_parallel_rig(), params=("yaw",),
+    fit = fit_baseline(images, measured, make_parallel_rig(), params=("yaw",),
                           baselines=np.arange(160.0, 400.0, 40.0), refine=10.0)
     assert fit is not None
     assert fit.baseline == pytest.approx(260.0, abs=10.0)
@@ -235,7 +236,7 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
     assert fit.sensitivity == pytest.approx(height_sensitivity.centre_sensitivity(true), rel=0.05)
     # plain images have no labels: nothing to fit
     plain = [readers.FringeImage(im.gray, im.valid, im.name) for im in images]
-    assert fr.fit_baseline(plain, measured, make_parallel_rig()) is None
+    assert fit_baseline(plain, measured, make_parallel_rig()) is None
 
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real-sample not present")
