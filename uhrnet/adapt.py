@@ -37,11 +37,8 @@ With ``tensorboard`` the loss terms per step and epoch and the first image's hei
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
-import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -210,18 +207,6 @@ def _rig_for(cfg: AdaptConfig, ckpt: dict):
         raise ConfigError(f"--rig: {exc}") from None
 
 
-def _write_history(rows: list[dict], out: Path) -> None:
-    from fppsim.files import atomic_write_text
-
-    names = list(ADAPT_COLUMNS) + sorted({k for r in rows for k in r} - set(ADAPT_COLUMNS))
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in r.items()})
-    atomic_write_text(out / "history.csv", buf.getvalue())
-
-
 def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
@@ -270,7 +255,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     from uhrnet.device import select_device
     from uhrnet.prediction import labels_at_input_size, read_inputs
     from uhrnet.rig_layer import RigLayer
-    from uhrnet.run_folder import claim_run_folder
+    from uhrnet.run_folder import claim_run_folder, write_history
 
     out = Path(cfg.out)
     source = load_checkpoint(cfg.checkpoint, digest=True)
@@ -371,7 +356,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         payload.pop("train_state_dict", None)
         payload.pop("ema", None)
         atomic_save(payload, out / "last.pt")
-        _write_history(history, out)
+        write_history(history, out, ADAPT_COLUMNS, extra=True, plot=False)
         if not cfg.progress:
             log(f"adapt epoch {epoch + 1}/{cfg.epochs}  loss {sums['loss']:.4g}  grad {sums['grad']:.4g}  "
                 f"drift {sums['drift']:.4g}  {row['seconds']:.1f}s")

@@ -42,13 +42,20 @@ def _fmt(v) -> str:
     return str(v)
 
 
-def write_history(rows: list[dict], out: Path) -> None:
+def write_history(rows: list[dict], out: Path, columns: tuple[str, ...] = HISTORY_COLUMNS, extra: bool = False,
+                  plot: bool = True) -> None:
+    """``out/history.csv``, one row per epoch in ``columns`` order (floats as ``%.6g``, missing / NaN empty),
+    written atomically; ``extra``: columns the rows hold beyond ``columns`` follow, sorted (an adaptation
+    resumed from an older version keeps its old terms); ``plot``: also ``history.png`` (training curves)."""
+    names = list(columns) + (sorted({k for r in rows for k in r} - set(columns)) if extra else [])
     buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=HISTORY_COLUMNS, lineterminator="\n")
+    w = csv.DictWriter(buf, fieldnames=names, lineterminator="\n")
     w.writeheader()
     for row in rows:
-        w.writerow({k: _fmt(row.get(k)) for k in HISTORY_COLUMNS})
+        w.writerow({k: _fmt(row.get(k)) for k in names})
     atomic_write_text(out / "history.csv", buf.getvalue())
+    if not plot:
+        return
     try:
         from uhrnet.plots import plot_history
 
