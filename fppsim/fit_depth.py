@@ -41,6 +41,7 @@ from .errors import RigError
 from .fit_periods import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
 from .height_sensitivity import centre_sensitivity, demodulated_residual, object_residual, surface_phase
 from .phase import circular_mean, wrap
+from .unwrap import shadow_runs
 from .readers import FringeImage
 from .rig import Rig
 
@@ -75,23 +76,13 @@ def shadow_edges(valid: np.ndarray, plane: np.ndarray, obj: np.ndarray, shadow_l
         e = shadow_edges(valid[:, ::-1], plane[:, ::-1], obj[:, ::-1], True, k, min_width)
         W = valid.shape[1]
         return np.stack([e[:, 0], W - 1 - e[:, 1], W - 1 - e[:, 2]], axis=1) if len(e) else e
-    H, W = valid.shape
-    out = []
-    for r in range(H):
-        v = valid[r]
-        # starts / ends of invalid runs
-        dv = np.diff(v.astype(np.int8))
-        starts = np.flatnonzero(dv == -1)  # v[x] valid, v[x+1] invalid
-        for x in starts:
-            rest = np.flatnonzero(v[x + 1:])
-            if not rest.size:
-                break
-            x1 = x + 1 + int(rest[0])
-            if x1 - x - 1 < min_width or x - k - 1 < 0 or x1 + k + 2 > W:
-                continue
-            if plane[r, x - k - 1:x + 1].all() and obj[r, x1:x1 + k + 2].all():
-                out.append((r, x, x1))
-    return np.array(out, dtype=np.int64).reshape(-1, 3)
+    W = valid.shape[1]
+    runs = shadow_runs(~valid)
+    r, x, x1 = runs.T
+    runs = runs[(x1 - x - 1 >= min_width) & (x - k - 1 >= 0) & (x1 + k + 2 <= W)]
+    r, x, x1 = (c[:, None] for c in runs.T)
+    keep = plane[r, x + np.arange(-k - 1, 1)].all(axis=1) & obj[r, x1 + np.arange(k + 2)].all(axis=1)
+    return runs[keep].reshape(-1, 3)
 
 
 def _edge_values(phase: np.ndarray, edges: np.ndarray, k: int = 3, shadow_left: bool = True):

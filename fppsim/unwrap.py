@@ -30,7 +30,7 @@ from scipy import ndimage as ndi
 
 from .phase import wrap
 
-__all__ = ["PhaseRegions", "phase_regions", "phase_quality", "step_conflicts", "Bridge", "shadow_bridges"]
+__all__ = ["PhaseRegions", "phase_regions", "phase_quality", "step_conflicts", "Bridge", "shadow_runs", "shadow_bridges"]
 
 
 def phase_quality(wrapped: np.ndarray) -> np.ndarray:
@@ -139,6 +139,24 @@ class Bridge:
     agreement: float
 
 
+def shadow_runs(shadow: np.ndarray) -> np.ndarray:
+    """Every crossing of a shadow along an image row: (n, 3) int64 rows ``(row, x_before, x_after)``, the
+    last lit pixel before a run of ``shadow`` pixels and the first lit pixel after it, in row-major
+    order. Runs touching the left or right image border (nothing lit on one side) are not crossings.
+    The one shadow walker of the depth fit's shadow edges and the shadow bridges."""
+    sh = np.asarray(shadow, bool)
+    W = sh.shape[1]
+    starts = np.argwhere(~sh[:, :-1] & sh[:, 1:])  # (row, x): x lit, x + 1 in shadow
+    ends = np.argwhere(sh[:, :-1] & ~sh[:, 1:])  # (row, x): x in shadow, x + 1 lit
+    if not len(starts) or not len(ends):
+        return np.zeros((0, 3), np.int64)
+    fs, fe = starts[:, 0] * W + starts[:, 1], ends[:, 0] * W + ends[:, 1]
+    j = np.searchsorted(fe, fs)  # each run's end is the first end after its start, in the same row
+    j = np.minimum(j, len(fe) - 1)
+    same = (fe[j] > fs) & (ends[j, 0] == starts[:, 0])
+    return np.stack([starts[same, 0], starts[same, 1], ends[j[same], 1] + 1], axis=1).astype(np.int64)
+
+
 def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80, step: int = 1, reach: int = 10,
                    tolerance: float = 0.25, min_votes: int = 5, min_agreement: float = 0.6) -> list[Bridge]:
     """Order differences across shadows, voted row by row (module docstring).
@@ -163,15 +181,9 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
     sh = np.asarray(shadow, bool)
     H, W = lab.shape
     votes: dict[tuple[int, int], list[float]] = {}
-    # runs of shadow along each row: start where a shadow pixel follows a non-shadow one
-    starts = np.argwhere(sh[:, 1:] & ~sh[:, :-1])
-    for r, x in starts:
-        x0 = x  # last lit pixel before the shadow
-        rest = sh[r, x0 + 1:]
-        end = np.argmax(~rest) if (~rest).any() else None
-        if end is None or end > max_gap:
+    for r, x0, x1 in shadow_runs(sh):  # x0: last lit pixel before the shadow, x1: first lit after it
+        if x1 - x0 - 1 > max_gap:
             continue
-        x1 = x0 + 1 + end  # first lit pixel after it
         # walk back / forward to the nearest region pixels (the phase right at an edge is unreliable)
         a_idx = [x0 - i for i in range(0, reach) if x0 - i - 1 >= 0 and lab[r, x0 - i] > 0 and lab[r, x0 - i - 1] == lab[r, x0 - i]]
         b_idx = [x1 + i for i in range(0, reach) if x1 + i + 1 < W and lab[r, x1 + i] > 0 and lab[r, x1 + i + 1] == lab[r, x1 + i]]

@@ -74,3 +74,31 @@ def test_shadow_bridge_needs_agreeing_votes():
     reg = phase_regions(wrap(phi), ~shadow)
     # rows after the shadow carry unrelated orders: whatever regions they form, no bridge is trusted
     assert shadow_bridges(reg, shadow) == []
+
+
+def test_shadow_runs_finds_every_crossing_as_a_plain_row_walk_does():
+    """shadow_runs against a per-pixel walk written here: every run of shadow with a lit pixel on both sides."""
+    from fppsim.unwrap import shadow_runs
+
+    rng = np.random.default_rng(4)
+    for density in (0.1, 0.5, 0.9):
+        sh = rng.random((17, 40)) < density
+        sh[3] = True  # a row all in shadow: no crossing
+        sh[5, :6] = True  # a run from the left border: not a crossing
+        want = []
+        for r in range(sh.shape[0]):
+            x = 0
+            while x < sh.shape[1]:
+                if sh[r, x]:
+                    e = x
+                    while e < sh.shape[1] and sh[r, e]:
+                        e += 1
+                    if x > 0 and e < sh.shape[1]:
+                        want.append((r, x - 1, e))
+                    x = e
+                else:
+                    x += 1
+        got = shadow_runs(sh)
+        assert got.dtype == np.int64 and got.shape[1] == 3
+        assert [tuple(map(int, g)) for g in got] == want
+    assert shadow_runs(np.zeros((4, 5), bool)).shape == (0, 3)
