@@ -58,7 +58,8 @@ from .owned import output_folder
 from .psp import decode_stacks
 from .readers import CONVENTIONS, FOLDERS, list_psp_ids, load_psp_folder_sample
 from .reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
-from .rig import Rig, RigError, load_rig, usable_rig
+from .rig import Rig, RigError, check_image_size, usable_rig
+from .rig_choice import resolve_rig
 from .triangulation import height_from_phase
 from .writers import NpyRowStream
 
@@ -229,11 +230,8 @@ def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:
 
 
 def _check_camera(rig: Rig, shape: tuple, where: str) -> None:
-    cam = rig.camera
-    if tuple(shape) != (cam.height, cam.width):
-        got = f"{shape[1]}x{shape[0]}" if len(shape) == 2 else str(shape)
-        raise ConfigError(f"rig camera is {cam.width}x{cam.height} but images are {got} ({where}); "
-                          "pass the rig of these scans with --rig")
+    check_image_size(rig, shape, where, who="rig camera is", hint="; pass the rig of these scans with --rig",
+                     error=ConfigError, template="{who} {camera} but images are {got} ({what}){hint}")
 
 
 def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
@@ -300,13 +298,7 @@ def iter_scans(cfg: LabelRealConfig, layout: str | None = None, ids: Sequence[st
 
 def _config_rig(cfg: LabelRealConfig, layout: str) -> tuple[Rig | None, str]:
     """``(rig, source)``; rig None = each native sample's recorded rig."""
-    if isinstance(cfg.rig, Rig):
-        return usable_rig(cfg.rig, "rig"), "given"
-    if cfg.rig is not None:
-        return load_rig(cfg.rig), str(cfg.rig)
-    if layout == "native":
-        return None, "each sample's meta.json"
-    return load_rig(None), "default (assets/default_rig.json)"
+    return resolve_rig(cfg.rig, per_sample=layout == "native")
 
 
 # ============================================================================================ labelling

@@ -25,6 +25,7 @@ import numpy as np
 
 from fppsim.encoding import encode_fringe
 from fppsim.files import atomic_write_text
+from fppsim.rig import check_image_size
 from uhrnet.errors import Sim2RealError
 
 __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real", "evaluate_real_phase",
@@ -79,14 +80,14 @@ def _refine_rig(ck: dict, refine: str | None, rig: str | Path | None):
     """The rig ``refine`` uses (None without ``refine``) and its name."""
     if refine is None:
         return None, None
-    from fppsim.rig import RigError, load_rig
+    from fppsim.rig import RigError
     from uhrnet.prediction import refine_rig_for
     from uhrnet.refine import REFINE_METHODS
 
     if refine not in REFINE_METHODS:
         raise Sim2RealError(f"refine method {refine!r} unknown (known: {', '.join(REFINE_METHODS)})")
     try:
-        return refine_rig_for(ck, load_rig(rig) if rig else None, rig)
+        return refine_rig_for(ck, rig or None)
     except RigError as exc:
         raise Sim2RealError(f"rig: {exc}") from None
 
@@ -97,10 +98,8 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     keep their label."""
     from uhrnet.prediction import refine_with_phase
 
-    cam = rig.camera
-    if (cam.height, cam.width) != fringe.shape:
-        raise Sim2RealError(f"refine: image is {fringe.shape[1]}x{fringe.shape[0]} but {rig_name} sees "
-                            f"{cam.width}x{cam.height} (give the real data's rig: --rig FILE)")
+    check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
+                     error=Sim2RealError)
     lab = np.asarray(label, np.float64)
     valid = np.asarray(transform.valid(lab)) & (np.asarray(fringe) > -1 + 1e-6)
     h = np.where(valid, transform.height_mm(lab), np.nan)
