@@ -175,21 +175,21 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
-    from fppsim.formats import find_figshare_pair
-    from fppsim.readers import FOLDERS, PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
+    from fppsim.readers import PSPMatError, load_ipattern, open_source
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
         p = Path(item)
-        if p.is_dir() and (is_psp_folder(p) or (p / FOLDERS["image"][0]).is_dir()):  # only iPattern/ is read
+        src = open_source(p)
+        if src.kind in ("psp", "ipattern"):  # only the single-shot images are read
             try:
-                for sid in list_psp_ids(p, roles=("image",)):
-                    f = p / "iPattern" / f"{sid}.mat"
+                for sid in src.image_ids():
+                    f = src.ipattern_file(sid)
                     out.append((f"{p.name}_{sid}", encode_fringe(load_ipattern(f)), f))
             except PSPMatError as exc:
                 raise DataError(str(exc)) from None
-        elif p.is_dir() and find_figshare_pair(p) is not None:
-            fringe_path, _ = find_figshare_pair(p)
+        elif p.is_dir() and src.pair is not None:
+            fringe_path, _ = src.pair
             if not fringe_path.is_file():
                 raise DataError(f"{fringe_path}: file not found (figshare folder {p} without its fringes)")
             arr = as_image_stack(np.load(fringe_path, mmap_mode="r", allow_pickle=False), fringe_path)

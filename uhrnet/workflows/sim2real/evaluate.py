@@ -34,12 +34,13 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
-    from uhrnet.data import FigshareArrays, find_figshare_pair
+    from fppsim.readers import open_source
+    from uhrnet.data import FigshareArrays
     from uhrnet.errors import DataError
 
     out = []
     for f in folders:
-        if find_figshare_pair(f) is None:
+        if open_source(f).pair is None:
             raise Sim2RealError(f"{f}: no figshare-format pair (f1_80.npy + Z.npy, or fringe_pattern.npy + "
                                 "height_map.npy)")
         try:
@@ -53,14 +54,15 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
     """``[(folder, id), ...]`` of every frame of the real phase-shifting folders; error names a folder that is
     not one (``PSin/ PCos/ Fringe/ iPattern/`` with one ``<id>.mat`` each)."""
     from fppsim.errors import PSPMatError
-    from fppsim.readers import is_psp_folder, list_psp_ids
+    from fppsim.readers import open_source
 
     out = []
     for f in folders:
-        if not is_psp_folder(f):
+        src = open_source(f)
+        if src.kind != "psp":
             raise Sim2RealError(f"{f}: not a phase-shifting folder (PSin/, PCos/, Fringe/, iPattern/ of <id>.mat)")
         try:
-            out += [(str(f), sid) for sid in list_psp_ids(f)]
+            out += [(str(f), sid) for sid in src.ids()]
         except PSPMatError as exc:
             raise Sim2RealError(str(exc)) from None
     return out
