@@ -377,7 +377,8 @@ def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     from fppsim.rig_choice import resolve_rig
 
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
-    return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own, checkpoint=ckpt.get("path", "the checkpoint"))
+    return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own,
+                       checkpoint=ckpt.get("path", "the checkpoint"))
 
 
 def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
