@@ -46,7 +46,7 @@ from .files import atomic_write_text, check_output_file
 from .optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
 from .readers import load_fringe_images
 from .render import plane_geometry, projector_incidence
-from .rig import Rig, data_path, load_rig
+from .rig import Rig, check_image_size, data_path, load_rig
 
 __all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
            "format_optics_fit", "compare_before_after", "FitOpticsConfig", "FitOpticsResult", "fit_optics_images"]
@@ -268,12 +268,10 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     amb = _centre(d.ambient) if ambient is None else float(ambient)
     ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
     model = plane_model(rig)
-    shape = (rig.camera.height, rig.camera.width)
     per, tables = [], {}
     for im in images:
-        if im.gray.shape != shape:
-            raise ValueError(f"{im.name}: image is {im.gray.shape[1]} x {im.gray.shape[0]} px but the rig's camera is "
-                             f"{shape[1]} x {shape[0]}")
+        check_image_size(rig, im.gray.shape, im.name, error=ValueError, sep=" x ",
+                         template="{what}: image is {got} px but {who} {camera}")
         period = estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
         if not np.isfinite(period):
             per.append({"name": im.name} | {k: float("nan") for k in FITTED})

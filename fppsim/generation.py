@@ -26,7 +26,7 @@ from . import __version__
 from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
 from .files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
-from .formats import (LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
+from .formats import (FIGSHARE_PAIRS, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
 from .scene import MeshAsset, find_meshes, load_mesh
 from .synth import SynthConfig, synthesize
@@ -474,7 +474,7 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
                 rows.discard()
             folders = [native / sample_id(i) for i in wanted if (native / sample_id(i) / "meta.json").is_file()]
             n = export_figshare(native, out, label, folders=folders)
-        summary.figshare = f"{out / 'f1_80.npy'} + {out / 'Z.npy'} ({n} samples)"
+        summary.figshare = f"{out / FIGSHARE_PAIRS[0][0]} + {out / FIGSHARE_PAIRS[0][1]} ({n} samples)"
     return summary
 
 

@@ -15,11 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import RigError
 from .fringe import poly_basis
 from .phase import demodulate, mean_phasor, wrap
 from .readers import FringeImage
-from .rig import Rig
+from .rig import Rig, check_image_size
 
 __all__ = ["surface_phase", "centre_sensitivity", "demodulated_residual", "object_residual", "SensitivityCheck",
            "sensitivity_check"]
@@ -31,10 +30,9 @@ def surface_phase(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
 
     Exact for a height field: the point a pixel sees at height h is where its camera ray meets z = h.
     """
-    cam = rig.camera
     h = np.nan_to_num(np.asarray(height_mm, dtype=np.float64))
-    if h.shape != (cam.height, cam.width):
-        raise RigError(f"height map {h.shape[1]} x {h.shape[0]} px but the rig's camera is {cam.width} x {cam.height}")
+    check_image_size(rig, h.shape, "height map", sep=" x ",
+                     template="{what} {got} px but {who} {camera}")
     return rig.phase_at_height(h)
 
 

@@ -53,12 +53,13 @@ import numpy as np
 from .encoding import encode_fringe, json_default, read_gray_image
 from .errors import ConfigError, DatasetError, UsageError
 from .files import atomic_write_text, tmp_path
-from .formats import LabelTransform, manifest_ids
+from .formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
 from .owned import output_folder
 from .psp import decode_stacks
-from .readers import CONVENTIONS, FOLDERS, list_psp_ids, load_psp_folder_sample
+from .readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source
 from .reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
-from .rig import Rig, RigError, load_rig, usable_rig
+from .rig import Rig, RigError, check_image_size, usable_rig
+from .rig_choice import resolve_rig
 from .triangulation import height_from_phase
 from .writers import NpyRowStream
 
@@ -69,7 +70,7 @@ __all__ = ["LabelRealConfig", "LabelRealReport", "PlaneFit", "Scan", "label_real
 LAYOUTS = ("public", "native")
 REPORT_NAME = "label_real.json"
 PREVIEW_DIR = "previews"
-FRINGE_NAME, LABEL_NAME = "f1_80.npy", "Z.npy"
+FRINGE_NAME, LABEL_NAME = FIGSHARE_PAIRS[0]
 TOOL = "fppsim label-real"
 
 
@@ -194,17 +195,17 @@ def detect_layout(root: str | os.PathLike) -> str:
 
     Raises :class:`DatasetError` (one line naming ``root``) for anything else.
     """
-    root = Path(root)
-    if not root.exists():
+    src = open_source(root)
+    root = src.path
+    if src.kind == "missing":
         raise DatasetError(f"{root}: no such folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder")
-    if any((root / sub).is_dir() for sub, _ in FOLDERS.values()):
+    if src.is_psp:
         return "public"
-    if (root / "manifest.jsonl").is_file():
+    if src.has_manifest:
         return "native"
-    inner = sorted(d.name for d in root.iterdir() if d.is_dir() and (
-        any((d / sub).is_dir() for sub, _ in FOLDERS.values()) or (d / "manifest.jsonl").is_file()))
+    inner = src.scan_folders()
     if inner:  # a folder of scan folders: their ids may repeat, so one ROOT at a time
         raise DatasetError(f"{root}: holds scan folders ({', '.join(inner[:4])}{', ...' if len(inner) > 4 else ''}), "
                            f"not scans: pass one of them as ROOT (e.g. {root / inner[0]})")
@@ -229,16 +230,13 @@ def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:
 
 
 def _check_camera(rig: Rig, shape: tuple, where: str) -> None:
-    cam = rig.camera
-    if tuple(shape) != (cam.height, cam.width):
-        got = f"{shape[1]}x{shape[0]}" if len(shape) == 2 else str(shape)
-        raise ConfigError(f"rig camera is {cam.width}x{cam.height} but images are {got} ({where}); "
-                          "pass the rig of these scans with --rig")
+    check_image_size(rig, shape, where, who="rig camera is", hint="; pass the rig of these scans with --rig",
+                     error=ConfigError, template="{who} {camera} but images are {got} ({what}){hint}")
 
 
 def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
     s = load_psp_folder_sample(cfg.root, sid, convention=cfg.convention, negate_sin=cfg.negate_sin)
-    _check_camera(rig, s.image.shape, str(Path(cfg.root) / FOLDERS["image"][0] / f"{sid}.mat"))
+    _check_camera(rig, s.image.shape, str(open_source(cfg.root).ipattern_file(sid)))
     return Scan(id=sid, image=s.image, phase=s.phase, valid=s.valid & np.isfinite(s.phase),
                 periods=float(cfg.periods if cfg.periods is not None else rig.periods), rig=rig, source=s.path)
 
@@ -300,13 +298,7 @@ def iter_scans(cfg: LabelRealConfig, layout: str | None = None, ids: Sequence[st
 
 def _config_rig(cfg: LabelRealConfig, layout: str) -> tuple[Rig | None, str]:
     """``(rig, source)``; rig None = each native sample's recorded rig."""
-    if isinstance(cfg.rig, Rig):
-        return usable_rig(cfg.rig, "rig"), "given"
-    if cfg.rig is not None:
-        return load_rig(cfg.rig), str(cfg.rig)
-    if layout == "native":
-        return None, "each sample's meta.json"
-    return load_rig(None), "default (assets/default_rig.json)"
+    return resolve_rig(cfg.rig, per_sample=layout == "native")
 
 
 # ============================================================================================ labelling

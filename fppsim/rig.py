@@ -27,7 +27,8 @@ import numpy as np
 from .errors import RigError
 from .rig_files import checked_matrix, read_rig_file, rig_from_opencv_stereo, save_rig
 
-__all__ = ["Device", "Rig", "RigError", "checked_matrix", "data_path", "default_rig_path", "load_rig", "usable_rig",
+__all__ = ["Device", "Rig", "RigError", "check_image_size", "checked_matrix", "data_path", "default_rig_path", "load_rig",
+           "usable_rig",
            "make_default_rig",
            "make_figshare_like_rig", "make_parallel_rig", "projector_for", "rotation", "along_rays"]
 
@@ -519,6 +520,20 @@ def usable_rig(rig: Rig, source=None) -> Rig:
     except RigError as exc:
         raise RigError(f"{source}: {exc}" if source is not None else str(exc)) from None
     return rig
+
+
+def check_image_size(rig, shape, what: str, *, who: str = "the rig's camera is", hint: str = "", error=RigError,
+                     template: str = "{what}: image is {got} but {who} {camera}{hint}", sep: str = "x") -> None:
+    """THE check that an image (``shape`` (H, W)) is what a rig's camera sees: every command that reads
+    images through a rig calls it. ``rig``: a :class:`Rig`, a :class:`Device` or a rig document (dict);
+    raises ``error`` with ``template`` filled in (``got`` / ``camera``: ``W{sep}H``; ``who`` names the rig and
+    its verb, e.g. ``"the rig used by --refine (x.json) sees"``; ``hint``: the remedy)."""
+    cam = rig.camera if isinstance(rig, Rig) else rig if isinstance(rig, Device) else rig["camera"]
+    w, h = (cam.width, cam.height) if isinstance(cam, Device) else (int(cam["width"]), int(cam["height"]))
+    shape = tuple(shape)
+    if shape != (h, w):
+        got = f"{shape[1]}{sep}{shape[0]}" if len(shape) == 2 else str(shape)
+        raise error(template.format(what=what, got=got, who=who, camera=f"{w}{sep}{h}", hint=hint))
 
 
 # The real figshare rig is close to, but not exactly, parallel: its fringe period falls steadily from

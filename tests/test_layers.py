@@ -84,7 +84,7 @@ def test_the_command_line_lives_in_one_module_per_package():
 
 # ---------------------------------------------------------------------------- seams (issue 24)
 MAX_LINES = 650
-ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "mean_phasor", "lowpass", "demodulate",
+ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "open_source", "mean_phasor", "lowpass", "demodulate",
                   "demodulated_residual", "object_residual", "phase_at_height", "ray_cut")
 TWINS = {"wrap": ["fppsim/phase.py", "uhrnet/rig_layer.py"], "circular_mean": ["fppsim/phase.py", "uhrnet/rig_layer.py"],
          "_wrap": [], "wrap_phase": []}
@@ -313,3 +313,31 @@ def test_no_experiment_package_in_the_library():
     """The sim-to-real experiment lives in ``uhrnet.workflows.sim2real``; no ``uhrnet.sim2real`` shim."""
     assert not list((ROOT / "uhrnet" / "sim2real").glob("*.py"))
     assert (ROOT / "uhrnet" / "workflows" / "sim2real" / "__init__.py").is_file()
+
+
+# The names of the data layouts on disk (sub-folders and files). A string constant EQUAL to one of them
+# is code that recognises (or writes) that layout; docstrings, help and messages only mention them
+# inside longer text, so they are not counted.
+LAYOUT_NAMES = {"PSin", "PCos", "Fringe", "iPattern", "f1_80.npy", "Z.npy", "fringe_pattern.npy", "height_map.npy"}
+LAYOUT_HOMES = ("fppsim/readers/", "fppsim/formats.py", "fppsim/writers.py")
+
+
+def test_data_layouts_are_recognised_only_by_the_readers():
+    """Which layout a path holds is decided in one place (``fppsim.readers.open_source``, on the names the
+    contract ``fppsim.formats`` and ``fppsim.readers.psp_mat`` define); the writers write the same names.
+    No other module names a layout's file or folder: it asks the readers (or uses ``FIGSHARE_PAIRS``)."""
+    found = []
+    for _, path in _modules():
+        rel = path.relative_to(ROOT).as_posix()
+        if rel.startswith(LAYOUT_HOMES):
+            continue
+        found += [f"{rel}:{node.lineno} {node.value!r}" for node in ast.walk(ast.parse(path.read_text()))
+                  if isinstance(node, ast.Constant) and node.value in LAYOUT_NAMES]
+    assert not found, found
+    # and the phase-shifting folder is recognised by one function (is_psp_folder), called only by open_source
+    callers = set()
+    for _, path in _modules():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) == "is_psp_folder":
+                callers.add(path.relative_to(ROOT).as_posix())
+    assert callers == {"fppsim/readers/source.py"}, callers

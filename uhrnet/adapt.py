@@ -48,6 +48,7 @@ import numpy as np
 import torch
 
 from fppsim.phase import circular_mean, wrap
+from fppsim.rig import check_image_size
 from uhrnet.errors import ConfigError, UsageError
 from uhrnet.rig_layer import wrap as wrap_t
 
@@ -198,11 +199,11 @@ def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_r
 
 def _rig_for(cfg: AdaptConfig, ckpt: dict):
     """The rig and its name: ``--rig``, else the checkpoint's own, else fppsim's default (as predict's refine)."""
-    from fppsim.rig import RigError, load_rig
+    from fppsim.rig import RigError
     from uhrnet.prediction import refine_rig_for
 
     try:
-        return refine_rig_for(ckpt, load_rig(cfg.rig) if cfg.rig is not None else None, cfg.rig)
+        return refine_rig_for(ckpt, cfg.rig)
     except RigError as exc:
         raise ConfigError(f"--rig: {exc}") from None
 
@@ -261,12 +262,10 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     source = load_checkpoint(cfg.checkpoint, digest=True)
     rig, rig_name = _rig_for(cfg, source)
     device = select_device(cfg.device)
-    cam = rig.camera
     images = []
     for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
-        if fr.shape != (cam.height, cam.width):
-            raise ConfigError(f"{path}: image {name} is {fr.shape[1]}x{fr.shape[0]} but the rig's camera "
-                              f"({rig_name}) is {cam.width}x{cam.height}")
+        check_image_size(rig, fr.shape, f"{path}: image {name}", who=f"the rig's camera ({rig_name}) is",
+                         error=ConfigError, template="{what} is {got} but {who} {camera}{hint}")
         images.append(image_phase(name, fr, rig))
     if not any((im.reliability >= max(cfg.min_reliability, 1e-12)).any() for im in images):
         raise ConfigError(f"no pixel of the {len(images)} image(s) has a fringe phase reliability >= "

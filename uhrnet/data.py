@@ -29,8 +29,8 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
-from fppsim.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
-from fppsim.readers import open_figshare_pair
+from fppsim.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids
+from fppsim.readers import open_figshare_pair, open_source
 from uhrnet.errors import DataError
 from fppsim.readers import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
                             read_native_phase,
@@ -85,7 +85,7 @@ class FigshareArrays(Dataset):
                 raise DataError(f"{root}: folder not found")
             if not root.is_dir():
                 raise DataError(f"{root}: not a folder")
-            pair = find_figshare_pair(root) or (root / FIGSHARE_PAIRS[0][0], root / FIGSHARE_PAIRS[0][1])
+            pair = open_source(root).pair or (root / FIGSHARE_PAIRS[0][0], root / FIGSHARE_PAIRS[0][1])
             fringe = root / fringe if fringe is not None else pair[0]
             label = root / label if label is not None else pair[1]
             if not Path(fringe).exists() and not Path(label).exists() and not any(root.iterdir()):
@@ -140,7 +140,7 @@ class FppsimDataset(Dataset):
                  phase: bool = False):
         self.root = Path(folder)
         self.phase = bool(phase)
-        if self.phase and find_figshare_pair(self.root) is not None:
+        if self.phase and open_source(self.root).pair is not None:
             if not (self.root / "native" / "manifest.jsonl").is_file():
                 raise DataError(f"{self.root}: --head phase needs fppsim's native samples (phase_true); this figshare "
                                 "export has no native/ folder beside it")
@@ -156,7 +156,7 @@ class FppsimDataset(Dataset):
             raise DataError(f"{self.root}: folder not found")
         if not self.root.is_dir():
             raise DataError(f"{self.root}: not a folder")
-        if find_figshare_pair(self.root) is not None:
+        if open_source(self.root).pair is not None:
             check_export_labels(self.root, self.transform)
             self.arrays = FigshareArrays(self.root, transform=self.transform, check=check, source=source)
             self.ids = self.arrays.ids
@@ -192,8 +192,9 @@ class FppsimDataset(Dataset):
 
 
 def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:
-    """A figshare-layout folder or an fppsim native folder, whichever ``folder`` holds."""
-    if find_figshare_pair(folder) is not None:
+    """A figshare-layout folder or an fppsim native folder, whichever ``folder`` holds
+    (:func:`fppsim.readers.open_source` tells)."""
+    if open_source(folder).pair is not None:
         return FigshareArrays(folder, transform=transform, source=source, check=kw.get("check", True))
     return FppsimDataset(folder, transform=transform, source=source, **kw)
 
@@ -441,7 +442,7 @@ def load_sources(real: Sequence[str] = (), synthetic: Sequence[str] = (), transf
                                    phase=True)
             else:
                 kw = {"check": check}
-                if group == 1 and find_figshare_pair(folder) is None:
+                if group == 1 and open_source(folder).pair is None:
                     kw["label"] = synthetic_label
                 elif group == 1 and synthetic_label == "psp":
                     raise DataError(f"{folder}: --synthetic-label psp needs native samples with PSP arrays, but this "

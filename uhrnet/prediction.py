@@ -48,6 +48,7 @@ from fppsim.files import atomic_path
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data import parse_size
 from fppsim.readers import IMAGE_EXTS, read_fringe_image
+from fppsim.rig import check_image_size
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import prediction_of
@@ -174,21 +175,21 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
-    from fppsim.formats import find_figshare_pair
-    from fppsim.readers import FOLDERS, PSPMatError, is_psp_folder, list_psp_ids, load_ipattern
+    from fppsim.readers import PSPMatError, load_ipattern, open_source
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
         p = Path(item)
-        if p.is_dir() and (is_psp_folder(p) or (p / FOLDERS["image"][0]).is_dir()):  # only iPattern/ is read
+        src = open_source(p)
+        if src.kind in ("psp", "ipattern"):  # only the single-shot images are read
             try:
-                for sid in list_psp_ids(p, roles=("image",)):
-                    f = p / "iPattern" / f"{sid}.mat"
+                for sid in src.image_ids():
+                    f = src.ipattern_file(sid)
                     out.append((f"{p.name}_{sid}", encode_fringe(load_ipattern(f)), f))
             except PSPMatError as exc:
                 raise DataError(str(exc)) from None
-        elif p.is_dir() and find_figshare_pair(p) is not None:
-            fringe_path, _ = find_figshare_pair(p)
+        elif p.is_dir() and src.pair is not None:
+            fringe_path, _ = src.pair
             if not fringe_path.is_file():
                 raise DataError(f"{fringe_path}: file not found (figshare folder {p} without its fringes)")
             arr = as_image_stack(np.load(fringe_path, mmap_mode="r", allow_pickle=False), fringe_path)
@@ -242,10 +243,9 @@ def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
 
 def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
     """World points (H, W, 3) where each camera pixel's ray reaches world z = height (mm)."""
+    check_image_size(rig, height_mm.shape, "", who="the rig camera is", error=ConfigError,
+                     template="{who} {camera} but the image is {got}")
     cam = rig.camera
-    h, w = height_mm.shape
-    if (cam.width, cam.height) != (w, h):
-        raise ConfigError(f"the rig camera is {cam.width}x{cam.height} but the image is {w}x{h}")
     return cam.ray_cut(cam.pixel_grid(), height_mm.astype(np.float64))[1]
 
 
@@ -313,23 +313,20 @@ def predict(config: PredictConfig) -> PredictResult:
             rig = load_rig(config.rig)
         except RigError as exc:
             raise ConfigError(str(exc)) from None
-    refine_rig = None
+    refine_rig, rig_name = None, ""
     if config.refine == "phase":
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
     head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
+    checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
+              (rig if config.ply else None, f"the rig camera ({config.rig}) is", ""),
+              (refine_rig, f"the rig used by --refine ({rig_name}) sees", "")]
     for name, fringe, path in inputs:  # every size is checked before anything is written
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
                               f"{MIN_SIDE}x{MIN_SIDE} pixels")
-        if head_rig is not None and tuple(fringe.shape) != (head_rig["camera"]["height"], head_rig["camera"]["width"]):
-            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the checkpoint's phase head "
-                              f"sees {head_rig['camera']['width']}x{head_rig['camera']['height']} (its rig's camera)")
-        if rig is not None and config.ply and (rig.camera.height, rig.camera.width) != fringe.shape:
-            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig camera "
-                              f"({config.rig}) is {rig.camera.width}x{rig.camera.height}")
-        if refine_rig is not None and (refine_rig.camera.height, refine_rig.camera.width) != fringe.shape:
-            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]} but the rig used by --refine "
-                              f"({rig_name}) sees {refine_rig.camera.width}x{refine_rig.camera.height}")
+        for seen_by, who, hint in checks:
+            if seen_by is not None:
+                check_image_size(seen_by, fringe.shape, str(path), who=who, hint=hint, error=ConfigError)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
     from fppsim.owned import claim
@@ -374,16 +371,14 @@ def predict(config: PredictConfig) -> PredictResult:
 
 
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
-    """The rig ``--refine`` uses and its name: ``rig`` (``--rig``), else the checkpoint's own (physics head
-    or an adaptation's), else fppsim's default rig."""
-    from fppsim.rig import Rig, load_rig, usable_rig
+    """The rig ``--refine`` uses and its name: ``rig`` (``--rig``: a loaded rig named ``rig_path``, or a
+    file), else the checkpoint's own (physics head or an adaptation's), else fppsim's default rig
+    (:func:`fppsim.rig_choice.resolve_rig`)."""
+    from fppsim.rig_choice import resolve_rig
 
-    if rig is not None:
-        return rig, str(rig_path)
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
-    if own is not None:
-        return usable_rig(Rig.from_dict(own), f"{ckpt.get('path', 'the checkpoint')}: its rig"), "the checkpoint's rig"
-    return load_rig(None), "fppsim's default rig"
+    return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own,
+                       checkpoint=ckpt.get("path", "the checkpoint"))
 
 
 def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):

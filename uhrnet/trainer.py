@@ -431,29 +431,11 @@ def head_rig(rig: str | None, synthetic) -> dict:
     synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
     ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
     single rig its phases fit: refused."""
-    import json
-
-    from fppsim.formats import read_settings  # its DatasetError is a ValueError
-    from fppsim.rig import Rig, RigError, load_rig, usable_rig
+    from fppsim.rig import RigError
+    from fppsim.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
 
     try:
-        if rig:
-            return load_rig(rig).to_dict()
-        for folder in synthetic or ():
-            root = Path(folder) / "native" if (Path(folder) / "native").is_dir() else Path(folder)
-            d = read_settings(root)
-            if d is not None:
-                jitter = (d.get("config") or {}).get("rig_jitter")
-                values = jitter.values() if isinstance(jitter, dict) else jitter if isinstance(jitter, (list, tuple)) else [jitter or 0]
-                if any(float(v) for v in values):
-                    raise ConfigError(f"{root}: rendered with --rig-jitter {jitter}: its phases fit no single rig, "
-                                      "so the phase head cannot be trained on it (regenerate without jitter)")
-                if d.get("rig"):
-                    return usable_rig(Rig.from_dict(d["rig"]), f"{root}/dataset.json: its rig").to_dict()
-            meta = next(iter(sorted(root.glob("*/meta.json"))), None)  # samples written without dataset.json
-            if meta is not None:
-                return usable_rig(Rig.from_dict(json.loads(meta.read_text())["rig"]), f"{meta}: its rig").to_dict()
-        return load_rig(None).to_dict()
+        return resolve_rig(rig or None, datasets=synthetic or ())[0].to_dict()
     except (RigError, OSError, KeyError, ValueError) as exc:
         raise ConfigError(f"--rig: {exc}") from None
 

@@ -12,11 +12,15 @@ phase-shifting ``.mat``       :func:`load_psp_mat` (one file), :func:`list_psp_i
                               :func:`load_psp_folder_sample`, :func:`iter_psp_folder` (PSin/PCos/Fringe/
                               iPattern folders)
 real images for fitting       :func:`load_fringe_images` (the five layouts above plus image files)
+which layout a path holds     :func:`open_source` -> :class:`Source` (``.kind``, ``fringe_images()``,
+                              ``height_labels()``, ``phase()``, ``ids()``): THE recognition of every
+                              layout above, which every command asks
 ============================  =====================================================================
 
 The file names and the label transform are the contract of :mod:`fppsim.formats`; the writers of the
 same layouts are in :mod:`fppsim.writers`. Submodules: :mod:`.datasets` (native, figshare, any
-layout), :mod:`.psp_mat` (``.mat`` files), :mod:`.fringe_images` (real images for fitting).
+layout), :mod:`.psp_mat` (``.mat`` files), :mod:`.fringe_images` (real images for fitting),
+:mod:`.source` (which layout a path holds).
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from .fringe_images import IMAGE_EXTS, FringeImage, load_fringe_images, read_ima
 from .psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER_KEYS, SIN_KEYS, PspMat, PSPMatError, check_convention,
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, read_mat_variable, wrapped_from_sums)
+from .source import PAIR_KINDS, PSP_KINDS, Source, open_source
 
 __all__ = [
     # native, figshare, any layout
@@ -39,6 +44,8 @@ __all__ = [
     "PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "FOLDERS", "CONVENTIONS", "check_convention",
     "load_psp_mat", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable", "load_ipattern",
     "load_psp_folder_sample", "iter_psp_folder",
+    # which layout a path holds
+    "Source", "open_source", "PSP_KINDS", "PAIR_KINDS",
     # real images for fitting
     "FringeImage", "IMAGE_EXTS", "load_fringe_images", "read_image_file",
 ]

@@ -24,7 +24,8 @@ import numpy as np
 
 from ..encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from ..errors import DatasetError
-from ..formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids, read_settings
+from ..formats import PRESETS, LabelTransform, manifest_ids, read_settings
+from .source import open_source
 
 __all__ = ["READ_ERRORS", "LABEL_SOURCES", "load_native_sample", "read_native_label", "read_fringe_image",
            "read_native_pair", "read_native_phase", "check_psp_available", "open_figshare_pair", "check_figshare_arrays",
@@ -243,13 +244,13 @@ class SampleReader:
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: not a folder")
         self._fringes = self._labels = None
-        for layout, (f, z) in zip(("figshare", "real-sample"), FIGSHARE_PAIRS):
-            if (self.path / f).is_file() and (self.path / z).is_file():
-                self.layout = layout
-                self._fringes, self._labels = open_figshare_pair(self.path / f, self.path / z)
-                self.ids = [str(i) for i in range(len(self._fringes))]
-                return
-        if (self.path / "manifest.jsonl").is_file():
+        src = open_source(self.path)
+        if src.complete_pair is not None:
+            self.layout, f, z = src.complete_pair
+            self._fringes, self._labels = open_figshare_pair(f, z)
+            self.ids = [str(i) for i in range(len(self._fringes))]
+            return
+        if src.has_manifest:
             self.layout = "native"
             self.ids = [s for s in manifest_ids(self.path)
                         if (self.path / s / "fringe.png").is_file() and (self.path / s / "arrays.npz").is_file()]

@@ -19,7 +19,8 @@ import numpy as np
 from ..errors import PSPMatError
 from ..fringe import phase_plane_masks, plane_level
 from .datasets import open_samples, pick_evenly
-from .psp_mat import is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
+from .psp_mat import load_ipattern, load_psp_folder_sample
+from .source import IMAGE_EXTS, open_source
 
 __all__ = ["FringeImage", "IMAGE_EXTS", "load_fringe_images", "read_image_file"]
 
@@ -45,9 +46,6 @@ class FringeImage:
         return self.valid if self.plane is None else self.plane
 
 
-IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
-
-
 def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0) -> tuple[list[FringeImage], str]:
     """Real fringe images from a folder: figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair,
     native fppsim, the PSin/PCos/Fringe/iPattern layout (or just ``iPattern/``), or a folder of 8-bit
@@ -58,16 +56,17 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
     the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
     evenly spaced images. Returns ``(images, layout)``; ValueError if nothing is readable.
     """
-    path = Path(path)
-    if path.is_file() and path.suffix.lower() in IMAGE_EXTS:
+    src = open_source(path)
+    path = src.path
+    if src.kind == "image":
         return [read_image_file(path)], "image"
     if not path.is_dir():
         raise ValueError(f"{path}: not a folder or image file")
 
-    if is_psp_folder(path) or (path / "iPattern").is_dir():
-        full = is_psp_folder(path)
+    if src.kind in ("psp", "ipattern"):
+        full = src.kind == "psp"
         try:
-            ids = list_psp_ids(path, ("sin", "cos", "order", "image") if full else ("image",))
+            ids = src.ids()
             out = []
             for i in pick_evenly(len(ids), max_images):
                 sid = ids[int(i)]
@@ -77,7 +76,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
                     plane, obj = phase_plane_masks(s.phase, valid)
                     out.append(FringeImage(s.image, valid, sid, plane, obj))
                 else:
-                    img = load_ipattern(path / "iPattern" / f"{sid}.mat")
+                    img = load_ipattern(src.ipattern_file(sid))
                     out.append(FringeImage(img, img > 0, sid))
         except PSPMatError as exc:
             raise ValueError(str(exc)) from None

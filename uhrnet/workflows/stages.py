@@ -14,6 +14,7 @@ from typing import Callable
 import numpy as np
 
 from fppsim.errors import FppsimError
+from fppsim.formats import FIGSHARE_PAIRS
 from uhrnet.errors import Sim2RealError, UhrnetError
 
 __all__ = ["run_stage", "run_history", "run_epochs", "run_done", "dataset_count", "fresh"]
@@ -22,7 +23,7 @@ __all__ = ["run_stage", "run_history", "run_epochs", "run_done", "dataset_count"
 def dataset_count(folder: str | Path) -> int:
     """Samples of the figshare-format dataset in ``folder`` (its ``Z.npy``); 0 when there is none (or it
     cannot be read)."""
-    z = Path(folder) / "Z.npy"
+    z = Path(folder) / FIGSHARE_PAIRS[0][1]
     if not z.is_file():
         return 0
     try:

@@ -25,6 +25,7 @@ import numpy as np
 
 from fppsim.encoding import encode_fringe
 from fppsim.files import atomic_write_text
+from fppsim.rig import check_image_size
 from uhrnet.errors import Sim2RealError
 
 __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real", "evaluate_real_phase",
@@ -33,12 +34,13 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
-    from uhrnet.data import FigshareArrays, find_figshare_pair
+    from fppsim.readers import open_source
+    from uhrnet.data import FigshareArrays
     from uhrnet.errors import DataError
 
     out = []
     for f in folders:
-        if find_figshare_pair(f) is None:
+        if open_source(f).pair is None:
             raise Sim2RealError(f"{f}: no figshare-format pair (f1_80.npy + Z.npy, or fringe_pattern.npy + "
                                 "height_map.npy)")
         try:
@@ -52,14 +54,15 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
     """``[(folder, id), ...]`` of every frame of the real phase-shifting folders; error names a folder that is
     not one (``PSin/ PCos/ Fringe/ iPattern/`` with one ``<id>.mat`` each)."""
     from fppsim.errors import PSPMatError
-    from fppsim.readers import is_psp_folder, list_psp_ids
+    from fppsim.readers import open_source
 
     out = []
     for f in folders:
-        if not is_psp_folder(f):
+        src = open_source(f)
+        if src.kind != "psp":
             raise Sim2RealError(f"{f}: not a phase-shifting folder (PSin/, PCos/, Fringe/, iPattern/ of <id>.mat)")
         try:
-            out += [(str(f), sid) for sid in list_psp_ids(f)]
+            out += [(str(f), sid) for sid in src.ids()]
         except PSPMatError as exc:
             raise Sim2RealError(str(exc)) from None
     return out
@@ -79,14 +82,14 @@ def _refine_rig(ck: dict, refine: str | None, rig: str | Path | None):
     """The rig ``refine`` uses (None without ``refine``) and its name."""
     if refine is None:
         return None, None
-    from fppsim.rig import RigError, load_rig
+    from fppsim.rig import RigError
     from uhrnet.prediction import refine_rig_for
     from uhrnet.refine import REFINE_METHODS
 
     if refine not in REFINE_METHODS:
         raise Sim2RealError(f"refine method {refine!r} unknown (known: {', '.join(REFINE_METHODS)})")
     try:
-        return refine_rig_for(ck, load_rig(rig) if rig else None, rig)
+        return refine_rig_for(ck, rig or None)
     except RigError as exc:
         raise Sim2RealError(f"rig: {exc}") from None
 
@@ -97,10 +100,8 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     keep their label."""
     from uhrnet.prediction import refine_with_phase
 
-    cam = rig.camera
-    if (cam.height, cam.width) != fringe.shape:
-        raise Sim2RealError(f"refine: image is {fringe.shape[1]}x{fringe.shape[0]} but {rig_name} sees "
-                            f"{cam.width}x{cam.height} (give the real data's rig: --rig FILE)")
+    check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
+                     error=Sim2RealError)
     lab = np.asarray(label, np.float64)
     valid = np.asarray(transform.valid(lab)) & (np.asarray(fringe) > -1 + 1e-6)
     h = np.where(valid, transform.height_mm(lab), np.nan)
