@@ -258,7 +258,7 @@ def test_ddp_two_cpu_processes_write_one_history(tmp_path):
     assert [r["epoch"] for r in rows] == ["1", "2"]
     ckpt = load_checkpoint(run / "last.pt")
     assert ckpt["world_size"] == 2 and len(ckpt["rng"]) == 2
-    assert sorted(p.name for p in run.iterdir()) == ["best.pt", "config.json", "history.csv", "history.png", "last.pt"]
+    assert sorted(p.name for p in run.iterdir()) == [".fppsim-owned.json", "best.pt", "config.json", "history.csv", "history.png", "last.pt"]
 
 
 def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
