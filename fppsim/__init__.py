@@ -9,8 +9,8 @@ Library entry points (the ``fppsim`` command line calls the same)::
     fppsim.generate(fppsim.GenerateConfig(meshes=[...], out="data", count=100))
     fppsim.validate_psp(fppsim.ValidateConfig(dataset="data", out="report"))
 
-The dataset contract both fppsim and uhrnet use lives in :mod:`fppsim.formats`. Attributes are
-imported lazily, so ``import fppsim.formats`` does not load the renderer.
+The dataset contract both fppsim and uhrnet use lives in :mod:`fppsim.dataio.formats`. Attributes are
+imported lazily, so ``import fppsim.dataio.formats`` does not load the renderer.
 """
 
 __version__ = "0.1.0"
@@ -22,11 +22,11 @@ _LAZY = {
     "merge": ("fppsim.generation", "merge"),
     "validate_psp": ("fppsim.validate", "validate_psp"),
     "ValidateConfig": ("fppsim.validate", "ValidateConfig"),
-    "compare_real": ("fppsim.compare", "compare_real"),
-    "label_real": ("fppsim.label_real", "label_real"),
-    "LabelRealConfig": ("fppsim.label_real", "LabelRealConfig"),
-    "LabelTransform": ("fppsim.formats", "LabelTransform"),
-    "Rig": ("fppsim.rig", "Rig"),
+    "compare_real": ("fppsim.fitting.compare", "compare_real"),
+    "label_real": ("fppsim.fitting.label_real", "label_real"),
+    "LabelRealConfig": ("fppsim.fitting.label_real", "LabelRealConfig"),
+    "LabelTransform": ("fppsim.dataio.formats", "LabelTransform"),
+    "Rig": ("fppsim.geometry.rig", "Rig"),
 }
 
 __all__ = ["__version__", *_LAZY]

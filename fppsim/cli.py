@@ -5,11 +5,11 @@ calls one plain function a Python user can call too:
 
     generate      -> fppsim.generate(GenerateConfig)            (fppsim.generation)
     merge         -> fppsim.generation.merge(out, shards)
-    compare-real  -> fppsim.compare.compare_real(real, synthetic, json_path=...)
+    compare-real  -> fppsim.fitting.compare.compare_real(real, synthetic, json_path=...)
     validate-psp  -> fppsim.validate.validate_psp(ValidateConfig)
-    fit-rig       -> fppsim.fit_rig.fit_rig_images(FitRigConfig)
-    fit-optics    -> fppsim.fit_optics.fit_optics_images(FitOpticsConfig)
-    label-real    -> fppsim.label_real.label_real(LabelRealConfig)
+    fit-rig       -> fppsim.fitting.fit_rig.fit_rig_images(FitRigConfig)
+    fit-optics    -> fppsim.fitting.fit_optics.fit_optics_images(FitOpticsConfig)
+    label-real    -> fppsim.fitting.label_real.label_real(LabelRealConfig)
 
 Units: millimetres and radians; images are 8-bit. Usage errors (bad flags, and a library
 :class:`fppsim.errors.UsageError`) exit 2; other errors of the library (:mod:`fppsim.errors`), bad
@@ -25,7 +25,7 @@ import logging
 import sys
 from pathlib import Path
 
-from .commands import Command, build_command_parser, run_commands
+from fppsim.commands import Command, build_command_parser, run_commands
 
 __all__ = ["main", "build_parser", "COMMANDS"]
 
@@ -89,7 +89,7 @@ def _optics_override(text: str) -> tuple[str, list[float]]:
 
 
 def _optics_names() -> str:
-    from .optics import OPTICS_UNITS, OpticsRanges
+    from fppsim.rendering.optics import OPTICS_UNITS, OpticsRanges
 
     return ", ".join(f"{k} ({OPTICS_UNITS[k]})" if k in OPTICS_UNITS else k for k in OpticsRanges.range_names())
 
@@ -100,7 +100,7 @@ def _overrides(pairs) -> dict:
 
 def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
     """Flags shared by `generate` and `validate-psp --meshes` (same names, same parsing)."""
-    from .generation import SUPERSAMPLE
+    from fppsim.generation import SUPERSAMPLE
 
     p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
     p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
@@ -122,8 +122,8 @@ def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
 
 # ============================================================================ generate
 def add_generate(p: argparse.ArgumentParser) -> None:
-    from .generation import FORMATS
-    from .render import BACKENDS
+    from fppsim.generation import FORMATS
+    from fppsim.rendering.render import BACKENDS
 
     p.add_argument("--meshes", nargs="+", required=True, metavar="PATH",
                    help="mesh files or folders (any format trimesh reads: OBJ, PLY, STL, OFF, GLB); "
@@ -176,7 +176,7 @@ def _jitter(text: str) -> tuple[float, float]:
 def add_realism_arguments(p: argparse.ArgumentParser) -> None:
     """Sim-to-real options (opt-in until measured on real data): procedural sculptures, per-sample rig jitter."""
     p.add_argument("--procedural-share", type=_fraction, default=None, metavar="P",
-                   help="chance that each object is a procedural sculpture (fppsim.shapes.procedural: busts, "
+                   help="chance that each object is a procedural sculpture (fppsim.rendering.shapes.procedural: busts, "
                         "masks, figurines, animals, reliefs, vases with multi-scale surface detail) instead of "
                         "one of --meshes (default 0; 1 when --meshes is just 'procedural')")
     p.add_argument("--procedural-pool", type=_positive_int, default=96, metavar="N",
@@ -193,8 +193,8 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
 def generate_options(args) -> dict:
     """The ``GenerateConfig`` fields the ``generate`` flags ``args`` give (``rig``: the file name or
     None, not loaded); ``uhrnet sim2real`` turns variant flags into overrides with it."""
-    from .formats import PRESETS, LabelTransform
-    from .generation import read_optics_file
+    from fppsim.dataio.formats import PRESETS, LabelTransform
+    from fppsim.generation import read_optics_file
 
     optics = read_optics_file(args.optics_file) if args.optics_file else {}
     optics.update(_overrides(args.optics))
@@ -213,8 +213,8 @@ def generate_options(args) -> dict:
 
 
 def run_generate(args) -> int:
-    from .generation import GenerateConfig, generate
-    from .rig import load_rig
+    from fppsim.generation import GenerateConfig, generate
+    from fppsim.geometry.rig import load_rig
 
     rig = load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
     summary = generate(GenerateConfig(**{**generate_options(args), "rig": rig}))
@@ -231,7 +231,7 @@ def add_merge(p: argparse.ArgumentParser) -> None:
 
 
 def run_merge(args) -> int:
-    from .generation import merge
+    from fppsim.generation import merge
 
     n, fig, missing = merge(args.out, args.shards, link=not args.copy)
     print(f"merged {n} samples into {args.out}" + (f" (figshare arrays in {fig})" if fig else ""))
@@ -252,7 +252,7 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
 
 
 def run_compare_real(args) -> int:
-    from .compare import compare_real, format_comparison
+    from fppsim.fitting.compare import compare_real, format_comparison
 
     result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json)
     print(format_comparison(result))
@@ -261,7 +261,7 @@ def run_compare_real(args) -> int:
 
 # ============================================================================ validate-psp
 def add_validate(p: argparse.ArgumentParser) -> None:
-    from .validate import DEFAULT_SWEEP
+    from fppsim.validate import DEFAULT_SWEEP
 
     p.description = (
         "Measure how far phase-shifting (PSP) ground truth is from the exact height: per sample RMSE, "
@@ -290,7 +290,7 @@ def add_validate(p: argparse.ArgumentParser) -> None:
 
 
 def run_validate(args) -> int:
-    from .validate import ValidateConfig, format_sweep_table, format_table, validate_psp
+    from fppsim.validate import ValidateConfig, format_sweep_table, format_table, validate_psp
 
     config = ValidateConfig(
         out=args.out, dataset=args.dataset, meshes=args.meshes, count=args.count, seed=args.seed, rig=args.rig,
@@ -311,7 +311,7 @@ def run_validate(args) -> int:
 
 # ============================================================================ fit-rig, fit-optics
 def _params(text: str) -> tuple[str, ...]:
-    from .fit_rig import PARAMETERS
+    from fppsim.fitting.fit_rig import PARAMETERS
 
     names = tuple(p.strip() for p in text.split(",") if p.strip())
     bad = [p for p in names if p not in PARAMETERS]
@@ -332,20 +332,20 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                         "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
                         "periods (across the projector), focal (projector px), distance (camera height, mm: with "
                         "height labels, fits how the sensitivity grows with height, and the baseline with it; "
-                        "fppsim.fit_depth) [yaw,roll,periods]")
+                        "fppsim.fitting.fit_depth) [yaw,roll,periods]")
     p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
     p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
     p.add_argument("--sensitivity", choices=("auto", "off"), default="auto",
                    help="auto: when the images have height labels, first choose the baseline whose fringe shift "
-                        "per mm matches them (re-projected labels vs the real fringes; fppsim.fit_rig.fit_baseline), "
+                        "per mm matches them (re-projected labels vs the real fringes; fppsim.fitting.fit_rig.fit_baseline), "
                         "then fit --params at that baseline; off: keep the base rig's baseline [auto]")
     p.add_argument("--json", metavar="FILE", help="also write measured / base / fitted band periods as JSON")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
 
 
 def run_fit_rig(args) -> int:
-    from .fit_rig import FitRigConfig, fit_rig_images
+    from fppsim.fitting.fit_rig import FitRigConfig, fit_rig_images
 
     fit_rig_images(FitRigConfig(
         real=args.real, out=args.out, base=args.base, params=tuple(args.params), col_bands=args.col_bands,
@@ -371,7 +371,7 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_optics(args) -> int:
-    from .fit_optics import FitOpticsConfig, fit_optics_images
+    from fppsim.fitting.fit_optics import FitOpticsConfig, fit_optics_images
 
     fit_optics_images(FitOpticsConfig(
         real=args.real, out=args.out, rig=args.rig, max_images=args.max_images, compare=args.compare,
@@ -425,7 +425,7 @@ def add_label_real(p: argparse.ArgumentParser) -> None:
 
 
 def run_label_real(args) -> int:
-    from .label_real import LabelRealConfig, label_real
+    from fppsim.fitting.label_real import LabelRealConfig, label_real
 
     config = LabelRealConfig(
         root=args.root, out=args.out, rig=args.rig, phase_offset=args.phase_offset, periods=args.periods,
@@ -473,7 +473,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from .errors import FppsimError, UsageError
+    from fppsim.errors import FppsimError, UsageError
 
     # ValueError/OSError: bad values and unreadable/unwritable files surface as one line, like ours
     return run_commands(build_parser(), COMMANDS, argv, (FppsimError, ValueError), _setup_logging,

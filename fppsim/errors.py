@@ -37,7 +37,7 @@ class MeshError(FppsimError, ValueError):
 
 
 class PlyError(FppsimError, ValueError):
-    """A PLY file fppsim's own reader cannot parse (:mod:`fppsim.meshio`)."""
+    """A PLY file fppsim's own reader cannot parse (:mod:`fppsim.rendering.meshio`)."""
 
 
 class GenerateError(FppsimError, RuntimeError):
@@ -65,4 +65,4 @@ class FolderBusy(FppsimError, RuntimeError):
 
 
 class ForeignFiles(DatasetError):
-    """An output path a tool would write already holds a file it did not write (:mod:`fppsim.owned`)."""
+    """An output path a tool would write already holds a file it did not write (:mod:`fppsim.dataio.owned`)."""

@@ -2,12 +2,12 @@
 
 ``fppsim.generate(GenerateConfig(meshes=[...], out=..., count=N))`` is the whole run as the command
 line does it (rig file, optics overrides, label preset, preview); :func:`generate_dataset` is the
-same run over an already-built :class:`fppsim.synth.SynthConfig`.
+same run over an already-built :class:`fppsim.rendering.synth.SynthConfig`.
 
 A run owns an output folder. ``dataset.json`` records the settings; re-running the same command on
 the same folder first reconciles it (temporary folders removed, manifest rebuilt from the complete
 sample folders) and then produces only the missing samples, so an interrupted run completes without
-duplicates. Samples are independent of the worker count (see :mod:`fppsim.synth`).
+duplicates. Samples are independent of the worker count (see :mod:`fppsim.rendering.synth`).
 """
 
 from __future__ import annotations
@@ -22,18 +22,18 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Sequence
 
 
-from . import __version__
-from .errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
-from .files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
+from fppsim import __version__
+from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
+from fppsim.dataio.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
-from .formats import (FIGSHARE_PAIRS, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
+from fppsim.dataio.formats import (FIGSHARE_PAIRS, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
-from .scene import MeshAsset, find_meshes, load_mesh
-from .synth import SynthConfig, synthesize
-from .writers import export_figshare, write_sample_folder
+from fppsim.rendering.scene import MeshAsset, find_meshes, load_mesh
+from fppsim.rendering.synth import SynthConfig, synthesize
+from fppsim.dataio.writers import export_figshare, write_sample_folder
 
 if TYPE_CHECKING:
-    from .rig import Rig
+    from fppsim.geometry.rig import Rig
 
 log = logging.getLogger("fppsim")
 
@@ -72,7 +72,7 @@ class RunSummary:
         return out
 
 
-PROCEDURAL = "procedural"  # a --meshes entry that stands for fppsim.shapes.procedural sculptures
+PROCEDURAL = "procedural"  # a --meshes entry that stands for fppsim.rendering.shapes.procedural sculptures
 
 
 @dataclass
@@ -84,7 +84,7 @@ class GenerateConfig:
     depends only on (seed, i). rig : calibration file, a :class:`Rig`, or None for the packaged
     default rig. objects : (lo, hi) objects per scene. format : one of :data:`FORMATS`. shard : (i, n)
     to generate only every n-th sample from i. supersample : one of :data:`SUPERSAMPLE`. optics :
-    optics range overrides ``{name: value or [lo, hi]}`` (names of :class:`fppsim.optics.OpticsRanges`;
+    optics range overrides ``{name: value or [lo, hi]}`` (names of :class:`fppsim.rendering.optics.OpticsRanges`;
     :func:`read_optics_file` reads them from a file). psp_freqs : unwrapping ladder starting at 1 and
     ending at the rig's frequency; () skips the phase-shifting images. label : figshare label
     transform. procedural_share : chance that an object is a procedural sculpture (None: 1 when
@@ -149,7 +149,7 @@ class GenerateConfig:
                 raise UsageError(f"--psp-freqs ladder must start at 1 and increase, got {list(f)}")
             if self.psp_steps < 3:
                 raise UsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
-        from .optics import OpticsRanges
+        from fppsim.rendering.optics import OpticsRanges
 
         try:
             OpticsRanges.from_dict(dict(self.optics))
@@ -186,16 +186,16 @@ class GenerateConfig:
         return 1.0 if not self.mesh_paths else 0.0
 
     def jitter(self):
-        from .jitter import RigJitter
+        from fppsim.geometry.jitter import RigJitter
 
         return RigJitter(*self.rig_jitter)
 
     def synth_config(self) -> SynthConfig:
         """The renderer's configuration: loads the rig and checks the ladder against it
         (:class:`RigError` / :class:`ConfigError`)."""
-        from .optics import OpticsRanges
-        from .rig import Rig, load_rig
-        from .scene import SceneRanges
+        from fppsim.rendering.optics import OpticsRanges
+        from fppsim.geometry.rig import Rig, load_rig
+        from fppsim.rendering.scene import SceneRanges
 
         rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig)
         optics = OpticsRanges.from_dict(dict(self.optics))
@@ -214,7 +214,7 @@ def read_optics_file(path: str | os.PathLike) -> dict:
     (:class:`ConfigError` naming the file)."""
     import yaml
 
-    from .optics import OpticsRanges
+    from fppsim.rendering.optics import OpticsRanges
 
     p = Path(path)
     if not p.is_file():
@@ -239,7 +239,7 @@ def generate(config: GenerateConfig) -> RunSummary:
                                shard=config.shard, label=config.label, noise_free=config.noise_free,
                                progress=config.progress, backend=config.backend)
     if config.preview:
-        from .preview import write_preview
+        from fppsim.rendering.preview import write_preview
 
         root = Path(config.out) / ("native" if config.format == "figshare" else "")
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
@@ -273,8 +273,8 @@ _WORKER: dict = {}
 
 
 def _worker_init(assets, config, seed, out, noise_free, label=None, backend=None, pool_worker=False):
-    from .writers import BackgroundWriter
-    from .render import DepthRenderer
+    from fppsim.dataio.writers import BackgroundWriter
+    from fppsim.rendering.render import DepthRenderer
 
     if pool_worker:  # only the parent reacts to Ctrl-C/SIGTERM (it terminates the pool); no orphans
         ignore_sigint()
@@ -301,7 +301,7 @@ def _worker_run_chunk(indices: list[int]) -> list[tuple]:
     Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
     chunk is complete on disk, so the manifest never lists a sample still being written.
     """
-    from .writers import figshare_rows
+    from fppsim.dataio.writers import figshare_rows
 
     w = _WORKER
     out = []
@@ -363,14 +363,14 @@ def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthCo
     ``fmt="figshare"`` keeps the native samples in ``out/native`` and writes ``out/f1_80.npy`` and
     ``out/Z.npy`` at the end.
     """
-    from .rig import Rig
+    from fppsim.geometry.rig import Rig
 
     t0 = time.perf_counter()
     if count < 1:
         raise GenerateError(f"--count must be >= 1, got {count}")
     if fmt not in FORMATS:
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
-    from .render import select_backend
+    from fppsim.rendering.render import select_backend
 
     backend = select_backend(backend)  # before the workers spawn: they inherit the platform
     config = config or SynthConfig(rig=Rig.default())
@@ -423,7 +423,7 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     # figshare rows come back with the samples when this run produces all of them (else: read back)
     rows = None
     if fmt == "figshare" and todo and not summary.existing:
-        from .writers import FigshareRows
+        from fppsim.dataio.writers import FigshareRows
 
         rows = FigshareRows(out, len(wanted), config.rig.camera.height, config.rig.camera.width)
     position = {index: k for k, index in enumerate(wanted)}

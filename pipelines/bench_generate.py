@@ -38,13 +38,13 @@ ROOT = Path(__file__).resolve().parent.parent
 def _pipeline_block(indices, assets, config, renderer, writer, tmp, write):
     """Wall and CPU seconds to produce (and write, on the writer thread) the samples ``indices``."""
     try:
-        from fppsim.writers import write_sample_folder
-    except ImportError:  # trees before fppsim.writers (fppsim.formats), or before the contract module (fppsim.dataset)
+        from fppsim.dataio.writers import write_sample_folder
+    except ImportError:  # trees before fppsim.dataio.writers (fppsim.dataio.formats), or before the contract module (fppsim.dataset)
         try:
-            from fppsim.formats import write_sample_folder
+            from fppsim.dataio.formats import write_sample_folder
         except ImportError:
             from fppsim.dataset import write_sample_folder
-    from fppsim.synth import synthesize
+    from fppsim.rendering.synth import synthesize
 
     attempts = {}
     w0, c0 = time.perf_counter(), time.process_time()
@@ -62,7 +62,7 @@ def _floor_block(indices, attempts, assets, config, renderer):
     """Wall and CPU seconds of the two bare depth renders of the same scenes."""
     import numpy as np
 
-    from fppsim.scene import sample_scene
+    from fppsim.rendering.scene import sample_scene
 
     rig = config.rig
     scenes = []
@@ -123,12 +123,12 @@ def main(argv=None) -> int:
     except ImportError:  # trees before the library/CLI split (fppsim.generate was the module)
         from fppsim.generate import load_assets
     try:
-        from fppsim.writers import BackgroundWriter
-    except ImportError:  # trees before fppsim.writers
+        from fppsim.dataio.writers import BackgroundWriter
+    except ImportError:  # trees before fppsim.dataio.writers
         from fppsim.pipeline import BackgroundWriter
-    from fppsim.render import DepthRenderer
-    from fppsim.rig import Rig
-    from fppsim.synth import SynthConfig, synthesize
+    from fppsim.rendering.render import DepthRenderer
+    from fppsim.geometry.rig import Rig
+    from fppsim.rendering.synth import SynthConfig, synthesize
 
     assets, skipped = load_assets([args.mesh])
     if not assets:

@@ -158,7 +158,7 @@ def stage(out: Path, name: str, fn, echo=print) -> float:
 
 def generate_synthetic(args, out: Path) -> Path:
     """Recipe (a)'s data: ``fppsim generate --meshes M --count N --seed S --workers W --no-psp --format figshare``."""
-    from fppsim.formats import PRESETS
+    from fppsim.dataio.formats import PRESETS
     from fppsim.generation import GenerateConfig, generate
 
     data = out / "syn"
@@ -203,8 +203,8 @@ def check_settings(run: Path, options: dict) -> None:
 
 def train_run(out: Path, name: str, run: Path, epochs: int, **options) -> dict:
     """Train ``run`` to ``epochs`` epochs (``uhrnet.train(TrainConfig(...))``), resuming its last.pt."""
-    from uhrnet.train_config import TrainConfig
-    from uhrnet.trainer import train
+    from uhrnet.training.train_config import TrainConfig
+    from uhrnet.training.trainer import train
 
     check_settings(run, options)
     done = run_epochs(run)
@@ -242,7 +242,7 @@ def arm_options(args, arm: str, syn_cfg: dict, syn_ckpt: Path, syn_data: Path, d
 def evaluate_arm(args, out: Path, arm: str, ckpt: Path, labelled: dict) -> dict:
     """Phase residual on --phase-root, mm on its label-real labels (``labelled``: key -> folder, one per rig)
     and on the pair (see the docstring)."""
-    from uhrnet.phase_residual import PhaseEvalConfig, evaluate_phase_folder
+    from uhrnet.scoring.phase_residual import PhaseEvalConfig, evaluate_phase_folder
     from uhrnet.workflows.sim2real import evaluate_real
 
     ev = out / "eval" / arm
@@ -265,7 +265,7 @@ def evaluate_arm(args, out: Path, arm: str, ckpt: Path, labelled: dict) -> dict:
 
 def label_heldout(args, out: Path, rig: str | None, name: str) -> tuple[Path, dict]:
     """``fppsim label-real PHASE_ROOT --out OUT/labels/NAME [--rig RIG]`` (phase offset auto)."""
-    from fppsim.label_real import LabelRealConfig, label_real
+    from fppsim.fitting.label_real import LabelRealConfig, label_real
 
     dest = out / "labels" / name
     report = dest / "label_real.json"
@@ -337,7 +337,7 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
     """Bars of the two held-out scores per arm, and the held-out frame's label and predictions (mm)."""
     import numpy as np
 
-    from fppsim.formats import PRESETS
+    from fppsim.dataio.formats import PRESETS
     from fppsim.plots import pyplot, save_figure
 
     fig_t = PRESETS["figshare"]
@@ -386,9 +386,9 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
 
 # ============================================================================================ main
 def run(args, argv: list[str]) -> dict:
-    from fppsim.files import atomic_write_text, folder_lock
+    from fppsim.dataio.files import atomic_write_text, folder_lock
     from uhrnet.checkpoint import checkpoint_file
-    from uhrnet.data import load_sources
+    from uhrnet.training.data import load_sources
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

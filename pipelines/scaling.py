@@ -166,7 +166,7 @@ def default_meshes() -> list[str]:
 def phase_folders(dirs: list[str]) -> list[str]:
     """Real phase-shifting folders: each given folder, or the scan folders inside it (e.g. ../shared/real-phase
     -> ../shared/real-phase/FP1523)."""
-    from fppsim.readers import is_psp_folder
+    from fppsim.dataio.readers import is_psp_folder
 
     out = []
     for d in dirs:
@@ -220,7 +220,7 @@ def _variant(cfg, seed: int):
 def steps_of(cfg, variant) -> int:
     """Optimizer steps of the variant's training run: epochs x ceil(draws per epoch / batch size), the draws
     being ``--samples-per-epoch`` or the reference split's training samples (80 % of the count)."""
-    from uhrnet.splits import MIN_REFERENCE_SPLIT, split_indices
+    from uhrnet.training.splits import MIN_REFERENCE_SPLIT, split_indices
 
     tr = variant.train
     epochs, batch = int(tr.get("epochs") or cfg.epochs), int(tr.get("batch_size") or cfg.batch_size)
@@ -377,7 +377,7 @@ def plot_series(doc: dict, series: str, path: Path) -> Path | None:
 
 def write_report(args, arms: list[dict], configs: dict) -> dict:
     """``scaling.json``, ``scaling.md`` and the figures from the finished (arm, seed) folders."""
-    from fppsim.files import atomic_write_text
+    from fppsim.dataio.files import atomic_write_text
 
     out = Path(args.out)
     doc = {"arms_file": str(args.arms_file), "seeds": list(args.seeds), "real": list(args.real),

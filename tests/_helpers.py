@@ -63,8 +63,8 @@ def write_figshare(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, 
 
 def write_native(folder, n: int = 8, h: int = 32, w: int = 64, seed: int = 0, psp: bool = False) -> list[str]:
     """fppsim native layout written by fppsim's own writer (write_sample_folder + reconcile)."""
-    from fppsim.formats import reconcile, sample_id
-    from fppsim.writers import write_sample_folder
+    from fppsim.dataio.formats import reconcile, sample_id
+    from fppsim.dataio.writers import write_sample_folder
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -100,7 +100,7 @@ def tiny_rig(width: int = 64, height: int = 32):
     """A window of the default rig's camera (same focal length, centred): ``width`` x ``height`` px with
     the default fringe period (about 11.6 px) and phase sensitivity (about 0.87 rad/mm), for tiny
     physics-head, adaptation and refinement tests."""
-    from fppsim.rig import Device, Rig, make_default_rig
+    from fppsim.geometry.rig import Device, Rig, make_default_rig
 
     r = make_default_rig()
     c = r.camera
@@ -114,7 +114,7 @@ def tiny_rig(width: int = 64, height: int = 32):
 def distorted_rig():
     """The default rig with strong lens distortion on both devices (OpenCV k1, k2, p1, p2, k3), for
     checks that every projection and ray goes through the distortion model."""
-    from fppsim.rig import Device, Rig, make_default_rig
+    from fppsim.geometry.rig import Device, Rig, make_default_rig
 
     def with_dist(dev, dist):
         return Device(K=dev.K, R=dev.R, t=dev.t, width=dev.width, height=dev.height, dist=dist)
@@ -126,8 +126,8 @@ def distorted_rig():
 
 def rig_fringe(rig, height_mm: np.ndarray, valid: np.ndarray | None = None, offset: float = 0.0) -> np.ndarray:
     """8-bit single-shot image ``120 + 100 cos(phase_true + offset)`` of a height map seen by ``rig``
-    (fppsim's forward model, :func:`fppsim.height_sensitivity.surface_phase`); 0 where not ``valid``."""
-    from fppsim.height_sensitivity import surface_phase
+    (fppsim's forward model, :func:`fppsim.fitting.height_sensitivity.surface_phase`); 0 where not ``valid``."""
+    from fppsim.fitting.height_sensitivity import surface_phase
 
     f8 = np.round(120 + 100 * np.cos(surface_phase(rig, height_mm) + offset)).astype(np.uint8)
     if valid is not None:
@@ -138,9 +138,9 @@ def rig_fringe(rig, height_mm: np.ndarray, valid: np.ndarray | None = None, offs
 def write_native_rig(folder, rig, n: int = 6, seed: int = 0) -> list[str]:
     """Native samples of ``rig``'s camera size whose fringe, ``phase_true`` and ``meta.json`` rig are
     consistent (the image is :func:`rig_fringe` of the sample's height): data ``--head phase`` trains on."""
-    from fppsim.formats import reconcile, sample_id
-    from fppsim.height_sensitivity import surface_phase
-    from fppsim.writers import write_sample_folder
+    from fppsim.dataio.formats import reconcile, sample_id
+    from fppsim.fitting.height_sensitivity import surface_phase
+    from fppsim.dataio.writers import write_sample_folder
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

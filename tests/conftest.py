@@ -45,7 +45,7 @@ def real_sample() -> Path:
 
 @pytest.fixture
 def native_dataset(tmp_path) -> Path:
-    """Four 32 x 64 native samples (with PSP arrays) written through fppsim.formats."""
+    """Four 32 x 64 native samples (with PSP arrays) written through fppsim.dataio.formats."""
     from _helpers import write_native
 
     write_native(tmp_path / "native", n=4, psp=True)

@@ -17,7 +17,7 @@ import pytest
 import trimesh
 
 from fppsim.cli import main as fppsim_main
-from fppsim.rig import Rig
+from fppsim.geometry.rig import Rig
 from uhrnet.cli import main as uhrnet_main
 
 from _helpers import train_tiny, write_figshare, write_native
@@ -70,7 +70,7 @@ def test_optics_file_with_null_and_label_offset_inf(tmp_path, mesh, capsys):
 
 
 def test_optics_dataclasses_validate():
-    from fppsim.optics import Optics, OpticsRanges
+    from fppsim.rendering.optics import Optics, OpticsRanges
 
     with pytest.raises(ValueError, match="gain"):
         Optics(gain=float("nan"))
@@ -274,7 +274,7 @@ def test_psp_label_needs_psp_data(tmp_path, capsys):
 
 # ------------------------------------------------------------------------------------------- item 10
 def test_npz_is_byte_reproducible(tmp_path, monkeypatch):
-    from fppsim.encoding import save_npz
+    from fppsim.dataio.encoding import save_npz
 
     arrays = {"height": np.arange(12, dtype=np.float32).reshape(3, 4), "mask": np.ones((3, 4), np.float32)}
     save_npz(tmp_path / "a.npz", arrays)
@@ -290,7 +290,7 @@ def test_npz_is_byte_reproducible(tmp_path, monkeypatch):
 
 # ------------------------------------------------------------------------------------------- item 11
 def test_garbage_obj_is_named(tmp_path):
-    from fppsim.scene import MeshError, load_mesh
+    from fppsim.rendering.scene import MeshError, load_mesh
 
     p = tmp_path / "garbage.obj"
     p.write_bytes(np.random.default_rng(0).integers(0, 256, 3000, dtype=np.uint8).tobytes())
@@ -321,8 +321,8 @@ def _strip_grid(nx=12, ny=9):
 
 @pytest.mark.parametrize("fmt", ["ascii", "binary_little_endian"])
 def test_ply_triangle_strips_are_read(tmp_path, fmt):
-    from fppsim.meshio import read_ply_tristrips
-    from fppsim.scene import load_mesh
+    from fppsim.rendering.meshio import read_ply_tristrips
+    from fppsim.rendering.scene import load_mesh
 
     V, strips, truth = _strip_grid()
     p = tmp_path / f"strips_{fmt}.ply"
@@ -348,7 +348,7 @@ def test_ply_triangle_strips_are_read(tmp_path, fmt):
 
 
 def test_strips_to_triangles_drops_degenerate_joins():
-    from fppsim.meshio import strips_to_triangles
+    from fppsim.rendering.meshio import strips_to_triangles
 
     t = strips_to_triangles(np.array([0, 1, 2, 3, 3, 4, 4, 5, 6, -1, 7, 8]))
     assert [tuple(x) for x in t] == [(0, 1, 2), (2, 1, 3), (4, 5, 6)]

@@ -1,4 +1,4 @@
-"""The dataset contract (fppsim.formats) seen from both sides: what fppsim writes, uhrnet reads."""
+"""The dataset contract (fppsim.dataio.formats) seen from both sides: what fppsim writes, uhrnet reads."""
 
 from __future__ import annotations
 
@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from fppsim.encoding import decode_fringe, encode_fringe
-from fppsim.files import atomic_path, atomic_write_text
-from fppsim.formats import LabelTransform, read_manifest, read_settings, reconcile
-from fppsim.writers import export_figshare, write_sample_folder
-from fppsim.files import tmp_path as temp_name
-from uhrnet.data import FigshareArrays, FppsimDataset
+from fppsim.dataio.encoding import decode_fringe, encode_fringe
+from fppsim.dataio.files import atomic_path, atomic_write_text
+from fppsim.dataio.formats import LabelTransform, read_manifest, read_settings, reconcile
+from fppsim.dataio.writers import export_figshare, write_sample_folder
+from fppsim.dataio.files import tmp_path as temp_name
+from uhrnet.training.data import FigshareArrays, FppsimDataset
 from uhrnet.errors import DataError
 
 

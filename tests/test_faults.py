@@ -19,10 +19,10 @@ import pytest
 import torch
 import trimesh
 
-from fppsim.files import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own_tmp
+from fppsim.dataio.files import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own_tmp
 from fppsim.cli import main as fppsim_main
-from fppsim.formats import DatasetError, LabelTransform, read_manifest, reconcile
-from fppsim.writers import export_figshare
+from fppsim.dataio.formats import DatasetError, LabelTransform, read_manifest, reconcile
+from fppsim.dataio.writers import export_figshare
 
 from _helpers import write_figshare
 
@@ -112,7 +112,7 @@ def test_reconcile_and_cleanup_touch_only_our_dead_temp_files(tmp_path):
 def test_a_zombie_writer_counts_as_dead(tmp_path):
     """A worker orphaned by kill -9 stays a zombie until PID 1 reaps it (seconds in containers); kill(0)
     still succeeds on it, yet its temporary folders are stale and a re-run must remove them."""
-    from fppsim.files import pid_alive
+    from fppsim.dataio.files import pid_alive
 
     p = subprocess.Popen(["sleep", "30"])
     try:
@@ -149,7 +149,7 @@ def native_ds(tmp_path_factory, meshes):
 
 
 def test_disk_full_in_figshare_export_patched_writer(tmp_path, native_ds, monkeypatch):
-    import fppsim.writers as ds
+    import fppsim.dataio.writers as ds
 
     out = tmp_path / "fig"
     out.mkdir()
@@ -184,7 +184,7 @@ def test_disk_full_on_a_real_small_filesystem(tmp_path, native_ds):
     if not _mount_tmpfs(small, "1m"):
         pytest.skip("cannot mount a tmpfs here (needs root)")
     try:
-        script = ("import sys; from fppsim.formats import LabelTransform; from fppsim.writers import export_figshare\n"
+        script = ("import sys; from fppsim.dataio.formats import LabelTransform; from fppsim.dataio.writers import export_figshare\n"
                   "try:\n    export_figshare(sys.argv[1], sys.argv[2], LabelTransform())\n"
                   "except Exception as e:\n    print(type(e).__name__, e, file=sys.stderr); sys.exit(1)\n")
         res = subprocess.run([sys.executable, "-c", script, str(native_ds), str(small)], env=ENV,
@@ -275,7 +275,7 @@ def test_kill9_during_figshare_export_then_rerun_is_exact(tmp_path, meshes):
     for name in ("f1_80.npy", "Z.npy"):
         (out / name).unlink()
     # an export that writes slowly, killed while its temp files exist
-    script = ("import sys, time\nimport fppsim.writers as d\nfrom fppsim.formats import LabelTransform\n"
+    script = ("import sys, time\nimport fppsim.dataio.writers as d\nfrom fppsim.dataio.formats import LabelTransform\n"
               "real = d.write_fully\ndef slow(fh, b):\n    real(fh, b); fh.flush(); time.sleep(0.3)\n"
               "d.write_fully = slow\nd.export_figshare(sys.argv[1] + '/native', sys.argv[1], LabelTransform())\n")
     proc = subprocess.Popen([sys.executable, "-c", script, str(out)], env=ENV)

@@ -86,9 +86,9 @@ def test_the_command_line_lives_in_one_module_per_package():
 MAX_LINES = 650
 ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "open_source", "mean_phasor", "lowpass", "demodulate",
                   "demodulated_residual", "object_residual", "phase_at_height", "ray_cut")
-TWINS = {"wrap": ["fppsim/phase.py", "uhrnet/rig_layer.py"], "circular_mean": ["fppsim/phase.py", "uhrnet/rig_layer.py"],
+TWINS = {"wrap": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"], "circular_mean": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"],
          "_wrap": [], "wrap_phase": []}
-"""Phase helpers: one numpy definition (fppsim.phase) and one torch twin (uhrnet.rig_layer), no private copies."""
+"""Phase helpers: one numpy definition (fppsim.phase) and one torch twin (uhrnet.physics.rig_layer), no private copies."""
 
 
 def _library_modules():
@@ -114,7 +114,7 @@ def test_no_library_module_is_longer_than_the_limit():
 
 def test_shared_helpers_are_defined_once():
     """One plane level, one polynomial plane basis, one name per dataset opener (a torch Dataset:
-    ``uhrnet.data.open_dataset``; a numpy reader: ``fppsim.readers.open_samples``), one home for the phase
+    ``uhrnet.training.data.open_dataset``; a numpy reader: ``fppsim.dataio.readers.open_samples``), one home for the phase
     helpers and the camera ray cut at a height."""
     where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION + tuple(TWINS)}
     for pkg in PACKAGES + ("pipelines",):
@@ -125,8 +125,8 @@ def test_shared_helpers_are_defined_once():
     twins = {k: sorted(p.split(":")[0] for p in where.pop(k)) for k in TWINS}
     assert twins == TWINS, twins
     assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
-    assert where["open_dataset"][0].startswith("uhrnet/data.py") and where["open_samples"][0].startswith("fppsim/readers/")
-    assert where["plane_level"][0].startswith("fppsim/fringe.py") and where["poly_basis"][0].startswith("fppsim/fringe.py")
+    assert where["open_dataset"][0].startswith("uhrnet/training/data.py") and where["open_samples"][0].startswith("fppsim/dataio/readers/")
+    assert where["plane_level"][0].startswith("fppsim/phase/fringe.py") and where["poly_basis"][0].startswith("fppsim/phase/fringe.py")
 
 
 def _private(name: str) -> bool:
@@ -177,7 +177,7 @@ def test_the_command_framework_names_no_package():
                   if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))}
     named = [s for s in strings if s not in docstrings and any(f"{p}." in s or s == p for p in PACKAGES)]
     assert not named, named
-    assert _imported(ROOT / "fppsim" / "commands.py", "fppsim.commands") <= {"fppsim.files", "fppsim.files.signals_raise"}
+    assert _imported(ROOT / "fppsim" / "commands.py", "fppsim.commands") <= {"fppsim.dataio.files", "fppsim.dataio.files.signals_raise"}
 
 
 # ---------------------------------------------------------------------------- import cycles (issue 29)
@@ -257,8 +257,8 @@ WORKFLOWS = ("uhrnet.workflows",)
 library, below the commands."""
 COMMAND_LAYER = ("uhrnet.cli",)
 """The only package modules that may import the workflow layer (``pipelines/`` and tests may too)."""
-RENDERING = ("fppsim.generation", "fppsim.render", "fppsim.scene", "fppsim.shapes", "fppsim.meshio", "fppsim.jitter",
-             "fppsim.synth", "fppsim.optics", "fppsim.preview", "fppsim.validate", "fppsim.fit_optics")
+RENDERING = ("fppsim.generation", "fppsim.rendering.render", "fppsim.rendering.scene", "fppsim.rendering.shapes", "fppsim.rendering.meshio", "fppsim.geometry.jitter",
+             "fppsim.rendering.synth", "fppsim.rendering.optics", "fppsim.rendering.preview", "fppsim.validate", "fppsim.fitting.fit_optics")
 """fppsim's rendering side (docs/ARCHITECTURE.md's data flow: scenes, depth rendering, image formation, one
 sample, a whole run; and what renders to validate or fit the simulator)."""
 
@@ -319,12 +319,12 @@ def test_no_experiment_package_in_the_library():
 # is code that recognises (or writes) that layout; docstrings, help and messages only mention them
 # inside longer text, so they are not counted.
 LAYOUT_NAMES = {"PSin", "PCos", "Fringe", "iPattern", "f1_80.npy", "Z.npy", "fringe_pattern.npy", "height_map.npy"}
-LAYOUT_HOMES = ("fppsim/readers/", "fppsim/formats.py", "fppsim/writers.py")
+LAYOUT_HOMES = ("fppsim/dataio/readers/", "fppsim/dataio/formats.py", "fppsim/dataio/writers.py")
 
 
 def test_data_layouts_are_recognised_only_by_the_readers():
-    """Which layout a path holds is decided in one place (``fppsim.readers.open_source``, on the names the
-    contract ``fppsim.formats`` and ``fppsim.readers.psp_mat`` define); the writers write the same names.
+    """Which layout a path holds is decided in one place (``fppsim.dataio.readers.open_source``, on the names the
+    contract ``fppsim.dataio.formats`` and ``fppsim.dataio.readers.psp_mat`` define); the writers write the same names.
     No other module names a layout's file or folder: it asks the readers (or uses ``FIGSHARE_PAIRS``)."""
     found = []
     for _, path in _modules():
@@ -340,4 +340,4 @@ def test_data_layouts_are_recognised_only_by_the_readers():
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) == "is_psp_folder":
                 callers.add(path.relative_to(ROOT).as_posix())
-    assert callers == {"fppsim/readers/source.py"}, callers
+    assert callers == {"fppsim/dataio/readers/source.py"}, callers

@@ -50,7 +50,7 @@ MODEL = ["--model", "unet", "--base-channels", "8", "--loss", "l2", "--batch-siz
 
 def small_rig():
     """The user's rig (see the module docstring) as an fppsim :class:`Rig`."""
-    from fppsim.rig import Device, Rig, projector_for
+    from fppsim.geometry.rig import Device, Rig, projector_for
 
     cam = Device.looking_down([0.0, 0.0, 500.0], 246.0, 246.0, 63.5, 31.5, 128, 64)
     proj = projector_for(cam, yaw=0.05, focal=1208.8 / 4, baseline=250.0, width=228, rows=285)
@@ -96,8 +96,8 @@ def _uhrnet(*args) -> None:
 
 def _label_rmse_vs_exact(labelled: Path, scans: Path, ids: list[str]) -> float:
     """RMSE (mm) of label-real's heights against the exact rendered heights on pixels valid in both."""
-    from fppsim.formats import PRESETS
-    from fppsim.readers import load_native_sample
+    from fppsim.dataio.formats import PRESETS
+    from fppsim.dataio.readers import load_native_sample
 
     fig = PRESETS["figshare"]
     z = np.load(labelled / "Z.npy")[..., 0].astype(np.float64)
@@ -116,8 +116,8 @@ def test_own_decoded_phase_round_trips_through_the_public_layout(tmp_path, conve
     with fppsim's writer. Phases decoded from 8-bit images often sit exactly on a wrap (k pi), where
     sin(phi) is a rounding residue of either sign: the fringe order written must match the wrapped phase
     the reader computes, or those pixels come back one period (2 pi) off."""
-    from fppsim.readers import load_psp_folder_sample
-    from fppsim.writers import save_psp_folder_sample, sums_from_phase
+    from fppsim.dataio.readers import load_psp_folder_sample
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
     k = np.arange(-3, 161)
     phase = np.concatenate([k * np.pi, k * np.pi + 1e-12, k * np.pi - 1e-12, np.linspace(-7, 500, 508)])
@@ -133,7 +133,7 @@ def test_own_decoded_phase_round_trips_through_the_public_layout(tmp_path, conve
 
 @pytest.mark.slow
 def test_own_rig_scans_fine_tune_beats_synthetic_only(tmp_path, one_thread):
-    from fppsim.rig import load_rig
+    from fppsim.geometry.rig import load_rig
 
     rig = small_rig()
     stereo = write_opencv_stereo(rig, tmp_path / "stereo.yml")

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fppsim.height_sensitivity import surface_phase
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.fitting.height_sensitivity import surface_phase
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
 from _helpers import rig_fringe, tiny_rig, write_figshare
 

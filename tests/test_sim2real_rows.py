@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from fppsim.height_sensitivity import surface_phase
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.fitting.height_sensitivity import surface_phase
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from uhrnet.cli import main, variant_commands
 from uhrnet.workflows.sim2real.variants import (
     VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags,
@@ -38,7 +38,7 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     var = variant_from_flags(cfg, v, variant_commands())
     assert var.train == {"head": "phase"} and var.adapt == {"epochs": 20, "lr": 1e-3}
     assert var.refine == ["relief", "orders"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
-    from uhrnet.adapt import AdaptConfig
+    from uhrnet.physics.adapt import AdaptConfig
 
     default = AdaptConfig.__dataclass_fields__["epochs"].default
     assert variant_from_flags(cfg, parse_variant(f"a: | | adapt --epochs {default}"), variant_commands()).adapt == {}  # the default

@@ -10,24 +10,24 @@ Library entry points (the ``uhrnet`` command line calls the same)::
 Experiments that compose both packages (``uhrnet sim2real``: generate -> train -> evaluate on real
 data) are not part of the library: they live in :mod:`uhrnet.workflows`, above it.
 
-Data files are read through :mod:`fppsim.readers` (the dataset contract: :mod:`fppsim.formats`). Attributes are imported
+Data files are read through :mod:`fppsim.dataio.readers` (the dataset contract: :mod:`fppsim.dataio.formats`). Attributes are imported
 lazily (``import uhrnet`` does not import torch).
 """
 
 __version__ = "0.1.0"
 
 _LAZY = {
-    "train": ("uhrnet.trainer", "train"),
-    "TrainConfig": ("uhrnet.trainer", "TrainConfig"),
-    "evaluate": ("uhrnet.evaluation", "evaluate"),
-    "EvalData": ("uhrnet.evaluation", "EvalData"),
-    "Report": ("uhrnet.evaluation", "Report"),
-    "predict": ("uhrnet.prediction", "predict"),
-    "PredictConfig": ("uhrnet.prediction", "PredictConfig"),
-    "evaluate_phase_folder": ("uhrnet.phase_residual", "evaluate_phase_folder"),
-    "PhaseEvalConfig": ("uhrnet.phase_residual", "PhaseEvalConfig"),
+    "train": ("uhrnet.training.trainer", "train"),
+    "TrainConfig": ("uhrnet.training.trainer", "TrainConfig"),
+    "evaluate": ("uhrnet.scoring.evaluation", "evaluate"),
+    "EvalData": ("uhrnet.scoring.evaluation", "EvalData"),
+    "Report": ("uhrnet.scoring.evaluation", "Report"),
+    "predict": ("uhrnet.inference.prediction", "predict"),
+    "PredictConfig": ("uhrnet.inference.prediction", "PredictConfig"),
+    "evaluate_phase_folder": ("uhrnet.scoring.phase_residual", "evaluate_phase_folder"),
+    "PhaseEvalConfig": ("uhrnet.scoring.phase_residual", "PhaseEvalConfig"),
     "build_model": ("uhrnet.models", "build_model"),
-    "build_loss": ("uhrnet.losses", "build_loss"),
+    "build_loss": ("uhrnet.training.losses", "build_loss"),
 }
 
 __all__ = ["__version__", *_LAZY]

@@ -5,11 +5,11 @@ config of the library, which validates itself, and calls one plain function a Py
 
     train           -> uhrnet.train(TrainConfig)
     evaluate        -> uhrnet.evaluate(checkpoints, EvalData, ...) -> Report
-    evaluate-phase  -> uhrnet.phase_residual.evaluate_phase_folder(PhaseEvalConfig)
+    evaluate-phase  -> uhrnet.scoring.phase_residual.evaluate_phase_folder(PhaseEvalConfig)
     predict         -> uhrnet.predict(PredictConfig)
-    bench           -> uhrnet.bench.bench(BenchConfig)
-    export          -> uhrnet.export.export_checkpoint(ExportConfig)
-    import-weights  -> uhrnet.reference_weights.import_weights(ImportWeightsConfig)
+    bench           -> uhrnet.scoring.bench.bench(BenchConfig)
+    export          -> uhrnet.inference.export.export_checkpoint(ExportConfig)
+    import-weights  -> uhrnet.inference.reference_weights.import_weights(ImportWeightsConfig)
     sim2real        -> uhrnet.workflows.sim2real.run_sim2real(Sim2RealConfig)
 
 Choices (models, losses, label presets, split modes) are listed from the library's registries. Only
@@ -33,13 +33,13 @@ DEVICES = ("auto", "cpu", "cuda")
 
 # ============================================================================ train
 def add_train(p: argparse.ArgumentParser) -> None:
-    from fppsim.formats import PRESETS
-    from uhrnet.augment import AUGMENTS
-    from fppsim.readers import LABEL_SOURCES
-    from uhrnet.splits import SPLIT_MODES
-    from uhrnet.losses import LOSSES
+    from fppsim.dataio.formats import PRESETS
+    from uhrnet.training.augment import AUGMENTS
+    from fppsim.dataio.readers import LABEL_SOURCES
+    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.training.losses import LOSSES
     from uhrnet.models import list_models
-    from uhrnet.train_config import LR_FLOOR, LR_SCHEDULES
+    from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
 
@@ -67,7 +67,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
     d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=tuple(AUGMENTS),
                    metavar="KIND",
-                   help="augmentation of synthetic samples (uhrnet.augment; real samples never): 'photometric' "
+                   help="augmentation of synthetic samples (uhrnet.training.augment; real samples never): 'photometric' "
                         "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "
                         "the fringe background and modulation so that shading cannot stand in for the phase; 'off' [shading]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
@@ -144,13 +144,13 @@ def train_options(args) -> dict:
     """The ``TrainConfig`` fields the ``train`` flags ``args`` give (None: not given)."""
     from dataclasses import fields
 
-    from uhrnet.train_config import TrainConfig
+    from uhrnet.training.train_config import TrainConfig
 
     return {f.name: getattr(args, f.name) for f in fields(TrainConfig) if hasattr(args, f.name)}
 
 
 def run_train(args) -> int:
-    from uhrnet.trainer import TrainConfig, train
+    from uhrnet.training.trainer import TrainConfig, train
 
     train(TrainConfig(**train_options(args), progress=not args.no_progress))
     return 0
@@ -158,9 +158,9 @@ def run_train(args) -> int:
 
 # ============================================================================ evaluate
 def add_evaluate(p: argparse.ArgumentParser) -> None:
-    from fppsim.readers import LABEL_SOURCES
-    from uhrnet.splits import SPLIT_MODES
-    from uhrnet.evaluation import SPLITS
+    from fppsim.dataio.readers import LABEL_SOURCES
+    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.scoring.evaluation import SPLITS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--real", nargs="*", metavar="DIR",
@@ -186,7 +186,7 @@ def add_evaluate(p: argparse.ArgumentParser) -> None:
 
 
 def run_evaluate(args) -> int:
-    from uhrnet.evaluation import EvalData, evaluate
+    from uhrnet.scoring.evaluation import EvalData, evaluate
 
     data = EvalData(real=args.real, synthetic=args.synthetic, split=args.split, real_split=args.real_split,
                     synthetic_split=args.synthetic_split, synthetic_label=args.synthetic_label, crop=args.crop,
@@ -204,7 +204,7 @@ def run_evaluate(args) -> int:
 
 # ============================================================================ predict
 def add_predict(p: argparse.ArgumentParser) -> None:
-    from uhrnet.refine import REFINE_METHODS
+    from uhrnet.physics.refine import REFINE_METHODS
 
     p.add_argument("checkpoint", metavar="CKPT", help="checkpoint file or run folder (best.pt)")
     p.add_argument("inputs", nargs="+", metavar="INPUT",
@@ -238,7 +238,7 @@ def add_predict(p: argparse.ArgumentParser) -> None:
 
 
 def run_predict(args) -> int:
-    from uhrnet.prediction import PredictConfig, predict
+    from uhrnet.inference.prediction import PredictConfig, predict
 
     config = PredictConfig(checkpoint=args.checkpoint, inputs=list(args.inputs), out=args.out, rig=args.rig,
                            pixel_size=args.pixel_size, keep_all=args.keep_all,
@@ -261,7 +261,7 @@ def run_predict(args) -> int:
 
 # ============================================================================ bench
 def add_bench(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.bench import DEFAULT_MODELS, OPT_VARIANTS
+    from uhrnet.scoring.bench import DEFAULT_MODELS, OPT_VARIANTS
 
     parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS), metavar="NAME",
                         help=f"models to measure (any name of uhrnet.models.list_models(); default: "
@@ -296,7 +296,7 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
 
 
 def run_bench(args) -> int:
-    from uhrnet.bench import BenchConfig, bench
+    from uhrnet.scoring.bench import BenchConfig, bench
 
     config = BenchConfig(models=list(args.models), height=args.height, width=args.width, batch_size=args.batch_size,
                          device=args.device, repeats=args.repeats, warmup=args.warmup,
@@ -309,7 +309,7 @@ def run_bench(args) -> int:
 
 # ============================================================================ evaluate-phase
 def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
-    from fppsim.readers import CONVENTIONS
+    from fppsim.dataio.readers import CONVENTIONS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--phase-root", required=True, metavar="DIR",
@@ -332,7 +332,7 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
 
 
 def run_evaluate_phase(args) -> int:
-    from uhrnet.phase_residual import PhaseEvalConfig, evaluate_phase_folder
+    from uhrnet.scoring.phase_residual import PhaseEvalConfig, evaluate_phase_folder
 
     config = PhaseEvalConfig(checkpoints=list(args.checkpoints), phase_root=args.phase_root, out=args.out,
                              degree=args.degree, robust=args.robust, convention=args.convention,
@@ -351,7 +351,7 @@ def run_evaluate_phase(args) -> int:
 
 # ============================================================================ export
 def add_export(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.export import CHECK_RTOL, DEFAULT_OPSET, EXPORT_FORMATS, OPSET_RANGE, RUNTIMES
+    from uhrnet.inference.export import CHECK_RTOL, DEFAULT_OPSET, EXPORT_FORMATS, OPSET_RANGE, RUNTIMES
 
     parser.description = (
         "Export a checkpoint's model (batch norms folded: the same function) as ONNX or "
@@ -381,7 +381,7 @@ def add_export(parser: argparse.ArgumentParser) -> None:
 
 
 def run_export(args) -> int:
-    from uhrnet.export import ExportConfig, export_checkpoint
+    from uhrnet.inference.export import ExportConfig, export_checkpoint
 
     config = ExportConfig(checkpoint=args.checkpoint, out=args.out, format=args.format, height=args.height,
                           width=args.width, opset=args.opset, dynamic=args.dynamic, check=args.check,
@@ -398,7 +398,7 @@ def run_export(args) -> int:
 
 # ============================================================================ import-weights
 def add_import_weights(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.reference_weights import IMPORT_FORMATS, REFERENCE_FORMAT
+    from uhrnet.inference.reference_weights import IMPORT_FORMATS, REFERENCE_FORMAT
 
     parser.description = (
         "Turn published weights into a uhrnet run folder (best.pt = last.pt, config.json) that predict, "
@@ -421,7 +421,7 @@ def add_import_weights(parser: argparse.ArgumentParser) -> None:
 
 
 def run_import_weights(args) -> int:
-    from uhrnet.reference_weights import ImportWeightsConfig, import_weights
+    from uhrnet.inference.reference_weights import ImportWeightsConfig, import_weights
 
     result = import_weights(ImportWeightsConfig(source=args.source, out=args.out, format=args.format,
                                                 overwrite=args.overwrite, plane_offset=args.plane_offset))
@@ -447,7 +447,7 @@ def adapt_options(args) -> dict:
     """The ``AdaptConfig`` fields the ``adapt`` flags ``args`` give (not the checkpoint, images and folder)."""
     from dataclasses import fields
 
-    from uhrnet.adapt import AdaptConfig
+    from uhrnet.physics.adapt import AdaptConfig
 
     out = {f.name: getattr(args, f.name) for f in fields(AdaptConfig)
            if hasattr(args, f.name) and f.name not in ("checkpoint", "images", "out")}
@@ -455,9 +455,9 @@ def adapt_options(args) -> dict:
 
 
 def add_sim2real(p: argparse.ArgumentParser) -> None:
-    from uhrnet.losses import LOSSES
+    from uhrnet.training.losses import LOSSES
     from uhrnet.models import list_models
-    from uhrnet.refine import REFINE_METHODS
+    from uhrnet.physics.refine import REFINE_METHODS
     from uhrnet.workflows.sim2real import SCALES
     from uhrnet.workflows.sim2real.variants import VARIANT_SYNTAX
 
@@ -570,7 +570,7 @@ def run_sim2real(args) -> int:
 
 # ============================================================================ adapt
 def add_adapt(p: argparse.ArgumentParser) -> None:
-    from uhrnet.adapt import AdaptConfig
+    from uhrnet.physics.adapt import AdaptConfig
 
     d = AdaptConfig.__dataclass_fields__
     p.add_argument("checkpoint", metavar="RUN", help="the model to adapt: a run folder (best.pt, else last.pt) or a .pt")
@@ -605,7 +605,7 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
 
 
 def run_adapt(args) -> int:
-    from uhrnet.adapt import AdaptConfig, adapt
+    from uhrnet.physics.adapt import AdaptConfig, adapt
 
     cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
                       epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_drift=args.w_drift,

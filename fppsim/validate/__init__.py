@@ -8,7 +8,7 @@ here run the whole command (``fppsim.validate_psp``).
 Real FPP datasets label their images with the height a multi-frequency PSP measurement gives. The
 simulator knows the exact height, so it can measure the error of that PSP ground truth: for every
 sample the PSP height (``height_psp``, decoded from the rendered 8-bit phase-shifted images, see
-:func:`fppsim.synth.psp_decode`) is compared with the exact height on the pixels the exact mask calls
+:func:`fppsim.rendering.synth.psp_decode`) is compared with the exact height on the pixels the exact mask calls
 valid (seen and lit by the projector).
 
 Pixel classes (all over the exact-valid pixels ``V``; fractions are relative to ``|V|``)
@@ -42,7 +42,7 @@ here 4 x 2 = 8 settings -- with the swept parameters fixed and everything else d
 ranges, and tabulates the aggregate error per setting. Names: ``noise`` = ``noise_sigma`` (gray
 levels; ``shot_noise`` is then fixed to 0 unless it is swept or given with ``--optics``), ``gamma`` =
 ``projector_gamma``, ``blur`` = ``projector_blur`` (projector pixels), or any
-:class:`fppsim.optics.OpticsRanges` field (``camera_blur``, ``camera_gamma``, ``gain``, ...). Each
+:class:`fppsim.rendering.optics.OpticsRanges` field (``camera_blur``, ``camera_gamma``, ``gain``, ...). Each
 setting renders into its own subfolder ``<out>/sweep/<name>/`` so an interrupted sweep resumes.
 Within one sweep the other optics draws are identical across settings (a fixed parameter consumes no
 random draw in every setting alike), and so is the noise realisation (scaled by the setting).
@@ -58,13 +58,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from ..errors import ValidateError
-from ..encoding import json_default
-from ..files import atomic_write_text
-from .report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
+from fppsim.errors import ValidateError
+from fppsim.dataio.encoding import json_default
+from fppsim.dataio.files import atomic_write_text
+from fppsim.validate.report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
                      validate_dataset, write_error_map)
-from .sample import ORDER_ERROR_RAD, evaluate_sample
-from .sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
+from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
+from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "resolve_dataset", "evaluate_sample",
@@ -122,7 +122,7 @@ class ValidateConfig:
 
 def _render(meshes, folder: Path, count: int, seed: int, config, noise_free: bool, workers: int, progress: bool,
             echo) -> None:
-    from ..generation import generate_dataset
+    from fppsim.generation import generate_dataset
 
     summary = generate_dataset(meshes, folder, count, seed=seed, config=config, workers=workers,
                                noise_free=noise_free, progress=progress)
@@ -158,8 +158,8 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
         count = max(int(r["index"]) for r in read_records(root)) + 1
         base = {}
     else:
-        from ..errors import ConfigError
-        from ..generation import GenerateConfig
+        from fppsim.errors import ConfigError
+        from fppsim.generation import GenerateConfig
 
         try:
             synth = GenerateConfig(meshes=list(config.meshes), out=out, count=config.count, seed=config.seed,

@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..compare import format_value
-from ..errors import DatasetError, ValidateError
-from ..encoding import json_default
-from ..files import atomic_write_text
-from ..formats import read_manifest, read_settings
-from ..readers import load_native_sample
-from .sample import BREAKDOWN, breakdown_fractions, evaluate_sample
+from fppsim.fitting.compare import format_value
+from fppsim.errors import DatasetError, ValidateError
+from fppsim.dataio.encoding import json_default
+from fppsim.dataio.files import atomic_write_text
+from fppsim.dataio.formats import read_manifest, read_settings
+from fppsim.dataio.readers import load_native_sample
+from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 
 __all__ = ["resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
            "validate_dataset", "format_table", "format_sweep_table"]
@@ -183,7 +183,7 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    from ..plots import save_figure
+    from fppsim.plots import save_figure
 
     path = Path(path)
     ok = accepted & ~wrong

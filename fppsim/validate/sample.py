@@ -60,7 +60,7 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
     stacks : optional ``{f: (N, H, W)}`` PSP images; when given, rejections are split by reason.
     edge_px : width (pixels) of the edge region (0: no edge / interior split).
     min_modulation : modulation threshold for the rejection breakdown; default that of
-        :func:`fppsim.synth.psp_decode`.
+        :func:`fppsim.rendering.synth.psp_decode`.
     with_errors : also return the per-pixel arrays (``error_mm``, masks) under ``"_maps"``.
 
     Returns
@@ -115,8 +115,8 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
                 "p99_abs_mm_interior_excl_order_errors": e_int["p99_abs_mm"]})
 
     if stacks is not None and freqs:
-        from .. import psp
-        from ..synth import psp_decode
+        from fppsim.phase import psp
+        from fppsim.rendering.synth import psp_decode
 
         if min_modulation is None:
             import inspect

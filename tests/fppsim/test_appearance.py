@@ -1,19 +1,19 @@
-"""fppsim.optics appearance effects: each one changes the rendered image the way it should."""
+"""fppsim.rendering.optics appearance effects: each one changes the rendered image the way it should."""
 
 import numpy as np
 import pytest
 
 pytest.importorskip("pyrender")
 
-from fppsim.optics import Optics, OpticsRanges  # noqa: E402
-from fppsim.rig import make_default_rig  # noqa: E402
+from fppsim.rendering.optics import Optics, OpticsRanges  # noqa: E402
+from fppsim.geometry.rig import make_default_rig  # noqa: E402
 
 
 @pytest.fixture(scope="module")
 def scene():
     import trimesh
 
-    from fppsim.render import DepthRenderer, Instance, scene_geometry
+    from fppsim.rendering.render import DepthRenderer, Instance, scene_geometry
 
     rig = make_default_rig()
     m = trimesh.creation.icosphere(4, radius=30.0)
@@ -24,7 +24,7 @@ def scene():
 
 
 def _render(scene, seed=0, **kw):
-    from fppsim.optics import form_images
+    from fppsim.rendering.optics import form_images
 
     rig, geom = scene
     opt = Optics(noise_sigma=0.0, shot_noise=0.0, **kw)
@@ -80,7 +80,7 @@ def test_vignetting_falls_off_towards_the_corners(scene):
 
 
 def test_specular_brightens_the_object_where_the_lobe_points(scene):
-    from fppsim.optics.specular import specular_term
+    from fppsim.rendering.optics.specular import specular_term
 
     rig, geom = scene
     obj = geom.on_object & geom.lit

@@ -19,8 +19,8 @@ ROOT = Path(__file__).resolve().parents[2]
 
 RENDER = r"""
 import sys, numpy as np, trimesh
-from fppsim.render import DepthRenderer, Instance
-from fppsim.rig import Rig
+from fppsim.rendering.render import DepthRenderer, Instance
+from fppsim.geometry.rig import Rig
 rig = Rig.default()
 sphere = trimesh.creation.icosphere(4, radius=40.0)
 box = trimesh.creation.box(extents=(60.0, 30.0, 25.0))
@@ -66,7 +66,7 @@ def test_egl_depth_equals_osmesa(tmp_path):
 
 
 def test_backend_choice_is_validated(capsys, tmp_path):
-    from fppsim.render import BackendError, select_backend
+    from fppsim.rendering.render import BackendError, select_backend
 
     with pytest.raises(BackendError, match="unknown GL backend"):
         select_backend("vulkan")
@@ -78,7 +78,7 @@ def test_backend_choice_is_validated(capsys, tmp_path):
 def test_switching_backend_after_rendering_is_refused():
     code = ("import os; os.environ['PYOPENGL_PLATFORM'] = 'osmesa'\n"
             "import OpenGL.GL\n"
-            "from fppsim.render import DepthRenderer, BackendError\n"
+            "from fppsim.rendering.render import DepthRenderer, BackendError\n"
             "try:\n    DepthRenderer('egl')\nexcept BackendError as e:\n    print('refused:', e)\n")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert "refused: GL backend 'osmesa' is already in use" in proc.stdout, proc.stderr

@@ -1,13 +1,17 @@
-"""fppsim.compare (real vs synthetic statistics), the fringe measurements of fppsim.fringe and the
-any-layout reader fppsim.readers.open_samples that compare-real uses."""
+"""fppsim.fitting.compare (real vs synthetic statistics), the fringe measurements of fppsim.phase.fringe and the
+any-layout reader fppsim.dataio.readers.open_samples that compare-real uses."""
 
 import json
 import cv2
 import numpy as np
 import pytest
 
-from fppsim import compare, fringe, readers
-from fppsim.formats import LabelTransform
+from fppsim.fitting import compare
+
+from fppsim.phase import fringe
+
+from fppsim.dataio import readers
+from fppsim.dataio.formats import LabelTransform
 
 from _helpers import REAL_SAMPLE as REAL
 H, W = 176, 320

@@ -7,12 +7,12 @@ import zipfile
 import numpy as np
 import pytest
 
-from fppsim import psp, triangulation
+from fppsim.phase import psp, triangulation
 from fppsim.phase import wrap
-from fppsim.encoding import save_npz
-from fppsim.formats import LabelTransform
-from fppsim.writers import export_figshare, write_sample_folder
-from fppsim.writers import BackgroundWriter, FigshareRows, figshare_rows
+from fppsim.dataio.encoding import save_npz
+from fppsim.dataio.formats import LabelTransform
+from fppsim.dataio.writers import export_figshare, write_sample_folder
+from fppsim.dataio.writers import BackgroundWriter, FigshareRows, figshare_rows
 
 
 def _float_path(stack, shifts=None):
@@ -46,7 +46,7 @@ def test_integer_path_only_for_exact_cases():
 
 
 def test_camera_rays_cache_matches_and_is_read_only():
-    from fppsim.rig import Rig
+    from fppsim.geometry.rig import Rig
 
     cam = Rig.default().camera
     o, d = triangulation._camera_rays(cam)
@@ -58,7 +58,7 @@ def test_camera_rays_cache_matches_and_is_read_only():
 
 
 def test_normals_per_plane_match_stacked_formula():
-    from fppsim.render import _normals_from_points
+    from fppsim.rendering.render import _normals_from_points
 
     def reference(P, c):  # the (H, W, 3) formulation
         def smaller_step(axis):
@@ -131,7 +131,7 @@ def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
     import cv2
     from PIL import Image
 
-    from fppsim.encoding import encode_png
+    from fppsim.dataio.encoding import encode_png
 
     rng = np.random.default_rng(sum(shape))
     img = rng.integers(0, 256, shape, dtype=np.uint8)
@@ -149,7 +149,7 @@ def test_encode_png_pixels_read_back_by_pillow_and_opencv(shape):
 @pytest.mark.parametrize("bad", [np.zeros((0, 4), np.uint8), np.zeros((3, 4), np.float32), np.zeros((3, 4), bool),
                                  np.zeros((3, 4), np.int8), np.zeros(5, np.uint8), np.zeros((3, 4, 2), np.uint8)])
 def test_encode_png_refuses_what_a_png_cannot_hold_exactly(bad):
-    from fppsim.encoding import encode_png
+    from fppsim.dataio.encoding import encode_png
 
     with pytest.raises(ValueError, match=r"encode_png: .*got"):
         encode_png(bad)
@@ -207,8 +207,8 @@ def test_streamed_figshare_rows_equal_export(tmp_path):
 def test_keyed_meshes_render_like_unkeyed_ones_and_hide_afterwards():
     import trimesh
 
-    from fppsim.render import DepthRenderer, Instance
-    from fppsim.rig import Rig
+    from fppsim.rendering.render import DepthRenderer, Instance
+    from fppsim.geometry.rig import Rig
 
     rig = Rig.default()
     s = trimesh.creation.icosphere(3, radius=20.0)
@@ -290,7 +290,7 @@ def test_order_consistency_counts_like_agree_versus_disagree():
 
 @pytest.mark.parametrize("distorted", [False, True])
 def test_height_from_phase_is_the_triangulated_height(distorted):
-    from fppsim.rig import Rig
+    from fppsim.geometry.rig import Rig
 
     rig = Rig.default()
     if distorted:
@@ -309,7 +309,7 @@ def test_height_from_phase_is_the_triangulated_height(distorted):
 
 
 def test_plane_by_plane_geometry_equals_the_broadcast_formulas():
-    from fppsim.rig import Rig, along_rays
+    from fppsim.geometry.rig import Rig, along_rays
 
     rng = np.random.default_rng(8)
     origin, dirs = rng.normal(size=3) * 100, rng.normal(size=(9, 11, 3))
@@ -326,7 +326,7 @@ def test_plane_by_plane_geometry_equals_the_broadcast_formulas():
 
 
 def test_prefetched_noise_is_the_generator_draws_in_order():
-    from fppsim.optics.noise import PrefetchedNormals
+    from fppsim.rendering.optics.noise import PrefetchedNormals
 
     pre = PrefetchedNormals(np.random.default_rng(5), (7, 9), 3)
     ref = np.random.default_rng(5)
@@ -350,10 +350,10 @@ def test_synthesize_with_prefetched_noise_equals_drawing_in_place(monkeypatch, t
     """The noise drawn ahead on the helper thread gives the very images of drawing it image by image."""
     import trimesh
 
-    from fppsim import synth
+    from fppsim.rendering import synth
     from fppsim.generation import load_assets
-    from fppsim.render import DepthRenderer
-    from fppsim.rig import Rig
+    from fppsim.rendering.render import DepthRenderer
+    from fppsim.geometry.rig import Rig
 
     trimesh.creation.box(extents=(60.0, 40.0, 25.0)).export(tmp_path / "box.ply")
     assets, _ = load_assets([str(tmp_path / "box.ply")])

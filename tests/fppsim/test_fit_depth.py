@@ -1,15 +1,15 @@
-"""fppsim.fit_depth and the ``distance`` rig parameter: how the height sensitivity grows with height."""
+"""fppsim.fitting.fit_depth and the ``distance`` rig parameter: how the height sensitivity grows with height."""
 
 import json
 
 import numpy as np
 import pytest
 
-from fppsim import fit_depth as fd
-from fppsim import fit_periods as fr  # the period fit
-from fppsim import readers
-from fppsim.height_sensitivity import centre_sensitivity
-from fppsim.rig import Rig, RigError, make_default_rig
+from fppsim.fitting import fit_depth as fd
+from fppsim.fitting import fit_periods as fr
+from fppsim.dataio import readers
+from fppsim.fitting.height_sensitivity import centre_sensitivity
+from fppsim.geometry.rig import Rig, RigError, make_default_rig
 
 from _helpers import REAL_SAMPLE as REAL
 from _helpers import SHARED
@@ -26,9 +26,9 @@ def rendered(tmp_path_factory):
     """Three figshare-layout samples rendered by pyrender with the truth rig (independent of the
     re-projection fit_depth uses); seed 5 gives objects 20-50 mm high with projector shadows."""
     from fppsim.generation import generate_dataset
-    from fppsim.optics import OpticsRanges
-    from fppsim.rig import data_path
-    from fppsim.synth import SynthConfig
+    from fppsim.rendering.optics import OpticsRanges
+    from fppsim.geometry.rig import data_path
+    from fppsim.rendering.synth import SynthConfig
 
     out = tmp_path_factory.mktemp("depth") / "syn"
     generate_dataset([str(data_path("meshes"))], out, 3, seed=5,
@@ -123,7 +123,7 @@ def test_fit_rig_with_distance_recovers_the_rendering_rig(rendered, tmp_path, ca
 def test_distance_needs_labels(tmp_path):
     import cv2
 
-    from fppsim.fit_rig import FitRigConfig, fit_rig_images
+    from fppsim.fitting.fit_rig import FitRigConfig, fit_rig_images
 
     rig = make_default_rig()
     cam = rig.camera
@@ -165,9 +165,9 @@ def test_real_pair_phase_height_relation():
 def rendered_default(tmp_path_factory):
     """One figshare-layout sample rendered through the default rig itself: labels that can only confirm it."""
     from fppsim.generation import generate_dataset
-    from fppsim.optics import OpticsRanges
-    from fppsim.rig import data_path
-    from fppsim.synth import SynthConfig
+    from fppsim.rendering.optics import OpticsRanges
+    from fppsim.geometry.rig import data_path
+    from fppsim.rendering.synth import SynthConfig
 
     out = tmp_path_factory.mktemp("depth_default") / "syn"
     generate_dataset([str(data_path("meshes"))], out, 1, seed=5,

@@ -1,13 +1,13 @@
-"""fppsim.fit_optics: optics ranges fitted to fringe images made with known optics."""
+"""fppsim.fitting.fit_optics: optics ranges fitted to fringe images made with known optics."""
 
 import cv2
 import numpy as np
 import pytest
 
-from fppsim import fit_optics as fo
-from fppsim import readers
-from fppsim.optics import Optics, OpticsRanges
-from fppsim.rig import Rig, data_path
+from fppsim.fitting import fit_optics as fo
+from fppsim.dataio import readers
+from fppsim.rendering.optics import Optics, OpticsRanges
+from fppsim.geometry.rig import Rig, data_path
 
 ASSETS = data_path("meshes")
 
@@ -74,7 +74,7 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
     Tolerances: gain x albedo (plane and object) 5 %, combined blur 0.1 px, noise sigma 25 %, shot 35 %."""
     from fppsim.cli import main
     from fppsim.generation import generate_dataset as generate
-    from fppsim.synth import SynthConfig
+    from fppsim.rendering.synth import SynthConfig
 
     rig = Rig.default()
     generate([str(ASSETS)], tmp_path / "syn", 3, seed=3, config=SynthConfig(
@@ -109,10 +109,10 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
 
 
 def test_render_plane_forms_the_image_like_a_sample_appearance_included():
-    """render_plane goes through the same stage as a sample's fringe image (fppsim.optics.form_images)
+    """render_plane goes through the same stage as a sample's fringe image (fppsim.rendering.optics.form_images)
     on the plane geometry the renderer computes, so the appearance effects act on it too."""
-    from fppsim.optics import form_images
-    from fppsim.render import plane_geometry
+    from fppsim.rendering.optics import form_images
+    from fppsim.rendering.render import plane_geometry
 
     rig = Rig.default()
     model = fo.plane_model(rig)

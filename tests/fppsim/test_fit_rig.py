@@ -1,15 +1,15 @@
-"""fppsim.fit_rig: analytic period map of a rig, band measurement of fringe images, fitting the projector."""
+"""fppsim.fitting.fit_rig: analytic period map of a rig, band measurement of fringe images, fitting the projector."""
 
 import cv2
 import numpy as np
 import pytest
 
-from fppsim import fit_periods as fr  # the period fit
-from fppsim.fit_rig import fit_baseline
-from fppsim import height_sensitivity
-from fppsim import readers
-from fppsim.rig import Rig, RigError, make_parallel_rig
-from fppsim.fringe import estimate_period
+from fppsim.fitting import fit_periods as fr
+from fppsim.fitting.fit_rig import fit_baseline
+from fppsim.fitting import height_sensitivity
+from fppsim.dataio import readers
+from fppsim.geometry.rig import Rig, RigError, make_parallel_rig
+from fppsim.phase.fringe import estimate_period
 
 from _helpers import REAL_SAMPLE as REAL
 
@@ -104,7 +104,7 @@ def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
 def test_default_fit_recovers_the_roll_of_a_yawed_rig():
     """On the default (yawed, lens-shifted) geometry pitch tilts the lines too; the default parameters
     (yaw, roll, periods) recover a roll without trading it against pitch."""
-    from fppsim.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
+    from fppsim.geometry.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
 
     unrolled = fr.adjust_rig(make_default_rig(), roll=-DEFAULT_PROJECTOR_ROLL)
     truth = fr.adjust_rig(unrolled, roll=np.radians(-1.3))
@@ -115,7 +115,7 @@ def test_default_fit_recovers_the_roll_of_a_yawed_rig():
 
 
 def test_default_rig_fringes_lean_like_the_real_ones():
-    from fppsim.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
+    from fppsim.geometry.rig import DEFAULT_PROJECTOR_ROLL, make_default_rig
 
     rig = make_default_rig()
     assert fr.plane_tilt(rig) == pytest.approx(-1.34, abs=0.03)
@@ -168,7 +168,7 @@ def test_cli(tmp_path, capsys):
 
 
 def test_phase_folders_give_plane_and_object_masks(tmp_path):
-    from fppsim.writers import save_psp_folder_sample, sums_from_phase
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
     rig = make_parallel_rig()
     img = _plane_images(rig, 1)[0]
@@ -192,10 +192,10 @@ def test_phase_folders_give_plane_and_object_masks(tmp_path):
 def _rendered(tmp_path, rig, count=2, seed=5):
     """Samples rendered by pyrender (independent of fit_rig's re-projection) with the given rig."""
     from fppsim.generation import generate_dataset as generate
-    from fppsim.optics import OpticsRanges
-    from fppsim.synth import SynthConfig
+    from fppsim.rendering.optics import OpticsRanges
+    from fppsim.rendering.synth import SynthConfig
 
-    from fppsim.rig import data_path
+    from fppsim.geometry.rig import data_path
 
     ASSETS = data_path("meshes")
     out = tmp_path / f"syn{seed}"
@@ -206,7 +206,7 @@ def _rendered(tmp_path, rig, count=2, seed=5):
 
 def test_surface_phase_equals_the_rendered_projector_phase(tmp_path):
     """Re-projecting the exact rendered height through the rig gives the renderer's projector phase."""
-    from fppsim.rig import make_default_rig
+    from fppsim.geometry.rig import make_default_rig
 
     rig = make_default_rig()
     out = _rendered(tmp_path, rig, count=1)
@@ -241,7 +241,7 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
 
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real-sample not present")
 def test_real_pair_sensitivity_matches_the_default_rig_not_the_parallel_one():
-    from fppsim.rig import make_default_rig
+    from fppsim.geometry.rig import make_default_rig
 
     images, _ = readers.load_fringe_images(REAL)
     good = height_sensitivity.sensitivity_check(make_default_rig(), images[0])

@@ -1,4 +1,4 @@
-"""Single-shot phase (fppsim.fringe.single_shot_phase): analytic truth, masks, intensity invariance, the
+"""Single-shot phase (fppsim.phase.fringe.single_shot_phase): analytic truth, masks, intensity invariance, the
 reliability ranking the error, a rendered fppsim sample against its exact phase_true, the real frame."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from _helpers import SHARED
-from fppsim.fringe import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
+from fppsim.phase.fringe import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
 from fppsim.phase import wrap as wrap_phase
 
 REAL_PHASE = SHARED / "real-phase" / "FP1523"
@@ -150,10 +150,10 @@ def test_rendered_sample_matches_phase_true(tmp_path):
     import trimesh
     from scipy.ndimage import binary_dilation
 
-    from fppsim import synth
+    from fppsim.rendering import synth
     from fppsim.generation import load_assets
-    from fppsim.render import DepthRenderer
-    from fppsim.rig import Rig
+    from fppsim.rendering.render import DepthRenderer
+    from fppsim.geometry.rig import Rig
 
     trimesh.creation.box(extents=(60.0, 40.0, 25.0)).export(tmp_path / "box.ply")
     assets, _ = load_assets([str(tmp_path / "box.ply")])
@@ -185,7 +185,7 @@ def test_rendered_sample_matches_phase_true(tmp_path):
 def test_real_frame_against_its_psp_phase():
     """FP1523/1201: iPattern's single-shot phase equals the public absolute phase
     atan2(-PSin, -PCos) + pi + 2 pi Order, wrapped, with the same sign and an offset of about 0."""
-    from fppsim.readers import load_psp_folder_sample
+    from fppsim.dataio.readers import load_psp_folder_sample
 
     s = load_psp_folder_sample(REAL_PHASE, "1201")
     r = single_shot_phase(s.image)

@@ -14,7 +14,7 @@ import pytest
 import trimesh
 
 from fppsim.cli import main
-from fppsim.formats import read_manifest
+from fppsim.dataio.formats import read_manifest
 
 ROOT = Path(__file__).resolve().parents[2]
 from _helpers import SHARED_MESHES
@@ -191,7 +191,7 @@ def test_shared_alligator_is_flat(tmp_path, capsys):
 
 
 def test_nothing_in_view_fails_cleanly(tmp_path, meshes, capsys):
-    from fppsim.rig import Rig
+    from fppsim.geometry.rig import Rig
 
     rig = Rig.default().to_dict()
     rig["camera"]["t"] = [0.0, 0.0, 50000.0]  # 50 m away: objects cover almost nothing
@@ -239,8 +239,8 @@ def test_corrupt_sample_is_named_not_a_traceback(tmp_path, meshes, capsys):
     assert main(["compare-real", str(out), str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "arrays.npz" in err[0]
-    from fppsim.formats import DatasetError
-    from fppsim.readers import load_native_sample
+    from fppsim.dataio.formats import DatasetError
+    from fppsim.dataio.readers import load_native_sample
 
     with pytest.raises(DatasetError, match="000000"):
         load_native_sample(out / "000000")
@@ -248,7 +248,7 @@ def test_corrupt_sample_is_named_not_a_traceback(tmp_path, meshes, capsys):
 
 def test_full_chain_sphere_matches_analytic_geometry(tmp_path):
     """generate -> arrays.npz + meta.json pose -> analytic ray/sphere heights and projector phases."""
-    from fppsim.rig import Rig
+    from fppsim.geometry.rig import Rig
 
     d = tmp_path / "m"
     d.mkdir()

@@ -1,4 +1,4 @@
-"""fppsim.label_real / `fppsim label-real`: phase-shifting scans -> figshare arrays (f1_80.npy + Z.npy).
+"""fppsim.fitting.label_real / `fppsim label-real`: phase-shifting scans -> figshare arrays (f1_80.npy + Z.npy).
 
 Ground truth: fppsim's own renders of the parallel rig (exact heights in arrays.npz, read only here),
 labelled from their PSP images, and the same renders written in the public PSin/PCos/Fringe/iPattern
@@ -17,12 +17,12 @@ import pytest
 from _helpers import REPO, SHARED
 from fppsim.cli import main
 from fppsim.errors import ConfigError, DatasetError, PSPMatError, UsageError
-from fppsim.formats import PRESETS, manifest_ids
-from fppsim.readers import load_native_sample
-from fppsim.label_real import (LabelRealConfig, fit_phase_offset, label_real, plane_flatness,
+from fppsim.dataio.formats import PRESETS, manifest_ids
+from fppsim.dataio.readers import load_native_sample
+from fppsim.fitting.label_real import (LabelRealConfig, fit_phase_offset, label_real, plane_flatness,
                                reference_plane_phase)
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
-from fppsim.rig import load_rig
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.geometry.rig import load_rig
 
 PARALLEL = REPO / "assets" / "parallel_rig.json"
 REAL_PHASE = SHARED / "real-phase" / "FP1523"
@@ -84,7 +84,7 @@ def test_native_psp_labels_match_the_exact_height(rendered, tmp_path):
 
 
 def test_uhrnet_reads_the_output_back_to_the_same_millimetres(rendered, tmp_path):
-    from uhrnet.data import FigshareArrays, load_sources
+    from uhrnet.training.data import FigshareArrays, load_sources
 
     label_real(LabelRealConfig(root=rendered, out=tmp_path / "o", rig=PARALLEL, previews=False))
     z = np.load(tmp_path / "o" / "Z.npy")[..., 0].astype(np.float64)
@@ -292,7 +292,7 @@ def test_duplicate_ids_are_a_usage_error(public, tmp_path, capsys):
 
 
 def test_an_interrupted_rerun_leaves_the_earlier_result_whole(public, tmp_path, monkeypatch, capsys):
-    import fppsim.label_real as lr
+    import fppsim.fitting.label_real as lr
 
     out = tmp_path / "o"
     assert main(["label-real", str(public), "--out", str(out), "--rig", str(PARALLEL), "-q"]) == 0
@@ -318,7 +318,7 @@ def test_an_interrupted_rerun_leaves_the_earlier_result_whole(public, tmp_path, 
 
 
 def test_a_rig_that_cannot_measure_is_refused(tmp_path, capsys):
-    """Issue 30 case 7: the one usability check (fppsim.rig.usable_rig) wherever a rig enters, here --rig."""
+    """Issue 30 case 7: the one usability check (fppsim.geometry.rig.usable_rig) wherever a rig enters, here --rig."""
     from _helpers import tiny_rig
 
     d = tiny_rig().to_dict()
@@ -335,7 +335,7 @@ def test_a_full_disk_while_labelling_names_the_array_and_keeps_the_earlier_resul
     import errno
     import os
 
-    import fppsim.writers as writers
+    import fppsim.dataio.writers as writers
 
     out = tmp_path / "o"
     assert main(["label-real", str(public), "--out", str(out), "--rig", str(PARALLEL), "-q", "--no-preview"]) == 0

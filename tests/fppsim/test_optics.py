@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from fppsim.optics import Optics, OpticsRanges, form_image, pattern_profile, projector_radiance
+from fppsim.rendering.optics import Optics, OpticsRanges, form_image, pattern_profile, projector_radiance
 
 
 def test_pattern_profile_phase_period_and_quantisation():
@@ -72,9 +72,9 @@ def test_every_parameter_is_declared_once_and_the_classes_derive_from_the_declar
     from dataclasses import fields
     from pathlib import Path
 
-    from fppsim import optics
-    from fppsim.optics import EFFECTS, MODEL, OPTICS_LIMITS, OPTICS_UNITS, SITES
-    from fppsim.optics.model import interval
+    from fppsim.rendering import optics
+    from fppsim.rendering.optics import EFFECTS, MODEL, OPTICS_LIMITS, OPTICS_UNITS, SITES
+    from fppsim.rendering.optics.model import interval
 
     declared = [p for e in EFFECTS for p in e.params]
     names = [p.name for p in declared]
@@ -111,7 +111,7 @@ def test_limits_refuse_values_outside_and_name_the_parameter():
 
 def _toy_effect():
     """A fringe-contrast knob on the pattern the camera sees: P -> 0.5 + c (P - 0.5); c = 1 is off."""
-    from fppsim.optics import Effect, Param
+    from fppsim.rendering.optics import Effect, Param
 
     def apply(pattern, optics, ctx):
         return (0.5 + optics.fringe_contrast * (pattern - 0.5)).astype(pattern.dtype)
@@ -121,9 +121,9 @@ def _toy_effect():
 
 
 def test_a_new_effect_is_one_declaration_end_to_end():
-    from fppsim.optics import EFFECTS, OpticsModel, form_images
-    from fppsim.render import plane_geometry
-    from fppsim.rig import Rig
+    from fppsim.rendering.optics import EFFECTS, OpticsModel, form_images
+    from fppsim.rendering.render import plane_geometry
+    from fppsim.geometry.rig import Rig
 
     toy = OpticsModel(EFFECTS + (_toy_effect(),))
     # derived: a field, a default range, limits, the --optics names
@@ -149,8 +149,8 @@ def test_a_new_effect_is_one_declaration_end_to_end():
 
 
 def test_declarations_are_checked():
-    from fppsim.optics import Effect, OpticsModel, Param
-    from fppsim.optics.shading import SHADING
+    from fppsim.rendering.optics import Effect, OpticsModel, Param
+    from fppsim.rendering.optics.shading import SHADING
 
     with pytest.raises(ValueError, match="unknown site 'lens'"):
         Effect("x", "lens", (), lambda v, o, c: v)
@@ -162,13 +162,13 @@ def test_declarations_are_checked():
 
 def test_optics_classes_pickle_by_their_published_name():
     """Spawned generator workers receive OpticsRanges by pickle: the derived classes must be found where
-    fppsim.optics publishes them (Python 3.12's make_dataclass had set __module__ to fppsim.optics.model,
+    fppsim.rendering.optics publishes them (Python 3.12's make_dataclass had set __module__ to fppsim.rendering.optics.model,
     which broke `generate --workers 2` there)."""
     import pickle
 
-    from fppsim.optics import Optics, OpticsRanges
+    from fppsim.rendering.optics import Optics, OpticsRanges
 
     for cls in (Optics, OpticsRanges):
-        assert cls.__module__ == "fppsim.optics"
+        assert cls.__module__ == "fppsim.rendering.optics"
         obj = cls()
         assert pickle.loads(pickle.dumps(obj)) == obj

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import trimesh
 
-from fppsim.render import DepthRenderer, Instance
-from fppsim.rig import Rig
+from fppsim.rendering.render import DepthRenderer, Instance
+from fppsim.geometry.rig import Rig
 
 
 def test_shader_programs_are_compiled_once_and_give_pyrender_s_depth():

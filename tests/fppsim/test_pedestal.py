@@ -1,11 +1,11 @@
-"""Pedestals under objects (fppsim.scene): prism geometry, scene draws, rendered heights."""
+"""Pedestals under objects (fppsim.rendering.scene): prism geometry, scene draws, rendered heights."""
 
 import numpy as np
 import pytest
 import trimesh
 
-from fppsim.rig import Rig
-from fppsim.scene import PEDESTAL_PREFIX, SceneRanges, asset_from_arrays, pedestal_prism, sample_scene
+from fppsim.geometry.rig import Rig
+from fppsim.rendering.scene import PEDESTAL_PREFIX, SceneRanges, asset_from_arrays, pedestal_prism, sample_scene
 
 
 def test_prism_is_closed_outward_and_has_the_analytic_volume():
@@ -77,7 +77,7 @@ def test_rendered_pedestal_top_and_shadow(tmp_path):
     25 mm above the same box drawn without a pedestal (same seed: same pose and size), and the raised
     box casts a larger projector shadow."""
     from fppsim.generation import generate_dataset as generate
-    from fppsim.synth import SynthConfig
+    from fppsim.rendering.synth import SynthConfig
 
     box = trimesh.creation.box(extents=(50.0, 40.0, 10.0))
     path = tmp_path / "box.stl"

@@ -1,12 +1,12 @@
-"""Procedural sculptures (fppsim.shapes.procedural), rig jitter, and their use in the scene sampler."""
+"""Procedural sculptures (fppsim.rendering.shapes.procedural), rig jitter, and their use in the scene sampler."""
 
 import numpy as np
 import pytest
 
-from fppsim.jitter import RigJitter, jitter_rig
-from fppsim.rig import make_figshare_like_rig as make_default_rig  # the rig with the real trend
-from fppsim.scene import PROCEDURAL_PREFIX, SceneRanges, procedural_asset, sample_scene
-from fppsim.shapes import PROCEDURAL_KINDS, add_detail, make_shape, procedural
+from fppsim.geometry.jitter import RigJitter, jitter_rig
+from fppsim.geometry.rig import make_figshare_like_rig as make_default_rig  # the rig with the real trend
+from fppsim.rendering.scene import PROCEDURAL_PREFIX, SceneRanges, procedural_asset, sample_scene
+from fppsim.rendering.shapes import PROCEDURAL_KINDS, add_detail, make_shape, procedural
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

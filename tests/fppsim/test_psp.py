@@ -1,12 +1,12 @@
-"""fppsim.psp: N-step phase shifting, temporal unwrapping, phase -> 3D (analytic geometry, no rendering)."""
+"""fppsim.phase.psp: N-step phase shifting, temporal unwrapping, phase -> 3D (analytic geometry, no rendering)."""
 
 import numpy as np
 import pytest
 
-from fppsim import psp, triangulation
+from fppsim.phase import psp, triangulation
 from fppsim.phase import wrap
 from _helpers import distorted_rig
-from fppsim.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
+from fppsim.geometry.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
 
@@ -353,7 +353,7 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
 
 
 def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():
-    from fppsim.psp import order_consistency
+    from fppsim.phase.psp import order_consistency
 
     H, W = 20, 30
     u = np.tile(np.arange(W, dtype=float), (H, 1))
@@ -371,8 +371,8 @@ def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():
 
 
 def test_decode_stacks_full_chain():
-    from fppsim.psp import decode_stacks, synthesize_stack
-    from fppsim.rig import Rig
+    from fppsim.phase.psp import decode_stacks, synthesize_stack
+    from fppsim.geometry.rig import Rig
 
     rig = Rig.default()
     cam = rig.camera

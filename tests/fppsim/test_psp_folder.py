@@ -1,13 +1,13 @@
-"""fppsim.readers / fppsim.writers, the .mat folder layout: <root>/PSin, PCos, Fringe (Order), iPattern, one variable per .mat."""
+"""fppsim.dataio.readers / fppsim.dataio.writers, the .mat folder layout: <root>/PSin, PCos, Fringe (Order), iPattern, one variable per .mat."""
 
 import numpy as np
 import pytest
 import scipy.io
 
-from fppsim import psp
+from fppsim.phase import psp
 from fppsim.errors import PSPMatError
-from fppsim.readers import is_psp_folder, iter_psp_folder, list_psp_ids, load_psp_folder_sample
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.dataio.readers import is_psp_folder, iter_psp_folder, list_psp_ids, load_psp_folder_sample
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
 TWO_PI = 2 * np.pi
 
@@ -75,7 +75,7 @@ def test_write_round_trip(tmp_path, convention):
     s = load_psp_folder_sample(tmp_path, "0007", convention=convention)
     np.testing.assert_array_equal(s.valid, valid)
     np.testing.assert_allclose(s.phase[valid], phase[valid], atol=1e-9)
-    # the same phase comes out of fppsim.psp's own chain (phase sums of a 4-step stack)
+    # the same phase comes out of fppsim.phase.psp's own chain (phase sums of a 4-step stack)
     stack = psp.synthesize_stack(phase, 100.0, 50.0, n_steps=4)
     ps, pc = psp.phase_sums(stack)
     np.testing.assert_allclose(ps[valid], 2 * psin[valid], atol=1e-6)  # (N/2) B with N = 4
@@ -107,7 +107,7 @@ def test_errors_name_the_file(tmp_path):
         list_psp_ids(tmp_path)
     (tmp_path / "x").write_bytes(b"not a mat file at all, just bytes" * 10)
     with pytest.raises(PSPMatError, match=r"x: not a MATLAB \.mat file"):
-        from fppsim.readers import read_mat_variable
+        from fppsim.dataio.readers import read_mat_variable
         read_mat_variable(tmp_path / "x", "PSin")
     with pytest.raises(PSPMatError, match=r"shape \(3, 3\) differs from PSin's \(2, 2\)"):
         save_psp_folder_sample(tmp_path / "w", "1", np.zeros((2, 2)), np.zeros((2, 2)), np.zeros((3, 3)))
@@ -148,8 +148,8 @@ def test_matlab_v73_without_h5py_is_one_line(tmp_path, monkeypatch):
 def test_export_native_dataset(tmp_path):
     from _helpers import write_native
 
-    from fppsim.readers import load_native_sample
-    from fppsim.writers import export_psp_folders
+    from fppsim.dataio.readers import load_native_sample
+    from fppsim.dataio.writers import export_psp_folders
 
     ids = write_native(tmp_path / "nat", n=3, h=16, w=24, seed=0)
     for sid in ids:  # give the samples a real projector phase

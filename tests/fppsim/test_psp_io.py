@@ -1,13 +1,13 @@
-"""fppsim.readers.load_psp_mat / fppsim.writers.save_psp_mat: the PSin / PCos / fringe-order .mat layout shares one code path with fppsim.psp."""
+"""fppsim.dataio.readers.load_psp_mat / fppsim.dataio.writers.save_psp_mat: the PSin / PCos / fringe-order .mat layout shares one code path with fppsim.phase.psp."""
 
 import numpy as np
 import pytest
 import scipy.io
 
-from fppsim import psp
+from fppsim.phase import psp
 from fppsim.errors import PSPMatError
-from fppsim.readers import load_psp_mat
-from fppsim.writers import save_psp_mat
+from fppsim.dataio.readers import load_psp_mat
+from fppsim.dataio.writers import save_psp_mat
 
 TWO_PI = 2 * np.pi
 

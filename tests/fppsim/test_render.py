@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from fppsim.render import DepthRenderer, Instance, scene_geometry
-from fppsim.rig import Rig
+from fppsim.rendering.render import DepthRenderer, Instance, scene_geometry
+from fppsim.geometry.rig import Rig
 
 
 @pytest.fixture(scope="module")
@@ -120,7 +120,7 @@ def test_renderer_reuses_keyed_meshes(rig, renderer):
 
 def test_distorted_camera_tilted_plane(rig, renderer):
     """With lens distortion the rendered geometry still matches the analytic plane, corners included."""
-    from fppsim.rig import Device, Rig
+    from fppsim.geometry.rig import Device, Rig
 
     cam = rig.camera
     dcam = Device(K=cam.K, R=cam.R, t=cam.t, width=cam.width, height=cam.height, dist=[-0.25, 0.08, 0.001, -0.001, 0.0])

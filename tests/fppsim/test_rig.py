@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from fppsim.rig import Device, Rig, RigError, make_default_rig, make_figshare_like_rig, make_parallel_rig
+from fppsim.geometry.rig import Device, Rig, RigError, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 
 @pytest.fixture
@@ -17,7 +17,7 @@ def rig():
 @pytest.mark.parametrize("asset,builder", [("default_rig.json", make_default_rig),
                                            ("figshare_like_rig.json", make_figshare_like_rig)])
 def test_assets_match_builders(asset, builder):
-    from fppsim.rig import data_path
+    from fppsim.geometry.rig import data_path
 
     rig, built = Rig.load(data_path(asset)), builder()
     np.testing.assert_allclose(rig.camera.K, built.camera.K)
@@ -102,12 +102,12 @@ def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
 @pytest.mark.slow
 def test_figshare_like_rig_rendered_plane_period_trend(figshare_rig):
     """A rendered plane measured like compare-real: halves ~11.96 | 11.49 px, bands ~12.06 -> 11.39."""
-    from fppsim.optics import Optics
-    from fppsim.fringe import estimate_period, quarter_periods
-    from fppsim.optics import form_images
+    from fppsim.rendering.optics import Optics
+    from fppsim.phase.fringe import estimate_period, quarter_periods
+    from fppsim.rendering.optics import form_images
 
     pytest.importorskip("pyrender")
-    from fppsim.render import DepthRenderer, scene_geometry
+    from fppsim.rendering.render import DepthRenderer, scene_geometry
 
     rig = figshare_rig
     geom = scene_geometry(rig, [], DepthRenderer(), scale=1)
@@ -247,7 +247,7 @@ def test_projector_irradiance_is_flux_over_pixel_footprint(normal):
 def test_projector_square_to_a_plane_lights_it_evenly():
     """The parallel rig's projector looks straight down: every pixel's footprint on z = 0 has the same
     area, so the plane is lit evenly (an isotropic point source would fall off as cos^3)."""
-    from fppsim.fit_optics import plane_model
+    from fppsim.fitting.fit_optics import plane_model
 
     k = plane_model(make_parallel_rig())
     lit = k["lit"]
@@ -258,7 +258,7 @@ def test_projector_square_to_a_plane_lights_it_evenly():
 def test_default_rig_plane_brightness_trend_like_the_real_rig():
     """The real figshare pair's fringe amplitude on its plane rises about 1.2x left to right (23.7 -> 28.4
     8-bit levels in the outer 40 columns); the default rig gives 1.11x (the old point-source model 1.92x)."""
-    from fppsim.fit_optics import plane_model
+    from fppsim.fitting.fit_optics import plane_model
 
     k = plane_model(make_default_rig())["k"]
     ratio = k[:, -40:].mean() / k[:, :40].mean()

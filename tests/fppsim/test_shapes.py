@@ -1,4 +1,4 @@
-"""fppsim.shapes: the project's own sculpture-like meshes and the shipped assets/meshes files."""
+"""fppsim.rendering.shapes: the project's own sculpture-like meshes and the shipped assets/meshes files."""
 
 from functools import lru_cache
 from pathlib import Path
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from fppsim.shapes import ASSETS, SHAPES, asset_name, export_ply_bytes, make_shape
+from fppsim.rendering.shapes import ASSETS, SHAPES, asset_name, export_ply_bytes, make_shape
 
 ASSET_DIR = Path(__file__).resolve().parents[2] / "fppsim" / "data" / "meshes"
 

@@ -1,4 +1,4 @@
-"""The one opener of real data (``fppsim.readers.open_source``): every layout recognised, with what it provides."""
+"""The one opener of real data (``fppsim.dataio.readers.open_source``): every layout recognised, with what it provides."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 
 from _helpers import write_figshare, write_native
-from fppsim.readers import open_source
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.dataio.readers import open_source
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
 
 def _scan(root, n: int = 2, h: int = 16, w: int = 24):

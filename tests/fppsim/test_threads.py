@@ -8,9 +8,9 @@ import threading
 import numpy as np
 import pytest
 
-from fppsim import psp, triangulation
-from fppsim.threads import helper_pool, map_bands, row_bands
-from fppsim.rig import Device, Rig, make_default_rig
+from fppsim.phase import psp, triangulation
+from fppsim.rendering.threads import helper_pool, map_bands, row_bands
+from fppsim.geometry.rig import Device, Rig, make_default_rig
 
 
 def _small_rig(height=37, width=53):
@@ -154,7 +154,7 @@ def test_helper_works_in_a_forked_worker():
 
 def test_scene_geometry_reports_a_failed_projector_render():
     """The camera side runs on the helper while the shadow map renders; a failed render is the error."""
-    from fppsim.render import scene_geometry
+    from fppsim.rendering.render import scene_geometry
 
     class Renderer:
         calls = 0
@@ -172,7 +172,7 @@ def test_scene_geometry_reports_a_failed_projector_render():
 
 def test_scene_geometry_called_on_the_helper_runs_in_place():
     """Started from the helper thread, the camera side runs at once instead of waiting for the helper."""
-    from fppsim.render import scene_geometry
+    from fppsim.rendering.render import scene_geometry
 
     class Renderer:
         def depth(self, device, meshes, scale=1):

@@ -1,8 +1,8 @@
-"""fppsim.unwrap: regions, spatial unwrapping, step conflicts and shadow bridges on analytic phases."""
+"""fppsim.phase.unwrap: regions, spatial unwrapping, step conflicts and shadow bridges on analytic phases."""
 
 import numpy as np
 
-from fppsim.unwrap import phase_quality, phase_regions, shadow_bridges, step_conflicts
+from fppsim.phase.unwrap import phase_quality, phase_regions, shadow_bridges, step_conflicts
 
 
 def wrap(x):
@@ -78,7 +78,7 @@ def test_shadow_bridge_needs_agreeing_votes():
 
 def test_shadow_runs_finds_every_crossing_as_a_plain_row_walk_does():
     """shadow_runs against a per-pixel walk written here: every run of shadow with a lit pixel on both sides."""
-    from fppsim.unwrap import shadow_runs
+    from fppsim.phase.unwrap import shadow_runs
 
     rng = np.random.default_rng(4)
     for density in (0.1, 0.5, 0.9):

@@ -272,7 +272,7 @@ def test_evaluate_sample_counts_and_errors():
 
 def test_evaluate_sample_breakdown_from_images():
     """With the phase-shifted images, rejections split into low modulation vs unreliable order."""
-    from fppsim import psp
+    from fppsim.phase import psp
 
     H, W = 8, 912
     u = np.tile(np.arange(W, dtype=np.float64), (H, 1))

@@ -1,4 +1,4 @@
-"""uhrnet.adapt: label-free fine-tuning on tiny images of a tiny rig (run folder, resume, refusals, labels never
+"""uhrnet.physics.adapt: label-free fine-tuning on tiny images of a tiny rig (run folder, resume, refusals, labels never
 read) and the adaptation loss against analytic truth through the rig layer."""
 
 import csv
@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from uhrnet.adapt import AdaptConfig, adapt, adapt_loss
+from uhrnet.physics.adapt import AdaptConfig, adapt, adapt_loss
 from uhrnet.cli import main
 from uhrnet.errors import ConfigError
-from uhrnet.rig_layer import RigLayer
+from uhrnet.physics.rig_layer import RigLayer
 
 from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
 

@@ -107,7 +107,7 @@ def test_bench_openvino_form_and_best_deployable_ratio(tmp_path):
 
 def test_paired_times_alternate_the_two_calls():
     """Warm-up of each, then a, b, a, b, ...; medians and per-pair ratios from the same calls."""
-    from uhrnet.bench import paired_times
+    from uhrnet.scoring.bench import paired_times
 
     calls = []
     out = paired_times(lambda: calls.append("a"), lambda: calls.append("b"), "cpu", warmup=2, repeats=3)
@@ -119,7 +119,7 @@ def test_optimize_variants_keeps_each_forms_own_runner(tmp_path):
     """The runner kept for each ONNX runtime is that runtime's (not the last one the loop built)."""
     pytest.importorskip("onnxruntime")
     pytest.importorskip("openvino")
-    from uhrnet.bench import BenchConfig, optimize_variants
+    from uhrnet.scoring.bench import BenchConfig, optimize_variants
     from uhrnet.models import build_model
 
     torch.manual_seed(0)

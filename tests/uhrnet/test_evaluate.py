@@ -9,8 +9,8 @@ import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.data import load_sources
-from uhrnet.prediction import predict_labels
+from uhrnet.training.data import load_sources
+from uhrnet.inference.prediction import predict_labels
 
 from _helpers import REAL_SAMPLE, train_tiny, write_figshare, write_native
 

@@ -10,9 +10,9 @@ from torch import nn
 from uhrnet.checkpoint import FORMAT, VERSION
 from uhrnet.errors import ExportError
 from uhrnet.cli import main
-from fppsim.formats import LabelTransform
+from fppsim.dataio.formats import LabelTransform
 from uhrnet.models import build_model, list_models
-from uhrnet.deploy import fold_batchnorm, fold_conv_bn, prepare_for_inference
+from uhrnet.inference.deploy import fold_batchnorm, fold_conv_bn, prepare_for_inference
 
 TINY = {"uhrnet": 8, "unet": 4, "hnet": 2, "model_a": 2, "model_b": 8, "model_c": 8, "model_d": 8}
 
@@ -145,7 +145,7 @@ def test_export_torchscript_round_trip(tmp_path, name, capsys):
 def test_check_fails_on_a_tampered_export(tmp_path, fmt, capsys):
     """An export of other weights must fail the check against the checkpoint: exit 1, one line."""
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.export import check_export, export_model
+    from uhrnet.inference.export import check_export, export_model
 
     ckpt = write_checkpoint(tmp_path / "m.pt", "uhrnet")
     model, _ = model_from_checkpoint(load_checkpoint(ckpt))
@@ -161,7 +161,7 @@ def test_check_fails_on_a_tampered_export(tmp_path, fmt, capsys):
 
 
 def test_export_cli_check_failure_exit_code(tmp_path, capsys, monkeypatch):
-    import uhrnet.export as export
+    import uhrnet.inference.export as export
 
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     real = export.run_exported
@@ -187,7 +187,7 @@ def test_export_user_errors(tmp_path, capsys):
 def test_failed_check_leaves_the_output_as_it_was(tmp_path, capsys, monkeypatch):
     """The export is checked under a staging name and moved onto --out only when it passes: a failed or
     impossible check leaves the user's file untouched and no staging file behind."""
-    import uhrnet.export as export
+    import uhrnet.inference.export as export
 
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     out = tmp_path / "keep.onnx"
@@ -218,7 +218,7 @@ def test_export_refuses_to_overwrite_a_checkpoint(tmp_path, capsys):
 
 
 def test_onnx_runner_errors_name_the_cause(tmp_path):
-    from uhrnet.export import export_model, onnx_runner
+    from uhrnet.inference.export import export_model, onnx_runner
 
     with pytest.raises(ExportError, match="no such ONNX file"):
         onnx_runner(tmp_path / "missing.onnx")
@@ -228,7 +228,7 @@ def test_onnx_runner_errors_name_the_cause(tmp_path):
         with pytest.raises(ExportError, match="threads must be a positive integer"):
             onnx_runner(path, threads=bad)
     pytest.importorskip("openvino")
-    from uhrnet.export import run_exported
+    from uhrnet.inference.export import run_exported
 
     bad = tmp_path / "bad.onnx"
     bad.write_bytes(b"not a model")
@@ -245,7 +245,7 @@ def test_export_check_under_openvino_agrees_with_onnxruntime(tmp_path, name, cap
     pytest.importorskip("openvino")
     pytest.importorskip("onnxruntime")
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.export import onnx_runner
+    from uhrnet.inference.export import onnx_runner
 
     ckpt = write_checkpoint(tmp_path / "m.pt", name)
     out = tmp_path / f"{name}.onnx"
@@ -264,7 +264,7 @@ def test_export_check_under_openvino_agrees_with_onnxruntime(tmp_path, name, cap
 def test_openvino_check_fails_on_a_tampered_export(tmp_path):
     pytest.importorskip("openvino")
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.export import check_export, export_model
+    from uhrnet.inference.export import check_export, export_model
 
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     model, _ = model_from_checkpoint(load_checkpoint(ckpt))
@@ -295,7 +295,7 @@ def test_openvino_leaves_the_callers_signal_stack_alone(tmp_path):
     pytest.importorskip("openvino")
     import ctypes
 
-    from uhrnet.export import _SignalStack, export_model, keep_signal_stack, onnx_runner
+    from uhrnet.inference.export import _SignalStack, export_model, keep_signal_stack, onnx_runner
 
     try:
         sigaltstack = ctypes.CDLL(None, use_errno=True).sigaltstack

@@ -9,12 +9,12 @@ import torch
 
 from uhrnet.checkpoint import load_checkpoint
 from uhrnet.cli import main
-from uhrnet.distributed import DistInfo
+from uhrnet.training.distributed import DistInfo
 from uhrnet.errors import CheckpointError, ConfigError, UsageError
 from uhrnet.models import build_model, list_models
 from uhrnet.models.freeze import FREEZE_CHOICES, parts_of
-from uhrnet.train_config import TrainConfig, resolve_config
-from uhrnet.trainer import Trainer
+from uhrnet.training.train_config import TrainConfig, resolve_config
+from uhrnet.training.trainer import Trainer
 
 from _helpers import write_figshare
 

@@ -1,12 +1,12 @@
-"""uhrnet.losses: chunked L2 (hand-computed values, rank weights, dynamic reordering), SSIM, compound."""
+"""uhrnet.training.losses: chunked L2 (hand-computed values, rank weights, dynamic reordering), SSIM, compound."""
 
 from __future__ import annotations
 
 import pytest
 import torch
 
-from uhrnet.losses import ChunkedL2Loss, CompoundLoss, L2Loss, SSIMLoss, build_loss, patch_sums
-from uhrnet.metrics import ssim
+from uhrnet.training.losses import ChunkedL2Loss, CompoundLoss, L2Loss, SSIMLoss, build_loss, patch_sums
+from uhrnet.scoring.metrics import ssim
 
 # Patch L2 values 1..16 placed in a shuffled order over the 4 x 4 grid (row-major patch index).
 LAYOUT = torch.tensor([7, 2, 16, 11, 1, 14, 5, 9, 12, 3, 15, 8, 4, 13, 10, 6], dtype=torch.float32)

@@ -1,4 +1,4 @@
-"""uhrnet.metrics: SSIM against scikit-image, RMSE in mm, parameters."""
+"""uhrnet.scoring.metrics: SSIM against scikit-image, RMSE in mm, parameters."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from uhrnet.metrics import count_parameters, rmse_mm, ssim
+from uhrnet.scoring.metrics import count_parameters, rmse_mm, ssim
 
 
 def skimage_ssim(a: np.ndarray, b: np.ndarray, data_range: float) -> float:

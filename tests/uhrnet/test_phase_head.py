@@ -11,7 +11,7 @@ import torch
 
 from uhrnet.cli import main
 from uhrnet.models import build_model, list_models, outputs_of
-from uhrnet.rig_layer import RigLayer
+from uhrnet.physics.rig_layer import RigLayer
 
 from _helpers import tiny_rig, write_figshare, write_native_rig
 
@@ -66,7 +66,7 @@ def test_the_phase_head_needs_a_rig_and_the_rig_needs_the_head():
 def _crafted(rig, origin, coarse_dphi, confidence=1.0):
     """A backbone output for the analytic bump: coarse height whose phase is off by ``coarse_dphi`` (rad), and
     (cos, sin) of ``phase_true + origin`` (fppsim's forward model, not the head's layer) times ``confidence``."""
-    from fppsim.height_sensitivity import surface_phase
+    from fppsim.fitting.height_sensitivity import surface_phase
 
     cam = rig.camera
     yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
@@ -106,8 +106,8 @@ def test_untrusted_phase_keeps_the_coarse_height(rig):
 
 
 def _loss_setup(rig):
-    from fppsim.height_sensitivity import surface_phase
-    from uhrnet.losses import L2Loss, PhaseHeadLoss
+    from fppsim.fitting.height_sensitivity import surface_phase
+    from uhrnet.training.losses import L2Loss, PhaseHeadLoss
 
     cam = rig.camera
     yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
@@ -194,7 +194,7 @@ def test_a_phase_head_checkpoint_goes_through_every_command_unchanged(phase_run,
                  "--width", "64"]) == 0
     assert (tmp_path / "m.onnx").stat().st_size > 1000
     # timing, as bench measures models (bench itself builds models by name, not from checkpoints)
-    from uhrnet.timing import inference_seconds
+    from uhrnet.scoring.timing import inference_seconds
 
     assert inference_seconds(model, (1, 1, 32, 64), warmup=0, repeats=1) > 0
 

@@ -1,10 +1,10 @@
-"""uhrnet.phase_residual: calibration-free fit of real phase = plane(x, y) + a h + b h^2."""
+"""uhrnet.scoring.phase_residual: calibration-free fit of real phase = plane(x, y) + a h + b h^2."""
 
 import numpy as np
 import pytest
 
-from fppsim.fringe import poly_basis
-from uhrnet.phase_residual import evaluate_phase, fit_phase
+from fppsim.phase.fringe import poly_basis
+from uhrnet.scoring.phase_residual import evaluate_phase, fit_phase
 
 
 def _scene(h=60, w=100, seed=0):

@@ -1,4 +1,4 @@
-"""uhrnet.phase_residual on a folder (`uhrnet evaluate-phase`): checkpoints on a PSin/PCos/Fringe/iPattern
+"""uhrnet.scoring.phase_residual on a folder (`uhrnet evaluate-phase`): checkpoints on a PSin/PCos/Fringe/iPattern
 folder, no height labels."""
 
 import json
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from _helpers import scene, train_tiny, write_figshare
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from uhrnet.cli import main
 
 pytestmark = pytest.mark.slow  # trains a tiny model (about 15 s on 2 cores)

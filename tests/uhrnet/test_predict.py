@@ -6,7 +6,7 @@ import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.prediction import predict_labels
+from uhrnet.inference.prediction import predict_labels
 
 from _helpers import scene, train_tiny, write_figshare
 
@@ -68,7 +68,7 @@ def test_predict_png_npy_and_folder(ckpt, tmp_path, capsys):
 
 
 def test_predict_with_rig_back_projection(ckpt, tmp_path):
-    rig_mod = pytest.importorskip("fppsim.rig")
+    rig_mod = pytest.importorskip("fppsim.geometry.rig")
     try:
         rig = rig_mod.Rig.default()
     except Exception as exc:  # the default rig asset not there yet
@@ -123,7 +123,7 @@ def test_predict_user_errors_are_one_line(ckpt, tmp_path, capfd):
     cv2.imwrite(str(tmp_path / "img.png"), f8)
     assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), "--range", "5", "1"]) == 1
     assert "--range" in capfd.readouterr().err
-    rig_mod = pytest.importorskip("fppsim.rig")
+    rig_mod = pytest.importorskip("fppsim.geometry.rig")
     try:
         rig = rig_mod.Rig.default()
     except Exception as exc:

@@ -1,5 +1,5 @@
-"""uhrnet.prediction.read_inputs on phase-shifting and figshare folders, `uhrnet predict --refine phase`, and
-uhrnet.refine.refine_relief on an analytic pedestal scene (fppsim's own forward model as the truth)."""
+"""uhrnet.inference.prediction.read_inputs on phase-shifting and figshare folders, `uhrnet predict --refine phase`, and
+uhrnet.physics.refine.refine_relief on an analytic pedestal scene (fppsim's own forward model as the truth)."""
 
 import json
 
@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from fppsim.height_sensitivity import surface_phase
-from fppsim.rig import make_default_rig
-from fppsim.writers import save_psp_folder_sample, sums_from_phase
+from fppsim.fitting.height_sensitivity import surface_phase
+from fppsim.geometry.rig import make_default_rig
+from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from uhrnet.cli import main
-from uhrnet.prediction import read_inputs
-from uhrnet.refine import refine_relief
-from uhrnet.rig_layer import RigLayer
+from uhrnet.inference.prediction import read_inputs
+from uhrnet.physics.refine import refine_relief
+from uhrnet.physics.rig_layer import RigLayer
 
 from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
 
@@ -96,7 +96,7 @@ def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp
 @pytest.fixture(scope="module")
 def pedestal():
     """The default rig; a disc standing 30 mm on the plane (near-vertical walls) with 4 mm of relief on top;
-    the projector shadow left of it (its phase NaN: fppsim.unwrap once hung in skimage's unwrapper on masked
+    the projector shadow left of it (its phase NaN: fppsim.phase.unwrap once hung in skimage's unwrapper on masked
     NaN, and its quality filter spread NaN along whole rows); the measured phase counted from another origin
     (+72 rad, DESIGN.md section 9)."""
     rig = make_default_rig()

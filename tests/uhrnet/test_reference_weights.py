@@ -1,4 +1,4 @@
-"""The reference code's UHRNet weights (fead1/UHRNet) <-> ours: `uhrnet.reference_weights`, `uhrnet
+"""The reference code's UHRNet weights (fead1/UHRNet) <-> ours: `uhrnet.inference.reference_weights`, `uhrnet
 import-weights`, `uhrnet export --format reference`.
 
 The truth here does not come from the code under test: this file describes the reference network's
@@ -16,12 +16,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from fppsim.formats import PRESETS
+from fppsim.dataio.formats import PRESETS
 from uhrnet.checkpoint import FORMAT, VERSION, load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
 from uhrnet.errors import CheckpointError
 from uhrnet.models import build_model
-from uhrnet.reference_weights import (
+from uhrnet.inference.reference_weights import (
     from_reference_state_dict,
     key_table,
     read_reference_file,

@@ -1,10 +1,10 @@
-"""uhrnet.refine.circular_median: the phase origin estimate of refine_relief, against analytic truth
+"""uhrnet.physics.refine.circular_median: the phase origin estimate of refine_relief, against analytic truth
 (refine_relief itself: tests/uhrnet/test_predict_refine.py)."""
 
 import numpy as np
 
 from fppsim.phase import wrap
-from uhrnet.refine import circular_median
+from uhrnet.physics.refine import circular_median
 
 
 def test_circular_median_straddles_the_cut_and_ignores_outliers():
@@ -18,9 +18,9 @@ def test_circular_median_straddles_the_cut_and_ignores_outliers():
 def test_refine_relief_refuses_a_layer_of_another_grid():
     import pytest
 
-    from fppsim.rig import make_default_rig
-    from uhrnet.refine import refine_relief
-    from uhrnet.rig_layer import RigLayer
+    from fppsim.geometry.rig import make_default_rig
+    from uhrnet.physics.refine import refine_relief
+    from uhrnet.physics.rig_layer import RigLayer
 
     layer = RigLayer(make_default_rig(), pixels=(slice(0, 4), slice(0, 5)))
     with pytest.raises(ValueError, match="grid"):

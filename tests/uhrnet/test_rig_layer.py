@@ -1,4 +1,4 @@
-"""uhrnet.rig_layer.RigLayer: the differentiable phase <-> height layer equals fppsim's triangulation."""
+"""uhrnet.physics.rig_layer.RigLayer: the differentiable phase <-> height layer equals fppsim's triangulation."""
 
 import json
 
@@ -7,15 +7,15 @@ import pytest
 import torch
 
 from _helpers import distorted_rig
-from fppsim.height_sensitivity import centre_sensitivity, surface_phase
-from fppsim.rig import Rig, data_path, make_default_rig
+from fppsim.fitting.height_sensitivity import centre_sensitivity, surface_phase
+from fppsim.geometry.rig import Rig, data_path, make_default_rig
 from fppsim import phase as np_phase
-from uhrnet.rig_layer import RigLayer, circular_mean, wrap
+from uhrnet.physics.rig_layer import RigLayer, circular_mean, wrap
 
 try:  # the triangulation may live in its own module
-    from fppsim.triangulation import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
+    from fppsim.phase.triangulation import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
 except ImportError:
-    from fppsim.psp import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
+    from fppsim.phase.psp import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -174,7 +174,7 @@ def test_order_and_wrap_helpers():
 
 
 def test_layer_is_the_torch_twin_of_the_rig_forward_model(case):
-    """RigLayer.phase_from_height / sensitivity equal fppsim.rig.Rig.phase_at_height / sensitivity (the one
+    """RigLayer.phase_from_height / sensitivity equal fppsim.geometry.rig.Rig.phase_at_height / sensitivity (the one
     numpy ray cut, Device.ray_cut) on every pixel."""
     name, rig, layer, h, phase = case
     np.testing.assert_allclose(layer.phase_from_height(torch.from_numpy(h)).numpy(), rig.phase_at_height(h),
@@ -185,7 +185,7 @@ def test_layer_is_the_torch_twin_of_the_rig_forward_model(case):
 
 
 def test_torch_phase_helpers_equal_fppsim_phase():
-    """uhrnet.rig_layer.wrap / circular_mean are the torch twins of fppsim.phase.wrap / circular_mean."""
+    """uhrnet.physics.rig_layer.wrap / circular_mean are the torch twins of fppsim.phase.wrap / circular_mean."""
     rng = np.random.default_rng(3)
     edges = np.array([-np.pi, np.pi, 3 * np.pi, -3 * np.pi, 0.0, -0.0, np.nextafter(-np.pi, 0), 1e-300, np.nan])
     for p in (rng.uniform(-np.pi, np.pi, 4000), rng.uniform(-40, 40, 4000), edges):

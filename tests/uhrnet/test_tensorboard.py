@@ -92,8 +92,8 @@ def test_train_logs_every_step_and_epoch_and_a_validation_image(figshare, tmp_pa
         np.testing.assert_allclose(values, [float(r[column]) for r in rows], rtol=1e-5, err_msg=column)
     assert _scalars(acc, "epoch") == ([STEPS, 2 * STEPS], [1.0, 2.0])
     # the first validation sample (image 7 of the reference split): prediction, target, error per epoch
-    from fppsim.formats import PRESETS
-    from uhrnet.data import load_sources
+    from fppsim.dataio.formats import PRESETS
+    from uhrnet.training.data import load_sources
 
     sample = load_sources(real=[figshare], transform=PRESETS["figshare"]).val[0]
     height = PRESETS["figshare"].height_mm(sample["height"][0].numpy())[sample["mask"][0].numpy() > 0]
@@ -166,9 +166,9 @@ def test_missing_tensorboard_is_one_line_and_exit_2_before_anything_runs(figshar
                  "--tensorboard"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install" in err[0] and not (tmp_path / "ad").exists()
-    from uhrnet.adapt import AdaptConfig
+    from uhrnet.physics.adapt import AdaptConfig
     from uhrnet.errors import UsageError
-    from uhrnet.train_config import TrainConfig
+    from uhrnet.training.train_config import TrainConfig
 
     with pytest.raises(UsageError, match="tensorboard"):
         TrainConfig(out=run, real=[figshare], tensorboard=True)

@@ -1,10 +1,10 @@
-"""uhrnet.timing: timing and memory helpers."""
+"""uhrnet.scoring.timing: timing and memory helpers."""
 
 from __future__ import annotations
 
 import torch
 
-from uhrnet.timing import inference_seconds, peak_memory_bytes, time_call
+from uhrnet.scoring.timing import inference_seconds, peak_memory_bytes, time_call
 
 
 def test_timing_and_memory_helpers():

@@ -14,7 +14,7 @@ import torch
 
 from uhrnet.checkpoint import CheckpointError, atomic_save, load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.data import Prepared, load_sources
+from uhrnet.training.data import Prepared, load_sources
 
 from _helpers import write_figshare, write_native
 
@@ -159,9 +159,9 @@ def test_data_error_in_loader_worker_names_the_file(tmp_path, capsys):
 
 
 def test_nan_loss_stops_with_clear_message(tmp_path, capsys, monkeypatch):
-    import uhrnet.losses
+    import uhrnet.training.losses
 
-    real_build = uhrnet.losses.build_loss
+    real_build = uhrnet.training.losses.build_loss
 
     def nan_after_two(name, data_range=None, **kw):
         loss = real_build(name, data_range=data_range, **kw)
@@ -176,7 +176,7 @@ def test_nan_loss_stops_with_clear_message(tmp_path, capsys, monkeypatch):
         loss.forward = poisoned
         return loss
 
-    monkeypatch.setattr(uhrnet.losses, "build_loss", nan_after_two)
+    monkeypatch.setattr(uhrnet.training.losses, "build_loss", nan_after_two)
     write_figshare(tmp_path / "real", n=8, h=32, w=64)
     rc = main(["train", "--real", str(tmp_path / "real"), "--model", "unet", "--base-channels", "4", "--loss",
                "l2", "--epochs", "3", "--batch-size", "2", "--out", str(tmp_path / "run"), "--no-progress"])
@@ -280,7 +280,7 @@ def test_cosine_schedule_follows_the_formula(tmp_path, one_thread):
 
 
 def test_augment_option_on_resume_of_older_runs():
-    from uhrnet.train_config import TrainConfig, resolve_config
+    from uhrnet.training.train_config import TrainConfig, resolve_config
     from uhrnet.errors import ConfigError, UsageError
 
     older = {"augment": True, "synthetic": [], "real": []}  # a run saved before the augmentation kinds
@@ -296,7 +296,7 @@ def test_augment_option_on_resume_of_older_runs():
 
 def test_weight_average_follows_the_formula():
     """WeightEMA against the recurrence computed independently in float64 numpy."""
-    from uhrnet.ema import WeightEMA
+    from uhrnet.training.ema import WeightEMA
 
     torch.manual_seed(0)
     net = torch.nn.Sequential(torch.nn.Conv2d(1, 3, 3), torch.nn.BatchNorm2d(3))
@@ -322,7 +322,7 @@ def test_weight_average_follows_the_formula():
 
 
 def test_ema_option_checks_and_older_runs():
-    from uhrnet.train_config import TrainConfig, resolve_config
+    from uhrnet.training.train_config import TrainConfig, resolve_config
     from uhrnet.errors import ConfigError, UsageError
 
     assert resolve_config(TrainConfig(out="r"))["ema"] == 0.0
@@ -338,7 +338,7 @@ def test_ema_option_checks_and_older_runs():
 def test_checkpoint_holds_the_average_and_validation_uses_it(tmp_path, one_thread):
     """With --ema the checkpoint's weights are the average, the optimised ones ride along for --resume,
     and the logged validation RMSE is that of the checkpoint's weights."""
-    from uhrnet.metrics import image_metrics
+    from uhrnet.scoring.metrics import image_metrics
 
     data = (tmp_path / "real", tmp_path / "syn")
     write_figshare(data[0], n=8, h=32, w=64, seed=1)
@@ -362,9 +362,9 @@ def test_checkpoint_holds_the_average_and_validation_uses_it(tmp_path, one_threa
 def test_augment_probability_option(tmp_path, capsys):
     """--augment-probability reaches the training set's augmentation; it is checked, stored and locked."""
     from uhrnet.errors import ConfigError, UsageError
-    from uhrnet.train_config import TrainConfig, resolve_config
-    from uhrnet.distributed import DistInfo
-    from uhrnet.trainer import Trainer
+    from uhrnet.training.train_config import TrainConfig, resolve_config
+    from uhrnet.training.distributed import DistInfo
+    from uhrnet.training.trainer import Trainer
 
     assert resolve_config(TrainConfig(out="r"))["augment_probability"] == 0.8  # the former fixed value
     assert resolve_config(TrainConfig(out="r"), {"synthetic": [], "real": []})["augment_probability"] == 0.8

@@ -29,11 +29,11 @@ from typing import Any
 
 from torch import nn
 
-from .hnet import HNet
-from .outputs import outputs_of, prediction_of
-from .phase_head import HEADS, PHASE_CHANNELS, PhaseHead
-from .unet import UNet
-from .uhrnet import UHRNet
+from uhrnet.models.hnet import HNet
+from uhrnet.models.outputs import outputs_of, prediction_of
+from uhrnet.models.phase_head import HEADS, PHASE_CHANNELS, PhaseHead
+from uhrnet.models.unet import UNet
+from uhrnet.models.uhrnet import UHRNet
 
 __all__ = ["ARCHITECTURES", "ALIASES", "HNet", "UHRNet", "UNet", "build_model", "list_models", "outputs_of",
            "prediction_of"]

@@ -25,7 +25,7 @@ from functools import partial
 import torch
 from torch import nn
 
-from .blocks import Decoder, DoubleConv, Encoder, activation, upsample_conv, widths_for
+from uhrnet.models.blocks import Decoder, DoubleConv, Encoder, activation, upsample_conv, widths_for
 
 NEGATIVE_SLOPE = 0.3
 

@@ -35,7 +35,7 @@ import math
 import torch
 from torch import nn
 
-from .blocks import conv_bn_pairs
+from uhrnet.models.blocks import conv_bn_pairs
 
 __all__ = ["INITS", "init_weights"]
 

@@ -5,9 +5,9 @@ The backbone (``unet``, ``uhrnet``, ``hnet``, the ablations) is built with three
 * channel 0, the *coarse height* ``c`` in the height head's units (height above the reference plane in
   cm, i.e. mm / 10: :class:`uhrnet.checkpoint.LabelHead` maps it to labels exactly as for the height head);
 * channels 1, 2: ``(cos, sin)`` of the wrapped projector phase ``phi_w`` the pixel sees, in fppsim's
-  ``phase_true`` convention (rad, :mod:`fppsim.rig`); their length ``r`` is the network's confidence.
+  ``phase_true`` convention (rad, :mod:`fppsim.geometry.rig`); their length ``r`` is the network's confidence.
 
-Height follows through the calibrated rig (:class:`uhrnet.rig_layer.RigLayer`, a fixed, differentiable
+Height follows through the calibrated rig (:class:`uhrnet.physics.rig_layer.RigLayer`, a fixed, differentiable
 phase <-> height layer equal to fppsim's triangulation)::
 
     Phi_c = phase_from_height(10 c)                              coarse height's absolute phase, rad
@@ -20,7 +20,7 @@ fringe period (about 3.6 mm on the figshare rig). The per-image offset ``o`` abs
 unknown pattern phase (a constant the synthetic data cannot teach); on fppsim's own data it is ~0.
 Where the phase is not trusted (``r < min_confidence``) the coarse height is kept. ``round`` has no
 gradient: training supervises the phase (``1 - cos`` against ``phase_true``) and the coarse height
-(the run's height loss), and the final height where its order is right (:class:`uhrnet.losses.PhaseHeadLoss`).
+(the run's height loss), and the final height where its order is right (:class:`uhrnet.training.losses.PhaseHeadLoss`).
 
 ``forward(x)`` returns the final height in the height head's units ``(N, 1, H, W)``, so prediction,
 evaluation, export and benchmarks treat both heads alike; :meth:`PhaseHead.parts` returns every
@@ -35,9 +35,9 @@ import math
 import torch
 from torch import nn
 
-from uhrnet.rig_layer import RigLayer, circular_mean
+from uhrnet.physics.rig_layer import RigLayer, circular_mean
 
-from .outputs import outputs_of
+from uhrnet.models.outputs import outputs_of
 
 __all__ = ["PhaseHead", "HEADS", "PHASE_CHANNELS"]
 
@@ -54,7 +54,7 @@ class PhaseHead(nn.Module):
     Parameters
     ----------
     backbone : nn.Module with ``out_channels == 3`` and a ``config`` dict (from the registry).
-    rig : fppsim rig dictionary (:meth:`fppsim.rig.Rig.to_dict`) whose camera matches the images.
+    rig : fppsim rig dictionary (:meth:`fppsim.geometry.rig.Rig.to_dict`) whose camera matches the images.
     min_confidence : phase confidence ``r`` below which the coarse height is kept.
     """
 

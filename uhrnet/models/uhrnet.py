@@ -20,7 +20,7 @@ from functools import partial
 import torch
 from torch import nn
 
-from .blocks import ConvBNAct, Decoder, Encoder, activation, downsample_conv, upsample_conv, widths_for
+from uhrnet.models.blocks import ConvBNAct, Decoder, Encoder, activation, downsample_conv, upsample_conv, widths_for
 
 
 class MultiLevelConvBlock(nn.Module):

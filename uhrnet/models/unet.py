@@ -13,7 +13,7 @@ from functools import partial
 import torch
 from torch import nn
 
-from .blocks import Decoder, DoubleConv, Encoder, upsample_conv, widths_for
+from uhrnet.models.blocks import Decoder, DoubleConv, Encoder, upsample_conv, widths_for
 
 
 class UNet(nn.Module):

@@ -14,7 +14,7 @@ from typing import Callable
 import numpy as np
 
 from fppsim.errors import FppsimError
-from fppsim.formats import FIGSHARE_PAIRS
+from fppsim.dataio.formats import FIGSHARE_PAIRS
 from uhrnet.errors import Sim2RealError, UhrnetError
 
 __all__ = ["run_stage", "run_history", "run_epochs", "run_done", "dataset_count", "fresh"]

@@ -2,10 +2,10 @@
 
 A variant changes the recipe through *overrides* of the library configs: ``generate`` maps
 :class:`fppsim.generation.GenerateConfig` fields to values (e.g. ``{"pedestal": 0.0}``), ``train``
-maps :class:`uhrnet.train_config.TrainConfig` fields (e.g. ``{"augment": "off"}``, ``{"head": "phase"}``).
+maps :class:`uhrnet.training.train_config.TrainConfig` fields (e.g. ``{"augment": "off"}``, ``{"head": "phase"}``).
 Two optional post-steps add rows without training again: ``adapt`` (a dict of
-:class:`uhrnet.adapt.AdaptConfig` overrides, ``{}`` for its defaults; None: no adaptation) fine-tunes the
-trained model on the UNLABELLED real images, and ``refine`` (names of :data:`uhrnet.refine.REFINE_METHODS`)
+:class:`uhrnet.physics.adapt.AdaptConfig` overrides, ``{}`` for its defaults; None: no adaptation) fine-tunes the
+trained model on the UNLABELLED real images, and ``refine`` (names of :data:`uhrnet.physics.refine.REFINE_METHODS`)
 measures the predictions after ``--refine phase`` with each method. The ``uhrnet sim2real`` command turns
 ``--variant`` / ``--ablation`` flag text into such overrides with the commands' own parsers; this module
 never reads flags.
@@ -18,7 +18,7 @@ import json
 import os
 from dataclasses import dataclass, field, fields
 
-from fppsim.encoding import json_default
+from fppsim.dataio.encoding import json_default
 from uhrnet.errors import Sim2RealError, UsageError
 
 __all__ = ["SCALES", "Variant", "Sim2RealConfig", "data_key", "generate_workers"]
@@ -41,7 +41,7 @@ _OWN = {"generate": ("out", "progress"), "train": ("out", "resume", "overwrite",
 
 def _packaged_meshes() -> str:
     """The meshes shipped with fppsim (``assets/meshes``), wherever the package is installed."""
-    from fppsim.rig import data_path
+    from fppsim.geometry.rig import data_path
 
     return str(data_path("meshes"))
 
@@ -50,9 +50,9 @@ def _field_names(kind: str) -> set[str]:
     if kind == "generate":
         from fppsim.generation import GenerateConfig as cls
     elif kind == "adapt":
-        from uhrnet.adapt import AdaptConfig as cls
+        from uhrnet.physics.adapt import AdaptConfig as cls
     else:
-        from uhrnet.train_config import TrainConfig as cls
+        from uhrnet.training.train_config import TrainConfig as cls
     return {f.name for f in fields(cls)}
 
 
@@ -63,7 +63,7 @@ class Variant:
     generate : ``GenerateConfig`` field -> value; variants with equal ``generate`` share one dataset.
     train : ``TrainConfig`` field -> value.
     adapt : ``AdaptConfig`` field -> value of the adaptation post-step (``{}``: its defaults); None: none.
-    refine : refinement methods (:data:`uhrnet.refine.REFINE_METHODS`), one extra row each (and one per
+    refine : refinement methods (:data:`uhrnet.physics.refine.REFINE_METHODS`), one extra row each (and one per
         method on the adapted model).
     generate_flags, train_flags, adapt_flags : the same changes as the user wrote them (e.g.
         ``["--pedestal", "0"]``), shown in the report; None: shown as ``field=value``.
@@ -81,7 +81,7 @@ class Variant:
     def __post_init__(self):
         if not self.name or any(c in self.name for c in "/\\ \t") or self.name.startswith("."):
             raise Sim2RealError(f"variant name {self.name!r} must be a non-empty word without slashes or spaces")
-        from uhrnet.refine import REFINE_METHODS
+        from uhrnet.physics.refine import REFINE_METHODS
 
         self.refine = [self.refine] if isinstance(self.refine, str) else list(self.refine or [])
         bad = [m for m in self.refine if m not in REFINE_METHODS]
@@ -173,7 +173,7 @@ class Sim2RealConfig:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
             raise UsageError(f"--object-mm must be > 0 mm, got {self.object_mm}")
-        from uhrnet.splits import MIN_REFERENCE_SPLIT
+        from uhrnet.training.splits import MIN_REFERENCE_SPLIT
 
         for v in self.variants:  # the synthetic validation split is the reference one unless a variant says otherwise
             n = int(v.generate.get("count", self.count))
@@ -188,7 +188,7 @@ class Sim2RealConfig:
         if self.adapt_images is not None and not self.adapt_images:
             raise Sim2RealError("adapt_images: give at least one image or folder (None: the real folders)")
         if self.rig is not None:  # a rig that cannot measure is refused now, not after generating and training
-            from fppsim.rig import RigError, load_rig
+            from fppsim.geometry.rig import RigError, load_rig
 
             try:
                 load_rig(self.rig)

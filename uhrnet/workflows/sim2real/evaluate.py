@@ -5,13 +5,13 @@
   and, for the network's own prediction, the fringe twins (:func:`~uhrnet.workflows.sim2real.metrics.twin_metrics`);
 * :func:`evaluate_real_phase`: every frame of real phase-shifting folders (``PSin/ PCos/ Fringe/ iPattern/``,
   no labels) -> the calibration-free phase residual of the prediction, the metric ``uhrnet evaluate-phase``
-  reports with its defaults (:func:`uhrnet.phase_residual.evaluate_phase`: degree-3 plane, least squares,
+  reports with its defaults (:func:`uhrnet.scoring.phase_residual.evaluate_phase`: degree-3 plane, least squares,
   pixels with real phase and a lit input, predicted-invalid pixels kept);
 * :func:`evaluate_level`: the level response on the synthetic validation split.
 
-``refine`` (a name of :data:`uhrnet.refine.REFINE_METHODS`) measures the prediction after ``uhrnet predict
---refine phase --refine-method METHOD`` (:func:`uhrnet.prediction.refine_with_phase`) through ``rig`` (a
-calibration file; default the checkpoint's own rig, else fppsim's default, :func:`uhrnet.prediction.refine_rig_for`).
+``refine`` (a name of :data:`uhrnet.physics.refine.REFINE_METHODS`) measures the prediction after ``uhrnet predict
+--refine phase --refine-method METHOD`` (:func:`uhrnet.inference.prediction.refine_with_phase`) through ``rig`` (a
+calibration file; default the checkpoint's own rig, else fppsim's default, :func:`uhrnet.inference.prediction.refine_rig_for`).
 Pixels the network marks invalid stay as predicted, so the coverage of a refined row is the network's.
 """
 
@@ -23,9 +23,9 @@ from typing import Sequence
 
 import numpy as np
 
-from fppsim.encoding import encode_fringe
-from fppsim.files import atomic_write_text
-from fppsim.rig import check_image_size
+from fppsim.dataio.encoding import encode_fringe
+from fppsim.dataio.files import atomic_write_text
+from fppsim.geometry.rig import check_image_size
 from uhrnet.errors import Sim2RealError
 
 __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real", "evaluate_real_phase",
@@ -34,8 +34,8 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
-    from fppsim.readers import open_source
-    from uhrnet.data import FigshareArrays
+    from fppsim.dataio.readers import open_source
+    from uhrnet.training.data import FigshareArrays
     from uhrnet.errors import DataError
 
     out = []
@@ -54,7 +54,7 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
     """``[(folder, id), ...]`` of every frame of the real phase-shifting folders; error names a folder that is
     not one (``PSin/ PCos/ Fringe/ iPattern/`` with one ``<id>.mat`` each)."""
     from fppsim.errors import PSPMatError
-    from fppsim.readers import open_source
+    from fppsim.dataio.readers import open_source
 
     out = []
     for f in folders:
@@ -70,7 +70,7 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
 
 def _model(checkpoint, device: str):
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.data import parse_size
+    from uhrnet.training.data import parse_size
     from uhrnet.device import select_device
 
     ck = load_checkpoint(checkpoint)
@@ -82,9 +82,9 @@ def _refine_rig(ck: dict, refine: str | None, rig: str | Path | None):
     """The rig ``refine`` uses (None without ``refine``) and its name."""
     if refine is None:
         return None, None
-    from fppsim.rig import RigError
-    from uhrnet.prediction import refine_rig_for
-    from uhrnet.refine import REFINE_METHODS
+    from fppsim.geometry.rig import RigError
+    from uhrnet.inference.prediction import refine_rig_for
+    from uhrnet.physics.refine import REFINE_METHODS
 
     if refine not in REFINE_METHODS:
         raise Sim2RealError(f"refine method {refine!r} unknown (known: {', '.join(REFINE_METHODS)})")
@@ -98,7 +98,7 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     """``(labels, stats)``: predicted labels (H, W) after ``--refine phase --refine-method method`` on the
     image ``fringe`` (dataset encoding) through ``rig``; pixels the prediction marks invalid (or a black input)
     keep their label."""
-    from uhrnet.prediction import refine_with_phase
+    from uhrnet.inference.prediction import refine_with_phase
 
     check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
                      error=Sim2RealError)
@@ -124,7 +124,7 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     """
     import torch
 
-    from uhrnet.prediction import predict_labels
+    from uhrnet.inference.prediction import predict_labels
     from uhrnet.workflows.sim2real.metrics import error_split, object_mask, real_metrics, twin_metrics
     from uhrnet.workflows.sim2real.report import plot_real
 
@@ -177,11 +177,11 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
     ``{"checkpoint", "refine", "frames": [{"folder", "id", "rmse_rad", "explained", "flat_rmse_rad",
     "pixel_fraction", ...}], "mean_rmse_rad"}``."""
     from fppsim.errors import PSPMatError
-    from fppsim.readers import load_psp_folder_sample
+    from fppsim.dataio.readers import load_psp_folder_sample
     import torch
 
-    from uhrnet.phase_residual import evaluate_phase
-    from uhrnet.prediction import predict_labels
+    from uhrnet.scoring.phase_residual import evaluate_phase
+    from uhrnet.inference.prediction import predict_labels
 
     frames = find_phase_frames(folders)
     ck, model, transform, size = _model(checkpoint, device)
@@ -222,7 +222,7 @@ def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | 
     ``synthetic`` folders (split as the run split them); writes and returns ``out/synthetic_level.json``."""
     import torch
 
-    from uhrnet.data import load_sources
+    from uhrnet.training.data import load_sources
     from uhrnet.workflows.sim2real.metrics import level_response
 
     ck, model, transform, size = _model(checkpoint, device)

@@ -10,7 +10,7 @@ libraries, in this process:
    (``history.csv``, checkpoints). Log: ``out/<variant>/train.log``. A finished run given in
    ``cfg.reuse`` (or copied to ``out/<variant>/run``) replaces stages 1 and 2 when its training options are
    the variant's (:func:`run_differences`); its own dataset is then the variant's.
-3. With ``variant.adapt``: ``uhrnet.adapt(AdaptConfig)`` (:func:`adapt_config`) of the run's ``last.pt`` on
+3. With ``variant.adapt``: ``uhrnet.physics.adapt(AdaptConfig)`` (:func:`adapt_config`) of the run's ``last.pt`` on
    the UNLABELLED real images (``cfg.adapt_images``, default the ``real`` and ``real_phase`` folders; only
    fringe images are read), in ``out/<variant>/adapt``. Log: ``out/<variant>/adapt.log``.
 4. Evaluation rows, each in its own folder: the network (``out/<variant>/eval``, with :func:`evaluate_level`
@@ -34,8 +34,8 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from fppsim.errors import FppsimError
-from fppsim.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.dataio.encoding import json_default
+from fppsim.dataio.files import atomic_write_text
 from uhrnet.errors import Sim2RealError, UhrnetError
 from uhrnet.workflows.stages import dataset_count, fresh, run_done, run_history, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
@@ -54,7 +54,7 @@ def generate_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path):
     """The :class:`fppsim.generation.GenerateConfig` of ``variant``'s dataset in folder ``data``: the
     recipe (``cfg``'s meshes, count, seed and workers; figshare format with the figshare label
     transform, no phase-shifting images, a preview, no progress bar) and the variant's overrides."""
-    from fppsim.formats import PRESETS
+    from fppsim.dataio.formats import PRESETS
     from fppsim.generation import GenerateConfig
 
     base = dict(meshes=list(cfg.meshes), out=str(data), count=cfg.count, seed=cfg.seed,
@@ -67,11 +67,11 @@ def generate_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path):
 
 
 def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: str | Path, resume: bool = False):
-    """The :class:`uhrnet.train_config.TrainConfig` of ``variant``'s run in folder ``run`` on the
+    """The :class:`uhrnet.training.train_config.TrainConfig` of ``variant``'s run in folder ``run`` on the
     dataset ``data`` alone: ``cfg``'s model, width, loss, epochs, batch size, learning rate and device,
     the scale's own options (:data:`SCALES`), then the variant's overrides; ``resume`` continues an
     interrupted run."""
-    from uhrnet.train_config import TrainConfig
+    from uhrnet.training.train_config import TrainConfig
 
     base = dict(out=str(run), synthetic=[str(data)], model=cfg.model, base_channels=cfg.base_channels,
                 loss=cfg.loss, epochs=cfg.epochs, batch_size=cfg.batch_size, lr=cfg.lr, device=cfg.device,
@@ -97,10 +97,10 @@ def _as_dict(config) -> dict:
 
 def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, out: str | Path,
                  overwrite: bool = False):
-    """The :class:`uhrnet.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
+    """The :class:`uhrnet.physics.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
     on ``cfg.adapt_images`` (default: the real and real phase-shifting folders; never their labels) through
     ``cfg.rig``, then the variant's ``adapt`` overrides."""
-    from uhrnet.adapt import AdaptConfig
+    from uhrnet.physics.adapt import AdaptConfig
 
     images = list(cfg.adapt_images) if cfg.adapt_images else [*cfg.real, *cfg.real_phase]
     base = dict(checkpoint=str(checkpoint), images=images, out=str(out), rig=cfg.rig, progress=False,
@@ -120,8 +120,8 @@ def run_differences(run: str | Path, tr, count: int | None = None, seed: int | N
     make: its recorded training options (``config.json``: every option a resume locks, and epochs, lr,
     weight decay, gradient clipping, AMP; not the dataset's path, device or workers) and its dataset (sample
     count ``count`` and, where the dataset records it, generator ``seed``). Empty: the same run."""
-    from fppsim.formats import read_settings
-    from uhrnet.train_config import DEFAULTS, LEGACY, LOCKED
+    from fppsim.dataio.formats import read_settings
+    from uhrnet.training.train_config import DEFAULTS, LEGACY, LOCKED
 
     run = Path(run)
     try:
@@ -244,8 +244,8 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
     it the stages' configs are stored.
     """
     from fppsim.generation import generate
-    from uhrnet.adapt import adapt
-    from uhrnet.trainer import train
+    from uhrnet.physics.adapt import adapt
+    from uhrnet.training.trainer import train
 
     say = log or (lambda line: None)
     out = Path(cfg.out)
@@ -260,7 +260,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             adapt_config(cfg, var, run / "last.pt", out / var.name / "adapt")
         plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
-    from fppsim.owned import claim
+    from fppsim.dataio.owned import claim
 
     # the experiment's own files (its stages claim theirs): never one it did not write
     claim(out, "uhrnet sim2real", ["report.json", "report.md"] + [f"{v.name}/timing.json" for v in cfg.variants])

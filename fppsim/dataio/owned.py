@@ -1,0 +1,131 @@
+"""Which files in an output folder a tool wrote: the ownership record both packages keep.
+
+"Tools never delete or replace what they did not write." Every command that writes a fixed set of file
+names into a folder the user names (``uhrnet train``, ``uhrnet adapt``, ``fppsim label-real``) claims
+those names here BEFORE it writes them: the folder's ``.fppsim-owned.json`` maps each relative path to
+the tool that wrote it. A claim is refused (:class:`fppsim.errors.ForeignFiles`, one line naming the
+file) when a path to be written already exists and
+
+* no tool recorded it (someone else's file), or
+* another tool recorded it (``uhrnet adapt --out`` a training run would replace the run's ``last.pt``).
+
+Folders written before the record existed are recognised by the tool itself (``legacy``: the names
+it can prove are its own, e.g. a loadable checkpoint of its kind) and adopted into the record.
+
+:func:`output_folder` is the one way such a command opens its folder: created if needed (and proved
+writable), locked (:func:`fppsim.dataio.files.folder_lock`), stale temp files of a killed run removed, and on a
+failure the claims whose files were never written are dropped again; a folder the run created and
+left empty is removed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterable, Iterator
+
+from fppsim.errors import ForeignFiles
+from fppsim.dataio.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
+
+__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "output_folder", "same_folder"]
+
+RECORD = ".fppsim-owned.json"
+
+
+def owners(folder: str | os.PathLike) -> dict[str, str] | None:
+    """``{relative path: tool}`` of ``folder``'s record; None when the folder has no record."""
+    path = Path(folder) / RECORD
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError):
+        raise ForeignFiles(f"{path}: unreadable ownership record; move it away or choose another --out") from None
+    files = doc.get("files") if isinstance(doc, dict) else None
+    if not isinstance(files, dict):
+        raise ForeignFiles(f"{path}: not an ownership record of fppsim/uhrnet; move it away or choose another --out")
+    return {str(k): str(v) for k, v in files.items()}
+
+
+def _write(folder: Path, record: dict[str, str]) -> None:
+    if record:
+        atomic_write_text(folder / RECORD, json.dumps({"files": dict(sorted(record.items()))}, indent=1))
+    else:
+        unlink_quietly(folder / RECORD)
+
+
+def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Callable[[], Iterable[str]] | None = None,
+          hint: str = "move it away or choose another --out") -> None:
+    """Record ``names`` (paths relative to ``folder``) as ``tool``'s before ``tool`` writes them.
+
+    Raises :class:`ForeignFiles` naming the first path that exists and is not ``tool``'s (``hint`` ends the
+    message). ``legacy``: for a folder without a record, the names ``tool`` recognises as its own.
+    """
+    folder = Path(folder)
+    names = list(dict.fromkeys(str(n) for n in names))
+    record = owners(folder)
+    if record is None:
+        record = {n: tool for n in (legacy() if legacy is not None else ()) if (folder / n).exists()}
+    for name in names:
+        path = folder / name
+        owner = record.get(name)
+        if owner == tool or not (path.exists() or path.is_symlink()):
+            continue
+        if owner is None:
+            raise ForeignFiles(f"{path} exists and was not written by {tool}: {hint}")
+        raise ForeignFiles(f"{path} was written by {owner}, not {tool}: {hint}")
+    record.update({n: tool for n in names})
+    _write(folder, record)
+
+
+def _drop_unwritten(folder: Path) -> None:
+    """Forget claims whose files do not exist (a run that failed before writing them)."""
+    try:
+        record = owners(folder)
+    except ForeignFiles:
+        return
+    if record is None:
+        return
+    kept = {n: t for n, t in record.items() if (folder / n).exists()}
+    if kept != record:
+        _write(folder, kept)
+
+
+def same_folder(a: str | os.PathLike, b: str | os.PathLike) -> bool:
+    """Do ``a`` and ``b`` name the same existing folder (symlinks, ``..`` and spelling aside)?"""
+    try:
+        return Path(a).resolve() == Path(b).resolve() or os.path.samefile(a, b)
+    except OSError:
+        return False
+
+
+@contextmanager
+def output_folder(folder: str | os.PathLike, what: str, flag: str = "--out", error=ValueError) -> Iterator[Path]:
+    """Create (if needed), prove writable, lock and clean ``folder`` for one run of ``what``; on a
+    failure drop the run's unwritten claims and remove the folder again if this run created it and left
+    it empty. ``error``: the exception class a folder that cannot be written raises (one line)."""
+    folder = Path(folder)
+    created = [] if folder.exists() else [folder, *[a for a in folder.parents if not a.exists()]]  # leaf first
+    try:
+        check_writable_dir(folder, flag)
+    except ValueError as exc:
+        raise error(str(exc)) from None
+    try:
+        with folder_lock(folder, what):
+            clean_stale_tmp(folder)
+            try:
+                yield folder
+            except BaseException:
+                _drop_unwritten(folder)
+                raise
+    except BaseException:
+        if created:
+            subs = sorted((p for p in folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts))
+            for made in subs + created:  # only empty folders this run made (figures/, --out and its parents)
+                try:
+                    made.rmdir()
+                except OSError:
+                    pass
+        raise

@@ -1,0 +1,453 @@
+"""Fit the optics ranges (:class:`fppsim.rendering.optics.OpticsRanges`) to real fringe images (``fppsim fit-optics``).
+
+On the reference plane the image model of :mod:`fppsim.rendering.optics` reduces to
+
+    I = A + B cos(phi) + noise,   A = g (ambient + k/2),   B = g (k/2) c(sigma)
+
+with ``g = gain * albedo_plane``, ``k = cos_incidence * falloff`` (known from the rig), and ``c`` the
+attenuation of the fringe by projector + camera blur (and the DMD's pixelation), tabulated once by
+rendering noise-free planes through :func:`fppsim.rendering.optics.optical_image` and measuring them with the same
+estimator as the real images (:func:`fppsim.phase.fringe.fringe_modulation`), so estimator bias cancels.
+Per image, on plane pixels:
+
+* ``A``, ``B/A``: medians of the fringe background and modulation;
+* noise: fringes are vertical to within a degree or two (the real pair's -1.34 deg lean changes the
+  phase by 0.013 rad a row), so the vertical second difference of plane pixels is noise (variance
+  ``6 (sigma^2 + shot * E + 1/12)``, the 1/12 from 8-bit rounding); a robust line through
+  the variance against intensity gives ``noise_sigma`` (intercept) and ``shot_noise`` (slope);
+* blur: ``c = (B/A) (ambient + k/2) / (k/2)`` inverted through the table, split between projector and
+  camera blur in the proportion of the default ranges' centres. Ambient light and blur both lower the
+  contrast and cannot be told apart from the plane alone: ambient is kept at ``ambient`` (default: the
+  default range's centre), unless even zero blur cannot reach the measured contrast, in which case the
+  blur is 0 and ambient is solved for;
+* gain and albedos: only ``gain * albedo`` is visible. ``albedo_plane`` keeps the default centre and
+  ``gain = g / albedo_plane``; object pixels give ``albedo_object``: with height labels from
+  ``A = gain albedo (ambient + k/2)`` with ``k`` of each surface point from the rig and the heights
+  (:func:`object_shading`); with only real phase from the brightest object pixels,
+  ``p95(A + B) / (gain (ambient + (1 + c)/2))`` (a surface facing the projector, rough). Gain rises if
+  the albedo would exceed 0.95.
+
+The ranges are [min, max] of the per-image estimates, widened to at least +-10 % around their median
+(``albedo_object`` also to the 25th-75th percentile of its per-pixel estimates: real plaster varies).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from fppsim.commands import ReportLines
+from fppsim.dataio.files import atomic_write_text, check_output_file
+from fppsim.rendering.optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
+from fppsim.dataio.readers import load_fringe_images
+from fppsim.rendering.render import plane_geometry, projector_incidence
+from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
+
+__all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
+           "format_optics_fit", "compare_before_after", "FitOpticsConfig", "FitOpticsResult", "fit_optics_images"]
+
+FITTED = ("gain", "ambient", "albedo_plane", "albedo_object", "projector_blur", "camera_blur", "noise_sigma",
+          "shot_noise")
+
+
+def _centre(r) -> float:
+    return 0.5 * (float(r[0]) + float(r[1]))
+
+
+def plane_model(rig: Rig) -> dict:
+    """Per camera pixel on the reference plane, as :func:`fppsim.rendering.render.plane_geometry` computes it:
+    projector column ``u_p``, ``k = cos_incidence * falloff`` and ``lit`` (inside the projector),
+    (H, W) float64 / bool, and the ``geometry`` itself (what :func:`render_plane` forms images of)."""
+    g = plane_geometry(rig)
+    return {"u_p": g.u_p, "k": g.cos_incidence * g.falloff, "lit": g.lit, "geometry": g}
+
+
+def object_shading(rig: Rig, height_mm: np.ndarray) -> np.ndarray:
+    """``k = cos_incidence * falloff`` of surfaces of known height (mm, (H, W), NaN = unknown): each camera
+    ray cut at its height, normals from the neighbours, the light as :func:`fppsim.rendering.render.projector_incidence`
+    gives it to rendered surfaces."""
+    cam, proj = rig.camera, rig.projector
+    h = np.where(np.isfinite(height_mm), height_mm, 0.0)
+    _, P = cam.ray_cut(cam.pixel_grid(), h)
+    du = np.gradient(P, axis=1)
+    dv = np.gradient(P, axis=0)
+    n = np.cross(du, dv)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n *= np.sign(n[..., 2:3]) + (n[..., 2:3] == 0)  # towards +z (the camera side)
+    cos_inc, falloff = projector_incidence(proj, P, n)
+    k = cos_inc * falloff
+    return np.where(np.isfinite(height_mm), np.maximum(k, 0.0), np.nan)
+
+
+def _split(sigma_eff: float, ratio: tuple[float, float]) -> tuple[float, float]:
+    """Effective blur (camera px) -> (projector blur in projector px, camera blur in camera px)."""
+    rp, rc = ratio
+    n = np.hypot(rp, rc)
+    return sigma_eff * rp / n, sigma_eff * rc / n
+
+
+def _default_ratio(rig: Rig, period_cam: float) -> tuple[float, float]:
+    d = OpticsRanges()
+    px = period_cam / (rig.projector.width / rig.periods)  # camera px per projector px
+    return _centre(d.projector_blur) * px, _centre(d.camera_blur)
+
+
+def render_plane(rig: Rig, optics: Optics, model: dict | None = None, rng=None, appearance_rng=None) -> np.ndarray:
+    """uint8 (H, W) image of the bare reference plane under ``optics``, formed like a sample's fringe image
+    (:func:`fppsim.rendering.optics.form_images`, appearance effects included) on :func:`plane_model`'s geometry.
+    ``rng``: camera noise (None = noise-free); ``appearance_rng``: texture, dirt, ..."""
+    m = plane_model(rig) if model is None else model
+    return form_images(m["geometry"], rig, optics, [(float(rig.periods), 0.0)], rng, 1, appearance_rng)[0]
+
+
+def contrast_table(rig: Rig, period: float, sigmas=np.linspace(0.0, 4.0, 17), model: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Fringe contrast ``c(sigma)`` (ambient 0) for effective blurs ``sigma`` (camera px), measured on
+    noise-free rendered planes with :func:`fppsim.phase.fringe.fringe_modulation`. Returns (sigmas, c)."""
+    from fppsim.phase.fringe import fringe_modulation
+
+    m = plane_model(rig) if model is None else model
+    ratio = _default_ratio(rig, period)
+    cs = []
+    for s in sigmas:
+        pb, cb = _split(float(s), ratio)
+        # the image before the sensor, in float64: 8-bit rounding would only add noise to the table
+        o = Optics(gain=200.0, ambient=0.0, albedo_plane=1.0, projector_blur=pb, camera_blur=cb, noise_sigma=0.0,
+                   shot_noise=0.0)
+        pattern = projector_radiance(m["u_p"], rig.projector.width, rig.periods, 0.0, o)
+        E = optical_image((0.0, 200.0 * m["k"]), pattern, o)
+        b, a = fringe_modulation(E, period, m["lit"])
+        ok = m["lit"] & (a > 1)
+        cs.append(float(np.median(b[ok] / a[ok])))
+    return np.asarray(sigmas, float), np.asarray(cs)
+
+
+def _noise_fit(gray: np.ndarray, mask: np.ndarray, shot_default: float) -> tuple[float, float]:
+    """(noise_sigma, shot_noise) from vertical second differences (see the module docstring).
+
+    ``d = I(v-1) - 2 I(v) + I(v+1)`` removes the (vertical) fringes and any linear vertical trend, leaving
+    noise of variance ``6 (sigma^2 + shot * E + 1/12)``; a robust (MAD) variance per intensity decile and
+    a weighted line through them give both terms. When the intensities span less than 40 gray levels the
+    slope is not measurable and ``shot_noise`` stays at ``shot_default``.
+    """
+    g = gray.astype(np.float64)
+    ok = mask & (gray < 255) & (gray > 0)
+    trip = ok[:-2] & ok[1:-1] & ok[2:]
+    d = (g[:-2] - 2 * g[1:-1] + g[2:])[trip]
+    e = g[1:-1][trip]
+    if d.size < 200:
+        return float("nan"), float("nan")
+    edges = np.unique(np.percentile(e, np.linspace(0, 100, 11)))
+    xs, vs, ws = [], [], []
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (e >= lo) & (e <= hi)
+        if sel.sum() < 50:
+            continue
+        dd = d[sel]
+        s = 1.4826 * np.median(np.abs(dd - np.median(dd)))  # robust: texture, edges, curved fringes
+        xs.append(e[sel].mean())
+        vs.append(s * s / 6.0 - 1.0 / 12.0)
+        ws.append(sel.sum())
+    xs, vs, ws = map(np.asarray, (xs, vs, ws))
+    shot = float(shot_default)
+    if len(xs) >= 3 and np.ptp(xs) >= 40:
+        A = np.stack([np.ones_like(xs), xs], axis=1) * np.sqrt(ws)[:, None]
+        c0, c1 = np.linalg.lstsq(A, vs * np.sqrt(ws), rcond=None)[0]
+        if c1 >= 0 and c0 >= 0:
+            return float(np.sqrt(c0)), float(c1)
+        shot = max(float(c1), 0.0) if c0 >= 0 else float(np.sum(ws * vs * xs) / np.sum(ws * xs * xs))
+    c0 = float(np.average(vs - shot * xs, weights=ws))
+    return float(np.sqrt(max(c0, 0.0))), max(shot, 0.0)
+
+
+def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
+    """Plane and object pixels; without labels/phase: the plane is the darker mode of the background."""
+    if im.plane is not None and im.plane.sum() > 1000:
+        return im.plane & model["lit"], im.obj
+    g = im.gray.astype(np.float64)
+    v = im.valid & model["lit"]
+    med = np.median(g[v]) if v.any() else 0.0
+    # objects (bright plaster) lift the local background: keep pixels within the bulk of the plane
+    from scipy.ndimage import uniform_filter
+
+    local = uniform_filter(np.where(v, g, med), size=31)
+    lo, hi = np.percentile(local[v], [5, 60]) if v.any() else (0, 0)
+    return v & (local >= lo) & (local <= hi), None  # objects not identifiable: albedo_object not measured
+
+
+def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
+                    ambient: float, albedo_plane: float) -> dict:
+    """Optics parameters of one image (see the module docstring); NaN where not measurable."""
+    from fppsim.phase.fringe import fringe_modulation
+
+    plane, obj = _masks(im, model)
+    g = im.gray.astype(np.float64)
+    b, a = fringe_modulation(g, period, im.valid)
+    ok = plane & (a > 1) & (im.gray < 255)
+    if ok.sum() < 500:
+        return {k: float("nan") for k in FITTED} | {"plane_pixels": int(ok.sum())}
+    contrast = float(np.median(b[ok] / a[ok]))
+    A = float(np.median(a[ok]))
+    k = float(np.median(model["k"][ok]))
+    sig, cs = table
+    c0 = float(cs[0])
+    amb = float(ambient)
+    c = contrast * (amb + 0.5 * k) / (0.5 * k)
+    if c >= c0:  # sharper than the sharpest table entry: no blur, the ambient explains the rest
+        sigma = 0.0
+        amb = max(0.5 * k * (c0 / contrast - 1.0), 0.0)
+        c = c0
+    else:
+        order = np.argsort(cs)  # c falls with sigma
+        sigma = float(np.interp(c, cs[order], sig[order]))
+    pb, cb = _split(sigma, _default_ratio(rig, period))
+    gp = A / (amb + 0.5 * k)
+    gain = gp / albedo_plane
+    ap = albedo_plane
+    ao, go_spread = float("nan"), None
+    if obj is not None:
+        okobj = obj & (a > 1) & im.valid & (im.gray < 255)
+        go = float("nan")
+        if getattr(im, "height_mm", None) is not None and okobj.sum() > 500:
+            # heights known: the shading k of every object pixel follows from the rig, A = g_o (amb + k/2)
+            ko = object_shading(rig, im.height_mm)
+            from scipy.ndimage import binary_erosion
+
+            inner = okobj & binary_erosion(okobj, iterations=3) & (ko > 0.3)
+            if inner.sum() > 300:
+                ratio = a[inner] / (amb + 0.5 * ko[inner])
+                go = float(np.median(ratio))
+                go_spread = np.percentile(ratio, [25, 75])
+        elif okobj.sum() > 500:  # heights unknown: the brightest object pixels face the projector (k ~ 1)
+            go = float(np.percentile((a + b)[okobj], 95)) / (amb + 0.5 * (1.0 + c))
+        if np.isfinite(go):
+            ao = go / gain
+            if ao > 0.95:  # albedo cannot exceed 1: the light is brighter, the plane darker
+                gain = go / 0.95
+                ap = gp / gain
+                ao = 0.95
+    ao_spread = [float(v) / gain for v in go_spread] if go_spread is not None and np.isfinite(ao) else [ao, ao]
+    noise, shot = _noise_fit(im.gray, im.valid & model["lit"], _centre(OpticsRanges().shot_noise))
+    return {"gain": gain, "ambient": amb, "albedo_plane": ap, "albedo_object": ao,
+            "albedo_object_p25": ao_spread[0], "albedo_object_p75": ao_spread[1], "projector_blur": pb,
+            "camera_blur": cb, "noise_sigma": noise, "shot_noise": shot, "contrast": contrast, "background": A,
+            "plane_pixels": int(ok.sum()), "period_px": period}
+
+
+@dataclass
+class OpticsFit:
+    """Per-image estimates, the fitted centre values (medians) and ranges; ``fixed`` names the values
+    that were not measured (kept at the given / default centre)."""
+
+    per_image: list
+    centre: dict
+    ranges: OpticsRanges
+    fixed: dict = field(default_factory=dict)
+    n_images: int = 0
+
+    def to_dict(self) -> dict:
+        return {"centre": self.centre, "ranges": self.ranges.to_dict(), "fixed": self.fixed,
+                "per_image": self.per_image, "n_images": self.n_images}
+
+
+def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: float | None = None,
+               min_width: float = 0.10) -> OpticsFit:
+    """Fit optics ranges to real fringe images (:class:`fppsim.dataio.readers.FringeImage`) of ``rig``.
+
+    ``ambient`` and ``albedo_plane`` are the values that cannot be separated from the others (default:
+    the centres of the default ranges). ``min_width``: each range spans at least +-this fraction of its
+    centre. Raises ValueError if no image has enough plane pixels with fringes.
+    """
+    from fppsim.phase.fringe import estimate_period
+
+    d = OpticsRanges()
+    amb = _centre(d.ambient) if ambient is None else float(ambient)
+    ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
+    model = plane_model(rig)
+    per, tables = [], {}
+    for im in images:
+        check_image_size(rig, im.gray.shape, im.name, error=ValueError, sep=" x ",
+                         template="{what}: image is {got} px but {who} {camera}")
+        period = estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
+        if not np.isfinite(period):
+            per.append({"name": im.name} | {k: float("nan") for k in FITTED})
+            continue
+        key = round(period, 1)  # one contrast table per period (to 0.1 px)
+        if key not in tables:
+            tables[key] = contrast_table(rig, key, model=model)
+        per.append({"name": im.name} | image_estimates(im, rig, tables[key], period, model, amb, ap))
+    centre, ranges = {}, {}
+    for k in FITTED:
+        v = np.array([p[k] for p in per], float)
+        v = v[np.isfinite(v)]
+        if not v.size:
+            continue
+        c = float(np.median(v))
+        lo, hi = float(v.min()), float(v.max())
+        if k == "albedo_object":  # the spread over an object's pixels is albedo variation to sample from
+            q = np.array([[p.get(k + "_p25", np.nan), p.get(k + "_p75", np.nan)] for p in per], float)
+            if np.isfinite(q).any():
+                lo, hi = min(lo, float(np.nanmin(q))), max(hi, float(np.nanmax(q)))
+        half = max(min_width * abs(c), 0.5 * (hi - lo))
+        lo, hi = min(lo, c - half), max(hi, c + half)
+        if k in ("ambient", "noise_sigma", "shot_noise", "projector_blur", "camera_blur"):
+            lo = max(lo, 0.0)
+        if k.startswith("albedo"):
+            hi = min(hi, 1.0)
+        centre[k], ranges[k] = c, (lo, hi)
+    if "gain" not in centre:
+        raise ValueError("no image has enough reference-plane pixels with fringes to fit the optics")
+    fixed = {"albedo_plane": ap} if "albedo_object" not in centre or centre["albedo_plane"] == ap else {}
+    if ambient is None and all(abs(p.get("ambient", amb) - amb) < 1e-12 for p in per if np.isfinite(p.get("ambient", np.nan))):
+        fixed["ambient"] = amb
+    return OpticsFit(per_image=per, centre=centre, ranges=OpticsRanges.from_dict({k: list(v) for k, v in ranges.items()}),
+                     fixed=fixed, n_images=int(sum(np.isfinite(p["gain"]) for p in per)))
+
+
+def ranges_yaml(fit: OpticsFit, source: str = "") -> str:
+    """The fitted ranges as YAML for ``fppsim generate --optics-file`` (only the fitted names)."""
+    import yaml
+
+    doc = {k: [round(float(v[0]), 5), round(float(v[1]), 5)]
+           for k, v in fit.ranges.to_dict().items() if k in fit.centre}
+    head = ["# optics ranges fitted by `fppsim fit-optics`" + (f" to {source}" if source else ""),
+            f"# from {fit.n_images} image(s); centres: " + ", ".join(f"{k} {v:.4g}" for k, v in fit.centre.items())]
+    if fit.fixed:
+        head.append("# not measurable from the images, kept at: " + ", ".join(f"{k} {v:g}" for k, v in fit.fixed.items()))
+    return "\n".join(head) + "\n" + yaml.safe_dump(doc, sort_keys=False)
+
+
+def format_optics_fit(fit: OpticsFit) -> str:
+    """Plain-text table: parameter | default range | fitted centre | fitted range."""
+    d = OpticsRanges().to_dict()
+    r = fit.ranges.to_dict()
+    lines = [f"{'parameter':<16}{'default range':>20}{'fitted centre':>15}{'fitted range':>22}"]
+    for k in FITTED:
+        if k not in fit.centre:
+            lines.append(f"{k:<16}{_fmt_range(d[k]):>20}{'n/a':>15}{'(not measured)':>22}")
+            continue
+        note = "  (fixed)" if k in fit.fixed else ""
+        lines.append(f"{k:<16}{_fmt_range(d[k]):>20}{fit.centre[k]:>15.4g}{_fmt_range(r[k]):>22}{note}")
+    return "\n".join(lines)
+
+
+def _fmt_range(v) -> str:
+    return f"[{v[0]:.4g}, {v[1]:.4g}]"
+
+
+def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, meshes=None, seed: int = 0,
+                         workdir=None) -> str:
+    """Render ``count`` samples with the default and with the fitted ranges (temporary folders, PSP off)
+    and return compare-real's statistics side by side: statistic | real | default | fitted."""
+    import tempfile
+
+    from fppsim.generation import generate_dataset as generate
+    from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
+    from fppsim.rendering.synth import SynthConfig
+
+    if meshes is None:
+        meshes = [str(data_path("meshes"))]
+    with tempfile.TemporaryDirectory(prefix="fit-optics-", dir=workdir) as tmp:
+        results = {"real": dataset_stats(real_dir, max_samples=50)}
+        for name, ranges in (("default", OpticsRanges()), ("fitted", fit.ranges)):
+            out = Path(tmp) / name
+            cfg = SynthConfig(rig=rig, optics=ranges, psp_freqs=())
+            generate(meshes, out, count, seed=seed, config=cfg, workers=1, progress=False)
+            results[name] = dataset_stats(out, max_samples=count)
+    rows = [("statistic", "real", "default", "fitted")]
+    skip = {"height_p1", "height_p50", "height_p99", "plane_level", "object_fraction", "relief_p99_mm",
+            "below_threshold_fraction"}
+    for key, label, fmt in STAT_ROWS:
+        if key in skip:
+            continue
+        rows.append((label.strip(), *(format_value(fmt, results[n]["stats"].get(key)) for n in ("real", "default", "fitted"))))
+    w = [max(len(r[i]) for r in rows) for i in range(4)]
+    text = [f"compare-real: real vs {count} rendered samples with the default and with the fitted optics (medians)"]
+    for j, r in enumerate(rows):
+        text.append("  ".join(c.ljust(w[i]) if i == 0 else c.rjust(w[i]) for i, c in enumerate(r)))
+        if j == 0:
+            text.append("  ".join("-" * x for x in w))
+    return "\n".join(text)
+
+
+# ============================================================================================ the command
+@dataclass
+class FitOpticsConfig:
+    """What ``fppsim fit-optics`` does (the fields are its flags).
+
+    real : real fringe images (any layout :func:`fppsim.dataio.readers.load_fringe_images` reads); with height
+        labels the plane and object pixels are told apart.
+    out : the fitted optics ranges as YAML for ``fppsim generate --optics-file``; refused if it exists
+        unless ``force``.
+    rig : the images' rig (:class:`fppsim.geometry.rig.Rig` or a rig file, e.g. from ``fppsim fit-rig``); None:
+        the packaged default rig.
+    max_images : evenly spaced images read (>= 1).
+    compare : render this many samples with the default and with the fitted ranges and compare them
+        with the real images (:func:`compare_before_after`); 0 skips it.
+    meshes : meshes of the ``compare`` renders (None: the packaged meshes). seed : their seed.
+    json : also write the per-image estimates there (:meth:`OpticsFit.to_dict`).
+    """
+
+    real: str | os.PathLike
+    out: str | os.PathLike
+    rig: Rig | str | os.PathLike | None = None
+    max_images: int = 20
+    compare: int = 4
+    meshes: Sequence[str | os.PathLike] | None = None
+    seed: int = 0
+    json: str | os.PathLike | None = None
+    force: bool = False
+
+    def __post_init__(self):
+        if self.max_images < 1 or self.compare < 0:
+            from fppsim.errors import UsageError  # option values wrong on their own: exit 2
+
+            raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
+
+
+@dataclass
+class FitOpticsResult:
+    """What :func:`fit_optics_images` did: the images' ``layout`` and count, the ``fit`` (its ranges are
+    written to ``out``), the before/after ``comparison`` table (None when skipped) and the report
+    ``lines`` (what ``fppsim fit-optics`` prints)."""
+
+    layout: str
+    n_images: int
+    fit: OpticsFit
+    out: Path
+    comparison: str | None
+    lines: list[str]
+
+
+def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | None = None) -> FitOpticsResult:
+    """Read real fringe images, fit the optics ranges to them (:func:`fit_optics`), write the ranges to
+    ``config.out`` (:func:`ranges_yaml`) and the estimates to ``config.json``, then compare renders with
+    the default and the fitted ranges (:func:`compare_before_after`) unless ``config.compare`` is 0.
+    ``echo`` receives every report line as soon as it is known (the command line passes ``print``); the
+    lines are also in the result. Raises ValueError when no image has enough plane pixels with fringes.
+    """
+    lines = ReportLines(echo)
+    say = lines.say
+    out = check_output_file(config.out, config.force)
+    if config.json:  # an existing report is someone's file too: replaced only with force
+        check_output_file(config.json, config.force)
+    rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
+    images, layout = load_fringe_images(config.real, config.max_images)
+    fit = fit_optics(images, rig)
+    say(f"{config.real}: {len(images)} image(s), layout {layout}")
+    say(format_optics_fit(fit))
+    atomic_write_text(out, ranges_yaml(fit))
+    say(f"optics ranges: {out}")
+    if config.json:
+        atomic_write_text(config.json, json.dumps(fit.to_dict(), indent=1))
+    comparison = None
+    if config.compare:
+        say("")
+        comparison = compare_before_after(config.real, fit, rig, config.compare, meshes=config.meshes,
+                                          seed=config.seed)
+        say(comparison)
+    return FitOpticsResult(layout, len(images), fit, out, comparison, list(lines))

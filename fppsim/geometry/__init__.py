@@ -1,0 +1,1 @@
+"""The rig and its geometry: camera + projector, calibration files, per-sample jitter."""

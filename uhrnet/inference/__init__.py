@@ -1,0 +1,1 @@
+"""Inference and deployment: prediction on images of any size, export, deployable forms."""

@@ -1,0 +1,410 @@
+"""Prediction: running a trained model on images of any size (:func:`predict_labels`, which evaluation
+and the sim-to-real experiment use too), and ``uhrnet.predict(PredictConfig(...))``, which turns fringe
+image files into height maps (mm), colour previews and point clouds; ``uhrnet predict`` calls it.
+
+Inputs (:func:`read_inputs`): 8-bit (or 16-bit) grey PNG/TIFF/BMP/JPEG images, or ``.npy`` arrays in the
+dataset encoding (intensity / 127.5 - 1, shapes (H, W), (H, W, 1), (N, H, W) or (N, H, W, 1)), folders of
+them, figshare folders (``f1_80.npy`` + ``Z.npy`` or ``fringe_pattern.npy`` + ``height_map.npy``: only the
+fringes are read, named ``<folder>_<index>``) and phase-shifting folders (``PSin/ PCos/ Fringe/ iPattern/``:
+the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image ``NAME`` it writes to ``out``:
+
+* ``NAME_height.npy`` and ``NAME_height.tif``: float32 height above the reference plane in mm
+  (label transform of the checkpoint: ``(label - plane_offset) / units_per_mm``), NaN where invalid;
+* ``NAME_height.png``: colour-mapped preview (invalid pixels grey);
+* ``NAME.ply``: binary point cloud of the valid pixels, grey from the fringe. With ``--rig`` the points
+  are the camera rays of the calibrated rig (``fppsim.geometry.rig``) cut at the predicted height, in world
+  millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
+
+``refine="phase"`` (``--refine phase``) then moves the heights to agree with the image's own fringe
+phase (:func:`fppsim.phase.fringe.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
+fppsim's default rig): ``refine_method="relief"`` (default, :func:`uhrnet.physics.refine.refine_relief`: the
+relief from the phase, unwrapped region by region, the level from the network) or ``"orders"`` (the
+same regions, whole fringe orders voted across projector shadows).
+``NAME_height.*`` is then the refined map, ``NAME_height_network.npy`` the network's own, and
+``refine.json`` lists per image the share of pixels moved (:attr:`PredictResult.refine`).
+
+A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
+input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
+prediction without any valid pixel is written and reported in :attr:`PredictResult.warnings`.
+
+Inputs must be at least ``MIN_SIDE`` x ``MIN_SIDE`` pixels (the networks pool four times). Colour
+images are accepted when they show a grey scene (channels equal within a few gray levels): they are
+converted to their luminance, which for equal channels is exactly the grey image; other colour
+images are refused (see :func:`fppsim.dataio.encoding.colour_to_grey`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from fppsim.dataio.encoding import as_image_stack, encode_fringe
+from fppsim.dataio.files import atomic_path
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.training.data import parse_size
+from fppsim.dataio.readers import IMAGE_EXTS, read_fringe_image
+from fppsim.geometry.rig import check_image_size
+from uhrnet.device import select_device
+from uhrnet.errors import ConfigError, DataError, UsageError
+from uhrnet.models import prediction_of
+
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
+           "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
+           "write_ply"]
+
+INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
+MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
+
+
+def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad ``(N, C, H, W)`` at the bottom/right (edge replication) to multiples of ``multiple``;
+    returns the padded tensor and the original ``(H, W)``."""
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % multiple, (-w) % multiple
+    if ph or pw:
+        x = F.pad(x, (0, pw, 0, ph), mode="replicate")
+    return x, (h, w)
+
+
+@torch.no_grad()
+def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
+                   amp: bool = False) -> torch.Tensor:
+    """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size
+    (:func:`labels_at_input_size`); ``model`` (a model in label units,
+    :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
+    model.eval()
+    return labels_at_input_size(model, fringe, size, amp)
+
+
+def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
+                         amp: bool = False) -> torch.Tensor:
+    """THE image-size rule of every use of a model on whole images (predict, evaluate, adapt; differentiable):
+    ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and resample the
+    prediction back; sides that are not multiples of 16 are padded (edge replication) and cropped back.
+    ``amp``: autocast (fp16 on CUDA, bf16 on CPU). Returns ``(N, 1, H, W)`` float32 at the input's size."""
+    device = next(model.parameters()).device
+    x = fringe.to(device, torch.float32)
+    h, w = x.shape[-2:]
+    if size is not None and tuple(size) != (h, w):
+        x = F.interpolate(x, size=tuple(size), mode="area")
+    x, (hh, ww) = pad_to_multiple(x)
+    ctx = torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16) \
+        if amp else torch.autocast(device.type, enabled=False)
+    with ctx:
+        out = model(x)
+    out = prediction_of(out).float()[..., :hh, :ww]
+    if out.shape[-2:] != (h, w):
+        out = F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)
+    return out
+
+
+@dataclass
+class PredictConfig:
+    """What to predict. ``inputs``: image/.npy files or folders of them. ``rig``: calibration file for
+    metric x, y in the point clouds (else the pixel grid times ``pixel_size`` mm). ``keep_all``: no
+    invalid masking. ``range``: (lo, hi) colour range of the PNG in mm (default 1st-99th percentile).
+    ``ply``: also write point clouds. Checks itself on construction (:class:`ConfigError`)."""
+
+    checkpoint: str | Path
+    inputs: Sequence[str | Path]
+    out: str | Path
+    rig: str | Path | None = None
+    pixel_size: float = 1.0
+    keep_all: bool = False
+    range: tuple[float, float] | None = None
+    colormap: str = "viridis"
+    ply: bool = True
+    device: str = "auto"
+    progress: bool = True
+    refine: str | None = None
+    refine_method: str = "relief"
+
+    def __post_init__(self):
+        if isinstance(self.inputs, (str, Path)):
+            self.inputs = [self.inputs]
+        if self.refine not in (None, "none", "phase"):
+            raise UsageError(f"--refine must be phase or none, got {self.refine!r}")
+        from uhrnet.physics.refine import REFINE_METHODS
+
+        if self.refine_method not in REFINE_METHODS:
+            raise UsageError(f"--refine-method must be one of {', '.join(REFINE_METHODS)}, got {self.refine_method!r}")
+        if not (self.pixel_size > 0 and np.isfinite(self.pixel_size)):
+            raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {self.pixel_size:g}")
+        if self.range is not None and not (np.isfinite(self.range).all() and self.range[0] < self.range[1]):
+            raise ConfigError(f"--range: expected LO < HI (mm), got {self.range[0]:g} {self.range[1]:g}")
+        if self.colormap not in __import__("matplotlib").colormaps:
+            raise ConfigError(f"--colormap: unknown matplotlib colour map {self.colormap!r}")
+
+
+@dataclass
+class PredictResult:
+    """Input files read, the output name of every height map written (``<out>/<name>_height.npy``) and
+    one line per suspicious result (e.g. no valid pixel at all)."""
+
+    files: list[Path] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    refine: dict[str, dict] = field(default_factory=dict)  # name -> refine statistics (--refine phase)
+
+
+def collect_inputs(items: list[str]) -> list[Path]:
+    files: list[Path] = []
+    for item in items:
+        p = Path(item)
+        if p.is_dir():
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS)
+            if not found:
+                raise ConfigError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder")
+            files += found
+        elif p.is_file():
+            if p.suffix.lower() not in INPUT_EXTS:
+                raise ConfigError(f"{p}: unsupported input type (use {', '.join(INPUT_EXTS)})")
+            files.append(p)
+        else:
+            raise ConfigError(f"{p}: input not found")
+    return files
+
+
+def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[tuple]:
+    """Every fringe image of ``items`` as ``[(name, fringe float32 (H, W) in [-1, 1]), ...]``: image and
+    ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
+    phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
+    repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
+    from fppsim.dataio.readers import PSPMatError, load_ipattern, open_source
+
+    out: list[tuple[str, np.ndarray]] = []
+    for item in items:
+        p = Path(item)
+        src = open_source(p)
+        if src.kind in ("psp", "ipattern"):  # only the single-shot images are read
+            try:
+                for sid in src.image_ids():
+                    f = src.ipattern_file(sid)
+                    out.append((f"{p.name}_{sid}", encode_fringe(load_ipattern(f)), f))
+            except PSPMatError as exc:
+                raise DataError(str(exc)) from None
+        elif p.is_dir() and src.pair is not None:
+            fringe_path, _ = src.pair
+            if not fringe_path.is_file():
+                raise DataError(f"{fringe_path}: file not found (figshare folder {p} without its fringes)")
+            arr = as_image_stack(np.load(fringe_path, mmap_mode="r", allow_pickle=False), fringe_path)
+            for k in range(arr.shape[0]):
+                out.append((f"{p.name}_{k:04d}" if arr.shape[0] > 1 else p.name, _checked(arr[k], fringe_path, k),
+                            fringe_path))
+        else:
+            for path in collect_inputs([str(p)]):
+                out += [(name, fringe, path) for name, fringe in load_inputs(path)]
+    names: set[str] = set()
+    unique = []
+    for name, fringe, path in out:
+        if name in names:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
+            name = f"{path.parent.name}_{name}"
+        base, k = name, 1
+        while name in names:
+            k += 1
+            name = f"{base}_{k}"
+        names.add(name)
+        unique.append((name, fringe, path) if with_paths else (name, fringe))
+    return unique
+
+
+def _checked(img, path: Path, k: int) -> np.ndarray:
+    img = np.array(img, dtype=np.float32)
+    if not np.isfinite(img).all():
+        raise DataError(f"{path}: image {k} contains NaN/inf")
+    lo, hi = float(img.min()), float(img.max())
+    if lo < -1.001 or hi > 1.001:
+        raise DataError(f"{path}: values span [{lo:g}, {hi:g}]; expected the dataset encoding "
+                        "intensity / 127.5 - 1 in [-1, 1]")
+    return img
+
+
+def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
+    """``[(name, fringe float32 (H, W) in [-1, 1]), ...]`` for one input file."""
+    if path.suffix.lower() != ".npy":
+        return [(path.stem, read_fringe_image(path))]
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
+    arr = as_image_stack(arr, path)
+    if arr.dtype == np.uint8:
+        arr = encode_fringe(arr)
+    elif not np.issubdtype(arr.dtype, np.floating):
+        raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
+    return [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
+            for k in range(arr.shape[0])]
+
+
+def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
+    """World points (H, W, 3) where each camera pixel's ray reaches world z = height (mm)."""
+    check_image_size(rig, height_mm.shape, "", who="the rig camera is", error=ConfigError,
+                     template="{who} {camera} but the image is {got}")
+    cam = rig.camera
+    return cam.ray_cut(cam.pixel_grid(), height_mm.astype(np.float64))[1]
+
+
+def points_from_grid(height_mm: np.ndarray, pixel_size: float) -> np.ndarray:
+    h, w = height_mm.shape
+    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    return np.stack([uu * pixel_size, (h - 1 - vv) * pixel_size, height_mm.astype(np.float64)], axis=-1)
+
+
+def write_ply(path: Path, points: np.ndarray, grey: np.ndarray) -> int:
+    """Binary little-endian PLY with float x, y, z and uchar red, green, blue; returns the point count."""
+    ok = np.isfinite(points).all(axis=-1)
+    pts, g = points[ok].astype(np.float32), grey[ok].astype(np.uint8)
+    rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
+    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rec["red"] = rec["green"] = rec["blue"] = g
+    header = ("ply\nformat binary_little_endian 1.0\ncomment uhrnet predicted height, millimetres\n"
+              f"element vertex {len(rec)}\nproperty float x\nproperty float y\nproperty float z\n"
+              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        f.write(rec.tobytes())
+    return len(rec)
+
+
+def write_tiff(path: Path, array: np.ndarray) -> None:
+    from PIL import Image
+
+    with atomic_path(path) as tmp:
+        Image.fromarray(np.ascontiguousarray(array, dtype=np.float32)).save(tmp, format="TIFF")
+
+
+def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
+    from matplotlib import colormaps  # (colour maps only: no figure, so no backend to set up)
+
+    finite = height_mm[np.isfinite(height_mm)]
+    if vrange is None:
+        vrange = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
+    lo, hi = float(vrange[0]), float(vrange[1])
+    scaled = np.clip((height_mm - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
+    rgb = (colormaps[cmap](np.nan_to_num(scaled))[..., :3] * 255).round().astype(np.uint8)
+    rgb[~np.isfinite(height_mm)] = 128
+    import cv2
+
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
+            raise OSError(f"cannot write {path}")
+
+
+def predict(config: PredictConfig) -> PredictResult:
+    """Predict every input of ``config`` and write its files (see the module docstring)."""
+    from tqdm import tqdm
+
+    inputs = read_inputs(config.inputs, with_paths=True)
+    ckpt = load_checkpoint(config.checkpoint)
+    device = select_device(config.device)
+    model, transform = model_from_checkpoint(ckpt, device)
+    size = parse_size(ckpt.get("args", {}).get("resize"))
+    rig = None
+    if config.rig:
+        from fppsim.geometry.rig import RigError, load_rig
+
+        try:
+            rig = load_rig(config.rig)
+        except RigError as exc:
+            raise ConfigError(str(exc)) from None
+    refine_rig, rig_name = None, ""
+    if config.refine == "phase":
+        refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
+    head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
+    checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
+              (rig if config.ply else None, f"the rig camera ({config.rig}) is", ""),
+              (refine_rig, f"the rig used by --refine ({rig_name}) sees", "")]
+    for name, fringe, path in inputs:  # every size is checked before anything is written
+        if min(fringe.shape) < MIN_SIDE:
+            raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
+                              f"{MIN_SIDE}x{MIN_SIDE} pixels")
+        for seen_by, who, hint in checks:
+            if seen_by is not None:
+                check_image_size(seen_by, fringe.shape, str(path), who=who, hint=hint, error=ConfigError)
+    out = Path(config.out)
+    out.mkdir(parents=True, exist_ok=True)
+    from fppsim.dataio.owned import claim
+
+    names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
+             ("_height.npy", "_height.tif", "_height.png")
+             + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
+    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
+    result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
+        label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
+        height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
+        if not config.keep_all:
+            valid = transform.valid(label) & (fringe > -1 + 1e-6)
+            height = np.where(valid, height, np.float32(np.nan))
+        if not np.isfinite(height).any():
+            result.warnings.append(
+                f"{path} ({name}): no valid pixel in the prediction (every label at or below "
+                f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
+        if refine_rig is not None:
+            with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
+                np.save(fh, height)
+            height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)
+            result.refine[name] = {**stats, "rig": rig_name}
+        with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
+            np.save(fh, height)
+        write_tiff(out / f"{name}_height.tif", height)
+        write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
+        if config.ply:
+            pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
+            grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
+            write_ply(out / f"{name}.ply", pts, grey)
+        result.names.append(name)
+    if result.refine:
+        import json
+
+        from fppsim.dataio.files import atomic_write_text
+        from fppsim.dataio.encoding import json_default
+
+        atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
+    return result
+
+
+def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
+    """The rig ``--refine`` uses and its name: ``rig`` (``--rig``: a loaded rig named ``rig_path``, or a
+    file), else the checkpoint's own (physics head or an adaptation's), else fppsim's default rig
+    (:func:`fppsim.geometry.rig_choice.resolve_rig`)."""
+    from fppsim.geometry.rig_choice import resolve_rig
+
+    own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
+    return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own,
+                       checkpoint=ckpt.get("path", "the checkpoint"))
+
+
+def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
+    """The single-shot phase of ``fringe`` (dataset encoding) in the rig's direction: the phase must grow
+    along the camera rows as the rig's reference-plane phase does (:func:`fppsim.phase.fringe.single_shot_phase`
+    cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
+    from fppsim.phase.fringe import single_shot_phase
+    from uhrnet.physics.rig_layer import RigLayer
+
+    with torch.no_grad():
+        plane = RigLayer(rig).plane_phase()
+    direction = 1 if float(torch.nanmean(plane[:, 1:] - plane[:, :-1])) >= 0 else -1
+    try:
+        return single_shot_phase(fringe, direction=direction)
+    except ValueError as exc:
+        raise DataError(f"{name}: {exc}") from None
+
+
+def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
+    """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
+    through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
+    from uhrnet.physics.refine import refine_relief
+
+    ssp = fringe_phase(fringe, rig)
+    valid = np.isfinite(height_mm) & ssp.valid
+    refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid,
+                                      level="orders" if method == "orders" else "network", shadow=~ssp.valid)
+    refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
+    return refined, stats

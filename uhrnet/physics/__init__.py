@@ -1,0 +1,1 @@
+"""Physics through the rig: the differentiable rig layer, phase refinement, label-free adaptation."""

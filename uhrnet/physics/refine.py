@@ -1,0 +1,200 @@
+"""Make a height map consistent with its own fringe image's phase, region by region (:func:`refine_relief`).
+
+A single-shot fringe image fixes the projector phase of every pixel up to whole periods (the wrapped
+phase ``phi``, :func:`fppsim.phase.fringe.single_shot_phase`); a network's height estimate ``h`` says which
+period. Through the calibrated rig (:class:`uhrnet.physics.rig_layer.RigLayer`) the estimate implies the phase
+``Phi(h)``. :func:`refine_relief` unwraps the phase inside regions where it is continuous and takes
+their relief from it, their level from the estimate (``relief``) or from whole fringe orders voted
+across projector shadows (``orders``).
+
+Phase origin. Real frames may count phase from another origin (the public real data count fringe
+orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad): measured = fppsim phase +
+``o``, mod 2 pi. ``o`` is estimated per image as the circular median of ``wrap(phi - Phi(h))`` over the
+reliable pixels (:func:`circular_median`; robust to the object's pixels where ``h`` is wrong as long as
+most reliable pixels are right, e.g. the reference plane).
+
+Snapping each pixel to the nearest phase-consistent height (``--refine-method nearest``,
+``refine_height``) was removed on 2026-11-26: on the real pair it made the recipe model worse (6.92 mm
+against 6.06 mm unrefined; relief 5.57 mm, docs/experiments/physics.md).
+
+numpy in, numpy out (torch float64 inside).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from fppsim.phase import wrap
+
+__all__ = ["refine_relief", "circular_median", "REFINE_METHODS"]
+
+REFINE_METHODS = ("relief", "orders")
+"""``relief``: :func:`refine_relief` with each region's level from the estimate (the default of ``--refine
+phase``); ``orders``: :func:`refine_relief` with whole fringe orders (from shadow bridges, else rounded from the
+estimate), exact levels where the rig's absolute phase-to-height mapping is right."""
+
+TWO_PI = 2.0 * math.pi
+
+
+def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int = 20000) -> float:
+    """Circular median (rad, in (-pi, pi]) of ``angles``: the direction minimising the summed arc
+    distance, robust to outliers (unlike the circular mean). NaN when no angle is finite.
+
+    A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
+    then the exact median of all angles re-centred on the best candidate (the arc distance is then
+    the ordinary absolute difference).
+
+    Parameters
+    ----------
+    angles : any-shape float array, rad (NaN ignored).
+    """
+    a = np.asarray(angles, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return float("nan")
+    sample = a[:: max(1, a.size // int(max_samples))]
+    cands = np.linspace(-math.pi, math.pi, int(candidates), endpoint=False)
+    cost = [np.abs(wrap(sample - c)).sum() for c in cands]
+    c0 = cands[int(np.argmin(cost))]
+    return float(wrap(c0 + np.median(wrap(a - c0))))
+
+
+def _layer_for(rig_or_layer, shape):
+    from uhrnet.physics.rig_layer import RigLayer
+
+    layer = rig_or_layer if isinstance(rig_or_layer, RigLayer) else RigLayer(rig_or_layer)
+    if tuple(shape[-2:]) != layer.grid_shape:
+        raise ValueError(f"height map is {shape[-1]} x {shape[-2]} px but the layer's grid is "
+                         f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
+                         "(RigLayer(rig, height=..., width=..., pixels=...))")
+    return layer
+
+
+def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
+                  valid: np.ndarray | None = None, min_reliability: float = 0.5, max_step: float = 1.0,
+                  smooth_px: float = 3.0, max_move_mm=None, max_move_fraction: float = 2.0,
+                  min_region: int = 50, level: str = "network",
+                  shadow: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Relief from the image's phase, level from the estimate: the least move that makes a height map
+    consistent with its own fringes, region by region.
+
+    The wrapped phase is unwrapped spatially inside regions where it is continuous
+    (:func:`fppsim.phase.unwrap.phase_regions`; boundaries where the phase is unreliable and where the phase
+    step between neighbours disagrees by more than ``max_step`` rad with the step of the estimate,
+    smoothed over ``smooth_px``, seen through the rig: an aliasing wall). Inside a region the unwrapped
+    phase fixes the relief exactly, but not the region's fringe order; the level is taken from the
+    estimate: each pixel moves to ``height_from_phase(Phi(h) + D - median_region(D))`` with
+    ``D = U - Phi(h) - o`` (``U`` the region's unwrapped phase, ``o`` the image's phase origin,
+    :func:`circular_median` over the reliable pixels). So the region's median move is 0: the estimate
+    keeps its level, the phase replaces its shape. Unlike snapping each pixel to the nearest
+    phase-consistent height this needs no estimate within half a period, and a rig whose height scale is slightly off changes the relief by that
+    fraction only, not the level.
+
+    ``level="orders"`` instead gives every region a whole fringe order, so its level comes from the
+    phase through the rig: the order across a projector shadow is voted by the rows crossing it
+    (:func:`fppsim.phase.unwrap.shadow_bridges`: the ray grazing an object's edge lands on the plane at the
+    shadow's far side, so both carry one phase), starting from the largest region with its order
+    rounded from the estimate; regions no trusted bridge reaches round their own. Exact where the
+    rig's absolute phase-to-height mapping is (a rig off by a few per cent in its depth scale moves
+    every bridged level by that much); ``shadow`` (H, W) bool are the unlit pixels (default: the
+    pixels outside ``valid``). A pixel moves only when reliable, inside a region, and when its move
+    is within ``max_move_mm`` (default ``max_move_fraction`` fringe periods of height at the pixel,
+    ``2 pi / |dPhi/dh|``: a region that swallowed a wall is rejected where it moves pixels that far).
+
+    Parameters
+    ----------
+    height_mm : (H, W) float, the estimate, mm above the reference plane (NaN = none).
+    wrapped_phase, reliability : (H, W) the image's single-shot phase (rad) and its reliability [0, 1].
+    rig_or_layer : :class:`fppsim.geometry.rig.Rig`, its dictionary or a :class:`uhrnet.physics.rig_layer.RigLayer`.
+    valid : (H, W) bool, pixels that may move (default: finite estimate).
+
+    Returns
+    -------
+    (refined (H, W) float, moved (H, W) bool, stats dict: ``moved_fraction`` (of the finite estimate's
+    pixels), ``reliable_fraction``, ``beyond_margin_fraction``, ``regions``, ``mean_abs_move_mm``,
+    ``offset_rad``).
+    """
+    import torch
+    from scipy import ndimage as ndi
+
+    from fppsim.phase.unwrap import phase_regions, step_conflicts
+
+    if level not in ("network", "orders"):
+        raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
+    h_in = np.asarray(height_mm)
+    h = h_in.astype(np.float64)
+    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
+        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
+    layer = _layer_for(rig_or_layer, h.shape)
+    finite = np.isfinite(h)
+    ok = finite if valid is None else finite & np.asarray(valid, bool)
+    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
+    w = np.asarray(wrapped_phase, np.float64)
+    usable = ok & (rel >= min_reliability) & np.isfinite(w)
+    filled = np.where(finite, h, 0.0)
+    if not finite.all():  # nearest finite value, so smoothing does not drag edges to 0
+        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+        filled = h[tuple(idx)] if finite.any() else filled
+    dev = layer.A.device
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=dev)  # noqa: E731
+    with torch.no_grad():
+        phi = layer.phase_from_height(t(filled)).cpu().numpy()
+        sens = layer.sensitivity(t(filled)).cpu().numpy()
+        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
+    offset = circular_median(wrap(w - phi)[usable]) if usable.any() else 0.0
+    regions = phase_regions(w, usable, cut=step_conflicts(w, expected, max_step), min_size=min_region)
+    lab = regions.labels
+    d = regions.unwrapped - phi - offset
+    target = np.full(h.shape, np.nan)
+    bridged = 0
+    if regions.count:
+        med = np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, regions.count + 1)))
+        if level == "orders":
+            from fppsim.phase.unwrap import shadow_bridges
+
+            orders = np.round(med / TWO_PI)
+            unlit = ~ok if shadow is None else np.asarray(shadow, bool)
+            fixed = {1: orders[0]}
+            bridges = shadow_bridges(regions, unlit)
+            grew = True
+            while grew:  # spread whole orders from the largest region over trusted bridges
+                grew = False
+                for b in bridges:
+                    if b.a in fixed and b.b not in fixed:
+                        fixed[b.b], grew = fixed[b.a] - b.periods, True
+                    elif b.b in fixed and b.a not in fixed:
+                        fixed[b.a], grew = fixed[b.b] + b.periods, True
+            bridged = len(fixed) - 1
+            for region, order in fixed.items():
+                orders[region - 1] = order
+            med = TWO_PI * orders
+        inside = lab > 0
+        target[inside] = phi[inside] + d[inside] - med[lab[inside] - 1]
+    with torch.no_grad():
+        h_new = layer.height_from_phase(t(np.nan_to_num(target, nan=0.0))).cpu().numpy()
+    h_new[~np.isfinite(target)] = np.nan
+    move = h_new - h
+    if max_move_mm is None:
+        with np.errstate(divide="ignore"):
+            margin = max_move_fraction * 2 * math.pi / np.abs(sens)
+    else:
+        margin = np.broadcast_to(np.asarray(max_move_mm, dtype=np.float64), h.shape)
+    within = np.isfinite(move) & (np.abs(move) <= margin)
+    moved = usable & (lab > 0) & within
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
+    n = int(finite.sum())
+    stats = {
+        "method": "relief" if level == "network" else "orders",
+        "bridged_regions": bridged,
+        "n_pixels": n,
+        "moved_fraction": float(moved.sum() / n) if n else 0.0,
+        "reliable_fraction": float(usable.sum() / n) if n else 0.0,
+        "beyond_margin_fraction": float((usable & (lab > 0) & ~within).sum() / n) if n else 0.0,
+        "regions": regions.count,
+        "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
+        "offset_rad": float(offset),
+    }
+    return refined, moved, stats

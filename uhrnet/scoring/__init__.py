@@ -1,0 +1,1 @@
+"""Scoring: evaluation with the paper's metrics and figures, the calibration-free phase residual, speed."""

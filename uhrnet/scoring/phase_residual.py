@@ -1,0 +1,350 @@
+"""Calibration-free phase residual: predicted heights checked against real absolute phase (no height
+labels), for one image (:func:`fit_phase`, :func:`evaluate_phase`; plain numpy) and for a folder of
+real phase-shifting data (:func:`evaluate_phase_folder`, which ``uhrnet evaluate-phase`` calls).
+
+On a fringe projection rig the absolute phase of a camera pixel is, to a very good approximation,
+a smooth function of the pixel position (the reference plane's phase) plus a smooth function of the
+height above the plane. Without a calibration the two are unknown, so they are fitted:
+
+    Phi(x, y) ~ sum_{i + j <= d} c_ij x^i y^j  +  a h(x, y)  +  b h(x, y)^2
+
+by least squares over the valid pixels, ``x, y`` being the pixel column / row scaled to [-1, 1] and
+``h`` the predicted height in mm. A good height prediction leaves a small residual; a flat prediction
+(``h = 0``) leaves the whole relief. Reported (per image):
+
+* ``rmse_rad``: RMSE of the residual phase (rad) over the fitted pixels;
+* ``relief_rms_rad``: RMS of the relief phase, the residual of the plane-only fit (``a = b = 0``);
+* ``explained``: fraction of the relief phase explained, ``1 - SS_res / SS_relief`` (1 = perfect, 0 = no
+  better than a flat predictor, negative impossible for least squares);
+* ``a_rad_per_mm, b_rad_per_mm2`` and the plane coefficients; ``rmse_mm_equiv = rmse_rad / |a|``, the
+  residual expressed in mm at the fitted phase-per-mm scale (rough: ignores the h^2 term).
+
+``robust=True`` replaces least squares by a few iteratively reweighted (Huber) iterations, which keeps
+shadow edges, wrong fringe orders and prediction outliers from dominating; the reported sums are then
+over the same pixels, unweighted.
+
+Folder evaluation (:func:`evaluate_phase_folder`, :class:`PhaseEvalConfig`): reads the folder layout
+of the public phase-retrieval data (``<root>/PSin``, ``PCos``, ``Fringe``, ``iPattern``, one
+``<id>.mat`` each; :mod:`fppsim.dataio.readers`), predicts a height map from every iPattern image and fits the
+real absolute phase as above. Writes to ``--out``: ``phase_results.md``, ``phase_results.json`` (per
+model and image: residual phase RMSE in rad, fraction of the relief phase explained, fitted
+coefficients; the same for the flat h = 0 baseline) and ``figures/<id>.png`` (single-shot image,
+relief phase, each model's predicted height and residual phase map). torch and the checkpoints are
+imported only there.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fppsim.dataio.files import atomic_write_text
+from fppsim.phase.fringe import poly_basis, poly_terms
+from uhrnet.errors import ConfigError
+
+__all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
+           "markdown", "plot_phase_residuals"]
+
+
+@dataclass
+class PhaseFit:
+    """Result of :func:`fit_phase` for one image (see the module docstring for the meaning)."""
+
+    rmse_rad: float
+    relief_rms_rad: float
+    explained: float
+    a_rad_per_mm: float
+    b_rad_per_mm2: float
+    rmse_mm_equiv: float
+    plane_coefficients: list
+    plane_terms: list
+    pixels: int
+    degree: int
+    robust: bool
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def _solve(A: np.ndarray, b: np.ndarray, robust: bool, iterations: int, huber: float) -> np.ndarray:
+    """Least squares (or Huber IRLS) coefficients; all-zero columns get coefficient 0."""
+    live = np.any(A != 0, axis=0)
+    coef = np.zeros(A.shape[1])
+    if not live.any():
+        return coef
+    Al = A[:, live]
+    # column scaling keeps lstsq well conditioned when h^2 reaches thousands of mm^2
+    scale = np.sqrt((Al * Al).mean(axis=0))
+    scale[scale == 0] = 1.0
+    As = Al / scale
+    sol = np.linalg.lstsq(As, b, rcond=None)[0]
+    if robust:
+        for _ in range(iterations):
+            r = b - As @ sol
+            s = 1.4826 * np.median(np.abs(r - np.median(r)))
+            if not s > 0:
+                break
+            k = huber * s
+            wgt = np.where(np.abs(r) <= k, 1.0, k / np.maximum(np.abs(r), 1e-300))
+            sw = np.sqrt(wgt)
+            sol = np.linalg.lstsq(As * sw[:, None], b * sw, rcond=None)[0]
+    coef[live] = sol / scale
+    return coef
+
+
+def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None = None, degree: int = 3,
+              robust: bool = False, iterations: int = 5, huber: float = 1.345, max_pixels: int | None = 200_000,
+              return_residual: bool = False):
+    """Fit ``phase ~ plane(x, y) + a h + b h^2`` over valid pixels (see the module docstring).
+
+    Parameters
+    ----------
+    phase : (H, W) absolute phase, rad (NaN where invalid).
+    height_mm : (H, W) predicted height above the reference plane, mm (NaN where the prediction is
+        invalid); all zeros is the flat baseline.
+    valid : (H, W) bool, pixels to use (also restricted to finite phase and height).
+    degree : total degree of the plane polynomial (default 3).
+    robust : Huber IRLS (``iterations`` steps, threshold ``huber`` x the MAD scale) instead of plain
+        least squares.
+    max_pixels : fit on an evenly strided subset of at most this many pixels (None: all); the reported
+        statistics use every valid pixel.
+    return_residual : also return the (H, W) residual phase map (NaN outside the fitted pixels).
+
+    Returns
+    -------
+    :class:`PhaseFit` (and the residual map when asked). ValueError when fewer valid pixels than
+    unknowns remain.
+    """
+    phi = np.asarray(phase, dtype=np.float64)
+    h = np.asarray(height_mm, dtype=np.float64)
+    if phi.ndim != 2 or phi.shape != h.shape:
+        raise ValueError(f"phase {phi.shape} and height {h.shape} must be the same 2-D shape")
+    ok = np.isfinite(phi) & np.isfinite(h)
+    if valid is not None:
+        ok &= np.asarray(valid, dtype=bool)
+    P, names = poly_basis(*phi.shape, degree), poly_terms(degree)  # (H*W, n_terms): the one plane basis
+    n_unknown = len(names) + 2
+    n = int(ok.sum())
+    if n < 2 * n_unknown:
+        raise ValueError(f"only {n} valid pixels for {n_unknown} unknowns (degree {degree})")
+    idx = np.flatnonzero(ok)
+    fit_idx = idx if max_pixels is None or n <= max_pixels else idx[:: int(np.ceil(n / max_pixels))]
+    Pf = P.T
+    hv = h.ravel()
+    b = phi.ravel()
+
+    def design(sel):
+        return np.concatenate([Pf[:, sel].T, hv[sel, None], hv[sel, None] ** 2], axis=1)
+
+    A = design(fit_idx)
+    coef_plane = _solve(A[:, :-2], b[fit_idx], robust, iterations, huber)
+    coef = _solve(A, b[fit_idx], robust, iterations, huber)
+    Aall = design(idx)
+    relief = b[idx] - Aall[:, :-2] @ coef_plane
+    resid = b[idx] - Aall @ coef
+    ss_relief = float(np.sum(relief ** 2))
+    ss_res = float(np.sum(resid ** 2))
+    a = float(coef[-2])
+    out = PhaseFit(
+        rmse_rad=float(np.sqrt(ss_res / n)), relief_rms_rad=float(np.sqrt(ss_relief / n)),
+        explained=float(1.0 - ss_res / ss_relief) if ss_relief > 0 else float("nan"),
+        a_rad_per_mm=a, b_rad_per_mm2=float(coef[-1]),
+        rmse_mm_equiv=float(np.sqrt(ss_res / n) / abs(a)) if a != 0 else float("nan"),
+        plane_coefficients=[float(c) for c in coef[:-2]], plane_terms=names, pixels=n, degree=int(degree),
+        robust=bool(robust))
+    if not return_residual:
+        return out
+    res_map = np.full(phi.size, np.nan)
+    res_map[idx] = resid
+    return out, res_map.reshape(phi.shape)
+
+
+def evaluate_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None = None, **kw) -> dict:
+    """:func:`fit_phase` for the prediction and for the flat (h = 0) baseline on the same pixels.
+
+    Returns ``{"prediction": PhaseFit dict, "flat": PhaseFit dict, "residual": (H, W) map}``.
+    """
+    h = np.asarray(height_mm, dtype=np.float64)
+    ok = np.isfinite(h) if valid is None else (np.asarray(valid, bool) & np.isfinite(h))
+    pred, res = fit_phase(phase, h, ok, return_residual=True, **kw)
+    flat = fit_phase(phase, np.zeros_like(h), ok, **kw)
+    return {"prediction": pred.to_dict(), "flat": flat.to_dict(), "residual": res}
+
+
+# ------------------------------------------------------------------------------ a folder of real data
+@dataclass
+class PhaseEvalConfig:
+    """What ``uhrnet evaluate-phase`` does; the fields are its flags (see :mod:`uhrnet.cli`)."""
+
+    checkpoints: list
+    phase_root: str | Path
+    out: str | Path
+    degree: int = 3
+    robust: bool = False
+    convention: str = "benchmark"
+    negate_sin: bool = False
+    mask_predicted_invalid: bool = False
+    names: list | None = None
+    ids: list | None = None
+    limit: int | None = None
+    figures: int = 3
+    device: str = "auto"
+
+    def __post_init__(self):
+        if self.degree < 0:
+            raise ConfigError(f"--degree must be >= 0, got {self.degree}")
+
+
+def _mean(values) -> float:
+    v = np.asarray([x for x in values if x is not None], dtype=float)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) -> str:
+    lines = [f"# Calibration-free phase evaluation: {n} image{'s' if n != 1 else ''} of {root}", "",
+             f"Real absolute phase fitted by a degree-{degree} polynomial in (x, y) plus a*h + b*h^2 of the "
+             f"predicted height h (mm), {'Huber IRLS' if robust else 'least squares'} over valid pixels. "
+             "Explained = 1 - SS_residual / SS_relief, relief = phase minus the plane-only fit. "
+             "Flat = the same fit with h = 0 on the same pixels (explains 0 by construction). Means over images.", "",
+             "| Model | Residual RMSE (rad) | Explained | Flat RMSE (rad) | a (rad/mm) | b (rad/mm^2) "
+             "| Residual (mm equiv.) | Pixels used |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in summary:
+        lines.append(f"| {r['name']} | {r['rmse_rad']:.4f} | {r['explained']:.4f} | {r['flat_rmse_rad']:.4f} | "
+                     f"{r['a_rad_per_mm']:+.4f} | {r['b_rad_per_mm2']:+.2e} | {r['rmse_mm_equiv']:.2f} | "
+                     f"{r['pixel_fraction']:.1%} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, residuals: dict, path: Path,
+                         title: str = "") -> Path:
+    """One row per model: predicted height (mm) and residual phase (rad); the top row: image and relief."""
+    from uhrnet.scoring.plots import pyplot, save_figure
+
+    plt = pyplot()
+    rows = 1 + len(heights)
+    fig, axes = plt.subplots(rows, 2, figsize=(10, 2.9 * rows), squeeze=False)
+    axes[0, 0].imshow(image, cmap="gray", vmin=0, vmax=255)
+    axes[0, 0].set_title("single-shot image (iPattern)")
+    lim = np.nanpercentile(np.abs(relief), 99) if np.isfinite(relief).any() else 1.0
+    im = axes[0, 1].imshow(relief, cmap="coolwarm", vmin=-lim, vmax=lim)
+    axes[0, 1].set_title("relief phase (rad): phase - plane fit")
+    fig.colorbar(im, ax=axes[0, 1], fraction=0.025)
+    rlim = max((np.nanpercentile(np.abs(r), 99) for r in residuals.values() if np.isfinite(r).any()), default=1.0)
+    for k, name in enumerate(heights, start=1):
+        im = axes[k, 0].imshow(heights[name], cmap="viridis")
+        axes[k, 0].set_title(f"{name}: predicted height (mm)")
+        fig.colorbar(im, ax=axes[k, 0], fraction=0.025)
+        im = axes[k, 1].imshow(residuals[name], cmap="coolwarm", vmin=-rlim, vmax=rlim)
+        axes[k, 1].set_title(f"{name}: residual phase (rad)")
+        fig.colorbar(im, ax=axes[k, 1], fraction=0.025)
+    for ax in axes.ravel():
+        ax.set_xticks([])
+        ax.set_yticks([])
+    if title:
+        fig.suptitle(title)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    out = save_figure(fig, path)
+    plt.close(fig)
+    return out
+
+
+def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
+    """Evaluate ``args.checkpoints`` on the folder layout at ``args.phase_root``; writes the report to
+    ``args.out`` and returns ``{"summary", "per_image", "markdown", "figures"}``. ``echo`` gets one line
+    per image (None: silent)."""
+    import torch
+
+    from fppsim.errors import PSPMatError
+    from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.training.data import parse_size
+    from uhrnet.device import select_device
+    from uhrnet.scoring.evaluation import model_names
+    from uhrnet.inference.prediction import predict_labels
+
+    echo = echo or (lambda line: None)
+    try:
+        ids = list_psp_ids(args.phase_root)
+    except PSPMatError as exc:
+        raise ConfigError(str(exc)) from None
+    if args.ids:
+        unknown = [i for i in args.ids if i not in ids]
+        if unknown:
+            raise ConfigError(f"{args.phase_root}: no such id(s): {', '.join(unknown[:10])}")
+        ids = list(args.ids)
+    if args.limit is not None:
+        ids = ids[: max(0, args.limit)]
+    if not ids:
+        raise ConfigError(f"{args.phase_root}: nothing to evaluate")
+    ckpts = [load_checkpoint(p) for p in args.checkpoints]
+    names = model_names(ckpts, args.names)
+    device = select_device(args.device)
+    models = []
+    for ck in ckpts:
+        model, transform = model_from_checkpoint(ck, device)
+        models.append((model, transform, parse_size(ck.get("args", {}).get("resize"))))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    fit_kw = dict(degree=args.degree, robust=args.robust)
+
+    per_image, figures = [], []
+    for k, sid in enumerate(ids):
+        try:
+            s = load_psp_folder_sample(args.phase_root, sid, convention=args.convention, negate_sin=args.negate_sin)
+        except PSPMatError as exc:
+            raise ConfigError(str(exc)) from None
+        img = s.image
+        x = torch.from_numpy(img.astype(np.float32) / 127.5 - 1.0)[None, None]
+        record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
+        try:
+            _, relief = fit_phase(s.phase, np.zeros(img.shape), s.valid, return_residual=True, **fit_kw)
+        except ValueError as exc:
+            raise ConfigError(f"{s.path}: {exc}") from None
+        heights, residuals = {}, {}
+        for (model, transform, size), name in zip(models, names):
+            label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
+            h = transform.height_mm(label)
+            pred_valid = np.asarray(transform.valid(label))
+            ok = s.valid & (img > 0)
+            if args.mask_predicted_invalid:
+                ok &= pred_valid
+            try:
+                res = evaluate_phase(s.phase, h, ok, **fit_kw)
+            except ValueError as exc:
+                raise ConfigError(f"{s.path}: {name}: {exc}") from None
+            record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"],
+                                      "pixel_fraction": float(ok.mean()),
+                                      "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
+            heights[name] = np.where(ok, h, np.nan)
+            residuals[name] = res["residual"]
+        per_image.append(record)
+        if k < args.figures:
+            figures.append(plot_phase_residuals(img, relief, heights, residuals, out / "figures" / f"{sid}.png",
+                                                title=f"{sid}: calibration-free phase fit (degree {args.degree})"))
+        echo(f"{sid}: " + ", ".join(f"{n} residual {r['prediction']['rmse_rad']:.3f} rad "
+                                     f"(flat {r['flat']['rmse_rad']:.3f}), explained {r['prediction']['explained']:.3f}"
+                                     for n, r in record["models"].items()))
+    summary = []
+    for ck, name in zip(ckpts, names):
+        rows = [r["models"][name] for r in per_image]
+        summary.append({
+            "name": name, "checkpoint": ck["path"], "images": len(rows),
+            **{key: _mean(r["prediction"][key] for r in rows)
+               for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "rmse_mm_equiv", "relief_rms_rad")},
+            "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
+            "flat_explained": _mean(r["flat"]["explained"] for r in rows),
+            "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
+            "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
+        })
+    md = markdown(summary, len(ids), args.phase_root, args.degree, args.robust)
+    atomic_write_text(out / "phase_results.md", md)
+    atomic_write_text(out / "phase_results.json", json.dumps(
+        {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
+         "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image},
+        indent=1, allow_nan=True))
+    return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}

@@ -1,0 +1,1 @@
+"""Training: data, augmentation, splits, losses, the trainer and its run folder."""

@@ -1,0 +1,292 @@
+"""The options of a training run: :class:`TrainConfig`, their defaults, checks and resolution on resume.
+
+``None`` means "not given" for every option, so a resumed run can tell what the user set: options in
+:data:`LOCKED` must then match the checkpoint's, the others may change (e.g. ``--epochs``, ``--lr``).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from fppsim.dataio.formats import LabelTransform
+from uhrnet.training.data import parse_size
+from uhrnet.errors import ConfigError, DataError, UsageError
+
+__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "check_options", "resolve_config",
+           "label_transform_from", "parse_kv"]
+
+# Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
+# the user set; LOCKED options must match the checkpoint's, the others may change on resume.
+DEFAULTS = {
+    "model": "uhrnet", "loss": "compound", "real": [], "synthetic": [], "synthetic_ratio": None,
+    "real_split": "reference", "synthetic_split": "reference", "synthetic_label": "true",
+    "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
+    "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
+    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
+    "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
+    "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
+}
+# what a run made before an option existed used: resuming it must not switch the option on
+LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_from": None, "freeze": "none",
+          "head": "height", "rig": None}
+# LEGACY options that a resume of a run made before them must not be given with another value either
+# (the run's weights did not start from a checkpoint, nothing was frozen)
+LEGACY_LOCKED = ("init_from", "freeze", "head", "rig")
+LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
+LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
+LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
+          "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
+          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
+          "augment_probability", "init", "init_from", "freeze", "head", "rig")
+
+
+@dataclass
+class TrainConfig:
+    """Options of a training run; ``None`` means "not given": the default of :data:`DEFAULTS` for a
+    fresh run, the checkpoint's value on ``resume`` (options in :data:`LOCKED` must then match it).
+
+    Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
+    ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
+    already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
+    :data:`uhrnet.training.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
+    ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
+    as rendered).
+    ``init``: weight initialisation of a fresh run, a name of :data:`uhrnet.models.init.INITS` (``auto``:
+    ``he`` for models without batch norm, ``torch`` otherwise; ``he``: N(0, 2/fan_in) as the U-Net paper;
+    ``torch``: PyTorch's default, what every run used before); on resume the checkpoint's weights are
+    kept, and a different ``init`` is refused like every LOCKED option.
+    ``init_from``: transfer learning: a fresh run starts from the weights of this checkpoint (a ``.pt``
+    file or a run folder: its ``best.pt``, else ``last.pt``) instead of ``init``, with a fresh optimizer,
+    schedule, loss state and epoch count; the architecture (``model``, ``base_channels``,
+    ``model_option``) and what the network output means (``raw_output``, label scale) must match the
+    checkpoint's; with an ``--ema`` checkpoint its averaged weights are taken
+    (:func:`uhrnet.checkpoint.init_from_checkpoint`). The run records the resolved file as ``init_from``
+    and ``init_from_checkpoint`` = ``{"path", "sha256", "epoch", "weights", ...}``; a resume continues
+    the run (nothing is re-initialised) and refuses another ``init_from``.
+    ``freeze``: ``none`` or a part of :data:`uhrnet.models.freeze.FREEZE_CHOICES` (``encoder``,
+    ``decoder``) kept fixed at its initial weights (needs ``init_from``): left out of the optimizer, its
+    batch norms in eval mode (:mod:`uhrnet.models.freeze`).
+    ``head``: ``height`` (the network predicts height) or ``phase``: the physics head
+    (:mod:`uhrnet.models.phase_head`): the network predicts the fringe phase (cosine, sine) and a coarse
+    height, and the calibrated rig turns them into height; trained on synthetic native samples, whose
+    ``phase_true`` supervises the phase (:class:`uhrnet.training.losses.PhaseHeadLoss`). ``rig``: the calibration
+    file of the phase head (default: the rig recorded in the first synthetic sample's ``meta.json``, else
+    fppsim's default rig); the checkpoint carries it. The phase head needs full camera-size images (no
+    ``crop``/``resize``: each pixel is a camera ray).
+    ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
+    ``best.pt`` and every later use of the checkpoint see (0: off). ``tensorboard``: also log to
+    ``out/tensorboard/`` (:mod:`uhrnet.training.tb_log`; needs the optional ``tensorboard`` package; like
+    ``progress``, free to change on resume). Checks itself on construction: :class:`UsageError` for a value that is wrong
+    on its own (the command line exits 2), :class:`ConfigError` otherwise.
+    """
+
+    out: str | os.PathLike
+    real: list | None = None
+    synthetic: list | None = None
+    synthetic_ratio: float | None = None
+    real_split: str | None = None
+    synthetic_split: str | None = None
+    synthetic_label: str | None = None
+    preset: str | None = None
+    label_transform: list | None = None
+    crop: str | None = None
+    resize: str | None = None
+    samples_per_epoch: int | None = None
+    workers: int | None = None
+    augment: str | bool | None = None
+    augment_probability: float | None = None
+    lr_schedule: str | None = None
+    model: str | None = None
+    base_channels: int | None = None
+    model_option: list | None = None
+    loss: str | None = None
+    epochs: int | None = None
+    batch_size: int | None = None
+    lr: float | None = None
+    weight_decay: float | None = None
+    grad_clip: float | None = None
+    ema: float | None = None
+    init: str | None = None
+    init_from: str | os.PathLike | None = None
+    freeze: str | None = None
+    head: str | None = None
+    rig: str | os.PathLike | None = None
+    amp: bool | None = None
+    raw_output: bool | None = None
+    seed: int | None = None
+    device: str | None = None
+    resume: str | None = None
+    overwrite: bool = False
+    progress: bool = True
+    tensorboard: bool = False
+
+    def __post_init__(self):
+        if self.tensorboard:  # a missing optional package stops the run before anything is read or written
+            from uhrnet.training.tb_log import require_tensorboard
+
+            require_tensorboard()
+        for key in ("real", "synthetic"):
+            value = getattr(self, key)
+            if isinstance(value, (str, os.PathLike)):
+                setattr(self, key, [value])
+        given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
+        check_options(given)
+        if not self.resume:  # a fresh run's label transform must be usable before anything is written
+            label_transform_from({**DEFAULTS, **given})
+
+
+def check_options(cfg: dict) -> None:
+    """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
+    of the first invalid option in ``cfg``."""
+    from fppsim.dataio.formats import PRESETS
+    from fppsim.dataio.readers import LABEL_SOURCES
+    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.training.losses import LOSSES
+    from uhrnet.models import list_models
+
+    choices = {"model": list_models(), "loss": LOSSES, "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
+               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
+    for key, allowed in choices.items():
+        if key in cfg and cfg[key] not in allowed:
+            raise ConfigError(f"--{key.replace('_', '-')} {cfg[key]!r}: choose from {', '.join(allowed)}")
+    for key in ("crop", "resize"):
+        try:
+            parse_size(cfg.get(key))
+        except ValueError as exc:
+            raise ConfigError(f"--{key}: {exc}") from None
+    if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
+        raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
+    for key in ("epochs", "batch_size"):
+        if key in cfg and cfg[key] < 1:
+            raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
+    if "lr" in cfg and not cfg["lr"] > 0:
+        raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
+    if "lr" in cfg and not math.isfinite(cfg["lr"]):
+        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
+    if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
+        raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
+    if "augment" in cfg:
+        from uhrnet.training.augment import augment_config
+
+        try:
+            augment_config(cfg["augment"])
+        except ValueError as exc:
+            raise UsageError(f"--augment: {exc}") from None
+    if "augment_probability" in cfg:
+        p = cfg["augment_probability"]
+        if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
+            raise UsageError(f"--augment-probability must be in [0, 1], got {p}")
+    if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
+        raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
+    if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
+        raise UsageError(f"--ema must be a decay in [0, 1) (0: off), got {cfg['ema']}")
+    if "init" in cfg:
+        from uhrnet.models.init import INITS
+
+        if cfg["init"] not in INITS:
+            raise UsageError(f"--init must be one of {', '.join(INITS)}, got {cfg['init']!r}")
+    if "freeze" in cfg:
+        from uhrnet.models.freeze import FREEZE_CHOICES
+
+        if cfg["freeze"] not in FREEZE_CHOICES:
+            raise UsageError(f"--freeze must be one of {', '.join(FREEZE_CHOICES)}, got {cfg['freeze']!r}")
+        if cfg["freeze"] != "none" and "init_from" in cfg and not cfg["init_from"]:
+            raise ConfigError(f"--freeze {cfg['freeze']} needs --init-from CKPT (frozen random weights never learn)")
+    if "head" in cfg:
+        from uhrnet.models.phase_head import HEADS
+
+        if cfg["head"] not in HEADS:
+            raise UsageError(f"--head must be one of {', '.join(HEADS)}, got {cfg['head']!r}")
+        if cfg["head"] == "phase" and (cfg.get("crop") or cfg.get("resize")):
+            raise UsageError("--head phase needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
+        if cfg["head"] == "phase" and "synthetic" in cfg and not cfg["synthetic"]:
+            raise ConfigError("--head phase learns the phase from synthetic samples (phase_true): give --synthetic DIR")
+        if cfg["head"] == "phase" and cfg.get("raw_output"):
+            raise ConfigError("--head phase predicts heights through the rig: --raw-output does not apply")
+    if cfg.get("rig") and cfg.get("head", "height") != "phase":
+        raise ConfigError("--rig belongs to --head phase (the rig that turns phase into height)")
+    if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
+        raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
+
+
+def parse_kv(items, what: str) -> dict:
+    out = {}
+    if not items:
+        return out  # (without importing yaml: a bare GPU machine may lack it)
+    import yaml
+
+    for item in items:
+        if "=" not in item:
+            raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k.strip().replace("-", "_")] = yaml.safe_load(v)
+    return out
+
+
+def _normalise(key: str, value):
+    if key in ("real", "synthetic"):
+        return [str(Path(v).resolve()) for v in (value or [])]
+    if key == "rig" and value:
+        return str(Path(value).resolve())
+    if key in ("label_transform", "model_option"):
+        return sorted(value or [])
+    if key == "init_from":  # the checkpoint file itself, however it was named (file or run folder)
+        if not value:
+            return None
+        from uhrnet.checkpoint import checkpoint_file
+        from uhrnet.errors import CheckpointError
+
+        try:
+            return str(checkpoint_file(Path(value).resolve()))
+        except CheckpointError:  # a folder that no longer holds a checkpoint: compare the names
+            return str(Path(value).resolve())
+    if key == "augment":  # runs saved before the augmentation kinds hold a boolean
+        from uhrnet.training.augment import augment_kind
+
+        return augment_kind(value)
+    return value
+
+
+def _refuse_change(key: str, given, recorded) -> None:
+    if given is not None and key in LOCKED and _normalise(key, given) != _normalise(key, recorded):
+        flag = "--" + key.replace("_", "-")
+        raise ConfigError(
+            f"{flag} {given} differs from the checkpoint's {recorded!r}; drop {flag} to resume, "
+            "or start a new --out"
+        )
+
+
+def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
+    """Options after defaults (fresh run) or the checkpoint's options (resume).
+
+    On resume ``init_from_checkpoint`` (what a run started with ``--init-from`` recorded) is carried over.
+    """
+    cfg = {}
+    for key, default in DEFAULTS.items():
+        given = getattr(args, key, None)
+        if previous is not None and key in previous:
+            _refuse_change(key, given, previous[key])
+            cfg[key] = previous[key] if given is None else given
+        elif previous is not None and key in LEGACY and (given is None or key in LEGACY_LOCKED):
+            _refuse_change(key, given, LEGACY[key])
+            cfg[key] = LEGACY[key]
+        else:
+            cfg[key] = default if given is None else given
+    cfg["real"] = _normalise("real", cfg["real"])
+    cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
+    cfg["init_from"] = _normalise("init_from", cfg["init_from"])
+    if previous is not None and previous.get("init_from_checkpoint"):
+        cfg["init_from_checkpoint"] = previous["init_from_checkpoint"]
+    check_options(cfg)
+    return cfg
+
+
+def label_transform_from(cfg: dict) -> LabelTransform:
+    overrides = parse_kv(cfg["label_transform"], "--label-transform")
+    try:
+        return LabelTransform.from_dict({"preset": cfg["preset"], "name": cfg["preset"], **overrides})
+    except DataError as exc:
+        raise UsageError(f"--label-transform: {exc}") from None
