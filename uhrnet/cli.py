@@ -38,7 +38,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from fppsim.dataio.readers import LABEL_SOURCES
     from uhrnet.training.splits import SPLIT_MODES
     from uhrnet.training.losses import LOSSES
-    from uhrnet.models import list_models
+    from uhrnet.models import HEADS, list_models
     from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
@@ -111,7 +111,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "and the bottleneck, decoder = everything after it (up path, fusion blocks, heads); frozen "
                         "weights are left out of the optimizer and their batch norms stay in eval mode (they keep "
                         "the checkpoint's running statistics) [none]")
-    m.add_argument("--head", choices=("height", "phase"),
+    m.add_argument("--head", choices=list(HEADS),
                    help="what the network predicts: height (the papers' networks) or phase, the physics head: the "
                         "network predicts the fringe phase (its cosine and sine) and a coarse height, and the calibrated "
                         "rig turns them into height (fringe order from the coarse height, height from the phase through "

@@ -51,7 +51,7 @@ from fppsim.dataio.readers import IMAGE_EXTS, read_fringe_image
 from fppsim.geometry.rig import check_image_size
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
-from uhrnet.models import prediction_of
+from uhrnet.models import HEADS, prediction_of
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
@@ -316,7 +316,7 @@ def predict(config: PredictConfig) -> PredictResult:
     refine_rig, rig_name = None, ""
     if config.refine == "phase":
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
-    head_rig = ckpt["model"]["config"].get("rig") if ckpt["model"]["config"].get("head") == "phase" else None
+    head_rig = ckpt["model"]["config"].get("rig") if HEADS[ckpt["model"]["config"].get("head", "height")].needs_rig else None
     checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
               (rig if config.ply else None, f"the rig camera ({config.rig}) is", ""),
               (refine_rig, f"the rig used by --refine ({rig_name}) sees", "")]
@@ -385,12 +385,14 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     """The single-shot phase of ``fringe`` (dataset encoding) in the rig's direction: the phase must grow
     along the camera rows as the rig's reference-plane phase does (:func:`fppsim.phase.fringe.single_shot_phase`
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
+    from fppsim.geometry.rig import Rig
     from fppsim.phase.fringe import single_shot_phase
-    from uhrnet.physics.rig_layer import RigLayer
 
-    with torch.no_grad():
-        plane = RigLayer(rig).plane_phase()
-    direction = 1 if float(torch.nanmean(plane[:, 1:] - plane[:, :-1])) >= 0 else -1
+    # the sign of the plane phase's slope along the centre row: W points of the forward model, no layer
+    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
+    u = np.arange(r.camera.width, dtype=np.float64)
+    row = r.phase_at_height(0.0, np.stack([u, np.full_like(u, r.camera.height // 2)], axis=-1))
+    direction = 1 if float(np.nanmean(np.diff(row))) >= 0 else -1
     try:
         return single_shot_phase(fringe, direction=direction)
     except ValueError as exc:

@@ -31,11 +31,11 @@ from torch import nn
 
 from uhrnet.models.hnet import HNet
 from uhrnet.models.outputs import outputs_of, prediction_of
-from uhrnet.models.phase_head import HEADS, PHASE_CHANNELS, PhaseHead
+from uhrnet.models.heads import HEADS, Head
 from uhrnet.models.unet import UNet
 from uhrnet.models.uhrnet import UHRNet
 
-__all__ = ["ARCHITECTURES", "ALIASES", "HNet", "UHRNet", "UNet", "build_model", "list_models", "outputs_of",
+__all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "list_models", "outputs_of",
            "prediction_of"]
 
 ARCHITECTURES: dict[str, type[nn.Module]] = {"uhrnet": UHRNet, "unet": UNet, "hnet": HNet}
@@ -69,13 +69,15 @@ def build_model(name: str, head: str = "height", rig: dict | None = None, min_co
     """
     if head not in HEADS:
         raise ValueError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
-    if head == "phase":
-        if rig is None:
-            raise ValueError("the phase head needs the rig (fppsim rig dictionary) that turns phase into height")
-        options = {**options, "out_channels": PHASE_CHANNELS}
+    spec = HEADS[head]
+    if spec.wrap is not None:
+        if spec.needs_rig and rig is None:
+            raise ValueError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
+        if spec.backbone_channels is not None:
+            options = {**options, "out_channels": spec.backbone_channels}
         backbone = build_model(name, **options)
         kw = {} if min_confidence is None else {"min_confidence": min_confidence}
-        return PhaseHead(backbone, rig, **kw)
+        return spec.wrap(backbone, rig, **kw)
     if rig is not None or min_confidence is not None:
         raise ValueError("rig= and min_confidence= belong to the phase head (head='phase')")
     key = name.lower()

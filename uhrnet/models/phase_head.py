@@ -39,10 +39,8 @@ from uhrnet.physics.rig_layer import RigLayer, circular_mean
 
 from uhrnet.models.outputs import outputs_of
 
-__all__ = ["PhaseHead", "HEADS", "PHASE_CHANNELS"]
+__all__ = ["PhaseHead", "PHASE_CHANNELS"]
 
-HEADS = ("height", "phase")
-"""What a model predicts: ``height`` (one channel, the paper's networks) or ``phase`` (:class:`PhaseHead`)."""
 PHASE_CHANNELS = 3  # coarse height, cos, sin
 
 TWO_PI = 2.0 * math.pi

@@ -293,3 +293,9 @@ def build_loss(name: str, data_range: float | None = None, **options) -> Loss:
             raise ValueError(f"the {key} loss needs data_range (the label range L of the dataset)")
         return SSIMLoss(data_range, **options) if key == "ssim" else CompoundLoss(data_range=data_range, **options)
     raise ValueError(f"unknown loss {name!r}; known losses: {', '.join(LOSSES)}")
+
+
+HEAD_LOSSES: dict[str, type[Loss]] = {"phase": PhaseHeadLoss}
+"""Training losses of the registered heads (:data:`uhrnet.models.HEADS`) that learn more than the height:
+``HEAD_LOSSES[head](run_loss, output_scale, output_shift, mm_per_unit)`` takes the head's parts
+(``model.last_parts``), the label, its mask and the batch's true phase."""

@@ -195,18 +195,19 @@ def check_options(cfg: dict) -> None:
             raise UsageError(f"--freeze must be one of {', '.join(FREEZE_CHOICES)}, got {cfg['freeze']!r}")
         if cfg["freeze"] != "none" and "init_from" in cfg and not cfg["init_from"]:
             raise ConfigError(f"--freeze {cfg['freeze']} needs --init-from CKPT (frozen random weights never learn)")
-    if "head" in cfg:
-        from uhrnet.models.phase_head import HEADS
+    from uhrnet.models.heads import HEADS  # torch: loaded when the options are checked, not on import
 
+    if "head" in cfg:
         if cfg["head"] not in HEADS:
             raise UsageError(f"--head must be one of {', '.join(HEADS)}, got {cfg['head']!r}")
-        if cfg["head"] == "phase" and (cfg.get("crop") or cfg.get("resize")):
-            raise UsageError("--head phase needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
-        if cfg["head"] == "phase" and "synthetic" in cfg and not cfg["synthetic"]:
-            raise ConfigError("--head phase learns the phase from synthetic samples (phase_true): give --synthetic DIR")
-        if cfg["head"] == "phase" and cfg.get("raw_output"):
-            raise ConfigError("--head phase predicts heights through the rig: --raw-output does not apply")
-    if cfg.get("rig") and cfg.get("head", "height") != "phase":
+        head, name = HEADS[cfg["head"]], cfg["head"]
+        if head.whole_images and (cfg.get("crop") or cfg.get("resize")):
+            raise UsageError(f"--head {name} needs whole camera images (each pixel is a ray of the rig): drop --crop/--resize")
+        if head.phase_targets and "synthetic" in cfg and not cfg["synthetic"]:
+            raise ConfigError(f"--head {name} learns the phase from synthetic samples (phase_true): give --synthetic DIR")
+        if head.needs_rig and cfg.get("raw_output"):
+            raise ConfigError(f"--head {name} predicts heights through the rig: --raw-output does not apply")
+    if cfg.get("rig") and not HEADS.get(cfg.get("head", "height"), HEADS["height"]).needs_rig:
         raise ConfigError("--rig belongs to --head phase (the rig that turns phase into height)")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")

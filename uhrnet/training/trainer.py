@@ -31,10 +31,11 @@ from fppsim.dataio.owned import output_folder
 from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
 from uhrnet.training.data import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
+from uhrnet.training.losses import HEAD_LOSSES, build_loss
 from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_distributed
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.scoring.metrics import image_metrics
-from uhrnet.models import outputs_of
+from uhrnet.models import HEADS, outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
 from uhrnet.training.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
                                refuse_own_source, save_epoch, write_history, write_run_config)
@@ -70,9 +71,9 @@ class Trainer:
     # -- construction -------------------------------------------------------------------------------
     def _build(self) -> None:
         cfg, info = self.cfg, self.info
-        self.phase_head = cfg["head"] == "phase"
+        self.head = HEADS[cfg["head"]]
         sources = load_sources(cfg["real"], cfg["synthetic"], self.transform, cfg["real_split"],
-                               cfg["synthetic_split"], cfg["synthetic_label"], phase=self.phase_head)
+                               cfg["synthetic_split"], cfg["synthetic_label"], phase=self.head.phase_targets)
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
@@ -82,8 +83,8 @@ class Trainer:
         augment = augment_config(cfg["augment"])
         if augment is not None:
             augment = dataclasses.replace(augment, probability=float(cfg["augment_probability"]))
-        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment, phase=self.phase_head)
-        self.val_set = Prepared(sources.val, crop, resize, random_crop=False, phase=self.phase_head)
+        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment, phase=self.head.phase_targets)
+        self.val_set = Prepared(sources.val, crop, resize, random_crop=False, phase=self.head.phase_targets)
         if len(self.train_set) == 0:
             raise ConfigError("no training samples: every sample is in the val/test split "
                            "(check --real-split/--synthetic-split)")
@@ -102,7 +103,6 @@ class Trainer:
         self.val_loader = DataLoader(self.val_set, batch_size=cfg["batch_size"], sampler=val_idx,
                                      num_workers=workers, pin_memory=pin)
 
-        from uhrnet.training.losses import build_loss
         from uhrnet.scoring.metrics import count_parameters
         from uhrnet.models import build_model
 
@@ -110,8 +110,8 @@ class Trainer:
         options = parse_kv(cfg["model_option"], "--model-option")
         if cfg["base_channels"] is not None:
             options["base_channels"] = cfg["base_channels"]
-        if self.phase_head:
-            options.update(head="phase", rig=head_rig(cfg["rig"], cfg["synthetic"]))
+        if self.head.needs_rig:
+            options.update(head=self.head.name, rig=head_rig(cfg["rig"], cfg["synthetic"]))
             cam = options["rig"]["camera"]
             if (int(cam["height"]), int(cam["width"])) != tuple(shape):
                 where = f"--rig {cfg['rig']}" if cfg["rig"] else "the synthetic data's rig"
@@ -158,10 +158,9 @@ class Trainer:
             self.loss_fn = build_loss(cfg["loss"], data_range=self.transform.data_range).to(self.device)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"--loss {cfg['loss']}: {exc}") from None
-        if self.phase_head:
-            from uhrnet.training.losses import PhaseHeadLoss
-
-            self.loss_fn = PhaseHeadLoss(self.loss_fn, scale, shift, self.transform.mm_per_unit).to(self.device)
+        if self.head.name in HEAD_LOSSES:  # a head that learns more than the height wraps the run's loss
+            self.loss_fn = HEAD_LOSSES[self.head.name](self.loss_fn, scale, shift,
+                                                       self.transform.mm_per_unit).to(self.device)
         trainable = [p for p in net.parameters() if p.requires_grad]  # --freeze: frozen weights never move
         self.optimizer = torch.optim.Adam(trainable, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
         self.amp = bool(cfg["amp"])
@@ -249,7 +248,7 @@ class Trainer:
             with self._autocast():
                 out = self.ddp(x)
             outs = outputs_of(out)  # hNet: the fused and the side outputs, all supervised
-            if self.phase_head:  # the physics head: coarse height, phase and height through the rig
+            if self.head.name in HEAD_LOSSES:  # e.g. the physics head: coarse height, phase, height through the rig
                 loss = self.loss_fn(self.net.last_parts, y, m, self._phase(batch))
             else:
                 loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
