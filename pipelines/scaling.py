@@ -115,15 +115,10 @@ def _typed(key: str, value, where: str):
 def load_arms(path: str | Path) -> list[dict]:
     """The arms of an arms file (module docstring), each with ``generate`` / ``train`` as flag lists,
     ``series`` as a list and the ``defaults`` applied; :class:`UsageProblem` names what is wrong."""
-    import yaml
+    from uhrnet.workflows.stages import read_config_file
 
     p = Path(path)
-    if not p.is_file():
-        raise UsageProblem(f"arms file not found: {p}")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise UsageProblem(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None
+    doc = read_config_file(p, "arms file", UsageProblem)
     if not isinstance(doc, dict) or not isinstance(doc.get("arms"), list) or not doc["arms"]:
         raise UsageProblem(f"{p}: expected a mapping with a non-empty list 'arms' (and optional 'defaults')")
     unknown = set(doc) - {"arms", "defaults"}

@@ -74,3 +74,17 @@ def run_stage(name: str, fn: Callable[[], object], log: Path, header: str) -> fl
             fh.write(f"error: {first}\n")
             raise Sim2RealError(f"{name} failed: {first} (log {log})") from exc
     return time.perf_counter() - t0
+
+
+def read_config_file(path: str | Path, what: str, error: type[Exception] = Sim2RealError):
+    """The parsed YAML/JSON document of an experiment's file (an ablation, an arms file); ``error`` names
+    ``what`` is missing or the file that is not YAML/JSON, in one line."""
+    import yaml  # PyYAML: only experiments read such files
+
+    p = Path(path)
+    if not p.is_file():
+        raise error(f"{what} not found: {p}")
+    try:
+        return yaml.safe_load(p.read_text())
+    except yaml.YAMLError as exc:
+        raise error(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None

@@ -25,6 +25,7 @@ from typing import Callable, Mapping, NamedTuple
 from uhrnet.errors import Sim2RealError
 from uhrnet.workflows.sim2real.config import SCALES, Variant, generate_workers
 from uhrnet.workflows.sim2real.run import adapt_config
+from uhrnet.workflows.stages import read_config_file
 
 __all__ = ["VariantFlags", "VARIANT_SYNTAX", "FlagReader", "parse_variant", "load_variants", "generate_flags",
            "train_flags", "variant_from_flags", "recipe_commands"]
@@ -86,15 +87,8 @@ def parse_variant(text: str) -> VariantFlags:
 def load_variants(path: str | Path) -> list[VariantFlags]:
     """Variants from a YAML/JSON list of ``{name, generate: [...] or "...", train: [...] or "..."}`` (or of
     :func:`parse_variant` strings)."""
-    import yaml
-
     p = Path(path)
-    if not p.is_file():
-        raise Sim2RealError(f"ablation file not found: {p}")
-    try:
-        doc = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise Sim2RealError(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None
+    doc = read_config_file(p, "ablation file")
     if not isinstance(doc, list) or not doc:
         raise Sim2RealError(f"{p}: expected a non-empty list of variants")
     out = []
