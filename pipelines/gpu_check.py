@@ -1,5 +1,5 @@
 #!/usr/bin/env python
-"""Helpers of pipelines/gpu_check.sh (standard library only until ``report``, which reads numpy-free JSON/CSV).
+"""Helpers of pipelines/gpu_check.sh (standard library, pip's tag parser; ``report`` reads the sample count with numpy).
 
     python pipelines/gpu_check.py wheels DIR                    the carried wheels this Python can install
     python pipelines/gpu_check.py env OUT BUDGET TINY PLATFORM  OUT/step_env.json: machine, versions, sizes
@@ -82,7 +82,7 @@ def _history(run: Path) -> list[dict]:
 
 
 def _count(syn: Path) -> int | None:
-    """Samples in a figshare-layout folder (the header of f1_80.npy; no numpy needed)."""
+    """Samples in a figshare-layout folder (f1_80.npy memory-mapped: only its header is read)."""
     try:
         import numpy as np
 
@@ -103,25 +103,21 @@ def report(out: Path) -> dict:
         res["generate"] = {"samples": n, "seconds": gen["seconds"], "samples_per_s": n / gen["seconds"],
                            "note": "whole command (process start, mesh loading, all workers), figshare layout, --no-psp"}
     hist = _history(work / "run")
-    cfg = _json(work / "run" / "config.json") or {}
     if hist:
         secs = [float(r["seconds"]) for r in hist if r.get("seconds")]
-        tr = cfg.get("train_samples") or cfg.get("n_train")
         train = {"epochs": len(hist), "epoch_seconds": secs,
                  "val_rmse_mm": [float(r["val_rmse_mm"]) for r in hist if r.get("val_rmse_mm")]}
         if n and secs:
             # the reference split trains on 80 % of the samples; later epochs exclude cuDNN's autotuning
-            n_train = tr or round(0.8 * n)
+            n_train = round(0.8 * n)
             steady = secs[1:] or secs
             train.update(train_samples=n_train, samples_per_s=n_train / (sum(steady) / len(steady)))
         res["train"] = train
     ddp = steps.get("ddp") or {}
     if ddp:
-        log = (out / "ddp.log").read_text(errors="replace") if (out / "ddp.log").is_file() else ""
         res["ddp"] = {"exit_code": ddp.get("exit_code"), "seconds": ddp.get("seconds"),
                       "backend": "gloo" if env_info.get("device", "cpu").startswith("cpu") else "nccl",
-                      "world_size": 1, "checkpoint_written": (work / "ddp" / "last.pt").is_file(),
-                      "distributed_in_log": "distributed" in log.lower() or "world" in log.lower()}
+                      "world_size": 1, "checkpoint_written": (work / "ddp" / "last.pt").is_file()}
     s2r = _json(work / "s2r" / "report.json")
     if s2r:
         v = s2r["variants"][0]

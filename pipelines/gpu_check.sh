@@ -82,16 +82,22 @@ BUDGET="${GPU_CHECK_BUDGET:-600}"
 [[ "$BUDGET" =~ ^[0-9]+$ ]] && [ "$BUDGET" -ge 60 ] \
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
 OUTDIR="${1:-$ROOT/out/gpu_check}"
+# OUTDIR is this script's own: new, empty, or an earlier run's (its .gpu_check marker); never someone's folder
+if [ -d "$OUTDIR" ] && [ -n "$(ls -A "$OUTDIR")" ] && [ ! -f "$OUTDIR/.gpu_check" ]; then
+  echo "gpu_check: $OUTDIR holds files this script did not write: give a new or empty OUTDIR" >&2; exit 2
+fi
+"$PY" -c 'import torch, numpy' 2>/dev/null || { echo "gpu_check: $PY has no PyTorch (set PYTHON=...)" >&2; exit 2; }
 mkdir -p "$OUTDIR"
 OUTDIR="$(cd "$OUTDIR" && pwd)"
+touch "$OUTDIR/.gpu_check"
 WORK="$OUTDIR/work"
 T0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
 # a step may take CAP seconds, but never what the later steps need (RESERVE: a share of the budget)
 limit() { local cap=$1 reserve=$2 l; l=$(( $(left) - reserve )); [ "$l" -lt "$cap" ] && cap=$l; echo $(( cap < 5 ? 5 : cap )); }
-"$PY" -c 'import torch, numpy' 2>/dev/null || { echo "gpu_check: $PY has no PyTorch (set PYTHON=...)" >&2; exit 2; }
-[ -f "$OUTDIR/gpu_check.json" ] && rm -f "$OUTDIR"/step_*.json "$OUTDIR"/gpu_check.json "$OUTDIR"/gpu_check.md  # own files
-rm -rf "$WORK"   # this script's scratch folder
+# an earlier run's results (all written by this script): a killed run leaves no stale step for the report
+rm -f "$OUTDIR"/step_*.json "$OUTDIR"/forward_*.json "$OUTDIR"/*.log "$OUTDIR"/gpu_check.json "$OUTDIR"/gpu_check.md
+rm -rf "$WORK"
 mkdir -p "$WORK"
 
 # 0. The environment: carried wheels into a private site folder (never pip's network), GL loaders.

@@ -81,3 +81,16 @@ def test_bad_budget_is_one_line_and_exit_2(tmp_path, budget):
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "GPU_CHECK_BUDGET" in r.stderr
     assert not (tmp_path / "o").exists()  # nothing made for a refused run
+
+
+def test_an_outdir_holding_someone_elses_files_is_refused_untouched(tmp_path):
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "work").mkdir()
+    (out / "work" / "notes.txt").write_text("keep")
+    (out / "train.log").write_text("keep too")
+    r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(out)],
+                       env={**os.environ, "PYTHON": sys.executable}, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "did not write" in r.stderr and r.stderr.strip().count("\n") == 0
+    assert (out / "work" / "notes.txt").read_text() == "keep" and (out / "train.log").read_text() == "keep too"
+    assert not (out / ".gpu_check").exists()
