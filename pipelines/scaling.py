@@ -11,7 +11,7 @@ this process through the workflow layer (``uhrnet.workflows.sim2real.run_sim2rea
                                report.md / report.json (every finished seed of the arm)
     OUT/<arm>/s<seed>/         one (arm, seed): run/ (training), eval/ (real metrics, phase residuals), logs
     OUT/scaling.json           every arm: the exact equivalent command lines, per-seed results, mean +- std
-    OUT/scaling.md             the same as a table
+    OUT/scaling_table.md       the same as a table (OUT: or beside --ledger FILE)
     OUT/scaling_samples.png    pair object RMSE (with its level / relief parts) and held-out phase residual
     OUT/scaling_steps.png      against synthetic samples (arms of series "samples") and training steps ("steps")
 
@@ -225,49 +225,120 @@ def steps_of(cfg, variant) -> int:
     return epochs * math.ceil(int(draws) / batch)
 
 
-def _fresh(result: Path, source: Path) -> bool:
-    return result.is_file() and source.is_file() and result.stat().st_mtime >= source.stat().st_mtime
+TABLE_MARK = "<!-- written by pipelines/scaling.py from scaling.json; do not edit -->"
+RECORD = "study.json"  # OUT/<arm>/s<seed>/study.json: what the seed is and the command that ran it
 
 
-def seed_result(folder: Path, epochs: int, real: list[str], phase: list[str]) -> dict | None:
-    """The results of a finished (arm, seed) folder (``OUT/<arm>/s<seed>``), None when not finished: a run with
-    ``last.pt`` at ``epochs`` and an evaluation newer than it, of exactly the ``real`` folders, with the level /
-    relief split (and, with ``phase`` folders, the phase residuals of exactly those)."""
-    import csv
+def _same_folders(have, want) -> bool:
+    """Whether two lists of folders name the same folders (resolved paths: ``../shared/x`` and its absolute
+    path are one folder)."""
+    def key(f):
+        try:
+            return str(Path(f).resolve())
+        except OSError:
+            return str(f)
+    return {key(f) for f in have} == {key(f) for f in want}
 
-    def covers(doc: dict, key: str, folders: list[str]) -> bool:
-        return {r["folder"] for r in doc.get(key, [])} == {str(f) for f in folders}
 
-    last, ev = folder / "run" / "last.pt", folder / "eval"
-    hist = folder / "run" / "history.csv"
-    if not (last.is_file() and hist.is_file() and _fresh(ev / "real_metrics.json", last)):
+def code_version() -> dict:
+    """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``."""
+    import subprocess
+
+    def git(*a):
+        return subprocess.run(["git", "-C", str(ROOT), *a], capture_output=True, text=True, timeout=30)
+    try:
+        head = git("rev-parse", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return {"commit": None, "dirty": None}
+    if head.returncode:
+        return {"commit": None, "dirty": None}
+    return {"commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip())}
+
+
+def _rel(path: str) -> str:
+    """A path as the recorded commands give it: relative to the repository root (they run from there)."""
+    import os
+
+    p = Path(path)
+    return os.path.relpath(p.resolve(), ROOT) if p.exists() or p.is_absolute() else str(path)
+
+
+def study_command(args, arm: dict, seed: int) -> list[str]:
+    """The ``python pipelines/scaling.py`` command, run from the repository root, that runs exactly this
+    (arm, seed): every input the study reads named explicitly (no default taken from the folder layout)."""
+    argv = ["python", "pipelines/scaling.py", "--arms-file", _rel(args.arms_file), "--arms", arm["name"],
+            "--seeds", str(seed), "--out", _rel(args.out), "--real", *map(_rel, args.real),
+            "--real-phase", *(map(_rel, args.real_phase) if args.real_phase else ["none"]),
+            "--meshes", *map(_rel, args.meshes)]
+    for flag, value in (("--resize", args.resize), ("--device", args.device), ("--workers", args.workers)):
+        if value is not None:
+            argv += [flag, str(value)]
+    return argv + (["--no-figures"] if args.no_figures else [])
+
+
+def seed_record(args, arm: dict, seed: int, cfg, argv: list[str]) -> dict:
+    """What ``OUT/<arm>/s<seed>/study.json`` holds: the seed's identity (arm, seed, resize, device) and how it
+    ran (the exact commands, the code's commit, torch and its CPU threads)."""
+    import platform
+
+    import torch
+
+    return {"arm": arm["name"], "seed": seed, "resize": args.resize, "device": cfg.device,
+            "command": shlex.join(study_command(args, arm, seed)), "sim2real_command": shlex.join(argv),
+            **code_version(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            "python": platform.python_version(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+
+
+def seed_result(folder: Path, cfg, variant) -> dict | None:
+    """The results of a finished (arm, seed) folder (``OUT/<arm>/s<seed>``), None when it is not a finished
+    run OF THIS (arm, seed): found by what the folder holds, not by its path: a run with ``last.pt`` at the
+    variant's epochs whose recorded training options and dataset are the variant's (resize, seed, samples per
+    epoch, ...; :func:`~uhrnet.workflows.sim2real.run_differences`), an evaluation newer than it of the same
+    real folders (resolved paths) with the level / relief split and, with ``cfg.real_phase``, the phase
+    residuals of exactly those frames."""
+    from uhrnet.workflows.sim2real import run_differences, train_config
+    from uhrnet.workflows.sim2real.config import data_key
+    from uhrnet.workflows.stages import fresh, run_done, run_history
+
+    run, ev = folder / "run", folder / "eval"
+    epochs = int(variant.train.get("epochs") or cfg.epochs)
+    if not run_done(run, epochs) or not fresh(ev / "real_metrics.json", run / "last.pt"):
         return None
-    rows = list(csv.DictReader(hist.open()))
-    if not rows or int(float(rows[-1]["epoch"])) < epochs:
+    if run_differences(run, train_config(cfg, variant, "DATA", run), cfg.count, cfg.seed):
         return None
-    if phase and not _fresh(ev / "real_phase.json", last):
+    try:
+        recorded = json.loads((run / "config.json").read_text())
+        metrics = json.loads((ev / "real_metrics.json").read_text())
+        frames = json.loads((ev / "real_phase.json").read_text())["frames"] if cfg.real_phase else []
+        record = json.loads((folder / RECORD).read_text()) if (folder / RECORD).is_file() else {}
+    except (OSError, ValueError, KeyError, TypeError):
         return None
-    metrics = json.loads((ev / "real_metrics.json").read_text())
-    if not covers(metrics, "per_image", real) or "object_level_rmse_mm" not in metrics["mean"]:
+    if [Path(f).name for f in recorded.get("synthetic") or []] != [data_key(variant.generate)]:
         return None
-    frames = json.loads((ev / "real_phase.json").read_text())["frames"] if phase else []
-    if phase and not covers({"frames": frames}, "frames", phase):
+    if not _same_folders([r["folder"] for r in metrics.get("per_image", [])], cfg.real) \
+            or "object_level_rmse_mm" not in metrics.get("mean", {}):
         return None
+    if cfg.real_phase and not (fresh(ev / "real_phase.json", run / "last.pt")
+                               and _same_folders([f["folder"] for f in frames], cfg.real_phase)):
+        return None
+    rows = run_history(run)
     out = {"folder": str(folder)}
     out.update({k: metrics["mean"].get(src) for k, src in PAIR_KEYS.items()})
     out["pair_images"] = metrics["images"]
     out["pair_regions_per_image"] = [{"image": f"{Path(r['folder']).name}/{r['index']}",
                                       "regions": r.get("object_region_errors")} for r in metrics["per_image"]]
-    out["phase_residual_rad"], out["phase_flat_rad"] = {}, {}
-    if phase:
-        out["phase_residual_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"] for f in frames}
-        out["phase_flat_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["flat_rmse_rad"] for f in frames}
-    val = rows[-1].get("val_rmse_mm")
-    out["synthetic_val_rmse_mm"] = float(val) if val not in (None, "") else None
-    out["epochs"] = int(float(rows[-1]["epoch"]))
+    out["phase_residual_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"] for f in frames}
+    out["phase_flat_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["flat_rmse_rad"] for f in frames}
+    out["synthetic_val_rmse_mm"] = rows[-1].get("val_rmse_mm")
+    out["epochs"] = int(rows[-1]["epoch"])
     timing = folder / "timing.json"
     out["minutes"] = (sum(v for v in json.loads(timing.read_text()).values() if isinstance(v, (int, float))) / 60.0
                       if timing.is_file() else None)
+    for key in ("command", "sim2real_command", "commit", "dirty", "device", "torch", "torch_threads", "started"):
+        if key in record:
+            out[key] = record[key]
+    out.setdefault("device", cfg.device)
     return out
 
 
@@ -296,7 +367,7 @@ def _cell(stat: dict, fmt: str = ".2f") -> str:
 
 
 def markdown(doc: dict) -> str:
-    """``scaling.md``: one line per arm, mean ± std over its finished seeds."""
+    """``scaling_table.md``: one line per arm, mean ± std over its finished seeds."""
     frames = sorted({f for a in doc["arms"] for f in a["summary"]["phase_residual_rad"]})
     lines = ["# Scaling study of the sim-to-real recipe", "",
              "Mean ± sample standard deviation over the finished training seeds (n). Pair: the labelled real "
@@ -307,12 +378,14 @@ def markdown(doc: dict) -> str:
              "|---|---|---|---|---|---|---|" + "---|" * len(frames) + "---|"]
     for a in doc["arms"]:
         s = a["summary"]
-        lines.append(f"| {a['name']} | {a['count']} | {a['steps']} | {s['n_seeds']} | "
+        lines.append(f"| {arm_label(a)} | {a.get('count', '')} | {a.get('steps', '')} | {s['n_seeds']} | "
                      f"{_cell(s['pair_object_rmse_mm'])} | "
                      f"{_cell(s['pair_level_rmse_mm'])} | {_cell(s['pair_relief_rmse_mm'])} |"
                      + "".join(f" {_cell(s['phase_residual_rad'].get(f, {}), '.3f')} |" for f in frames)
                      + f" {_cell(s['minutes'], '.1f')} |")
-    lines += ["", *[f"- {a['name']}: {a['description']}" for a in doc["arms"] if a["description"]]]
+    descriptions = {a["name"]: a.get("description") for a in doc["arms"]}
+    lines += ["", "Arms marked @HxW trained at that size (uhrnet train --resize), [cuda] on a GPU; the rest at full "
+              "size on the CPU.", "", *[f"- {n}: {d}" for n, d in descriptions.items() if d]]
     return "\n".join(lines) + "\n"
 
 
@@ -324,7 +397,8 @@ def plot_series(doc: dict, series: str, path: Path) -> Path | None:
     from fppsim.plots import pyplot, save_figure
 
     key, xlabel = SERIES[series]
-    arms = sorted((a for a in doc["arms"] if series in a["series"] and a["seeds"]), key=lambda a: a[key])
+    arms = sorted((a for a in doc["arms"] if series in a.get("series", []) and a["seeds"] and not a.get("resize")
+                   and a.get("device", "cpu") == "cpu"), key=lambda a: a[key])
     if not arms:
         return None
     plt = pyplot()
@@ -363,45 +437,119 @@ def plot_series(doc: dict, series: str, path: Path) -> Path | None:
             a_.legend(fontsize=7)
     n = sorted({a["summary"]["n_seeds"] for a in arms})
     fig.suptitle(f"sim-to-real scaling ({series}): mean ± std over {'/'.join(map(str, n))} training seed(s); "
-                 + ", ".join(a["name"] for a in arms), fontsize=9)
+                 + ", ".join(arm_label(a) for a in arms) + " (full size, CPU)", fontsize=9)
     fig.tight_layout()
     save_figure(fig, path, dpi=80)
     plt.close(fig)
     return Path(path)
 
 
+def arm_label(entry: dict) -> str:
+    """An arm's name in tables and figures: its name, the resize and a device other than the CPU."""
+    return entry["name"] + (f" @{entry['resize']}" if entry.get("resize") else "") + \
+        (f" [{entry['device']}]" if entry.get("device", "cpu") != "cpu" else "")
+
+
+def _key(entry: dict) -> tuple:
+    return entry["name"], entry.get("resize"), entry.get("device", "cpu")
+
+
+def load_ledger(path: Path) -> dict:
+    """The results recorded so far in ``path`` (a ``scaling.json``; ``{"arms": []}`` when there is none).
+    Files of the first version (arm-level ``commands``, no resize or device) are read too: the resize comes
+    from their commands, the device is the CPU. Anything else is refused (:class:`UsageProblem`): the report
+    replaces only a study record."""
+    import re
+
+    if not path.exists():
+        return {"arms": []}
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise UsageProblem(f"{path}: not a readable scaling.json ({type(exc).__name__}); name another --ledger") \
+            from None
+    if not (isinstance(doc, dict) and isinstance(doc.get("arms"), list)
+            and all(isinstance(a, dict) and isinstance(a.get("name"), str) and isinstance(a.get("seeds"), list)
+                    for a in doc["arms"])):
+        raise UsageProblem(f"{path}: not a scaling study record (no list of arms with seeds); name another --ledger")
+    for arm in doc["arms"]:
+        commands = arm.pop("commands", None) or []
+        if "resize" not in arm:
+            sizes = {m for c in commands for m in re.findall(r"--resize[ =]([0-9]+x[0-9]+)", c)}
+            arm["resize"] = sizes.pop() if len(sizes) == 1 else None
+        arm.setdefault("device", "cpu")
+        arm.pop("missing_seeds", None)
+        for seed in arm["seeds"]:
+            seed.setdefault("device", arm["device"])
+            if "command" not in seed and "sim2real_command" not in seed:
+                match = [c for c in commands if f"--seed {seed['seed']}'" in c]
+                if match:
+                    seed["sim2real_command"] = match[0]
+    return doc
+
+
+def _same_result(a: dict, b: dict) -> bool:
+    keys = ("pair_object_rmse_mm", "phase_residual_rad", "commit", "synthetic_val_rmse_mm")
+    return all(a.get(k) == b.get(k) for k in keys)
+
+
 def write_report(args, arms: list[dict], configs: dict) -> dict:
-    """``scaling.json``, ``scaling.md`` and the figures from the finished (arm, seed) folders."""
+    """Add the finished (arm, seed) folders under ``args.out`` to the study record ``args.ledger`` (default
+    ``OUT/scaling.json``) and rewrite it, its table (``scaling_table.md``) and figures beside it.
+
+    Nothing recorded is lost: a seed is keyed by (arm, resize, device, seed); results already in the record
+    stay whether or not their folders are still here, and a folder whose result differs from the recorded one
+    (another commit, or a re-run) keeps the earlier result in the seed's ``reruns``."""
     from fppsim.dataio.files import atomic_write_text
 
-    out = Path(args.out)
-    doc = {"arms_file": str(args.arms_file), "seeds": list(args.seeds), "real": list(args.real),
-           "real_phase": list(args.real_phase), "arms": []}
+    out, ledger = Path(args.out), Path(args.ledger)
+    doc = load_ledger(ledger)
+    entries = {_key(a): a for a in doc["arms"]}
+    order = {a["name"]: i for i, a in enumerate(load_arms(args.arms_file))}
+    found, pending = 0, []
     for arm in arms:
-        seeds, commands, missing = [], [], []
-        cfg0 = None
         for seed in args.seeds:
             cfg, argv = configs[arm["name"], seed]
-            cfg0 = cfg0 or (cfg, _variant(cfg, seed))
-            commands.append(shlex.join(argv))
-            res = seed_result(seed_folder(out, arm, seed), int(_variant(cfg, seed).train.get("epochs") or cfg.epochs),
-                              cfg.real, cfg.real_phase)
+            var = _variant(cfg, seed)
+            res = seed_result(seed_folder(out, arm, seed), cfg, var)
             if res is None:
-                missing.append(seed)
-            else:
-                seeds.append({"seed": seed, **res})
-        cfg, var = cfg0
-        doc["arms"].append({"name": arm["name"], "description": arm["description"], "series": arm["series"],
-                            "count": cfg.count, "epochs": int(var.train.get("epochs") or cfg.epochs),
-                            "steps": steps_of(cfg, var), "generate": arm["generate"], "train": arm["train"],
-                            "commands": commands, "seeds": seeds, "missing_seeds": missing,
-                            "summary": summarise(seeds)})
-    out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "scaling.json", json.dumps(doc, indent=2))
-    atomic_write_text(out / "scaling.md", markdown(doc))
+                pending.append(f"{arm['name']} s{seed}")
+                continue
+            found += 1
+            res.setdefault("command", shlex.join(study_command(args, arm, seed)))
+            res.setdefault("sim2real_command", shlex.join(argv))
+            key = (arm["name"], args.resize, res["device"])
+            entry = entries.setdefault(key, {"name": arm["name"], "resize": args.resize, "device": res["device"],
+                                              "seeds": []})
+            entry.update({"description": arm["description"], "series": arm["series"], "count": cfg.count,
+                          "epochs": int(var.train.get("epochs") or cfg.epochs), "steps": steps_of(cfg, var),
+                          "generate": arm["generate"], "train": arm["train"]})
+            new = {"seed": seed, **res}
+            old = next((s for s in entry["seeds"] if s["seed"] == seed), None)
+            if old is not None:
+                entry["seeds"].remove(old)
+                if not _same_result(old, new):
+                    new["reruns"] = [*old.pop("reruns", []), old]
+                elif old.get("reruns"):
+                    new["reruns"] = old["reruns"]
+            entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
+    arm_list = sorted(entries.values(), key=lambda a: (order.get(a["name"], len(order)), a["name"],
+                                                       a.get("resize") or "", a.get("device", "cpu")))
+    for entry in arm_list:
+        entry["summary"] = summarise(entry["seeds"])
+    doc = {"study": "sim-to-real scaling (pipelines/scaling.py)", "arms_file": _rel(args.arms_file),
+           "arms": arm_list}
+    table = ledger.with_name(f"{ledger.stem}_table.md")
+    if table.exists() and not (table.is_file() and table.read_text(errors="replace").startswith(TABLE_MARK)):
+        raise UsageProblem(f"{table}: exists and was not written by scaling.py; move it away")
+    ledger.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(ledger, json.dumps(doc, indent=2))
+    atomic_write_text(table, TABLE_MARK + "\n" + markdown(doc))
     for series in SERIES:
-        fig = plot_series(doc, series, out / f"scaling_{series}.png")
-        print(f"figure: {fig}" if fig else f"figure scaling_{series}.png: no finished arm of series {series!r}")
+        path = ledger.with_name(f"{ledger.stem}_{series}.png")
+        fig = plot_series(doc, series, path)
+        print(f"figure: {fig}" if fig else f"figure {path.name}: no finished full-size arm of series {series!r}")
+    doc["found"], doc["pending"] = found, pending
     return doc
 
 
@@ -427,8 +575,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--workers", type=int, metavar="N", help="generator processes, 0: all cores [the scale's: 2]")
     p.add_argument("--resize", metavar="HxW", help="uhrnet train --resize HxW for every arm (e.g. quick looks)")
     p.add_argument("--no-figures", action="store_true", help="no per-image figure of the real pairs (sim2real's)")
+    p.add_argument("--ledger", metavar="FILE",
+                   help="the study record the finished seeds are added to (never dropping one already recorded); "
+                        "its table and figures are written beside it [OUT/scaling.json]")
     p.add_argument("--report-only", action="store_true",
-                   help="rebuild scaling.json / .md / figures from the finished folders; run nothing")
+                   help="add the finished folders to the record, rewrite its table and figures; run nothing")
     p.add_argument("--list", action="store_true", help="print the arms and their commands; run nothing")
     return p.parse_args(argv)
 
@@ -457,6 +608,11 @@ def check(args) -> tuple[list[dict], dict]:
     args.meshes = args.meshes or default_meshes()
     args.real_phase = [] if args.real_phase in (["none"], None) else phase_folders(args.real_phase)
     args.out = args.out or "OUT"
+    args.ledger = args.ledger or str(Path(args.out) / "scaling.json")
+    if Path(args.ledger).is_dir():
+        raise UsageProblem(f"--ledger {args.ledger}: is a folder (give the scaling.json file)")
+    if args.report_only or not args.list:
+        load_ledger(Path(args.ledger))  # an unreadable record is refused before anything runs
     if args.report_only and not Path(args.out).is_dir():
         raise UsageProblem(f"--report-only: {args.out} does not exist (nothing to report)")
     configs = {}
@@ -475,6 +631,28 @@ def check(args) -> tuple[list[dict], dict]:
     return arms, configs
 
 
+def _cfg_var(configs: dict, arm: dict, seed: int):
+    cfg = configs[arm["name"], seed][0]
+    return cfg, _variant(cfg, seed)
+
+
+def _write_record(folder: Path, record: dict) -> None:
+    """Write the seed's ``study.json``; a seed resumed later keeps its first record (the commit it started
+    at) and lists every later start under ``resumes``."""
+    from fppsim.dataio.files import atomic_write_text
+
+    path = folder / RECORD
+    try:
+        first = json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        first = None
+    if isinstance(first, dict) and first.get("arm") == record["arm"] and first.get("seed") == record["seed"]:
+        first.setdefault("resumes", []).append({k: record[k] for k in ("commit", "dirty", "torch_threads", "started")})
+        record = first
+    folder.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(record, indent=2))
+
+
 def run(args, arms: list[dict], configs: dict) -> int:
     """Every (arm, seed) not finished yet, in order; 1 if one failed (the others still run)."""
     from uhrnet.workflows.sim2real.variants import recipe_commands
@@ -487,15 +665,16 @@ def run(args, arms: list[dict], configs: dict) -> int:
     for i, (arm, seed) in enumerate(todo, 1):
         cfg, argv = configs[arm["name"], seed]
         tag = f"[{i}/{len(todo)} {arm['name']} seed {seed}]"
-        epochs = int(_variant(cfg, seed).train.get("epochs") or cfg.epochs)
-        if seed_result(seed_folder(out, arm, seed), epochs, cfg.real, cfg.real_phase) is not None:
+        folder = seed_folder(out, arm, seed)
+        if seed_result(folder, cfg, _variant(cfg, seed)) is not None:
             print(f"{tag} finished before: re-used", flush=True)
             continue
         # the arm's other finished seeds ride along (re-used, nothing re-run) so OUT/<arm>/report.md lists them all
         done = [_variant(configs[arm["name"], s][0], s) for s in args.seeds if s != seed
-                and seed_result(seed_folder(out, arm, s), epochs, cfg.real, cfg.real_phase) is not None]
+                and seed_result(seed_folder(out, arm, s), *_cfg_var(configs, arm, s)) is not None]
         if done:
             cfg = replace(cfg, variants=sorted([*done, _variant(cfg, seed)], key=lambda v: int(v.name[1:])))
+        _write_record(folder, seed_record(args, arm, seed, cfg, argv))
         print(f"{tag} start ({(time.perf_counter() - t_start) / 60:.1f} min into the study): {shlex.join(argv)}",
               flush=True)
         t0 = time.perf_counter()
@@ -511,7 +690,7 @@ def run(args, arms: list[dict], configs: dict) -> int:
             print(f"{tag} failed after {(time.perf_counter() - t0) / 60:.1f} min: {str(exc).strip().splitlines()[0]}",
                   file=sys.stderr, flush=True)
             continue
-        res = seed_result(seed_folder(out, arm, seed), epochs, cfg.real, cfg.real_phase) or {}
+        res = seed_result(folder, cfg, _variant(cfg, seed)) or {}
         parts = ", ".join(f"{k} {res[v]:.2f} mm" for k, v in (("pair object RMSE", "pair_object_rmse_mm"),
                           ("level", "pair_level_rmse_mm"), ("relief", "pair_relief_rmse_mm")) if res.get(v) is not None)
         phase = ", ".join(f"{f} {v:.3f} rad" for f, v in res.get("phase_residual_rad", {}).items())
@@ -544,10 +723,16 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
         return 130
-    doc = write_report(args, arms, configs)
-    done = sum(len(a["seeds"]) for a in doc["arms"])
-    print(f"study: {done} of {len(arms) * len(args.seeds)} (arm, seed) finished; {Path(args.out) / 'scaling.json'}, "
-          f"scaling.md", flush=True)
+    try:
+        doc = write_report(args, arms, configs)
+    except UsageProblem as exc:
+        print(f"scaling.py: error: {exc}", file=sys.stderr)
+        return 2
+    recorded = sum(len(a["seeds"]) for a in doc["arms"])
+    print(f"study: {doc['found']} of {len(arms) * len(args.seeds)} (arm, seed) asked for are finished in {args.out}"
+          + (f" (pending: {', '.join(doc['pending'])})" if doc["pending"] else "")
+          + f"; {args.ledger} records {recorded} (arm, seed) in {len(doc['arms'])} arm(s), with {Path(args.ledger).stem}_table.md",
+          flush=True)
     return rc
 
 

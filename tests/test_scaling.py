@@ -139,13 +139,16 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
     text = capsys.readouterr().out
     assert "[1/4 a6 seed 0] start" in text and "[4/4 a8 seed 1] done in" in text and "pair object RMSE" in text
     doc = json.loads((out / "scaling.json").read_text())
-    assert [a["name"] for a in doc["arms"]] == ["a6", "a8"] and doc["seeds"] == [0, 1]
+    assert [a["name"] for a in doc["arms"]] == ["a6", "a8"]
     a6, a8 = doc["arms"]
     assert (a6["count"], a6["steps"], a8["steps"]) == (6, 2, 2)  # 4 training samples / batch 2; 4 draws / 2
-    assert len(a6["commands"]) == 2 and a6["commands"][1].startswith("uhrnet sim2real ")
-    assert "--variant 's1:  | --resize 32x64 --no-augment --seed 1'" in a6["commands"][1]
+    s1 = a6["seeds"][1]
+    assert s1["sim2real_command"].startswith("uhrnet sim2real ") and s1["device"] == "cpu"
+    assert "--variant 's1:  | --resize 32x64 --no-augment --seed 1'" in s1["sim2real_command"]
+    assert s1["command"].startswith("python pipelines/scaling.py ") and "--arms a6 --seeds 1" in s1["command"]
+    assert s1["commit"] and len(s1["commit"]) == 40
     for arm in doc["arms"]:
-        assert [s["seed"] for s in arm["seeds"]] == [0, 1] and arm["missing_seeds"] == []
+        assert [s["seed"] for s in arm["seeds"]] == [0, 1]
         for s in arm["seeds"]:
             for key in ("pair_object_rmse_mm", "pair_level_rmse_mm", "pair_relief_rmse_mm",
                         "pair_level_rmse_mean_mm", "pair_relief_rmse_mean_mm"):
@@ -162,12 +165,12 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
                                                "std": pytest.approx(np.std(vals, ddof=1)), "n": 2}
         assert summ["phase_residual_rad"]["F1/1201"]["n"] == 2
     assert (out / "scaling_samples.png").stat().st_size > 0 and (out / "scaling_steps.png").is_file()
-    md = (out / "scaling.md").read_text()
+    md = (out / "scaling_table.md").read_text()
     assert "| a6 | 6 | 2 | 2 |" in md
     arm_md = (out / "a6" / "report.md").read_text()  # the arm's own sim2real report lists both seeds
     assert "| s0 |" in arm_md and "| s1 |" in arm_md and "level and relief" in arm_md
 
-    runs = sorted(p for p in out.rglob("*") if p.is_file() and "scaling" not in p.name)
+    runs = sorted(p for p in out.rglob("*") if p.is_file() and "scaling" not in p.name and p.name != "study.json")
     before = {p: p.stat().st_mtime_ns for p in runs}
     assert scaling.main(_argv(world)) == 0
     text = capsys.readouterr().out
@@ -177,6 +180,39 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
 
     (out / "scaling.json").unlink()
     assert scaling.main(_argv(world, "--report-only", "--seeds", "0", "1", "2")) == 0
+    assert "pending: a6 s2, a8 s2" in capsys.readouterr().out
     again = json.loads((out / "scaling.json").read_text())
-    assert [a["missing_seeds"] for a in again["arms"]] == [[2], [2]] and again["arms"][0]["seeds"] == a6["seeds"]
+    assert again["arms"][0]["seeds"] == a6["seeds"]
     assert {p: p.stat().st_mtime_ns for p in runs} == before
+
+    # the report never loses a result: other default paths (here the real folders named through another
+    # path, and a ledger elsewhere holding an earlier arm) find the same seeds and keep what was recorded
+    ledger = world / "docs" / "scaling.json"
+    ledger.parent.mkdir()
+    old = {"arms": [{"name": "a6", "seeds": [{"seed": 0, "pair_object_rmse_mm": 9.0}],
+                     "commands": ["uhrnet sim2real --variant 's0:  | --resize 16x32 --seed 0'"]}]}
+    ledger.write_text(json.dumps(old))
+    other = [a.replace(str(world / "real"), str(world / "phase" / ".." / "real")) for a in _argv(world)]
+    assert scaling.main(other + ["--report-only", "--ledger", str(ledger)]) == 0
+    merged = json.loads(ledger.read_text())
+    labels = [scaling.arm_label(a) for a in merged["arms"]]
+    assert labels == ["a6", "a6 @16x32", "a8"], labels
+    assert merged["arms"][1]["seeds"] == [{"seed": 0, "pair_object_rmse_mm": 9.0, "device": "cpu",
+                                            "sim2real_command": old["arms"][0]["commands"][0]}]
+    assert [s["seed"] for s in merged["arms"][0]["seeds"]] == [0, 1]
+    assert (ledger.parent / "scaling_table.md").read_text().count("| a6 @16x32 |") == 1
+    # a re-run of a seed that gives another result keeps the earlier one
+    merged["arms"][0]["seeds"][0]["pair_object_rmse_mm"] = 1.0
+    ledger.write_text(json.dumps(merged))
+    assert scaling.main(other + ["--report-only", "--ledger", str(ledger)]) == 0
+    s0 = json.loads(ledger.read_text())["arms"][0]["seeds"][0]
+    assert s0["reruns"][0]["pair_object_rmse_mm"] == 1.0 and s0["pair_object_rmse_mm"] == a6["seeds"][0]["pair_object_rmse_mm"]
+    # a ledger that is not a study record is never replaced
+    notes = world / "notes.json"
+    notes.write_text('{"mine": 1}')
+    assert scaling.main(other + ["--report-only", "--ledger", str(notes)]) == 2
+    assert notes.read_text() == '{"mine": 1}'
+    # nor a table of that name that the study did not write (docs/experiments/scaling.md is a hand-written page)
+    (ledger.parent / "scaling_table.md").write_text("# my page\n")
+    assert scaling.main(other + ["--report-only", "--ledger", str(ledger)]) == 2
+    assert (ledger.parent / "scaling_table.md").read_text() == "# my page\n"
