@@ -32,7 +32,8 @@ person's) are never replaced (:mod:`uhrnet.training.run_folder`), and ``out`` ma
 The model sees each image as ``predict`` does (:func:`uhrnet.inference.prediction.labels_at_input_size`: the
 source's ``--resize``, padding to multiples of 16).
 With ``tensorboard`` the loss terms per step and epoch and the first image's height per epoch go to
-``tensorboard/`` (:mod:`uhrnet.training.tb_log`).
+``tensorboard/`` (:mod:`uhrnet.training.tb_log`: its event files are recorded as this command's; a fresh or
+``overwrite`` adaptation removes only those, and refuses an event file there that is not, with ``tensorboard``).
 """
 
 from __future__ import annotations
@@ -274,6 +275,10 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
     claim_run_folder(out, ADAPT_TOOL, names, kind="adapt")  # never replaces a file it did not write
     resume_from = _resume_from(cfg, out, source)
+    if cfg.tensorboard and resume_from is None:  # foreign event files in tensorboard/: refused before any write
+        from uhrnet.training.tb_log import check_event_files
+
+        check_event_files(out, ADAPT_TOOL)
     model, transform = model_from_checkpoint(source, device)
     size = parse_size(source.get("args", {}).get("resize"))  # as predict and evaluate run it
     layer = RigLayer(rig).to(device)
@@ -314,9 +319,12 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         from tqdm import tqdm
 
         bar = tqdm(total=(cfg.epochs - start) * len(images), desc="adapt", unit="step", dynamic_ncols=True)
-    from uhrnet.training.tb_log import TB_FOLDER, RunLog
+    from uhrnet.training.tb_log import TB_FOLDER, RunLog, remove_own_event_files
 
-    tb = RunLog(out / TB_FOLDER if cfg.tensorboard and start < cfg.epochs else None, start * len(images))
+    if start == 0 and not cfg.tensorboard:  # a replaced adaptation's own curves go (with --tensorboard: RunLog)
+        remove_own_event_files(out, ADAPT_TOOL)
+    tb = RunLog(out / TB_FOLDER if cfg.tensorboard and start < cfg.epochs else None, start * len(images),
+                tool=ADAPT_TOOL)
     for epoch in range(start, int(cfg.epochs)):
         t0 = time.perf_counter()
         sums = {"loss": 0.0, "grad": 0.0, "drift": 0.0}

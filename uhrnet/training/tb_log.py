@@ -8,8 +8,25 @@ process other than rank 0 under torchrun) every method does nothing.
 
 One x-axis for every tag, the global optimizer step counted from 1, so a resumed run continues the
 same curves: the writer opens with ``purge_step = start_step + 1``, which hides the events a killed run
-wrote after its last checkpoint (TensorBoard's own readers drop them), and a fresh run (start step 0)
-removes the event files an earlier run in the folder left. Tags:
+wrote after its last checkpoint (TensorBoard's own readers drop them). Tags are listed below.
+
+Which event files are the run's own: the folder's ownership record (:mod:`fppsim.dataio.owned`,
+``RUN/.fppsim-owned.json``). The writer's event file gets a new name each session (time, host, process,
+counter), so it cannot replace anything; as soon as it exists it is recorded there as
+``tensorboard/<event file>`` of the tool (``uhrnet train`` or ``uhrnet adapt``), and only recorded files
+are ever removed:
+
+* a run that starts from step 0 (a new run, ``--overwrite``, a ``--resume`` killed before its first
+  checkpoint) removes the event files the record says the same tool wrote (the replaced run's curves),
+  with ``--tensorboard`` or without (:func:`remove_own_event_files`), when its first epoch starts;
+* a run that starts from step 0 with ``--tensorboard`` is refused before it writes anything
+  (:class:`fppsim.errors.ForeignFiles`, one line naming the file; :func:`check_event_files`) when
+  ``tensorboard/`` holds an event file (a name containing ``tfevents``, which TensorBoard reads) that the
+  record does not give to the tool: TensorBoard would show it as this run's curves, and it is not ours
+  to delete. Other files there (and subfolders, which TensorBoard shows as runs of their own) are left
+  as they are;
+* a resumed run removes nothing and refuses nothing: it adds its own event file, and files it did not
+  record (e.g. the curves of a run made before event files were recorded) stay untouched.
 
 * ``train/loss``, ``train/lr``: each step (rank 0's batch loss; adapt: the step's image);
   ``train/loss_terms/<name>``: each step, the unweighted terms of the loss where it has parts (the
@@ -32,7 +49,8 @@ import numpy as np
 
 from uhrnet.errors import UsageError
 
-__all__ = ["TB_FOLDER", "INSTALL_HINT", "require_tensorboard", "RunLog"]
+__all__ = ["TB_FOLDER", "INSTALL_HINT", "require_tensorboard", "check_event_files", "remove_own_event_files",
+           "RunLog"]
 
 TB_FOLDER = "tensorboard"  # inside the run folder
 INSTALL_HINT = "pip install tensorboard (or pip install 'fppsim-uhrnet[tensorboard]')"
@@ -53,10 +71,12 @@ class RunLog:
 
     ``start_step``: optimizer steps already taken (a resumed run: its epochs times the steps per epoch).
     ``loss``: a loss module whose sub-losses are recorded each step (forward hooks, so the loss code is
-    unchanged).
+    unchanged). ``tool``: the command writing the run (``folder`` is ``RUN/tensorboard``): its event file
+    is recorded as its own in the run's ownership record, and at step 0 the event files it recorded earlier
+    are removed and foreign ones refused (module docstring); None: no record, nothing removed.
     """
 
-    def __init__(self, folder: str | Path | None = None, start_step: int = 0, loss=None):
+    def __init__(self, folder: str | Path | None = None, start_step: int = 0, loss=None, tool: str | None = None):
         self.writer = None
         self._terms: dict = {}
         self._hooks: list = []
@@ -65,10 +85,14 @@ class RunLog:
         from torch.utils.tensorboard import SummaryWriter
 
         folder = Path(folder)
-        if start_step == 0 and folder.is_dir():  # a fresh run: the curves of an overwritten one go
-            for old in folder.glob("events.out.tfevents.*"):
-                old.unlink()
-        self.writer = SummaryWriter(str(folder), purge_step=int(start_step) + 1)
+        if tool is not None and start_step == 0:  # a fresh run: the curves of the run it replaces go
+            check_event_files(folder.parent, tool, folder.name)
+            remove_own_event_files(folder.parent, tool, folder.name)
+        before = set(_event_files(folder))
+        self.writer = SummaryWriter(str(folder), purge_step=int(start_step) + 1)  # creates its event file
+        if tool is not None:
+            for path in sorted(set(_event_files(folder)) - before):
+                _record(folder.parent, tool, f"{folder.name}/{path.name}")
         if loss is not None:
             self._watch(loss)
 
@@ -161,6 +185,68 @@ class RunLog:
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+
+
+def _event_files(folder: Path) -> list[Path]:
+    """The files directly in ``folder`` that TensorBoard reads as event files (a name containing
+    ``tfevents``), symlinks included."""
+    try:
+        return sorted(p for p in folder.iterdir() if "tfevents" in p.name and (p.is_symlink() or not p.is_dir()))
+    except (FileNotFoundError, NotADirectoryError):
+        return []
+
+
+def check_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> None:
+    """Refuse (:class:`fppsim.errors.ForeignFiles`, one line naming the file) a fresh ``--tensorboard`` run
+    of ``tool`` in ``run`` whose ``run/sub`` holds an event file the ownership record does not give to
+    ``tool``: it would show as this run's curves, and only its writer may delete it."""
+    from fppsim.dataio.owned import ForeignFiles, owners
+
+    run = Path(run)
+    record = owners(run) or {}
+    for path in _event_files(run / sub):
+        owner = record.get(f"{sub}/{path.name}")
+        if owner == tool:
+            continue
+        who = "was not written by" if owner is None else f"was written by {owner}, not"
+        raise ForeignFiles(f"{path} exists and {who} {tool} (TensorBoard would show it as this run's curves): "
+                           "move it away or choose another --out")
+
+
+def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> list[Path]:
+    """Delete the event files in ``run/sub`` that ``run``'s ownership record says ``tool`` wrote (the
+    curves of the run a fresh one replaces) and drop them from the record; files it does not give to
+    ``tool`` stay. Returns the removed paths."""
+    from fppsim.dataio.owned import _write, owners
+
+    run = Path(run)
+    record = owners(run)
+    if not record:
+        return []
+    prefix = f"{sub}/"
+    mine = [n for n, t in record.items() if t == tool and n.startswith(prefix) and "/" not in n[len(prefix):]
+            and "tfevents" in n[len(prefix):]]
+    removed = []
+    for name in mine:
+        path = run / name
+        if path.is_symlink() or path.is_file():
+            path.unlink()
+            removed.append(path)
+        del record[name]
+    if mine:
+        _write(run, record)
+    return removed
+
+
+def _record(run: Path, tool: str, name: str) -> None:
+    """Record ``name`` (the event file the writer has just created under a new name) as ``tool``'s in
+    ``run``'s ownership record (the run's claims came first, under the run folder's lock)."""
+    from fppsim.dataio.owned import _write, owners
+
+    record = owners(run) or {}
+    if record.get(name) != tool:
+        record[name] = tool
+        _write(run, record)
 
 
 def _plane(a) -> np.ndarray:

@@ -39,7 +39,7 @@ from uhrnet.models import HEADS, outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
 from uhrnet.training.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
                                refuse_own_source, save_epoch, write_history, write_run_config)
-from uhrnet.training.tb_log import TB_FOLDER, RunLog
+from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
 from uhrnet.training.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
 __all__ = ["TrainConfig", "Trainer", "train"]
@@ -66,6 +66,8 @@ class Trainer:
             torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
         self.tb = RunLog()  # --tensorboard: fit() opens it on rank 0
+        if info.main and args.tensorboard and state != "resume":  # foreign event files: refused before any write
+            check_event_files(self.out, TRAIN_TOOL)
         self._build()
 
     # -- construction -------------------------------------------------------------------------------
@@ -376,8 +378,10 @@ class Trainer:
                 print(f"already trained {self.start_epoch} epochs (--epochs {cfg['epochs']}); nothing to do")
             return 0
         if info.main and self.args.tensorboard:
-            self.tb = RunLog(self.out / TB_FOLDER, self.start_epoch * len(self.loader), self.loss_fn)
+            self.tb = RunLog(self.out / TB_FOLDER, self.start_epoch * len(self.loader), self.loss_fn, TRAIN_TOOL)
             print(f"tensorboard: tensorboard --logdir {self.out / TB_FOLDER}", flush=True)
+        elif info.main and self.start_epoch == 0:  # a replaced run's own curves go without --tensorboard too
+            remove_own_event_files(self.out, TRAIN_TOOL)
         for epoch in range(self.start_epoch, cfg["epochs"]):
             t0 = time.perf_counter()
             try:
