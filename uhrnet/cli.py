@@ -398,26 +398,32 @@ def run_export(args) -> int:
 
 # ============================================================================ import-weights
 def add_import_weights(parser: argparse.ArgumentParser) -> None:
-    from uhrnet.inference.reference_weights import IMPORT_FORMATS, REFERENCE_FORMAT
+    from fppsim.dataio.formats import PRESETS
+    from uhrnet.inference.reference_weights import IMPORT_FORMATS, PLANE_OFFSET_RANGE, REFERENCE_FORMAT
+
+    PLANE, (lo, hi) = PRESETS["figshare"].plane_offset, PLANE_OFFSET_RANGE
 
     parser.description = (
         "Turn published weights into a uhrnet run folder (best.pt = last.pt, config.json) that predict, "
         "evaluate, evaluate-phase, adapt and export read. --format reference: the authors' reference code "
         "(fead1/UHRNet, UHRNet_weight.pth): a state dict, bare or under 'state_dict' (a DataParallel 'module.' "
         "prefix is dropped), every key and shape checked; the model is uhrnet (base 64, fusion blocks), its "
-        "output figshare labels (figshare label preset, mm = (Z - plane offset) / 6: by default Z / 6, the "
-        "reference evaluation's own millimetres). Fine-tune it with train --init-from RUN --raw-output."
+        "output figshare labels (figshare label preset, mm = (Z - plane offset) / 6: by default heights above "
+        "the reference plane, (Z + 97) / 6, as every uhrnet run; --plane-offset 0 gives the reference evaluation's "
+        "plain Z / 6). Fine-tune it with train --init-from RUN --raw-output. Files in --out that another tool or "
+        "a person wrote are never replaced."
     )
     parser.add_argument("source", type=Path, metavar="FILE", help="weights file (e.g. UHRNet_weight.pth)")
     parser.add_argument("--out", type=Path, required=True, metavar="RUN", help="run folder to write")
     parser.add_argument("--format", choices=IMPORT_FORMATS, default=REFERENCE_FORMAT,
                         help=f"layout of FILE (default: {REFERENCE_FORMAT})")
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace a run already in --out (without it such a folder is refused)")
-    parser.add_argument("--plane-offset", type=float, default=0.0, metavar="LABEL",
-                        help="label of height 0: 0 gives Z / 6 mm exactly as the reference code's evaluation; "
-                             "-97 gives heights above the figshare reference plane like the rest of uhrnet "
-                             "(default: 0)")
+                        help="replace weights an earlier import-weights wrote to --out (never another tool's run)")
+    parser.add_argument("--plane-offset", type=float, default=PLANE, metavar="LABEL",
+                        help=f"figshare label of height 0, in ({lo:g}, {hi:g}]: {PLANE:g} gives heights in mm above "
+                             "the reference plane like the rest of uhrnet (what adapt, refine, point clouds and "
+                             "fine-tuning expect); 0 gives Z / 6 exactly as the reference code's evaluation "
+                             f"(default: {PLANE:g})")
 
 
 def run_import_weights(args) -> int:

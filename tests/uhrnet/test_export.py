@@ -191,17 +191,26 @@ def test_failed_check_leaves_the_output_as_it_was(tmp_path, capsys, monkeypatch)
 
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     out = tmp_path / "keep.onnx"
-    out.write_bytes(b"the user's file")
+    assert main(["export", str(ckpt), "--out", str(out), "--height", "16", "--width", "16"]) == 0  # export's own file
+    kept = out.read_bytes()
+    listing = sorted(p.name for p in tmp_path.iterdir())
+    assert listing == [".fppsim-owned.json", "keep.onnx", "m.pt"]
     real = export.run_exported
     monkeypatch.setattr(export, "run_exported", lambda *a: real(*a) + 1.0)  # a broken runtime
-    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "16", "--width", "16"]) == 1
+    capsys.readouterr()
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "32", "--width", "32"]) == 1
     assert "check failed, nothing written" in capsys.readouterr().err
-    assert out.read_bytes() == b"the user's file"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.onnx", "m.pt"]
+    assert out.read_bytes() == kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing
     monkeypatch.setattr(export, "run_exported", real)
-    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "16", "--width", "16"]) == 0
-    assert out.read_bytes() != b"the user's file"
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.onnx", "m.pt"]
+    assert main(["export", str(ckpt), "--out", str(out), "--check", "--height", "32", "--width", "32"]) == 0
+    assert out.read_bytes() != kept
+    assert sorted(p.name for p in tmp_path.iterdir()) == listing
+    # a file export did not write is never replaced, whatever the check would say
+    (tmp_path / "mine.onnx").write_bytes(b"the user's file")
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "mine.onnx"), "--height", "16", "--width", "16"]) == 1
+    assert "was not written by uhrnet export" in capsys.readouterr().err
+    assert (tmp_path / "mine.onnx").read_bytes() == b"the user's file"
 
 
 def test_export_refuses_to_overwrite_a_checkpoint(tmp_path, capsys):

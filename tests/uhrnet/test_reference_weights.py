@@ -259,27 +259,27 @@ def test_import_weights_then_predict_gives_the_reference_heights(tmp_path, refer
     assert "763 entries, 30,330,977 parameters" in capsys.readouterr().out
     ckpt = load_checkpoint(run)
     assert ckpt["path"].endswith("best.pt") and (run / "last.pt").is_file() and (run / "config.json").is_file()
-    # figshare labels read with the plane at Z = 0, so predict's mm are the reference evaluation's Z / 6
-    assert ckpt["label_transform"] == {**PRESETS["figshare"].to_dict(), "plane_offset": 0.0}
+    # figshare labels read with the figshare preset's plane (-97): heights above the reference plane
+    assert ckpt["label_transform"] == PRESETS["figshare"].to_dict()
     assert ckpt["output"] == {"scale": 1.0, "shift": 0.0}
     g = torch.Generator().manual_seed(0)
     fringe = (torch.rand(64, 64, generator=g) * 2 - 1).numpy().astype(np.float32)
     np.save(tmp_path / "img.npy", fringe)
     assert main(["predict", str(run), str(tmp_path / "img.npy"), "--out", str(tmp_path / "pred"), "--keep-all",
                  "--no-ply", "--device", "cpu", "--no-progress"]) == 0
-    mm = np.load(tmp_path / "pred" / "img_height.npy")
+    mm97 = np.load(tmp_path / "pred" / "img_height.npy")
     with torch.no_grad():
         z = reference_forward(torch.load(reference_file)["state_dict"], torch.from_numpy(fringe)[None, None])[0, 0]
-    # the reference evaluation's millimetres: Z / 6
-    np.testing.assert_allclose(mm, z.numpy().astype(np.float64) / 6.0, rtol=0, atol=1e-4)
-    # --plane-offset -97: heights above the figshare plane instead, as uhrnet's own runs report them
-    assert main(["import-weights", str(reference_file), "--out", str(tmp_path / "run97"), "--plane-offset", "-97"]) == 0
-    assert main(["predict", str(tmp_path / "run97"), str(tmp_path / "img.npy"), "--out", str(tmp_path / "pred97"),
-                 "--keep-all", "--no-ply", "--device", "cpu", "--no-progress"]) == 0
-    mm97 = np.load(tmp_path / "pred97" / "img_height.npy")
+    # heights above the figshare plane, as uhrnet's own runs report them: (Z + 97) / 6
     np.testing.assert_allclose(mm97, (z.numpy().astype(np.float64) + 97.0) / 6.0, rtol=0, atol=1e-4)
+    # --plane-offset 0: the reference evaluation's millimetres, Z / 6
+    assert main(["import-weights", str(reference_file), "--out", str(tmp_path / "run0"), "--plane-offset", "0"]) == 0
+    assert main(["predict", str(tmp_path / "run0"), str(tmp_path / "img.npy"), "--out", str(tmp_path / "pred0"),
+                 "--keep-all", "--no-ply", "--device", "cpu", "--no-progress"]) == 0
+    mm = np.load(tmp_path / "pred0" / "img_height.npy")
+    np.testing.assert_allclose(mm, z.numpy().astype(np.float64) / 6.0, rtol=0, atol=1e-4)
     # either way the exported file is the reference's own weights again
-    for r in ("run", "run97"):
+    for r in ("run", "run0"):
         out = tmp_path / f"{r}.pth"
         assert main(["export", str(tmp_path / r), "--format", "reference", "--out", str(out)]) == 0
         back = torch.load(out)["state_dict"]
@@ -298,11 +298,19 @@ def test_import_weights_keeps_existing_runs(tmp_path, reference_file, capsys):
     capsys.readouterr()
     assert main(["import-weights", str(reference_file), "--out", str(run)]) == 1
     err = capsys.readouterr().err
-    assert "already holds a run" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert "already holds imported weights" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert "--resume" not in err  # import-weights has no --resume to suggest
     assert (run / "best.pt").stat().st_mtime_ns == before
+    assert main(["import-weights", str(reference_file), "--out", str(run), "--overwrite"]) == 0  # its own: replaced
+    assert (run / "best.pt").stat().st_mtime_ns != before
+    # a history.csv nobody recorded is someone else's: refused, not deleted, --overwrite or not
     (run / "history.csv").write_text("epoch\n1\n")
-    assert main(["import-weights", str(reference_file), "--out", str(run), "--overwrite"]) == 0
-    assert (run / "notes.txt").read_text() == "mine" and not (run / "history.csv").exists()
+    before = (run / "best.pt").stat().st_mtime_ns
+    assert main(["import-weights", str(reference_file), "--out", str(run), "--overwrite"]) == 1
+    err = capsys.readouterr().err
+    assert "history.csv exists and was not written by uhrnet import-weights" in err, err
+    assert (run / "history.csv").read_text() == "epoch\n1\n" and (run / "best.pt").stat().st_mtime_ns == before
+    assert (run / "notes.txt").read_text() == "mine"
 
 
 @pytest.mark.slow
@@ -396,3 +404,112 @@ def test_export_reference_refuses_other_models(tmp_path, capsys):
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err, err
         assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------- nothing lost, nothing silent
+def _sha(path):
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.mark.slow
+def test_export_never_replaces_a_file_it_did_not_write(tmp_path, reference_file, capsys):
+    """The README's sequence: import the authors' file, export over it -> refused, the file and the imported
+    run's record intact; an export replaces only its own earlier export; --out a folder is one clear line."""
+    import shutil
+
+    authors = tmp_path / "UHRNet_weight.pth"
+    shutil.copyfile(reference_file, authors)
+    sha = _sha(authors)
+    run = tmp_path / "runs" / "uhrnet-ref"
+    assert main(["import-weights", str(authors), "--out", str(run)]) == 0
+    capsys.readouterr()
+    for fmt in ("reference", "torchscript", "onnx"):
+        assert main(["export", str(run), "--format", fmt, "--out", str(authors),
+                     "--height", "32", "--width", "32"]) == 1, fmt
+        err = capsys.readouterr().err
+        assert f"{authors} exists and was not written by uhrnet export" in err and len(err.strip().splitlines()) == 1
+        assert _sha(authors) == sha
+    notes = tmp_path / "notes.txt"
+    notes.write_text("mine")
+    assert main(["export", str(run), "--format", "reference", "--out", str(notes)]) == 1
+    assert notes.read_text() == "mine"
+    capsys.readouterr()
+    out = tmp_path / "exported.pth"
+    assert main(["export", str(run), "--format", "reference", "--out", str(out)]) == 0
+    first = out.stat().st_mtime_ns
+    assert main(["export", str(run), "--format", "reference", "--out", str(out)]) == 0  # its own: replaced
+    assert out.stat().st_mtime_ns != first
+    capsys.readouterr()
+    assert main(["export", str(run), "--format", "reference", "--out", str(tmp_path)]) == 1
+    err = capsys.readouterr().err
+    assert f"--out {tmp_path}: is a folder" in err and ".tmp" not in err and len(err.strip().splitlines()) == 1
+
+
+@pytest.mark.slow
+def test_import_weights_respects_other_tools_files(tmp_path, reference_file, capsys):
+    """A foreign config.json, and a folder train wrote, are refused in one line; nothing there changes."""
+    from tests._helpers import write_figshare
+
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "config.json").write_text('{"mine": true}')
+    assert main(["import-weights", str(reference_file), "--out", str(foreign)]) == 1
+    err = capsys.readouterr().err
+    assert "config.json exists and was not written by uhrnet import-weights" in err and len(err.strip().splitlines()) == 1
+    assert (foreign / "config.json").read_text() == '{"mine": true}' and not (foreign / "best.pt").exists()
+
+    write_figshare(tmp_path / "real", n=6, h=32, w=64, seed=1)
+    trained = tmp_path / "trained"
+    assert main(["train", "--real", str(tmp_path / "real"), "--out", str(trained), "--model", "unet",
+                 "--base-channels", "4", "--epochs", "1", "--batch-size", "2", "--device", "cpu", "--no-progress"]) == 0
+    files = {p.name: _sha(p) for p in trained.iterdir() if p.is_file()}
+    capsys.readouterr()
+    for flags in ([], ["--overwrite"]):
+        assert main(["import-weights", str(reference_file), "--out", str(trained), *flags]) == 1
+        err = capsys.readouterr().err
+        assert "was written by uhrnet train, not uhrnet import-weights" in err and len(err.strip().splitlines()) == 1
+    assert {p.name: _sha(p) for p in trained.iterdir() if p.is_file()} == files
+
+
+@pytest.mark.slow
+def test_imported_run_fine_tunes_and_refuses_resume(tmp_path, reference_file, capsys):
+    """The documented fine-tune works on an imported run by default; `train --resume` into it is one line,
+    no traceback, and leaves its files and ownership record as they were."""
+    from tests._helpers import write_figshare
+
+    run = tmp_path / "uhrnet-ref"
+    assert main(["import-weights", str(reference_file), "--out", str(run)]) == 0
+    write_figshare(tmp_path / "labelled", n=6, h=32, w=64, seed=2)
+    files = {p.name: _sha(p) for p in run.iterdir() if p.is_file()}
+    capsys.readouterr()
+    assert main(["train", "--out", str(run), "--resume", "--real", str(tmp_path / "labelled"), "--device", "cpu",
+                 "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert {p.name: _sha(p) for p in run.iterdir() if p.is_file()} == files
+    assert main(["train", "--init-from", str(run), "--raw-output", "--real", str(tmp_path / "labelled"),
+                 "--out", str(tmp_path / "ft"), "--epochs", "1", "--batch-size", "2", "--device", "cpu",
+                 "--no-progress"]) == 0, capsys.readouterr().err
+    assert (tmp_path / "ft" / "last.pt").is_file()
+
+
+def test_import_weights_bounds_and_whole_messages(tmp_path, capsys):
+    """--plane-offset out of range is a usage error (exit 2); a truncated file and a text file give a whole
+    sentence naming the file."""
+    ref = random_reference_state(8)
+    good = save_reference(tmp_path / "good.pth", ref)
+    for value in ("1e300", "inf", "nan", "-100", "5000"):
+        assert main(["import-weights", str(good), "--out", str(tmp_path / "o"), "--plane-offset", value]) == 2
+        err = capsys.readouterr().err
+        assert "--plane-offset must be a label above the invalid threshold -100 and at most 1000" in err, err
+    data = good.read_bytes()
+    (tmp_path / "cut.pth").write_bytes(data[: len(data) // 2])
+    (tmp_path / "text.pth").write_text("e" * 200 + "\n")
+    for name in ("cut.pth", "text.pth"):
+        assert main(["import-weights", str(tmp_path / name), "--out", str(tmp_path / "o")]) == 1
+        err = capsys.readouterr().err.strip()
+        assert err.endswith(")") and str(tmp_path / name) in err and "cannot load" in err, err
+        assert "KeyError: 101" not in err and len(err.splitlines()) == 1
+    assert not (tmp_path / "o").exists()

@@ -32,6 +32,7 @@ import torch
 from torch import nn
 
 from fppsim.dataio.files import atomic_path, tmp_path, unlink_quietly
+from fppsim.dataio.owned import claim, output_folder
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.inference.deploy import prepare_for_inference
@@ -49,6 +50,7 @@ DEFAULT_OPSET = 17
 # runtimes for every model here (torch 2.13). Below 7 it writes files onnxruntime rejects.
 OPSET_RANGE = (7, 20)
 SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
+EXPORT_TOOL = "uhrnet export"
 
 
 @dataclass
@@ -278,10 +280,21 @@ def export_checkpoint(config: ExportConfig) -> dict:
 
     ckpt = load_checkpoint(config.checkpoint)
     out = Path(config.out)
+    if out.is_dir():
+        raise ExportError(f"--out {out}: is a folder; give the file to write (e.g. {out / ('model' + SUFFIXES.get(config.format, '.pth'))})")
     if out.exists() and out.resolve() == Path(ckpt["path"]).resolve():
         raise ExportError(f"{out}: is the checkpoint being exported; choose another --out")
     if out.is_file() and _is_checkpoint(out):
         raise ExportError(f"{out}: is a uhrnet checkpoint; choose another --out (an export would replace it)")
+    # the folder is locked and --out claimed for export before anything is written: an existing file is
+    # replaced only when an earlier export wrote it (fppsim.dataio.owned), never someone's weights or notes
+    with output_folder(out.parent, EXPORT_TOOL, error=ExportError):
+        claim(out.parent, EXPORT_TOOL, [out.name], hint="choose another --out (export never replaces a file it "
+                                                         "did not write)")
+        return _export(ckpt, out, config)
+
+
+def _export(ckpt: dict, out: Path, config: ExportConfig) -> dict:
     if config.format in WEIGHT_FORMATS:
         return export_reference(ckpt, out, config.check, (1, 1, config.height, config.width))
     model, _ = model_from_checkpoint(ckpt)

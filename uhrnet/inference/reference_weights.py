@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fppsim.dataio.files import check_writable_dir, clean_stale_tmp, folder_lock, tmp_path, unlink_quietly
+from fppsim.dataio.files import tmp_path, unlink_quietly
+from fppsim.dataio.owned import output_folder, owners
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, model_from_checkpoint, output_mm
 from uhrnet.errors import CheckpointError, ConfigError, ExportError, UsageError
@@ -43,7 +44,8 @@ from uhrnet.inference.export_check import check_input, compare_outputs
 from uhrnet.scoring.metrics import count_parameters
 from uhrnet.models import ALIASES, build_model
 from uhrnet.models.uhrnet import UHRNet
-from uhrnet.training.run_folder import check_run_folder, package_version, save_epoch, write_run_config
+from uhrnet.training.run_folder import (IMPORT_TOOL, RUN_FILES, TRAINED_FILES, claim_run_folder, package_version,
+                                        save_epoch, write_run_config)
 
 __all__ = ["REFERENCE_FORMAT", "REFERENCE_CONFIG", "MODULES", "FUSION", "key_table", "model_shapes",
            "to_reference_state_dict", "from_reference_state_dict", "read_reference_file", "ImportWeightsConfig",
@@ -227,9 +229,9 @@ def read_reference_file(path: str | Path) -> tuple[dict[str, torch.Tensor], dict
             raise CheckpointError(f"{path}: holds a Python object ({found.group(1)}) that cannot be loaded without "
                                   "running code; save its state dict alone (torch.save({'state_dict': ...}))") from None
         raise CheckpointError(f"{path}: cannot load: not a PyTorch weights file (truncated or another format)") from None
-    except Exception as exc:  # truncated file, another format ...
-        first = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else "no details"
-        raise CheckpointError(f"{path}: cannot load ({type(exc).__name__}: {first})") from None
+    except Exception as exc:  # truncated file, another format: torch's own text is about its internals
+        raise CheckpointError(f"{path}: cannot load: not a complete PyTorch weights file (truncated, or another "
+                              f"format; {type(exc).__name__})") from None
     if not isinstance(obj, Mapping):
         raise CheckpointError(f"{path}: holds a {type(obj).__name__}, not a state dict")
     if obj.get("format") == "uhrnet-checkpoint":
@@ -248,6 +250,10 @@ def read_reference_file(path: str | Path) -> tuple[dict[str, torch.Tensor], dict
 # uhrnet import-weights
 
 IMPORT_FORMATS = (REFERENCE_FORMAT,)
+IMPORT_FILES = ("best.pt", "last.pt", "config.json")  # what import-weights writes
+# labels of the plane import-weights accepts: above the invalid threshold (-100), and no higher than the
+# tallest figshare label seen (+181) leaves room for: 1000 labels = 167 mm
+PLANE_OFFSET_RANGE = (PRESETS["figshare"].invalid_threshold, 1000.0)
 
 
 @dataclass
@@ -259,15 +265,22 @@ class ImportWeightsConfig:
     out: Path
     format: str = REFERENCE_FORMAT
     overwrite: bool = False
-    plane_offset: float = 0.0  # label of height 0: 0 -> predict writes Z / 6 exactly as the reference evaluation
+    # label of height 0: the figshare preset's plane (-97), so heights are above the reference plane as
+    # everywhere else in uhrnet; 0 gives the reference evaluation's plain Z / 6
+    plane_offset: float = PRESETS["figshare"].plane_offset
 
     def __post_init__(self):
         if self.format not in IMPORT_FORMATS:
             raise UsageError(f"--format must be one of {', '.join(IMPORT_FORMATS)}, got {self.format!r}")
-        self.plane_offset = float(self.plane_offset)
-        if not math.isfinite(self.plane_offset) or self.plane_offset <= PRESETS["figshare"].invalid_threshold:
-            raise UsageError(f"--plane-offset must be a finite label above the invalid threshold "
-                             f"{PRESETS['figshare'].invalid_threshold:g}, got {self.plane_offset!r}")
+        try:
+            self.plane_offset = float(self.plane_offset)
+        except (TypeError, ValueError):
+            raise UsageError(f"--plane-offset must be a number (a figshare label), got {self.plane_offset!r}") from None
+        lo, hi = PLANE_OFFSET_RANGE
+        if not (math.isfinite(self.plane_offset) and lo < self.plane_offset <= hi):
+            raise UsageError(f"--plane-offset must be a label above the invalid threshold {lo:g} and at most {hi:g} "
+                             f"(the plane's label: -97 for heights above the plane, 0 for Z / 6), "
+                             f"got {self.plane_offset!r}")
         self.source, self.out = Path(self.source), Path(self.out)
 
 
@@ -276,14 +289,16 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     ``last.pt``) with the ``uhrnet`` model (base 64, fusion), its weights mapped by
     :func:`from_reference_state_dict`, network output = label (``output`` scale 1, shift 0) and the
     ``figshare`` label transform with ``plane_offset`` = ``config.plane_offset``, so ``predict`` writes
-    ``(Z - plane_offset) / 6`` mm: with the default 0 exactly the reference evaluation's ``Z / 6`` (the
-    reference code's own numbers); -97 gives heights above the figshare reference plane as the rest of this
-    project reports them (differences, and so RMSE, are the same either way); plus ``config.json`` naming
-    the source and its SHA-256. ``epoch`` is 0 and there is nothing to ``--resume``.
+    ``(Z - plane_offset) / 6`` mm: with the default -97 heights above the figshare reference plane as the rest
+    of this project reports them (what adapt, refine, the point clouds and ``train --init-from RUN
+    --raw-output`` expect); 0 gives exactly the reference evaluation's ``Z / 6`` (differences, and so RMSE, are
+    the same either way); plus ``config.json`` naming the source and its SHA-256. ``epoch`` is 0 and there is
+    nothing to ``--resume``. The folder's files are recorded as import-weights' own (:mod:`fppsim.dataio.owned`):
+    a file another tool or a person put there is refused, never replaced.
 
     Returns ``{"out", "checkpoint", "entries", "parameters", "source", "sha256"}``. Raises
-    :class:`CheckpointError` for a file that does not fit, :class:`ConfigError` for an ``out`` that holds a
-    run (without ``overwrite``) or cannot be written.
+    :class:`CheckpointError` for a file that does not fit, :class:`ConfigError` for an ``out`` that holds
+    earlier imported weights (without ``overwrite``), files of another tool or nobody's, or cannot be written.
     """
 
     state, info = read_reference_file(config.source)
@@ -292,19 +307,27 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     net.load_state_dict(ours)  # strict: the keys and shapes were checked above
     transform = dataclasses.replace(PRESETS["figshare"], plane_offset=config.plane_offset)
     out = config.out
-    try:
-        check_writable_dir(out)
-    except ValueError as exc:
-        raise ConfigError(str(exc)) from None
     n_params = int(count_parameters(net))
     record = {"format": config.format, "path": info["path"], "sha256": info["sha256"], "wrapped": info["wrapped"],
               "module_prefix": info["module_prefix"], "entries": len(ours)}
-    with folder_lock(out, "uhrnet import-weights"):
-        clean_stale_tmp(out)
-        check_run_folder(out, None, config.overwrite)
-        if config.overwrite:  # the run being replaced: its curves would describe another model
-            for name in ("history.csv", "history.png"):
-                (out / name).unlink(missing_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a run folder; choose a folder")
+    # created, locked, and every run-file name claimed for import-weights before anything is written: a file
+    # another tool (train, adapt) or a person wrote is never replaced, --overwrite or not
+    with output_folder(out, IMPORT_TOOL, error=ConfigError):
+        held = [n for n in (*TRAINED_FILES, "config.json") if (out / n).exists()]
+        mine = owners(out) or {}
+        if held and not config.overwrite and all(mine.get(n) == IMPORT_TOOL for n in held):
+            raise ConfigError(f"{out} already holds imported weights ({', '.join(held)}): pass --overwrite to "
+                              "replace them, or choose another --out")
+        # a run's other files (a training history) beside imported weights would describe another model
+        foreign = [n for n in RUN_FILES if n not in IMPORT_FILES and (out / n).exists()]
+        if foreign:
+            who = mine.get(foreign[0])
+            raise ConfigError(f"{out / foreign[0]} " + (f"was written by {who}, not {IMPORT_TOOL}" if who else
+                                                         f"exists and was not written by {IMPORT_TOOL}")
+                              + ": move it away or choose another --out")
+        claim_run_folder(out, IMPORT_TOOL, IMPORT_FILES, kind="import")
         payload = {"format": FORMAT, "version": VERSION, "model": {"name": net.config["name"], "config": dict(net.config)},
                    "state_dict": net.state_dict(), "output": {"scale": 1.0, "shift": 0.0},
                    "label_transform": transform.to_dict(), "epoch": 0, "imported": record,

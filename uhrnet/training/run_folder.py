@@ -21,10 +21,11 @@ from fppsim.dataio.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import atomic_save
 from uhrnet.errors import ConfigError
 
-__all__ = ["RUN_FILES", "TRAINED_FILES", "TRAIN_TOOL", "HISTORY_COLUMNS", "write_history", "save_epoch",
+__all__ = ["RUN_FILES", "TRAINED_FILES", "TRAIN_TOOL", "IMPORT_TOOL", "HISTORY_COLUMNS", "write_history", "save_epoch",
            "write_run_config", "check_run_folder", "claim_run_folder", "refuse_own_source", "package_version"]
 
 TRAIN_TOOL = "uhrnet train"
+IMPORT_TOOL = "uhrnet import-weights"
 RUN_FILES = ("best.pt", "last.pt", "history.csv", "history.png", "config.json")  # what a training run writes
 TRAINED_FILES = ("best.pt", "last.pt", "history.csv")  # a folder holding any of them holds a trained run
 
@@ -96,7 +97,7 @@ def check_run_folder(out: Path, resume, overwrite: bool) -> str:
 def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> None:
     """Claim ``names`` in ``out`` for ``tool`` (:func:`fppsim.dataio.owned.claim`); a folder written before the
     ownership record is recognised by its ``last.pt`` / ``best.pt``: a uhrnet checkpoint whose ``kind``
-    (``"adapt"``: an adaptation, None: a training run) is ``tool``'s."""
+    (``"adapt"``: an adaptation, ``"import"``: imported weights, None: a training run) is ``tool``'s."""
     from fppsim.dataio.owned import claim
 
     def legacy():
@@ -108,7 +109,8 @@ def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> No
                     ck = load_checkpoint(out / name)
                 except Exception:  # not a checkpoint at all: nothing here is provably ours
                     return ()
-                return names if ("adapt" in ck) == (kind == "adapt") else ()
+                made = "adapt" if "adapt" in ck else "import" if "imported" in ck else None
+                return names if made == kind else ()
         return ()
 
     claim(out, tool, names, legacy=legacy)

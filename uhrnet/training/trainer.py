@@ -58,6 +58,11 @@ class Trainer:
         elif state == "resume":
             path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
+            if "args" not in self.ckpt:  # imported weights or an adaptation: no training state to continue
+                made = "imported weights" if "imported" in self.ckpt else "an adaptation" if "adapt" in self.ckpt \
+                    else "not a training checkpoint"
+                raise ConfigError(f"--resume: {path} is {made}, not a training run to continue; start a new run "
+                                  "from it with --init-from (and another --out)")
         self.cfg = resolve_config(args, self.ckpt["args"] if self.ckpt else None)
         if not self.cfg["real"] and not self.cfg["synthetic"]:
             raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
