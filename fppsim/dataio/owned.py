@@ -29,7 +29,7 @@ from typing import Callable, Iterable, Iterator
 from fppsim.errors import ForeignFiles
 from fppsim.dataio.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
 
-__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "output_folder", "same_folder"]
+__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "record_created", "forget", "output_folder", "same_folder"]
 
 RECORD = ".fppsim-owned.json"
 
@@ -78,6 +78,28 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
         raise ForeignFiles(f"{path} was written by {owner}, not {tool}: {hint}")
     record.update({n: tool for n in names})
     _write(folder, record)
+
+
+def record_created(folder: str | os.PathLike, tool: str, name: str) -> None:
+    """Record ``name`` as ``tool``'s AFTER ``tool`` created it under a name nobody else could have used (a
+    file named by time, host and process, such as a TensorBoard event file): :func:`claim` cannot, since the
+    file already exists."""
+    folder = Path(folder)
+    record = owners(folder) or {}
+    if record.get(name) != tool:
+        record[name] = tool
+        _write(folder, record)
+
+
+def forget(folder: str | os.PathLike, names: Iterable[str]) -> None:
+    """Drop ``names`` from ``folder``'s record (files their tool has just deleted)."""
+    folder = Path(folder)
+    record = owners(folder)
+    if record is None:
+        return
+    kept = {n: t for n, t in record.items() if n not in set(names)}
+    if kept != record:
+        _write(folder, kept)
 
 
 def _drop_unwritten(folder: Path) -> None:

@@ -53,7 +53,7 @@ __all__ = ["TB_FOLDER", "INSTALL_HINT", "require_tensorboard", "check_event_file
            "RunLog"]
 
 TB_FOLDER = "tensorboard"  # inside the run folder
-INSTALL_HINT = "pip install tensorboard (or pip install 'fppsim-uhrnet[tensorboard]')"
+INSTALL_HINT = "pip install tensorboard (or, from the repository root of the checkout, pip install -e '.[tensorboard]')"
 
 
 def require_tensorboard(flag: str = "--tensorboard") -> None:
@@ -217,7 +217,7 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
     """Delete the event files in ``run/sub`` that ``run``'s ownership record says ``tool`` wrote (the
     curves of the run a fresh one replaces) and drop them from the record; files it does not give to
     ``tool`` stay. Returns the removed paths."""
-    from fppsim.dataio.owned import _write, owners
+    from fppsim.dataio.owned import forget, owners
 
     run = Path(run)
     record = owners(run)
@@ -232,21 +232,16 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
         if path.is_symlink() or path.is_file():
             path.unlink()
             removed.append(path)
-        del record[name]
-    if mine:
-        _write(run, record)
+    forget(run, mine)
     return removed
 
 
 def _record(run: Path, tool: str, name: str) -> None:
     """Record ``name`` (the event file the writer has just created under a new name) as ``tool``'s in
     ``run``'s ownership record (the run's claims came first, under the run folder's lock)."""
-    from fppsim.dataio.owned import _write, owners
+    from fppsim.dataio.owned import record_created
 
-    record = owners(run) or {}
-    if record.get(name) != tool:
-        record[name] = tool
-        _write(run, record)
+    record_created(run, tool, name)
 
 
 def _plane(a) -> np.ndarray:
