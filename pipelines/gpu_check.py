@@ -1,10 +1,22 @@
 #!/usr/bin/env python
-"""Helpers of pipelines/gpu_check.sh (standard library, pip's tag parser; ``report`` reads the sample count with numpy).
+"""Helpers of pipelines/gpu_check.sh (standard library, pip's tag parser, the project's ownership record;
+``report`` reads the sample count with numpy).
 
+    python pipelines/gpu_check.py begin OUT                     OUT made ready for a run (below), or one line, exit 2
+    python pipelines/gpu_check.py settle OUT                    record what this run wrote under OUT/work
     python pipelines/gpu_check.py wheels DIR                    the carried wheels this Python can install
     python pipelines/gpu_check.py env OUT BUDGET TINY PLATFORM  OUT/step_env.json: machine, versions, sizes
     python pipelines/gpu_check.py step OUT NAME RC START LIMIT  OUT/step_NAME.json: exit code, seconds
     python pipelines/gpu_check.py report OUT                    OUT/gpu_check.json + OUT/gpu_check.md
+
+What is the script's own in OUT: the ownership record ``OUT/.fppsim-owned.json`` (:mod:`fppsim.dataio.owned`),
+beside the ``OUT/.gpu_check`` marker. ``begin`` claims the fixed names the run writes (:data:`FILES`) and the
+folders its steps fill (:data:`TREES`, recorded as being written: everything in them was made by the run,
+since each is refused when it exists and is not the script's) before anything is written; ``settle`` (at the
+end of the run, and when it is stopped) replaces each such folder's claim by the list of what is in it. A
+re-run removes exactly the recorded paths (and what a killed run left in the folders it was writing), and
+leaves everything else in OUT alone, at any depth; a path it has to write that exists and is not its own is
+refused in one line naming it, before anything is removed or written.
 """
 
 from __future__ import annotations
@@ -17,7 +29,131 @@ import sys
 import time
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # fppsim from the checkout (run as a script)
+
 PAPER_MS = {"uhrnet": 22.4, "unet": 8.1, "hnet": None}  # Table 3 of the paper, an RTX 2080 Ti
+
+
+TOOL = "pipelines/gpu_check.sh"
+WRITING = TOOL + " (folder being written)"  # a TREES entry of a run that has not settled: all of it is the run's
+MARKER = ".gpu_check"
+STEPS = ("forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
+FILES = (MARKER, "setup.log", "step_env.json", *(f"{s}.log" for s in STEPS), *(f"step_{s}.json" for s in STEPS),
+         "forward_fp32.json", "forward_fp16.json", "gpu_check.json", "gpu_check.md")  # fixed names in OUT
+TREES = ("work/site", "work/x11", "work/syn", "work/run", "work/ddp", "work/s2r")  # the folders the steps fill
+
+
+class Refused(Exception):
+    """OUT cannot be used as it is (one line naming the path)."""
+
+
+def _exists(p: Path) -> bool:
+    return p.exists() or p.is_symlink()
+
+
+def _walk(top: Path) -> list[str]:
+    """Every path under ``top`` (files, folders, links; links never followed), relative to ``top``, parents first."""
+    found = []
+    for d, dirs, files in os.walk(top):
+        rel = Path(d).relative_to(top)
+        found += [str(rel / n) for n in sorted(dirs) + sorted(files)]
+        dirs[:] = [n for n in dirs if not os.path.islink(os.path.join(d, n))]
+    return found
+
+
+def _own(out: Path, record: dict[str, str]) -> set[str]:
+    """The paths in ``out`` that are the script's: recorded ones, and all of each folder a run was writing."""
+    own = {n for n, t in record.items() if t in (TOOL, WRITING)}
+    for tree in [n for n, t in record.items() if t == WRITING]:
+        if (out / tree).is_dir() and not (out / tree).is_symlink():
+            own.update(f"{tree}/{r}" for r in _walk(out / tree))
+    return own
+
+
+def _remove(out: Path, names: set[str]) -> None:
+    """Delete the paths ``names`` (relative to ``out``) that exist: files and links, then the folders they
+    leave empty (deepest first; a folder holding anything else stays)."""
+    folders = []
+    for n in names:
+        p = out / n
+        if p.is_symlink() or p.is_file():
+            p.unlink()
+        elif p.is_dir():
+            folders.append(p)
+    for p in sorted(folders, key=lambda f: -len(f.parts)):
+        try:
+            p.rmdir()
+        except OSError:
+            pass
+
+
+def begin(out: Path) -> None:
+    """Make ``out`` ready for a run: refuse (:class:`Refused`) before touching anything when it is not a folder,
+    holds files but no marker (someone else's folder), or holds a path the run writes that is not the
+    script's; else remove the earlier run's own files, claim this run's (module docstring), write the marker."""
+    from fppsim.dataio.files import atomic_write_text, clean_stale_tmp
+    from fppsim.dataio.owned import RECORD, ForeignFiles, owners
+
+    if _exists(out) and not out.is_dir():
+        raise Refused(f"{out} exists and is not a folder: give a new or empty OUTDIR")
+    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
+        raise Refused(f"{out} holds files this script did not write: give a new or empty OUTDIR")
+    try:
+        record = owners(out) if out.is_dir() else {}
+    except ForeignFiles as exc:
+        raise Refused(str(exc).replace("choose another --out", "give another OUTDIR")) from None
+    if record is None:  # a marker from before the record: the fixed names are the ones that run wrote
+        record = {n: TOOL for n in FILES if (out / n).is_file() and not (out / n).is_symlink()}
+    own = _own(out, record)
+    for name in FILES + ("work",) + TREES:
+        p = out / name
+        if not _exists(p) or name in own:
+            if name in TREES and p.is_dir() and not p.is_symlink():
+                for rel in _walk(p):
+                    if f"{name}/{rel}" not in own:
+                        raise Refused(f"{p / rel} exists and was not written by {TOOL}: move it away or give "
+                                      "another OUTDIR")
+            continue
+        if name == "work" and p.is_dir() and not p.is_symlink():
+            continue  # OUT/work may hold other files (they stay); the script writes only in its TREES there
+        raise Refused(f"{p} exists and was not written by {TOOL}: move it away or give another OUTDIR")
+    _remove(out, own - {"work"})
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        made_work = not (out / "work").is_dir()
+        (out / "work").mkdir(exist_ok=True)
+    except OSError as exc:
+        raise Refused(f"{out}: cannot create the folder ({exc.strerror})") from None
+    clean_stale_tmp(out)  # temp files of a killed step's writers (.fppsim-tmp-<dead pid>-<name>)
+    kept = {n: t for n, t in record.items() if t not in (TOOL, WRITING) or n == "work" and _exists(out / n)}
+    if made_work:
+        kept["work"] = TOOL
+    try:
+        atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted({**kept, **{n: TOOL for n in FILES},
+                                                                          **{t: WRITING for t in TREES}}.items()))},
+                                                   indent=1))
+        (out / MARKER).touch()
+    except OSError as exc:
+        raise Refused(f"{out}: cannot write there ({exc.strerror})") from None
+
+
+def settle(out: Path) -> dict[str, str]:
+    """Replace the claim of each folder the run was writing by its contents (the paths in it now), and drop
+    claims of names the run never wrote; returns the record."""
+    from fppsim.dataio.files import atomic_write_text
+    from fppsim.dataio.owned import RECORD, owners
+
+    record = owners(out) or {}
+    new = {}
+    for name, tool in record.items():
+        if tool == WRITING:
+            if (out / name).is_dir() and not (out / name).is_symlink():
+                new[name] = TOOL
+                new.update({f"{name}/{rel}": TOOL for rel in _walk(out / name)})
+        elif tool != TOOL or _exists(out / name):
+            new[name] = tool
+    atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted(new.items()))}, indent=1))
+    return new
 
 
 def wheels(folder: Path) -> list[str]:
@@ -105,13 +241,17 @@ def report(out: Path) -> dict:
     hist = _history(work / "run")
     if hist:
         secs = [float(r["seconds"]) for r in hist if r.get("seconds")]
-        train = {"epochs": len(hist), "epoch_seconds": secs,
+        cfg = _json(work / "run" / "config.json") or {}
+        train = {"model": cfg.get("model", "uhrnet"), "amp": cfg.get("amp"), "epochs": len(hist), "epoch_seconds": secs,
                  "val_rmse_mm": [float(r["val_rmse_mm"]) for r in hist if r.get("val_rmse_mm")]}
         if n and secs:
-            # the reference split trains on 80 % of the samples; later epochs exclude cuDNN's autotuning
+            # the reference split trains on 80 % of the samples; later epochs exclude cuDNN's autotuning.
+            # history.csv's epoch seconds hold the epoch's validation (and checkpoint) too: the rate says so
             n_train = round(0.8 * n)
             steady = secs[1:] or secs
-            train.update(train_samples=n_train, samples_per_s=n_train / (sum(steady) / len(steady)))
+            train.update(train_samples=n_train, samples_per_s=n_train / (sum(steady) / len(steady)),
+                         samples_per_s_note="training samples per second of whole epochs (validation and checkpoint "
+                                            "included)" + (", first epoch left out" if len(secs) > 1 else ""))
         res["train"] = train
     ddp = steps.get("ddp") or {}
     if ddp:
@@ -157,8 +297,10 @@ def markdown(res: dict) -> str:
                       f"samples/s** ({g['note']})."]
     if "train" in res:
         t = res["train"]
-        sps = f" = **{t['samples_per_s']:.1f} training samples/s**" if "samples_per_s" in t else ""
-        lines += ["", f"Training (UHRNet, AMP): {t['epochs']} epochs, epoch seconds "
+        sps = (f" = **{t['samples_per_s']:.1f} training samples/s, validation included**"
+               + (" (first epoch left out)" if len(t["epoch_seconds"]) > 1 else "") if "samples_per_s" in t else "")
+        name = {"uhrnet": "UHRNet", "unet": "U-Net", "hnet": "hNet"}.get(t.get("model"), t.get("model"))
+        lines += ["", f"Training ({name}{', AMP' if t.get('amp') else ''}): {t['epochs']} epochs, epoch seconds "
                       f"{', '.join(f'{s:.1f}' for s in t['epoch_seconds'])}{sps}; "
                       f"val RMSE {', '.join(f'{v:.2f}' for v in t['val_rmse_mm'])} mm."]
     if "ddp" in res:
@@ -175,12 +317,23 @@ def markdown(res: dict) -> str:
 
 
 def main(argv: list[str]) -> int:
-    cmds = {"wheels": 1, "env": 4, "step": 5, "report": 1}
+    cmds = {"begin": 1, "settle": 1, "wheels": 1, "env": 4, "step": 5, "report": 1}
     if not argv or argv[0] not in cmds or len(argv) != cmds[argv[0]] + 1:
         print(__doc__, file=sys.stderr)
         return 2
     cmd, *args = argv
-    if cmd == "wheels":
+    if cmd == "begin":
+        try:
+            begin(Path(args[0]))
+        except Refused as exc:
+            print(f"gpu_check: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"gpu_check: {exc.filename or args[0]}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
+    elif cmd == "settle":
+        settle(Path(args[0]))
+    elif cmd == "wheels":
         print("\n".join(wheels(Path(args[0]))))
     elif cmd == "env":
         env(Path(args[0]), *args[1:])

@@ -13,12 +13,15 @@
 #   1. forward ms per 352 x 640 image, batch 1, UHRNet / U-Net / hNet (the paper's Table 3 column), fp32
 #      and fp16 + channels_last                                     (uhrnet bench)
 #   2. synthetic data generated there, rendered through EGL (all cores; samples/s)   (fppsim generate)
-#   3. a short AMP training run of UHRNet on it (training samples/s)                 (uhrnet train --amp)
+#   3. a short training run of UHRNet on it, AMP on a GPU (training samples/s of whole epochs, validation
+#      included)                                                                    (uhrnet train --amp)
 #   4. one DistributedDataParallel epoch on nccl, world size 1        (torchrun -m uhrnet train)
 #   5. one point of the sim-to-real curve at GPU scale: step 3's model scored on the real pair and real
 #      phase frames in .gpu_data/                                      (uhrnet sim2real --reuse-run)
 # OUTDIR/gpu_check.json and OUTDIR/gpu_check.md hold the numbers, OUTDIR/*.log each step's output
-# (a handful of small files; no checkpoints or datasets: those stay in OUTDIR/work).
+# (a handful of small files; no checkpoints or datasets: those stay in OUTDIR/work). OUTDIR must be new, empty
+# or an earlier run's (its .gpu_check marker); a re-run replaces only what this script wrote there (the
+# record OUTDIR/.fppsim-owned.json) and refuses, in one line naming it, a path it has to write that is not its own.
 #
 # Environment (optional):
 #   GPU_CHECK_BUDGET  seconds the whole run may take   [600: 10 minutes + a machine start fits in 15]
@@ -35,7 +38,7 @@ PY="${PYTHON:-python3}"
 MODE="${1:-run}"
 case "$MODE" in
   prepare|run) shift || true ;;
-  -h|--help) sed -n '2,30p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  -h|--help) sed -n '2,33p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
   *) MODE=run ;;  # bash gpu_check.sh OUTDIR
 esac
 log() { printf '[gpu_check %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
@@ -83,22 +86,39 @@ BUDGET="${GPU_CHECK_BUDGET:-600}"
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
 OUTDIR="${1:-$ROOT/out/gpu_check}"
 # OUTDIR is this script's own: new, empty, or an earlier run's (its .gpu_check marker); never someone's folder
+if { [ -e "$OUTDIR" ] || [ -L "$OUTDIR" ]; } && [ ! -d "$OUTDIR" ]; then
+  echo "gpu_check: $OUTDIR exists and is not a folder: give a new or empty OUTDIR" >&2; exit 2
+fi
 if [ -d "$OUTDIR" ] && [ -n "$(ls -A "$OUTDIR")" ] && [ ! -f "$OUTDIR/.gpu_check" ]; then
   echo "gpu_check: $OUTDIR holds files this script did not write: give a new or empty OUTDIR" >&2; exit 2
 fi
 "$PY" -c 'import torch, numpy' 2>/dev/null || { echo "gpu_check: $PY has no PyTorch (set PYTHON=...)" >&2; exit 2; }
-mkdir -p "$OUTDIR"
+# the sizes, and the refusal of a GPU run without a GPU, before anything is written
+CUDA=$("$PY" -c 'import torch; print(int(torch.cuda.is_available()))')
+NPROC=$(nproc)
+if [ "$TINY" != 0 ]; then
+  H=64; W=128; COUNT=8; EPOCHS=1; BATCH=2; WIDTH=(--base-channels 4); DEV=cpu; REPEATS=(--repeats 1 --warmup 1)
+  GENW=2; AMP=(); [ "$CUDA" = 1 ] && { DEV=cuda; AMP=(--amp); }   # bf16 autocast on a CPU is slow
+elif [ "$BUDGET" -ge 600 ]; then
+  H=352; W=640; COUNT=2000; EPOCHS=3; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 30 --warmup 10)
+  GENW=$NPROC; AMP=(--amp)
+else
+  H=352; W=640; COUNT=$([ "$BUDGET" -ge 400 ] && echo 1200 || echo 800); EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda
+  REPEATS=(--repeats 20 --warmup 5); GENW=$NPROC; AMP=(--amp)
+fi
+[ "$DEV" = cuda ] && [ "$CUDA" = 0 ] && { echo "gpu_check: no CUDA device here (GPU_CHECK_TINY=1 dry-runs on the CPU)" >&2; exit 2; }
+# an earlier run's own files go (a killed run leaves no stale step for the report), nothing else; this run's
+# names are claimed (OUTDIR/.fppsim-owned.json) before they are written; one line and exit 2 if OUTDIR cannot be used
+"$PY" pipelines/gpu_check.py begin "$OUTDIR" || exit 2
 OUTDIR="$(cd "$OUTDIR" && pwd)"
-touch "$OUTDIR/.gpu_check"
+trap '"$PY" pipelines/gpu_check.py settle "$OUTDIR" || true' EXIT   # record what the run wrote under work/
+trap 'exit 143' TERM
+trap 'exit 130' INT
 WORK="$OUTDIR/work"
 T0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
 # a step may take CAP seconds, but never what the later steps need (RESERVE: a share of the budget)
 limit() { local cap=$1 reserve=$2 l; l=$(( $(left) - reserve )); [ "$l" -lt "$cap" ] && cap=$l; echo $(( cap < 5 ? 5 : cap )); }
-# an earlier run's results (all written by this script): a killed run leaves no stale step for the report
-rm -f "$OUTDIR"/step_*.json "$OUTDIR"/forward_*.json "$OUTDIR"/*.log "$OUTDIR"/gpu_check.json "$OUTDIR"/gpu_check.md
-rm -rf "$WORK"
-mkdir -p "$WORK"
 
 # 0. The environment: carried wheels into a private site folder (never pip's network), GL loaders.
 SITE="$WORK/site"
@@ -112,7 +132,6 @@ if compgen -G ".whl/*.whl" >/dev/null; then
     export PYTHONPATH="$PYTHONPATH:$SITE"   # after the image's own packages: theirs win where both exist
   fi
 fi
-CUDA=$("$PY" -c 'import torch; print(int(torch.cuda.is_available()))')
 if [ "$CUDA" = 1 ]; then
   export PYOPENGL_PLATFORM=egl
   if [ "$(id -u)" = 0 ] && compgen -G ".gl/*.deb" >/dev/null && ! ldconfig -p | grep -q 'libEGL.so.1 '; then
@@ -124,25 +143,12 @@ if [ "$CUDA" = 1 ]; then
 else
   # the CPU dry run renders through OSMesa where it exists, else Mesa's EGL
   if ldconfig -p 2>/dev/null | grep -q libOSMesa; then export PYOPENGL_PLATFORM=osmesa; else export PYOPENGL_PLATFORM=egl; fi
-  [ "$TINY" = 0 ] && log "no CUDA device: run with GPU_CHECK_TINY=1 for a dry run of the plumbing"
 fi
 if ! ldconfig -p 2>/dev/null | grep -q 'libXrender.so.1 ' && compgen -G ".gl/x11/*.deb" >/dev/null; then
   # pyglet (imported by pyrender) loads libX11/libXrender even headless; unpacked beside /, not over it
   for f in .gl/x11/*.deb; do dpkg -x "$f" "$WORK/x11"; done
   export LD_LIBRARY_PATH="$WORK/x11/usr/lib/x86_64-linux-gnu${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 fi
-NPROC=$(nproc)
-if [ "$TINY" != 0 ]; then
-  H=64; W=128; COUNT=8; EPOCHS=1; BATCH=2; WIDTH=(--base-channels 4); DEV=cpu; REPEATS=(--repeats 1 --warmup 1)
-  GENW=2; AMP=(); [ "$CUDA" = 1 ] && { DEV=cuda; AMP=(--amp); }   # bf16 autocast on a CPU is slow
-elif [ "$BUDGET" -ge 600 ]; then
-  H=352; W=640; COUNT=2000; EPOCHS=3; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 30 --warmup 10)
-  GENW=$NPROC; AMP=(--amp)
-else
-  H=352; W=640; COUNT=$([ "$BUDGET" -ge 400 ] && echo 1200 || echo 800); EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda
-  REPEATS=(--repeats 20 --warmup 5); GENW=$NPROC; AMP=(--amp)
-fi
-[ "$DEV" = cuda ] && [ "$CUDA" = 0 ] && { echo "gpu_check: no CUDA device here (GPU_CHECK_TINY=1 dry-runs on the CPU)" >&2; exit 2; }
 "$PY" pipelines/gpu_check.py env "$OUTDIR" "$BUDGET" "$TINY" "$PYOPENGL_PLATFORM" >/dev/null
 
 # run_step NAME LIMIT CMD...: time a command into OUTDIR/NAME.log and OUTDIR/step_NAME.json
@@ -170,7 +176,7 @@ fi
 # 2. data generated there, through EGL on the GPU (the recipe's generator settings, figshare layout)
 run_step generate "$(limit 150 $(( BUDGET * 45 / 100 )))" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
   --count "$COUNT" --seed 100 --workers "$GENW" --no-psp --format figshare --backend "$PYOPENGL_PLATFORM" --no-preview
-# 3. UHRNet, AMP, on that data (the sim-to-real gpu scale's loss, batch and lr); 5 reuses the run
+# 3. UHRNet (AMP on a GPU) on that data (the sim-to-real gpu scale's loss, batch and lr); 5 reuses the run
 TRAIN=(--synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --loss compound --epochs "$EPOCHS" --batch-size "$BATCH"
        --lr 3e-4 --seed 0 "${AMP[@]}" --device "$DEV" --no-progress)
 run_step train "$(limit 330 $(( BUDGET * 15 / 100 )))" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"

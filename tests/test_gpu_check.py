@@ -94,3 +94,127 @@ def test_an_outdir_holding_someone_elses_files_is_refused_untouched(tmp_path):
     assert r.returncode == 2 and "did not write" in r.stderr and r.stderr.strip().count("\n") == 0
     assert (out / "work" / "notes.txt").read_text() == "keep" and (out / "train.log").read_text() == "keep too"
     assert not (out / ".gpu_check").exists()
+
+
+def _report_fixture(out: Path, amp: bool | None) -> None:
+    _write(out / "step_env.json", {"device": "cpu (no CUDA device)", "torch": "2.13", "cuda": None, "python": "3.12",
+                                   "cpu_cores": 2, "gl_platform": "osmesa", "budget_s": 600, "tiny_dry_run": True})
+    _write(out / "step_train.json", {"exit_code": 0, "seconds": 9.0, "limit_s": 100, "timed_out": False})
+    syn = out / "work" / "syn"
+    syn.mkdir(parents=True)
+    np.save(syn / "f1_80.npy", np.zeros((10, 4, 4, 1), np.float32))
+    run = out / "work" / "run"
+    run.mkdir(parents=True)
+    (run / "history.csv").write_text("epoch,val_rmse_mm,seconds\n1,5.0,4.0\n2,4.0,2.0\n")
+    if amp is not None:
+        _write(run / "config.json", {"model": "uhrnet", "amp": amp})
+
+
+@pytest.mark.parametrize("amp", [False, True, None])
+def test_report_says_amp_only_when_the_run_used_it_and_that_the_rate_includes_validation(tmp_path, amp):
+    _report_fixture(tmp_path, amp)
+    res = gpu_check.report(tmp_path)
+    md = (tmp_path / "gpu_check.md").read_text()
+    line = next(x for x in md.splitlines() if x.startswith("Training ("))
+    assert line.startswith("Training (UHRNet, AMP):" if amp else "Training (UHRNet):")
+    assert "4.0 training samples/s, validation included" in line  # 8 training samples / 2 s (epoch 1 left out)
+    assert res["train"]["amp"] is amp and "validation" in res["train"]["samples_per_s_note"]
+
+
+def _script(out, env=None, **kw):
+    return subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(out)],
+                          env={**os.environ, "PYTHON": sys.executable, **(env or {})}, capture_output=True, text=True,
+                          timeout=kw.get("timeout", 120))
+
+
+def test_an_outdir_that_is_a_file_is_one_line_and_exit_2(tmp_path):
+    f = tmp_path / "results.txt"
+    f.write_text("mine")
+    r = _script(f)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0
+    assert str(f) in r.stderr and "not a folder" in r.stderr and f.read_text() == "mine"
+
+
+@pytest.mark.skipif(__import__("torch").cuda.is_available(), reason="the refusal of a machine without CUDA")
+def test_no_cuda_is_refused_before_anything_is_written(tmp_path):
+    r = _script(tmp_path / "o")  # not TINY: the real sizes need a GPU
+    assert r.returncode == 2 and "no CUDA device" in r.stderr and r.stderr.strip().count("\n") == 0
+    assert not (tmp_path / "o").exists()
+    (tmp_path / "e").mkdir()  # an existing empty OUTDIR stays empty
+    assert _script(tmp_path / "e").returncode == 2 and not any((tmp_path / "e").iterdir())
+
+
+def _fake_python(tmp_path) -> Path:
+    """An interpreter for the script whose steps (``PY -m ...``) each write one file named by their process
+    into their --out folder, as the real tools would, and fail at once; everything else is this Python."""
+    fake = tmp_path / "fakepy"
+    fake.write_text(f"""#!/bin/bash
+if [ "$1" = -m ]; then
+  prev=""; for a in "$@"; do [ "$prev" = --out ] && mkdir -p "$a" && echo x > "$a/made-$$.txt"; prev=$a; done
+  exit 1
+fi
+exec {sys.executable} "$@"
+""")
+    fake.chmod(0o755)
+    return fake
+
+
+def _files(root: Path) -> set[str]:
+    return {str(p.relative_to(root)) for p in root.rglob("*") if p.is_file()}
+
+
+@pytest.mark.slow
+def test_a_rerun_replaces_only_its_own_files(tmp_path):
+    """Two TINY runs whose steps fail at once (about 20 s): the second removes the first one's step files and
+    work folders, keeps the user's files at any depth, and refuses a foreign file where a step writes."""
+    out = tmp_path / "o"
+    env = {"GPU_CHECK_TINY": "1", "PYTHON": str(_fake_python(tmp_path))}
+    assert _script(out, env).returncode == 0
+    first = {n for n in _files(out) if n.startswith("work/")}
+    assert first and all("made-" in n for n in first) and (out / "gpu_check.md").is_file()
+    mine = {"my_notes.log": "notes", "work/keep.txt": "keep", "work/mine/a.txt": "a", "gpu_check.md.bak": "b"}
+    for name, text in mine.items():
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text(text)
+    r = _script(out, env)
+    assert r.returncode == 0, r.stderr
+    assert all((out / n).read_text() == t for n, t in mine.items())
+    second = {n for n in _files(out) if n.startswith("work/")} - set(mine)
+    assert second and not second & first  # the earlier run's files went, this run's are new
+    assert gpu_check.settle(out)  # the record lists what the run wrote, nothing of the user's
+    rec = json.loads((out / ".fppsim-owned.json").read_text())["files"]
+    assert second <= set(rec) and not set(mine) & set(rec)
+    # a file of someone else's where a step writes: refused, naming it, before anything is removed
+    (out / "work" / "run" / "notes.txt").write_text("theirs")
+    before = _files(out)
+    r = _script(out, env)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "work/run/notes.txt" in r.stderr
+    assert _files(out) == before
+
+
+def test_begin_and_settle_own_exactly_what_the_run_wrote(tmp_path):
+    out = tmp_path / "o"
+    gpu_check.begin(out)  # a new folder: marker and record, nothing else
+    assert sorted(p.name for p in out.iterdir()) == [".fppsim-owned.json", ".gpu_check", "work"]
+    (out / "train.log").write_text("run 1")
+    (out / "work" / "syn" / "sub").mkdir(parents=True)
+    (out / "work" / "syn" / "sub" / "a.npy").write_text("x")
+    (out / "work" / "s2r").mkdir()
+    (out / "work" / "s2r" / "link").symlink_to(out / "work" / "syn")  # a link is removed, never followed
+    # killed before settle: the folders it was writing are its own entirely, the user's files are not
+    (out / "my_notes.log").write_text("keep")
+    (out / "work" / "keep.txt").write_text("keep")
+    gpu_check.begin(out)
+    assert _files(out) == {".fppsim-owned.json", ".gpu_check", "my_notes.log", "work/keep.txt"}
+    (out / "work" / "syn").mkdir()
+    (out / "work" / "syn" / "b.npy").write_text("y")
+    rec = gpu_check.settle(out)
+    assert rec["work/syn/b.npy"] == gpu_check.TOOL and "work/run" not in rec and "train.log" not in rec
+    (out / "work" / "syn" / "c.txt").write_text("after the run")  # someone's, in the run's folder
+    with pytest.raises(gpu_check.Refused, match="c.txt exists and was not written"):
+        gpu_check.begin(out)
+    assert (out / "work" / "syn" / "b.npy").exists()  # refused before anything was removed
+    (out / "work" / "syn" / "c.txt").unlink()
+    (out / "step_train.json").mkdir()  # a folder where the run writes a file
+    with pytest.raises(gpu_check.Refused, match="step_train.json exists and was not written"):
+        gpu_check.begin(out)

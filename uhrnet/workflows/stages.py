@@ -77,14 +77,25 @@ def run_stage(name: str, fn: Callable[[], object], log: Path, header: str) -> fl
 
 
 def read_config_file(path: str | Path, what: str, error: type[Exception] = Sim2RealError):
-    """The parsed YAML/JSON document of an experiment's file (an ablation, an arms file); ``error`` names
-    ``what`` is missing or the file that is not YAML/JSON, in one line."""
+    """The parsed YAML/JSON document of an experiment's file (an ablation, an arms file); ``error`` names,
+    in one line, ``what`` is missing, a folder or other non-file given for it, or the file that cannot be
+    read or is not (UTF-8 text) YAML/JSON."""
     import yaml  # PyYAML: only experiments read such files
 
     p = Path(path)
-    if not p.is_file():
+    if p.is_dir():
+        raise error(f"{p}: is a folder; give the YAML/JSON file")
+    if not p.exists():
         raise error(f"{what} not found: {p}")
+    if not p.is_file():
+        raise error(f"{p}: not a regular file; give the YAML/JSON file")
     try:
-        return yaml.safe_load(p.read_text())
-    except yaml.YAMLError as exc:
-        raise error(f"{p}: not valid YAML/JSON ({str(exc).splitlines()[0]})") from None
+        text = p.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise error(f"{p}: not a text YAML/JSON file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise error(f"{p}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        return yaml.safe_load(text)
+    except (yaml.YAMLError, ValueError, RecursionError) as exc:  # a value YAML cannot build, e.g. 2020-13-45
+        raise error(f"{p}: not valid YAML/JSON ({(str(exc).splitlines() or [type(exc).__name__])[0]})") from None
