@@ -190,7 +190,8 @@ def arm_config(arm: dict, seed: int, args) -> tuple[object, list[str]]:
         given["workers"] = args.workers
     cfg = Sim2RealConfig(out=str(out), real=list(args.real), meshes=list(args.meshes), real_phase=list(args.real_phase),
                          figures=not args.no_figures, **given)
-    train = list(arm["train"]) + (["--resize", args.resize] if args.resize else []) + ["--seed", str(seed)]
+    train = (list(arm["train"]) + (["--resize", args.resize] if args.resize else [])
+             + (["--threads", str(args.threads)] if args.threads else []) + ["--seed", str(seed)])
     flags = VariantFlags(f"s{seed}", list(arm["generate"]), train)
     variant = variant_from_flags(cfg, flags, variant_commands())
     cfg = replace(cfg, variants=[variant])
@@ -271,7 +272,8 @@ def study_command(args, arm: dict, seed: int) -> list[str]:
             "--seeds", str(seed), "--out", _rel(args.out), "--real", *map(_rel, args.real),
             "--real-phase", *(map(_rel, args.real_phase) if args.real_phase else ["none"]),
             "--meshes", *map(_rel, args.meshes)]
-    for flag, value in (("--resize", args.resize), ("--device", args.device), ("--workers", args.workers)):
+    for flag, value in (("--resize", args.resize), ("--threads", args.threads), ("--device", args.device),
+                        ("--workers", args.workers)):
         if value is not None:
             argv += [flag, str(value)]
     return argv + (["--no-figures"] if args.no_figures else [])
@@ -286,7 +288,7 @@ def seed_record(args, arm: dict, seed: int, cfg, argv: list[str]) -> dict:
 
     return {"arm": arm["name"], "seed": seed, "resize": args.resize, "device": cfg.device,
             "command": shlex.join(study_command(args, arm, seed)), "sim2real_command": shlex.join(argv),
-            **code_version(), "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            **code_version(), "torch": torch.__version__, "torch_threads": args.threads or torch.get_num_threads(),
             "python": platform.python_version(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
@@ -574,6 +576,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--device", choices=("auto", "cpu", "cuda"), help="training device [the arm's scale: cpu]")
     p.add_argument("--workers", type=int, metavar="N", help="generator processes, 0: all cores [the scale's: 2]")
     p.add_argument("--resize", metavar="HxW", help="uhrnet train --resize HxW for every arm (e.g. quick looks)")
+    p.add_argument("--threads", type=int, default=2, metavar="N",
+                   help="uhrnet train --threads N for every arm: a seeded run repeats bit for bit only at the same "
+                        "CPU thread count (0: torch's default, the cores) [2, the recipe's machine]")
     p.add_argument("--no-figures", action="store_true", help="no per-image figure of the real pairs (sim2real's)")
     p.add_argument("--ledger", metavar="FILE",
                    help="the study record the finished seeds are added to (never dropping one already recorded); "

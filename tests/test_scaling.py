@@ -144,7 +144,7 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
     assert (a6["count"], a6["steps"], a8["steps"]) == (6, 2, 2)  # 4 training samples / batch 2; 4 draws / 2
     s1 = a6["seeds"][1]
     assert s1["sim2real_command"].startswith("uhrnet sim2real ") and s1["device"] == "cpu"
-    assert "--variant 's1:  | --resize 32x64 --no-augment --seed 1'" in s1["sim2real_command"]
+    assert "--variant 's1:  | --resize 32x64 --no-augment --threads 2 --seed 1'" in s1["sim2real_command"]
     assert s1["command"].startswith("python pipelines/scaling.py ") and "--arms a6 --seeds 1" in s1["command"]
     assert s1["commit"] and len(s1["commit"]) == 40
     for arm in doc["arms"]:

@@ -65,6 +65,9 @@ def add_train(p: argparse.ArgumentParser) -> None:
     d.add_argument("--resize", metavar="HxW", help="resize every sample to HxW first (area averaging)")
     d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
+    d.add_argument("--threads", type=int, metavar="N",
+                   help="CPU threads torch computes with; a seeded run repeats bit for bit only at the same count "
+                        "[torch's default: the cores]")
     d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=tuple(AUGMENTS),
                    metavar="KIND",
                    help="augmentation of synthetic samples (uhrnet.training.augment; real samples never): 'photometric' "

@@ -25,7 +25,7 @@ DEFAULTS = {
     "real_split": "reference", "synthetic_split": "reference", "synthetic_label": "true",
     "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
     "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
-    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "seed": 0,
+    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "threads": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
     "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
 }
@@ -76,6 +76,11 @@ class TrainConfig:
     file of the phase head (default: the rig recorded in the first synthetic sample's ``meta.json``, else
     fppsim's default rig); the checkpoint carries it. The phase head needs full camera-size images (no
     ``crop``/``resize``: each pixel is a camera ray).
+    ``threads``: CPU threads torch computes with (``torch.set_num_threads`` for the run, restored after;
+    None: torch's default, the cores). A seeded run repeats bit for bit at the same count, whatever else
+    the machine is doing, but not across counts (the reductions split differently, and a long run
+    amplifies the last bits); ``config.json`` records the count used as ``torch_threads``. Free to change
+    on resume.
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). ``tensorboard``: also log to
     ``out/tensorboard/`` (:mod:`uhrnet.training.tb_log`; needs the optional ``tensorboard`` package; like
@@ -96,6 +101,7 @@ class TrainConfig:
     resize: str | None = None
     samples_per_epoch: int | None = None
     workers: int | None = None
+    threads: int | None = None
     augment: str | bool | None = None
     augment_probability: float | None = None
     lr_schedule: str | None = None
@@ -159,6 +165,8 @@ def check_options(cfg: dict) -> None:
             raise ConfigError(f"--{key}: {exc}") from None
     if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
         raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
+    if cfg.get("threads") is not None and not (isinstance(cfg["threads"], int) and 1 <= cfg["threads"] <= 1024):
+        raise UsageError(f"--threads must be a number of CPU threads from 1 to 1024, got {cfg['threads']!r}")
     for key in ("epochs", "batch_size"):
         if key in cfg and cfg[key] < 1:
             raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")

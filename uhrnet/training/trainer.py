@@ -357,6 +357,7 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             # the epochs the weights hold: a resume with fewer --epochs trains nothing and must not say otherwise
             write_run_config(self.out, {**cfg, "epochs": max(int(cfg["epochs"]), self.start_epoch),
+                                        "torch_threads": torch.get_num_threads(),
                                         "label_transform_resolved": self.transform.to_dict(),
                                         "data": self.sources.description, "n_parameters": self.n_params,
                                         "world_size": info.world})
@@ -454,6 +455,9 @@ def train(config: TrainConfig) -> dict:
     Under ``torchrun`` every process calls this; it runs DistributedDataParallel and only rank 0 writes.
     """
     info = init_distributed(config.device or "auto")
+    threads = torch.get_num_threads()
+    if config.threads:
+        torch.set_num_threads(int(config.threads))
     try:
         if not info.main:
             trainer = Trainer(config, info)
@@ -469,5 +473,6 @@ def train(config: TrainConfig) -> dict:
                 trainer.fit()
         return {"out": trainer.out, "best": dict(trainer.best), "history": [dict(r) for r in trainer.history]}
     finally:
+        torch.set_num_threads(threads)
         if info.enabled and dist.is_initialized():
             dist.destroy_process_group()
