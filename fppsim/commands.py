@@ -14,7 +14,7 @@ import sys
 from dataclasses import dataclass
 from typing import Callable
 
-from fppsim.dataio.files import signals_raise
+from fppsim.files import signals_raise
 
 __all__ = ["Command", "ReportLines", "build_command_parser", "one_line", "run_commands"]
 

@@ -65,4 +65,4 @@ class FolderBusy(FppsimError, RuntimeError):
 
 
 class ForeignFiles(DatasetError):
-    """An output path a tool would write already holds a file it did not write (:mod:`fppsim.dataio.owned`)."""
+    """An output path a tool would write already holds a file it did not write (:mod:`fppsim.owned`)."""

@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Sequence
 
 from fppsim import __version__
 from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
-from fppsim.dataio.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
+from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)

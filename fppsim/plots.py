@@ -26,7 +26,7 @@ def pyplot():
 def save_figure(fig, path: str | os.PathLike, dpi: float = 100, **savefig) -> Path:
     """Write ``fig`` to ``path`` (format from its suffix) atomically; returns the path. ``savefig``:
     more ``Figure.savefig`` options (e.g. ``bbox_inches="tight"``). The figure stays open."""
-    from fppsim.dataio.files import atomic_path
+    from fppsim.files import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:

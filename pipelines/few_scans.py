@@ -386,9 +386,9 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
 
 # ============================================================================================ main
 def run(args, argv: list[str]) -> dict:
-    from fppsim.dataio.files import atomic_write_text, folder_lock
+    from fppsim.files import atomic_write_text, folder_lock
     from uhrnet.checkpoint import checkpoint_file
-    from uhrnet.training.data import load_sources
+    from uhrnet.data.datasets import load_sources
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -9,7 +9,7 @@
     python pipelines/gpu_check.py step OUT NAME RC START LIMIT  OUT/step_NAME.json: exit code, seconds
     python pipelines/gpu_check.py report OUT                    OUT/gpu_check.json + OUT/gpu_check.md
 
-What is the script's own in OUT: the ownership record ``OUT/.fppsim-owned.json`` (:mod:`fppsim.dataio.owned`),
+What is the script's own in OUT: the ownership record ``OUT/.fppsim-owned.json`` (:mod:`fppsim.owned`),
 beside the ``OUT/.gpu_check`` marker. ``begin`` claims the fixed names the run writes (:data:`FILES`) and the
 folders its steps fill (:data:`TREES`, recorded as being written: everything in them was made by the run,
 since each is refused when it exists and is not the script's) before anything is written; ``settle`` (at the
@@ -91,8 +91,8 @@ def begin(out: Path) -> None:
     """Make ``out`` ready for a run: refuse (:class:`Refused`) before touching anything when it is not a folder,
     holds files but no marker (someone else's folder), or holds a path the run writes that is not the
     script's; else remove the earlier run's own files, claim this run's (module docstring), write the marker."""
-    from fppsim.dataio.files import atomic_write_text, clean_stale_tmp
-    from fppsim.dataio.owned import RECORD, ForeignFiles, owners
+    from fppsim.files import atomic_write_text, clean_stale_tmp
+    from fppsim.owned import RECORD, ForeignFiles, owners
 
     if _exists(out) and not out.is_dir():
         raise Refused(f"{out} exists and is not a folder: give a new or empty OUTDIR")
@@ -140,8 +140,8 @@ def begin(out: Path) -> None:
 def settle(out: Path) -> dict[str, str]:
     """Replace the claim of each folder the run was writing by its contents (the paths in it now), and drop
     claims of names the run never wrote; returns the record."""
-    from fppsim.dataio.files import atomic_write_text
-    from fppsim.dataio.owned import RECORD, owners
+    from fppsim.files import atomic_write_text
+    from fppsim.owned import RECORD, owners
 
     record = owners(out) or {}
     new = {}

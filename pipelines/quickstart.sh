@@ -32,7 +32,7 @@ fppsim generate --meshes assets/meshes --out "$OUT/synthetic" --count "$COUNT" -
 echo "== 2/4 training a tiny UHRNet on CPU ($EPOCHS epochs at 176 x 320)"
 REAL_ARGS=()
 if [ -n "$REAL" ]; then
-  n_real=$(python -c "import sys; from uhrnet.training.data import FigshareArrays; print(len(FigshareArrays(sys.argv[1])))" "$REAL")
+  n_real=$(python -c "import sys; from uhrnet.data.datasets import FigshareArrays; print(len(FigshareArrays(sys.argv[1])))" "$REAL")
   # the reference 80/10/10 split needs at least 6 samples; a single real sample can only be trained on
   if [ "$n_real" -ge 6 ]; then REAL_ARGS=(--real "$REAL"); else REAL_ARGS=(--real "$REAL" --real-split train); fi
   echo "   real data: $REAL ($n_real samples)"

@@ -216,7 +216,7 @@ def _variant(cfg, seed: int):
 def steps_of(cfg, variant) -> int:
     """Optimizer steps of the variant's training run: epochs x ceil(draws per epoch / batch size), the draws
     being ``--samples-per-epoch`` or the reference split's training samples (80 % of the count)."""
-    from uhrnet.training.splits import MIN_REFERENCE_SPLIT, split_indices
+    from uhrnet.data.splits import MIN_REFERENCE_SPLIT, split_indices
 
     tr = variant.train
     epochs, batch = int(tr.get("epochs") or cfg.epochs), int(tr.get("batch_size") or cfg.batch_size)
@@ -502,7 +502,7 @@ def write_report(args, arms: list[dict], configs: dict) -> dict:
     Nothing recorded is lost: a seed is keyed by (arm, resize, device, seed); results already in the record
     stay whether or not their folders are still here, and a folder whose result differs from the recorded one
     (another commit, or a re-run) keeps the earlier result in the seed's ``reruns``."""
-    from fppsim.dataio.files import atomic_write_text
+    from fppsim.files import atomic_write_text
 
     out, ledger = Path(args.out), Path(args.ledger)
     doc = load_ledger(ledger)
@@ -644,7 +644,7 @@ def _cfg_var(configs: dict, arm: dict, seed: int):
 def _write_record(folder: Path, record: dict) -> None:
     """Write the seed's ``study.json``; a seed resumed later keeps its first record (the commit it started
     at) and lists every later start under ``resumes``."""
-    from fppsim.dataio.files import atomic_write_text
+    from fppsim.files import atomic_write_text
 
     path = folder / RECORD
     try:

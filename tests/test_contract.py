@@ -9,11 +9,11 @@ import pytest
 import torch
 
 from fppsim.dataio.encoding import decode_fringe, encode_fringe
-from fppsim.dataio.files import atomic_path, atomic_write_text
+from fppsim.files import atomic_path, atomic_write_text
 from fppsim.dataio.formats import LabelTransform, read_manifest, read_settings, reconcile
 from fppsim.dataio.writers import export_figshare, write_sample_folder
-from fppsim.dataio.files import tmp_path as temp_name
-from uhrnet.training.data import FigshareArrays, FppsimDataset
+from fppsim.files import tmp_path as temp_name
+from uhrnet.data.datasets import FigshareArrays, FppsimDataset
 from uhrnet.errors import DataError
 
 

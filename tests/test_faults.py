@@ -19,7 +19,7 @@ import pytest
 import torch
 import trimesh
 
-from fppsim.dataio.files import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own_tmp
+from fppsim.files import FolderBusy, clean_stale_tmp, folder_lock, tmp_path as own_tmp
 from fppsim.cli import main as fppsim_main
 from fppsim.dataio.formats import DatasetError, LabelTransform, read_manifest, reconcile
 from fppsim.dataio.writers import export_figshare
@@ -112,7 +112,7 @@ def test_reconcile_and_cleanup_touch_only_our_dead_temp_files(tmp_path):
 def test_a_zombie_writer_counts_as_dead(tmp_path):
     """A worker orphaned by kill -9 stays a zombie until PID 1 reaps it (seconds in containers); kill(0)
     still succeeds on it, yet its temporary folders are stale and a re-run must remove them."""
-    from fppsim.dataio.files import pid_alive
+    from fppsim.files import pid_alive
 
     p = subprocess.Popen(["sleep", "30"])
     try:

@@ -114,7 +114,7 @@ def test_no_library_module_is_longer_than_the_limit():
 
 def test_shared_helpers_are_defined_once():
     """One plane level, one polynomial plane basis, one name per dataset opener (a torch Dataset:
-    ``uhrnet.training.data.open_dataset``; a numpy reader: ``fppsim.dataio.readers.open_samples``), one home for the phase
+    ``uhrnet.data.datasets.open_dataset``; a numpy reader: ``fppsim.dataio.readers.open_samples``), one home for the phase
     helpers and the camera ray cut at a height."""
     where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION + tuple(TWINS)}
     for pkg in PACKAGES + ("pipelines",):
@@ -125,7 +125,7 @@ def test_shared_helpers_are_defined_once():
     twins = {k: sorted(p.split(":")[0] for p in where.pop(k)) for k in TWINS}
     assert twins == TWINS, twins
     assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
-    assert where["open_dataset"][0].startswith("uhrnet/training/data.py") and where["open_samples"][0].startswith("fppsim/dataio/readers/")
+    assert where["open_dataset"][0].startswith("uhrnet/data/datasets.py") and where["open_samples"][0].startswith("fppsim/dataio/readers/")
     assert where["plane_level"][0].startswith("fppsim/phase/fringe.py") and where["poly_basis"][0].startswith("fppsim/phase/fringe.py")
 
 
@@ -177,7 +177,7 @@ def test_the_command_framework_names_no_package():
                   if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))}
     named = [s for s in strings if s not in docstrings and any(f"{p}." in s or s == p for p in PACKAGES)]
     assert not named, named
-    assert _imported(ROOT / "fppsim" / "commands.py", "fppsim.commands") <= {"fppsim.dataio.files", "fppsim.dataio.files.signals_raise"}
+    assert _imported(ROOT / "fppsim" / "commands.py", "fppsim.commands") <= {"fppsim.files", "fppsim.files.signals_raise"}
 
 
 # ---------------------------------------------------------------------------- import cycles (issue 29)
@@ -341,3 +341,48 @@ def test_data_layouts_are_recognised_only_by_the_readers():
             if isinstance(node, ast.Call) and getattr(node.func, "id", getattr(node.func, "attr", None)) == "is_psp_folder":
                 callers.add(path.relative_to(ROOT).as_posix())
     assert callers == {"fppsim/dataio/readers/source.py"}, callers
+
+
+# ---------------------------------------------------------------------------- stage order (issue 37)
+def _stated_order() -> dict[str, list[str]]:
+    """The order ARCHITECTURE.md states (the two lines after its ``<!-- layers -->`` mark), bottom first."""
+    text = (ROOT / "docs" / "ARCHITECTURE.md").read_text()
+    block = text.split("<!-- layers -->", 1)[1].split("```")[1]
+    order = {}
+    for line in block.strip().splitlines():
+        pkg, _, chain = line.partition(":")
+        names = [n.strip() for n in chain.split("<")]
+        order[pkg.strip()] = [pkg.strip() if n == pkg.strip() else f"{pkg.strip()}.{n}" for n in names]
+    return order
+
+
+def _stage(module: str) -> str:
+    """The stage a module belongs to: its package's sub-folder, or the top-level module itself (a name
+    imported from the package itself, such as ``__version__``, is the package)."""
+    parts = module.split(".")
+    if len(parts) == 1 or not ((ROOT / parts[0] / parts[1]).is_dir() or (ROOT / parts[0] / f"{parts[1]}.py").is_file()):
+        return parts[0]
+    return ".".join(parts[:2])
+
+
+def test_stage_folders_flow_one_way_in_the_stated_order():
+    order = _stated_order()
+    assert set(order) == set(PACKAGES)
+    upward, unplaced = [], set()
+    for module, path in _modules():
+        pkg, here = module.split(".")[0], _stage(module)
+        if here not in order[pkg]:
+            unplaced.add(here)
+            continue
+        for target in _imported(path, module):
+            if target.split(".")[0] != pkg:
+                if pkg == "fppsim":
+                    upward.append(f"{module} imports {target} (fppsim never imports uhrnet)")
+                continue
+            there = _stage(target)
+            if there not in order[pkg]:
+                unplaced.add(there)
+            elif order[pkg].index(there) > order[pkg].index(here):
+                upward.append(f"{module} ({here}) imports {target} ({there}), which stands above it")
+    assert not unplaced, f"stages missing from ARCHITECTURE.md's order: {sorted(unplaced)}"
+    assert not upward, upward

@@ -38,7 +38,7 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     var = variant_from_flags(cfg, v, variant_commands())
     assert var.train == {"head": "phase"} and var.adapt == {"epochs": 20, "lr": 1e-3}
     assert var.refine == ["relief", "orders"] and var.described("adapt") == ["--epochs", "20", "--lr", "1e-3"]
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
 
     default = AdaptConfig.__dataclass_fields__["epochs"].default
     assert variant_from_flags(cfg, parse_variant(f"a: | | adapt --epochs {default}"), variant_commands()).adapt == {}  # the default

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim.dataio.files import atomic_path
+from fppsim.files import atomic_path
 from fppsim.dataio.formats import LabelTransform
 from uhrnet.errors import CheckpointError
 from uhrnet.models import outputs_of
@@ -36,7 +36,7 @@ VERSION = 1
 
 
 def atomic_save(obj, path: str | os.PathLike) -> Path:
-    """``torch.save`` through :func:`fppsim.dataio.files.atomic_path` (temporary file, fsync, rename).
+    """``torch.save`` through :func:`fppsim.files.atomic_path` (temporary file, fsync, rename).
 
     A crash or kill at any moment leaves either the previous file or the new one, never a torn file.
     """

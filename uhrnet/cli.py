@@ -34,9 +34,9 @@ DEVICES = ("auto", "cpu", "cuda")
 # ============================================================================ train
 def add_train(p: argparse.ArgumentParser) -> None:
     from fppsim.dataio.formats import PRESETS
-    from uhrnet.training.augment import AUGMENTS
+    from uhrnet.data.augment import AUGMENTS
     from fppsim.dataio.readers import LABEL_SOURCES
-    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.data.splits import SPLIT_MODES
     from uhrnet.training.losses import LOSSES
     from uhrnet.models import HEADS, list_models
     from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
@@ -70,7 +70,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         "[torch's default: the cores]")
     d.add_argument("--augment", dest="augment", nargs="?", const="shading", choices=tuple(AUGMENTS),
                    metavar="KIND",
-                   help="augmentation of synthetic samples (uhrnet.training.augment; real samples never): 'photometric' "
+                   help="augmentation of synthetic samples (uhrnet.data.augment; real samples never): 'photometric' "
                         "jitters gain, gamma, contrast, blur and noise; 'shading' adds random smooth fields on "
                         "the fringe background and modulation so that shading cannot stand in for the phase; 'off' [shading]")
     d.add_argument("--no-augment", dest="augment", action="store_const", const="off",
@@ -162,7 +162,7 @@ def run_train(args) -> int:
 # ============================================================================ evaluate
 def add_evaluate(p: argparse.ArgumentParser) -> None:
     from fppsim.dataio.readers import LABEL_SOURCES
-    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.data.splits import SPLIT_MODES
     from uhrnet.scoring.evaluation import SPLITS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
@@ -456,7 +456,7 @@ def adapt_options(args) -> dict:
     """The ``AdaptConfig`` fields the ``adapt`` flags ``args`` give (not the checkpoint, images and folder)."""
     from dataclasses import fields
 
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
 
     out = {f.name: getattr(args, f.name) for f in fields(AdaptConfig)
            if hasattr(args, f.name) and f.name not in ("checkpoint", "images", "out")}
@@ -579,7 +579,7 @@ def run_sim2real(args) -> int:
 
 # ============================================================================ adapt
 def add_adapt(p: argparse.ArgumentParser) -> None:
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
 
     d = AdaptConfig.__dataclass_fields__
     p.add_argument("checkpoint", metavar="RUN", help="the model to adapt: a run folder (best.pt, else last.pt) or a .pt")
@@ -614,7 +614,7 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
 
 
 def run_adapt(args) -> int:
-    from uhrnet.physics.adapt import AdaptConfig, adapt
+    from uhrnet.training.adapt import AdaptConfig, adapt
 
     cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
                       epochs=args.epochs, lr=args.lr, w_grad=args.w_grad, w_drift=args.w_drift,

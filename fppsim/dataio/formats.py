@@ -22,8 +22,8 @@ Figshare layout (the public real data): ``f1_80.npy`` (N, H, W, 1) float32 fring
 and ``Z.npy`` (N, H, W, 1) float32 labels = :meth:`LabelTransform.label_from_height_mm` of the height.
 The single published sample uses ``fringe_pattern.npy`` / ``height_map.npy`` (H, W) (:data:`FIGSHARE_PAIRS`).
 
-Every file is written through one helper, :func:`fppsim.dataio.files.atomic_path`: a temporary sibling named
-``.fppsim-tmp-<pid>-<name>`` (:func:`fppsim.dataio.files.tmp_path`), fsync, one rename. :func:`reconcile`
+Every file is written through one helper, :func:`fppsim.files.atomic_path`: a temporary sibling named
+``.fppsim-tmp-<pid>-<name>`` (:func:`fppsim.files.tmp_path`), fsync, one rename. :func:`reconcile`
 deletes only such names whose process is gone; folders it did not write are never replaced nor counted.
 """
 
@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import DatasetError
-from fppsim.dataio.files import atomic_write_text, clean_stale_tmp
+from fppsim.files import atomic_write_text, clean_stale_tmp
 
 __all__ = [
     "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",

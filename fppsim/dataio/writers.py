@@ -12,7 +12,7 @@
   :func:`save_psp_folder_sample`, :func:`export_psp_folders` (a native dataset in the folder layout),
   :func:`sums_from_phase`.
 
-Every file goes through :func:`fppsim.dataio.files.atomic_path` or a temporary sibling renamed into place.
+Every file goes through :func:`fppsim.files.atomic_path` or a temporary sibling renamed into place.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe, encode_png, save_npz
 from fppsim.errors import DatasetError, PSPMatError
-from fppsim.dataio.files import atomic_path, clean_stale_tmp, tmp_path, write_fully
+from fppsim.files import atomic_path, clean_stale_tmp, tmp_path, write_fully
 from fppsim.dataio.formats import LabelTransform, is_own_sample, read_manifest
 from fppsim.dataio.readers import FOLDERS, check_convention, load_native_sample, wrapped_from_sums
 
@@ -336,7 +336,7 @@ def sums_from_phase(phase: np.ndarray, valid: np.ndarray | None = None, modulati
 
 
 def _savemat_atomic(path: Path, data: dict, compress: bool = True) -> None:
-    """``scipy.io.savemat`` (MATLAB v5) through :func:`fppsim.dataio.files.atomic_path`."""
+    """``scipy.io.savemat`` (MATLAB v5) through :func:`fppsim.files.atomic_path`."""
     import scipy.io
 
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:

@@ -48,7 +48,7 @@ import os
 import numpy as np
 
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from fppsim.phase.fringe import estimate_period, fringe_modulation, fringe_tilt, plane_level, quarter_periods
 from fppsim.dataio.readers import iter_samples, open_samples

@@ -42,7 +42,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.dataio.files import atomic_write_text, check_output_file
+from fppsim.files import atomic_write_text, check_output_file
 from fppsim.rendering.optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
 from fppsim.dataio.readers import load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence

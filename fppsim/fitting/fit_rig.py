@@ -36,7 +36,7 @@ from typing import Callable
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.dataio.files import atomic_write_text, check_output_file
+from fppsim.files import atomic_write_text, check_output_file
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names

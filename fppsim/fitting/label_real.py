@@ -31,7 +31,7 @@ turns such scans into training samples in the figshare layout (``f1_80.npy`` + `
    ``previews/<id>.png`` (single-shot image, height map, plane residual), all atomically.
 
 Output files fppsim did not write are never replaced: the folder's ownership record
-(:mod:`fppsim.dataio.owned`) names the files label-real wrote, and a later run replaces only those. A run
+(:mod:`fppsim.owned`) names the files label-real wrote, and a later run replaces only those. A run
 replaces the arrays, the previews and then the report only once every scan is labelled: a run that
 stops half-way leaves an earlier result (arrays, previews and ``label_real.json``) as it was.
 
@@ -52,14 +52,14 @@ import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe, json_default, read_gray_image
 from fppsim.errors import ConfigError, DatasetError, UsageError
-from fppsim.dataio.files import atomic_write_text, tmp_path
+from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
-from fppsim.dataio.owned import output_folder
+from fppsim.owned import output_folder
 from fppsim.phase.psp import decode_stacks
 from fppsim.dataio.readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
-from fppsim.geometry.rig_choice import resolve_rig
+from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.triangulation import height_from_phase
 from fppsim.dataio.writers import NpyRowStream
 
@@ -413,10 +413,10 @@ def _legacy_files(out: Path) -> set[str]:
 
 
 def _check_targets(out: Path, targets: list[str]) -> list[str]:
-    """Claim ``targets`` (:func:`fppsim.dataio.owned.claim`: refused when one exists that label-real did not
+    """Claim ``targets`` (:func:`fppsim.owned.claim`: refused when one exists that label-real did not
     write); returns the files earlier runs wrote that are still there and are not targets now (so a
     later run may still replace them)."""
-    from fppsim.dataio.owned import claim, owners
+    from fppsim.owned import claim, owners
 
     claim(out, TOOL, targets, legacy=lambda: _legacy_files(out), hint="move it away, or use another --out")
     own = {n for n, tool in (owners(out) or {}).items() if tool == TOOL}

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import RigError
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 
 __all__ = ["checked_matrix", "read_rig_file", "save_rig", "rig_from_opencv_stereo", "rotation_to_plane_frame"]
 

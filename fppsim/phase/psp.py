@@ -525,7 +525,7 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
     neighbour_check : also reject pixels failing :func:`order_consistency`.
     rig : the calibrated rig for triangulation; None skips it (``height`` is then None).
     threads : 2 decodes the top and bottom of the image on two threads (this one and
-        :func:`fppsim.rendering.threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
+        :func:`fppsim.threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
         one-row halo, so the result is the very same; 1 (default) decodes in one piece.
     """
     freqs = tuple(int(f) for f in freqs)
@@ -565,8 +565,8 @@ def _heights(rig, phase, ok, periods, rows: slice | None = None):
 
 
 def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads) -> Decoded:
-    """:func:`decode_stacks` on row bands (:func:`fppsim.rendering.threads.map_bands`): the same arrays."""
-    from fppsim.rendering.threads import map_bands, row_bands
+    """:func:`decode_stacks` on row bands (:func:`fppsim.threads.map_bands`): the same arrays."""
+    from fppsim.threads import map_bands, row_bands
 
     stacks = {f: np.asarray(stacks[f]) for f in freqs}
     shapes = {s.shape[1:] if s.ndim == 3 else None for s in stacks.values()}

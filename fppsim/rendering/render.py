@@ -20,7 +20,7 @@ BACKENDS = ("osmesa", "egl")
 
 import numpy as np
 
-from fppsim.rendering.threads import beside
+from fppsim.threads import beside
 from fppsim.errors import BackendError
 from fppsim.geometry.rig import along_rays
 

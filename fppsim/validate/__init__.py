@@ -60,7 +60,7 @@ from typing import Sequence
 
 from fppsim.errors import ValidateError
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.validate.report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
                      validate_dataset, write_error_map)
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample

@@ -16,7 +16,7 @@ import numpy as np
 from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import read_manifest, read_settings
 from fppsim.dataio.readers import load_native_sample
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample

@@ -84,7 +84,7 @@ def test_native_psp_labels_match_the_exact_height(rendered, tmp_path):
 
 
 def test_uhrnet_reads_the_output_back_to_the_same_millimetres(rendered, tmp_path):
-    from uhrnet.training.data import FigshareArrays, load_sources
+    from uhrnet.data.datasets import FigshareArrays, load_sources
 
     label_real(LabelRealConfig(root=rendered, out=tmp_path / "o", rig=PARALLEL, previews=False))
     z = np.load(tmp_path / "o" / "Z.npy")[..., 0].astype(np.float64)

@@ -1,4 +1,4 @@
-"""The one rig resolver (``fppsim.geometry.rig_choice.resolve_rig``) and the one image-against-camera check
+"""The one rig resolver (``fppsim.dataio.rig_choice.resolve_rig``) and the one image-against-camera check
 (``fppsim.geometry.rig.check_image_size``): precedence flag > checkpoint > dataset > per-sample > default, each
 with the reason the commands print."""
 
@@ -8,7 +8,7 @@ import pytest
 
 from fppsim.errors import RigError
 from fppsim.geometry.rig import Rig, check_image_size, make_parallel_rig
-from fppsim.geometry.rig_choice import DEFAULT_REASON, PER_SAMPLE_REASON, dataset_rig, resolve_rig
+from fppsim.dataio.rig_choice import DEFAULT_REASON, PER_SAMPLE_REASON, dataset_rig, resolve_rig
 
 
 def _dataset(folder, rig=None, jitter=None, meta_rig=None):

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from fppsim.phase import psp, triangulation
-from fppsim.rendering.threads import helper_pool, map_bands, row_bands
+from fppsim.threads import helper_pool, map_bands, row_bands
 from fppsim.geometry.rig import Device, Rig, make_default_rig
 
 

@@ -1,4 +1,4 @@
-"""uhrnet.physics.adapt: label-free fine-tuning on tiny images of a tiny rig (run folder, resume, refusals, labels never
+"""uhrnet.training.adapt: label-free fine-tuning on tiny images of a tiny rig (run folder, resume, refusals, labels never
 read) and the adaptation loss against analytic truth through the rig layer."""
 
 import csv
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from uhrnet.physics.adapt import AdaptConfig, adapt, adapt_loss
+from uhrnet.training.adapt import AdaptConfig, adapt, adapt_loss
 from uhrnet.cli import main
 from uhrnet.errors import ConfigError
 from uhrnet.physics.rig_layer import RigLayer

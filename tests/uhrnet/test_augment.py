@@ -1,10 +1,10 @@
-"""uhrnet.training.augment: seeded photometric jitter of synthetic fringes; invalid pixels stay exactly -1."""
+"""uhrnet.data.augment: seeded photometric jitter of synthetic fringes; invalid pixels stay exactly -1."""
 
 import numpy as np
 import pytest
 import torch
 
-from uhrnet.training.augment import AugmentConfig, augment_fringe, augment_sample
+from uhrnet.data.augment import AugmentConfig, augment_fringe, augment_sample
 
 
 def _fringe(h=64, w=96, seed=0):
@@ -110,7 +110,7 @@ def test_shading_fields_vary_background_and_modulation_independently_and_keep_th
 
 
 def test_augmentation_kinds_and_the_booleans_of_older_runs():
-    from uhrnet.training.augment import AUGMENTS, augment_config
+    from uhrnet.data.augment import AUGMENTS, augment_config
 
     assert augment_config("shading").envelope > 0 and augment_config("photometric").envelope == 0
     assert augment_config("off") is None and augment_config(False) is None
@@ -120,7 +120,7 @@ def test_augmentation_kinds_and_the_booleans_of_older_runs():
 
 
 def test_prepared_augments_synthetic_samples_only_and_only_with_a_seed():
-    from uhrnet.training.data import Prepared
+    from uhrnet.data.datasets import Prepared
 
     f, v = _fringe()
 

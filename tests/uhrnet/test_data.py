@@ -1,4 +1,4 @@
-"""uhrnet.training.data: figshare arrays, native fppsim folders, mixtures, the reference split, clear errors."""
+"""uhrnet.data.datasets: figshare arrays, native fppsim folders, mixtures, the reference split, clear errors."""
 
 import json
 
@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from uhrnet.training.data import (
+from uhrnet.data.datasets import (
     DataError, FigshareArrays, FppsimDataset, LabelTransform, MixedDataset, MixedSampler, Prepared,
     load_sources, parse_size, reference_split, split_indices,
 )

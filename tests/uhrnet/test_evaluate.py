@@ -9,7 +9,7 @@ import torch
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.training.data import load_sources
+from uhrnet.data.datasets import load_sources
 from uhrnet.inference.prediction import predict_labels
 
 from _helpers import REAL_SAMPLE, train_tiny, write_figshare, write_native

@@ -8,7 +8,8 @@ import torch
 from scipy.ndimage import gaussian_filter
 from skimage.metrics import structural_similarity
 
-from uhrnet.scoring.metrics import count_parameters, rmse_mm, ssim
+from uhrnet.models import count_parameters
+from uhrnet.scoring.metrics import rmse_mm, ssim
 
 
 def skimage_ssim(a: np.ndarray, b: np.ndarray, data_range: float) -> float:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from uhrnet.scoring.metrics import count_parameters
+from uhrnet.models import count_parameters
 from uhrnet.models import build_model, list_models
 
 PAPER_COUNTS = {

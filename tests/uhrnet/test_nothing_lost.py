@@ -289,7 +289,7 @@ def test_phase_head_with_resize_is_a_usage_error(tmp_path, capsys):
 
 
 def test_a_full_disk_names_the_file_whatever_writes_it(tmp_path, monkeypatch):
-    import fppsim.dataio.files as files
+    import fppsim.files as files
 
     def full(fh, data):
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as write_fully reports a short write
@@ -324,7 +324,7 @@ def test_sim2real_counts_it_cannot_use_are_usage_errors_before_generating(tmp_pa
 
 
 def test_adapt_defaults_like_train_and_states_its_ranges(capsys):
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
     from uhrnet.training.train_config import DEFAULTS
 
     assert AdaptConfig.__dataclass_fields__["device"].default == DEFAULTS["device"] == "auto"

@@ -93,7 +93,7 @@ def test_train_logs_every_step_and_epoch_and_a_validation_image(figshare, tmp_pa
     assert _scalars(acc, "epoch") == ([STEPS, 2 * STEPS], [1.0, 2.0])
     # the first validation sample (image 7 of the reference split): prediction, target, error per epoch
     from fppsim.dataio.formats import PRESETS
-    from uhrnet.training.data import load_sources
+    from uhrnet.data.datasets import load_sources
 
     sample = load_sources(real=[figshare], transform=PRESETS["figshare"]).val[0]
     height = PRESETS["figshare"].height_mm(sample["height"][0].numpy())[sample["mask"][0].numpy() > 0]
@@ -166,7 +166,7 @@ def test_missing_tensorboard_is_one_line_and_exit_2_before_anything_runs(figshar
                  "--tensorboard"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "pip install" in err[0] and not (tmp_path / "ad").exists()
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
     from uhrnet.errors import UsageError
     from uhrnet.training.train_config import TrainConfig
 

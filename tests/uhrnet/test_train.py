@@ -14,7 +14,7 @@ import torch
 
 from uhrnet.checkpoint import CheckpointError, atomic_save, load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.training.data import Prepared, load_sources
+from uhrnet.data.datasets import Prepared, load_sources
 
 from _helpers import write_figshare, write_native
 

@@ -31,8 +31,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from fppsim.dataio.files import atomic_path, tmp_path, unlink_quietly
-from fppsim.dataio.owned import claim, output_folder
+from fppsim.files import atomic_path, tmp_path, unlink_quietly
+from fppsim.owned import claim, output_folder
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.inference.deploy import prepare_for_inference
@@ -287,7 +287,7 @@ def export_checkpoint(config: ExportConfig) -> dict:
     if out.is_file() and _is_checkpoint(out):
         raise ExportError(f"{out}: is a uhrnet checkpoint; choose another --out (an export would replace it)")
     # the folder is locked and --out claimed for export before anything is written: an existing file is
-    # replaced only when an earlier export wrote it (fppsim.dataio.owned), never someone's weights or notes
+    # replaced only when an earlier export wrote it (fppsim.owned), never someone's weights or notes
     with output_folder(out.parent, EXPORT_TOOL, error=ExportError):
         claim(out.parent, EXPORT_TOOL, [out.name], hint="choose another --out (export never replaces a file it "
                                                          "did not write)")

@@ -44,9 +44,9 @@ import torch
 import torch.nn.functional as F
 
 from fppsim.dataio.encoding import as_image_stack, encode_fringe
-from fppsim.dataio.files import atomic_path
+from fppsim.files import atomic_path
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-from uhrnet.training.data import parse_size
+from uhrnet.data.datasets import parse_size
 from fppsim.dataio.readers import IMAGE_EXTS, read_fringe_image
 from fppsim.geometry.rig import check_image_size
 from uhrnet.device import select_device
@@ -329,7 +329,7 @@ def predict(config: PredictConfig) -> PredictResult:
                 check_image_size(seen_by, fringe.shape, str(path), who=who, hint=hint, error=ConfigError)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    from fppsim.dataio.owned import claim
+    from fppsim.owned import claim
 
     names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
              ("_height.npy", "_height.tif", "_height.png")
@@ -363,7 +363,7 @@ def predict(config: PredictConfig) -> PredictResult:
     if result.refine:
         import json
 
-        from fppsim.dataio.files import atomic_write_text
+        from fppsim.files import atomic_write_text
         from fppsim.dataio.encoding import json_default
 
         atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
@@ -373,8 +373,8 @@ def predict(config: PredictConfig) -> PredictResult:
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     """The rig ``--refine`` uses and its name: ``rig`` (``--rig``: a loaded rig named ``rig_path``, or a
     file), else the checkpoint's own (physics head or an adaptation's), else fppsim's default rig
-    (:func:`fppsim.geometry.rig_choice.resolve_rig`)."""
-    from fppsim.geometry.rig_choice import resolve_rig
+    (:func:`fppsim.dataio.rig_choice.resolve_rig`)."""
+    from fppsim.dataio.rig_choice import resolve_rig
 
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
     return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own,

@@ -35,16 +35,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fppsim.dataio.files import tmp_path, unlink_quietly
-from fppsim.dataio.owned import output_folder, owners
+from fppsim.files import tmp_path, unlink_quietly
+from fppsim.owned import output_folder, owners
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, model_from_checkpoint, output_mm
 from uhrnet.errors import CheckpointError, ConfigError, ExportError, UsageError
 from uhrnet.inference.export_check import check_input, compare_outputs
-from uhrnet.scoring.metrics import count_parameters
+from uhrnet.models import count_parameters
 from uhrnet.models import ALIASES, build_model
 from uhrnet.models.uhrnet import UHRNet
-from uhrnet.training.run_folder import (IMPORT_TOOL, RUN_FILES, TRAINED_FILES, claim_run_folder, package_version,
+from uhrnet.run_folder import (IMPORT_TOOL, RUN_FILES, TRAINED_FILES, claim_run_folder, package_version,
                                         save_epoch, write_run_config)
 
 __all__ = ["REFERENCE_FORMAT", "REFERENCE_CONFIG", "MODULES", "FUSION", "key_table", "model_shapes",
@@ -293,7 +293,7 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     of this project reports them (what adapt, refine, the point clouds and ``train --init-from RUN
     --raw-output`` expect); 0 gives exactly the reference evaluation's ``Z / 6`` (differences, and so RMSE, are
     the same either way); plus ``config.json`` naming the source and its SHA-256. ``epoch`` is 0 and there is
-    nothing to ``--resume``. The folder's files are recorded as import-weights' own (:mod:`fppsim.dataio.owned`):
+    nothing to ``--resume``. The folder's files are recorded as import-weights' own (:mod:`fppsim.owned`):
     a file another tool or a person put there is refused, never replaced.
 
     Returns ``{"out", "checkpoint", "entries", "parameters", "source", "sha256"}``. Raises

@@ -35,7 +35,7 @@ from uhrnet.models.heads import HEADS, Head
 from uhrnet.models.unet import UNet
 from uhrnet.models.uhrnet import UHRNet
 
-__all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "list_models", "outputs_of",
+__all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "count_parameters", "list_models", "outputs_of",
            "prediction_of"]
 
 ARCHITECTURES: dict[str, type[nn.Module]] = {"uhrnet": UHRNet, "unet": UNet, "hnet": HNet}
@@ -48,6 +48,11 @@ ALIASES: dict[str, tuple[str, dict[str, Any]]] = {
 }
 """alias -> (architecture, options). ``base_channels`` is only a default (so tiny test versions of an
 ablation can be built); any other option is fixed."""
+
+
+def count_parameters(model: nn.Module, trainable_only: bool = True) -> int:
+    """Number of (trainable) parameter elements, as in the paper's tables."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad or not trainable_only)
 
 
 def list_models() -> list[str]:

@@ -1,1 +1,2 @@
-"""Physics through the rig: the differentiable rig layer, phase refinement, label-free adaptation."""
+"""Physics through the rig, below the networks: the differentiable rig layer (the phase head is built on
+it) and phase refinement of predicted heights."""

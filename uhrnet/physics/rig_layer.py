@@ -3,7 +3,7 @@
 A fixed ``torch.nn.Module`` that equals fppsim's numpy triangulation (:func:`fppsim.phase.triangulation.triangulate`,
 ``height_from_phase``) and its forward model (:func:`fppsim.fitting.height_sensitivity.surface_phase`) on every camera
 pixel, so a network can predict phase and be trained / checked in height (the physics head
-:mod:`uhrnet.models.phase_head`, label-free adaptation :mod:`uhrnet.physics.adapt`, :mod:`uhrnet.physics.refine`).
+:mod:`uhrnet.models.phase_head`, label-free adaptation :mod:`uhrnet.training.adapt`, :mod:`uhrnet.physics.refine`).
 
 Geometry (conventions of :mod:`fppsim.geometry.rig`: mm, rad, OpenCV pinholes, ``X_dev = R X_world + t``, the
 reference plane ``z = 0``, ``+z`` towards the camera). Each pixel's camera ray comes from

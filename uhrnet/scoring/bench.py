@@ -76,7 +76,7 @@ class BenchConfig:
         if self.compile:
             self.warmup = max(self.warmup, 2)
         if self.json is not None:  # fail now, not after minutes of timing
-            from fppsim.dataio.files import check_writable_dir
+            from fppsim.files import check_writable_dir
 
             path = Path(self.json)
             if path.is_dir():
@@ -108,7 +108,7 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
     dict, the callable of the fastest deployable form is left in it (``{form: callable}``)."""
     import torch
 
-    from uhrnet.scoring.metrics import count_parameters
+    from uhrnet.models import count_parameters
     from uhrnet.models import outputs_of
     from uhrnet.scoring.timing import peak_memory_bytes, time_call
 
@@ -411,7 +411,7 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "memory": memory_note,
     }
     if args.json is not None:
-        from fppsim.dataio.files import atomic_write_text
+        from fppsim.files import atomic_write_text
 
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,10 @@ import torch
 from torch.utils.data import DataLoader
 
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import LabelTransform
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-from uhrnet.training.data import Prepared, load_sources, parse_size
+from uhrnet.data.datasets import Prepared, load_sources, parse_size
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, UsageError
 
@@ -153,9 +153,10 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     from tqdm import tqdm
 
     from uhrnet.inference.prediction import predict_labels
-    from uhrnet.scoring.metrics import count_parameters, image_metrics
+    from uhrnet.models import count_parameters
+    from uhrnet.scoring.metrics import image_metrics
     from uhrnet.scoring.timing import inference_seconds
-    from uhrnet.scoring.plots import plot_comparison
+    from uhrnet.plots import plot_comparison
 
     data = data or EvalData()
     for flag, value, lowest in (("--batch-size", batch_size, 1), ("--figures", figures, 0),

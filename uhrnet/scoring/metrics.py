@@ -185,11 +185,6 @@ def rmse_mm(
     return rmse(pred, target, mask, reduction=reduction) * mm_per_unit
 
 
-def count_parameters(model: nn.Module, trainable_only: bool = True) -> int:
-    """Number of (trainable) parameter elements, as in the paper's tables."""
-    return sum(p.numel() for p in model.parameters() if p.requires_grad or not trainable_only)
-
-
 def image_metrics(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor, transform) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-image RMSE (mm) and SSIM of label maps ``(N, 1, H, W)`` under a label ``transform``
     (:class:`fppsim.dataio.formats.LabelTransform`): float64 CPU tensors, NaN where an image has no valid pixel."""

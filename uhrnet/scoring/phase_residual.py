@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.phase.fringe import poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 
@@ -223,7 +223,7 @@ def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) 
 def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, residuals: dict, path: Path,
                          title: str = "") -> Path:
     """One row per model: predicted height (mm) and residual phase (rad); the top row: image and relief."""
-    from uhrnet.scoring.plots import pyplot, save_figure
+    from uhrnet.plots import pyplot, save_figure
 
     plt = pyplot()
     rows = 1 + len(heights)
@@ -262,7 +262,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     from fppsim.errors import PSPMatError
     from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.training.data import parse_size
+    from uhrnet.data.datasets import parse_size
     from uhrnet.device import select_device
     from uhrnet.scoring.evaluation import model_names
     from uhrnet.inference.prediction import predict_labels

@@ -10,7 +10,7 @@ One x-axis for every tag, the global optimizer step counted from 1, so a resumed
 same curves: the writer opens with ``purge_step = start_step + 1``, which hides the events a killed run
 wrote after its last checkpoint (TensorBoard's own readers drop them). Tags are listed below.
 
-Which event files are the run's own: the folder's ownership record (:mod:`fppsim.dataio.owned`,
+Which event files are the run's own: the folder's ownership record (:mod:`fppsim.owned`,
 ``RUN/.fppsim-owned.json``). The writer's event file gets a new name each session (time, host, process,
 counter), so it cannot replace anything; as soon as it exists it is recorded there as
 ``tensorboard/<event file>`` of the tool (``uhrnet train`` or ``uhrnet adapt``), and only recorded files
@@ -200,7 +200,7 @@ def check_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> None:
     """Refuse (:class:`fppsim.errors.ForeignFiles`, one line naming the file) a fresh ``--tensorboard`` run
     of ``tool`` in ``run`` whose ``run/sub`` holds an event file the ownership record does not give to
     ``tool``: it would show as this run's curves, and only its writer may delete it."""
-    from fppsim.dataio.owned import ForeignFiles, owners
+    from fppsim.owned import ForeignFiles, owners
 
     run = Path(run)
     record = owners(run) or {}
@@ -217,7 +217,7 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
     """Delete the event files in ``run/sub`` that ``run``'s ownership record says ``tool`` wrote (the
     curves of the run a fresh one replaces) and drop them from the record; files it does not give to
     ``tool`` stay. Returns the removed paths."""
-    from fppsim.dataio.owned import forget, owners
+    from fppsim.owned import forget, owners
 
     run = Path(run)
     record = owners(run)
@@ -239,7 +239,7 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
 def _record(run: Path, tool: str, name: str) -> None:
     """Record ``name`` (the event file the writer has just created under a new name) as ``tool``'s in
     ``run``'s ownership record (the run's claims came first, under the run folder's lock)."""
-    from fppsim.dataio.owned import record_created
+    from fppsim.owned import record_created
 
     record_created(run, tool, name)
 

@@ -12,7 +12,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from fppsim.dataio.formats import LabelTransform
-from uhrnet.training.data import parse_size
+from uhrnet.data.datasets import parse_size
 from uhrnet.errors import ConfigError, DataError, UsageError
 
 __all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "check_options", "resolve_config",
@@ -51,7 +51,7 @@ class TrainConfig:
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
     already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
-    :data:`uhrnet.training.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
+    :data:`uhrnet.data.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
     ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
     as rendered).
     ``init``: weight initialisation of a fresh run, a name of :data:`uhrnet.models.init.INITS` (``auto``:
@@ -149,7 +149,7 @@ def check_options(cfg: dict) -> None:
     of the first invalid option in ``cfg``."""
     from fppsim.dataio.formats import PRESETS
     from fppsim.dataio.readers import LABEL_SOURCES
-    from uhrnet.training.splits import SPLIT_MODES
+    from uhrnet.data.splits import SPLIT_MODES
     from uhrnet.training.losses import LOSSES
     from uhrnet.models import list_models
 
@@ -177,7 +177,7 @@ def check_options(cfg: dict) -> None:
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
     if "augment" in cfg:
-        from uhrnet.training.augment import augment_config
+        from uhrnet.data.augment import augment_config
 
         try:
             augment_config(cfg["augment"])
@@ -253,7 +253,7 @@ def _normalise(key: str, value):
         except CheckpointError:  # a folder that no longer holds a checkpoint: compare the names
             return str(Path(value).resolve())
     if key == "augment":  # runs saved before the augmentation kinds hold a boolean
-        from uhrnet.training.augment import augment_kind
+        from uhrnet.data.augment import augment_kind
 
         return augment_kind(value)
     return value

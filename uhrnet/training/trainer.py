@@ -1,7 +1,7 @@
 """Training: ``uhrnet.train(TrainConfig(...))`` trains UHRNet or a baseline on real (figshare) and/or
 synthetic (fppsim) data; ``uhrnet train`` calls it.
 
-The run's options live in :mod:`uhrnet.training.train_config`, its files in :mod:`uhrnet.training.run_folder`, the
+The run's options live in :mod:`uhrnet.training.train_config`, its files in :mod:`uhrnet.run_folder`, the
 process layout under torchrun in :mod:`uhrnet.training.distributed`; this module is the loop.
 
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
@@ -27,9 +27,9 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from fppsim.dataio.owned import output_folder
+from fppsim.owned import output_folder
 from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
-from uhrnet.training.data import MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
 from uhrnet.training.losses import HEAD_LOSSES, build_loss
 from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_distributed
@@ -37,7 +37,7 @@ from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.scoring.metrics import image_metrics
 from uhrnet.models import HEADS, outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
-from uhrnet.training.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
+from uhrnet.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
                                refuse_own_source, save_epoch, write_history, write_run_config)
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
 from uhrnet.training.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
@@ -85,7 +85,7 @@ class Trainer:
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
 
-        from uhrnet.training.augment import augment_config
+        from uhrnet.data.augment import augment_config
 
         augment = augment_config(cfg["augment"])
         if augment is not None:
@@ -441,7 +441,7 @@ def head_rig(rig: str | None, synthetic) -> dict:
     ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
     single rig its phases fit: refused."""
     from fppsim.geometry.rig import RigError
-    from fppsim.geometry.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
+    from fppsim.dataio.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
 
     try:
         return resolve_rig(rig or None, datasets=synthetic or ())[0].to_dict()

@@ -7,7 +7,7 @@ Layouts (named in :mod:`fppsim.dataio.formats`, the contract): the native per-sa
 labels; :func:`read_native_pair` and :func:`open_figshare_pair` give what the networks read (the fringe
 in the dataset encoding, intensity / 127.5 - 1), and the checks refuse data the models would silently
 misread (NaN/inf, raw 8-bit fringes, a figshare export labelled with another transform, PSP labels of
-a ``--no-psp`` dataset). ``uhrnet.training.data`` wraps these readers into torch datasets. Every error is a
+a ``--no-psp`` dataset). ``uhrnet.data.datasets`` wraps these readers into torch datasets. Every error is a
 :class:`fppsim.errors.DatasetError` naming the file.
 """
 
@@ -235,7 +235,7 @@ class SampleReader:
     ``real-sample`` (``fringe_pattern.npy`` + ``height_map.npy``) and ``native`` (``manifest.jsonl``
     with ``<id>/fringe.png`` + ``<id>/arrays.npz``; heights become labels through ``label``).
     :meth:`sample` returns ``(grey uint8 (H, W), label float32 (H, W))``. The torch datasets of
-    ``uhrnet.training.data`` read the same files through the same functions of this module.
+    ``uhrnet.data.datasets`` read the same files through the same functions of this module.
     """
 
     def __init__(self, folder: str | os.PathLike, label: LabelTransform | None = None):
@@ -288,7 +288,7 @@ class SampleReader:
 
 def open_samples(folder, label: LabelTransform = FIGSHARE) -> SampleReader:
     """Detect the layout of ``folder`` and open it as a :class:`SampleReader` (numpy, arrays memory-mapped);
-    :class:`DatasetError` (a ValueError) if unreadable. (``uhrnet.training.data.open_dataset`` opens the same
+    :class:`DatasetError` (a ValueError) if unreadable. (``uhrnet.data.datasets.open_dataset`` opens the same
     folders as a torch dataset.)
 
     ``label`` turns native heights (mm) into labels; figshare-format folders already hold labels.

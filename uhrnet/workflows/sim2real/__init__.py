@@ -21,7 +21,7 @@ Variants (an ablation) change the dataset and/or the training run through overri
 ``GenerateConfig`` / ``TrainConfig`` fields (``train={"head": "phase"}``: the physics head); variants with
 the same dataset overrides share one synthetic dataset. A variant may add rows without training again:
 ``adapt`` (``AdaptConfig`` overrides, ``{}`` for the defaults) fine-tunes its model on the UNLABELLED real
-images (:mod:`uhrnet.physics.adapt`; only fringe images are read), ``refine`` (``["relief", "orders"]``) measures
+images (:mod:`uhrnet.training.adapt`; only fringe images are read), ``refine`` (``["relief", "orders"]``) measures
 its predictions after ``--refine phase`` with each method; rows: the network, each refinement, the adapted
 network and each refinement of it::
 

@@ -4,7 +4,7 @@ A variant changes the recipe through *overrides* of the library configs: ``gener
 :class:`fppsim.generation.GenerateConfig` fields to values (e.g. ``{"pedestal": 0.0}``), ``train``
 maps :class:`uhrnet.training.train_config.TrainConfig` fields (e.g. ``{"augment": "off"}``, ``{"head": "phase"}``).
 Two optional post-steps add rows without training again: ``adapt`` (a dict of
-:class:`uhrnet.physics.adapt.AdaptConfig` overrides, ``{}`` for its defaults; None: no adaptation) fine-tunes the
+:class:`uhrnet.training.adapt.AdaptConfig` overrides, ``{}`` for its defaults; None: no adaptation) fine-tunes the
 trained model on the UNLABELLED real images, and ``refine`` (names of :data:`uhrnet.physics.refine.REFINE_METHODS`)
 measures the predictions after ``--refine phase`` with each method. The ``uhrnet sim2real`` command turns
 ``--variant`` / ``--ablation`` flag text into such overrides with the commands' own parsers; this module
@@ -52,7 +52,7 @@ def _field_names(kind: str) -> set[str]:
     if kind == "generate":
         from fppsim.generation import GenerateConfig as cls
     elif kind == "adapt":
-        from uhrnet.physics.adapt import AdaptConfig as cls
+        from uhrnet.training.adapt import AdaptConfig as cls
     else:
         from uhrnet.training.train_config import TrainConfig as cls
     return {f.name for f in fields(cls)}
@@ -175,7 +175,7 @@ class Sim2RealConfig:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
             raise UsageError(f"--object-mm must be > 0 mm, got {self.object_mm}")
-        from uhrnet.training.splits import MIN_REFERENCE_SPLIT
+        from uhrnet.data.splits import MIN_REFERENCE_SPLIT
 
         for v in self.variants:  # the synthetic validation split is the reference one unless a variant says otherwise
             n = int(v.generate.get("count", self.count))

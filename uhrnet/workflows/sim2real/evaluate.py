@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from fppsim.geometry.rig import check_image_size
 from uhrnet.errors import Sim2RealError
 
@@ -35,7 +35,7 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
     from fppsim.dataio.readers import open_source
-    from uhrnet.training.data import FigshareArrays
+    from uhrnet.data.datasets import FigshareArrays
     from uhrnet.errors import DataError
 
     out = []
@@ -70,7 +70,7 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
 
 def _model(checkpoint, device: str):
     from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.training.data import parse_size
+    from uhrnet.data.datasets import parse_size
     from uhrnet.device import select_device
 
     ck = load_checkpoint(checkpoint)
@@ -222,7 +222,7 @@ def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | 
     ``synthetic`` folders (split as the run split them); writes and returns ``out/synthetic_level.json``."""
     import torch
 
-    from uhrnet.training.data import load_sources
+    from uhrnet.data.datasets import load_sources
     from uhrnet.workflows.sim2real.metrics import level_response
 
     ck, model, transform, size = _model(checkpoint, device)

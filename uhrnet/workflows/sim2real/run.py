@@ -10,7 +10,7 @@ libraries, in this process:
    (``history.csv``, checkpoints). Log: ``out/<variant>/train.log``. A finished run given in
    ``cfg.reuse`` (or copied to ``out/<variant>/run``) replaces stages 1 and 2 when its training options are
    the variant's (:func:`run_differences`); its own dataset is then the variant's.
-3. With ``variant.adapt``: ``uhrnet.physics.adapt(AdaptConfig)`` (:func:`adapt_config`) of the run's ``last.pt`` on
+3. With ``variant.adapt``: ``uhrnet.training.adapt(AdaptConfig)`` (:func:`adapt_config`) of the run's ``last.pt`` on
    the UNLABELLED real images (``cfg.adapt_images``, default the ``real`` and ``real_phase`` folders; only
    fringe images are read), in ``out/<variant>/adapt``. Log: ``out/<variant>/adapt.log``.
 4. Evaluation rows, each in its own folder: the network (``out/<variant>/eval``, with :func:`evaluate_level`
@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 
 from fppsim.errors import FppsimError
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_write_text
+from fppsim.files import atomic_write_text
 from uhrnet.errors import Sim2RealError, UhrnetError
 from uhrnet.workflows.stages import dataset_count, fresh, run_done, run_history, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
@@ -97,10 +97,10 @@ def _as_dict(config) -> dict:
 
 def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, out: str | Path,
                  overwrite: bool = False):
-    """The :class:`uhrnet.physics.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
+    """The :class:`uhrnet.training.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
     on ``cfg.adapt_images`` (default: the real and real phase-shifting folders; never their labels) through
     ``cfg.rig``, then the variant's ``adapt`` overrides."""
-    from uhrnet.physics.adapt import AdaptConfig
+    from uhrnet.training.adapt import AdaptConfig
 
     images = list(cfg.adapt_images) if cfg.adapt_images else [*cfg.real, *cfg.real_phase]
     base = dict(checkpoint=str(checkpoint), images=images, out=str(out), rig=cfg.rig, progress=False,
@@ -244,7 +244,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
     it the stages' configs are stored.
     """
     from fppsim.generation import generate
-    from uhrnet.physics.adapt import adapt
+    from uhrnet.training.adapt import adapt
     from uhrnet.training.trainer import train
 
     say = log or (lambda line: None)
@@ -260,7 +260,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             adapt_config(cfg, var, run / "last.pt", out / var.name / "adapt")
         plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
-    from fppsim.dataio.owned import claim
+    from fppsim.owned import claim
 
     # the experiment's own files (its stages claim theirs): never one it did not write
     claim(out, "uhrnet sim2real", ["report.json", "report.md"] + [f"{v.name}/timing.json" for v in cfg.variants])

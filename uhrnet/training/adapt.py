@@ -1,4 +1,4 @@
-"""Label-free adaptation to real fringe images: ``uhrnet.physics.adapt(AdaptConfig(...))``; ``uhrnet adapt`` calls it.
+"""Label-free adaptation to real fringe images: ``uhrnet.training.adapt(AdaptConfig(...))``; ``uhrnet adapt`` calls it.
 
 A network trained on synthetic data meets real images whose fringes it reads imperfectly. Each real
 fringe image carries its own phase (:func:`fppsim.phase.fringe.single_shot_phase`: wrapped phase ``phi`` and
@@ -28,7 +28,7 @@ wrapped residual before and after, rad), ``config.json`` and ``figures/<image>_a
 after / difference and the phase residuals). Re-running the same command resumes (refused, naming the
 option, when an option differs or the source checkpoint changed since); a folder holding another
 adaptation is replaced only with ``overwrite``; files this command did not write (a training run's, a
-person's) are never replaced (:mod:`uhrnet.training.run_folder`), and ``out`` may not be the source's folder.
+person's) are never replaced (:mod:`uhrnet.run_folder`), and ``out`` may not be the source's folder.
 The model sees each image as ``predict`` does (:func:`uhrnet.inference.prediction.labels_at_input_size`: the
 source's ``--resize``, padding to multiples of 16).
 With ``tensorboard`` the loss terms per step and epoch and the first image's height per epoch go to
@@ -212,8 +212,8 @@ def _rig_for(cfg: AdaptConfig, ckpt: dict):
 def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
-    from fppsim.dataio.owned import output_folder
-    from uhrnet.training.run_folder import refuse_own_source
+    from fppsim.owned import output_folder
+    from uhrnet.run_folder import refuse_own_source
 
     refuse_own_source(Path(cfg.out), cfg.checkpoint, "RUN")
     with output_folder(cfg.out, ADAPT_TOOL, error=ConfigError):
@@ -251,13 +251,13 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
 
 def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     from fppsim.dataio.encoding import json_default
-    from fppsim.dataio.files import atomic_write_text
+    from fppsim.files import atomic_write_text
     from uhrnet.checkpoint import atomic_save, load_checkpoint, model_from_checkpoint, rng_state
-    from uhrnet.training.data import parse_size
+    from uhrnet.data.datasets import parse_size
     from uhrnet.device import select_device
     from uhrnet.inference.prediction import labels_at_input_size, read_inputs
     from uhrnet.physics.rig_layer import RigLayer
-    from uhrnet.training.run_folder import claim_run_folder, write_history
+    from uhrnet.run_folder import claim_run_folder, write_history
 
     out = Path(cfg.out)
     source = load_checkpoint(cfg.checkpoint, digest=True)
@@ -380,7 +380,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         result.images.append({"name": im.name, "before_rad": b, "after_rad": after,
                               "mean_change_mm": float(np.mean(np.abs(h1 - h0)[im.reliability > 0]))})
         if cfg.figures:
-            from uhrnet.scoring.plots import plot_adaptation
+            from uhrnet.plots import plot_adaptation
 
             result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
     atomic_write_text(out / "images.json", json.dumps(result.images, indent=2, default=json_default))

@@ -127,9 +127,9 @@ def plot_comparison(fringe: np.ndarray, truth_mm: np.ndarray, valid: np.ndarray,
 
 
 def plot_adaptation(image, before_mm: np.ndarray, after_mm: np.ndarray, layer, path) -> Path:
-    """One figure per adapted image (:mod:`uhrnet.physics.adapt`): the fringe, the height before and after
+    """One figure per adapted image (:mod:`uhrnet.training.adapt`): the fringe, the height before and after
     (mm, one colour range), their difference, and the wrapped phase residual ``wrap(phi - Phi(h) - o)``
-    (rad) before and after, on the image's reliable pixels. ``image``: :class:`uhrnet.physics.adapt.ImagePhase`."""
+    (rad) before and after, on the image's reliable pixels. ``image``: :class:`uhrnet.training.adapt.ImagePhase`."""
     import torch
 
     plt = pyplot()

@@ -1,7 +1,7 @@
 """What a training run leaves in its folder: ``history.csv``/``history.png``, ``last.pt``/``best.pt``
 (written atomically; best is a copy of last), ``config.json``; and the run-folder protocol of every
 uhrnet command that writes a run (``train``, ``adapt``): the names it writes are claimed in the folder's
-ownership record first (:mod:`fppsim.dataio.owned`: a file another tool or a person put there is never
+ownership record first (:mod:`fppsim.owned`: a file another tool or a person put there is never
 replaced, ``--overwrite`` or not), a folder holding a run is never replaced without ``--overwrite``, and
 the run never writes into the folder of the checkpoint it starts from (:func:`refuse_own_source`).
 """
@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 from fppsim.dataio.encoding import json_default
-from fppsim.dataio.files import atomic_path, atomic_write_text
+from fppsim.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import atomic_save
 from uhrnet.errors import ConfigError
 
@@ -58,7 +58,7 @@ def write_history(rows: list[dict], out: Path, columns: tuple[str, ...] = HISTOR
     if not plot:
         return
     try:
-        from uhrnet.scoring.plots import plot_history
+        from uhrnet.plots import plot_history
 
         plot_history(rows, out / "history.png")
     except Exception as exc:  # a plotting problem must not stop training
@@ -95,10 +95,10 @@ def check_run_folder(out: Path, resume, overwrite: bool) -> str:
 
 
 def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> None:
-    """Claim ``names`` in ``out`` for ``tool`` (:func:`fppsim.dataio.owned.claim`); a folder written before the
+    """Claim ``names`` in ``out`` for ``tool`` (:func:`fppsim.owned.claim`); a folder written before the
     ownership record is recognised by its ``last.pt`` / ``best.pt``: a uhrnet checkpoint whose ``kind``
     (``"adapt"``: an adaptation, ``"import"``: imported weights, None: a training run) is ``tool``'s."""
-    from fppsim.dataio.owned import claim
+    from fppsim.owned import claim
 
     def legacy():
         for name in ("last.pt", "best.pt"):
@@ -119,7 +119,7 @@ def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> No
 def refuse_own_source(out: Path, source, flag: str) -> None:
     """:class:`ConfigError` when the checkpoint ``source`` (a file or a run folder) lies in ``out``: the
     run would replace the weights it starts from."""
-    from fppsim.dataio.owned import same_folder
+    from fppsim.owned import same_folder
 
     src = Path(source)
     folder = src if src.is_dir() else src.parent

@@ -13,7 +13,7 @@ Label units are those of the public figshare dataset: Z = 6 * height_mm + plane 
 :class:`fppsim.dataio.formats.LabelTransform` holds that preset and makes it configurable; fppsim's native
 heights (mm above the reference plane) are mapped through the same transform so real and synthetic
 samples mix. Files are read through :mod:`fppsim.dataio.formats` (the dataset contract) by the numpy
-readers of :mod:`fppsim.dataio.readers`; splits come from :mod:`uhrnet.training.splits`; this module only adapts them
+readers of :mod:`fppsim.dataio.readers`; splits come from :mod:`uhrnet.data.splits`; this module only adapts them
 to torch (datasets, mixtures, the sampler, crops/resizing/augmentation, train/val/test sources).
 """
 
@@ -35,7 +35,7 @@ from uhrnet.errors import DataError
 from fppsim.dataio.readers import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
                             read_native_phase,
                             read_fringe_image, read_native_pair)
-from uhrnet.training.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
+from uhrnet.data.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 
 __all__ = [
     "FigshareArrays", "FppsimDataset", "open_dataset", "DatasetSubset", "MixedDataset", "MixedSampler", "Prepared",
@@ -379,7 +379,7 @@ class Prepared(Dataset):
                  resize: tuple[int, int] | None = None, random_crop: bool = True, augment=None, phase: bool = False):
         self.dataset, self.crop, self.resize, self.random_crop = dataset, crop, resize, random_crop
         self.phase = phase  # every sample carries "phase" (NaN where unknown, e.g. real samples) so batches collate
-        self.augment = augment  # uhrnet.training.augment.AugmentConfig: photometric jitter of synthetic samples
+        self.augment = augment  # uhrnet.data.augment.AugmentConfig: photometric jitter of synthetic samples
         self.transform = getattr(dataset, "transform", None)
         self.ids = getattr(dataset, "ids", None)
 
@@ -394,7 +394,7 @@ class Prepared(Dataset):
         if self.resize is not None:
             sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
         if self.augment is not None and seed is not None and sample.get("source") == "synthetic":
-            from uhrnet.training.augment import augment_sample
+            from uhrnet.data.augment import augment_sample
 
             sample = augment_sample(sample, seed, self.augment)
         if self.crop is not None:

@@ -13,7 +13,7 @@ Folders written before the record existed are recognised by the tool itself (``l
 it can prove are its own, e.g. a loadable checkpoint of its kind) and adopted into the record.
 
 :func:`output_folder` is the one way such a command opens its folder: created if needed (and proved
-writable), locked (:func:`fppsim.dataio.files.folder_lock`), stale temp files of a killed run removed, and on a
+writable), locked (:func:`fppsim.files.folder_lock`), stale temp files of a killed run removed, and on a
 failure the claims whose files were never written are dropped again; a folder the run created and
 left empty is removed.
 """
@@ -27,7 +27,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from fppsim.errors import ForeignFiles
-from fppsim.dataio.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
+from fppsim.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
 
 __all__ = ["RECORD", "ForeignFiles", "owners", "claim", "record_created", "forget", "output_folder", "same_folder"]
 
