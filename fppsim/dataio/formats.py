@@ -299,6 +299,7 @@ def append_manifest(root: Path, record: dict) -> None:
 # ============================================================================================ figshare
 # File names of known figshare-style pairs: the full dataset and the single published sample.
 FIGSHARE_PAIRS = (("f1_80.npy", "Z.npy"), ("fringe_pattern.npy", "height_map.npy"))
+SETTINGS_FILE = "dataset.json"  # a native dataset's generation settings
 
 
 def find_figshare_pair(folder: str | os.PathLike) -> tuple[Path, Path] | None:
@@ -308,6 +309,13 @@ def find_figshare_pair(folder: str | os.PathLike) -> tuple[Path, Path] | None:
         if (folder / f).is_file() or (folder / z).is_file():
             return folder / f, folder / z
     return None
+
+
+def figshare_pair_paths(folder: str | os.PathLike) -> tuple[Path, Path]:
+    """:func:`find_figshare_pair`, else the paths the figshare layout would have in ``folder`` (so that
+    a reader's error names the file it expected)."""
+    folder = Path(folder)
+    return find_figshare_pair(folder) or (folder / FIGSHARE_PAIRS[0][0], folder / FIGSHARE_PAIRS[0][1])
 
 
 # ============================================================================================ settings
@@ -324,7 +332,7 @@ def read_settings(root: str | os.PathLike) -> dict | None:
 
     Rebuild the generator's configuration with ``fppsim.rendering.synth.SynthConfig.from_settings``.
     """
-    path = Path(root) / "dataset.json"
+    path = Path(root) / SETTINGS_FILE
     if not path.is_file():
         return None
     try:

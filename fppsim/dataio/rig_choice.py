@@ -12,6 +12,7 @@ from pathlib import Path
 
 from fppsim.errors import RigError
 from fppsim.dataio.formats import read_settings
+from fppsim.dataio.readers import open_source
 from fppsim.geometry.rig import Rig, load_rig, usable_rig
 
 __all__ = ["DEFAULT_REASON", "PER_SAMPLE_REASON", "dataset_rig", "resolve_rig"]
@@ -24,7 +25,8 @@ def dataset_rig(folder: str | os.PathLike) -> tuple[Rig | None, str]:
     """``(rig, reason)``: the nominal rig of the synthetic dataset ``folder`` (its ``dataset.json``, else
     its first sample's ``meta.json``; a figshare export's ``native/`` folder too), ``(None, "")`` when it
     records none. A dataset rendered with ``--rig-jitter`` has no single rig: :class:`RigError`."""
-    root = Path(folder) / "native" if (Path(folder) / "native").is_dir() else Path(folder)
+    samples = open_source(folder).fppsim_samples()
+    root = samples.path if samples is not None else Path(folder)
     d = read_settings(root)
     if d is not None:
         jitter = (d.get("config") or {}).get("rig_jitter")

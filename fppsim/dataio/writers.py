@@ -32,11 +32,17 @@ from fppsim.files import atomic_path, clean_stale_tmp, tmp_path, write_fully
 from fppsim.dataio.formats import LabelTransform, is_own_sample, read_manifest
 from fppsim.dataio.readers import FOLDERS, check_convention, load_native_sample, wrapped_from_sums
 
-__all__ = ["write_sample_folder", "figshare_rows", "export_figshare", "FigshareRows", "NpyRowStream",
+__all__ = ["samples_folder", "write_sample_folder", "figshare_rows", "export_figshare", "FigshareRows", "NpyRowStream",
            "BackgroundWriter", "sums_from_phase", "save_psp_mat", "save_psp_folder_sample", "export_psp_folders"]
 
 
 # ============================================================================================ native
+def samples_folder(out: str | os.PathLike, fmt: str) -> Path:
+    """Where a run writing format ``fmt`` keeps its native sample folders: ``out`` itself, or ``out/native``
+    beside a figshare export's arrays."""
+    return Path(out) / "native" if fmt == "figshare" else Path(out)
+
+
 def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: dict) -> None:
     """Write one sample into ``root/sid`` atomically (temporary folder + one rename).
 

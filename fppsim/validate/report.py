@@ -18,7 +18,7 @@ from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import read_manifest, read_settings
-from fppsim.dataio.readers import load_native_sample
+from fppsim.dataio.readers import load_native_sample, open_source
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 
 __all__ = ["resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
@@ -40,11 +40,10 @@ def resolve_dataset(path) -> Path:
         raise ValidateError(f"not a folder: {p}")
     if not any(p.iterdir()):
         raise ValidateError(f"{p}: empty folder (no samples to validate)")
-    if not (p / "manifest.jsonl").is_file() and (p / "native" / "manifest.jsonl").is_file():
-        p = p / "native"
-    if not (p / "manifest.jsonl").is_file():
+    samples = open_source(p).fppsim_samples()  # the folder itself, or a figshare export's native/ samples
+    if samples is None or not samples.has_manifest:
         raise ValidateError(f"{p}: not an fppsim dataset folder (no manifest.jsonl)")
-    return p
+    return samples.path
 
 
 def read_records(root: Path) -> list[dict]:

@@ -29,12 +29,10 @@ import torch
 import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
-from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids
+from fppsim.dataio.formats import PRESETS, LabelTransform, figshare_pair_paths
 from fppsim.dataio.readers import open_figshare_pair, open_source
 from uhrnet.errors import DataError
-from fppsim.dataio.readers import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, check_psp_available,
-                            read_native_phase,
-                            read_fringe_image, read_native_pair)
+from fppsim.dataio.readers import LABEL_SOURCES, check_figshare_arrays, read_fringe_image
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 
 __all__ = [
@@ -85,7 +83,7 @@ class FigshareArrays(Dataset):
                 raise DataError(f"{root}: folder not found")
             if not root.is_dir():
                 raise DataError(f"{root}: not a folder")
-            pair = open_source(root).pair or (root / FIGSHARE_PAIRS[0][0], root / FIGSHARE_PAIRS[0][1])
+            pair = figshare_pair_paths(root)
             fringe = root / fringe if fringe is not None else pair[0]
             label = root / label if label is not None else pair[1]
             if not Path(fringe).exists() and not Path(label).exists() and not any(root.iterdir()):
@@ -124,15 +122,16 @@ class FigshareArrays(Dataset):
 
 
 class FppsimDataset(Dataset):
-    """fppsim's native format (``manifest.jsonl``, ``<id>/fringe.png``, ``<id>/arrays.npz``) or a
-    figshare-format export (a folder holding ``f1_80.npy`` and ``Z.npy``), as the same sample dict.
+    """Any labelled layout through its reader (:func:`fppsim.dataio.readers.open_source`): fppsim's native
+    format (``manifest.jsonl``, ``<id>/fringe.png``, ``<id>/arrays.npz``), a figshare-format export (its
+    ``f1_80.npy`` and ``Z.npy``, memory-mapped), or a layout registered since, as the same sample dict.
 
-    Native heights (mm above the reference plane) are mapped to labels with ``transform`` (figshare
-    preset by default). ``label="psp"`` trains on the phase-shifting height (``height_psp``/``mask_psp``)
-    instead of the exact one. ``mask_fringe`` sets the fringe to -1 on invalid pixels, as the figshare
-    data and ``fppsim generate --format figshare`` do. ``phase=True`` adds ``phase`` (1, H, W) float32, the
-    exact projector phase (rad, ``phase_true``) for the physics head; a figshare export has none, so its
-    ``native/`` folder (what ``fppsim generate --format figshare`` writes beside it) is read instead.
+    Heights are mapped to labels with ``transform`` (figshare preset by default). ``label="psp"`` trains
+    on the phase-shifting height (``height_psp``/``mask_psp``) instead of the exact one. ``mask_fringe``
+    sets the fringe to -1 on invalid pixels, as the figshare data and ``fppsim generate --format figshare``
+    do. ``phase=True`` adds ``phase`` (1, H, W) float32, the exact projector phase (rad, ``phase_true``)
+    for the physics head, read from fppsim's native samples behind the folder (a figshare export's
+    ``native/`` folder, :meth:`~fppsim.dataio.readers.Source.fppsim_samples`).
     """
 
     def __init__(self, folder: str | os.PathLike, transform: LabelTransform | str | dict | None = None,
@@ -140,11 +139,6 @@ class FppsimDataset(Dataset):
                  phase: bool = False):
         self.root = Path(folder)
         self.phase = bool(phase)
-        if self.phase and open_source(self.root).pair is not None:
-            if not (self.root / "native" / "manifest.jsonl").is_file():
-                raise DataError(f"{self.root}: --head phase needs fppsim's native samples (phase_true); this figshare "
-                                "export has no native/ folder beside it")
-            self.root = self.root / "native"
         self.transform = LabelTransform.resolve(transform)
         self.source = source
         self.label = label
@@ -156,26 +150,25 @@ class FppsimDataset(Dataset):
             raise DataError(f"{self.root}: folder not found")
         if not self.root.is_dir():
             raise DataError(f"{self.root}: not a folder")
-        if open_source(self.root).pair is not None:
-            check_export_labels(self.root, self.transform)
+        self.reader = open_source(self.root)
+        if self.phase:
+            samples = self.reader.fppsim_samples()
+            if samples is None:
+                raise DataError(f"{self.root}: --head phase needs fppsim's native samples (phase_true); "
+                                + ("this figshare export has no native/ folder beside it" if self.reader.array_files
+                                   else f"this folder holds {self.reader.kind} data"))
+            self.reader, self.root = samples, samples.path
+        if self.reader.array_files is not None:
+            self.reader.check_samples(self.transform)
             self.arrays = FigshareArrays(self.root, transform=self.transform, check=check, source=source)
             self.ids = self.arrays.ids
             return
-        manifest = self.root / "manifest.jsonl"
-        if manifest.is_file():
-            self.ids = manifest_ids(self.root)
-        else:
-            self.ids = sorted(p.name for p in self.root.iterdir() if (p / "arrays.npz").is_file())
-        if not self.ids:
+        if not self.reader.labelled:
             raise DataError(
                 f"{self.root}: no samples (expected manifest.jsonl with <id>/arrays.npz, or f1_80.npy and Z.npy)"
             )
-        for sid in self.ids:
-            for name in ("fringe.png", "arrays.npz"):
-                if not (self.root / sid / name).is_file():
-                    raise DataError(f"{self.root / sid / name}: file not found (listed in {manifest.name})")
-        if label == "psp":
-            check_psp_available(self.root, self.ids[0])
+        self.reader.check_samples(self.transform, label)
+        self.ids = self.reader.ids()
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -183,18 +176,18 @@ class FppsimDataset(Dataset):
     def __getitem__(self, i: int) -> dict:
         if self.arrays is not None:
             return self.arrays[i]
-        sid = self.ids[int(i)]
-        fringe, label = read_native_pair(self.root / sid, self.transform, self.label, self.mask_fringe)
-        sample = _sample(fringe, label, self.transform, sid, self.source)
+        i = int(i)
+        fringe, label = self.reader.sample(i, self.transform, self.label, self.mask_fringe)
+        sample = _sample(fringe, label, self.transform, self.ids[i], self.source)
         if self.phase:
-            sample["phase"] = torch.from_numpy(read_native_phase(self.root / sid, fringe.shape))[None]
+            sample["phase"] = torch.from_numpy(self.reader.exact_phase(i, fringe.shape))[None]
         return sample
 
 
 def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synthetic", **kw) -> Dataset:
-    """A figshare-layout folder or an fppsim native folder, whichever ``folder`` holds
-    (:func:`fppsim.dataio.readers.open_source` tells)."""
-    if open_source(folder).pair is not None:
+    """Whatever labelled layout ``folder`` holds (:func:`fppsim.dataio.readers.open_source` tells): stacks
+    stored as arrays memory-mapped (:class:`FigshareArrays`), any other through its reader."""
+    if open_source(folder).array_files is not None and not kw.get("phase"):
         return FigshareArrays(folder, transform=transform, source=source, check=kw.get("check", True))
     return FppsimDataset(folder, transform=transform, source=source, **kw)
 
@@ -442,11 +435,10 @@ def load_sources(real: Sequence[str] = (), synthetic: Sequence[str] = (), transf
                                    phase=True)
             else:
                 kw = {"check": check}
-                if group == 1 and open_source(folder).pair is None:
+                if group == 1:
+                    if open_source(folder).array_files is not None and synthetic_label == "psp":
+                        open_source(folder).check_samples(transform, synthetic_label)  # says why not
                     kw["label"] = synthetic_label
-                elif group == 1 and synthetic_label == "psp":
-                    raise DataError(f"{folder}: --synthetic-label psp needs native samples with PSP arrays, but this "
-                                    "is a figshare-format export (its Z is the exact height); use its native/ folder")
                 ds = open_dataset(folder, transform=transform, source=source, **kw)
             try:
                 idx = {p: split_indices(len(ds), p, mode) for p in ("train", "val", "test")}

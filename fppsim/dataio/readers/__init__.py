@@ -12,9 +12,10 @@ phase-shifting ``.mat``       :func:`load_psp_mat` (one file), :func:`list_psp_i
                               :func:`load_psp_folder_sample`, :func:`iter_psp_folder` (PSin/PCos/Fringe/
                               iPattern folders)
 real images for fitting       :func:`load_fringe_images` (the five layouts above plus image files)
-which layout a path holds     :func:`open_source` -> :class:`Source` (``.kind``, ``fringe_images()``,
-                              ``height_labels()``, ``phase()``, ``ids()``): THE recognition of every
-                              layout above, which every command asks
+which layout a path holds     :func:`open_source` -> the layout's reader, a :class:`Source` (``ids()``,
+                              ``fringe_images()``, ``inputs()``, ``sample()``, ``phase()``, ...): THE
+                              recognition of every layout, which every command asks; a new layout is
+                              one :class:`Source` subclass and :func:`register_layout`
 ============================  =====================================================================
 
 The file names and the label transform are the contract of :mod:`fppsim.dataio.formats`; the writers of the
@@ -28,24 +29,24 @@ from __future__ import annotations
 from fppsim.dataio.readers.datasets import (LABEL_SOURCES, READ_ERRORS, SampleReader, check_export_labels, check_figshare_arrays,
                        check_psp_available, iter_samples, load_native_sample, open_figshare_pair, open_samples,
                        pick_evenly, read_fringe_image, read_native_label, read_native_pair,
-                       read_native_phase)
+                       read_native_phase, read_native_psp)
 from fppsim.dataio.readers.fringe_images import IMAGE_EXTS, FringeImage, load_fringe_images, read_image_file
 from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER_KEYS, SIN_KEYS, PspMat, PSPMatError, check_convention,
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, read_mat_variable, wrapped_from_sums)
-from fppsim.dataio.readers.source import PAIR_KINDS, PSP_KINDS, Source, open_source
+from fppsim.dataio.readers.source import LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, open_source, register_layout
 
 __all__ = [
     # native, figshare, any layout
     "LABEL_SOURCES", "READ_ERRORS", "SampleReader", "open_samples", "iter_samples", "pick_evenly",
-    "load_native_sample", "read_native_label", "read_fringe_image", "read_native_pair", "read_native_phase", "check_psp_available",
+    "load_native_sample", "read_native_label", "read_fringe_image", "read_native_pair", "read_native_phase", "read_native_psp", "check_psp_available",
     "open_figshare_pair", "check_figshare_arrays", "check_export_labels",
     # phase-shifting .mat files
     "PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "FOLDERS", "CONVENTIONS", "check_convention",
     "load_psp_mat", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable", "load_ipattern",
     "load_psp_folder_sample", "iter_psp_folder",
     # which layout a path holds
-    "Source", "open_source", "PSP_KINDS", "PAIR_KINDS",
+    "Source", "open_source", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
     # real images for fitting
     "FringeImage", "IMAGE_EXTS", "load_fringe_images", "read_image_file",
 ]

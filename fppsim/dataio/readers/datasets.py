@@ -24,11 +24,10 @@ import numpy as np
 
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.errors import DatasetError
-from fppsim.dataio.formats import PRESETS, LabelTransform, manifest_ids, read_settings
-from fppsim.dataio.readers.source import open_source
+from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids, read_settings
 
 __all__ = ["READ_ERRORS", "LABEL_SOURCES", "load_native_sample", "read_native_label", "read_fringe_image",
-           "read_native_pair", "read_native_phase", "check_psp_available", "open_figshare_pair", "check_figshare_arrays",
+           "read_native_pair", "read_native_phase", "read_native_psp", "check_psp_available", "open_figshare_pair", "check_figshare_arrays",
            "check_export_labels", "SampleReader", "open_samples", "pick_evenly", "iter_samples"]
 
 FIGSHARE = PRESETS["figshare"]
@@ -123,6 +122,40 @@ def read_native_phase(folder: str | os.PathLike, shape: tuple[int, ...] | None =
     if shape is not None and phase.shape != tuple(shape):
         raise DatasetError(f"{npz}: phase_true {phase.shape} does not match fringe.png {tuple(shape)}")
     return phase
+
+
+def read_native_psp(folder: str | os.PathLike) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+    """The phase-shifting images of one native sample folder, as rendered: ``(fringe grey (H, W), {f: grey
+    stack (steps, H, W)}, phase shifts (steps,) rad, meta)``: its ``meta.json`` says the ladder
+    (``psp``: ``freqs``, ``steps``, ``shifts_rad``); the images are ``psp/f{f}_s{n}.png``. Raises
+    :class:`DatasetError` naming the file for a sample without them (``--no-psp``) or a damaged one."""
+    folder = Path(folder)
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{folder / 'meta.json'}: cannot read ({exc.strerror if isinstance(exc, OSError) else 'not JSON'})") from None
+    psp = meta.get("psp") if isinstance(meta, dict) else None
+    if not isinstance(psp, dict) or not psp.get("freqs"):
+        raise DatasetError(f"{folder}: no phase-shifting images (generated with --no-psp?); label-real decodes "
+                           "psp/f{f}_s{n}.png")
+    try:
+        freqs = tuple(int(f) for f in psp["freqs"])
+        steps = int(psp["steps"])
+        shifts = np.asarray(psp.get("shifts_rad") or [2 * np.pi * n / steps for n in range(steps)], np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise DatasetError(f"{folder / 'meta.json'}: 'psp' must hold freqs, steps and shifts_rad") from None
+    image = read_gray_image(folder / "fringe.png")
+    stacks = {}
+    for f in freqs:
+        imgs = []
+        for n in range(steps):
+            path = folder / "psp" / f"f{f}_s{n}.png"
+            img = read_gray_image(path)
+            if img.shape != image.shape:
+                raise DatasetError(f"{path}: shape {img.shape} differs from fringe.png's {image.shape}")
+            imgs.append(img)
+        stacks[f] = np.stack(imgs)
+    return image, stacks, shifts, meta
 
 
 def check_psp_available(root: str | os.PathLike, first_id: str) -> None:
@@ -228,6 +261,14 @@ def check_export_labels(root: Path, transform: LabelTransform) -> None:
 
 
 # ============================================================================================ any layout
+def _complete_pair(folder: Path) -> tuple[str, Path, Path] | None:
+    """``(kind, fringe, label)`` of the first figshare-format pair of which BOTH files exist, else None."""
+    for kind, (f, z) in zip(("figshare", "real-sample"), FIGSHARE_PAIRS):
+        if (folder / f).is_file() and (folder / z).is_file():
+            return kind, folder / f, folder / z
+    return None
+
+
 class SampleReader:
     """Grey fringe images and labels of any dataset folder, one sample at a time, without torch.
 
@@ -244,13 +285,13 @@ class SampleReader:
         if not self.path.is_dir():
             raise DatasetError(f"{self.path}: not a folder")
         self._fringes = self._labels = None
-        src = open_source(self.path)
-        if src.complete_pair is not None:
-            self.layout, f, z = src.complete_pair
+        complete = _complete_pair(self.path)
+        if complete is not None:
+            self.layout, f, z = complete
             self._fringes, self._labels = open_figshare_pair(f, z)
             self.ids = [str(i) for i in range(len(self._fringes))]
             return
-        if src.has_manifest:
+        if (self.path / "manifest.jsonl").is_file():
             self.layout = "native"
             self.ids = [s for s in manifest_ids(self.path)
                         if (self.path / s / "fringe.png").is_file() and (self.path / s / "arrays.npz").is_file()]

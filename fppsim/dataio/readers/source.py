@@ -1,9 +1,11 @@
-"""The one opener of real (and synthetic) data: :func:`open_source` recognises what a path holds.
+"""One reader per data layout, and the one opener: :func:`open_source` recognises what a path holds.
 
-Every command that reads fringes from a path the user names asks :func:`open_source` which layout it
-is, instead of testing for file names itself (``tests/test_layers.py`` checks that the layout names
-appear only in :mod:`fppsim.dataio.readers`, :mod:`fppsim.dataio.formats` and :mod:`fppsim.dataio.writers`). Kinds, in the
-order they are recognised (the first that fits wins):
+Every layout (real or synthetic) is a subclass of :class:`Source` registered in :data:`LAYOUTS`: it says
+whether it :meth:`~Source.recognise` a path and reads what the layout has. Every command that reads
+data from a path the user names asks :func:`open_source` for the reader and uses what it provides,
+never testing file names or layout kinds itself (``tests/test_layers.py`` checks that layout names and
+``.kind`` tests appear only in :mod:`fppsim.dataio`). Layouts, in the order they are recognised (the
+first that fits wins; :func:`register_layout` adds one):
 
 =================  ===================================================================================
 kind               what the path holds
@@ -16,46 +18,64 @@ kind               what the path holds
 ``psp-partial``    some of those sub-folders, none of the two above (a damaged scan folder)
 ``figshare``       a figshare pair, ``f1_80.npy`` + ``Z.npy`` (either file: the other is then missing)
 ``real-sample``    the published pair ``fringe_pattern.npy`` + ``height_map.npy`` (likewise)
-``native``         fppsim's native samples (``manifest.jsonl``)
+``native``         fppsim's native samples (``manifest.jsonl``, or ``<id>/arrays.npz`` folders)
 ``folder``         anything else: a folder of images, of scan folders (:meth:`Source.scan_folders`), or nothing
 ``missing``        nothing at that path
 =================  ===================================================================================
 
-What each kind provides: :meth:`Source.fringe_images` (always; ``(id, grey uint8)``), and where the
-layout has them :meth:`Source.height_labels` (figshare labels) and :meth:`Source.phase` (the absolute
-phase of a ``psp`` scan); :meth:`Source.ids`. Callers keep their own readers for what they need
-beyond that (memory-mapped stacks, torch datasets, labelled scans).
+What a reader provides (the base class answers "nothing" where a layout has nothing):
+
+* :meth:`~Source.ids`, :meth:`~Source.fringe_images` (``(id, grey uint8)``), :meth:`~Source.inputs`
+  (what ``predict`` reads: ``(name, fringe in the dataset encoding, file)``);
+* labelled layouts (``labelled``): :meth:`~Source.sample` ``(fringe, label)`` as the networks read them,
+  :meth:`~Source.check_samples` (refuse what would be misread, before training), :meth:`~Source.height_labels`;
+  ``array_files`` for layouts stored as two memory-mappable ``.npy`` stacks;
+* phase-shifting scans: :meth:`~Source.phase` and :meth:`~Source.phase_ids` (frames with an absolute phase);
+* :meth:`~Source.fppsim_samples`: fppsim's native sample folders behind the path (the samples themselves,
+  or the ``native/`` folder a figshare export keeps beside its arrays): where ``dataset.json``, the
+  rig and each sample's exact phase are.
 """
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from fppsim.dataio.encoding import as_image_stack, decode_fringe, read_gray_image
+from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.dataio.formats import FIGSHARE_PAIRS, find_figshare_pair, manifest_ids
+from fppsim.errors import DatasetError
+from fppsim.dataio.readers.datasets import check_export_labels, check_psp_available, read_native_pair, read_native_phase
 from fppsim.dataio.readers.psp_mat import FOLDERS, is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
 
-__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "Source", "open_source"]
+__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
 PAIR_KINDS = ("figshare", "real-sample")
 
 
-@dataclass(frozen=True)
 class Source:
-    """What :func:`open_source` found at ``path``: its ``kind`` (module docstring) and ``pair`` =
-    ``(fringe, label)`` paths of the first figshare-format pair of which the folder holds either file
-    (whatever its kind: a scan folder may hold one too), else None."""
+    """A reader of one layout at ``path`` (module docstring). Subclasses set ``kind`` and
+    :meth:`recognise`, and override what their layout provides; register them with :func:`register_layout`."""
 
-    path: Path
-    kind: str
-    pair: tuple[Path, Path] | None = None
+    kind = "folder"
+    labelled = False  # height labels: sample() and height_labels() work
+    plain_files = False  # image / .npy files and folders of them: callers apply their own file rules
+
+    def __init__(self, path: str | os.PathLike, pair: tuple[Path, Path] | None = None):
+        self.path = Path(path)
+        self.pair = pair  # (fringe, label) of a figshare-format pair of which the folder holds either file
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({str(self.path)!r}, kind={self.kind!r})"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        """Whether ``path`` holds this layout (asked in :data:`LAYOUTS` order)."""
+        return False
 
     # ------------------------------------------------------------------ what the layout is
     @property
@@ -81,6 +101,12 @@ class Source:
                 return kind, self.path / f, self.path / z
         return None
 
+    @property
+    def array_files(self) -> tuple[Path, Path] | None:
+        """``(fringes, labels)``: the two ``.npy`` stacks a labelled layout is stored as (memory-mappable),
+        else None."""
+        return None
+
     def scan_folders(self) -> list[str]:
         """Names of the sub-folders (sorted) that are scan folders themselves (phase-shifting or native)."""
         if not self.path.is_dir():
@@ -92,82 +118,323 @@ class Source:
         """The single-shot image file of scan ``sid`` of a scan folder."""
         return self.path / FOLDERS["image"][0] / f"{sid}.mat"
 
+    def fppsim_samples(self) -> "Source | None":
+        """The reader of fppsim's native sample folders behind this path (they carry ``dataset.json``, the
+        rig and each sample's exact phase): the path itself, a figshare export's ``native/`` folder, else None."""
+        native = self.path / "native"
+        return NativeSamples(native) if NativeSamples.recognise(native) else None
+
     # ------------------------------------------------------------------ what it provides
     def ids(self) -> list[str]:
-        """The sample / scan ids: a ``psp`` folder's (scans with every quantity), an ``ipattern`` one's
-        (:meth:`image_ids`), a pair's (``0 .. N-1``), native samples' (the manifest's)."""
-        if self.kind == "psp":
-            return list_psp_ids(self.path)
-        if self.kind in PSP_KINDS:
-            return self.image_ids()
-        if self.kind in PAIR_KINDS:
-            return [str(i) for i in range(len(np.load(self.pair[0], mmap_mode="r", allow_pickle=False)))]
-        if self.kind == "native":
-            return manifest_ids(self.path)
-        return [self.path.stem] if self.kind in ("image", "npy") else []
-
-    def image_ids(self) -> list[str]:
-        """The ids of a scan folder's single-shot images (``iPattern/<id>.mat``)."""
-        return list_psp_ids(self.path, roles=("image",))
+        """The sample / scan / image ids, in reading order."""
+        return []
 
     def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
-        """``(id, grey uint8 (H, W))`` of every fringe image the path holds (scan folders: their
-        ``iPattern`` images; a pair's fringes; native samples' ``fringe.png``; image files; ``.npy``
-        stacks, uint8 or in the dataset encoding)."""
-        if self.kind in PSP_KINDS:
-            for sid in self.image_ids():
-                yield sid, load_ipattern(self.ipattern_file(sid))
-        elif self.kind in PAIR_KINDS:
-            arr = as_image_stack(np.load(self.pair[0], mmap_mode="r", allow_pickle=False), self.pair[0])
-            for k in range(arr.shape[0]):
-                yield str(k), decode_fringe(np.asarray(arr[k], dtype=np.float32))
-        elif self.kind == "native":
-            for sid in manifest_ids(self.path):
-                yield sid, read_gray_image(self.path / sid / "fringe.png")
-        elif self.kind == "image":
+        """``(id, grey uint8 (H, W))`` of every fringe image the path holds."""
+        return iter(())
+
+    def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
+        """What ``predict`` reads: ``(name, fringe float32 (H, W) in the dataset encoding, file)`` of every
+        fringe image, named ``<folder>_<id>``."""
+        for sid, gray in self.fringe_images():
+            yield f"{self.path.name}_{sid}", encode_fringe(gray), self.path
+
+    def height_labels(self) -> np.ndarray | None:
+        """The label stack (N, H, W) float32 (figshare preset) of a labelled layout, else None."""
+        return None
+
+    def check_samples(self, transform, label: str = "true") -> None:
+        """Refuse (:class:`fppsim.errors.DatasetError`, naming the file) a labelled layout the networks would
+        misread with ``transform`` / ``label`` (``"true"`` or ``"psp"`` heights), before training."""
+        if not self.labelled:
+            raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {LABELLED_HINT}")
+
+    def sample(self, i: int, transform, label: str = "true", mask_fringe: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """``(fringe, label)`` float32 (H, W) of sample ``i`` as the networks read them: the fringe in the
+        dataset encoding (intensity / 127.5 - 1), the height in ``transform``'s label units."""
+        raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {LABELLED_HINT}")
+
+    def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
+        """The exact projector phase (H, W) float32 of sample ``i`` (fppsim's native samples)."""
+        raise DatasetError(f"{self.path}: its samples carry no exact phase (fppsim's native samples do)")
+
+    def phase_ids(self) -> list[str]:
+        """The ids of the frames with an absolute phase (phase-shifting scans), else []."""
+        return []
+
+    def phase(self, sid: str, **kw) -> np.ndarray | None:
+        """The absolute phase (H, W) float64 of scan ``sid`` (``kw``: the phase convention of
+        :func:`fppsim.dataio.readers.load_psp_folder_sample`), else None."""
+        return None
+
+
+LABELLED_HINT = ("expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, or fppsim's native samples "
+                 "(manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)")
+
+
+class _File(Source):
+    """A single file (image, ``.npy`` or other) or nothing at all."""
+
+    plain_files = True
+
+    def ids(self) -> list[str]:
+        return [self.path.stem] if self.kind in ("image", "npy") else []
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        if self.kind == "image":
             yield self.path.stem, read_gray_image(self.path)
         elif self.kind == "npy":
             arr = as_image_stack(np.load(self.path, mmap_mode="r", allow_pickle=False), self.path)
             for k in range(arr.shape[0]):
                 a = np.asarray(arr[k])
                 yield f"{self.path.stem}_{k:04d}", a if a.dtype == np.uint8 else decode_fringe(a.astype(np.float32))
-        elif self.kind == "folder":
-            for p in sorted(q for q in self.path.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS):
-                yield p.stem, read_gray_image(p)
+
+
+class ImageFile(_File):
+    kind = "image"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return path.is_file() and path.suffix.lower() in IMAGE_EXTS
+
+
+class NpyFile(_File):
+    kind = "npy"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return path.is_file() and path.suffix.lower() == ".npy"
+
+
+class OtherFile(_File):
+    kind = "file"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return path.is_file()
+
+
+class Missing(_File):
+    kind = "missing"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return not path.is_dir()
+
+
+class _ScanFolder(Source):
+    """A phase-shifting scan folder, whole or in part (``PSin/ PCos/ Fringe/ iPattern/``)."""
+
+    def ids(self) -> list[str]:
+        return self.image_ids()
+
+    def image_ids(self) -> list[str]:
+        """The ids of a scan folder's single-shot images (``iPattern/<id>.mat``)."""
+        return list_psp_ids(self.path, roles=("image",))
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        for sid in self.image_ids():
+            yield sid, load_ipattern(self.ipattern_file(sid))
+
+    def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
+        for sid in self.image_ids():  # only the single-shot images are read
+            f = self.ipattern_file(sid)
+            yield f"{self.path.name}_{sid}", encode_fringe(load_ipattern(f)), f
+
+
+class PspFolder(_ScanFolder):
+    kind = "psp"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return is_psp_folder(path)
+
+    def ids(self) -> list[str]:
+        return list_psp_ids(self.path)
+
+    def phase_ids(self) -> list[str]:
+        return self.ids()
+
+    def phase(self, sid: str, **kw) -> np.ndarray | None:
+        return load_psp_folder_sample(self.path, sid, **kw).phase
+
+
+class IPatternFolder(_ScanFolder):
+    kind = "ipattern"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return (path / FOLDERS["image"][0]).is_dir()
+
+
+class PartialScanFolder(_ScanFolder):
+    kind = "psp-partial"
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return any((path / sub).is_dir() for sub, _ in FOLDERS.values())
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        if (self.path / FOLDERS["image"][0]).is_dir():
+            yield from super().fringe_images()
+
+    def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
+        return iter(())
+
+
+class _Pair(Source):
+    """A figshare-format pair: a fringe stack in the dataset encoding and its label stack."""
+
+    pair_index = 0
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        pair = find_figshare_pair(path)
+        return pair is not None and pair[0].name == FIGSHARE_PAIRS[cls.pair_index][0]
+
+    @property
+    def labelled(self) -> bool:
+        return self.pair is not None and self.pair[1].is_file()
+
+    @property
+    def array_files(self) -> tuple[Path, Path] | None:
+        return self.pair
+
+    def _fringes(self) -> np.ndarray:
+        if not self.pair[0].is_file():
+            raise DatasetError(f"{self.pair[0]}: file not found (figshare folder {self.path} without its fringes)")
+        return as_image_stack(np.load(self.pair[0], mmap_mode="r", allow_pickle=False), self.pair[0])
+
+    def ids(self) -> list[str]:
+        return [str(i) for i in range(self._fringes().shape[0])]
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        arr = self._fringes()
+        for k in range(arr.shape[0]):
+            yield str(k), decode_fringe(np.asarray(arr[k], dtype=np.float32))
+
+    def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
+        arr = self._fringes()  # fringes only: labels are never read
+        for k in range(arr.shape[0]):
+            yield (f"{self.path.name}_{k:04d}" if arr.shape[0] > 1 else self.path.name,
+                   np.asarray(arr[k], dtype=np.float32), self.pair[0])
 
     def height_labels(self) -> np.ndarray | None:
-        """The label stack (N, H, W) float32 (memory-mapped) of a pair, else None."""
-        if self.kind not in PAIR_KINDS or not self.pair[1].is_file():
+        if not self.labelled:
             return None
         z = np.load(self.pair[1], mmap_mode="r", allow_pickle=False)
         return z[..., 0] if z.ndim == 4 else z
 
-    def phase(self, sid: str, **kw) -> np.ndarray | None:
-        """The absolute phase (H, W) float64 of scan ``sid`` of a ``psp`` folder (``kw``: the phase
-        convention of :func:`fppsim.dataio.readers.load_psp_folder_sample`), else None."""
-        return load_psp_folder_sample(self.path, sid, **kw).phase if self.kind == "psp" else None
+    def check_samples(self, transform, label: str = "true") -> None:
+        super().check_samples(transform, label)
+        if label == "psp":
+            raise DatasetError(f"{self.path}: --synthetic-label psp needs native samples with PSP arrays, but this "
+                               "is a figshare-format export (its Z is the exact height); use its native/ folder")
+        check_export_labels(self.path, transform)
+
+
+
+class FigsharePair(_Pair):
+    kind = "figshare"
+    pair_index = 0
+
+
+class RealSamplePair(_Pair):
+    kind = "real-sample"
+    pair_index = 1
+
+
+class NativeSamples(Source):
+    """fppsim's native samples: ``manifest.jsonl`` (or, without one, every ``<id>/arrays.npz`` folder) with
+    ``<id>/fringe.png`` and ``<id>/arrays.npz`` per sample."""
+
+    kind = "native"
+    labelled = True
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return (path / "manifest.jsonl").is_file() or (path / "dataset.json").is_file()
+
+    def ids(self) -> list[str]:
+        if self.has_manifest:
+            return manifest_ids(self.path)
+        return sorted(p.name for p in self.path.iterdir() if (p / "arrays.npz").is_file()) if self.path.is_dir() else []
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        for sid in self.ids():
+            yield sid, read_gray_image(self.path / sid / "fringe.png")
+
+    def check_samples(self, transform, label: str = "true") -> None:
+        ids = self.ids()
+        if not ids:
+            raise DatasetError(
+                f"{self.path}: no samples (expected manifest.jsonl with <id>/arrays.npz, or f1_80.npy and Z.npy)")
+        for sid in ids:
+            for name in ("fringe.png", "arrays.npz"):
+                if not (self.path / sid / name).is_file():
+                    raise DatasetError(f"{self.path / sid / name}: file not found (listed in manifest.jsonl)")
+        if label == "psp":
+            check_psp_available(self.path, ids[0])
+
+    def sample(self, i: int, transform, label: str = "true", mask_fringe: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        return read_native_pair(self.path / self.ids()[int(i)], transform, label, mask_fringe)
+
+    def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
+        return read_native_phase(self.path / self.ids()[int(i)], shape)
+
+    def fppsim_samples(self) -> Source | None:
+        return self
+
+
+class NativeFolders(NativeSamples):
+    """fppsim's native sample folders without a manifest (``<id>/arrays.npz``): readable as samples."""
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return path.is_dir() and any((p / "arrays.npz").is_file() for p in path.iterdir())
+
+
+class Folder(Source):
+    """Anything else: a folder of images (or of scan folders), or an empty one."""
+
+    kind = "folder"
+    plain_files = True
+
+    @classmethod
+    def recognise(cls, path: Path) -> bool:
+        return path.is_dir()
+
+    def _images(self) -> list[Path]:
+        return sorted(q for q in self.path.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS)
+
+    def ids(self) -> list[str]:
+        return [p.stem for p in self._images()]
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        for p in self._images():
+            yield p.stem, read_gray_image(p)
+
+
+LAYOUTS: list[type[Source]] = [ImageFile, NpyFile, OtherFile, Missing, PspFolder, IPatternFolder, PartialScanFolder,
+                               FigsharePair, RealSamplePair, NativeSamples, NativeFolders, Folder]
+"""Every layout's reader, in the order :func:`open_source` asks them (the first that recognises a path wins)."""
+
+
+def register_layout(cls: type[Source], before: str = "folder") -> type[Source]:
+    """Add a layout's reader to :data:`LAYOUTS`, asked before the layout named ``before`` (default: before
+    the catch-all ``folder``); usable as a class decorator. A kind registered twice is refused."""
+    if any(c.kind == cls.kind for c in LAYOUTS):
+        raise ValueError(f"layout {cls.kind!r} is registered already")
+    at = next((k for k, c in enumerate(LAYOUTS) if c.kind == before), len(LAYOUTS))
+    LAYOUTS.insert(at, cls)
+    return cls
 
 
 def open_source(path: str | os.PathLike) -> Source:
-    """Recognise what ``path`` holds (module docstring): THE layout recognition of real data."""
+    """The reader of what ``path`` holds (module docstring): THE layout recognition of every data path."""
     path = Path(path)
-    if path.is_file():
-        ext = path.suffix.lower()
-        return Source(path, "image" if ext in IMAGE_EXTS else "npy" if ext == ".npy" else "file")
-    if not path.is_dir():
-        return Source(path, "missing")
-    pair = find_figshare_pair(path)
-    pair_kind = None if pair is None else PAIR_KINDS[[f for f, _ in FIGSHARE_PAIRS].index(pair[0].name)]
-    if is_psp_folder(path):
-        kind = "psp"
-    elif (path / FOLDERS["image"][0]).is_dir():
-        kind = "ipattern"
-    elif any((path / sub).is_dir() for sub, _ in FOLDERS.values()):
-        kind = "psp-partial"
-    elif pair_kind is not None:
-        kind = pair_kind
-    elif (path / "manifest.jsonl").is_file():
-        kind = "native"
-    else:
-        kind = "folder"
-    return Source(path, kind, pair)
+    pair = find_figshare_pair(path) if path.is_dir() else None
+    for cls in LAYOUTS:
+        if cls.recognise(path):
+            return cls(path, pair)
+    return Folder(path, pair)

@@ -33,18 +33,18 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
-    """Open each real folder (figshare layout) as a dataset; error names a folder that is not one."""
+    """Open each labelled real folder (any labelled layout) as a dataset; error names a folder that is not one."""
     from fppsim.dataio.readers import open_source
-    from uhrnet.data.datasets import FigshareArrays
+    from uhrnet.data.datasets import open_dataset
     from uhrnet.errors import DataError
 
     out = []
     for f in folders:
-        if open_source(f).pair is None:
-            raise Sim2RealError(f"{f}: no figshare-format pair (f1_80.npy + Z.npy, or fringe_pattern.npy + "
-                                "height_map.npy)")
+        if not open_source(f).labelled:
+            raise Sim2RealError(f"{f}: no labelled real samples (a figshare-format pair f1_80.npy + Z.npy, or "
+                                "fringe_pattern.npy + height_map.npy, or another labelled layout)")
         try:
-            out.append((str(f), FigshareArrays(f, source="real")))
+            out.append((str(f), open_dataset(f, source="real")))
         except DataError as exc:
             raise Sim2RealError(str(exc)) from None
     return out
@@ -58,13 +58,13 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
 
     out = []
     for f in folders:
-        src = open_source(f)
-        if src.kind != "psp":
-            raise Sim2RealError(f"{f}: not a phase-shifting folder (PSin/, PCos/, Fringe/, iPattern/ of <id>.mat)")
         try:
-            out += [(str(f), sid) for sid in src.ids()]
+            ids = open_source(f).phase_ids()
         except PSPMatError as exc:
             raise Sim2RealError(str(exc)) from None
+        if not ids:
+            raise Sim2RealError(f"{f}: not a phase-shifting folder (PSin/, PCos/, Fringe/, iPattern/ of <id>.mat)")
+        out += [(str(f), sid) for sid in ids]
     return out
 
 
