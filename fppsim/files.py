@@ -29,7 +29,7 @@ from typing import Iterator
 
 from fppsim.errors import FolderBusy
 
-__all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "is_own_tmp", "pid_alive",
+__all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
            "check_writable_dir", "check_output_file", "write_fully", "atomic_path", "atomic_write_text",
            "atomic_write_bytes", "fsync_dir", "unlink_quietly"]
@@ -122,11 +122,6 @@ def _owner_pid(name: str) -> int | None:
     if not m:
         return None
     return int(next(g for g in m.groups() if g is not None))
-
-
-def is_own_tmp(name: str) -> bool:
-    """True for names this package gives its temporary files and folders."""
-    return _owner_pid(name) is not None
 
 
 def pid_alive(pid: int) -> bool:

@@ -18,6 +18,17 @@ SHARED_MESHES = SHARED / "meshes"
 REAL_SAMPLE = SHARED / "real-sample"
 
 
+def synthesize_stack(phase: np.ndarray, background=0.5, modulation=0.5, n_steps: int = 4,
+                     shifts: np.ndarray | None = None) -> np.ndarray:
+    """Analytic phase-shifting stack ``I_n = A + B cos(phase + delta_n)``, float64 of shape (N, *phase.shape)
+    (fppsim.phase.psp's convention); ``background`` and ``modulation`` broadcast against ``phase``;
+    ``shifts`` default ``delta_n = 2 pi n / N``."""
+    p = np.asarray(phase, dtype=np.float64)
+    d = 2.0 * np.pi * np.arange(n_steps) / n_steps if shifts is None else np.asarray(shifts, dtype=np.float64).ravel()
+    d = d.reshape((-1,) + (1,) * p.ndim)
+    return np.asarray(background, np.float64) + np.asarray(modulation, np.float64) * np.cos(p + d)
+
+
 def scene(rng: np.random.Generator, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(fringe8 uint8, height_mm float32, valid bool) of one random scene of 1-2 blobs."""
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -159,3 +170,54 @@ def write_native_rig(folder, rig, n: int = 6, seed: int = 0) -> list[str]:
         ids.append(sid)
     reconcile(folder)
     return ids
+
+
+def reference_plane_height(dphi, L, d, f0):
+    """Classic reference-plane phase-to-height formula ``h = L dphi / (dphi + 2 pi f0 d)``.
+
+    Parameters
+    ----------
+    dphi : phase difference (rad) between the reference plane and the object at the same camera pixel,
+        ``dphi = Phi_reference - Phi_object``; positive for points above the plane when ``d > 0``.
+    L : distance (mm) from the camera (and projector) centre to the reference plane.
+    d : baseline (mm) between camera and projector centres, measured along the direction in which the
+        projected phase increases on the plane (signed: negative if the projector sits on the other side).
+    f0 : fringe frequency on the reference plane (periods per mm).
+
+    Returns
+    -------
+    height (mm) above the plane, float64, broadcast over the inputs.
+
+    Exact for the geometry it assumes: camera and projector centres at the same height ``L``, both
+    optical axes perpendicular to the plane, fringes uniform on the plane (a parallel-axis rig with projector lens shift such as :func:`fppsim.geometry.rig.make_parallel_rig`). Derivation:
+    a camera ray meets the plane at ``x`` and the object at height ``h`` at ``x (L-h)/L``; the projector
+    column of that point differs from the plane's by ``-fx_p d h / (L (L-h))``, so
+    ``dphi = 2 pi f0 d h/(L - h)``, which solves to the formula.
+    """
+    dphi = np.asarray(dphi, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return L * dphi / (dphi + 2.0 * np.pi * np.asarray(f0, np.float64) * np.asarray(d, np.float64))
+
+
+def reference_plane_parameters(rig, periods: float | None = None, atol: float = 1e-9) -> tuple[float, float, float]:
+    """``(L, d, f0)`` of a parallel-axis rig for :func:`reference_plane_height`.
+
+    ``L`` = camera height above the plane (mm), ``d`` = signed baseline along world x (mm),
+    ``f0 = f fx_p / (W_p L)`` periods per mm on the plane. Raises ValueError unless both optical axes
+    point straight down, the projector columns run along world x without skew, and both centres are
+    at the same height (where the formula is exact).
+    """
+    cam, proj = rig.camera, rig.projector
+    f = rig.periods if periods is None else float(periods)
+    down = np.array([0.0, 0.0, -1.0])
+    if not (np.allclose(cam.R[2], down, atol=atol) and np.allclose(proj.R[2], down, atol=atol)):
+        raise ValueError("reference-plane formula needs both optical axes perpendicular to the plane")
+    if abs(proj.K[0, 1]) > atol or abs(abs(proj.R[0, 0]) - 1.0) > atol:
+        raise ValueError("reference-plane formula needs projector columns along world x (no skew or rotation)")
+    L, Lp = cam.center[2], proj.center[2]
+    if abs(L - Lp) > atol * max(1.0, L):
+        raise ValueError(f"reference-plane formula needs camera and projector at one height ({L} vs {Lp} mm)")
+    sx = np.sign(proj.R[0, 0])  # +1 when projector columns increase with world x
+    d = float(sx * (proj.center[0] - cam.center[0]))
+    f0 = float(f * proj.K[0, 0] / (proj.width * L))
+    return float(L), d, f0

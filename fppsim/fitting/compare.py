@@ -2,7 +2,7 @@
 
 Used by ``fppsim compare-real REAL_DIR SYN_DIR``: both folders are read with
 :func:`fppsim.dataio.readers.iter_samples` (three layouts, see below), every sample is measured with
-:func:`sample_stats` (the fringe measurements of :mod:`fppsim.phase.fringe`), the per-sample values
+:func:`sample_stats` (the fringe measurements of :mod:`fppsim.phase.measure`), the per-sample values
 are aggregated by their median (:func:`dataset_stats`) and :func:`format_comparison` prints a
 side-by-side table, so a user can tune the rig and optics to their own lab data.
 
@@ -50,7 +50,8 @@ import numpy as np
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import PRESETS, LabelTransform
-from fppsim.phase.fringe import estimate_period, fringe_modulation, fringe_tilt, plane_level, quarter_periods
+from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt, quarter_periods
+from fppsim.phase.plane import plane_level
 from fppsim.dataio.readers import iter_samples, open_samples
 
 __all__ = ["sample_stats", "dataset_stats", "compare_real", "format_comparison", "format_value", "STAT_ROWS"]

@@ -11,12 +11,14 @@ away from the scene together, focal lengths with them, the plane's image and fri
 plane's band periods and tilt after each change (:func:`fppsim.fitting.fit_rig.fit_rig`).
 
 Measurement (:func:`depth_check`), per labelled image (:class:`fppsim.dataio.readers.FringeImage` with
-``height_mm``):
+``height_mm``), on the rig-vs-labels check :func:`fppsim.fitting.height_sensitivity.label_residual`:
 
 1. The real fringe, less its local mean, is demodulated with ``exp(-i Phi_rig(h))``
    (:func:`fppsim.fitting.height_sensitivity.surface_phase` of the labelled surface) and low-passed: the
    residual phase ``r = wrap(phi_real - Phi_rig)`` (:func:`fppsim.fitting.height_sensitivity.demodulated_residual`;
-   no carrier band, no unwrapping: what the rig explains is removed before filtering).
+   no carrier band, no unwrapping: what the rig explains is removed before filtering), on the plane
+   (``|h| < 1 mm``) and object (``h > 2 mm``) pixels away from invalid pixels and height steps
+   (:func:`fppsim.fitting.height_sensitivity.label_masks`).
 2. One constant ``o`` (the circular mean of ``r`` on the plane) is removed: for the right rig the
    wrapped residual is then about 0 on the plane AND on the object.
 3. A wrapped residual is blind to whole fringes. Projector shadows fix them: the plane pixel at the
@@ -39,31 +41,17 @@ import numpy as np
 
 from fppsim.errors import RigError
 from fppsim.fitting.fit_periods import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
-from fppsim.fitting.height_sensitivity import centre_sensitivity, demodulated_residual, object_residual, surface_phase
-from fppsim.phase import circular_mean, wrap
+from fppsim.fitting.height_sensitivity import centre_sensitivity, label_residual, surface_phase
+from fppsim.phase import wrap
 from fppsim.phase.unwrap import shadow_runs
 from fppsim.dataio.readers import FringeImage
 from fppsim.geometry.rig import Rig
 
-__all__ = ["depth_masks", "shadow_edges", "shadow_bridge", "sensitivity_at", "DepthCheck",
-           "depth_check", "DepthFit", "fit_depth", "format_depth_fit", "format_depth_checks"]
+__all__ = ["shadow_edges", "shadow_bridge", "sensitivity_at", "DepthCheck", "depth_check", "DepthFit", "fit_depth",
+           "format_depth_fit"]
 
 
 # ====================================================================== measuring one image
-def depth_masks(valid: np.ndarray, height_mm: np.ndarray, smooth: float = 4.0, plane_mm: float = 1.0,
-                object_mm: float = 2.0, steep_mm: float = 3.0) -> tuple[np.ndarray, np.ndarray]:
-    """Plane and object pixels fit for the residual: valid pixels at least 1.5 x ``smooth`` px from an
-    invalid one and ``smooth`` px from a height step (more than ``steep_mm`` over 5 px), with
-    ``|h| < plane_mm`` (plane) or ``h > object_mm`` (object)."""
-    from scipy import ndimage as ndi
-
-    h = np.where(valid, np.nan_to_num(np.asarray(height_mm, dtype=np.float64)), 0.0)
-    inner = ndi.binary_erosion(valid, iterations=int(np.ceil(1.5 * smooth)))
-    steep = ndi.maximum_filter(h, 5) - ndi.minimum_filter(h, 5) > steep_mm
-    inner &= ~ndi.binary_dilation(steep, iterations=max(1, int(np.ceil(smooth))))
-    return inner & (np.abs(h) < plane_mm), inner & (h > object_mm)
-
-
 def shadow_edges(valid: np.ndarray, plane: np.ndarray, obj: np.ndarray, shadow_left: bool = True, k: int = 3,
                  min_width: int = 8) -> np.ndarray:
     """Projector shadows crossed along image rows: (n, 3) int rows ``(row, u_plane, u_object)``, the last
@@ -173,19 +161,14 @@ def depth_check(rig: Rig, image: FringeImage, smooth: float = 4.0, bridge_ref: f
     FP1523). Returns None without labels or with fewer than ``min_object`` object pixels; without
     ``min_edges`` shadow crossings the offset stays wrapped (``object_offset`` NaN).
     """
-    if image.height_mm is None:
+    res = label_residual(rig, image, smooth, min_object=min_object)
+    if res is None:
         return None
     valid = np.asarray(image.valid, dtype=bool)
-    h = np.where(valid, np.nan_to_num(np.asarray(image.height_mm, dtype=np.float64)), 0.0)
-    plane, obj = depth_masks(valid, h, smooth)
-    if plane.sum() < 1000 or obj.sum() < min_object:
-        return None
-    P = surface_phase(rig, h)  # one projection serves the residual and the shadow bridges
-    d = demodulated_residual(rig, image.gray, valid, h, smooth, rig_phase=P)
-    o = circular_mean(d, mask=plane)
-    r = wrap(d - o)
-    ro, ho = r[obj], h[obj]
-    coherence, wrapped, slope = object_residual(ro, ho)
+    h, plane, obj, P, d, r, o = res.height, res.plane, res.obj, res.rig_phase, res.demodulated, res.residual, \
+        res.plane_offset
+    ro = r[obj]
+    coherence, wrapped, slope = res.coherence, res.offset, res.slope
     left = _shadow_left(rig)
     edges = shadow_edges(valid, valid & (np.abs(h) < 1.5), valid & (h > 5.0), left)
     fringes, offset, bridge, iqr, share = 0, float("nan"), float("nan"), float("nan"), float("nan")
@@ -222,15 +205,6 @@ def _check_line(name: str, checks: list, s0: float, s40: float) -> str:
     p = {k: _pooled(checks, k) for k in ("plane_residual", "object_residual", "object_offset", "slope", "coherence")}
     return (f"{name:<14}{p['plane_residual']:>10.3f}{p['object_residual']:>11.3f}{p['object_offset']:>+9.2f}"
             f"{p['slope']:>+9.4f}{p['coherence']:>8.3f}{abs(s0):>8.3f}{abs(s40):>8.3f}")
-
-
-def format_depth_checks(rows: list[tuple[str, Rig, list[DepthCheck]]]) -> str:
-    """Plain-text table of :func:`depth_check` results (object-pixel weighted over images), one line per
-    ``(name, rig, checks)``: median |residual| on plane and object (rad), absolute object offset (rad),
-    residual slope (rad/mm), coherence, and the rig's sensitivity at 0 and 40 mm (rad/mm, image centre)."""
-    lines = [_CHECK_HEADER]
-    lines += [_check_line(n, c, centre_sensitivity(r), sensitivity_at(r, 40.0)) for n, r, c in rows]
-    return "\n".join(lines)
 
 
 # ====================================================================== the fit

@@ -7,7 +7,7 @@ On the reference plane the image model of :mod:`fppsim.rendering.optics` reduces
 with ``g = gain * albedo_plane``, ``k = cos_incidence * falloff`` (known from the rig), and ``c`` the
 attenuation of the fringe by projector + camera blur (and the DMD's pixelation), tabulated once by
 rendering noise-free planes through :func:`fppsim.rendering.optics.optical_image` and measuring them with the same
-estimator as the real images (:func:`fppsim.phase.fringe.fringe_modulation`), so estimator bias cancels.
+estimator as the real images (:func:`fppsim.phase.measure.fringe_modulation`), so estimator bias cancels.
 Per image, on plane pixels:
 
 * ``A``, ``B/A``: medians of the fringe background and modulation;
@@ -43,7 +43,7 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.files import atomic_write_text, check_output_file
-from fppsim.rendering.optics import Optics, OpticsRanges, form_images, optical_image, projector_radiance
+from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
@@ -62,7 +62,8 @@ def _centre(r) -> float:
 def plane_model(rig: Rig) -> dict:
     """Per camera pixel on the reference plane, as :func:`fppsim.rendering.render.plane_geometry` computes it:
     projector column ``u_p``, ``k = cos_incidence * falloff`` and ``lit`` (inside the projector),
-    (H, W) float64 / bool, and the ``geometry`` itself (what :func:`render_plane` forms images of)."""
+    (H, W) float64 / bool, and the ``geometry`` itself (what :func:`fppsim.rendering.optics.form_images` forms
+    the plane's images on)."""
     g = plane_geometry(rig)
     return {"u_p": g.u_p, "k": g.cos_incidence * g.falloff, "lit": g.lit, "geometry": g}
 
@@ -97,18 +98,10 @@ def _default_ratio(rig: Rig, period_cam: float) -> tuple[float, float]:
     return _centre(d.projector_blur) * px, _centre(d.camera_blur)
 
 
-def render_plane(rig: Rig, optics: Optics, model: dict | None = None, rng=None, appearance_rng=None) -> np.ndarray:
-    """uint8 (H, W) image of the bare reference plane under ``optics``, formed like a sample's fringe image
-    (:func:`fppsim.rendering.optics.form_images`, appearance effects included) on :func:`plane_model`'s geometry.
-    ``rng``: camera noise (None = noise-free); ``appearance_rng``: texture, dirt, ..."""
-    m = plane_model(rig) if model is None else model
-    return form_images(m["geometry"], rig, optics, [(float(rig.periods), 0.0)], rng, 1, appearance_rng)[0]
-
-
 def contrast_table(rig: Rig, period: float, sigmas=np.linspace(0.0, 4.0, 17), model: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fringe contrast ``c(sigma)`` (ambient 0) for effective blurs ``sigma`` (camera px), measured on
-    noise-free rendered planes with :func:`fppsim.phase.fringe.fringe_modulation`. Returns (sigmas, c)."""
-    from fppsim.phase.fringe import fringe_modulation
+    noise-free rendered planes with :func:`fppsim.phase.measure.fringe_modulation`. Returns (sigmas, c)."""
+    from fppsim.phase.measure import fringe_modulation
 
     m = plane_model(rig) if model is None else model
     ratio = _default_ratio(rig, period)
@@ -182,7 +175,7 @@ def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
 def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
                     ambient: float, albedo_plane: float) -> dict:
     """Optics parameters of one image (see the module docstring); NaN where not measurable."""
-    from fppsim.phase.fringe import fringe_modulation
+    from fppsim.phase.measure import fringe_modulation
 
     plane, obj = _masks(im, model)
     g = im.gray.astype(np.float64)
@@ -262,7 +255,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     the centres of the default ranges). ``min_width``: each range spans at least +-this fraction of its
     centre. Raises ValueError if no image has enough plane pixels with fringes.
     """
-    from fppsim.phase.fringe import estimate_period
+    from fppsim.phase.measure import estimate_period
 
     d = OpticsRanges()
     amb = _centre(d.ambient) if ambient is None else float(ambient)

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fppsim.phase.fringe import estimate_period, fringe_tilt
+from fppsim.phase.measure import estimate_period, fringe_tilt
 from fppsim.dataio.readers import FringeImage
 from fppsim.geometry.rig import Device, Rig, RigError, rotation
 
@@ -86,7 +86,7 @@ def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 def plane_tilt(rig: Rig, step: int = 8) -> float:
     """Angle of the pattern's lines on the reference plane from the camera's vertical, degrees, positive
-    when a line leans right going down (as :func:`fppsim.phase.fringe.fringe_tilt` measures images): the
+    when a line leans right going down (as :func:`fppsim.phase.measure.fringe_tilt` measures images): the
     median of ``atan(-(du_p/dv) / (du_p/du))`` over the lit plane. A rolled projector tilts the lines;
     the real figshare rig: about -1.35 deg."""
     cam, proj = rig.camera, rig.projector
@@ -207,7 +207,7 @@ def plane_coverage(rig: Rig, step: int = 8) -> float:
 @dataclass
 class BandPeriods:
     """Measured periods (camera px): per column band, per row band and per half; medians over images.
-    ``tilt_deg`` (1,): the fringe lines' angle from vertical on the plane (:func:`fppsim.phase.fringe.fringe_tilt`),
+    ``tilt_deg`` (1,): the fringe lines' angle from vertical on the plane (:func:`fppsim.phase.measure.fringe_tilt`),
     median over images. ``spread`` holds [min, max] over images for each entry; ``n_images`` how many
     gave a value."""
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fppsim.phase.fringe import plane_level, poly_basis
+from fppsim.phase.plane import plane_level, poly_basis
 from fppsim.geometry.rig import Rig
 from fppsim.phase.triangulation import height_from_phase
 
@@ -79,7 +79,7 @@ def plane_flatness(height: np.ndarray, valid: np.ndarray, window_mm: float = 3.0
     Returns
     -------
     :class:`PlaneFit`. The plane is the dominant flat mode: the histogram mode of the heights
-    (:func:`fppsim.phase.fringe.plane_level`), then pixels within ``window_mm`` of a least-squares plane,
+    (:func:`fppsim.phase.plane.plane_level`), then pixels within ``window_mm`` of a least-squares plane,
     refitted ``iterations`` times (a tilted plane is followed; objects above it are left out). All
     numbers are NaN when no plane pixel is found.
     """

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import RigError
-from fppsim.geometry.rig_files import checked_matrix, read_rig_file, rig_from_opencv_stereo, save_rig
+from fppsim.geometry.rig_files import checked_matrix, read_rig_file, save_rig
 
 __all__ = ["Device", "Rig", "RigError", "check_image_size", "checked_matrix", "data_path", "default_rig_path", "load_rig",
            "usable_rig",
@@ -482,12 +482,6 @@ class Rig:
         return cls._from_file(path, read_rig_file(path))
 
     @classmethod
-    def from_opencv_stereo(cls, path: str | os.PathLike, plane_distance: float | None = None,
-                           periods: float | None = None) -> "Rig":
-        """Import an OpenCV stereo calibration (:func:`fppsim.geometry.rig_files.rig_from_opencv_stereo`)."""
-        return cls._from_file(path, rig_from_opencv_stereo(path, plane_distance, periods))
-
-    @classmethod
     def _from_file(cls, path, doc) -> "Rig":
         """The rig of a file's document, checked; errors name the file."""
         try:
@@ -547,7 +541,7 @@ def check_image_size(rig, shape, what: str, *, who: str = "the rig's camera is",
 # 180 mm parallel rig had 0.48 rad/mm (R = 0.20), i.e. it taught networks 1.8x too little fringe
 # shift per mm.
 # Its fringe lines are not vertical either: on the plane they lean by -1.34 deg (8.6 px over the 352
-# rows; fppsim.phase.fringe.fringe_tilt), which a projector rolled by -1.29 deg about its optical axis
+# rows; fppsim.phase.measure.fringe_tilt), which a projector rolled by -1.29 deg about its optical axis
 # reproduces (fit-rig fits it from the tilt).
 DEFAULT_BASELINE = 330.0  # mm
 DEFAULT_PROJECTOR_YAW = 0.07499517978544548  # rad (4.30 deg)

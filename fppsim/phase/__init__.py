@@ -1,4 +1,4 @@
-"""Phase helpers of both packages (numpy): wrapping, the circular mean, masked demodulation.
+"""Phase helpers of both packages (numpy): wrapping, the circular mean and median, masked demodulation.
 
 One convention: a wrapped phase lies in ``(-pi, pi]`` (what ``atan2`` and ``np.angle`` return; the
 phase-shifting decode :mod:`fppsim.phase.psp` wraps with :func:`wrap`). :mod:`uhrnet.physics.rig_layer` holds the
@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["TWO_PI", "wrap", "mean_phasor", "circular_mean", "lowpass", "demodulate"]
+__all__ = ["TWO_PI", "wrap", "mean_phasor", "circular_mean", "circular_median", "lowpass", "demodulate"]
 
 TWO_PI = 2.0 * np.pi
 
@@ -48,6 +48,26 @@ def circular_mean(phase, weights=None, mask=None) -> float:
     """Circular mean (rad, in ``(-pi, pi]``) of ``phase`` over ``mask``, optionally weighted: the angle of
     :func:`mean_phasor`. NaN when nothing is selected."""
     return float(np.angle(mean_phasor(phase, weights, mask)))
+
+
+def circular_median(angles, candidates: int = 256, max_samples: int = 20000) -> float:
+    """Circular median (rad, in ``(-pi, pi]``) of ``angles`` (any shape, NaN ignored): the direction
+    minimising the summed arc distance, robust to outliers (unlike :func:`circular_mean`). NaN when no
+    angle is finite.
+
+    A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
+    then the exact median of all angles re-centred on the best candidate (the arc distance is then
+    the ordinary absolute difference).
+    """
+    a = np.asarray(angles, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return float("nan")
+    sample = a[:: max(1, a.size // int(max_samples))]
+    cands = np.linspace(-np.pi, np.pi, int(candidates), endpoint=False)
+    cost = [np.abs(wrap(sample - c)).sum() for c in cands]
+    c0 = cands[int(np.argmin(cost))]
+    return float(wrap(c0 + np.median(wrap(a - c0))))
 
 
 def lowpass(z: np.ndarray, sigma: float, weights=None, mode: str = "reflect") -> np.ndarray:

@@ -1,6 +1,6 @@
 """Phase-shifting profilometry (PSP): N-step phase, temporal unwrapping, the whole decoding chain.
 
-Phase -> 3D (triangulation through a calibrated rig, the reference-plane formula) is
+Phase -> 3D (triangulation through a calibrated rig) is
 :mod:`fppsim.phase.triangulation`; :func:`decode_stacks` runs both, as a lab does.
 
 Plain numpy functions over arrays (scikit-image / SciPy style); all arithmetic in float64.
@@ -30,16 +30,14 @@ from __future__ import annotations
 
 import threading
 from dataclasses import dataclass
-from math import erfc
 
 import numpy as np
 
 from fppsim.phase import wrap
 from fppsim.phase.triangulation import height_from_phase
 
-__all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "ladder_stability_bound",
-           "order_consistency", "order_error_probability", "phase_from_sums", "phase_noise_std", "phase_shifts",
-           "phase_sums", "quality_mask", "synthesize_stack", "unwrap_temporal", "wrapped_phase"]
+__all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "order_consistency",
+           "phase_from_sums", "phase_shifts", "phase_sums", "quality_mask", "unwrap_temporal", "wrapped_phase"]
 
 DEFAULT_FREQS = (1, 8, 80)
 """Default frequency ladder (periods across the projector width)."""
@@ -174,8 +172,7 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
     else:
         I = np.asarray(I, dtype=np.float64)
         A = np.tensordot(w[0], I, axes=1)
-        c = np.tensordot(w[1], I, axes=1)  # PCos = (N/2) B cos(phi)
-        s = np.tensordot(w[2], I, axes=1)  # PSin = (N/2) B sin(phi)
+        s, c = phase_sums(I, shifts)  # PSin = (N/2) B sin(phi), PCos = (N/2) B cos(phi)
     return PhaseShift(phase=phase_from_sums(s, c), background=A, modulation=(2.0 / n) * np.hypot(s, c))
 
 
@@ -266,9 +263,11 @@ def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation:
     ----------
     background, modulation : ``A`` and ``B`` from :func:`wrapped_phase` (same units, e.g. gray levels).
     min_modulation : absolute modulation threshold (image units). The phase noise of N-step phase
-        shifting is ``sigma_phi = sqrt(2/N) * sigma_I / B`` (:func:`phase_noise_std`), so choose it from
-        the image noise ``sigma_I`` and the noise the unwrapping ladder tolerates
-        (:func:`ladder_stability_bound`).
+        shifting is ``sigma_phi = sqrt(2/N) * sigma_I / B`` (independent Gaussian image noise ``sigma_I``,
+        small-noise limit), so choose it from the image noise and the noise the unwrapping ladder
+        tolerates: never a wrong order while every wrapped phase is within ``pi / (1 + r_max)`` of the
+        truth, ``r_max`` the largest ratio of neighbouring frequencies (``pi/11 = 0.286`` rad for
+        ``(1, 8, 80)``; derivation and the Gaussian order-error rate in ``tests/fppsim/test_psp.py``).
     min_ratio : threshold on the fringe contrast ``B/A`` (0..1 for non-negative images); rejects
         saturated / ambient-dominated pixels.
 
@@ -282,28 +281,6 @@ def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation:
         return np.isfinite(A) & np.isfinite(B) & (B >= min_modulation) & (B >= min_ratio * A)
 
 
-def synthesize_stack(phase: np.ndarray, background=0.5, modulation=0.5, n_steps: int = 4,
-                     shifts: np.ndarray | None = None) -> np.ndarray:
-    """Analytic stack ``I_n = A + B cos(phase + delta_n)``, float64 of shape (N, *phase.shape).
-
-    ``background`` and ``modulation`` broadcast against ``phase``; ``shifts`` default ``2*pi*n/N``.
-    """
-    p = np.asarray(phase, dtype=np.float64)
-    d = phase_shifts(n_steps) if shifts is None else np.asarray(shifts, dtype=np.float64).ravel()
-    d = d.reshape((-1,) + (1,) * p.ndim)
-    return np.asarray(background, np.float64) + np.asarray(modulation, np.float64) * np.cos(p + d)
-
-
-def phase_noise_std(image_noise_std, modulation, n_steps: int = 4):
-    """Standard deviation (rad) of the N-step wrapped phase for additive image noise.
-
-    ``sigma_phi = sqrt(2/N) * sigma_I / B`` (independent Gaussian noise ``sigma_I`` per image,
-    small-noise limit). Broadcasts over arrays.
-    """
-    n = len(phase_shifts(n_steps))
-    return np.sqrt(2.0 / n) * np.asarray(image_noise_std, np.float64) / np.asarray(modulation, np.float64)
-
-
 # ====================================================================== temporal unwrapping
 def _check_ladder(freqs) -> np.ndarray:
     f = np.asarray(freqs, dtype=np.float64).ravel()
@@ -314,42 +291,6 @@ def _check_ladder(freqs) -> np.ndarray:
     if np.any(np.diff(f) <= 0):
         raise ValueError(f"frequency ladder must be strictly increasing, got {f.tolist()}")
     return f
-
-
-def ladder_stability_bound(freqs=DEFAULT_FREQS) -> float:
-    """Largest wrapped-phase error (rad) per frequency for which the ladder never picks a wrong order.
-
-    Derivation: with correct orders up to step ``i-1`` the absolute phase ``Phi_{i-1}`` carries the
-    error ``e_{i-1}`` of its wrapped phase, so the rounding argument of step ``i`` is
-    ``k_true + (r_i e_{i-1} - e_i)/(2 pi)`` with ``r_i = f_i/f_{i-1}``. Rounding is right while
-    ``|r_i e_{i-1} - e_i| < pi``; with every ``|e| <= eps`` that holds for all steps iff
-    ``(1 + r_max) eps < pi``, i.e. ``eps < pi/(1 + r_max)``. (1, 8, 80): ``pi/11 = 0.286`` rad;
-    (1, 4, 16, 80): ``pi/6 = 0.524`` rad. The lowest frequency also needs ``Phi_0`` farther than
-    ``eps`` from the 0/2pi seam (the projector's edge columns): see ``seam_margin`` in
-    :func:`unwrap_temporal`. For Gaussian noise use :func:`order_error_probability`.
-    """
-    f = _check_ladder(freqs)
-    if f.size < 2:
-        return float(np.pi)  # one frequency: only the seam matters
-    return float(np.pi / (1.0 + np.max(f[1:] / f[:-1])))
-
-
-def order_error_probability(phase_noise, freqs=DEFAULT_FREQS) -> float:
-    """Expected fraction of pixels with a wrong fringe order for Gaussian phase noise.
-
-    Each frequency's wrapped phase has independent noise of standard deviation ``phase_noise`` (rad).
-    Step ``i`` fails when ``|r_i e_{i-1} - e_i| > pi``, a Gaussian of standard deviation
-    ``phase_noise * sqrt(r_i^2 + 1)``: ``p_i = erfc(pi / (sqrt(2) sigma_i))``; the ladder fails with
-    ``1 - prod(1 - p_i)`` (seam errors at the projector edges not included).
-    """
-    f = _check_ladder(freqs)
-    s = float(phase_noise)
-    if s <= 0:
-        return 0.0
-    ok = 1.0
-    for r in f[1:] / f[:-1]:
-        ok *= 1.0 - erfc(np.pi / (np.sqrt(2.0) * s * np.sqrt(r * r + 1.0)))
-    return 1.0 - ok
 
 
 @dataclass

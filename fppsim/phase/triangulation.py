@@ -1,11 +1,11 @@
-"""Phase -> 3D: triangulation through a calibrated rig, and the classic reference-plane formula.
+"""Phase -> 3D: triangulation through a calibrated rig.
 
 A camera pixel's ray meets the projector's plane of constant column ``u_p = Phi W_p / (2 pi f)`` (exact
 without projector distortion; iterated to a fixed point with it): :func:`triangulate` gives the
 points, heights and depths, :func:`height_from_phase` just the heights (the same bits). The camera's
-rays are cached for the last few cameras (:func:`_camera_rays`; thread-safe, read-only arrays).
-:func:`reference_plane_height` is ``h = L dphi / (dphi + 2 pi f0 d)`` for rigs described by ``(L, d,
-f0)`` (:func:`reference_plane_parameters`). Conventions: :mod:`fppsim.geometry.rig` (mm, OpenCV pinholes) and
+rays are cached for the last few cameras (:func:`_camera_rays`; thread-safe, read-only arrays). (The
+classic reference-plane formula ``h = L dphi / (dphi + 2 pi f0 d)`` of parallel-axis rigs is the
+independent truth the tests check it against: ``tests/_helpers.py``.) Conventions: :mod:`fppsim.geometry.rig` (mm, OpenCV pinholes) and
 :mod:`fppsim.phase.psp` (the projector phase ``Phi = 2 pi f u_p / W_p``). All arithmetic in float64.
 """
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from fppsim.geometry.rig import along_rays
 
-__all__ = ["Triangulation", "triangulate", "height_from_phase", "reference_plane_height", "reference_plane_parameters"]
+__all__ = ["Triangulation", "triangulate", "height_from_phase"]
 
 
 @dataclass
@@ -198,55 +198,3 @@ def height_from_phase(rig, phase: np.ndarray, periods: float | None = None, mask
     Shorthand for ``triangulate(rig, phase, periods, mask, **kwargs).height``.
     """
     return _triangulate(rig, phase, periods=periods, mask=mask, height_only=True, **kwargs)
-
-
-# ====================================================================== the reference-plane formula
-def reference_plane_height(dphi, L, d, f0):
-    """Classic reference-plane phase-to-height formula ``h = L dphi / (dphi + 2 pi f0 d)``.
-
-    Parameters
-    ----------
-    dphi : phase difference (rad) between the reference plane and the object at the same camera pixel,
-        ``dphi = Phi_reference - Phi_object``; positive for points above the plane when ``d > 0``.
-    L : distance (mm) from the camera (and projector) centre to the reference plane.
-    d : baseline (mm) between camera and projector centres, measured along the direction in which the
-        projected phase increases on the plane (signed: negative if the projector sits on the other side).
-    f0 : fringe frequency on the reference plane (periods per mm).
-
-    Returns
-    -------
-    height (mm) above the plane, float64, broadcast over the inputs.
-
-    Exact for the geometry it assumes: camera and projector centres at the same height ``L``, both
-    optical axes perpendicular to the plane, fringes uniform on the plane (a parallel-axis rig with projector lens shift such as :func:`fppsim.geometry.rig.make_default_rig`). Derivation:
-    a camera ray meets the plane at ``x`` and the object at height ``h`` at ``x (L-h)/L``; the projector
-    column of that point differs from the plane's by ``-fx_p d h / (L (L-h))``, so
-    ``dphi = 2 pi f0 d h/(L - h)``, which solves to the formula.
-    """
-    dphi = np.asarray(dphi, dtype=np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return L * dphi / (dphi + 2.0 * np.pi * np.asarray(f0, np.float64) * np.asarray(d, np.float64))
-
-
-def reference_plane_parameters(rig, periods: float | None = None, atol: float = 1e-9) -> tuple[float, float, float]:
-    """``(L, d, f0)`` of a parallel-axis rig for :func:`reference_plane_height`.
-
-    ``L`` = camera height above the plane (mm), ``d`` = signed baseline along world x (mm),
-    ``f0 = f fx_p / (W_p L)`` periods per mm on the plane. Raises ValueError unless both optical axes
-    point straight down, the projector columns run along world x without skew, and both centres are
-    at the same height (where the formula is exact).
-    """
-    cam, proj = rig.camera, rig.projector
-    f = rig.periods if periods is None else float(periods)
-    down = np.array([0.0, 0.0, -1.0])
-    if not (np.allclose(cam.R[2], down, atol=atol) and np.allclose(proj.R[2], down, atol=atol)):
-        raise ValueError("reference-plane formula needs both optical axes perpendicular to the plane")
-    if abs(proj.K[0, 1]) > atol or abs(abs(proj.R[0, 0]) - 1.0) > atol:
-        raise ValueError("reference-plane formula needs projector columns along world x (no skew or rotation)")
-    L, Lp = cam.center[2], proj.center[2]
-    if abs(L - Lp) > atol * max(1.0, L):
-        raise ValueError(f"reference-plane formula needs camera and projector at one height ({L} vs {Lp} mm)")
-    sx = np.sign(proj.R[0, 0])  # +1 when projector columns increase with world x
-    d = float(sx * (proj.center[0] - cam.center[0]))
-    f0 = float(f * proj.K[0, 0] / (proj.width * L))
-    return float(L), d, f0

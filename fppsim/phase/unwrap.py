@@ -1,6 +1,6 @@
 """Spatial unwrapping of a single-shot phase: regions, their unwrapped phase, and shadow bridges.
 
-A single fringe image gives the phase only modulo 2 pi (:func:`fppsim.phase.fringe.single_shot_phase`).
+A single fringe image gives the phase only modulo 2 pi (:func:`fppsim.phase.single_shot.single_shot_phase`).
 Inside a smooth, well-lit surface the phase is continuous and can be unwrapped spatially; across a
 step whose fringes alias (a near-vertical wall) or across a shadow it cannot, so the image falls into
 *regions*, each unwrapped up to its own multiple of 2 pi (the fringe order).

@@ -1,4 +1,4 @@
-"""fppsim.fitting.compare (real vs synthetic statistics), the fringe measurements of fppsim.phase.fringe and the
+"""fppsim.fitting.compare (real vs synthetic statistics), the fringe measurements of fppsim.phase.measure and the
 any-layout reader fppsim.dataio.readers.open_samples that compare-real uses."""
 
 import json
@@ -8,7 +8,7 @@ import pytest
 
 from fppsim.fitting import compare
 
-from fppsim.phase import fringe
+from fppsim.phase import measure
 
 from fppsim.dataio import readers
 from fppsim.dataio.formats import LabelTransform
@@ -45,24 +45,24 @@ def _scene(h=H, w=W, seed=0):
 @pytest.mark.parametrize("period", [11.6, 9.0])
 def test_period_estimate_within_one_percent(period):
     g = _fringe(period)
-    assert fringe.estimate_period(g) == pytest.approx(period, rel=0.01)
+    assert measure.estimate_period(g) == pytest.approx(period, rel=0.01)
     # invalid holes (filled with the row mean) do not bias it
     valid = np.ones(g.shape, bool)
     valid[40:120, 100:170] = False
     g2 = g.copy()
     g2[~valid] = 0
-    assert fringe.estimate_period(g2, valid) == pytest.approx(period, rel=0.01)
+    assert measure.estimate_period(g2, valid) == pytest.approx(period, rel=0.01)
     # a gamma-distorted (harmonic-rich), darker fringe
     gam = np.clip(255 * (g / 255.0) ** 2.2 * 3.0, 0, 255).astype(np.uint8)
-    assert fringe.estimate_period(gam) == pytest.approx(period, rel=0.01)
-    q = fringe.quarter_periods(g)
+    assert measure.estimate_period(gam) == pytest.approx(period, rel=0.01)
+    q = measure.quarter_periods(g)
     assert q.shape == (4,) and np.allclose(q, period, rtol=0.01)
 
 
 def test_quarters_see_a_period_that_changes_across_the_image():
     left, right = _fringe(12.0), _fringe(10.0, seed=1)
     g = np.concatenate([left, right], axis=1)
-    q = fringe.quarter_periods(g)
+    q = measure.quarter_periods(g)
     assert q[[0, 2]] == pytest.approx([12.0, 12.0], rel=0.01)
     assert q[[1, 3]] == pytest.approx([10.0, 10.0], rel=0.01)
     s = compare.sample_stats(g, np.full(g.shape, -97.0, np.float32))
@@ -74,12 +74,12 @@ def test_quarters_see_a_period_that_changes_across_the_image():
 
 def test_no_fringe_gives_nan_period():
     flat = np.full((64, 128), 80, np.uint8)
-    assert np.isnan(fringe.estimate_period(flat))
+    assert np.isnan(measure.estimate_period(flat))
 
 
 def test_modulation_and_background_of_a_known_fringe():
     g = _fringe(11.6, a=70.0, b=30.0, noise=0.5)
-    b, a = fringe.fringe_modulation(g, 11.6)
+    b, a = measure.fringe_modulation(g, 11.6)
     assert np.median(b) == pytest.approx(30.0, rel=0.03)
     assert np.median(a) == pytest.approx(70.0, rel=0.03)
 
@@ -134,7 +134,7 @@ def test_fringe_tilt_of_rotated_fringes(deg):
     mask = np.ones((h, w), bool)
     mask[40:100, 100:200] = False  # an object elsewhere must not matter
     gray[40:100, 100:200] = rng.integers(0, 255, (60, 100))
-    assert fringe.fringe_tilt(gray, 11.6, mask) == pytest.approx(deg, abs=0.05, rel=0.02)
+    assert measure.fringe_tilt(gray, 11.6, mask) == pytest.approx(deg, abs=0.05, rel=0.02)
     label = np.where(mask, -97.0, 80.0).astype(np.float32)
     assert compare.sample_stats(gray, label)["fringe_tilt_deg"] == pytest.approx(deg, abs=0.05, rel=0.02)
 

@@ -18,6 +18,16 @@ def _eff_blur(rig, period, pb, cb):
     return float(np.hypot(pb * px, cb))
 
 
+def _render_plane(rig, optics, model=None, rng=None, appearance_rng=None):
+    """uint8 (H, W) image of the bare reference plane under ``optics``, formed like a sample's fringe image
+    (fppsim.rendering.optics.form_images, appearance effects included) on fit_optics.plane_model's geometry.
+    ``rng``: camera noise (None = noise-free); ``appearance_rng``: texture, dirt, ..."""
+    from fppsim.rendering.optics import form_images
+
+    m = fo.plane_model(rig) if model is None else model
+    return form_images(m["geometry"], rig, optics, [(float(rig.periods), 0.0)], rng, 1, appearance_rng)[0]
+
+
 TRUTH = Optics(gain=210.0, ambient=0.0225, albedo_plane=0.33, albedo_object=0.85, projector_blur=1.3,
                camera_blur=0.6, noise_sigma=1.2, shot_noise=0.05)
 
@@ -29,7 +39,7 @@ def test_plane_images_with_known_optics(tmp_path):
     model = fo.plane_model(rig)
     images = []
     for i in range(2):
-        g = fo.render_plane(rig, TRUTH, model, np.random.default_rng(i))
+        g = _render_plane(rig, TRUTH, model, np.random.default_rng(i))
         images.append(readers.FringeImage(g, g > 0, str(i)))
         cv2.imwrite(str(tmp_path / f"{i}.png"), g)
     fit = fo.fit_optics(images, rig)
@@ -59,7 +69,7 @@ def test_plane_images_with_known_optics(tmp_path):
 def test_brighter_and_sharper_contrast_than_the_table_solves_ambient():
     rig = Rig.default()
     sharp = Optics(**{**TRUTH.to_dict(), "projector_blur": 0.0, "camera_blur": 0.0, "ambient": 0.008})
-    g = fo.render_plane(rig, sharp, rng=np.random.default_rng(0))
+    g = _render_plane(rig, sharp, rng=np.random.default_rng(0))
     fit = fo.fit_optics([readers.FringeImage(g, np.ones(g.shape, bool), "x")], rig)  # troughs reach 0: not shadow
     assert fit.centre["projector_blur"] == 0.0 and fit.centre["camera_blur"] == 0.0
     assert fit.centre["ambient"] == pytest.approx(0.008, abs=0.006)
@@ -108,22 +118,23 @@ def test_rendered_scenes_with_known_optics(tmp_path, capsys):
             assert v[0] - 1e-9 <= meta["optics"][k] <= v[1] + 1e-9, k
 
 
-def test_render_plane_forms_the_image_like_a_sample_appearance_included():
-    """render_plane goes through the same stage as a sample's fringe image (fppsim.rendering.optics.form_images)
-    on the plane geometry the renderer computes, so the appearance effects act on it too."""
+def test_the_plane_model_is_the_renderers_plane_and_appearance_acts_on_it():
+    """plane_model is the plane geometry the renderer computes (fppsim.rendering.render.plane_geometry), so a
+    plane image formed on it goes through the same stage as a sample's fringe image, appearance included."""
     from fppsim.rendering.optics import form_images
     from fppsim.rendering.render import plane_geometry
 
     rig = Rig.default()
     model = fo.plane_model(rig)
     clean = TRUTH.noise_free()
-    assert np.array_equal(fo.render_plane(rig, clean, model),
+    assert np.array_equal(_render_plane(rig, clean, model),
                           form_images(plane_geometry(rig), rig, clean, [(float(rig.periods), 0.0)], None)[0])
     np.testing.assert_array_equal(model["k"], model["geometry"].cos_incidence * model["geometry"].falloff)
-    plain = fo.render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0}), model).astype(float)
-    vig = fo.render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0, "vignetting": 0.3}), model)
+    np.testing.assert_array_equal(model["u_p"], plane_geometry(rig).u_p)
+    plain = _render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0}), model).astype(float)
+    vig = _render_plane(rig, Optics(**{**clean.to_dict(), "camera_blur": 0.0, "vignetting": 0.3}), model)
     corner = vig[:12, :12].sum() / plain[:12, :12].sum()
     assert corner == pytest.approx(0.7, abs=0.03)
-    tex = [fo.render_plane(rig, Optics(**{**clean.to_dict(), "albedo_texture": 0.2}), model,
+    tex = [_render_plane(rig, Optics(**{**clean.to_dict(), "albedo_texture": 0.2}), model,
                            appearance_rng=np.random.default_rng(s)) for s in (1, 1, 2)]
     assert np.array_equal(tex[0], tex[1]) and not np.array_equal(tex[0], tex[2])

@@ -1,4 +1,4 @@
-"""Single-shot phase (fppsim.phase.fringe.single_shot_phase): analytic truth, masks, intensity invariance, the
+"""Single-shot phase (fppsim.phase.single_shot.single_shot_phase): analytic truth, masks, intensity invariance, the
 reliability ranking the error, a rendered fppsim sample against its exact phase_true, the real frame."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from _helpers import SHARED
-from fppsim.phase.fringe import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
+from fppsim.phase.single_shot import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
 from fppsim.phase import wrap as wrap_phase
 
 REAL_PHASE = SHARED / "real-phase" / "FP1523"

@@ -1,9 +1,9 @@
-"""fppsim.phase: one wrap convention, the circular mean and masked demodulation, against analytic truth."""
+"""fppsim.phase: one wrap convention, the circular mean and median and masked demodulation, against analytic truth."""
 
 import numpy as np
 import pytest
 
-from fppsim.phase import circular_mean, demodulate, lowpass, mean_phasor, wrap
+from fppsim.phase import circular_mean, circular_median, demodulate, lowpass, mean_phasor, wrap
 
 
 def test_wrap_range_and_identity():
@@ -29,6 +29,14 @@ def test_circular_mean_straddles_the_cut_and_honours_mask_and_weights():
     w = np.concatenate([np.full(10, 3.0), np.full(30, 1.0)])
     assert circular_mean(b, weights=w) == pytest.approx(0.0, abs=1e-12)  # equal total weight on +1 and -1
     assert np.isnan(circular_mean(b, mask=np.zeros(40, bool)))
+
+
+def test_circular_median_straddles_the_cut_and_ignores_outliers():
+    rng = np.random.default_rng(3)
+    a = wrap(3.0 + 0.1 * rng.standard_normal(5000))  # straddles the +-pi cut
+    a = np.concatenate([a, rng.uniform(-np.pi, np.pi, 2000)])
+    assert abs(wrap(circular_median(a) - 3.0)) < 0.02
+    assert np.isnan(circular_median(np.array([np.nan])))
 
 
 def test_demodulate_recovers_a_phase_shift_inside_the_mask():

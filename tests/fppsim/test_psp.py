@@ -3,9 +3,11 @@
 import numpy as np
 import pytest
 
+from math import erfc
+
 from fppsim.phase import psp, triangulation
 from fppsim.phase import wrap
-from _helpers import distorted_rig
+from _helpers import distorted_rig, reference_plane_height, reference_plane_parameters, synthesize_stack
 from fppsim.geometry.rig import DEFAULT_PROJECTOR_ROLL, Device, Rig, make_default_rig, make_figshare_like_rig, make_parallel_rig
 
 TWO_PI = 2 * np.pi
@@ -15,6 +17,40 @@ def _angle_diff(a, b):
     return np.angle(np.exp(1j * (np.asarray(a) - np.asarray(b))))
 
 
+# ------------------------------------------------------------------ the theory the decoder is checked against
+def phase_noise_std(image_noise_std, modulation, n_steps: int = 4):
+    """Standard deviation (rad) of the N-step wrapped phase for additive image noise:
+    ``sigma_phi = sqrt(2/N) * sigma_I / B`` (independent Gaussian noise ``sigma_I`` per image, small-noise limit)."""
+    return np.sqrt(2.0 / n_steps) * np.asarray(image_noise_std, np.float64) / np.asarray(modulation, np.float64)
+
+
+def ladder_stability_bound(freqs=psp.DEFAULT_FREQS) -> float:
+    """Largest wrapped-phase error (rad) per frequency for which the ladder never picks a wrong order.
+
+    With correct orders up to step ``i-1`` the absolute phase ``Phi_{i-1}`` carries the error ``e_{i-1}`` of
+    its wrapped phase, so the rounding argument of step ``i`` is ``k_true + (r_i e_{i-1} - e_i)/(2 pi)`` with
+    ``r_i = f_i/f_{i-1}``. Rounding is right while ``|r_i e_{i-1} - e_i| < pi``; with every ``|e| <= eps``
+    that holds for all steps iff ``(1 + r_max) eps < pi``. (1, 8, 80): ``pi/11``; (1, 4, 16, 80): ``pi/6``.
+    (The lowest frequency also needs ``Phi_0`` farther than ``eps`` from the 0/2pi seam: ``seam_margin``.)"""
+    f = np.asarray(freqs, dtype=np.float64)
+    return float(np.pi) if f.size < 2 else float(np.pi / (1.0 + np.max(f[1:] / f[:-1])))
+
+
+def order_error_probability(phase_noise, freqs=psp.DEFAULT_FREQS) -> float:
+    """Expected fraction of pixels with a wrong fringe order for Gaussian phase noise of standard deviation
+    ``phase_noise`` (rad) per frequency: step ``i`` fails when ``|r_i e_{i-1} - e_i| > pi``, a Gaussian of
+    standard deviation ``phase_noise * sqrt(r_i^2 + 1)``, ``p_i = erfc(pi / (sqrt(2) sigma_i))``; the ladder
+    fails with ``1 - prod(1 - p_i)`` (seam errors at the projector edges not included)."""
+    f = np.asarray(freqs, dtype=np.float64)
+    s = float(phase_noise)
+    if s <= 0:
+        return 0.0
+    ok = 1.0
+    for r in f[1:] / f[:-1]:
+        ok *= 1.0 - erfc(np.pi / (np.sqrt(2.0) * s * np.sqrt(r * r + 1.0)))
+    return 1.0 - ok
+
+
 # ---------------------------------------------------------------------------------------- N-step
 @pytest.mark.parametrize("n", [3, 4, 5, 8])
 def test_wrapped_phase_exact_and_A_B_recovered(n):
@@ -22,7 +58,7 @@ def test_wrapped_phase_exact_and_A_B_recovered(n):
     phi = rng.uniform(-np.pi, np.pi, size=(64, 80))
     A = rng.uniform(20, 200, size=phi.shape)
     B = rng.uniform(1, 1, size=phi.shape) * rng.uniform(5, 19, size=phi.shape)
-    stack = psp.synthesize_stack(phi, A, B, n_steps=n)
+    stack = synthesize_stack(phi, A, B, n_steps=n)
     assert stack.shape == (n,) + phi.shape
     res = psp.wrapped_phase(stack)
     assert res.phase.dtype == np.float64
@@ -51,7 +87,7 @@ def test_four_step_formula_and_integer_input():
 
 def test_sign_convention_of_shifts():
     # I_n = A + B cos(phi + delta_n) with delta_n = 2 pi n / N: phi = 1.0 must come back as +1.0, not -1.0
-    stack = psp.synthesize_stack(np.array([1.0]), 100.0, 50.0, n_steps=4)
+    stack = synthesize_stack(np.array([1.0]), 100.0, 50.0, n_steps=4)
     np.testing.assert_allclose(stack[:, 0], 100 + 50 * np.cos(1.0 + np.array([0, 0.5, 1, 1.5]) * np.pi))
     assert psp.wrapped_phase(stack).phase[0] == pytest.approx(1.0, abs=1e-12)
 
@@ -60,7 +96,7 @@ def test_non_uniform_shifts_least_squares():
     rng = np.random.default_rng(1)
     phi = rng.uniform(-np.pi, np.pi, size=500)
     shifts = np.array([0.0, 1.3, 2.1, 4.0, 5.5])
-    stack = psp.synthesize_stack(phi, 80.0, 30.0, shifts=shifts)
+    stack = synthesize_stack(phi, 80.0, 30.0, shifts=shifts)
     res = psp.wrapped_phase(stack, shifts=shifts)
     assert np.max(np.abs(_angle_diff(res.phase, phi))) < 1e-9
     np.testing.assert_allclose(res.modulation, 30.0, atol=1e-9)
@@ -92,9 +128,9 @@ def test_quality_mask_and_noise_model():
     # sigma_phi = sqrt(2/N) sigma_I / B, checked by Monte Carlo
     rng = np.random.default_rng(2)
     phi = rng.uniform(-np.pi, np.pi, size=100_000)
-    stack = psp.synthesize_stack(phi, 100.0, 40.0, n_steps=4) + rng.normal(0, 2.0, size=(4, phi.size))
+    stack = synthesize_stack(phi, 100.0, 40.0, n_steps=4) + rng.normal(0, 2.0, size=(4, phi.size))
     err = _angle_diff(psp.wrapped_phase(stack).phase, phi)
-    assert np.std(err) == pytest.approx(psp.phase_noise_std(2.0, 40.0, 4), rel=0.03)
+    assert np.std(err) == pytest.approx(phase_noise_std(2.0, 40.0, 4), rel=0.03)
 
 
 # ---------------------------------------------------------------------------------------- unwrapping
@@ -102,14 +138,14 @@ def _ladder_phases(u, W, freqs):
     return {f: TWO_PI * f * u / W for f in freqs}
 
 
-def test_ladder_bound_values():
-    assert psp.ladder_stability_bound((1, 8, 80)) == pytest.approx(np.pi / 11)
-    assert psp.ladder_stability_bound() == pytest.approx(np.pi / 11)
-    assert psp.ladder_stability_bound((1, 4, 16, 80)) == pytest.approx(np.pi / 6)
-    assert psp.ladder_stability_bound((1,)) == pytest.approx(np.pi)
+def test_ladder_bound_values_and_bad_ladders():
+    assert ladder_stability_bound((1, 8, 80)) == pytest.approx(np.pi / 11)
+    assert ladder_stability_bound() == pytest.approx(np.pi / 11)
+    assert ladder_stability_bound((1, 4, 16, 80)) == pytest.approx(np.pi / 6)
+    assert ladder_stability_bound((1,)) == pytest.approx(np.pi)
     for bad in [(2, 8, 80), (1, 80, 8), (1, 1, 8)]:
-        with pytest.raises(ValueError):
-            psp.ladder_stability_bound(bad)
+        with pytest.raises(ValueError, match="ladder"):
+            psp.unwrap_temporal([np.zeros(2)] * 3, freqs=bad)
 
 
 def test_unwrap_noise_free_range_and_order():
@@ -139,7 +175,7 @@ def test_unwrap_noise_free_range_and_order():
 def test_unwrap_zero_order_errors_below_bound(freqs):
     rng = np.random.default_rng(3)
     W, n = 912, 200_000
-    eps = 0.99 * psp.ladder_stability_bound(freqs)
+    eps = 0.99 * ladder_stability_bound(freqs)
     u = rng.uniform(0, W, n)
     true = _ladder_phases(u, W, freqs)
     away = (true[1] > eps) & (true[1] < TWO_PI - eps)  # the 0/2pi seam of the 1-period phase
@@ -150,7 +186,7 @@ def test_unwrap_zero_order_errors_below_bound(freqs):
     assert np.max(np.abs(err[away])) < 1e-9  # zero order errors
     # Gaussian noise well inside the bound: no errors, and nothing flagged (max_residual = pi/2 sits
     # 6.6 standard deviations of the residual noise sig * sqrt(r^2 + 1) away)
-    sig = psp.ladder_stability_bound(freqs) / 12
+    sig = ladder_stability_bound(freqs) / 12
     noise = {f: rng.normal(0, sig, n) for f in freqs}
     out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     err = out.phase - (true[fmax] + noise[fmax])
@@ -166,7 +202,7 @@ def test_unwrap_flags_order_errors_above_bound():
     true = _ladder_phases(u, W, freqs)
     # bounded noise above the bound pi/11 but below 3 pi / (2 * 11): wrong orders appear, all are flagged
     eps = 0.4
-    assert eps > psp.ladder_stability_bound(freqs)
+    assert eps > ladder_stability_bound(freqs)
     noise = {f: rng.uniform(-eps, eps, n) for f in freqs}
     out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     wrong = np.abs(out.phase - (true[80] + noise[80])) > 1.0
@@ -177,11 +213,11 @@ def test_unwrap_flags_order_errors_above_bound():
     noise = {f: rng.normal(0, sig, n) for f in freqs}
     out = psp.unwrap_temporal({f: wrap(true[f] + noise[f]) for f in freqs})
     wrong = np.abs(out.phase - (true[80] + noise[80])) > 1.0
-    expected = psp.order_error_probability(sig, freqs)
+    expected = order_error_probability(sig, freqs)
     assert 0.005 < expected < 0.02
     assert wrong.mean() == pytest.approx(expected, rel=0.15)
     assert (~out.reliable[wrong]).mean() > 0.95
-    assert psp.order_error_probability(0.0) == 0.0
+    assert order_error_probability(0.0) == 0.0
 
 
 def test_unwrap_seam_nan_and_errors():
@@ -275,7 +311,7 @@ def test_full_chain_round_trip(rig_factory):
     assert np.all((uv[..., 0] > 0) & (uv[..., 0] < rig.projector.width - 1))
     wrapped = {}
     for f in (1, 8, 80):
-        stack = psp.synthesize_stack(rig.phase_of_column(uv[..., 0], f), 90.0, 60.0, n_steps=4)
+        stack = synthesize_stack(rig.phase_of_column(uv[..., 0], f), 90.0, 60.0, n_steps=4)
         wrapped[f] = psp.wrapped_phase(stack).phase
     un = psp.unwrap_temporal(wrapped)
     assert un.reliable.all()
@@ -318,7 +354,7 @@ def test_reference_plane_formula_matches_triangulation(h):
     """The classic formula is exact for the default parallel-axis rig (same-height centres, axes normal
     to the plane); float64 agreement to 1e-9 mm."""
     rig = make_parallel_rig()
-    L, d, f0 = triangulation.reference_plane_parameters(rig)
+    L, d, f0 = reference_plane_parameters(rig)
     assert (L, d) == (500.0, 180.0)
     assert f0 == pytest.approx(80 * 1208.8 / (912 * 500))
     pixels = rig.camera.pixel_grid()[::8, ::8]
@@ -328,7 +364,7 @@ def test_reference_plane_formula_matches_triangulation(h):
     phi_obj = rig.phase_of_column(rig.projector.project(obj)[0][..., 0])
     dphi = phi_ref - phi_obj
     assert np.all(dphi >= -1e-9)  # heights above the plane: positive dphi with this sign
-    h_formula = triangulation.reference_plane_height(dphi, L, d, f0)
+    h_formula = reference_plane_height(dphi, L, d, f0)
     h_tri = triangulation.height_from_phase(rig, phi_obj, pixels=pixels)
     np.testing.assert_allclose(h_formula, h, atol=1e-9)
     np.testing.assert_allclose(h_tri, h, atol=1e-9)
@@ -341,15 +377,15 @@ def test_reference_plane_formula_on_curved_surface_and_other_rigs():
     ref = rig.camera.backproject(pixels, rig.camera.plane_depth(pixels, 0.0))
     dphi = rig.phase_of_column(rig.projector.project(ref)[0][..., 0]) - \
         rig.phase_of_column(rig.projector.project(X)[0][..., 0])
-    np.testing.assert_allclose(triangulation.reference_plane_height(dphi, *triangulation.reference_plane_parameters(rig)),
+    np.testing.assert_allclose(reference_plane_height(dphi, *reference_plane_parameters(rig)),
                                X[..., 2], atol=1e-9)
     with pytest.raises(ValueError, match="perpendicular"):
-        triangulation.reference_plane_parameters(_converging_rig())
+        reference_plane_parameters(_converging_rig())
     with pytest.raises(ValueError, match="perpendicular"):  # the figshare-like rig's projector is yawed
-        triangulation.reference_plane_parameters(make_figshare_like_rig())
+        reference_plane_parameters(make_figshare_like_rig())
     # closed form on numbers: dphi = 2 pi f0 d h / (L - h)
     L, d, f0, hh = 400.0, 150.0, 0.1, 25.0
-    assert triangulation.reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)
+    assert reference_plane_height(TWO_PI * f0 * d * hh / (L - hh), L, d, f0) == pytest.approx(hh)
 
 
 def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():
@@ -371,7 +407,7 @@ def test_order_consistency_flags_isolated_order_errors_and_keeps_edges():
 
 
 def test_decode_stacks_full_chain():
-    from fppsim.phase.psp import decode_stacks, synthesize_stack
+    from fppsim.phase.psp import decode_stacks
     from fppsim.geometry.rig import Rig
 
     rig = Rig.default()

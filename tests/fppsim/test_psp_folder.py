@@ -5,6 +5,7 @@ import pytest
 import scipy.io
 
 from fppsim.phase import psp
+from _helpers import synthesize_stack
 from fppsim.errors import PSPMatError
 from fppsim.dataio.readers import is_psp_folder, iter_psp_folder, list_psp_ids, load_psp_folder_sample
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
@@ -76,7 +77,7 @@ def test_write_round_trip(tmp_path, convention):
     np.testing.assert_array_equal(s.valid, valid)
     np.testing.assert_allclose(s.phase[valid], phase[valid], atol=1e-9)
     # the same phase comes out of fppsim.phase.psp's own chain (phase sums of a 4-step stack)
-    stack = psp.synthesize_stack(phase, 100.0, 50.0, n_steps=4)
+    stack = synthesize_stack(phase, 100.0, 50.0, n_steps=4)
     ps, pc = psp.phase_sums(stack)
     np.testing.assert_allclose(ps[valid], 2 * psin[valid], atol=1e-6)  # (N/2) B with N = 4
     np.testing.assert_allclose(pc[valid], 2 * pcos[valid], atol=1e-6)

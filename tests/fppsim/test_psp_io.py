@@ -5,6 +5,7 @@ import pytest
 import scipy.io
 
 from fppsim.phase import psp
+from _helpers import synthesize_stack
 from fppsim.errors import PSPMatError
 from fppsim.dataio.readers import load_psp_mat
 from fppsim.dataio.writers import save_psp_mat
@@ -19,7 +20,7 @@ def simulated():
     u = np.linspace(3, W - 4, 40 * 50).reshape(40, 50)
     wrapped = {}
     for f in (1, 8, 80):
-        stack = psp.synthesize_stack(TWO_PI * f * u / W, 110.0, 70.0, n_steps=4)
+        stack = synthesize_stack(TWO_PI * f * u / W, 110.0, 70.0, n_steps=4)
         wrapped[f] = stack
     un = psp.unwrap_temporal({f: psp.wrapped_phase(s).phase for f, s in wrapped.items()})
     psin, pcos = psp.phase_sums(wrapped[80])

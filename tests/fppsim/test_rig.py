@@ -103,7 +103,7 @@ def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
 def test_figshare_like_rig_rendered_plane_period_trend(figshare_rig):
     """A rendered plane measured like compare-real: halves ~11.96 | 11.49 px, bands ~12.06 -> 11.39."""
     from fppsim.rendering.optics import Optics
-    from fppsim.phase.fringe import estimate_period, quarter_periods
+    from fppsim.phase.measure import estimate_period, quarter_periods
     from fppsim.rendering.optics import form_images
 
     pytest.importorskip("pyrender")

@@ -24,7 +24,7 @@ from fppsim.validate import (DEFAULT_SWEEP, ValidateError, evaluate_sample, pars
                              sweep_settings)
 
 ROOT = Path(__file__).resolve().parents[2]
-from _helpers import SHARED_MESHES
+from _helpers import SHARED_MESHES, synthesize_stack
 
 SPOT = SHARED_MESHES / "spot.obj"
 NOISE_FREE = ["--noise-free", "--optics", "camera_blur=0", "--optics", "projector_blur=1.0",
@@ -278,7 +278,7 @@ def test_evaluate_sample_breakdown_from_images():
     u = np.tile(np.arange(W, dtype=np.float64), (H, 1))
     B = np.full((H, W), 60.0)
     B[:, 400:410] = 1.0  # unmodulated stripe
-    stacks = {f: np.clip(np.rint(psp.synthesize_stack(2 * np.pi * f * u / W, 100.0, B)), 0, 255).astype(np.uint8)
+    stacks = {f: np.clip(np.rint(synthesize_stack(2 * np.pi * f * u / W, 100.0, B)), 0, 255).astype(np.uint8)
               for f in (1, 8, 80)}
     phase_true = 2 * np.pi * 80 * u / W
     un = psp.unwrap_temporal([psp.wrapped_phase(stacks[f].astype(float)).phase for f in (1, 8, 80)], (1, 8, 80))

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fppsim.phase.fringe import poly_basis
+from fppsim.phase.plane import poly_basis
 from uhrnet.scoring.phase_residual import evaluate_phase, fit_phase
 
 

@@ -6,16 +6,12 @@ import numpy as np
 import pytest
 import torch
 
-from _helpers import distorted_rig
+from _helpers import distorted_rig, reference_plane_height, reference_plane_parameters
 from fppsim.fitting.height_sensitivity import centre_sensitivity, surface_phase
 from fppsim.geometry.rig import Rig, data_path, make_default_rig
 from fppsim import phase as np_phase
+from fppsim.phase.triangulation import height_from_phase, triangulate
 from uhrnet.physics.rig_layer import RigLayer, circular_mean, wrap
-
-try:  # the triangulation may live in its own module
-    from fppsim.phase.triangulation import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
-except ImportError:
-    from fppsim.phase.psp import height_from_phase, reference_plane_height, reference_plane_parameters, triangulate
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -158,19 +154,6 @@ def test_invalid_pixels_are_nan_with_zero_gradient():
     assert torch.isnan(h[~ok]).all()
     torch.where(ok, h, torch.zeros_like(h)).sum().backward()
     assert torch.isfinite(phase.grad).all() and phase.grad[0, 0] == 0 and phase.grad[1, 1] == 0
-
-
-def test_order_and_wrap_helpers():
-    layer = RigLayer(make_default_rig(), pixels=(slice(100, 110), slice(200, 220)))
-    h = torch.linspace(0, 30, 200, dtype=torch.float64).reshape(10, 20)
-    Phi = layer.phase_from_height(h)
-    off = 2.5
-    wrapped = wrap(Phi + off)
-    assert wrapped.min() > -np.pi and wrapped.max() <= np.pi
-    guess = h + 1.0  # within half a period (~3.6 mm) of the truth
-    k = layer.fringe_order(wrapped, guess, offset=off)
-    assert torch.allclose(layer.absolute_phase(wrapped, k, offset=off), Phi, atol=1e-9)
-    assert torch.allclose(layer.nearest_phase(wrapped, guess, offset=off), Phi, atol=1e-9)
 
 
 def test_layer_is_the_torch_twin_of_the_rig_forward_model(case):

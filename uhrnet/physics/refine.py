@@ -1,7 +1,7 @@
 """Make a height map consistent with its own fringe image's phase, region by region (:func:`refine_relief`).
 
 A single-shot fringe image fixes the projector phase of every pixel up to whole periods (the wrapped
-phase ``phi``, :func:`fppsim.phase.fringe.single_shot_phase`); a network's height estimate ``h`` says which
+phase ``phi``, :func:`fppsim.phase.single_shot.single_shot_phase`); a network's height estimate ``h`` says which
 period. Through the calibrated rig (:class:`uhrnet.physics.rig_layer.RigLayer`) the estimate implies the phase
 ``Phi(h)``. :func:`refine_relief` unwraps the phase inside regions where it is continuous and takes
 their relief from it, their level from the estimate (``relief``) or from whole fringe orders voted
@@ -10,25 +10,33 @@ across projector shadows (``orders``).
 Phase origin. Real frames may count phase from another origin (the public real data count fringe
 orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad): measured = fppsim phase +
 ``o``, mod 2 pi. ``o`` is estimated per image as the circular median of ``wrap(phi - Phi(h))`` over the
-reliable pixels (:func:`circular_median`; robust to the object's pixels where ``h`` is wrong as long as
+reliable pixels (:func:`fppsim.phase.circular_median`; robust to the object's pixels where ``h`` is wrong as long as
 most reliable pixels are right, e.g. the reference plane).
 
 Snapping each pixel to the nearest phase-consistent height (``--refine-method nearest``,
 ``refine_height``) was removed on 2026-11-26: on the real pair it made the recipe model worse (6.92 mm
 against 6.06 mm unrefined; relief 5.57 mm, docs/experiments/physics.md).
 
+Geometry once per rig: a rig (or its dictionary) given to :func:`refine_relief` is turned into a float64
+:class:`~uhrnet.physics.rig_layer.RigLayer` on its camera's grid once and kept (:func:`layer_for`, the last
+few rigs), so predicting or evaluating many images through one rig builds it once (about 0.1 s and 15 MB
+for 640 x 352); a layer passed in is used as it is.
+
 numpy in, numpy out (torch float64 inside).
 """
 
 from __future__ import annotations
 
+import json
 import math
+from collections import OrderedDict
 
 import numpy as np
 
-from fppsim.phase import wrap
+from fppsim.geometry.rig import Rig
+from fppsim.phase import circular_median, wrap
 
-__all__ = ["refine_relief", "circular_median", "REFINE_METHODS"]
+__all__ = ["refine_relief", "layer_for", "REFINE_METHODS"]
 
 REFINE_METHODS = ("relief", "orders")
 """``relief``: :func:`refine_relief` with each region's level from the estimate (the default of ``--refine
@@ -38,33 +46,28 @@ estimate), exact levels where the rig's absolute phase-to-height mapping is righ
 TWO_PI = 2.0 * math.pi
 
 
-def circular_median(angles: np.ndarray, candidates: int = 256, max_samples: int = 20000) -> float:
-    """Circular median (rad, in (-pi, pi]) of ``angles``: the direction minimising the summed arc
-    distance, robust to outliers (unlike the circular mean). NaN when no angle is finite.
-
-    A coarse search over ``candidates`` directions on at most ``max_samples`` evenly strided angles,
-    then the exact median of all angles re-centred on the best candidate (the arc distance is then
-    the ordinary absolute difference).
-
-    Parameters
-    ----------
-    angles : any-shape float array, rad (NaN ignored).
-    """
-    a = np.asarray(angles, dtype=np.float64).ravel()
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return float("nan")
-    sample = a[:: max(1, a.size // int(max_samples))]
-    cands = np.linspace(-math.pi, math.pi, int(candidates), endpoint=False)
-    cost = [np.abs(wrap(sample - c)).sum() for c in cands]
-    c0 = cands[int(np.argmin(cost))]
-    return float(wrap(c0 + np.median(wrap(a - c0))))
+_LAYERS: OrderedDict = OrderedDict()  # rig document (JSON) -> its RigLayer on the camera grid, newest last
+MAX_CACHED_LAYERS = 4
 
 
-def _layer_for(rig_or_layer, shape):
-    from uhrnet.physics.rig_layer import RigLayer
+def layer_for(rig_or_layer, shape):
+    """The :class:`~uhrnet.physics.rig_layer.RigLayer` :func:`refine_relief` works through for a height map of
+    ``shape`` (``(..., H, W)``): a layer as it is; a rig (or its dictionary) as the float64 layer on its
+    camera's grid, built on the first call for that rig and kept for the next ones (the last
+    :data:`MAX_CACHED_LAYERS` rigs, keyed by the rig's whole document: a changed rig gets its own layer).
+    The layer is read only (``torch.no_grad``), so a kept one gives the same numbers as a new one.
+    ValueError when the layer's grid is not ``(H, W)``."""
+    from uhrnet.physics.rig_layer import RigLayer  # torch: imported when refining, not with the module
 
-    layer = rig_or_layer if isinstance(rig_or_layer, RigLayer) else RigLayer(rig_or_layer)
+    if isinstance(rig_or_layer, RigLayer):
+        layer = rig_or_layer
+    else:
+        rig = rig_or_layer if isinstance(rig_or_layer, Rig) else Rig.from_dict(rig_or_layer)
+        key = json.dumps(rig.to_dict(), sort_keys=True)
+        layer = _LAYERS.pop(key, None)
+        _LAYERS[key] = layer = RigLayer(rig) if layer is None else layer
+        while len(_LAYERS) > MAX_CACHED_LAYERS:
+            _LAYERS.popitem(last=False)
     if tuple(shape[-2:]) != layer.grid_shape:
         raise ValueError(f"height map is {shape[-1]} x {shape[-2]} px but the layer's grid is "
                          f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
@@ -87,7 +90,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     phase fixes the relief exactly, but not the region's fringe order; the level is taken from the
     estimate: each pixel moves to ``height_from_phase(Phi(h) + D - median_region(D))`` with
     ``D = U - Phi(h) - o`` (``U`` the region's unwrapped phase, ``o`` the image's phase origin,
-    :func:`circular_median` over the reliable pixels). So the region's median move is 0: the estimate
+    :func:`fppsim.phase.circular_median` over the reliable pixels). So the region's median move is 0: the estimate
     keeps its level, the phase replaces its shape. Unlike snapping each pixel to the nearest
     phase-consistent height this needs no estimate within half a period, and a rig whose height scale is slightly off changes the relief by that
     fraction only, not the level.
@@ -107,7 +110,8 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     ----------
     height_mm : (H, W) float, the estimate, mm above the reference plane (NaN = none).
     wrapped_phase, reliability : (H, W) the image's single-shot phase (rad) and its reliability [0, 1].
-    rig_or_layer : :class:`fppsim.geometry.rig.Rig`, its dictionary or a :class:`uhrnet.physics.rig_layer.RigLayer`.
+    rig_or_layer : :class:`fppsim.geometry.rig.Rig`, its dictionary or a :class:`uhrnet.physics.rig_layer.RigLayer`
+        (a rig's layer is built once and kept: :func:`layer_for`).
     valid : (H, W) bool, pixels that may move (default: finite estimate).
 
     Returns
@@ -127,7 +131,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     h = h_in.astype(np.float64)
     if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
         raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
-    layer = _layer_for(rig_or_layer, h.shape)
+    layer = layer_for(rig_or_layer, h.shape)
     finite = np.isfinite(h)
     ok = finite if valid is None else finite & np.asarray(valid, bool)
     rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))

@@ -317,7 +317,7 @@ class RigLayer(nn.Module):
         # one more Newton step that carries the gradient: dh/du = 1 / (du_p/dh), the implicit derivative
         return x - (c - u) / dc, converged
 
-    # ------------------------------------------------------------------ helpers for the physics head
+    # ------------------------------------------------------------------ the plane and the sensitivity
     def plane_phase(self) -> torch.Tensor:
         """(H, W) absolute phase (rad) of the reference plane ``z = 0`` at each pixel (buffer dtype)."""
         return self.phase_from_height(torch.zeros(self.grid_shape, dtype=self.dtype, device=self.A.device))
@@ -334,27 +334,6 @@ class RigLayer(nn.Module):
                                                               device=self.A.device)
         _, du = self._column(self._input(h, "height"), derivative=True)
         return self._out(du / self._col_per_rad, h)
-
-    @staticmethod
-    def absolute_phase(wrapped: torch.Tensor, order: torch.Tensor, offset: torch.Tensor | float = 0.0) -> torch.Tensor:
-        """Absolute phase ``wrapped - offset + 2 pi order`` (rad). ``offset`` is the phase origin of the
-        measured phase: measured = fppsim phase + offset (mod 2 pi); 0 for fppsim's own data."""
-        return wrapped - offset + TWO_PI * order
-
-    def fringe_order(self, wrapped: torch.Tensor, height: torch.Tensor,
-                     offset: torch.Tensor | float = 0.0) -> torch.Tensor:
-        """Fringe order ``k`` (float tensor of whole numbers, no gradient) that puts ``wrapped`` nearest to
-        the phase of ``height``: ``k = round((Phi(height) - wrapped + offset) / 2 pi)``."""
-        with torch.no_grad():
-            phi = self.phase_from_height(height).to(wrapped.dtype)
-            return torch.round((phi - wrapped + offset) / TWO_PI)
-
-    def nearest_phase(self, wrapped: torch.Tensor, height: torch.Tensor,
-                      offset: torch.Tensor | float = 0.0) -> torch.Tensor:
-        """The absolute phase consistent with ``wrapped`` nearest to the phase of ``height`` (rad):
-        ``Phi(h) + wrap(wrapped - offset - Phi(h))``. Differentiable in both."""
-        phi = self.phase_from_height(height)
-        return phi + wrap(wrapped - offset - phi)
 
     # ------------------------------------------------------------------ serialisation
     def to_dict(self) -> dict:

@@ -42,7 +42,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.files import atomic_write_text
-from fppsim.phase.fringe import poly_basis, poly_terms
+from fppsim.phase.plane import poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",

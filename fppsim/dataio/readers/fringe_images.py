@@ -5,7 +5,7 @@ real-sample pair, a native fppsim folder (all three through :class:`fppsim.datai
 phase-shifting ``PSin/PCos/Fringe/iPattern`` folders (or just ``iPattern/``) and a folder of 8-bit
 images (or one image file), and returns :class:`FringeImage` records: the grey image, its valid
 pixels, and plane / object pixels where the source tells them apart (height labels, or the real
-phase through :func:`fppsim.phase.fringe.phase_plane_masks`). ``fppsim fit-rig`` and ``fppsim fit-optics``
+phase through :func:`fppsim.phase.plane.phase_plane_masks`). ``fppsim fit-rig`` and ``fppsim fit-optics``
 measure these.
 """
 
@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import PSPMatError
-from fppsim.phase.fringe import phase_plane_masks, plane_level
+from fppsim.phase.plane import phase_plane_masks, plane_level
 from fppsim.dataio.readers.datasets import open_samples, pick_evenly
 from fppsim.dataio.readers.psp_mat import load_ipattern, load_psp_folder_sample
 from fppsim.dataio.readers.source import IMAGE_EXTS, open_source

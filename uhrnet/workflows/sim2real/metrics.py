@@ -53,7 +53,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fppsim.phase.fringe import plane_level, poly_basis  # plane_level re-exported: the one plane level of both packages
+from fppsim.phase.plane import plane_level, poly_basis  # plane_level re-exported: the one plane level of both packages
 from fppsim.phase import lowpass
 from uhrnet.errors import Sim2RealError
 

@@ -1,16 +1,9 @@
-"""Fringe measurements on images and phase maps: the one module that reads fringes.
+"""Single-shot phase: the wrapped phase of ONE fringe image and its per-pixel reliability
+(:func:`single_shot_phase`, result :class:`SingleShotPhase`); numpy and SciPy.
 
-What lives here (numpy only, no rendering):
-
-- period, modulation and tilt of the fringes (:func:`estimate_period`, :func:`quarter_periods`,
-  :func:`fringe_modulation`, :func:`fringe_tilt`);
-- the reference-plane level of a height/label map (:func:`plane_level`), the one polynomial plane
-  basis of both packages (:func:`poly_basis`, :func:`poly_terms`) and the plane / object pixels of a
-  real phase map (:func:`phase_plane_masks`);
-- the single-shot phase: wrapped phase and its reliability from ONE fringe image.
-
-Units: pixels for periods, degrees for the tilt (as reported), radians for phases; images are
-2-D grey arrays (any real dtype; 8-bit scale unless stated).
+Fourier-transform profilometry (or per-row analytic signals) followed by local demodulation passes, with
+an error model fitted to exact phase; the details, conventions and measured accuracy are in
+:func:`single_shot_phase`. Units: radians, pixels.
 """
 
 from __future__ import annotations
@@ -21,192 +14,7 @@ import numpy as np
 
 from fppsim.phase import lowpass
 
-__all__ = ["estimate_period", "quarter_periods", "fringe_modulation", "fringe_tilt", "plane_level",
-           "poly_basis", "poly_terms", "phase_plane_masks"]
-
-
-# ====================================================================== period, modulation, tilt
-def _rows_for_fft(gray: np.ndarray, valid: np.ndarray | None, min_valid: float = 0.5):
-    """Rows (float64) with the invalid pixels replaced by the row's valid mean; and which rows to use."""
-    x = np.asarray(gray, np.float64)
-    if valid is None:
-        valid = np.ones(x.shape, bool)
-    nv = valid.sum(axis=1)
-    mean = np.where(nv > 0, (x * valid).sum(axis=1) / np.maximum(nv, 1), 0.0)
-    x = np.where(valid, x, mean[:, None])
-    use = nv >= min_valid * x.shape[1]
-    if not use.any():
-        use = nv >= max(8, int(nv.max() * 0.5)) if nv.max() > 0 else use
-    return x - mean[:, None], use
-
-
-def estimate_period(gray: np.ndarray, valid: np.ndarray | None = None, min_period: float = 2.5,
-                    max_period: float = 64.0, pad: int = 16) -> float:
-    """Dominant horizontal fringe period in pixels (vertical fringes), NaN if it cannot be measured.
-
-    Each row (invalid pixels set to the row's valid mean) is mean-removed, Hann-windowed and
-    zero-padded to ``pad`` x its length; the power spectra of the rows with at least half of their
-    pixels valid are summed, the peak between ``max_period`` and ``min_period`` is located and refined
-    by a parabola through the log-power of its neighbours.
-    """
-    x, use = _rows_for_fft(gray, valid)
-    if not use.any():
-        return float("nan")
-    x = x[use]
-    w = x.shape[1]
-    if w < 16:
-        return float("nan")
-    nfft = int(2 ** np.ceil(np.log2(w * pad)))
-    power = (np.abs(np.fft.rfft(x * np.hanning(w), n=nfft, axis=1)) ** 2).sum(axis=0)
-    k_lo = max(int(np.floor(nfft / min(max_period, w / 2.0))), 1)
-    k_hi = min(int(np.ceil(nfft / min_period)), len(power) - 2)
-    if k_hi <= k_lo + 1:
-        return float("nan")
-    k = k_lo + int(np.argmax(power[k_lo:k_hi + 1]))
-    if k <= k_lo or k >= k_hi or power[k] <= 0:
-        return float("nan")  # peak at the edge of the search band: no fringe there
-    a, b, c = np.log(power[k - 1:k + 2] + 1e-300)
-    den = a - 2 * b + c
-    delta = 0.5 * (a - c) / den if den < 0 else 0.0
-    return float(nfft / (k + delta))
-
-
-def quarter_periods(gray: np.ndarray, valid: np.ndarray | None = None, **kw) -> np.ndarray:
-    """Periods of the four image quarters (top-left, top-right, bottom-left, bottom-right)."""
-    h, w = gray.shape
-    out = []
-    for rs in (slice(0, h // 2), slice(h // 2, h)):
-        for cs in (slice(0, w // 2), slice(w // 2, w)):
-            out.append(estimate_period(gray[rs, cs], None if valid is None else valid[rs, cs], **kw))
-    return np.array(out)
-
-
-def fringe_modulation(gray: np.ndarray, period: float, valid: np.ndarray | None = None,
-                      band: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Per-pixel fringe amplitude B and background A (gray levels) of I = A + B cos(phi).
-
-    Along each row: B = 2 |analytic signal| of the band [(1-band) f0, (1+band) f0] around the fringe
-    frequency f0 = 1/period (positive frequencies only, i.e. the Hilbert envelope of the band-passed
-    row); A = the row low-passed below (1-band) f0.  Invalid pixels are filled with the row mean first.
-    """
-    analytic, background = _analytic_rows(gray, period, valid, band)
-    return 2.0 * np.abs(analytic), background
-
-
-def fringe_tilt(gray: np.ndarray, period: float, mask: np.ndarray | None = None, band: float = 0.5) -> float:
-    """Angle of the fringe lines from the image's vertical, degrees: positive when a line leans to the
-    right going down the image (``atan(du/dv)`` along a line of constant phase).
-
-    From the rows' analytic signals (as :func:`fringe_modulation`): the phase gradients along rows
-    (``g_u``) and down columns (``g_v``), each from the angle of neighbouring samples' product (no
-    unwrapping), give ``du/dv = -g_v / g_u``; the median over ``mask`` (e.g. the reference plane, where
-    the fringes are the rig's own) is returned, NaN with fewer than 100 usable pixels. The real
-    figshare pair: about -1.35 deg; a rig whose projector is not rolled: 0.
-    """
-    x = np.asarray(gray, np.float64)
-    m = np.ones(x.shape, bool) if mask is None else np.asarray(mask, bool)
-    a, _ = _analytic_rows(x, period, m, band)
-    gu = np.angle(a[:-1, 1:] * np.conj(a[:-1, :-1]))
-    gv = np.angle(a[1:, :-1] * np.conj(a[:-1, :-1]))
-    ok = m[:-1, :-1] & m[1:, :-1] & m[:-1, 1:] & (np.abs(gu) > 0.25 * 2 * np.pi / period)
-    if ok.sum() < 100:
-        return float("nan")
-    return float(np.degrees(np.arctan(np.median(-gv[ok] / gu[ok]))))
-
-
-def _analytic_rows(gray, period, valid, band):
-    x0 = np.asarray(gray, np.float64)
-    h, w = x0.shape
-    if valid is None:
-        valid = np.ones(x0.shape, bool)
-    nv = valid.sum(axis=1)
-    mean = np.where(nv > 0, (x0 * valid).sum(axis=1) / np.maximum(nv, 1), 0.0)
-    x = np.where(valid, x0, mean[:, None])
-    # reflect-pad to reduce edge effects of the circular FFT
-    padw = min(w - 1, int(np.ceil(3 * period)))
-    xp = np.pad(x, ((0, 0), (padw, padw)), mode="reflect")
-    n = xp.shape[1]
-    spec = np.fft.fft(xp, axis=1)
-    f = np.fft.fftfreq(n)
-    f0 = 1.0 / period
-    sel = (f >= (1 - band) * f0) & (f <= (1 + band) * f0)
-    low = np.abs(f) < (1 - band) * f0
-    analytic = np.fft.ifft(spec * sel, axis=1)[:, padw:padw + w]
-    background = np.fft.ifft(spec * low, axis=1).real[:, padw:padw + w]
-    return analytic, background
-
-
-# ====================================================================== the plane: level and polynomial basis
-def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, window: float = 6.0) -> float:
-    """Level of the reference plane in a height or label map: the mode of the valid values (histogram
-    of ``bin_width`` bins, lightly smoothed), refined by the median of the values within ``window``.
-
-    ``label`` (H, W) float (label units or mm; ``bin_width`` and ``window`` in the same unit), ``valid``
-    (H, W) bool. NaN when no pixel is valid.
-    """
-    v = np.asarray(label, np.float64)[np.asarray(valid, bool)]
-    if v.size == 0:
-        return float("nan")
-    lo, hi = np.floor(v.min()), np.ceil(v.max()) + bin_width
-    hist, edges = np.histogram(v, bins=max(1, int(np.ceil((hi - lo) / bin_width))), range=(lo, hi))
-    # smooth the histogram a little so a tilted plane still has one clear mode
-    hist = np.convolve(hist, np.ones(5) / 5.0, mode="same")
-    mode = 0.5 * (edges[np.argmax(hist)] + edges[np.argmax(hist) + 1])
-    near = v[np.abs(v - mode) <= window]
-    return float(np.median(near)) if near.size else float(mode)
-
-
-def poly_basis(h: int, w: int, degree: int) -> np.ndarray:
-    """The polynomial plane basis: (h*w, n) float64 monomials ``x^i y^j`` (``i + j <= degree``) of the
-    pixel coordinates scaled to [-1, 1] (x along columns, y down rows), ordered by total degree, then by
-    the power of y (names: :func:`poly_terms`); column 0 is the constant. ValueError for a degree that is
-    not an integer >= 0."""
-    if int(degree) != degree or degree < 0:
-        raise ValueError(f"plane degree must be an integer >= 0, got {degree!r}")
-    yy, xx = np.mgrid[0:h, 0:w]
-    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
-    return np.stack([x ** i * y ** j for t in range(int(degree) + 1) for j in range(t + 1) for i in [t - j]], axis=1)
-
-def poly_terms(degree: int) -> list[str]:
-    """Names of the :func:`poly_basis` columns: ``["1", "x", "y", "x^2", "xy", "y^2", ...]``."""
-    out = []
-    for total in range(int(degree) + 1):
-        for j in range(total + 1):
-            i = total - j
-            out.append("1" if total == 0 else "".join(p for p in (f"x^{i}" if i else "", f"y^{j}" if j else "") if p)
-                       .replace("^1", ""))
-    return out
-
-
-def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
-                      object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
-
-    The plane's phase is smooth: fit a ``degree`` polynomial in (x, y) to the valid phase, refit on
-    the pixels within 3 robust sigmas, ``iterations`` times; plane = residual within ``plane_rad``,
-    object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
-    """
-    h, w = phase.shape
-    A = poly_basis(h, w, degree)
-    b = phase.ravel()
-    use = valid.ravel() & np.isfinite(b)
-    if use.sum() < 4 * A.shape[1]:
-        return np.zeros_like(valid), np.zeros_like(valid)
-    sel = use.copy()
-    for _ in range(iterations):
-        idx = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // 50_000)]
-        coef = np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
-        r = np.where(use, b - A @ coef, np.inf)
-        s = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
-        sel = use & (np.abs(r) <= max(3 * s, plane_rad))
-    r = r.reshape(h, w)
-    return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)
-
-
-
-# ====================================================================== single-shot phase (issue 25 item 1)
-# `SingleShotPhase`, `single_shot_phase` and their private helpers.
-__all__ += ["SingleShotPhase", "SINGLE_SHOT_METHODS", "single_shot_phase"]
+__all__ = ["SingleShotPhase", "SINGLE_SHOT_METHODS", "single_shot_phase"]
 
 SINGLE_SHOT_METHODS = ("ftp", "rows")
 
@@ -233,7 +41,7 @@ class SingleShotPhase:
         least one period long along the row (projector shadows, the figshare ``-1`` / PSP ``0`` marker).
     period : float, px: carrier period (``1 / |carrier|``, across the fringes).
     tilt : float, degrees: carrier fringe lines' angle from the image vertical, positive when a line leans
-        right going down (the convention of :func:`fringe_tilt`).
+        right going down (the convention of :func:`fppsim.phase.measure.fringe_tilt`).
     carrier : (fx, fy) cycles/px of the carrier phase gradient along columns and rows (fx > 0 before
         ``direction`` is applied).
     method : the method used.
@@ -524,4 +332,3 @@ def _phase_error(g: np.ndarray, a: np.ndarray, valid: np.ndarray, fx0: float, fy
     c = _ERR_COEF
     return np.sqrt(_ERR_FLOOR ** 2 + (c["noise"] * noise) ** 2 + (c["curvature"] * curv) ** 2
                    + (c["detune"] * detune) ** 2 + (c["edge"] * edge) ** 2)
-# ====================================================================== end of the single-shot phase section

@@ -1,0 +1,82 @@
+"""The reference plane in height, label and phase maps: its level, the one polynomial plane basis of both
+packages, and the plane / object pixels of a real phase map.
+
+:func:`plane_level` (the level of the reference plane in a height or label map), :func:`poly_basis` /
+:func:`poly_terms` (the polynomial in pixel coordinates every plane fit uses) and
+:func:`phase_plane_masks` (plane and object pixels of a real absolute phase map without labels); numpy
+only.
+
+Units: those of the map (mm, label units, radians); pixels for coordinates.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["plane_level", "poly_basis", "poly_terms", "phase_plane_masks"]
+
+
+def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, window: float = 6.0) -> float:
+    """Level of the reference plane in a height or label map: the mode of the valid values (histogram
+    of ``bin_width`` bins, lightly smoothed), refined by the median of the values within ``window``.
+
+    ``label`` (H, W) float (label units or mm; ``bin_width`` and ``window`` in the same unit), ``valid``
+    (H, W) bool. NaN when no pixel is valid.
+    """
+    v = np.asarray(label, np.float64)[np.asarray(valid, bool)]
+    if v.size == 0:
+        return float("nan")
+    lo, hi = np.floor(v.min()), np.ceil(v.max()) + bin_width
+    hist, edges = np.histogram(v, bins=max(1, int(np.ceil((hi - lo) / bin_width))), range=(lo, hi))
+    # smooth the histogram a little so a tilted plane still has one clear mode
+    hist = np.convolve(hist, np.ones(5) / 5.0, mode="same")
+    mode = 0.5 * (edges[np.argmax(hist)] + edges[np.argmax(hist) + 1])
+    near = v[np.abs(v - mode) <= window]
+    return float(np.median(near)) if near.size else float(mode)
+
+
+def poly_basis(h: int, w: int, degree: int) -> np.ndarray:
+    """The polynomial plane basis: (h*w, n) float64 monomials ``x^i y^j`` (``i + j <= degree``) of the
+    pixel coordinates scaled to [-1, 1] (x along columns, y down rows), ordered by total degree, then by
+    the power of y (names: :func:`poly_terms`); column 0 is the constant. ValueError for a degree that is
+    not an integer >= 0."""
+    if int(degree) != degree or degree < 0:
+        raise ValueError(f"plane degree must be an integer >= 0, got {degree!r}")
+    yy, xx = np.mgrid[0:h, 0:w]
+    x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
+    return np.stack([x ** i * y ** j for t in range(int(degree) + 1) for j in range(t + 1) for i in [t - j]], axis=1)
+
+def poly_terms(degree: int) -> list[str]:
+    """Names of the :func:`poly_basis` columns: ``["1", "x", "y", "x^2", "xy", "y^2", ...]``."""
+    out = []
+    for total in range(int(degree) + 1):
+        for j in range(total + 1):
+            i = total - j
+            out.append("1" if total == 0 else "".join(p for p in (f"x^{i}" if i else "", f"y^{j}" if j else "") if p)
+                       .replace("^1", ""))
+    return out
+
+
+def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
+                      object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
+
+    The plane's phase is smooth: fit a ``degree`` polynomial in (x, y) to the valid phase, refit on
+    the pixels within 3 robust sigmas, ``iterations`` times; plane = residual within ``plane_rad``,
+    object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
+    """
+    h, w = phase.shape
+    A = poly_basis(h, w, degree)
+    b = phase.ravel()
+    use = valid.ravel() & np.isfinite(b)
+    if use.sum() < 4 * A.shape[1]:
+        return np.zeros_like(valid), np.zeros_like(valid)
+    sel = use.copy()
+    for _ in range(iterations):
+        idx = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // 50_000)]
+        coef = np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
+        r = np.where(use, b - A @ coef, np.inf)
+        s = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
+        sel = use & (np.abs(r) <= max(3 * s, plane_rad))
+    r = r.reshape(h, w)
+    return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)
