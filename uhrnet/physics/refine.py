@@ -35,6 +35,7 @@ import numpy as np
 
 from fppsim.geometry.rig import Rig
 from fppsim.phase import circular_median, wrap
+from fppsim.phase.unwrap import phase_regions, shadow_bridges, step_conflicts
 
 __all__ = ["refine_relief", "layer_for", "REFINE_METHODS"]
 
@@ -123,8 +124,6 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     import torch
     from scipy import ndimage as ndi
 
-    from fppsim.phase.unwrap import phase_regions, step_conflicts
-
     if level not in ("network", "orders"):
         raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
     h_in = np.asarray(height_mm)
@@ -156,8 +155,6 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if regions.count:
         med = np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, regions.count + 1)))
         if level == "orders":
-            from fppsim.phase.unwrap import shadow_bridges
-
             orders = np.round(med / TWO_PI)
             unlit = ~ok if shadow is None else np.asarray(shadow, bool)
             fixed = {1: orders[0]}
