@@ -26,11 +26,12 @@ from fppsim import __version__
 from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
 from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
-from fppsim.dataio.formats import (FIGSHARE_PAIRS, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
+from fppsim.dataio.formats import (FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
 from fppsim.rendering.scene import MeshAsset, find_meshes, load_mesh
 from fppsim.rendering.synth import SynthConfig, synthesize
-from fppsim.dataio.writers import export_figshare, write_sample_folder
+from fppsim.dataio.writers import export_figshare, samples_folder, write_sample_folder
+from fppsim.dataio.readers import open_source
 
 if TYPE_CHECKING:
     from fppsim.geometry.rig import Rig
@@ -241,7 +242,7 @@ def generate(config: GenerateConfig) -> RunSummary:
     if config.preview:
         from fppsim.rendering.preview import write_preview
 
-        root = Path(config.out) / ("native" if config.format == "figshare" else "")
+        root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
     return summary
 
@@ -281,18 +282,6 @@ def _worker_init(assets, config, seed, out, noise_free, label=None, backend=None
         die_with_parent()
     _WORKER.update(assets=assets, config=config, seed=seed, out=Path(out), noise_free=noise_free,
                    renderer=DepthRenderer(backend), label=label, writer=BackgroundWriter())
-
-
-def _worker_run(index: int):
-    w = _WORKER
-    sid = sample_id(index)
-    try:
-        images, arrays, meta = synthesize(index, w["seed"], w["assets"], w["config"], w["renderer"],
-                                          noise_free=w["noise_free"])
-    except SampleError as exc:
-        return index, None, str(exc)
-    write_sample_folder(w["out"], sid, images, arrays, meta)
-    return index, manifest_record(sid, meta), None
 
 
 def _worker_run_chunk(indices: list[int]) -> list[tuple]:
@@ -397,7 +386,7 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
         reasons = "; ".join(r for _, r in skipped) or "no mesh files found"
         raise GenerateError(f"no usable mesh ({reasons})")
     out = Path(out)
-    native = out / "native" if fmt == "figshare" else out
+    native = samples_folder(out, fmt)
     try:
         native.mkdir(parents=True, exist_ok=True)
         probe = tmp_path(native / "write-test")
@@ -406,7 +395,7 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     except OSError as exc:
         raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
 
-    _check_settings(native / "dataset.json", _settings(config, seed, [a.path for a in assets], fmt, label, noise_free))
+    _check_settings(native / SETTINGS_FILE, _settings(config, seed, [a.path for a in assets], fmt, label, noise_free))
 
     wanted = shard_indices(count, shard)
     summary.requested = len(wanted)
@@ -488,10 +477,11 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
     out = Path(out)
     natives, settings, fmt = [], None, None
     for d in map(Path, shard_dirs):
-        nd = d / "native" if (d / "native" / "dataset.json").is_file() else d
-        if not (nd / "dataset.json").is_file():
-            raise DatasetError(f"{d}: not an fppsim dataset folder (no dataset.json)")
+        samples = open_source(d).fppsim_samples()
+        nd = samples.path if samples is not None else d
         s = read_settings(nd)
+        if s is None:
+            raise DatasetError(f"{d}: not an fppsim dataset folder (no dataset.json)")
         s.pop("version", None)
         if settings is None:
             settings, fmt = s, s.get("format", "native")
@@ -500,7 +490,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         natives.append(nd)
     if not natives:
         raise DatasetError("no shard folders given")
-    target = out / "native" if fmt == "figshare" else out
+    target = samples_folder(out, fmt)
     target.mkdir(parents=True, exist_ok=True)
     with folder_lock(out, "fppsim merge"):
         return _merge(out, target, natives, settings, fmt, link)
@@ -509,7 +499,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
 def _merge(out, target, natives, settings, fmt, link):
     import shutil
 
-    _check_settings(target / "dataset.json", {**settings, "version": __version__})
+    _check_settings(target / SETTINGS_FILE, {**settings, "version": __version__})
     reconcile(target)
     for nd in natives:
         for rec in reconcile(nd):

@@ -50,13 +50,13 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from fppsim.dataio.encoding import encode_fringe, json_default, read_gray_image
+from fppsim.dataio.encoding import encode_fringe, json_default
 from fppsim.errors import ConfigError, DatasetError, UsageError
 from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
 from fppsim.owned import output_folder
 from fppsim.phase.psp import decode_stacks
-from fppsim.dataio.readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source
+from fppsim.dataio.readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -67,7 +67,8 @@ __all__ = ["LabelRealConfig", "LabelRealReport", "PlaneFit", "Scan", "label_real
            "fit_phase_offset", "plane_flatness", "detect_layout", "iter_scans", "LAYOUTS", "REPORT_NAME",
            "PREVIEW_DIR"]
 
-LAYOUTS = ("public", "native")
+LAYOUTS = ("public", "native")  # label-real's two sources of scans, as its report names them
+PUBLIC, NATIVE = LAYOUTS
 REPORT_NAME = "label_real.json"
 PREVIEW_DIR = "previews"
 FRINGE_NAME, LABEL_NAME = FIGSHARE_PAIRS[0]
@@ -191,20 +192,22 @@ class Scan:
 
 
 def detect_layout(root: str | os.PathLike) -> str:
-    """``"public"`` (any of PSin/ PCos/ Fringe/ iPattern/ present) or ``"native"`` (manifest.jsonl).
+    """:data:`LAYOUTS` ``[0]`` (``"public"``: the scans' absolute phase is on disk, any of PSin/ PCos/ Fringe/
+    iPattern/ present) or ``[1]`` (``"native"``: fppsim's samples, whose phase-shifting images are decoded here),
+    as the folder's reader tells.
 
     Raises :class:`DatasetError` (one line naming ``root``) for anything else.
     """
     src = open_source(root)
     root = src.path
-    if src.kind == "missing":
+    if not src.path.exists():
         raise DatasetError(f"{root}: no such folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder")
     if src.is_psp:
-        return "public"
+        return PUBLIC
     if src.has_manifest:
-        return "native"
+        return NATIVE
     inner = src.scan_folders()
     if inner:  # a folder of scan folders: their ids may repeat, so one ROOT at a time
         raise DatasetError(f"{root}: holds scan folders ({', '.join(inner[:4])}{', ...' if len(inner) > 4 else ''}), "
@@ -214,7 +217,7 @@ def detect_layout(root: str | os.PathLike) -> str:
 
 
 def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:
-    if layout == "public":
+    if layout == PUBLIC:
         ids = list_psp_ids(cfg.root)
     else:
         ids = manifest_ids(cfg.root)
@@ -243,20 +246,8 @@ def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
 
 def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
     folder = Path(cfg.root) / sid
-    try:
-        meta = json.loads((folder / "meta.json").read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{folder / 'meta.json'}: cannot read ({exc.strerror if isinstance(exc, OSError) else 'not JSON'})") from None
-    psp = meta.get("psp") if isinstance(meta, dict) else None
-    if not isinstance(psp, dict) or not psp.get("freqs"):
-        raise DatasetError(f"{folder}: no phase-shifting images (generated with --no-psp?); label-real decodes "
-                           "psp/f{f}_s{n}.png")
-    try:
-        freqs = tuple(int(f) for f in psp["freqs"])
-        steps = int(psp["steps"])
-        shifts = np.asarray(psp.get("shifts_rad") or [2 * np.pi * n / steps for n in range(steps)], np.float64)
-    except (KeyError, TypeError, ValueError):
-        raise DatasetError(f"{folder / 'meta.json'}: 'psp' must hold freqs, steps and shifts_rad") from None
+    image, stacks, shifts, meta = read_native_psp(folder)
+    freqs = tuple(stacks)
     if rig is None:
         try:
             rig = usable_rig(Rig.from_dict(meta["rig"]), f"{folder / 'meta.json'}: its rig")
@@ -264,18 +255,7 @@ def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
             raise
         except (KeyError, TypeError, ValueError) as exc:
             raise DatasetError(f"{folder / 'meta.json'}: no usable rig ({exc}); pass --rig") from None
-    image = read_gray_image(folder / "fringe.png")
-    _check_camera(rig, image.shape, str(folder / "fringe.png"))
-    stacks = {}
-    for f in freqs:
-        imgs = []
-        for n in range(steps):
-            path = folder / "psp" / f"f{f}_s{n}.png"
-            img = read_gray_image(path)
-            if img.shape != image.shape:
-                raise DatasetError(f"{path}: shape {img.shape} differs from fringe.png's {image.shape}")
-            imgs.append(img)
-        stacks[f] = np.stack(imgs)
+    _check_camera(rig, image.shape, f"{folder}/fringe.png")
     dec = decode_stacks(stacks, None, freqs, min_modulation=cfg.min_modulation, neighbour_check=cfg.neighbour_check,
                         shifts=shifts)
     valid = dec.valid & np.isfinite(dec.phase)
@@ -293,12 +273,12 @@ def iter_scans(cfg: LabelRealConfig, layout: str | None = None, ids: Sequence[st
     ids = _scan_ids(cfg, layout) if ids is None else list(ids)
     rig = rig if rig is not None else _config_rig(cfg, layout)[0]
     for sid in ids:
-        yield _public_scan(cfg, sid, rig) if layout == "public" else _native_scan(cfg, sid, rig)
+        yield _public_scan(cfg, sid, rig) if layout == PUBLIC else _native_scan(cfg, sid, rig)
 
 
 def _config_rig(cfg: LabelRealConfig, layout: str) -> tuple[Rig | None, str]:
     """``(rig, source)``; rig None = each native sample's recorded rig."""
-    return resolve_rig(cfg.rig, per_sample=layout == "native")
+    return resolve_rig(cfg.rig, per_sample=layout == NATIVE)
 
 
 # ============================================================================================ labelling
@@ -540,11 +520,11 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     from tqdm import tqdm
 
     layout = detect_layout(cfg.root)
-    if layout == "native" and cfg.periods is not None:
+    if layout == NATIVE and cfg.periods is not None:
         raise UsageError("--periods applies to the public layout only (native scans record their ladder)")
     ids = _scan_ids(cfg, layout)
     rig, rig_source = _config_rig(cfg, layout)
-    policy = cfg.phase_offset if cfg.phase_offset is not None else ("auto" if layout == "public" else "none")
+    policy = cfg.phase_offset if cfg.phase_offset is not None else ("auto" if layout == PUBLIC else "none")
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out} is a file, not a folder")
