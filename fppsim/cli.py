@@ -326,7 +326,20 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                    help="real fringe images: figshare folder (f1_80.npy + Z.npy), the real-sample pair, native "
                         "fppsim folder, PSin/PCos/Fringe/iPattern folders, or a folder of 8-bit images")
     p.add_argument("--out", required=True, metavar="RIG", help="fitted rig file (.json, or .yaml/.yml)")
-    p.add_argument("--base", metavar="RIG", help="rig to start from (camera kept fixed) [assets/default_rig.json]")
+    p.add_argument("--base", metavar="RIG",
+                   help="rig to start from (camera kept fixed), 'default' for assets/default_rig.json; without it the "
+                        "rig is built from the images (camera size, fringe direction, projector side and pose "
+                        "measured; see --fov, --focal, --distance, --baseline, --projector-side)")
+    p.add_argument("--fov", type=float, metavar="DEG",
+                   help="without --base: the camera's field of view across the image width [the default rig's, 29.2]")
+    p.add_argument("--focal", type=float, metavar="PX", help="without --base: the camera's focal length, instead of --fov")
+    p.add_argument("--distance", type=float, metavar="MM",
+                   help="without --base: camera height above the reference plane (images cannot tell it) [500]")
+    p.add_argument("--baseline", type=float, metavar="MM",
+                   help="without --base: camera-projector distance (images cannot tell it) [0.66 x --distance]")
+    p.add_argument("--projector-side", choices=("left", "right", "above", "below"),
+                   help="without --base: where the projector is seen from the camera (measured from phase-shifting "
+                        "scans or shadows when not given)")
     p.add_argument("--params", type=_params, default=("yaw", "roll", "periods"), metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre; roll "
                         "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
@@ -345,12 +358,24 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
 
 
 def run_fit_rig(args) -> int:
+    from fppsim.errors import UsageError
     from fppsim.fitting.fit_rig import FitRigConfig, fit_rig_images
 
-    fit_rig_images(FitRigConfig(
-        real=args.real, out=args.out, base=args.base, params=tuple(args.params), col_bands=args.col_bands,
-        row_bands=args.row_bands, max_images=args.max_images, sensitivity=args.sensitivity, json=args.json,
-        force=args.force), echo=print)
+    common = dict(real=args.real, out=args.out, params=tuple(args.params), col_bands=args.col_bands,
+                  row_bands=args.row_bands, max_images=args.max_images, sensitivity=args.sensitivity, json=args.json,
+                  force=args.force)
+    start = {"fov": args.fov, "focal": args.focal, "distance": args.distance, "baseline": args.baseline,
+             "projector_side": args.projector_side}
+    if args.base is None:  # no calibration: the rig from the images themselves
+        from fppsim.fitting.rig_start import StartRigConfig, fit_rig_from_images
+
+        fit_rig_from_images(StartRigConfig(**common, **start), echo=print)
+        return 0
+    given = [f"--{k.replace('_', '-')}" for k, v in start.items() if v is not None]
+    if given:
+        raise UsageError(f"{', '.join(given)}: these describe a rig built from the images; with --base the base "
+                         "rig's camera and pose are used")
+    fit_rig_images(FitRigConfig(**common, base=None if args.base == "default" else args.base), echo=print)
     return 0
 
 

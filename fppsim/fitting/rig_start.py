@@ -143,12 +143,22 @@ def start_rig(width: int, height: int, gradient, side: int = 1, distance: float 
 class PhaseMap:
     """One image's phase for the fit: ``phase`` (H, W) float64 rad, absolute (phase-shifting) or unwrapped
     from one fringe image (then ``absolute`` is False: known only up to 2 pi steps between regions and
-    its sign is a convention); ``valid`` (H, W) bool; ``name`` for messages."""
+    its sign is a convention); ``valid`` (H, W) bool; ``name`` for messages; ``reliable``: the pixels
+    whose phase is trusted enough to seed a plane candidate (:func:`find_plane`; default ``valid``);
+    ``shadow``: the projector's shadows (default: the pixels that are not ``valid``; one fringe image's
+    low-reliability edges are not shadows)."""
 
     phase: np.ndarray
     valid: np.ndarray
     name: str = ""
     absolute: bool = True
+    reliable: np.ndarray | None = None  # (H, W) bool: where plane candidates may grow (default: valid)
+    shadow: np.ndarray | None = None  # (H, W) bool: projector shadows (default: not valid)
+
+    @property
+    def lit(self) -> np.ndarray:
+        """Pixels the projector lights (not :attr:`shadow`)."""
+        return self.valid if self.shadow is None else ~self.shadow
 
 
 def _grid(shape, valid, n: int, rng=None) -> np.ndarray:
@@ -160,15 +170,17 @@ def _grid(shape, valid, n: int, rng=None) -> np.ndarray:
 
 
 def plane_phase_gradient(phase: np.ndarray, valid: np.ndarray, n: int = 40_000) -> tuple[float, float]:
-    """The plane's phase gradient ``(g_u, g_v)`` (rad/px): a robust (iteratively trimmed) linear fit
-    ``Phi ~ c + g_u u + g_v v`` over the valid pixels (objects are the outliers)."""
+    """The plane's phase gradient ``(g_u, g_v)`` (rad/px) at the image centre: a robust (iteratively
+    trimmed) quadratic fit of the phase in (u, v) over the valid pixels (objects are the outliers; the
+    quadratic terms take the perspective)."""
     H, W = phase.shape
     ok = valid & np.isfinite(phase)
     idx = _grid((H, W), ok, n)
     if idx.size < 50:
         raise RigError("too few pixels with a phase to measure the fringe direction")
     v, u = np.divmod(idx, W)
-    A = np.stack([np.ones(idx.size), u - W / 2.0, v - H / 2.0], axis=1)
+    x, y = (u - (W - 1) / 2.0) / W, (v - (H - 1) / 2.0) / W  # the quadratic terms take the perspective
+    A = np.stack([np.ones(idx.size), x, y, x * x, x * y, y * y], axis=1)
     b = phase.ravel()[idx]
     sel = np.ones(idx.size, bool)
     for _ in range(6):
@@ -178,7 +190,7 @@ def plane_phase_gradient(phase: np.ndarray, valid: np.ndarray, n: int = 40_000) 
         sel = np.abs(r - np.median(r[sel])) <= max(2.5 * s, 0.5)
         if sel.sum() < 50:
             break
-    return float(coef[1]), float(coef[2])
+    return float(coef[1]) / W, float(coef[2]) / W
 
 
 def relief_sign(residual: np.ndarray, plane: np.ndarray, valid: np.ndarray, min_rad: float = 1.0) -> tuple[int, float]:
@@ -203,14 +215,17 @@ _STEP = {"yaw": math.radians(2.0), "pitch": math.radians(2.0), "roll": math.radi
 # search bounds in the scaled units: yaw and pitch +-30 deg, roll +-20 deg (the start has the fringes'
 # direction already), periods x / 2.7
 _BOUND = {"yaw": 15.0, "pitch": 15.0, "roll": 10.0, "periods": 20.0}
+TAU = 0.2  # rad: a pixel agrees with a plane hypothesis within this (the real planes fit to 0.01-0.1 rad)
 
 
 @dataclass
 class PlanePhaseFit:
-    """Result of :func:`fit_plane_phase`: the fitted ``rig``, the parameter changes (``params``: yaw /
+    """Result of :func:`fit_plane_phase`: the fitted ``rig``, the parameter values (``params``: yaw /
     pitch / roll in rad relative to the start, periods), the constant offset per map (rad: the rig's
     phase = map phase + offset on the plane), the plane pixels' residual (median |r| and RMS, rad, after
-    the offset), the plane share of the valid pixels per map, and the start rig's median |r|."""
+    the offset), the plane share of the valid pixels per map, and the start rig's median |r|;
+    ``planes`` and ``residuals`` (per map, (H, W)) are the plane pixels and the map's phase minus the
+    rig's plane phase less the offset (wrapped for maps that are not absolute)."""
 
     rig: Rig
     params: dict
@@ -219,8 +234,8 @@ class PlanePhaseFit:
     rms_rad: float
     plane_share: list
     start_median_rad: float
-    planes: list = field(default_factory=list, repr=False)  # (H, W) bool plane pixels per map
-    residuals: list = field(default_factory=list, repr=False)  # (H, W) phase - rig phase - offset, rad
+    planes: list = field(default_factory=list, repr=False)
+    residuals: list = field(default_factory=list, repr=False)
 
     def to_dict(self) -> dict:
         return {"params": self.params, "offsets_rad": self.offsets, "plane_median_residual_rad": self.median_rad,
@@ -234,33 +249,79 @@ def _adjust(rig: Rig, values: dict) -> Rig:
     return adjust_rig(rig, **values)
 
 
-def plane_phase_residual(rig: Rig, phase: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, float]:
-    """``(residual, offset)``: the map's phase minus the rig's reference-plane phase
-    (:meth:`fppsim.geometry.rig.Rig.phase_at_height` at 0 mm) less the constant offset that centres
-    the residual on the plane (histogram mode, then the median within 1 rad), NaN where invalid. The
-    check of a rig against a phase-shifting frame: the plane pixels' median |residual|."""
-    from fppsim.phase.fringe import plane_level
+def _wrap(x):
+    return (np.asarray(x) + np.pi) % (2 * np.pi) - np.pi
 
-    pp = rig.phase_at_height(0.0)
-    d = np.where(valid, phase - pp, np.nan)
+
+def plane_phase_residual(rig: Rig, phase: np.ndarray, valid: np.ndarray, plane: np.ndarray | None = None,
+                         absolute: bool = True) -> tuple[np.ndarray, float]:
+    """``(residual, offset)``: the map's phase minus the rig's reference-plane phase
+    (:meth:`fppsim.geometry.rig.Rig.phase_at_height` at 0 mm), less the constant that centres it on the
+    ``plane`` pixels (their median; default: the histogram mode of all valid pixels, refined by the
+    median within 1 rad), NaN where not ``valid``; ``offset`` is what the rig's phase exceeds the map's
+    by on the plane. ``absolute=False`` (a phase known modulo 2 pi): the residual is wrapped. THE check
+    of a rig against a phase-shifting frame: the plane pixels' median |residual|."""
+    from fppsim.phase.plane import plane_level
+
+    d = np.where(valid, phase - rig.phase_at_height(0.0), np.nan)
     ok = np.isfinite(d)
     if not ok.any():
         return d, float("nan")
-    c = plane_level(d, ok, bin_width=0.05, window=1.0)
+    if not absolute:
+        ref = plane if plane is not None and (plane & ok).any() else ok
+        z = np.exp(1j * d[ref])
+        c = float(np.angle(z.mean()))
+        return _wrap(d - c), -c
+    if plane is not None and (plane & ok).any():
+        c = float(np.median(d[plane & ok]))
+    else:
+        c = plane_level(d, ok, bin_width=0.05, window=1.0)
     return d - c, -c
 
 
+def smooth_regions(phase: np.ndarray, valid: np.ndarray, gradient, step_rad: float = 1.0,
+                   absolute: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """Connected regions of smooth phase (8-bit-free: a pixel is cut off from its right / lower
+    neighbour when the phase step differs from the plane ``gradient`` by more than ``step_rad``):
+    ``(labels, sizes)``, sizes in pixels, largest first (labels renumbered 1..n in that order)."""
+    from scipy import ndimage as ndi
+
+    ph = np.where(valid, phase, np.nan)
+    dx = np.diff(ph, axis=1, append=np.nan) - gradient[0]
+    dy = np.diff(ph, axis=0, append=np.nan) - gradient[1]
+    if not absolute:
+        dx, dy = _wrap(dx), _wrap(dy)
+    with np.errstate(invalid="ignore"):
+        step = ~(np.abs(dx) <= step_rad) | ~(np.abs(dy) <= step_rad)
+    cut = step.copy()
+    cut[:, 1:] |= step[:, :-1]
+    cut[1:, :] |= step[:-1, :]
+    smooth = valid & ~cut
+    lab, n = ndi.label(smooth)
+    if n == 0:
+        return lab, np.zeros(0, int)
+    sizes = np.bincount(lab.ravel(), minlength=n + 1)[1:]
+    order = np.argsort(sizes)[::-1]
+    remap = np.zeros(n + 1, int)
+    remap[order + 1] = np.arange(1, n + 1)
+    return remap[lab], sizes[order]
+
+
 def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = PLANE_PARAMS,
-                    pixels: int = 6000, plane_rad: float = 0.5, rounds: int = 3) -> PlanePhaseFit:
+                    seeds: list | None = None, pixels: int = 6000, tau: float = TAU,
+                    rounds: int = 3) -> PlanePhaseFit:
     """Fit ``params`` (of yaw, pitch, roll, periods; the projector turned about its own axes, the
     camera fixed) of ``start`` so its reference-plane phase matches the maps' phase on the plane, one
     free constant offset per map (the phase origin of a scan is arbitrary).
 
-    Plane pixels are chosen robustly: a first fit with a Cauchy loss over all valid pixels (objects are
-    outliers of the four-parameter plane), then ``rounds`` fits on the pixels within ``max(plane_rad,
-    3 robust sigmas)`` of it (plain least squares). ``pixels``: evenly strided pixels per map and fit.
-    Raises RigError when a map has too few valid pixels or the fitted projector leaves part of the
-    camera's view of the plane unlit.
+    ``seeds`` (per map, (H, W) bool; default the valid pixels) are where the plane is looked for first
+    (for a map that is not absolute: pixels unwrapped consistently, e.g. one smooth region):
+    a fit with a Cauchy loss there (objects are outliers of the four-parameter plane), then ``rounds``
+    least-squares fits on the pixels within ``max(tau, 3 robust sigmas)`` of the plane found so far
+    (which may grow beyond the seeds: the plane is one surface). ``pixels``: evenly strided pixels per
+    map and fit. Maps that are not absolute (one fringe image's unwrapped phase) are compared modulo
+    2 pi. Raises RigError when a map has too few valid pixels or the fitted projector leaves part of
+    the camera's view of the plane unlit.
     """
     from scipy.optimize import least_squares
 
@@ -275,96 +336,565 @@ def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = 
         if m.phase.shape != (H, W):
             raise RigError(f"{m.name}: the phase map is {m.phase.shape[1]} x {m.phase.shape[0]} px but the rig's "
                            f"camera is {W} x {H}")
-    uv = start.camera.pixel_grid()
+    flat = start.camera.pixel_grid().reshape(-1, 2)
     f0 = float(start.periods)
+    oks = [m.valid & np.isfinite(m.phase) for m in maps]
+    for m, ok in zip(maps, oks):
+        if ok.sum() < 200:
+            raise RigError(f"{m.name}: fewer than 200 pixels with a phase")
+    seeds = oks if seeds is None else [np.asarray(sd, bool) & ok for sd, ok in zip(seeds, oks)]
 
     def values(x):
-        out = {}
-        for p, xi in zip(params, x):
-            out[p] = f0 * math.exp(xi * 0.05) if p == "periods" else xi * _STEP[p]
-        return out
+        return {p: (f0 * math.exp(xi * 0.05) if p == "periods" else xi * _STEP[p]) for p, xi in zip(params, x)}
 
     def model(x, idx_list):
         rig = _adjust(start, values(x))
-        flat = uv.reshape(-1, 2)
         return [rig.phase_at_height(0.0, flat[idx]) for idx in idx_list]
 
-    def fit(x0, idx_list, loss, scale):
+    def fit(x0, idx_list, loss, scale, snap):
         targets = [m.phase.ravel()[idx] for m, idx in zip(maps, idx_list)]
+        preds = model(x0, idx_list)
+        c0 = []
+        for k, (m, p, t) in enumerate(zip(maps, preds, targets)):
+            if snap and not m.absolute:  # each pixel to the current model's nearest period
+                d = p - t
+                cc = float(np.angle(np.mean(np.exp(1j * d))))
+                targets[k] = t + 2 * np.pi * np.round((d - cc) / (2 * np.pi))
+            c0.append(float(np.median(p - targets[k])))
 
         def fun(z):
             x, c = z[: len(params)], z[len(params):]
             try:
-                preds = model(x, idx_list)
+                pr = model(x, idx_list)
             except RigError:
                 return np.full(sum(len(t) for t in targets), 1e3)
-            r = np.concatenate([p - t - ci for p, t, ci in zip(preds, targets, c)])
+            r = np.concatenate([p - t - ci for p, t, ci in zip(pr, targets, c)])
             return np.where(np.isfinite(r), r, 1e3)
 
-        preds = model(x0, idx_list)
-        c0 = [float(np.median(p - t)) for p, t in zip(preds, targets)]
         lo = np.concatenate([[-_BOUND[p] for p in params], np.full(len(c0), -np.inf)])
         z0 = np.clip(np.concatenate([x0, c0]), lo + 1e-9, -lo - 1e-9)
         sol = least_squares(fun, z0, loss=loss, f_scale=scale, x_scale=1.0, bounds=(lo, -lo),
                             diff_step=1e-5, max_nfev=200)
-        return sol.x[: len(params)], sol.x[len(params):]
+        return sol.x[: len(params)]
 
-    idx_all = []
-    for m in maps:
-        ok = m.valid & np.isfinite(m.phase)
-        if ok.sum() < 200:
-            raise RigError(f"{m.name}: fewer than 200 pixels with a phase")
-        idx_all.append(_grid((H, W), ok, pixels))
     x = np.zeros(len(params))
-    start_med = _median_plane_residual(start, maps, plane_rad)[0]
-    x, _ = fit(x, idx_all, "cauchy", 0.5)
-    planes = []
+    start_med = _plane_stats(start, maps, oks, seeds)[0]
+    # the seeds are taken as they are (a map that is not absolute: unwrapped consistently there)
+    x = fit(x, [_grid((H, W), sd, pixels) for sd in seeds], "cauchy", 0.5, False)
+    planes = seeds
     for _ in range(int(rounds)):
-        rig = _adjust(start, values(x))
-        planes, idx_plane = [], []
-        for m in maps:
-            r, _ = plane_phase_residual(rig, m.phase, m.valid & np.isfinite(m.phase))
-            ok = np.isfinite(r)
-            s = 1.4826 * float(np.median(np.abs(r[ok]))) if ok.any() else 0.0
-            plane = ok & (np.abs(np.nan_to_num(r, nan=np.inf)) <= max(plane_rad, 3.0 * s))
-            if plane.sum() < 200:
-                plane = ok & (np.abs(np.nan_to_num(r, nan=np.inf)) <= np.percentile(np.abs(r[ok]), 30))
-            planes.append(plane)
-            idx_plane.append(_grid((H, W), plane, pixels))
-        x, _ = fit(x, idx_plane, "linear", 1.0)
+        planes = _grow_planes(_adjust(start, values(x)), maps, oks, planes, tau)
+        x = fit(x, [_grid((H, W), pl, pixels) for pl in planes], "linear", 1.0, True)
     rig = _adjust(start, values(x))
+    planes = _grow_planes(rig, maps, oks, planes, tau)
     rig.name = start.name + " (plane phase fitted: " + ", ".join(params) + ")"
     rig.check()
     coverage = plane_coverage(rig)
     if coverage < 0.999:
         raise RigError(f"the fitted projector lights only {coverage:.1%} of the camera's view of the plane")
-    med, rms, offsets, shares, planes, residuals = _median_plane_residual(rig, maps, plane_rad, planes)
+    med, rms, offsets, shares, residuals = _plane_stats(rig, maps, oks, planes)
     return PlanePhaseFit(rig=rig, params={p: float(v) for p, v in values(x).items()}, offsets=offsets,
                          median_rad=med, rms_rad=rms, plane_share=shares, start_median_rad=start_med,
                          planes=planes, residuals=residuals)
 
 
-def _median_plane_residual(rig: Rig, maps: list[PhaseMap], plane_rad: float, planes=None):
-    """Median |residual| and RMS over the plane pixels of all maps (the plane re-chosen as the pixels
-    within ``max(plane_rad, 3 robust sigmas)`` unless ``planes`` are given), offsets, shares."""
-    allr, offsets, shares, out_planes, residuals = [], [], [], [], []
-    for k, m in enumerate(maps):
-        ok0 = m.valid & np.isfinite(m.phase)
-        r, off = plane_phase_residual(rig, m.phase, ok0)
-        ok = np.isfinite(r)
-        if planes is None:
-            s = 1.4826 * float(np.median(np.abs(r[ok]))) if ok.any() else 0.0
-            plane = ok & (np.abs(np.nan_to_num(r, nan=np.inf)) <= max(plane_rad, 3.0 * s))
-        else:
-            plane = planes[k] & ok
-        if plane.any():  # the offset that centres the plane pixels themselves
-            c = float(np.median(r[plane]))
-            r, off = r - c, off - c
-        allr.append(r[plane])
+def _grow_planes(rig: Rig, maps, oks, planes, tau: float) -> list:
+    """The pixels of each map within ``max(tau, 3 robust sigmas of the current plane)`` of ``rig``'s
+    plane phase, the offset taken on the current plane pixels; the current plane when fewer than 200."""
+    out = []
+    for m, ok, pl in zip(maps, oks, planes):
+        r, _ = plane_phase_residual(rig, m.phase, ok, pl, m.absolute)
+        a = np.abs(np.nan_to_num(r, nan=np.inf))
+        s = 1.4826 * float(np.median(a[pl & ok])) if (pl & ok).any() else 0.0
+        new = ok & (a <= max(tau, min(3.0 * s, 1.0)))
+        out.append(new if new.sum() >= 200 else pl)
+    return out
+
+
+def _plane_stats(rig: Rig, maps, oks, planes):
+    """Median |residual| and RMS over the plane pixels of all maps, offsets, plane shares, residual maps."""
+    allr, offsets, shares, residuals = [], [], [], []
+    for m, ok, pl in zip(maps, oks, planes):
+        r, off = plane_phase_residual(rig, m.phase, ok, pl, m.absolute)
+        allr.append(r[pl & np.isfinite(r)])
         offsets.append(float(off))
-        shares.append(float(plane.sum() / max(int(ok0.sum()), 1)))
-        out_planes.append(plane)
+        shares.append(float((pl & ok).sum() / max(int(ok.sum()), 1)))
         residuals.append(r)
-    a = np.concatenate(allr) if allr else np.array([np.nan])
-    a = a if a.size else np.array([np.nan])
-    return (float(np.median(np.abs(a))), float(np.sqrt(np.mean(a ** 2))), offsets, shares, out_planes, residuals)
+    a = np.concatenate(allr) if allr else np.array([])
+    if not a.size:
+        return float("nan"), float("nan"), offsets, shares, residuals
+    return float(np.median(np.abs(a))), float(np.sqrt(np.mean(a ** 2))), offsets, shares, residuals
+
+
+def consensus(residual: np.ndarray, tau: float = TAU) -> float:
+    """MSAC score of a plane hypothesis: sum over pixels of ``max(0, 1 - (r / tau)^2)``."""
+    r = residual[np.isfinite(residual)]
+    return float(np.sum(np.clip(1.0 - (r / tau) ** 2, 0.0, None)))
+
+
+def find_plane(start: Rig, m: PhaseMap, gradient, candidates: int = 5, min_share: float = 0.02,
+               pixels: int = 4000, tau: float = TAU) -> tuple[np.ndarray, list]:
+    """The reference plane's pixels in one map, whatever share of the image it covers.
+
+    The plane is the surface whose phase the four-parameter plane model fits to a few hundredths of a
+    radian; an object is not, even a large and nearly flat one. Each of the ``candidates`` largest
+    smooth regions (:func:`smooth_regions`, at least ``min_share`` of the valid pixels) seeds a fit
+    (:func:`fit_plane_phase`, one round); the hypothesis that agrees with most pixels within ``tau``
+    (:func:`consensus`) wins. Returns ``(plane, scores, fit)``: its pixels, ``(region share, consensus
+    share, median |r| on the region)`` per candidate tried, and the winner's :class:`PlanePhaseFit`
+    (None, with every valid pixel as the plane, when no region could seed a fit)."""
+    ok = m.valid & np.isfinite(m.phase)
+    lab, sizes = smooth_regions(m.phase, ok if m.reliable is None else ok & m.reliable, gradient,
+                                absolute=m.absolute)
+    n_ok = max(int(ok.sum()), 1)
+    best, scores = None, []
+    for k in range(min(int(candidates), len(sizes))):
+        if sizes[k] < max(min_share * n_ok, 200):
+            break
+        seed = lab == k + 1
+        try:
+            fit = fit_plane_phase(start, [m], seeds=[seed], pixels=pixels, tau=tau, rounds=1)
+        except RigError:
+            continue
+        score = consensus(fit.residuals[0], tau)
+        med = float(np.nanmedian(np.abs(fit.residuals[0][seed])))
+        scores.append((float(sizes[k] / n_ok), score / n_ok, med))
+        if best is None or score > best[0]:
+            best = (score, fit)
+    if best is None:
+        return ok, scores, None
+    return best[1].planes[0], scores, best[1]
+
+
+def shadow_side(plane: np.ndarray, valid: np.ndarray, axis: str, min_run: int = 3, skip: int = 2,
+                reach: int = 8) -> tuple[int, int]:
+    """Which way the projector lies, from its shadows: along the baseline (image rows for vertical
+    fringes, columns for horizontal ones) every run of invalid pixels (a shadow, at least ``min_run``
+    px) between two valid stretches is cast by the surface at one end onto the plane at the other; the
+    plane end is the far one. Each end is looked at from ``skip`` to ``reach`` px beyond the run (the
+    pixels next to a shadow carry the worst phase): a run votes when one end is mostly plane (>= 70 %)
+    and the other mostly not (<= 30 %). Returns ``(direction, votes)``: +1 when the projector lies
+    towards growing column (vertical fringes) / row (horizontal) index, -1 the other way, 0 when the
+    votes do not say (fewer than 10, or less than a 2:1 majority); ``votes`` is their count."""
+    pl = plane if axis == "vertical" else plane.T
+    ok = valid if axis == "vertical" else valid.T
+    score, votes = 0, 0
+    n = ok.shape[1]
+    for r in range(ok.shape[0]):
+        bad = ~ok[r]
+        if not bad.any():
+            continue
+        d = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
+        starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)  # invalid starts .. ends - 1
+        for a, b in zip(starts, ends):
+            if b - a < min_run or a - reach < 0 or b + reach > n:
+                continue
+            lo, hi = slice(a - reach, a - skip), slice(b + skip, b + reach)
+            if not (ok[r, lo].all() and ok[r, hi].all()):
+                continue
+            before, after = float(pl[r, lo].mean()), float(pl[r, hi].mean())
+            if before >= 0.7 and after <= 0.3:
+                score, votes = score + 1, votes + 1  # plane before the shadow: the projector lies after it
+            elif after >= 0.7 and before <= 0.3:
+                score, votes = score - 1, votes + 1
+    if votes < 10 or abs(score) < votes / 3.0:
+        return 0, votes
+    return (1 if score > 0 else -1), votes
+
+
+# ====================================================================== phase maps from a folder
+def image_phase_map(gray: np.ndarray, valid: np.ndarray | None = None, name: str = "",
+                    min_reliability: float = 0.3) -> PhaseMap:
+    """One fringe image's phase for the fit: the single-shot phase in the fringes' own direction
+    (:func:`fppsim.phase.fringe_axis.oriented_single_shot_phase`; by convention growing along +columns
+    for vertical fringes, +rows for horizontal ones: one image cannot tell), unwrapped spatially over its
+    reliable pixels (scikit-image). ``absolute=False``: regions may be whole periods apart, which the
+    fit ignores (it compares modulo 2 pi). Shadows (dark runs) and pixels below ``min_reliability``
+    are invalid."""
+    from skimage.restoration import unwrap_phase
+
+    from fppsim.phase.fringe_axis import oriented_single_shot_phase
+
+    g = np.asarray(gray, np.float64)
+    ssp = oriented_single_shot_phase(g, None, mask=valid)
+    ok = ssp.valid & (ssp.reliability >= min_reliability)
+    if ok.sum() < 200:
+        raise RigError(f"{name}: too few pixels with a reliable fringe phase")
+    un = np.asarray(unwrap_phase(np.ma.array(ssp.wrapped.astype(np.float64), mask=~ok)).filled(np.nan))
+    # edges (objects, shadows) have a low reliability: cut there, plane candidates do not leak onto objects
+    return PhaseMap(np.where(ok, un, np.nan), ok, name, absolute=False, reliable=ssp.reliability >= 0.5,
+                    shadow=~ssp.valid)
+
+
+def phase_maps_of(path, max_maps: int = 4) -> tuple[list[PhaseMap], str, list]:
+    """The phase maps of a folder for :func:`fit_plane_phase` (at most ``max_maps``, evenly spaced):
+    ``(maps, kind, images)``. Phase-shifting scans (the public ``PSin/PCos/Fringe`` layout: absolute
+    phase ``atan2(-PSin, -PCos) + pi + 2 pi Order``, valid where the scan has a phase and the image is not
+    black; fppsim's native samples with their decoded ``phase_psp``) give absolute maps (``kind``
+    ``"phase"``); any other layout :func:`fppsim.dataio.readers.load_fringe_images` reads gives one
+    single-shot map per image (``"fringe images"``). ``images`` are the fringe images read
+    (:class:`fppsim.dataio.readers.FringeImage`, for the label-based fits)."""
+    from fppsim.dataio.readers import load_fringe_images, open_source
+    from fppsim.dataio.readers.datasets import load_native_sample, pick_evenly
+    from fppsim.errors import PSPMatError
+
+    src = open_source(path)
+    images, layout = load_fringe_images(path, max_maps)
+    maps = []
+    if src.kind == "psp":
+        try:
+            for sid in [im.name for im in images]:
+                from fppsim.dataio.readers import load_psp_folder_sample
+
+                s = load_psp_folder_sample(src.path, sid)
+                maps.append(PhaseMap(s.phase.astype(np.float64), s.valid & (s.image > 0) & np.isfinite(s.phase), sid))
+        except PSPMatError as exc:
+            raise ValueError(str(exc)) from None
+        return maps, "phase", images
+    if src.kind == "native":
+        ids = src.ids()
+        for i in pick_evenly(len(ids), max_maps):
+            d = load_native_sample(src.path / ids[int(i)], keys=("phase_psp", "mask_psp"), meta=False)
+            if "phase_psp" not in d:
+                maps = []
+                break
+            ph = d["phase_psp"].astype(np.float64)
+            ok = np.isfinite(ph) & (d["mask_psp"] > 0 if "mask_psp" in d else True)
+            maps.append(PhaseMap(ph, ok, ids[int(i)]))
+        if maps:
+            return maps, "phase", images
+    for im in images[:max_maps]:
+        maps.append(image_phase_map(im.gray, im.valid, im.name))
+    return maps, "fringe images", images
+
+
+# ====================================================================== the whole start: a folder -> a rig
+SIDES = {"right": (1.0, 0.0), "left": (-1.0, 0.0), "above": (0.0, 1.0), "below": (0.0, -1.0)}
+"""``--projector-side`` words -> the projector's direction from the camera in world x, y (image right, up)."""
+
+
+@dataclass
+class StartRigResult:
+    """What :func:`rig_from_images` found: the fitted ``rig``, the plane-phase ``fit``, the maps' ``kind``
+    (``"phase"`` or ``"fringe images"``), how many, the measured plane ``gradient`` (rad/px), the fringe
+    ``axis``, the projector ``side`` (+1: raised surfaces lower the phase) and where it came from, the
+    assumptions made (``assumed``: name -> text) and the report ``lines``."""
+
+    rig: Rig
+    fit: PlanePhaseFit
+    kind: str
+    n_maps: int
+    gradient: tuple
+    axis: str
+    side: int
+    side_source: str
+    where: str
+    sensitivity: float
+    assumed: dict
+    lines: list
+    images: list = field(default_factory=list, repr=False)
+
+    def to_dict(self) -> dict:
+        cam = self.rig.camera
+        return {"source": self.kind, "maps": self.n_maps, "camera_px": [cam.width, cam.height],
+                "camera_focal_px": float(cam.K[0, 0]), "gradient_rad_per_px": list(self.gradient),
+                "fringes": self.axis, "projector": self.where, "projector_side_from": self.side_source,
+                "centre_sensitivity_rad_per_mm": self.sensitivity, "assumed": self.assumed,
+                "plane_fit": self.fit.to_dict()}
+
+
+def _world_axis(gradient) -> np.ndarray:
+    gw = np.array([gradient[0], -gradient[1]], float)
+    return np.array([np.sign(gw[0]), 0.0]) if abs(gw[0]) >= abs(gw[1]) else np.array([0.0, np.sign(gw[1])])
+
+
+def _where(rig: Rig) -> str:
+    d = rig.projector.center[:2] - rig.camera.center[:2]
+    if abs(d[0]) >= abs(d[1]):
+        return f"{abs(d[0]):.0f} mm {'right of' if d[0] > 0 else 'left of'} the camera"
+    return f"{abs(d[1]):.0f} mm {'above' if d[1] > 0 else 'below'} the camera"
+
+
+def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
+                    baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
+                    say=None) -> StartRigResult:
+    """A rig from a folder of fringe images or phase-shifting scans alone (``fppsim fit-rig`` without
+    ``--base``; module docstring): camera from the image size and ``fov`` / ``focal``; the fringe
+    direction, the phase slope and its perspective from the plane's phase (:func:`phase_maps_of`,
+    plane pixels found by :func:`find_plane`); the projector side from the objects' phase relief
+    (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
+    (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
+    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given. ``say`` receives each report
+    line. RigError / ValueError (one line) for unusable inputs."""
+    lines: list[str] = []
+
+    def out(text=""):
+        lines.append(text)
+        if say is not None:
+            say(text)
+
+    if projector_side is not None and projector_side not in SIDES:
+        raise RigError(f"projector side must be one of {', '.join(SIDES)}, got {projector_side!r}")
+    if fov is not None and focal is not None:
+        raise RigError("give the camera's field of view or its focal length, not both")
+    maps, kind, images = phase_maps_of(path, max_maps)
+    if not maps:
+        raise ValueError(f"{path}: no fringe images")
+    H, W = maps[0].phase.shape
+    for m in maps[1:]:
+        if m.phase.shape != (H, W):
+            raise ValueError(f"{m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first is {W} x {H}")
+    assumed = {}
+    D = DEFAULT_DISTANCE if distance is None else float(distance)
+    if distance is None:
+        assumed["distance_mm"] = D
+    if baseline is None:
+        assumed["baseline_mm"] = BASELINE_RATIO * D
+    if fov is None and focal is None:
+        assumed["fov_deg"] = DEFAULT_FOV_DEG
+    grads = np.array([plane_phase_gradient(m.phase, m.valid) for m in maps])
+    gradient = tuple(float(v) for v in np.median(grads, axis=0))
+    axis = fringe_axis(gradient)
+    what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
+    out(f"{path}: {len(maps)} {what}, {W} x {H} px")
+
+    # plane pixels per map, from a provisional start (the side does not change the plane's phase)
+    start = start_rig(W, H, gradient, 1, D, baseline, fov, focal)
+    seeds = []
+    for k, m in enumerate(maps):
+        plane, _, one = find_plane(start, m, gradient)
+        seeds.append(plane)
+        if not m.absolute and one is not None:  # its plane pixels unwrapped onto one period of the plane fit
+            maps[k] = PhaseMap(np.where(m.valid, one.rig.phase_at_height(0.0) - one.offsets[0] + one.residuals[0],
+                                        np.nan), m.valid, m.name, absolute=False, reliable=m.reliable,
+                               shadow=m.shadow)
+    fit = fit_plane_phase(start, maps, seeds=seeds)
+
+    # which side the projector is on
+    waxis = _world_axis(gradient)
+    side, source = 0, ""
+    relief, share = 0, float("nan")
+    if kind == "phase":
+        res = np.concatenate([r[m.valid].ravel() for r, m in zip(fit.residuals, maps)])
+        pl = np.concatenate([p[m.valid].ravel() for p, m in zip(fit.planes, maps)])
+        relief, share = relief_sign(res, pl, np.ones(res.shape, bool))
+    votes = [shadow_side(p, m.lit, axis) for p, m in zip(fit.planes, maps)]
+    shadow_dir = int(np.sign(sum(d * n for d, n in votes)))
+    n_votes = sum(n for _, n in votes)
+    shadow_pdir = np.array([shadow_dir, 0.0]) if axis == "vertical" else np.array([0.0, -shadow_dir])
+    shadow = int(np.sign(shadow_pdir @ waxis))
+    if projector_side is not None:
+        pdir = np.array(SIDES[projector_side])
+        if abs(pdir @ waxis) < 0.5:
+            raise RigError(f"projector side '{projector_side}': the fringes are {axis}, so the projector is "
+                           + ("left or right of" if axis == "vertical" else "above or below") + " the camera")
+        side, source = int(np.sign(pdir @ waxis)), "given (--projector-side)"
+    elif relief:
+        side, source = -relief, (f"measured: raised surfaces {'raise' if relief > 0 else 'lower'} the phase "
+                                 f"({share:.0%} of the relief off the plane)")
+        if shadow and shadow != side:
+            source += f"; the shadows say the other side ({n_votes} runs): check the scans"
+        elif shadow:
+            source += f", and the shadows agree ({n_votes} runs)"
+    elif shadow:
+        side, source = shadow, f"measured from the projector's shadows ({n_votes} shadow runs)"
+    else:
+        side, source = 1, ("NOT identifiable from these images (no phase relief, no clear shadows): assumed; "
+                           "give --projector-side")
+        assumed["projector_side"] = "assumed"
+    if side != 1:
+        start = start_rig(W, H, gradient, side, D, baseline, fov, focal)
+        fit = fit_plane_phase(start, maps, seeds=fit.planes)
+    rig = fit.rig
+    where = _where(rig)
+    s = rig.sensitivity()
+    rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; plane phase fitted, "
+                f"depth scale {'given' if 'distance_mm' not in assumed and 'baseline_mm' not in assumed else 'assumed'})")
+
+    cam = rig.camera
+    fov_now = math.degrees(2 * math.atan((W / 2.0) / cam.K[0, 0]))
+    tag = lambda key, flag: (f"assumed (the default rig's; {flag})" if key in assumed else "given")  # noqa: E731
+    out(f"camera     {W} x {H} px (the images'); focal {cam.K[0, 0]:.1f} px = {fov_now:.1f} deg across: "
+        + ("given" if "fov_deg" not in assumed else "NOT identifiable from images: assumed (the default rig's "
+                                                    "field of view; --fov DEG or --focal PX)"))
+    from fppsim.phase.fringe_axis import rig_phase_gradient
+
+    gu, gv = rig_phase_gradient(rig)  # the fitted rig's, at the image centre
+    period = 2 * math.pi / math.hypot(gu, gv)
+    # the lines' angle from the image's vertical (horizontal), positive leaning right going down (up)
+    lean = math.degrees(math.atan(-gv / gu)) if axis == "vertical" else math.degrees(math.atan(-gu / gv))
+    grows = ("to the right" if gradient[0] > 0 else "to the left") if axis == "vertical" else \
+        ("downwards" if gradient[1] > 0 else "upwards")
+    conv = "measured" if kind == "phase" else "a convention: one fringe image cannot tell"
+    out(f"fringes    {axis}: {period:.2f} px per period at the centre, the phase grows {grows} ({conv}), "
+        f"lines {lean:+.2f} deg off the image axis")
+    out(f"projector  {where}: {source}")
+    base_mm = float(np.linalg.norm(rig.projector.center[:2] - cam.center[:2]))
+    d_txt = "assumed: the default rig's" if "distance_mm" in assumed else "given"
+    b_txt = "assumed: 0.66 x the distance, the default rig's angle" if "baseline_mm" in assumed else "given"
+    out(f"depth      distance {cam.center[2]:.0f} mm ({d_txt}), baseline {base_mm:.0f} mm ({b_txt})")
+    if "distance_mm" in assumed or "baseline_mm" in assumed:
+        out("           NOT identifiable from images without height labels (the scene scaled as a whole looks "
+            "the same): give --distance and --baseline if you know them")
+    out(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
+        f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
+    p = fit.params
+    pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k != "periods")
+    out(f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
+        f"{np.mean(fit.plane_share):.0%} of the valid pixels (start: {fit.start_median_rad:.2f} rad); {pose}, "
+        f"{rig.periods:.2f} periods across the projector")
+    if kind != "phase":
+        out("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
+    out("not fitted lens distortion (none in the rig); the projector's resolution (912 x 1140, only the "
+        "periods across it matter)")
+    rig.check_usable()
+    return StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
+                          side_source=source, where=where, sensitivity=float(s), assumed=assumed, lines=lines,
+                          images=images)
+
+
+# ====================================================================== fppsim fit-rig without --base
+@dataclass
+class StartRigConfig:
+    """What ``fppsim fit-rig`` does without ``--base`` (the fields are its flags; the rest as
+    :class:`fppsim.fitting.fit_rig.FitRigConfig`).
+
+    real : the images: phase-shifting scans (public layout, fppsim's native PSP output) or any layout
+        :func:`fppsim.dataio.readers.load_fringe_images` reads. out : the rig file (refused if it exists
+        unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
+        (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
+        distance (images cannot tell them). projector_side : ``left`` / ``right`` / ``above`` / ``below``;
+        None: measured (relief, shadows) or assumed. params, sensitivity, col_bands, row_bands : the
+        label-based fits that follow with height labels and vertical fringes. max_images : images read
+        (at most 4 phase maps are fitted). json : also write the report as JSON.
+    """
+
+    real: object
+    out: object
+    fov: float | None = None
+    focal: float | None = None
+    distance: float | None = None
+    baseline: float | None = None
+    projector_side: str | None = None
+    params: tuple = ("yaw", "roll", "periods")
+    col_bands: int = 4
+    row_bands: int = 3
+    max_images: int = 20
+    sensitivity: str = "auto"
+    json: object = None
+    force: bool = False
+
+    def __post_init__(self):
+        from fppsim.errors import UsageError  # option values wrong on their own: exit 2
+        from fppsim.fitting.fit_periods import PARAMETERS
+
+        if self.fov is not None and self.focal is not None:
+            raise UsageError("give --fov or --focal, not both")
+        for key, lo, hi in (("fov", 1.0, 170.0), ("focal", 1.0, 1e6), ("distance", 1.0, 1e6), ("baseline", 1.0, 1e6)):
+            v = getattr(self, key)
+            if v is not None and not (np.isfinite(v) and lo <= v <= hi):
+                raise UsageError(f"--{key} must be a number in {lo:g}..{hi:g}, got {v}")
+        if self.projector_side is not None and self.projector_side not in SIDES:
+            raise UsageError(f"--projector-side must be one of {', '.join(SIDES)}, got {self.projector_side!r}")
+        for key in ("col_bands", "row_bands", "max_images"):
+            if getattr(self, key) < 1:
+                raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(self, key)}")
+        unknown = [p for p in self.params if p not in PARAMETERS]
+        if unknown or not self.params:
+            raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                             f"(known: {', '.join(PARAMETERS)})")
+        if self.sensitivity not in ("auto", "off"):
+            raise UsageError(f"--sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+
+
+@dataclass
+class StartFitResult:
+    """What :func:`fit_rig_from_images` did: the ``start`` (:class:`StartRigResult`), the label-based
+    period ``fit`` / ``baseline`` / ``depth`` fits when height labels refined it (else None), the rig
+    written (``rig``, to ``out``) and the report ``lines``."""
+
+    start: StartRigResult
+    rig: Rig
+    out: object
+    lines: list
+    fit: object = None
+    baseline: object = None
+    depth: object = None
+
+    def to_dict(self) -> dict:
+        """The JSON document of ``--json``: ``start`` (the rig from the images) and the label fits."""
+        doc = {"start": self.start.to_dict()}
+        if self.fit is not None:
+            doc.update(self.fit.to_dict())
+        if self.baseline is not None:
+            doc["sensitivity"] = self.baseline.to_dict()
+        if self.depth is not None:
+            doc["depth"] = self.depth.to_dict()
+        return doc
+
+
+def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
+    """``fppsim fit-rig`` without ``--base``: the rig from the images alone (:func:`rig_from_images`, with
+    ``config``'s ``fov``, ``focal``, ``distance``, ``baseline``, ``projector_side``); with height labels
+    and vertical fringes (``sensitivity="auto"``) the label-based fits follow from it as from a base rig:
+    the baseline whose fringe shift per mm matches the labels (:func:`fppsim.fitting.fit_rig.fit_baseline`),
+    or with ``distance`` in ``params`` the camera distance and baseline (:func:`fppsim.fitting.fit_depth.fit_depth`).
+    Writes ``config.out`` (and ``config.json``). ``echo`` receives every report line."""
+    import json
+
+    from fppsim.commands import ReportLines
+    from fppsim.dataio.readers import load_fringe_images
+    from fppsim.files import atomic_write_text, check_output_file
+    from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
+    from fppsim.fitting.fit_periods import format_fit, measure_bands
+    from fppsim.fitting.fit_rig import fit_baseline, format_baseline_fit
+
+    lines = ReportLines(echo)
+    say = lines.say
+    out = check_output_file(config.out, config.force)
+    if config.json:
+        check_output_file(config.json, config.force)
+    if "distance" in config.params and config.sensitivity != "auto":
+        raise RigError("fitting 'distance' needs the height labels: drop it from the parameters or use "
+                       "sensitivity 'auto'")
+    start = rig_from_images(config.real, fov=config.fov, focal=config.focal, distance=config.distance,
+                            baseline=config.baseline, projector_side=config.projector_side,
+                            max_maps=min(int(config.max_images), 4), say=say)
+    rig, fit, bfit, dfit = start.rig, None, None, None
+    labelled = any(im.height_mm is not None for im in start.images)
+    if "distance" in config.params and not labelled:
+        raise RigError("fitting 'distance' needs images with height labels, objects and projector shadows "
+                       "(figshare folder or the real-sample pair)")
+    if labelled and config.sensitivity == "auto":
+        if start.axis != "vertical":
+            say("height labels: the label-based depth fits read vertical fringes only; the depth scale stays "
+                "as above")
+        else:
+            images, _ = load_fringe_images(config.real, config.max_images)
+            measured = measure_bands(images, config.col_bands, config.row_bands)
+            params = tuple(config.params)
+            say("")
+            if "distance" in params:
+                dfit = fit_depth(images, measured, rig, params)
+                if dfit is None:
+                    raise RigError("fitting 'distance' needs images with height labels, objects and projector "
+                                   "shadows (figshare folder or the real-sample pair)")
+                say(format_depth_fit(dfit))
+                fit = dfit.fit
+            else:
+                bfit = fit_baseline(images, measured, rig, params)
+                if bfit is not None:
+                    say(format_baseline_fit(bfit))
+                    fit = bfit.fit
+                else:
+                    say("height sensitivity: no labelled images with enough object pixels; baseline kept")
+            if fit is not None:
+                say("")
+                say(format_fit(fit))
+                rig = fit.rig
+    rig.save(out)
+    say(f"rig: {out}")
+    result = StartFitResult(start, rig, out, list(lines), fit, bfit, dfit)
+    if config.json:
+        atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
+    return result

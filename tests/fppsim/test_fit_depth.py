@@ -102,7 +102,7 @@ def test_fit_rig_with_distance_recovers_the_rendering_rig(rendered, tmp_path, ca
     from fppsim.cli import main
 
     out, rep = tmp_path / "rig.json", tmp_path / "fit.json"
-    assert main(["fit-rig", str(rendered), "--out", str(out), "--params", "yaw,roll,focal,distance",
+    assert main(["fit-rig", str(rendered), "--out", str(out), "--base", "default", "--params", "yaw,roll,focal,distance",
                  "--json", str(rep)]) == 0
     text = capsys.readouterr().out
     assert "phase-height relation" in text and "chosen: distance 500.0 ->" in text
@@ -115,7 +115,7 @@ def test_fit_rig_with_distance_recovers_the_rendering_rig(rendered, tmp_path, ca
     assert fd.sensitivity_at(rig, 40.0) == pytest.approx(fd.sensitivity_at(truth, 40.0), rel=0.02)
     assert rig.periods == 80.0  # focal refitted, not the fringe count
     # the old behaviour without distance is untouched: no depth section
-    assert main(["fit-rig", str(rendered), "--out", str(tmp_path / "r2.json"), "--json",
+    assert main(["fit-rig", str(rendered), "--out", str(tmp_path / "r2.json"), "--base", "default", "--json",
                  str(tmp_path / "f2.json")]) == 0
     assert "depth" not in json.loads((tmp_path / "f2.json").read_text())
 
@@ -186,7 +186,8 @@ def test_distance_alone_fits_distance_and_baseline_only(rendered_default, tmp_pa
     from fppsim.cli import main
 
     out, rep = tmp_path / "rig.json", tmp_path / "fit.json"
-    assert main(["fit-rig", str(rendered_default), "--out", str(out), "--params", "distance", "--json", str(rep)]) == 0
+    assert main(["fit-rig", str(rendered_default), "--out", str(out), "--base", "default", "--params", "distance",
+                 "--json", str(rep)]) == 0
     text = capsys.readouterr().out
     base, rig = make_default_rig(), Rig.load(out)
     images, _ = readers.load_fringe_images(rendered_default)
@@ -209,7 +210,7 @@ def test_labels_made_through_the_base_rig_confirm_it(tmp_path, capsys, params):
     lr = tmp_path / "lr"
     assert main(["label-real", str(SHARED / "real-phase" / "FP1523"), "--out", str(lr), "-q", "--no-preview"]) == 0
     out, rep = tmp_path / "rig.json", tmp_path / "fit.json"
-    assert main(["fit-rig", str(lr), "--out", str(out), "--params", params, "--json", str(rep)]) == 0
+    assert main(["fit-rig", str(lr), "--out", str(out), "--base", "default", "--params", params, "--json", str(rep)]) == 0
     base, rig = make_default_rig(), Rig.load(out)
     images, _ = readers.load_fringe_images(lr)
     assert _cost(rig, images) <= _cost(base, images) + 1e-12

@@ -1,0 +1,79 @@
+"""Fringes in either direction: which way an image's fringes run, and the single-shot phase of either.
+
+:func:`fppsim.phase.single_shot.single_shot_phase` works along image rows (its shadow detector follows rows,
+its carrier has a positive column frequency): right for vertical fringes (a projector beside the
+camera). A projector above or below the camera gives horizontal fringes; :func:`oriented_single_shot_phase`
+then runs it on the transposed image and transposes the result back, so the phase grows down the rows
+(``direction=+1``) instead of along them. :func:`fringe_orientation` tells the two apart from the
+image's spectrum, :func:`rig_phase_gradient` from a rig's forward model.
+
+Units: pixels, radians, cycles per pixel.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from fppsim.phase.single_shot import SingleShotPhase, single_shot_phase
+
+__all__ = ["fringe_orientation", "rig_phase_gradient", "oriented_single_shot_phase"]
+
+
+def fringe_orientation(image: np.ndarray, valid: np.ndarray | None = None) -> str:
+    """``"vertical"`` when the fringes of ``image`` (2-D) run down the image (their phase changes along
+    the rows), ``"horizontal"`` when they run across it: the strongest peak of the mean-removed,
+    Hann-windowed 2-D spectrum between periods of 2.5 and 64 px. ValueError without any fringe."""
+    x = np.asarray(image, np.float64)
+    if x.ndim == 3 and x.shape[-1] == 1:
+        x = x[..., 0]
+    ok = np.isfinite(x) if valid is None else (np.asarray(valid, bool) & np.isfinite(x))
+    if ok.sum() < 64:
+        raise ValueError("too few valid pixels to tell the fringe direction")
+    g = np.where(ok, x - x[ok].mean(), 0.0)
+    h, w = g.shape
+    p = np.abs(np.fft.rfft2(g * np.outer(np.hanning(h), np.hanning(w)))) ** 2
+    fy = np.fft.fftfreq(h)[:, None]
+    fx = np.fft.rfftfreq(w)[None, :]
+    fr = np.hypot(fx, fy)
+    sel = (fr >= 1.0 / 64.0) & (fr <= 1.0 / 2.5)
+    if not np.any(p[sel] > 0):
+        raise ValueError("no fringes found (no spectral peak between 2.5 and 64 px)")
+    iy, ix = np.unravel_index(np.argmax(np.where(sel, p, -1.0)), p.shape)
+    return "vertical" if abs(fx[0, ix]) >= abs(fy[iy, 0]) else "horizontal"
+
+
+def rig_phase_gradient(rig) -> tuple[float, float]:
+    """``(g_u, g_v)``: the rig's reference-plane phase gradient at the image centre (rad per camera px,
+    along columns and rows), from its forward model (:meth:`fppsim.geometry.rig.Rig.phase_at_height`)."""
+    cam = rig.camera
+    c = np.array([(cam.width - 1) / 2.0, (cam.height - 1) / 2.0])
+    uv = np.stack([c + [-1, 0], c + [1, 0], c + [0, -1], c + [0, 1]])
+    ph = rig.phase_at_height(0.0, uv)
+    return float((ph[1] - ph[0]) / 2.0), float((ph[3] - ph[2]) / 2.0)
+
+
+def oriented_single_shot_phase(image: np.ndarray, orientation: str | None = None, direction: int = 1,
+                               **kw) -> SingleShotPhase:
+    """:func:`fppsim.phase.single_shot.single_shot_phase` for fringes in either direction.
+
+    ``orientation``: ``"vertical"`` (the phase grows along +columns for ``direction=+1``) or
+    ``"horizontal"`` (along +rows: computed on the transposed image, every map transposed back,
+    ``carrier`` given as (fx, fy) of the original image and ``tilt`` the lines' angle from the image's
+    horizontal); None: :func:`fringe_orientation`. ``kw`` go to ``single_shot_phase``."""
+    x = np.asarray(image)
+    if x.ndim == 3 and x.shape[-1] == 1:
+        x = x[..., 0]
+    if orientation is None:
+        orientation = fringe_orientation(x)
+    if orientation not in ("vertical", "horizontal"):
+        raise ValueError(f"orientation must be 'vertical' or 'horizontal', got {orientation!r}")
+    if orientation == "vertical":
+        return single_shot_phase(x, direction=direction, **kw)
+    mask = kw.pop("mask", None)
+    r = single_shot_phase(x.T, direction=direction, mask=None if mask is None else np.asarray(mask).T, **kw)
+    t = lambda a: np.ascontiguousarray(a.T)  # noqa: E731
+    return replace(r, wrapped=t(r.wrapped), reliability=t(r.reliability), error=t(r.error),
+                   modulation=t(r.modulation), background=t(r.background), valid=t(r.valid),
+                   carrier=(r.carrier[1], r.carrier[0]))
