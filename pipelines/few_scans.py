@@ -57,7 +57,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from uhrnet.errors import Sim2RealError  # noqa: E402 (after the path)
-from uhrnet.workflows.stages import dataset_count, fresh, run_epochs, run_history, run_stage  # noqa: E402
+from uhrnet.run_folder import (CHECKPOINTS, CONFIG_JSON, LAST_PT, default_meshes, fresh, read_history,  # noqa: E402
+                               run_epochs)
+from uhrnet.workflows.stages import dataset_count, run_stage  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 ARMS = ("syn-only", "real-only", "ft-real", "ft-mixed", "ft-mixed-freeze", "mixed-scratch")
@@ -142,11 +144,6 @@ def parse_args(argv=None) -> argparse.Namespace:
     return args
 
 
-def default_meshes() -> list[str]:
-    shared = SHARED / "meshes"
-    return ([str(shared)] if shared.is_dir() else []) + [str(ROOT / "assets" / "meshes")]
-
-
 # ============================================================================================ stages
 def stage(out: Path, name: str, fn, echo=print) -> float:
     """Run ``fn()`` with its printed output in ``OUT/logs/<name>.log`` (the workflow layer's
@@ -165,7 +162,7 @@ def generate_synthetic(args, out: Path) -> Path:
     if dataset_count(data) == args.count:
         print(f"synthetic data: {data} ({args.count} samples, done)")
         return data
-    cfg = GenerateConfig(meshes=args.meshes or default_meshes(), out=data, count=args.count, seed=args.seed,
+    cfg = GenerateConfig(meshes=args.meshes or default_meshes(SHARED), out=data, count=args.count, seed=args.seed,
                          workers=args.workers, format="figshare", psp_freqs=(), label=PRESETS["figshare"],
                          preview=True, progress=False)
     stage(out, "generate", lambda: generate(cfg))
@@ -177,7 +174,7 @@ def generate_synthetic(args, out: Path) -> Path:
 
 def check_settings(run: Path, options: dict) -> None:
     """Refuse to reuse or resume ``run`` when it was trained with other settings than ``options``."""
-    config = run / "config.json"
+    config = run / CONFIG_JSON
     if not config.is_file():
         return
     have = json.loads(config.read_text())
@@ -399,13 +396,12 @@ def run(args, argv: list[str]) -> dict:
         # (a) the synthetic-only run: reused read-only, or generated + trained here
         if args.syn_run:
             syn_run = Path(args.syn_run)
-            if not (syn_run / "config.json").is_file() or not ((syn_run / "best.pt").is_file()
-                                                             or (syn_run / "last.pt").is_file()):
+            if not (syn_run / CONFIG_JSON).is_file() or not any((syn_run / n).is_file() for n in CHECKPOINTS):
                 raise PipelineError(f"--syn-run {syn_run}: not a finished uhrnet run (config.json + best.pt)")
-            syn_cfg = json.loads((syn_run / "config.json").read_text())
+            syn_cfg = json.loads((syn_run / CONFIG_JSON).read_text())
             syn_data = args.syn_data or (syn_cfg.get("synthetic") or [None])[0]
             syn_info = {"run": str(syn_run), "reused": True, "epochs": run_epochs(syn_run),
-                        "seconds": sum(r.get("seconds") or 0 for r in run_history(syn_run))}
+                        "seconds": sum(r.get("seconds") or 0 for r in read_history(syn_run))}
         else:
             syn_data = Path(args.syn_data) if args.syn_data else generate_synthetic(args, out)
             syn_run = out / "runs" / "syn-only"
@@ -413,8 +409,8 @@ def run(args, argv: list[str]) -> dict:
                                  model=args.model, base_channels=args.base_channels, loss=args.loss,
                                  batch_size=args.batch_size, lr=args.pretrain_lr, device=args.device,
                                  seed=args.train_seed)
-            syn_info["seconds"] = sum(r.get("seconds") or 0 for r in run_history(syn_run))
-            syn_cfg = json.loads((syn_run / "config.json").read_text())
+            syn_info["seconds"] = sum(r.get("seconds") or 0 for r in read_history(syn_run))
+            syn_cfg = json.loads((syn_run / CONFIG_JSON).read_text())
         if not syn_data or not Path(syn_data).is_dir():
             raise PipelineError(f"synthetic data {syn_data or '(none recorded)'}: no such folder (give --syn-data)")
         syn_data = Path(syn_data)
@@ -455,9 +451,9 @@ def run(args, argv: list[str]) -> dict:
                 epochs, options = arm_options(args, arm, syn_cfg, syn_ckpt, syn_data, draws)
                 run_dir = out / "runs" / arm
                 info = train_run(out, arm, run_dir, epochs, **options)
-                entry = {"name": arm, "run": str(run_dir), "checkpoint": str(run_dir / "last.pt"), "epochs": epochs,
+                entry = {"name": arm, "run": str(run_dir), "checkpoint": str(run_dir / LAST_PT), "epochs": epochs,
                          "draws": draws, "lr": options["lr"],
-                         "seconds": sum(r.get("seconds") or 0 for r in run_history(run_dir)),
+                         "seconds": sum(r.get("seconds") or 0 for r in read_history(run_dir)),
                          "options": {k: v for k, v in options.items() if v is not None}, "reused": info.get("reused")}
             entry["eval"] = str(out / "eval" / arm)
             entry["results"] = evaluate_arm(args, out, arm, Path(entry["checkpoint"]), labelled)

@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Helpers of pipelines/gpu_check.sh (standard library, pip's tag parser, the project's ownership record;
-``report`` reads the sample count with numpy).
+``report`` reads the sample count with numpy and the run's history through :mod:`uhrnet.run_folder`, no torch).
 
     python pipelines/gpu_check.py begin OUT                     OUT made ready for a run (below), or one line, exit 2
     python pipelines/gpu_check.py settle OUT                    record what this run wrote under OUT/work
@@ -21,7 +21,6 @@ refused in one line naming it, before anything is removed or written.
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import platform
@@ -209,14 +208,6 @@ def _forward(out: Path, tag: str) -> dict | None:
     return {r["model"]: {"forward_ms": r["forward_ms"], "parameters": r.get("parameters")} for r in data["results"]}
 
 
-def _history(run: Path) -> list[dict]:
-    try:
-        with open(run / "history.csv", newline="") as fh:
-            return list(csv.DictReader(fh))
-    except OSError:
-        return []
-
-
 def _count(syn: Path) -> int | None:
     """Samples in a figshare-layout folder (f1_80.npy memory-mapped: only its header is read)."""
     try:
@@ -228,6 +219,8 @@ def _count(syn: Path) -> int | None:
 
 
 def report(out: Path) -> dict:
+    from uhrnet.run_folder import CONFIG_JSON, LAST_PT, read_history  # the project's run folder (numpy, no torch)
+
     steps = {p.stem[5:]: _json(p) for p in sorted(out.glob("step_*.json"))}
     env_info = steps.pop("env", None) or {}
     work = out / "work"
@@ -238,12 +231,12 @@ def report(out: Path) -> dict:
     if gen.get("exit_code") == 0 and n:
         res["generate"] = {"samples": n, "seconds": gen["seconds"], "samples_per_s": n / gen["seconds"],
                            "note": "whole command (process start, mesh loading, all workers), figshare layout, --no-psp"}
-    hist = _history(work / "run")
+    hist = read_history(work / "run")
     if hist:
-        secs = [float(r["seconds"]) for r in hist if r.get("seconds")]
-        cfg = _json(work / "run" / "config.json") or {}
+        secs = [float(r["seconds"]) for r in hist if r.get("seconds") is not None]
+        cfg = _json(work / "run" / CONFIG_JSON) or {}
         train = {"model": cfg.get("model", "uhrnet"), "amp": cfg.get("amp"), "epochs": len(hist), "epoch_seconds": secs,
-                 "val_rmse_mm": [float(r["val_rmse_mm"]) for r in hist if r.get("val_rmse_mm")]}
+                 "val_rmse_mm": [float(r["val_rmse_mm"]) for r in hist if r.get("val_rmse_mm") is not None]}
         if n and secs:
             # the reference split trains on 80 % of the samples; later epochs exclude cuDNN's autotuning.
             # history.csv's epoch seconds hold the epoch's validation (and checkpoint) too: the rate says so
@@ -257,7 +250,7 @@ def report(out: Path) -> dict:
     if ddp:
         res["ddp"] = {"exit_code": ddp.get("exit_code"), "seconds": ddp.get("seconds"),
                       "backend": "gloo" if env_info.get("device", "cpu").startswith("cpu") else "nccl",
-                      "world_size": 1, "checkpoint_written": (work / "ddp" / "last.pt").is_file()}
+                      "world_size": 1, "checkpoint_written": (work / "ddp" / LAST_PT).is_file()}
     s2r = _json(work / "s2r" / "report.json")
     if s2r:
         v = s2r["variants"][0]

@@ -152,12 +152,6 @@ def load_arms(path: str | Path) -> list[dict]:
 
 
 # ============================================================================================ one (arm, seed)
-def default_meshes() -> list[str]:
-    """../shared/meshes (when present) and the meshes fppsim ships, as pipelines/sim2real.py."""
-    shared = SHARED / "meshes"
-    return ([str(shared)] if shared.is_dir() else []) + [str(ROOT / "fppsim" / "data" / "meshes")]
-
-
 def phase_folders(dirs: list[str]) -> list[str]:
     """Real phase-shifting folders: each given folder, or the scan folders inside it (e.g. ../shared/real-phase
     -> ../shared/real-phase/FP1523)."""
@@ -301,16 +295,16 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
     residuals of exactly those frames."""
     from uhrnet.workflows.sim2real import run_differences, train_config
     from uhrnet.workflows.sim2real.config import data_key
-    from uhrnet.workflows.stages import fresh, run_done, run_history
+    from uhrnet.run_folder import CONFIG_JSON, LAST_PT, fresh, read_history, run_done
 
     run, ev = folder / "run", folder / "eval"
     epochs = int(variant.train.get("epochs") or cfg.epochs)
-    if not run_done(run, epochs) or not fresh(ev / "real_metrics.json", run / "last.pt"):
+    if not run_done(run, epochs) or not fresh(ev / "real_metrics.json", run / LAST_PT):
         return None
     if run_differences(run, train_config(cfg, variant, "DATA", run), cfg.count, cfg.seed):
         return None
     try:
-        recorded = json.loads((run / "config.json").read_text())
+        recorded = json.loads((run / CONFIG_JSON).read_text())
         metrics = json.loads((ev / "real_metrics.json").read_text())
         frames = json.loads((ev / "real_phase.json").read_text())["frames"] if cfg.real_phase else []
         record = json.loads((folder / RECORD).read_text()) if (folder / RECORD).is_file() else {}
@@ -321,10 +315,10 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
     if not _same_folders([r["folder"] for r in metrics.get("per_image", [])], cfg.real) \
             or "object_level_rmse_mm" not in metrics.get("mean", {}):
         return None
-    if cfg.real_phase and not (fresh(ev / "real_phase.json", run / "last.pt")
+    if cfg.real_phase and not (fresh(ev / "real_phase.json", run / LAST_PT)
                                and _same_folders([f["folder"] for f in frames], cfg.real_phase)):
         return None
-    rows = run_history(run)
+    rows = read_history(run)
     out = {"folder": str(folder)}
     out.update({k: metrics["mean"].get(src) for k, src in PAIR_KEYS.items()})
     out["pair_images"] = metrics["images"]
@@ -592,6 +586,7 @@ def parse_args(argv=None) -> argparse.Namespace:
 def check(args) -> tuple[list[dict], dict]:
     """Arms chosen and every (arm, seed)'s ``(Sim2RealConfig, argv)``; :class:`UsageProblem` before anything runs."""
     from uhrnet.errors import UhrnetError
+    from uhrnet.run_folder import default_meshes
     from uhrnet.workflows.sim2real import (
         Sim2RealError, find_phase_frames, find_real_pairs, generate_config, train_config,
     )
@@ -610,7 +605,7 @@ def check(args) -> tuple[list[dict], dict]:
         raise UsageProblem("--out DIR is required")
     if not args.real:
         raise UsageProblem("--real DIR: no labelled real folder given (../shared/real-sample is absent)")
-    args.meshes = args.meshes or default_meshes()
+    args.meshes = args.meshes or default_meshes(SHARED)
     args.real_phase = [] if args.real_phase in (["none"], None) else phase_folders(args.real_phase)
     args.out = args.out or "OUT"
     args.ledger = args.ledger or str(Path(args.out) / "scaling.json")

@@ -34,18 +34,14 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from uhrnet.cli import main as uhrnet_main  # noqa: E402
-
-
-def default_meshes() -> list[str]:
-    shared = ROOT.parent / "shared" / "meshes"
-    return ([str(shared)] if shared.is_dir() else []) + [str(ROOT / "fppsim" / "data" / "meshes")]
+from uhrnet.run_folder import default_meshes  # noqa: E402
 
 
 def main(argv=None) -> int:
     """``uhrnet sim2real`` with this script's default meshes (../shared/meshes when present)."""
     argv = sys.argv[1:] if argv is None else list(argv)
     if "--meshes" not in argv and not any(a in ("-h", "--help") for a in argv):
-        argv += ["--meshes", *default_meshes()]
+        argv += ["--meshes", *default_meshes(ROOT.parent / "shared")]
     return uhrnet_main(["sim2real", *argv])
 
 

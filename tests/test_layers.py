@@ -386,3 +386,41 @@ def test_stage_folders_flow_one_way_in_the_stated_order():
                 upward.append(f"{module} ({here}) imports {target} ({there}), which stands above it")
     assert not unplaced, f"stages missing from ARCHITECTURE.md's order: {sorted(unplaced)}"
     assert not upward, upward
+
+
+# ---------------------------------------------------------------------------- registries (issue 37)
+HEAD_NAMES = {"phase", "height"}  # and every registered head (the test adds them)
+
+
+def test_neither_the_trainer_nor_build_model_names_a_head():
+    """Everything head-specific goes through ``uhrnet.models.heads.HEADS`` (what a head needs, how it wraps a
+    backbone, its options, its training loss): no head's name is a string in ``uhrnet/training/trainer.py`` or in
+    ``build_model`` (docstrings aside), so adding a head never edits them."""
+    from uhrnet.models.heads import HEADS
+
+    names = HEAD_NAMES | set(HEADS)
+    models = ast.parse((ROOT / "uhrnet" / "models" / "__init__.py").read_text())
+    build = [n for n in models.body if isinstance(n, ast.FunctionDef) and n.name == "build_model"]
+    assert len(build) == 1
+    places = {"uhrnet/training/trainer.py": ast.parse((ROOT / "uhrnet" / "training" / "trainer.py").read_text()),
+              "uhrnet/models/__init__.py build_model": build[0]}
+    found = []
+    for where, tree in places.items():
+        docstrings = {ast.get_docstring(n, clean=False) for n in ast.walk(tree)
+                      if isinstance(n, (ast.Module, ast.FunctionDef, ast.ClassDef))}
+        found += [f"{where}:{n.lineno} {n.value!r}" for n in ast.walk(tree)
+                  if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value not in docstrings
+                  and n.value.strip().lower() in names]
+    assert not found, found
+
+
+RUN_FOLDER_NAMES = {"last.pt", "best.pt", "history.csv", "history.png", "config.json", "images.json"}
+
+
+def test_run_folder_names_are_spelled_only_by_the_run_folder_module():
+    """A run folder's file names are ``uhrnet.run_folder``'s constants (``LAST_PT``, ``HISTORY_CSV``, ...): no other
+    module of either package nor a pipeline has a string equal to one (messages and docstrings may name them)."""
+    files = [p for _, p in _modules()] + sorted((ROOT / "pipelines").glob("*.py"))
+    found = [f"{p.relative_to(ROOT)}:{n.lineno} {n.value!r}" for p in files if p != ROOT / "uhrnet" / "run_folder.py"
+             for n in ast.walk(ast.parse(p.read_text())) if isinstance(n, ast.Constant) and n.value in RUN_FOLDER_NAMES]
+    assert not found, found

@@ -1,4 +1,6 @@
-"""Checkpoints: atomic writes, safe loading, RNG state capture, and rebuilding a model for inference.
+"""Checkpoints: atomic writes (``save_epoch``: a run's ``last.pt`` and its ``best.pt`` copy), safe loading (a RUN
+folder stands for its checkpoint), what made one (``checkpoint_kind``), RNG state capture, and rebuilding a model
+for inference. The file names are :mod:`uhrnet.run_folder`'s.
 
 A checkpoint (``last.pt`` / ``best.pt`` in a run folder) is a plain dict saved with ``torch.save`` that
 loads with ``weights_only=True``::
@@ -20,6 +22,7 @@ import hashlib
 import os
 import pickle
 import random
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -30,6 +33,7 @@ from fppsim.files import atomic_path
 from fppsim.dataio.formats import LabelTransform
 from uhrnet.errors import CheckpointError
 from uhrnet.models import outputs_of
+from uhrnet.run_folder import BEST_PT, CHECKPOINTS, LAST_PT
 
 FORMAT = "uhrnet-checkpoint"
 VERSION = 1
@@ -56,15 +60,25 @@ def atomic_save(obj, path: str | os.PathLike) -> Path:
     return path
 
 
+def save_epoch(out: Path, payload: dict, is_best: bool) -> None:
+    """A run's epoch checkpoint: ``out/last.pt`` (atomically); a copy as ``out/best.pt`` when this epoch is the
+    best so far (the names: :mod:`uhrnet.run_folder`)."""
+    atomic_save(payload, out / LAST_PT)
+    if is_best:
+        with atomic_path(out / BEST_PT) as tmp:
+            shutil.copyfile(out / LAST_PT, tmp)
+
+
 def checkpoint_file(path: str | os.PathLike) -> Path:
     """The checkpoint file a RUN argument names: ``path`` itself, or a run folder's ``best.pt`` (else
-    ``last.pt``); how ``predict``, ``evaluate`` and ``train --init-from`` read it."""
+    ``last.pt``: :data:`uhrnet.run_folder.CHECKPOINTS`); how ``predict``, ``evaluate`` and ``train --init-from``
+    read it."""
     path = Path(path)
     if path.is_dir():
-        for name in ("best.pt", "last.pt"):
+        for name in CHECKPOINTS:
             if (path / name).is_file():
                 return path / name
-        raise CheckpointError(f"{path}: folder holds no best.pt or last.pt")
+        raise CheckpointError(f"{path}: folder holds no {' or '.join(CHECKPOINTS)}")
     return path
 
 
@@ -108,6 +122,14 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", *, digest: bool
     if sha256 is not None:
         ckpt["sha256"] = sha256
     return ckpt
+
+
+def checkpoint_kind(ckpt: dict | str | os.PathLike) -> str | None:
+    """What made a uhrnet checkpoint (loaded, or a file / run folder that :func:`load_checkpoint` reads):
+    ``"adapt"`` (``uhrnet adapt``), ``"import"`` (``uhrnet import-weights``) or None (a training run)."""
+    if not isinstance(ckpt, dict):
+        ckpt = load_checkpoint(ckpt)
+    return "adapt" if "adapt" in ckpt else "import" if "imported" in ckpt else None
 
 
 # --------------------------------------------------------------------------------------------------

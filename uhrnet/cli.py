@@ -81,7 +81,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
     m.add_argument("--model-option", nargs="+", metavar="KEY=VALUE", help="extra model constructor options")
-    m.add_argument("--loss", choices=LOSSES, help="training loss [compound]")
+    m.add_argument("--loss", choices=list(LOSSES), help="training loss [compound]")
     m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
     m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
     m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
@@ -518,7 +518,7 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         p.add_argument(f"--{name}", type=typ, metavar="N" if typ is int else "X",
                        help=f"{what} [{scales(key)}]")
     p.add_argument("--model", choices=list_models(), help=f"architecture [{scales('model')}]")
-    p.add_argument("--loss", choices=LOSSES, help=f"training loss [{scales('loss')}]")
+    p.add_argument("--loss", choices=list(LOSSES), help=f"training loss [{scales('loss')}]")
     p.add_argument("--device", choices=DEVICES, help=f"training device; evaluation runs on cuda if this is cuda, else on cpu [{scales('device')}]")
     p.add_argument("--variant", action="append", default=[], metavar="SPEC",
                    help=f"{VARIANT_SYNTAX} (flags of fppsim generate / uhrnet train / uhrnet adapt; "
@@ -614,6 +614,7 @@ def add_adapt(p: argparse.ArgumentParser) -> None:
 
 
 def run_adapt(args) -> int:
+    from uhrnet.run_folder import HISTORY_CSV, LAST_PT  # the command's modules load when it runs
     from uhrnet.training.adapt import AdaptConfig, adapt
 
     cfg = AdaptConfig(checkpoint=args.checkpoint, images=list(args.images), out=args.out, rig=args.rig,
@@ -625,7 +626,7 @@ def run_adapt(args) -> int:
     for im in result.images:
         print(f"adapt {im['name']}: median phase residual {im['before_rad']:.3f} -> {im['after_rad']:.3f} rad, "
               f"mean change {im['mean_change_mm']:.2f} mm")
-    print(f"adapt: {result.out / 'last.pt'} after {result.epochs} epoch(s); history {result.out / 'history.csv'}")
+    print(f"adapt: {result.out / LAST_PT} after {result.epochs} epoch(s); history {result.out / HISTORY_CSV}")
     return 0
 
 

@@ -1,9 +1,23 @@
-"""What a training run leaves in its folder: ``history.csv``/``history.png``, ``last.pt``/``best.pt``
-(written atomically; best is a copy of last), ``config.json``; and the run-folder protocol of every
-uhrnet command that writes a run (``train``, ``adapt``): the names it writes are claimed in the folder's
-ownership record first (:mod:`fppsim.owned`: a file another tool or a person put there is never
-replaced, ``--overwrite`` or not), a folder holding a run is never replaced without ``--overwrite``, and
-the run never writes into the folder of the checkpoint it starts from (:func:`refuse_own_source`).
+"""A run folder and its protocol, the one home of both: what a training run (``uhrnet train``), an
+adaptation (``uhrnet adapt``) and imported weights (``uhrnet import-weights``) leave in their folder, and how
+every command, workflow and pipeline reads it back.
+
+- **File names** (use the constants, never the strings): :data:`LAST_PT` (written atomically after every
+  epoch), :data:`BEST_PT` (a copy of last when the epoch is the best so far), :data:`HISTORY_CSV` and
+  :data:`HISTORY_PNG` (one row per epoch), :data:`CONFIG_JSON` (the resolved options), :data:`IMAGES_JSON`
+  (an adaptation's per-image record); :data:`CHECKPOINTS`: the checkpoint a RUN folder stands for, in order
+  of preference (:func:`uhrnet.checkpoint.checkpoint_file`, which also writes them: ``save_epoch``).
+- **History**: :func:`write_history` and :func:`read_history`.
+- **Resume checks**: :func:`run_epochs` / :func:`run_done` (what a run has finished), :func:`fresh` (a result
+  newer than what it was made from).
+- **Ownership**: the names a run writes are claimed in the folder's ownership record first
+  (:mod:`fppsim.owned`, :func:`claim_run_folder`: a file another tool or a person put there is never replaced,
+  ``--overwrite`` or not), a folder holding a run is never replaced without ``--overwrite``
+  (:func:`check_run_folder`), and a run never writes into the folder of the checkpoint it starts from
+  (:func:`refuse_own_source`).
+- **Inputs of a workflow**: :func:`default_meshes`.
+
+No torch here: pipelines read a run's history without it.
 """
 
 from __future__ import annotations
@@ -12,29 +26,41 @@ import csv
 import io
 import json
 import math
-import shutil
 import sys
 from pathlib import Path
+from typing import Callable
 
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_path, atomic_write_text
-from uhrnet.checkpoint import atomic_save
+from fppsim.files import atomic_write_text
+from fppsim.geometry.rig import data_path
+from fppsim.owned import claim, same_folder
+from uhrnet import __version__
 from uhrnet.errors import ConfigError
 
-__all__ = ["RUN_FILES", "TRAINED_FILES", "TRAIN_TOOL", "IMPORT_TOOL", "HISTORY_COLUMNS", "write_history", "save_epoch",
-           "write_run_config", "check_run_folder", "claim_run_folder", "refuse_own_source", "package_version"]
+__all__ = ["LAST_PT", "BEST_PT", "HISTORY_CSV", "HISTORY_PNG", "CONFIG_JSON", "IMAGES_JSON", "CHECKPOINTS", "RUN_FILES",
+           "TRAINED_FILES", "TRAIN_TOOL", "IMPORT_TOOL", "HISTORY_COLUMNS", "write_history", "read_history", "run_epochs",
+           "run_done", "fresh", "default_meshes", "write_run_config", "check_run_folder", "claim_run_folder",
+           "refuse_own_source", "package_version"]
+
+LAST_PT = "last.pt"  # the latest epoch's checkpoint (a resume starts from it)
+BEST_PT = "best.pt"  # the best epoch's checkpoint (predict / evaluate prefer it)
+HISTORY_CSV = "history.csv"
+HISTORY_PNG = "history.png"
+CONFIG_JSON = "config.json"
+IMAGES_JSON = "images.json"  # an adaptation's per-image record
+CHECKPOINTS = (BEST_PT, LAST_PT)  # the checkpoint a RUN folder stands for: the first that exists
 
 TRAIN_TOOL = "uhrnet train"
 IMPORT_TOOL = "uhrnet import-weights"
-RUN_FILES = ("best.pt", "last.pt", "history.csv", "history.png", "config.json")  # what a training run writes
-TRAINED_FILES = ("best.pt", "last.pt", "history.csv")  # a folder holding any of them holds a trained run
+RUN_FILES = (BEST_PT, LAST_PT, HISTORY_CSV, HISTORY_PNG, CONFIG_JSON)  # what a training run writes
+TRAINED_FILES = (BEST_PT, LAST_PT, HISTORY_CSV)  # a folder holding any of them holds a trained run
 
 HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
                    "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
                    "lr", "seconds", "best")
 
 
-
+# ---------------------------------------------------------------------------------------------- history
 def _fmt(v) -> str:
     if v is None or (isinstance(v, float) and math.isnan(v)):
         return ""
@@ -54,27 +80,66 @@ def write_history(rows: list[dict], out: Path, columns: tuple[str, ...] = HISTOR
     w.writeheader()
     for row in rows:
         w.writerow({k: _fmt(row.get(k)) for k in names})
-    atomic_write_text(out / "history.csv", buf.getvalue())
+    atomic_write_text(out / HISTORY_CSV, buf.getvalue())
     if not plot:
         return
     try:
-        from uhrnet.plots import plot_history
+        from uhrnet.plots import plot_history  # matplotlib: loaded only when a history is drawn
 
-        plot_history(rows, out / "history.png")
+        plot_history(rows, out / HISTORY_PNG)
     except Exception as exc:  # a plotting problem must not stop training
-        print(f"warning: could not draw history.png ({exc})", file=sys.stderr)
+        print(f"warning: could not draw {HISTORY_PNG} ({exc})", file=sys.stderr)
 
 
-def save_epoch(out: Path, payload: dict, is_best: bool) -> None:
-    """``out/last.pt`` (atomically); a copy as ``out/best.pt`` when this epoch is the best so far."""
-    atomic_save(payload, out / "last.pt")
-    if is_best:
-        _atomic_copy(out / "last.pt", out / "best.pt")
+def _cell(value: str | None):
+    """A history cell: a number as float, an empty cell None, anything else as written."""
+    if value in ("", None):
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        return value
 
 
+def read_history(run: str | Path) -> list[dict]:
+    """The rows of the ``history.csv`` in folder ``run`` (numbers as floats, empty cells None); [] without one
+    (or when it cannot be read)."""
+    try:
+        with open(Path(run) / HISTORY_CSV, newline="") as fh:
+            return [{k: _cell(v) for k, v in r.items()} for r in csv.DictReader(fh)]
+    except OSError:
+        return []
+
+
+# ---------------------------------------------------------------------------------------------- resume checks
+def run_epochs(run: str | Path) -> int:
+    """Epochs the training run in folder ``run`` has finished (``last.pt`` and its history); 0: none."""
+    rows = read_history(run) if (Path(run) / LAST_PT).is_file() else []
+    return int(rows[-1]["epoch"]) if rows else 0
+
+
+def run_done(run: str | Path, epochs: int) -> bool:
+    """Whether the training run in folder ``run`` has finished ``epochs`` epochs (``last.pt`` at them)."""
+    done = run_epochs(run)
+    return done > 0 and done >= epochs
+
+
+def fresh(result: Path, source: Path) -> bool:
+    """Whether the file ``result`` exists and is not older than ``source`` (e.g. an evaluation of a checkpoint)."""
+    return result.is_file() and result.stat().st_mtime >= source.stat().st_mtime
+
+
+def default_meshes(shared: str | Path | None = None) -> list[str]:
+    """The meshes a workflow renders when none are given: ``shared/meshes`` when that folder exists (the
+    third-party meshes beside a checkout, ``../shared``), then the meshes fppsim ships."""
+    found = [Path(shared) / "meshes"] if shared is not None else []
+    return [str(p) for p in found if p.is_dir()] + [str(data_path("meshes"))]
+
+
+# ---------------------------------------------------------------------------------------------- writing a run
 def write_run_config(out: Path, config: dict) -> None:
     """``out/config.json``: the resolved options and what they were resolved to."""
-    atomic_write_text(out / "config.json", json.dumps(config, indent=2, default=json_default))
+    atomic_write_text(out / CONFIG_JSON, json.dumps(config, indent=2, default=json_default))
 
 
 def check_run_folder(out: Path, resume, overwrite: bool) -> str:
@@ -94,22 +159,20 @@ def check_run_folder(out: Path, resume, overwrite: bool) -> str:
     return "new"
 
 
-def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> None:
+def claim_run_folder(out: Path, tool: str, names, kind_of: Callable[[Path], str | None],
+                     kind: str | None = None) -> None:
     """Claim ``names`` in ``out`` for ``tool`` (:func:`fppsim.owned.claim`); a folder written before the
-    ownership record is recognised by its ``last.pt`` / ``best.pt``: a uhrnet checkpoint whose ``kind``
-    (``"adapt"``: an adaptation, ``"import"``: imported weights, None: a training run) is ``tool``'s."""
-    from fppsim.owned import claim
+    ownership record is recognised by its ``last.pt`` / ``best.pt``: a uhrnet checkpoint whose kind
+    (``kind_of(path)``, :func:`uhrnet.checkpoint.checkpoint_kind`: ``"adapt"`` an adaptation, ``"import"``
+    imported weights, None a training run; raising when the file is no checkpoint) is ``kind``."""
 
     def legacy():
-        for name in ("last.pt", "best.pt"):
+        for name in (LAST_PT, BEST_PT):
             if (out / name).is_file():
-                from uhrnet.checkpoint import load_checkpoint
-
                 try:
-                    ck = load_checkpoint(out / name)
+                    made = kind_of(out / name)
                 except Exception:  # not a checkpoint at all: nothing here is provably ours
                     return ()
-                made = "adapt" if "adapt" in ck else "import" if "imported" in ck else None
                 return names if made == kind else ()
         return ()
 
@@ -119,8 +182,6 @@ def claim_run_folder(out: Path, tool: str, names, kind: str | None = None) -> No
 def refuse_own_source(out: Path, source, flag: str) -> None:
     """:class:`ConfigError` when the checkpoint ``source`` (a file or a run folder) lies in ``out``: the
     run would replace the weights it starts from."""
-    from fppsim.owned import same_folder
-
     src = Path(source)
     folder = src if src.is_dir() else src.parent
     if same_folder(folder, out):
@@ -128,14 +189,5 @@ def refuse_own_source(out: Path, source, flag: str) -> None:
                           "this run starts from; choose another --out")
 
 
-def _atomic_copy(src: Path, dst: Path) -> None:
-    with atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
-
-
 def package_version() -> str:
-    from uhrnet import __version__
-
     return __version__
-
-

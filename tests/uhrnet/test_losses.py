@@ -187,3 +187,41 @@ def test_stateful_losses_declare_their_distributed_reduction():
         chunked = loss if name == "chunked" else getattr(loss, "chunked", None)
         if n:
             assert seen[0] is chunked.epoch_sse and seen[1] is chunked.epoch_count
+
+
+def test_a_registered_loss_gets_what_its_entry_asks_for(tmp_path, monkeypatch):
+    """Adding a loss is one registration: an entry asking for an extra batch field (the true phase) and the rig
+    is built with the run's rig and called with ``(pred, target, mask, phase)``; nothing else is edited."""
+    from _helpers import tiny_rig, write_native_rig
+    from uhrnet.training import losses
+    from uhrnet.training.train_config import TrainConfig
+    from uhrnet.training.trainer import train
+
+    seen = {"rigs": [], "phases": []}
+
+    class PhaseAware(losses.Loss):
+        def __init__(self, rig):
+            super().__init__()
+            seen["rigs"].append(rig)
+
+        def forward(self, pred, target, mask, phase):
+            seen["phases"].append(phase)
+            return losses.L2Loss()(pred, target, mask)
+
+    monkeypatch.setitem(losses.LOSSES, "toy", losses.LossEntry(lambda c: PhaseAware(c.rig), "test loss",
+                                                                batch=(losses.PHASE_FIELD,), needs_rig=True))
+    rig = tiny_rig()
+    write_native_rig(tmp_path / "syn", rig, n=4, seed=3)
+    torch.set_num_threads(1)
+    train(TrainConfig(synthetic=[str(tmp_path / "syn")], synthetic_split="train", model="unet", base_channels=4,
+                      loss="toy", epochs=1, batch_size=2, augment="off", out=str(tmp_path / "run"), progress=False))
+    assert [r["camera"]["width"] for r in seen["rigs"]] == [rig.camera.width]  # the synthetic data's rig
+    assert len(seen["phases"]) == 2 and all(p is not None and p.shape == (2, 1, 32, 64) for p in seen["phases"])
+    assert all(torch.isfinite(p).all() for p in seen["phases"])  # synthetic samples carry their exact phase
+
+
+def test_a_head_loss_wraps_only_a_plain_loss():
+    from uhrnet.training.losses import HEAD_LOSSES, LOSSES
+
+    assert all(entry.plain for entry in LOSSES.values())  # every run loss can sit under a head's loss
+    assert HEAD_LOSSES["phase_head"].parts and HEAD_LOSSES["phase_head"].phase_targets

@@ -138,3 +138,27 @@ def test_one_adam_step_lowers_loss_on_fixed_batch(name):
     with torch.no_grad():
         after = loss_value()
     assert after.item() < before.item()
+
+
+def test_a_registered_head_takes_its_own_options(monkeypatch):
+    """build_model knows no head: a registered head's options reach its wrapper, and no other head takes them."""
+    from torch import nn
+
+    from uhrnet.models import heads
+
+    class Scaled(nn.Module):
+        def __init__(self, backbone, rig, factor=1.0):
+            super().__init__()
+            self.backbone, self.factor = backbone, factor
+            self.config = {**backbone.config, "head": "scaled", "factor": factor}
+
+        def forward(self, x):
+            return self.backbone(x) * self.factor
+
+    monkeypatch.setitem(heads.HEADS, "scaled", heads.Head("scaled", wrap=Scaled, options=("factor",)))
+    model = build_model("unet", head="scaled", factor=2.0, base_channels=4)
+    assert isinstance(model, Scaled) and model.factor == 2.0
+    again = build_model(**model.config)  # the config rebuilds it, as a checkpoint does
+    assert isinstance(again, Scaled) and again.factor == 2.0
+    with pytest.raises(ValueError, match="factor= belong to the scaled head"):
+        build_model("unet", factor=2.0, base_channels=4)

@@ -38,14 +38,15 @@ import torch
 from fppsim.files import tmp_path, unlink_quietly
 from fppsim.owned import output_folder, owners
 from fppsim.dataio.formats import PRESETS, LabelTransform
-from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, model_from_checkpoint, output_mm
+from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, checkpoint_kind, model_from_checkpoint, output_mm, save_epoch
 from uhrnet.errors import CheckpointError, ConfigError, ExportError, UsageError
 from uhrnet.inference.export_check import check_input, compare_outputs
 from uhrnet.models import count_parameters
 from uhrnet.models import ALIASES, build_model
+from uhrnet.models.heads import DEFAULT_HEAD
 from uhrnet.models.uhrnet import UHRNet
-from uhrnet.run_folder import (IMPORT_TOOL, RUN_FILES, TRAINED_FILES, claim_run_folder, package_version,
-                                        save_epoch, write_run_config)
+from uhrnet.run_folder import (BEST_PT, CONFIG_JSON, IMPORT_TOOL, LAST_PT, RUN_FILES, TRAINED_FILES, claim_run_folder,
+                               package_version, write_run_config)
 
 __all__ = ["REFERENCE_FORMAT", "REFERENCE_CONFIG", "MODULES", "FUSION", "key_table", "model_shapes",
            "to_reference_state_dict", "from_reference_state_dict", "read_reference_file", "ImportWeightsConfig",
@@ -250,7 +251,7 @@ def read_reference_file(path: str | Path) -> tuple[dict[str, torch.Tensor], dict
 # uhrnet import-weights
 
 IMPORT_FORMATS = (REFERENCE_FORMAT,)
-IMPORT_FILES = ("best.pt", "last.pt", "config.json")  # what import-weights writes
+IMPORT_FILES = (BEST_PT, LAST_PT, CONFIG_JSON)  # what import-weights writes
 # labels of the plane import-weights accepts: above the invalid threshold (-100), and no higher than the
 # tallest figshare label seen (+181) leaves room for: 1000 labels = 167 mm
 PLANE_OFFSET_RANGE = (PRESETS["figshare"].invalid_threshold, 1000.0)
@@ -315,7 +316,7 @@ def import_weights(config: ImportWeightsConfig) -> dict:
     # created, locked, and every run-file name claimed for import-weights before anything is written: a file
     # another tool (train, adapt) or a person wrote is never replaced, --overwrite or not
     with output_folder(out, IMPORT_TOOL, error=ConfigError):
-        held = [n for n in (*TRAINED_FILES, "config.json") if (out / n).exists()]
+        held = [n for n in (*TRAINED_FILES, CONFIG_JSON) if (out / n).exists()]
         mine = owners(out) or {}
         if held and not config.overwrite and all(mine.get(n) == IMPORT_TOOL for n in held):
             raise ConfigError(f"{out} already holds imported weights ({', '.join(held)}): pass --overwrite to "
@@ -327,7 +328,7 @@ def import_weights(config: ImportWeightsConfig) -> dict:
             raise ConfigError(f"{out / foreign[0]} " + (f"was written by {who}, not {IMPORT_TOOL}" if who else
                                                          f"exists and was not written by {IMPORT_TOOL}")
                               + ": move it away or choose another --out")
-        claim_run_folder(out, IMPORT_TOOL, IMPORT_FILES, kind="import")
+        claim_run_folder(out, IMPORT_TOOL, IMPORT_FILES, checkpoint_kind, kind="import")
         payload = {"format": FORMAT, "version": VERSION, "model": {"name": net.config["name"], "config": dict(net.config)},
                    "state_dict": net.state_dict(), "output": {"scale": 1.0, "shift": 0.0},
                    "label_transform": transform.to_dict(), "epoch": 0, "imported": record,
@@ -336,7 +337,7 @@ def import_weights(config: ImportWeightsConfig) -> dict:
         write_run_config(out, {"command": "import-weights", "imported": record, "model": dict(net.config),
                                "output": payload["output"], "label_transform_resolved": transform.to_dict(),
                                "n_parameters": n_params})
-    return {"out": str(out), "checkpoint": str(out / "best.pt"), "entries": len(ours), "parameters": n_params,
+    return {"out": str(out), "checkpoint": str(out / BEST_PT), "entries": len(ours), "parameters": n_params,
             "source": info["path"], "sha256": info["sha256"]}
 
 
@@ -354,7 +355,7 @@ def check_exportable(ckpt: dict) -> None:
     where = f"{ckpt.get('path', 'checkpoint')}: --format reference"
     if arch != "uhrnet":
         raise ExportError(f"{where} holds only UHRNet; this checkpoint is {name}")
-    if config.get("head", "height") != "height":
+    if config.get("head", DEFAULT_HEAD) != DEFAULT_HEAD:
         raise ExportError(f"{where} holds only the plain height head; this checkpoint has the {config['head']} head")
     for key, want in REFERENCE_CONFIG.items():
         if config.get(key, want) != want:

@@ -31,7 +31,7 @@ from torch import nn
 
 from uhrnet.models.hnet import HNet
 from uhrnet.models.outputs import outputs_of, prediction_of
-from uhrnet.models.heads import HEADS, Head
+from uhrnet.models.heads import DEFAULT_HEAD, HEADS, Head
 from uhrnet.models.unet import UNet
 from uhrnet.models.uhrnet import UHRNet
 
@@ -60,31 +60,47 @@ def list_models() -> list[str]:
     return [*ARCHITECTURES, *ALIASES]
 
 
-def build_model(name: str, head: str = "height", rig: dict | None = None, min_confidence: float | None = None,
-                **options: Any) -> nn.Module:
+def build_model(name: str, head: str = DEFAULT_HEAD, rig: dict | None = None, **options: Any) -> nn.Module:
     """Build a model by (case-insensitive) name; ``options`` go to its constructor.
 
-    ``head``: ``"height"`` (the network predicts height, as in the papers) or ``"phase"``: the physics
-    head (:class:`~uhrnet.models.phase_head.PhaseHead`), any architecture built with three outputs
-    (coarse height, cosine and sine of the fringe phase) and the calibrated ``rig`` (fppsim's rig
-    dictionary, required) turning them into height; ``min_confidence`` is its phase-trust threshold.
+    ``head``: a name of :data:`HEADS` (:mod:`uhrnet.models.heads`): the default head is the architecture
+    itself (the network predicts height, as in the papers); a head with a ``wrap`` builds the architecture
+    with the head's ``backbone_channels`` and wraps it, with the calibrated ``rig`` (fppsim's rig dictionary)
+    when the head needs one and the options the head declares (``Head.options``, e.g. the physics head's
+    ``min_confidence``), which no other head takes.
 
-    Raises ``ValueError`` for an unknown name, an unknown option, or an option that contradicts what an
-    alias fixes (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
+    Raises ``ValueError`` for an unknown name or head, a head's option given to another head (or the rig to
+    a head without one), an unknown option, or an option that contradicts what an alias fixes
+    (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
     if head not in HEADS:
         raise ValueError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
     spec = HEADS[head]
-    if spec.wrap is not None:
-        if spec.needs_rig and rig is None:
-            raise ValueError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
-        if spec.backbone_channels is not None:
-            options = {**options, "out_channels": spec.backbone_channels}
-        backbone = build_model(name, **options)
-        kw = {} if min_confidence is None else {"min_confidence": min_confidence}
-        return spec.wrap(backbone, rig, **kw)
-    if rig is not None or min_confidence is not None:
-        raise ValueError("rig= and min_confidence= belong to the phase head (head='phase')")
+    owners: dict[str, list[str]] = {"rig": [h.name for h in HEADS.values() if h.needs_rig]}  # option -> its heads
+    for h in HEADS.values():
+        for option in h.options:
+            owners.setdefault(option, []).append(h.name)
+    given = {k: options.pop(k) for k in [k for k in options if k in owners]}
+    given = {k: v for k, v in given.items() if v is not None}  # None: not given
+    if rig is not None:
+        given["rig"] = rig
+    foreign = [k for k in given if k not in spec.options and not (k == "rig" and spec.needs_rig)]
+    if foreign:
+        heads = sorted({n for k in foreign for n in owners[k]})
+        raise ValueError(f"{' and '.join(k + '=' for k in foreign)} belong to the {' / '.join(heads)} head "
+                         f"(head={heads[0]!r}), not the {head} head")
+    if spec.wrap is None:
+        return _architecture(name, options)
+    if spec.needs_rig and rig is None:
+        raise ValueError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
+    if spec.backbone_channels is not None:
+        options = {**options, "out_channels": spec.backbone_channels}
+    given.pop("rig", None)
+    return spec.wrap(_architecture(name, options), rig, **given)
+
+
+def _architecture(name: str, options: dict) -> nn.Module:
+    """The registry's architecture (or alias) ``name`` built with ``options`` (no head)."""
     key = name.lower()
     if key in ALIASES:
         arch, fixed = ALIASES[key]

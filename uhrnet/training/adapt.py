@@ -52,6 +52,8 @@ from fppsim.phase import circular_mean, wrap
 from fppsim.geometry.rig import check_image_size
 from uhrnet.errors import ConfigError, UsageError
 from uhrnet.physics.rig_layer import wrap as wrap_t
+from uhrnet.run_folder import (CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, claim_run_folder, refuse_own_source,
+                               write_history, write_run_config)
 
 __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
 
@@ -213,7 +215,6 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
     from fppsim.owned import output_folder
-    from uhrnet.run_folder import refuse_own_source
 
     refuse_own_source(Path(cfg.out), cfg.checkpoint, "RUN")
     with output_folder(cfg.out, ADAPT_TOOL, error=ConfigError):
@@ -225,9 +226,9 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
     option) when it was made with other options or from another state of the source checkpoint."""
     from uhrnet.checkpoint import load_checkpoint
 
-    if not (out / "last.pt").exists() or cfg.overwrite:
+    if not (out / LAST_PT).exists() or cfg.overwrite:
         return None
-    prev = load_checkpoint(out / "last.pt")
+    prev = load_checkpoint(out / LAST_PT)
     if "adapt" not in prev:
         raise ConfigError(f"{out} holds a run that is not an adaptation: choose another --out")
     if not cfg.resume:
@@ -252,12 +253,11 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
 def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     from fppsim.dataio.encoding import json_default
     from fppsim.files import atomic_write_text
-    from uhrnet.checkpoint import atomic_save, load_checkpoint, model_from_checkpoint, rng_state
+    from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
     from uhrnet.data.datasets import parse_size
     from uhrnet.device import select_device
     from uhrnet.inference.prediction import labels_at_input_size, read_inputs
     from uhrnet.physics.rig_layer import RigLayer
-    from uhrnet.run_folder import claim_run_folder, write_history
 
     out = Path(cfg.out)
     source = load_checkpoint(cfg.checkpoint, digest=True)
@@ -271,9 +271,9 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     if not any((im.reliability >= max(cfg.min_reliability, 1e-12)).any() for im in images):
         raise ConfigError(f"no pixel of the {len(images)} image(s) has a fringe phase reliability >= "
                           f"{cfg.min_reliability:g} (--min-reliability): nothing to adapt to")
-    names = ["last.pt", "history.csv", "config.json", "images.json"]
+    names = [LAST_PT, HISTORY_CSV, CONFIG_JSON, IMAGES_JSON]
     names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
-    claim_run_folder(out, ADAPT_TOOL, names, kind="adapt")  # never replaces a file it did not write
+    claim_run_folder(out, ADAPT_TOOL, names, checkpoint_kind, kind="adapt")  # never replaces a file it did not write
     resume_from = _resume_from(cfg, out, source)
     if cfg.tensorboard and resume_from is None:  # foreign event files in tensorboard/: refused before any write
         from uhrnet.training.tb_log import check_event_files
@@ -308,9 +308,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     if start > cfg.epochs:
         log(f"adapt: {out} already holds {start} epochs (--epochs {cfg.epochs}); nothing to do")
     record = {**cfg.record(), "epochs": max(int(cfg.epochs), start)}  # what the weights in last.pt hold
-    atomic_write_text(out / "config.json", json.dumps({**record, "rig_used": rig_name, "source": source["path"],
-                                                        "source_sha256": source["sha256"]}, indent=2,
-                                                       default=json_default))
+    write_run_config(out, {**record, "rig_used": rig_name, "source": source["path"], "source_sha256": source["sha256"]})
     gen = torch.Generator().manual_seed(int(cfg.seed))
     before = [median_wrapped_residual(s[0, 0].cpu().numpy(), im, layer.cpu()) for s, im in zip(sources, images)]
     layer.to(device)
@@ -362,7 +360,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         })
         payload.pop("train_state_dict", None)
         payload.pop("ema", None)
-        atomic_save(payload, out / "last.pt")
+        save_epoch(out, payload, is_best=False)  # an adaptation has no validation: last.pt only
         write_history(history, out, ADAPT_COLUMNS, extra=True, plot=False)
         if not cfg.progress:
             log(f"adapt epoch {epoch + 1}/{cfg.epochs}  loss {sums['loss']:.4g}  grad {sums['grad']:.4g}  "
@@ -383,5 +381,5 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
             from uhrnet.plots import plot_adaptation
 
             result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
-    atomic_write_text(out / "images.json", json.dumps(result.images, indent=2, default=json_default))
+    atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
     return result

@@ -1,8 +1,11 @@
-"""Losses of the paper: chunked L2 with dynamic reordering, SSIM loss and their compound.
+"""Losses of the paper: chunked L2 with dynamic reordering, SSIM loss and their compound; the physics head's
+loss; and their registries (:data:`LOSSES`, :data:`HEAD_LOSSES`: what each loss needs from the trainer).
 
 Every loss is an ``nn.Module`` called as ``loss(pred, target, mask=None)`` with ``(N, C, H, W)`` tensors
 and an optional valid-pixel ``mask`` (``(N, 1, H, W)`` or broadcastable; bool, or numeric with
-nonzero = valid); only valid pixels count. Every loss has ``end_epoch()``, to be called once after each
+nonzero = valid); only valid pixels count. A loss that needs more says so in its registry entry
+(:class:`LossEntry`: batch fields after the mask, a head's intermediates instead of the prediction, the
+rig), and the trainer gives it exactly that. Every loss has ``end_epoch()``, to be called once after each
 training epoch (a no-op except for the chunked L2 loss), and a ``state_dict()`` that restores it
 exactly, so training resumes with the same patch ranks.
 """
@@ -10,6 +13,8 @@ exactly, so training resumes with the same patch ranks.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Callable
 
 import torch
 from torch import nn
@@ -276,26 +281,102 @@ class PhaseHeadLoss(Loss):
         self.base.end_epoch()
 
 
-LOSSES = ("compound", "l2", "chunked", "ssim")
+# ---------------------------------------------------------------------------------------------- the registry
+STEP_FIELDS = ("fringe", "height", "mask")
+"""The batch fields of every training step (:class:`uhrnet.data.datasets.Prepared`): input, label, valid mask;
+a loss is called with the model's output, the label and the mask, then its entry's ``batch`` fields."""
+PHASE_FIELD = "phase"  # the batch field of the true projector phase (rad; the datasets' phase=True, NaN where unknown)
 
 
-def build_loss(name: str, data_range: float | None = None, **options) -> Loss:
-    """Loss by name: ``"compound"`` (:class:`CompoundLoss`), ``"l2"`` (:class:`L2Loss`), ``"chunked"``
-    (:class:`ChunkedL2Loss`), ``"ssim"`` (:class:`SSIMLoss`). ``data_range`` is required for the two
-    SSIM-based ones and ignored by the others; ``options`` go to the constructor."""
+@dataclass(frozen=True)
+class LossContext:
+    """What a loss may be built from, beyond its own options: the label range ``data_range`` (SSIM's ``L``),
+    the run's output mapping (label = output * ``scale`` + ``shift``), ``mm_per_unit`` of the labels, the
+    calibrated ``rig`` (fppsim's rig dictionary; only for a loss that asks for it) and, for a head's loss,
+    ``base``: the run's loss it wraps."""
+
+    data_range: float | None = None
+    scale: float = 1.0
+    shift: float = 0.0
+    mm_per_unit: float = 1.0
+    rig: dict | None = None
+    base: Loss | None = None
+
+
+@dataclass(frozen=True)
+class LossEntry:
+    """One registered loss: how to build it and what the trainer must give it.
+
+    build : ``(context: LossContext, **options) -> Loss``. help : one line (docs, ``--help``).
+    batch : batch fields the loss takes after ``(pred, target, mask)``, in this order (None for a batch
+    without one); :data:`PHASE_FIELD` makes the datasets load the true phase. parts : the loss takes the
+    model's intermediates (``model.last_parts``: a head's, e.g. :class:`~uhrnet.models.phase_head.PhaseHead`)
+    instead of each output; otherwise the trainer calls it on every output of the model (hNet's side outputs
+    too) and sums. needs_rig : it is built with the run's rig (``context.rig``: ``--rig``, else the synthetic
+    data's rig).
+
+    State across steps (the chunked L2's patch ranks) needs no entry field: the loss keeps it in buffers (its
+    ``state_dict`` is checkpointed and restored on ``--resume``), and the trainer calls every loss's
+    :meth:`Loss.end_epoch` after each epoch, after :meth:`Loss.reduce_state` under DDP.
+    """
+
+    build: Callable[..., Loss]
+    help: str
+    batch: tuple[str, ...] = ()
+    parts: bool = False
+    needs_rig: bool = False
+
+    @property
+    def plain(self) -> bool:
+        """Called as ``loss(pred, target, mask)`` alone (what a head's loss can wrap)."""
+        return not self.batch and not self.parts
+
+    @property
+    def phase_targets(self) -> bool:
+        """Training batches must carry the true phase (synthetic samples only)."""
+        return PHASE_FIELD in self.batch
+
+
+def _data_range(context: LossContext, name: str) -> float:
+    if context.data_range is None:
+        raise ValueError(f"the {name} loss needs data_range (the label range L of the dataset)")
+    return context.data_range
+
+
+LOSSES: dict[str, LossEntry] = {
+    "compound": LossEntry(lambda c, **o: CompoundLoss(data_range=_data_range(c, "compound"), **o),
+                          "chunked L2 + alpha * SSIM (the paper's Model D, alpha 1000)"),
+    "l2": LossEntry(lambda c, **o: L2Loss(**o), "masked mean squared error"),
+    "chunked": LossEntry(lambda c, **o: ChunkedL2Loss(**o), "chunked L2 with dynamic reordering (4 x 4 patches)"),
+    "ssim": LossEntry(lambda c, **o: SSIMLoss(_data_range(c, "ssim"), **o), "1 - SSIM"),
+}
+"""The run losses, ``--loss`` NAME -> :class:`LossEntry` (``--loss`` choices, ``TrainConfig`` checks and the
+trainer read it). Adding a loss: a :class:`Loss` subclass and one entry here."""
+
+HEAD_LOSSES: dict[str, LossEntry] = {
+    "phase_head": LossEntry(lambda c, **o: PhaseHeadLoss(c.base, c.scale, c.shift, c.mm_per_unit, **o),
+                            "the physics head: the run's loss on the coarse height + phase + height through the rig",
+                            batch=(PHASE_FIELD,), parts=True),
+}
+"""Training losses of the heads that learn more than the height (:data:`uhrnet.models.heads.HEADS`' ``loss``):
+each wraps the run's loss (``context.base``, a plain one)."""
+
+
+def build_loss(name: str, data_range: float | None = None, *, context: LossContext | None = None,
+               **options) -> Loss:
+    """Run loss by (case-insensitive) name of :data:`LOSSES`: ``"compound"`` (:class:`CompoundLoss`), ``"l2"``
+    (:class:`L2Loss`), ``"chunked"`` (:class:`ChunkedL2Loss`), ``"ssim"`` (:class:`SSIMLoss`). ``data_range``
+    (or ``context.data_range``) is required for the two SSIM-based ones and ignored by the others;
+    ``context`` gives what else a loss may need (:class:`LossContext`); ``options`` go to the constructor."""
     key = name.lower()
-    if key == "l2":
-        return L2Loss(**options)
-    if key == "chunked":
-        return ChunkedL2Loss(**options)
-    if key in ("ssim", "compound"):
-        if data_range is None:
-            raise ValueError(f"the {key} loss needs data_range (the label range L of the dataset)")
-        return SSIMLoss(data_range, **options) if key == "ssim" else CompoundLoss(data_range=data_range, **options)
-    raise ValueError(f"unknown loss {name!r}; known losses: {', '.join(LOSSES)}")
+    if key not in LOSSES:
+        raise ValueError(f"unknown loss {name!r}; known losses: {', '.join(LOSSES)}")
+    context = context or LossContext()
+    if data_range is not None:
+        context = replace(context, data_range=data_range)
+    return LOSSES[key].build(context, **options)
 
 
-HEAD_LOSSES: dict[str, type[Loss]] = {"phase": PhaseHeadLoss}
-"""Training losses of the registered heads (:data:`uhrnet.models.HEADS`) that learn more than the height:
-``HEAD_LOSSES[head](run_loss, output_scale, output_shift, mm_per_unit)`` takes the head's parts
-(``model.last_parts``), the label, its mask and the batch's true phase."""
+def build_head_loss(name: str, base: Loss, context: LossContext, **options) -> Loss:
+    """The head loss ``name`` of :data:`HEAD_LOSSES` around the run's loss ``base``."""
+    return HEAD_LOSSES[name].build(replace(context, base=base), **options)

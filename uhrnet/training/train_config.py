@@ -153,7 +153,7 @@ def check_options(cfg: dict) -> None:
     from uhrnet.training.losses import LOSSES
     from uhrnet.models import list_models
 
-    choices = {"model": list_models(), "loss": LOSSES, "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
+    choices = {"model": list_models(), "loss": list(LOSSES), "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
                "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
     for key, allowed in choices.items():
         if key in cfg and cfg[key] not in allowed:
@@ -215,8 +215,12 @@ def check_options(cfg: dict) -> None:
             raise ConfigError(f"--head {name} learns the phase from synthetic samples (phase_true): give --synthetic DIR")
         if head.needs_rig and cfg.get("raw_output"):
             raise ConfigError(f"--head {name} predicts heights through the rig: --raw-output does not apply")
-    if cfg.get("rig") and not HEADS.get(cfg.get("head", "height"), HEADS["height"]).needs_rig:
-        raise ConfigError("--rig belongs to --head phase (the rig that turns phase into height)")
+    if cfg.get("rig"):
+        head, loss = HEADS[cfg.get("head", DEFAULTS["head"])], LOSSES.get(str(cfg.get("loss", DEFAULTS["loss"])).lower())
+        if not (head.needs_rig or (loss is not None and loss.needs_rig)):
+            users = [f"--head {n}" for n, h in HEADS.items() if h.needs_rig] + \
+                    [f"--loss {n}" for n, e in LOSSES.items() if e.needs_rig]
+            raise ConfigError(f"--rig belongs to {' or '.join(users)} (the rig that turns phase into height)")
     if "weight_decay" in cfg and not (cfg["weight_decay"] >= 0 and math.isfinite(cfg["weight_decay"])):
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 

@@ -27,18 +27,20 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
+from fppsim.geometry.rig import check_image_size
 from fppsim.owned import output_folder
-from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, load_checkpoint, rng_state, set_rng_state
+from uhrnet.checkpoint import (FORMAT, VERSION, LabelHead, checkpoint_kind, load_checkpoint, rng_state, save_epoch,
+                               set_rng_state)
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
-from uhrnet.training.losses import HEAD_LOSSES, build_loss
+from uhrnet.training.losses import HEAD_LOSSES, LOSSES, STEP_FIELDS, LossContext, build_head_loss, build_loss
 from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_distributed
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.scoring.metrics import image_metrics
-from uhrnet.models import HEADS, outputs_of
+from uhrnet.models import HEADS, build_model, count_parameters, outputs_of
 from uhrnet.models.freeze import keep_frozen_eval
-from uhrnet.run_folder import (RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder, package_version,
-                               refuse_own_source, save_epoch, write_history, write_run_config)
+from uhrnet.run_folder import (BEST_PT, HISTORY_CSV, LAST_PT, RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder,
+                               package_version, refuse_own_source, write_history, write_run_config)
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
 from uhrnet.training.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
 
@@ -54,13 +56,13 @@ class Trainer:
         self.ckpt = None
         state = check_run_folder(self.out, args.resume, args.overwrite)
         if state == "fresh":  # killed before its first checkpoint: nothing trained yet, so start the run afresh
-            print(f"note: {self.out} has no last.pt yet; starting the run from epoch 1", file=sys.stderr)
+            print(f"note: {self.out} has no {LAST_PT} yet; starting the run from epoch 1", file=sys.stderr)
         elif state == "resume":
-            path = self.out / "last.pt" if args.resume == "auto" else Path(args.resume)
+            path = self.out / LAST_PT if args.resume == "auto" else Path(args.resume)
             self.ckpt = load_checkpoint(path)
             if "args" not in self.ckpt:  # imported weights or an adaptation: no training state to continue
-                made = "imported weights" if "imported" in self.ckpt else "an adaptation" if "adapt" in self.ckpt \
-                    else "not a training checkpoint"
+                made = {"import": "imported weights", "adapt": "an adaptation"}.get(checkpoint_kind(self.ckpt),
+                                                                                  "not a training checkpoint")
                 raise ConfigError(f"--resume: {path} is {made}, not a training run to continue; start a new run "
                                   "from it with --init-from (and another --out)")
         self.cfg = resolve_config(args, self.ckpt["args"] if self.ckpt else None)
@@ -79,8 +81,16 @@ class Trainer:
     def _build(self) -> None:
         cfg, info = self.cfg, self.info
         self.head = HEADS[cfg["head"]]
+        # what the training loss is called with: the head's loss (wrapping the run's) or the run's own
+        run_loss = LOSSES[cfg["loss"].lower()]
+        self.loss_entry = HEAD_LOSSES[self.head.loss] if self.head.loss else run_loss
+        if self.head.loss and not run_loss.plain:
+            raise ConfigError(f"--loss {cfg['loss']} needs more than (prediction, label, mask); the {self.head.name} "
+                              "head's loss wraps only such a loss")
+        needs_rig = self.head.needs_rig or run_loss.needs_rig or self.loss_entry.needs_rig
+        phase = self.head.phase_targets or self.loss_entry.phase_targets
         sources = load_sources(cfg["real"], cfg["synthetic"], self.transform, cfg["real_split"],
-                               cfg["synthetic_split"], cfg["synthetic_label"], phase=self.head.phase_targets)
+                               cfg["synthetic_split"], cfg["synthetic_label"], phase=phase)
         self.sources = sources
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
@@ -90,8 +100,8 @@ class Trainer:
         augment = augment_config(cfg["augment"])
         if augment is not None:
             augment = dataclasses.replace(augment, probability=float(cfg["augment_probability"]))
-        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment, phase=self.head.phase_targets)
-        self.val_set = Prepared(sources.val, crop, resize, random_crop=False, phase=self.head.phase_targets)
+        self.train_set = Prepared(sources.train, crop, resize, random_crop=True, augment=augment, phase=phase)
+        self.val_set = Prepared(sources.val, crop, resize, random_crop=False, phase=phase)
         if len(self.train_set) == 0:
             raise ConfigError("no training samples: every sample is in the val/test split "
                            "(check --real-split/--synthetic-split)")
@@ -110,20 +120,19 @@ class Trainer:
         self.val_loader = DataLoader(self.val_set, batch_size=cfg["batch_size"], sampler=val_idx,
                                      num_workers=workers, pin_memory=pin)
 
-        from uhrnet.scoring.metrics import count_parameters
-        from uhrnet.models import build_model
-
         torch.manual_seed(cfg["seed"])
         options = parse_kv(cfg["model_option"], "--model-option")
         if cfg["base_channels"] is not None:
             options["base_channels"] = cfg["base_channels"]
+        rig = head_rig(cfg["rig"], cfg["synthetic"]) if needs_rig else None
+        if rig is not None:
+            check_image_size(rig, shape, f"--rig {cfg['rig']}" if cfg["rig"] else "the synthetic data's rig",
+                             who=f"the {self.head.name} head" if self.head.needs_rig else f"the {cfg['loss']} loss",
+                             error=ConfigError, template="{what}: its camera is {camera} but the training images are "
+                                                         "{got}; {who} needs the rig of these images")
+        options["head"] = self.head.name
         if self.head.needs_rig:
-            options.update(head=self.head.name, rig=head_rig(cfg["rig"], cfg["synthetic"]))
-            cam = options["rig"]["camera"]
-            if (int(cam["height"]), int(cam["width"])) != tuple(shape):
-                where = f"--rig {cfg['rig']}" if cfg["rig"] else "the synthetic data's rig"
-                raise ConfigError(f"{where}: its camera is {cam['width']}x{cam['height']} but the training images are "
-                                  f"{shape[1]}x{shape[0]}; the phase head needs the rig of these images")
+            options["rig"] = rig
         try:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
@@ -161,13 +170,14 @@ class Trainer:
             self.ddp = DDP(self.model, device_ids=ids)
         else:
             self.ddp = self.model
+        context = LossContext(data_range=self.transform.data_range, scale=scale, shift=shift,
+                              mm_per_unit=self.transform.mm_per_unit, rig=rig)
         try:
-            self.loss_fn = build_loss(cfg["loss"], data_range=self.transform.data_range).to(self.device)
+            self.loss_fn = build_loss(cfg["loss"], data_range=self.transform.data_range, context=context).to(self.device)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"--loss {cfg['loss']}: {exc}") from None
-        if self.head.name in HEAD_LOSSES:  # a head that learns more than the height wraps the run's loss
-            self.loss_fn = HEAD_LOSSES[self.head.name](self.loss_fn, scale, shift,
-                                                       self.transform.mm_per_unit).to(self.device)
+        if self.head.loss:  # a head that learns more than the height wraps the run's loss
+            self.loss_fn = build_head_loss(self.head.loss, self.loss_fn, context).to(self.device)
         trainable = [p for p in net.parameters() if p.requires_grad]  # --freeze: frozen weights never move
         self.optimizer = torch.optim.Adam(trainable, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
         self.amp = bool(cfg["amp"])
@@ -211,11 +221,12 @@ class Trainer:
 
     def _batch(self, batch):
         nb = self.device.type == "cuda"
-        return (batch["fringe"].to(self.device, non_blocking=nb), batch["height"].to(self.device, non_blocking=nb),
-                batch["mask"].to(self.device, non_blocking=nb))
+        return tuple(batch[f].to(self.device, non_blocking=nb) for f in STEP_FIELDS)
 
-    def _phase(self, batch):
-        return batch["phase"].to(self.device, non_blocking=self.device.type == "cuda") if "phase" in batch else None
+    def _fields(self, batch) -> list:
+        """The batch fields the training loss takes after the mask (its registry entry's ``batch``)."""
+        nb = self.device.type == "cuda"
+        return [batch[f].to(self.device, non_blocking=nb) if f in batch else None for f in self.loss_entry.batch]
 
     def lr_at(self, epoch: int, step: int) -> float:
         """Learning rate of ``step`` (0-based) of ``epoch`` (0-based): a function of the position in the
@@ -255,10 +266,11 @@ class Trainer:
             with self._autocast():
                 out = self.ddp(x)
             outs = outputs_of(out)  # hNet: the fused and the side outputs, all supervised
-            if self.head.name in HEAD_LOSSES:  # e.g. the physics head: coarse height, phase, height through the rig
-                loss = self.loss_fn(self.net.last_parts, y, m, self._phase(batch))
+            extra = self._fields(batch)
+            if self.loss_entry.parts:  # a head's loss: its intermediates (e.g. coarse height, phase, height via the rig)
+                loss = self.loss_fn(self.net.last_parts, y, m, *extra)
             else:
-                loss = sum(self.loss_fn(o.float(), y, m) for o in outs)
+                loss = sum(self.loss_fn(o.float(), y, m, *extra) for o in outs)
             finite = torch.isfinite(loss.detach()).to(torch.float64).reshape(1).cpu()
             if float(all_reduce(finite, self.info, self.device, dist.ReduceOp.MIN if self.info.enabled else None)) < 1:
                 raise TrainingDiverged(f"loss became {float(loss.detach()):g} at epoch {epoch + 1}, step {step + 1}"
@@ -393,7 +405,7 @@ class Trainer:
             try:
                 row = self.train_epoch(epoch)
             except TrainingDiverged as exc:
-                last = self.out / "last.pt"
+                last = self.out / LAST_PT
                 hint = f"; the last good checkpoint is {last}" if last.exists() else ""
                 raise TrainingDiverged(f"training diverged: {exc}{hint}; try a lower --lr (now {cfg['lr']:g})"
                                + (" or drop --amp" if self.amp else "")) from None
@@ -426,17 +438,17 @@ class Trainer:
         if info.enabled:
             dist.barrier()
         if info.main:
-            if (self.out / "best.pt").is_file() and self.best["epoch"]:
-                print(f"done: {self.out / 'best.pt'} (epoch {self.best['epoch']}, {self.best['metric']} "
-                      f"{self.best['value']:.4f}), history {self.out / 'history.csv'}", flush=True)
+            if (self.out / BEST_PT).is_file() and self.best["epoch"]:
+                print(f"done: {self.out / BEST_PT} (epoch {self.best['epoch']}, {self.best['metric']} "
+                      f"{self.best['value']:.4f}), history {self.out / HISTORY_CSV}", flush=True)
             else:  # every epoch's metric was NaN (e.g. no valid pixel): no best model to point to
-                print(f"done: no best.pt written (no epoch had a finite {self.best['metric']}); last epoch in "
-                      f"{self.out / 'last.pt'}, history {self.out / 'history.csv'}", flush=True)
+                print(f"done: no {BEST_PT} written (no epoch had a finite {self.best['metric']}); last epoch in "
+                      f"{self.out / LAST_PT}, history {self.out / HISTORY_CSV}", flush=True)
         return 0
 
 
 def head_rig(rig: str | None, synthetic) -> dict:
-    """The phase head's rig as a dictionary: ``rig`` (a calibration file) or the nominal rig of the first
+    """The rig of a head or loss that needs one, as a dictionary: ``rig`` (a calibration file) or the nominal rig of the first
     synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
     ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
     single rig its phases fit: refused."""
@@ -468,7 +480,7 @@ def train(config: TrainConfig) -> dict:
             # created, locked (two trainings in one folder would overwrite each other), temp files of a killed
             # run removed; the run's file names claimed before anything is written (run_folder)
             with output_folder(config.out, "uhrnet train", error=ConfigError):
-                claim_run_folder(Path(config.out), TRAIN_TOOL, RUN_FILES)
+                claim_run_folder(Path(config.out), TRAIN_TOOL, RUN_FILES, checkpoint_kind)
                 trainer = Trainer(config, info)
                 trainer.fit()
         return {"out": trainer.out, "best": dict(trainer.best), "history": [dict(r) for r in trainer.history]}

@@ -8,8 +8,8 @@ uhrnet imports it, and it is the only part of uhrnet that may import fppsim's re
 (``fppsim.generation`` ...; ``tests/test_layers.py`` checks both). Modules:
 
 - :mod:`~uhrnet.workflows.stages`: what every workflow's stages share: a stage run with its output in a log
-  (:func:`~uhrnet.workflows.stages.run_stage`), a training run's history and finished epochs, a figshare
-  dataset's sample count, whether a result is newer than its source (the resume checks).
+  (:func:`~uhrnet.workflows.stages.run_stage`), a figshare dataset's sample count, an experiment's YAML/JSON
+  file; a run folder's history, finished epochs and the resume checks are :mod:`uhrnet.run_folder`'s.
 - :mod:`~uhrnet.workflows.sim2real`: the sim-to-real experiment (``uhrnet sim2real``, ``pipelines/sim2real.py``,
   ``pipelines/scaling.py``), with its variant grammar (:mod:`~uhrnet.workflows.sim2real.variants`).
 """

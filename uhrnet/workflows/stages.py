@@ -1,11 +1,11 @@
-"""What the stages of every workflow share (``uhrnet sim2real``, ``pipelines/few_scans.py``): running a
-stage with its printed output in a log, reading what a training run has finished, counting a figshare
-dataset's samples, and whether a result is newer than what it was made from (the resume checks).
+"""What the stages of every workflow share (``uhrnet sim2real``, ``pipelines/few_scans.py``, ``pipelines/scaling.py``)
+and only workflows need: running a stage with its printed output in a log, counting a figshare dataset's
+samples, reading an experiment's YAML/JSON file. What a run folder holds and the resume checks on it
+(history, finished epochs, ``fresh``, the default meshes) are :mod:`uhrnet.run_folder`'s.
 """
 
 from __future__ import annotations
 
-import csv
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -17,7 +17,7 @@ from fppsim.errors import FppsimError
 from fppsim.dataio.formats import FIGSHARE_PAIRS
 from uhrnet.errors import Sim2RealError, UhrnetError
 
-__all__ = ["run_stage", "run_history", "run_epochs", "run_done", "dataset_count", "fresh"]
+__all__ = ["run_stage", "dataset_count", "read_config_file"]
 
 
 def dataset_count(folder: str | Path) -> int:
@@ -30,32 +30,6 @@ def dataset_count(folder: str | Path) -> int:
         return int(np.load(z, mmap_mode="r").shape[0])
     except (ValueError, OSError):
         return 0
-
-
-def run_history(run: str | Path) -> list[dict]:
-    """The rows of a training run's ``history.csv`` (numbers as floats, empty cells None); [] without one."""
-    hist = Path(run) / "history.csv"
-    if not hist.is_file():
-        return []
-    with hist.open() as fh:
-        return [{k: (float(v) if v not in ("", None) else None) for k, v in r.items()} for r in csv.DictReader(fh)]
-
-
-def run_epochs(run: str | Path) -> int:
-    """Epochs the training run in folder ``run`` has finished (``last.pt`` and its history); 0: none."""
-    rows = run_history(run) if (Path(run) / "last.pt").is_file() else []
-    return int(rows[-1]["epoch"]) if rows else 0
-
-
-def run_done(run: str | Path, epochs: int) -> bool:
-    """Whether the training run in folder ``run`` has finished ``epochs`` epochs (``last.pt`` at them)."""
-    rows = run_history(run) if (Path(run) / "last.pt").is_file() else []
-    return bool(rows) and int(rows[-1]["epoch"]) >= epochs
-
-
-def fresh(result: Path, source: Path) -> bool:
-    """Whether the file ``result`` exists and is not older than ``source`` (e.g. an evaluation of a checkpoint)."""
-    return result.is_file() and result.stat().st_mtime >= source.stat().st_mtime
 
 
 def run_stage(name: str, fn: Callable[[], object], log: Path, header: str) -> float:

@@ -26,7 +26,6 @@ rewritten after every variant.
 
 from __future__ import annotations
 
-import csv
 import json
 import time
 from dataclasses import fields
@@ -37,7 +36,8 @@ from fppsim.errors import FppsimError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from uhrnet.errors import Sim2RealError, UhrnetError
-from uhrnet.workflows.stages import dataset_count, fresh, run_done, run_history, run_stage
+from uhrnet.run_folder import CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, fresh, read_history, run_done
+from uhrnet.workflows.stages import dataset_count, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
 from uhrnet.workflows.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs,
@@ -125,7 +125,7 @@ def run_differences(run: str | Path, tr, count: int | None = None, seed: int | N
 
     run = Path(run)
     try:
-        recorded = json.loads((run / "config.json").read_text())
+        recorded = json.loads((run / CONFIG_JSON).read_text())
     except (OSError, ValueError) as exc:
         return [f"no readable config.json ({exc})"]
     wanted = {**DEFAULTS, **{f.name: getattr(tr, f.name) for f in fields(tr) if getattr(tr, f.name) is not None}}
@@ -156,7 +156,7 @@ def _finished_run(cfg: Sim2RealConfig, var: Variant, run: Path, tr, gen) -> list
     what = f"--reuse-run {var.name}={run}" if reused else str(run)
     if not run_done(run, tr.epochs):
         if reused:
-            hist = run_history(run)
+            hist = read_history(run)
             at = f"epoch {int(hist[-1]['epoch'])} of {tr.epochs}" if hist else "no finished epoch"
             raise Sim2RealError(f"{what}: not a finished run ({at}; last.pt and history.csv needed)")
         return None
@@ -164,22 +164,20 @@ def _finished_run(cfg: Sim2RealConfig, var: Variant, run: Path, tr, gen) -> list
     if diffs:
         raise Sim2RealError(f"{what}: a finished run of other training options than variant {var.name!r}: "
                             + "; ".join(diffs[:4]) + ("" if reused else " (move it away to train afresh)"))
-    return [str(f) for f in json.loads((run / "config.json").read_text()).get("synthetic") or []]
+    return [str(f) for f in json.loads((run / CONFIG_JSON).read_text()).get("synthetic") or []]
 
 
 def _adapt_done(acfg, source: Path) -> bool:
     out = Path(acfg.out)
-    hist = out / "history.csv"
-    if not ((out / "last.pt").is_file() and (out / "images.json").is_file() and hist.is_file()):
+    if not all((out / name).is_file() for name in (LAST_PT, IMAGES_JSON, HISTORY_CSV)):
         return False
     try:
-        done = json.loads((out / "config.json").read_text())
+        done = json.loads((out / CONFIG_JSON).read_text())
     except (OSError, ValueError):
         return False
     skip = ("epochs", "progress", "figures", "overwrite", "resume")
     same = all(_norm(done.get(k)) == _norm(v) for k, v in acfg.record().items() if k not in skip)
-    rows = list(csv.DictReader(hist.open()))
-    return same and len(rows) >= acfg.epochs and fresh(out / "last.pt", source)
+    return same and len(read_history(out)) >= acfg.epochs and fresh(out / LAST_PT, source)
 
 
 def _rows(var: Variant, out: Path, last: Path, adapted: Path | None) -> list[dict]:
@@ -257,7 +255,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         run = Path(cfg.reuse[var.name]) if var.name in cfg.reuse else out / var.name / "run"
         gen, tr = generate_config(cfg, var, data), train_config(cfg, var, data, run)
         if var.adapt is not None:
-            adapt_config(cfg, var, run / "last.pt", out / var.name / "adapt")
+            adapt_config(cfg, var, run / LAST_PT, out / var.name / "adapt")
         plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
     from fppsim.owned import claim
@@ -287,27 +285,27 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             timing["train_s"] = run_stage("train", lambda tr=tr: train(tr), out / var.name / "train.log",
                                        _header("train", described))
             trained_on = [str(data)]
-        last = run / "last.pt"
+        last = run / LAST_PT
         adapted, adapt_entry = None, None
         if var.adapt is not None:
             acfg = adapt_config(cfg, var, last, out / var.name / "adapt")
             if not _adapt_done(acfg, last):
-                if (Path(acfg.out) / "last.pt").is_file() and not fresh(Path(acfg.out) / "last.pt", last):
+                if (Path(acfg.out) / LAST_PT).is_file() and not fresh(Path(acfg.out) / LAST_PT, last):
                     acfg = adapt_config(cfg, var, last, acfg.out, overwrite=True)  # the run was trained again
                 say(f"[{var.name}] adapt on {len(acfg.images)} unlabelled real input(s) -> {acfg.out}")
                 timing["adapt_s"] = run_stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
                                            _header("adapt", described) if "adapt" in described else
                                            f"# adapt: {json.dumps(acfg.record(), default=json_default)}")
-            adapted = Path(acfg.out) / "last.pt"
-            hist = list(csv.DictReader((Path(acfg.out) / "history.csv").open()))
+            adapted = Path(acfg.out) / LAST_PT
+            hist = read_history(acfg.out)
             adapt_entry = {"run": str(acfg.out), "images": [str(i) for i in acfg.images], "labels_read": False,
                            "flags": var.described("adapt"), "epochs": len(hist),
-                           "per_image": json.loads((Path(acfg.out) / "images.json").read_text())}
+                           "per_image": json.loads((Path(acfg.out) / IMAGES_JSON).read_text())}
         rows = [_evaluate_row(cfg, row, device, say, timing) for row in _rows(var, out, last, adapted)]
         ev = out / var.name / "eval"
         lvl = ev / "synthetic_level.json"
         level = json.loads(lvl.read_text()) if fresh(lvl, last) else evaluate_level(last, trained_on, ev, device=device)
-        hist = run_history(run)
+        hist = read_history(run)
         entry = {"name": var.name, "generate": var.described("generate"), "train": var.described("train"),
                  "data": trained_on[0] if len(trained_on) == 1 else trained_on, "run": str(run),
                  "reused": var.name in cfg.reuse, "timing": timing, "real": rows[0]["real"],

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Callable, Mapping, NamedTuple
 
 from uhrnet.errors import Sim2RealError
+from uhrnet.run_folder import LAST_PT
 from uhrnet.workflows.sim2real.config import SCALES, Variant, generate_workers
 from uhrnet.workflows.sim2real.run import adapt_config
 from uhrnet.workflows.stages import read_config_file
@@ -186,7 +187,7 @@ def recipe_commands(cfg, variant, data, run) -> dict:
     out = {"generate": shlex.join(generate_flags(cfg, data) + list(variant.generate_flags or [])),
            "train": shlex.join(train_flags(cfg, data, run) + list(variant.train_flags or []))}
     if variant.adapt is not None:
-        a = adapt_config(cfg, variant, Path(run) / "last.pt", Path(cfg.out) / variant.name / "adapt")
+        a = adapt_config(cfg, variant, Path(run) / LAST_PT, Path(cfg.out) / variant.name / "adapt")
         out["adapt"] = shlex.join(["adapt", str(a.checkpoint), "--images", *map(str, a.images), "--out", str(a.out),
                                    *(["--rig", str(a.rig)] if cfg.rig else []), "--device", a.device,
                                    "--no-progress", *([] if a.figures else ["--no-figures"]),
