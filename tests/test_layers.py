@@ -84,7 +84,8 @@ def test_the_command_line_lives_in_one_module_per_package():
 
 # ---------------------------------------------------------------------------- seams (issue 24)
 MAX_LINES = 650
-ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "open_source", "mean_phasor", "lowpass", "demodulate",
+ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "open_source", "mean_phasor", "circular_median",
+                  "lowpass", "demodulate",
                   "demodulated_residual", "object_residual", "phase_at_height", "ray_cut")
 TWINS = {"wrap": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"], "circular_mean": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"],
          "_wrap": [], "wrap_phase": []}
@@ -126,7 +127,8 @@ def test_shared_helpers_are_defined_once():
     assert twins == TWINS, twins
     assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
     assert where["open_dataset"][0].startswith("uhrnet/data/datasets.py") and where["open_samples"][0].startswith("fppsim/dataio/readers/")
-    assert where["plane_level"][0].startswith("fppsim/phase/fringe.py") and where["poly_basis"][0].startswith("fppsim/phase/fringe.py")
+    assert where["plane_level"][0].startswith("fppsim/phase/plane.py") and where["poly_basis"][0].startswith("fppsim/phase/plane.py")
+    assert where["circular_median"][0].startswith("fppsim/phase/__init__.py")
 
 
 def _private(name: str) -> bool:
@@ -388,6 +390,40 @@ def test_stage_folders_flow_one_way_in_the_stated_order():
     assert not upward, upward
 
 
+# ---------------------------------------------------------------------------- one reader per layout (issue 37)
+LAYOUT_FILES = {"manifest.jsonl", "dataset.json", "f1_80.npy", "Z.npy", "fringe_pattern.npy", "height_map.npy",
+                "native", "PSin", "PCos", "Fringe", "iPattern", "arrays.npz", "fringe.png"}
+KIND_NAMES = {"image", "npy", "file", "missing", "psp", "ipattern", "psp-partial", "figshare", "real-sample", "native",
+              "folder"}
+
+
+def test_layouts_are_known_only_to_their_readers():
+    """Outside fppsim/dataio no code tests a layout: no path joined with a layout's file name (``p / "native"``,
+    ``p / "manifest.jsonl"``), no comparison with one, and no test of a reader's ``.kind``
+    (messages and docstrings may name the files)."""
+    offenders = []
+    for module, path in _modules():
+        if module.startswith("fppsim.dataio") or _is_cli(module):
+            continue
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            consts = []
+            if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Div):
+                consts = [n for n in (node.left, node.right) if isinstance(n, ast.Constant)]
+            elif isinstance(node, ast.Compare):
+                sides = [node.left, *node.comparators]
+                if any(isinstance(n, ast.Attribute) and n.attr == "kind" and not (
+                        isinstance(n.value, ast.Attribute) and n.value.attr == "dtype") for n in sides):
+                    offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: tests a reader's .kind")
+                consts = [n for n in sides if isinstance(n, ast.Constant)]
+                consts += [e for n in sides if isinstance(n, (ast.Tuple, ast.List, ast.Set)) for e in n.elts
+                           if isinstance(e, ast.Constant)]
+            for c in consts:
+                if isinstance(c.value, str) and c.value in LAYOUT_FILES:
+                    offenders.append(f"{path.relative_to(ROOT)}:{node.lineno}: layout name {c.value!r}")
+    assert not offenders, offenders
+
+
 # ---------------------------------------------------------------------------- registries (issue 37)
 HEAD_NAMES = {"phase", "height"}  # and every registered head (the test adds them)
 
@@ -412,6 +448,34 @@ def test_neither_the_trainer_nor_build_model_names_a_head():
                   if isinstance(n, ast.Constant) and isinstance(n.value, str) and n.value not in docstrings
                   and n.value.strip().lower() in names]
     assert not found, found
+
+
+# ---------------------------------------------------------------------------- imports at the top (issue 37)
+def test_internal_imports_inside_functions_say_why():
+    """An import of fppsim / uhrnet inside a library function is allowed only with a comment saying why (a
+    lazy start, an optional heavy dependency), on its line or the line above; the command-line modules
+    import lazily by design. Everything else imports at the top, where the stage order can be read."""
+    silent = []
+    for module, path in _modules():
+        if _is_cli(module):
+            continue
+        lines = path.read_text().splitlines()
+        tree = ast.parse("\n".join(lines))
+
+        def visit(node, depth):
+            for child in ast.iter_child_nodes(node):
+                inner = depth + isinstance(child, (ast.FunctionDef, ast.AsyncFunctionDef))
+                if depth and isinstance(child, (ast.Import, ast.ImportFrom)):
+                    names = [a.name for a in child.names] if isinstance(child, ast.Import) else [child.module or "."]
+                    if any(n.split(".")[0] in PACKAGES or n.startswith(".") for n in names):
+                        here = "\n".join(lines[child.lineno - 1:child.end_lineno])
+                        above = lines[child.lineno - 2].strip() if child.lineno > 1 else ""
+                        if "#" not in here and not above.startswith("#"):
+                            silent.append(f"{path.relative_to(ROOT)}:{child.lineno}")
+                visit(child, inner)
+
+        visit(tree, 0)
+    assert not silent, f"{len(silent)} function-level imports without a reason: {silent[:20]}"
 
 
 RUN_FOLDER_NAMES = {"last.pt", "best.pt", "history.csv", "history.png", "config.json", "images.json"}

@@ -16,7 +16,7 @@ the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image `
   millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
 
 ``refine="phase"`` (``--refine phase``) then moves the heights to agree with the image's own fringe
-phase (:func:`fppsim.phase.fringe.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
+phase (:func:`fppsim.phase.single_shot.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
 fppsim's default rig): ``refine_method="relief"`` (default, :func:`uhrnet.physics.refine.refine_relief`: the
 relief from the phase, unwrapped region by region, the level from the network) or ``"orders"`` (the
 same regions, whole fringe orders voted across projector shadows).
@@ -175,30 +175,20 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
-    from fppsim.dataio.readers import PSPMatError, load_ipattern, open_source
+    from fppsim.dataio.readers import PSPMatError, open_source
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
-        p = Path(item)
-        src = open_source(p)
-        if src.kind in ("psp", "ipattern"):  # only the single-shot images are read
-            try:
-                for sid in src.image_ids():
-                    f = src.ipattern_file(sid)
-                    out.append((f"{p.name}_{sid}", encode_fringe(load_ipattern(f)), f))
-            except PSPMatError as exc:
-                raise DataError(str(exc)) from None
-        elif p.is_dir() and src.pair is not None:
-            fringe_path, _ = src.pair
-            if not fringe_path.is_file():
-                raise DataError(f"{fringe_path}: file not found (figshare folder {p} without its fringes)")
-            arr = as_image_stack(np.load(fringe_path, mmap_mode="r", allow_pickle=False), fringe_path)
-            for k in range(arr.shape[0]):
-                out.append((f"{p.name}_{k:04d}" if arr.shape[0] > 1 else p.name, _checked(arr[k], fringe_path, k),
-                            fringe_path))
-        else:
-            for path in collect_inputs([str(p)]):
+        src = open_source(item)
+        if src.plain_files:  # image and .npy files, folders of them: predict's own file rules
+            for path in collect_inputs([str(item)]):
                 out += [(name, fringe, path) for name, fringe in load_inputs(path)]
+            continue
+        try:
+            for k, (name, fringe, path) in enumerate(src.inputs()):
+                out.append((name, _checked(fringe, path, k), path))
+        except PSPMatError as exc:
+            raise DataError(str(exc)) from None
     names: set[str] = set()
     unique = []
     for name, fringe, path in out:
@@ -383,18 +373,19 @@ def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
 
 def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     """The single-shot phase of ``fringe`` (dataset encoding) in the rig's direction: the phase must grow
-    along the camera rows as the rig's reference-plane phase does (:func:`fppsim.phase.fringe.single_shot_phase`
+    along the camera rows (vertical fringes) or down the columns (horizontal fringes: a projector above or
+    below the camera) as the rig's reference-plane phase does (:func:`fppsim.phase.single_shot.single_shot_phase`
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
     from fppsim.geometry.rig import Rig
-    from fppsim.phase.fringe import single_shot_phase
+    from fppsim.phase.fringe_axis import oriented_single_shot_phase, rig_phase_gradient
 
-    # the sign of the plane phase's slope along the centre row: W points of the forward model, no layer
+    # the plane phase's gradient at the image centre: a few points of the forward model, no layer
     r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
-    u = np.arange(r.camera.width, dtype=np.float64)
-    row = r.phase_at_height(0.0, np.stack([u, np.full_like(u, r.camera.height // 2)], axis=-1))
-    direction = 1 if float(np.nanmean(np.diff(row))) >= 0 else -1
+    gu, gv = rig_phase_gradient(r)
+    orientation = "vertical" if abs(gu) >= abs(gv) else "horizontal"
+    direction = 1 if (gu if orientation == "vertical" else gv) >= 0 else -1
     try:
-        return single_shot_phase(fringe, direction=direction)
+        return oriented_single_shot_phase(fringe, orientation, direction=direction)
     except ValueError as exc:
         raise DataError(f"{name}: {exc}") from None
 

@@ -1,7 +1,7 @@
 """Label-free adaptation to real fringe images: ``uhrnet.training.adapt(AdaptConfig(...))``; ``uhrnet adapt`` calls it.
 
 A network trained on synthetic data meets real images whose fringes it reads imperfectly. Each real
-fringe image carries its own phase (:func:`fppsim.phase.fringe.single_shot_phase`: wrapped phase ``phi`` and
+fringe image carries its own phase (:func:`fppsim.phase.single_shot.single_shot_phase`: wrapped phase ``phi`` and
 a reliability ``rho`` in [0, 1]), and the calibrated rig says which phase a height implies
 (:class:`uhrnet.physics.rig_layer.RigLayer`: ``Phi(h)``, exact and differentiable). Fine-tuning minimises,
 over the UNLABELLED images (no height label is ever read),

@@ -121,6 +121,7 @@ def run_differences(run: str | Path, tr, count: int | None = None, seed: int | N
     weight decay, gradient clipping, AMP; not the dataset's path, device or workers) and its dataset (sample
     count ``count`` and, where the dataset records it, generator ``seed``). Empty: the same run."""
     from fppsim.dataio.formats import read_settings
+    from fppsim.dataio.readers import open_source
     from uhrnet.training.train_config import DEFAULTS, LEGACY, LOCKED
 
     run = Path(run)
@@ -141,11 +142,10 @@ def run_differences(run: str | Path, tr, count: int | None = None, seed: int | N
         if n != count:
             diffs.append(f"{n} synthetic samples (wanted {count})")
     for folder in folders:
-        for root in (Path(folder), Path(folder) / "native"):
-            settings = read_settings(root) if root.is_dir() else None
-            if settings is not None and seed is not None and settings.get("seed") not in (None, seed):
-                diffs.append(f"dataset {folder} seed {settings.get('seed')} (wanted {seed})")
-                break
+        samples = open_source(folder).fppsim_samples()
+        settings = read_settings(samples.path) if samples is not None else None
+        if settings is not None and seed is not None and settings.get("seed") not in (None, seed):
+            diffs.append(f"dataset {folder} seed {settings.get('seed')} (wanted {seed})")
     return diffs
 
 
