@@ -64,7 +64,7 @@ def _uhrnet(*args) -> None:
 @pytest.mark.slow
 def test_no_calibration_images_to_rig_to_network(tmp_path, one_thread, capsys):
     from fppsim.dataio.writers import export_psp_folders
-    from fppsim.fitting.rig_start import plane_phase_residual
+    from fppsim.fitting.plane_phase import plane_phase_residual
     from fppsim.geometry.rig import Rig
 
     truth = truth_rig()

@@ -19,6 +19,7 @@ import pytest
 
 from _helpers import SHARED
 from fppsim.errors import RigError
+from fppsim.fitting import plane_phase as pp
 from fppsim.fitting import rig_start as rs
 from fppsim.fitting.fit_periods import adjust_rig
 from fppsim.geometry.rig import Rig
@@ -99,18 +100,18 @@ def test_plane_phase_fit_recovers_a_rendered_rig(axis, side):
     truth = truth_rig(axis, side)
     H, W = truth.camera.height, truth.camera.width
     phase, valid, _ = analytic_scan(truth, domes(H, W, SCENE))
-    m = rs.PhaseMap(phase, valid, "scan")
-    g = rs.plane_phase_gradient(phase, valid)
-    assert rs.fringe_axis(g) == axis
+    m = pp.PhaseMap(phase, valid, "scan")
+    g = pp.plane_phase_gradient(phase, valid)
+    assert pp.fringe_axis(g) == axis
     start = rs.start_rig(W, H, g, 1)
-    plane, _, _ = rs.find_plane(start, m, g)
-    fit = rs.fit_plane_phase(start, [m], seeds=[plane])
+    plane, _, _ = pp.find_plane(start, m, g)
+    fit = pp.fit_plane_phase(start, [m], seeds=[plane])
     assert fit.median_rad < 0.01 and fit.plane_share[0] > 0.6
     d = fit.rig.phase_at_height(0.0) - truth.phase_at_height(0.0)
     assert np.nanmax(np.abs(d - np.nanmedian(d))) < 0.02
-    relief, share = rs.relief_sign(fit.residuals[0], fit.planes[0], valid)
+    relief, share = pp.relief_sign(fit.residuals[0], fit.planes[0], valid)
     assert relief == np.sign(truth.sensitivity()) and share > 0.95
-    d_img, votes = rs.shadow_side(fit.planes[0], valid, axis)
+    d_img, votes = pp.shadow_side(fit.planes[0], valid, axis)
     assert votes >= 10
     pdir = truth.projector.center[:2] - truth.camera.center[:2]  # world x right, y up; image v grows down
     assert d_img == (np.sign(pdir[0]) if axis == "vertical" else -np.sign(pdir[1]))
@@ -125,10 +126,10 @@ def test_the_plane_is_found_under_a_big_flat_object():
     height = np.where((xx < 0.8 * W) & (yy > 0.15 * H) & (yy < 0.9 * H),
                       18.0 + 4.0 * np.sin(xx / 9.0) * np.cos(yy / 13.0), 0.0)
     phase, valid, _ = analytic_scan(truth, height)
-    m = rs.PhaseMap(phase, valid, "big")
-    g = rs.plane_phase_gradient(phase, valid)
+    m = pp.PhaseMap(phase, valid, "big")
+    g = pp.plane_phase_gradient(phase, valid)
     start = rs.start_rig(W, H, g, 1)
-    plane, scores, _ = rs.find_plane(start, m, g)
+    plane, scores, _ = pp.find_plane(start, m, g)
     true_plane = valid & (height == 0)
     assert (plane & true_plane).sum() > 0.9 * true_plane.sum() and (plane & ~true_plane).sum() < 0.02 * plane.sum()
 
@@ -157,7 +158,7 @@ def test_fit_rig_without_base_on_phase_shifting_scans(tmp_path, capsys):
     assert (rig.camera.width, rig.camera.height) == (W, H)
     d = rig.phase_at_height(0.0) - truth.phase_at_height(0.0)
     assert np.nanmax(np.abs(d - np.nanmedian(d))) < 0.03
-    r, _ = rs.plane_phase_residual(rig, phase, valid)
+    r, _ = pp.plane_phase_residual(rig, phase, valid)
     assert np.nanmedian(np.abs(r[valid & (domes(H, W, SCENE) == 0)])) < 0.01
     assert np.sign(rig.sensitivity()) == np.sign(truth.sensitivity())
     assert rig.projector.center[1] < rig.camera.center[1]  # below

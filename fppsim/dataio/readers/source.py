@@ -47,7 +47,8 @@ import numpy as np
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.dataio.formats import FIGSHARE_PAIRS, find_figshare_pair, manifest_ids
 from fppsim.errors import DatasetError
-from fppsim.dataio.readers.datasets import check_export_labels, check_psp_available, read_native_pair, read_native_phase
+from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
+                                            read_native_pair, read_native_phase)
 from fppsim.dataio.readers.psp_mat import FOLDERS, is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
 
 __all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout"]
@@ -167,6 +168,17 @@ class Source:
         :func:`fppsim.dataio.readers.load_psp_folder_sample`), else None."""
         return None
 
+    def measured_phase_ids(self) -> list[str]:
+        """The ids of the frames with a MEASURED absolute phase (phase-shifting scans; fppsim's native samples
+        generated with PSP images), else []."""
+        return []
+
+    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(phase, valid)`` of frame ``sid`` as a lab measured it: the absolute phase (H, W) float64 rad (the
+        default convention) and where it exists (a scan's pixels with a phase and a non-black image; a native
+        sample's ``phase_psp`` / ``mask_psp``), else None."""
+        return None
+
 
 LABELLED_HINT = ("expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, or fppsim's native samples "
                  "(manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)")
@@ -257,6 +269,15 @@ class PspFolder(_ScanFolder):
 
     def phase(self, sid: str, **kw) -> np.ndarray | None:
         return load_psp_folder_sample(self.path, sid, **kw).phase
+
+    def measured_phase_ids(self) -> list[str]:
+        return self.ids()
+
+    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
+        s = load_psp_folder_sample(self.path, sid)
+        phase = np.asarray(s.phase, np.float64)
+        valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
+        return phase, valid
 
 
 class IPatternFolder(_ScanFolder):
@@ -381,6 +402,24 @@ class NativeSamples(Source):
 
     def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
         return read_native_phase(self.path / self.ids()[int(i)], shape)
+
+    def measured_phase_ids(self) -> list[str]:
+        ids = self.ids()
+        if not ids:
+            return []
+        try:
+            with np.load(self.path / ids[0] / "arrays.npz", allow_pickle=False) as z:
+                return ids if "phase_psp" in z.files else []
+        except (OSError, ValueError):
+            return []
+
+    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
+        arrays = load_native_sample(self.path / sid, keys=("phase_psp", "mask_psp"), meta=False)
+        if "phase_psp" not in arrays:
+            return None
+        phase = arrays["phase_psp"].astype(np.float64)
+        valid = np.isfinite(phase) & (arrays["mask_psp"] > 0 if "mask_psp" in arrays else True)
+        return phase, valid
 
     def fppsim_samples(self) -> Source | None:
         return self
