@@ -19,7 +19,7 @@ import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Sequence
+from typing import Sequence
 
 
 from fppsim import __version__
@@ -28,13 +28,16 @@ from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, f
                     tmp_path)
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
-from fppsim.rendering.scene import MeshAsset, find_meshes, load_mesh
+from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
 from fppsim.rendering.synth import SynthConfig, synthesize
-from fppsim.dataio.writers import export_figshare, samples_folder, write_sample_folder
+from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
+                                   write_sample_folder)
 from fppsim.dataio.readers import open_source
-
-if TYPE_CHECKING:
-    from fppsim.geometry.rig import Rig
+from fppsim.rendering.optics import OpticsRanges
+from fppsim.geometry.jitter import RigJitter
+from fppsim.geometry.rig import Rig, load_rig
+from fppsim.rendering.render import DepthRenderer, select_backend
+from fppsim.rendering.preview import write_preview
 
 log = logging.getLogger("fppsim")
 
@@ -98,7 +101,6 @@ class GenerateConfig:
     anything is written); settings that do not fit the rig raise :class:`ConfigError` in
     :meth:`synth_config`.
     """
-
     meshes: Sequence[str]
     out: str | os.PathLike
     count: int
@@ -150,7 +152,6 @@ class GenerateConfig:
                 raise UsageError(f"--psp-freqs ladder must start at 1 and increase, got {list(f)}")
             if self.psp_steps < 3:
                 raise UsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
-        from fppsim.rendering.optics import OpticsRanges
 
         try:
             OpticsRanges.from_dict(dict(self.optics))
@@ -187,16 +188,11 @@ class GenerateConfig:
         return 1.0 if not self.mesh_paths else 0.0
 
     def jitter(self):
-        from fppsim.geometry.jitter import RigJitter
-
         return RigJitter(*self.rig_jitter)
 
     def synth_config(self) -> SynthConfig:
         """The renderer's configuration: loads the rig and checks the ladder against it
         (:class:`RigError` / :class:`ConfigError`)."""
-        from fppsim.rendering.optics import OpticsRanges
-        from fppsim.geometry.rig import Rig, load_rig
-        from fppsim.rendering.scene import SceneRanges
 
         rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig)
         optics = OpticsRanges.from_dict(dict(self.optics))
@@ -215,7 +211,6 @@ def read_optics_file(path: str | os.PathLike) -> dict:
     (:class:`ConfigError` naming the file)."""
     import yaml
 
-    from fppsim.rendering.optics import OpticsRanges
 
     p = Path(path)
     if not p.is_file():
@@ -240,7 +235,6 @@ def generate(config: GenerateConfig) -> RunSummary:
                                shard=config.shard, label=config.label, noise_free=config.noise_free,
                                progress=config.progress, backend=config.backend)
     if config.preview:
-        from fppsim.rendering.preview import write_preview
 
         root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
@@ -274,8 +268,6 @@ _WORKER: dict = {}
 
 
 def _worker_init(assets, config, seed, out, noise_free, label=None, backend=None, pool_worker=False):
-    from fppsim.dataio.writers import BackgroundWriter
-    from fppsim.rendering.render import DepthRenderer
 
     if pool_worker:  # only the parent reacts to Ctrl-C/SIGTERM (it terminates the pool); no orphans
         ignore_sigint()
@@ -290,8 +282,6 @@ def _worker_run_chunk(indices: list[int]) -> list[tuple]:
     Returns ``(index, record, error, figshare rows or None)`` per index once every folder of the
     chunk is complete on disk, so the manifest never lists a sample still being written.
     """
-    from fppsim.dataio.writers import figshare_rows
-
     w = _WORKER
     out = []
     for index in indices:
@@ -352,14 +342,11 @@ def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthCo
     ``fmt="figshare"`` keeps the native samples in ``out/native`` and writes ``out/f1_80.npy`` and
     ``out/Z.npy`` at the end.
     """
-    from fppsim.geometry.rig import Rig
-
     t0 = time.perf_counter()
     if count < 1:
         raise GenerateError(f"--count must be >= 1, got {count}")
     if fmt not in FORMATS:
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
-    from fppsim.rendering.render import select_backend
 
     backend = select_backend(backend)  # before the workers spawn: they inherit the platform
     config = config or SynthConfig(rig=Rig.default())
@@ -412,7 +399,6 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     # figshare rows come back with the samples when this run produces all of them (else: read back)
     rows = None
     if fmt == "figshare" and todo and not summary.existing:
-        from fppsim.dataio.writers import FigshareRows
 
         rows = FigshareRows(out, len(wanted), config.rig.camera.height, config.rig.camera.width)
     position = {index: k for k, index in enumerate(wanted)}

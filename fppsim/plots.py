@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from fppsim.files import atomic_path
 
 __all__ = ["pyplot", "save_figure"]
 
@@ -26,7 +27,6 @@ def pyplot():
 def save_figure(fig, path: str | os.PathLike, dpi: float = 100, **savefig) -> Path:
     """Write ``fig`` to ``path`` (format from its suffix) atomically; returns the path. ``savefig``:
     more ``Figure.savefig`` options (e.g. ``bbox_inches="tight"``). The figure stays open."""
-    from fppsim.files import atomic_path
 
     path = Path(path)
     with atomic_path(path) as tmp:

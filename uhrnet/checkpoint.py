@@ -32,7 +32,7 @@ from torch import nn
 from fppsim.files import atomic_path
 from fppsim.dataio.formats import LabelTransform
 from uhrnet.errors import CheckpointError
-from uhrnet.models import outputs_of
+from uhrnet.models import ALIASES, build_model, outputs_of
 from uhrnet.run_folder import BEST_PT, CHECKPOINTS, LAST_PT
 
 FORMAT = "uhrnet-checkpoint"
@@ -170,7 +170,6 @@ class LabelHead(nn.Module):
     +180) spares it learning a large constant offset; ``scale=1, shift=0`` reproduces raw-label training.
     hNet's tuple of outputs (training mode) is mapped element by element.
     """
-
     def __init__(self, net: nn.Module, scale: float = 1.0, shift: float = 0.0):
         super().__init__()
         self.net, self.scale, self.shift = net, float(scale), float(shift)
@@ -184,7 +183,6 @@ class LabelHead(nn.Module):
 def model_from_checkpoint(ckpt: dict, device="cpu") -> tuple[LabelHead, LabelTransform]:
     """The checkpoint's network in eval mode, wrapped to output labels, and its label transform
     (checkpoints of any version: old label field names are read too)."""
-    from uhrnet.models import build_model
 
     config = dict(ckpt["model"]["config"])
     try:
@@ -212,7 +210,6 @@ def output_mm(scale: float, shift: float, transform: LabelTransform) -> tuple[fl
 
 
 def _architecture(name: str) -> str:
-    from uhrnet.models import ALIASES
 
     return ALIASES[name][0] if name in ALIASES else name
 

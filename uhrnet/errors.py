@@ -8,8 +8,7 @@ the CLI.
 
 from __future__ import annotations
 
-from fppsim.errors import DatasetError as DataError
-from fppsim.errors import FolderBusy
+from fppsim.errors import DatasetError as DataError, FolderBusy
 
 __all__ = ["UhrnetError", "DataError", "CheckpointError", "ConfigError", "UsageError", "TrainingDiverged",
            "ExportError", "Sim2RealError", "FolderBusy"]

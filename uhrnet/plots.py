@@ -12,15 +12,13 @@ from typing import Sequence
 import numpy as np
 
 from fppsim.phase import circular_mean, wrap
-from fppsim.plots import pyplot
+from fppsim.plots import pyplot, save_figure as save
 
 __all__ = ["pyplot", "save_figure", "plot_history", "plot_comparison", "plot_adaptation"]
 
 
 def save_figure(fig, path, dpi: float = 110) -> Path:
     """Write ``fig`` to ``path`` atomically, trimmed to its content (``bbox_inches="tight"``)."""
-    from fppsim.plots import save_figure as save
-
     return save(fig, path, dpi=dpi, bbox_inches="tight")
 
 

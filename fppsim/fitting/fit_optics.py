@@ -47,6 +47,10 @@ from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, project
 from fppsim.dataio.readers import load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
+from fppsim.phase.measure import estimate_period, fringe_modulation
+from fppsim.generation import generate_dataset as generate
+from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
+from fppsim.rendering.synth import SynthConfig
 
 __all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
            "format_optics_fit", "compare_before_after", "FitOpticsConfig", "FitOpticsResult", "fit_optics_images"]
@@ -101,7 +105,6 @@ def _default_ratio(rig: Rig, period_cam: float) -> tuple[float, float]:
 def contrast_table(rig: Rig, period: float, sigmas=np.linspace(0.0, 4.0, 17), model: dict | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Fringe contrast ``c(sigma)`` (ambient 0) for effective blurs ``sigma`` (camera px), measured on
     noise-free rendered planes with :func:`fppsim.phase.measure.fringe_modulation`. Returns (sigmas, c)."""
-    from fppsim.phase.measure import fringe_modulation
 
     m = plane_model(rig) if model is None else model
     ratio = _default_ratio(rig, period)
@@ -175,8 +178,6 @@ def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
 def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
                     ambient: float, albedo_plane: float) -> dict:
     """Optics parameters of one image (see the module docstring); NaN where not measurable."""
-    from fppsim.phase.measure import fringe_modulation
-
     plane, obj = _masks(im, model)
     g = im.gray.astype(np.float64)
     b, a = fringe_modulation(g, period, im.valid)
@@ -255,8 +256,6 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     the centres of the default ranges). ``min_width``: each range spans at least +-this fraction of its
     centre. Raises ValueError if no image has enough plane pixels with fringes.
     """
-    from fppsim.phase.measure import estimate_period
-
     d = OpticsRanges()
     amb = _centre(d.ambient) if ambient is None else float(ambient)
     ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
@@ -338,9 +337,6 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
     and return compare-real's statistics side by side: statistic | real | default | fitted."""
     import tempfile
 
-    from fppsim.generation import generate_dataset as generate
-    from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
-    from fppsim.rendering.synth import SynthConfig
 
     if meshes is None:
         meshes = [str(data_path("meshes"))]
@@ -384,7 +380,6 @@ class FitOpticsConfig:
     meshes : meshes of the ``compare`` renders (None: the packaged meshes). seed : their seed.
     json : also write the per-image estimates there (:meth:`OpticsFit.to_dict`).
     """
-
     real: str | os.PathLike
     out: str | os.PathLike
     rig: Rig | str | os.PathLike | None = None

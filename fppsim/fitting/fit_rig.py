@@ -9,11 +9,11 @@ The fringe period a camera sees on the reference plane follows from the rig alon
 (:func:`period_map` in :mod:`fppsim.fitting.fit_periods`; no rendering). A projector whose axis is not exactly parallel to the camera's
 shows a period that drifts across the image, as the real figshare rig does (about 11.96 px in the left
 half, 11.49 px in the right). :func:`measure_bands` measures the period per column band and per row band
-of real images (plane pixels only where labels exist) with :func:`fppsim.phase.fringe.estimate_period`, and
+of real images (plane pixels only where labels exist) with :func:`fppsim.phase.measure.estimate_period`, and
 :func:`fit_rig` adjusts a few projector parameters (yaw / pitch / roll about the projector's centre,
 baseline, periods across the projector, projector focal length) with :func:`scipy.optimize.least_squares`
 until the band periods of :func:`period_map` match, and the fringe lines' angle on the plane
-(:func:`plane_tilt` against :func:`fppsim.phase.fringe.fringe_tilt` of the images: a rolled projector tilts
+(:func:`plane_tilt` against :func:`fppsim.phase.measure.fringe_tilt` of the images: a rolled projector tilts
 them; the real figshare rig by about -1.35 deg). The camera stays fixed; after every change the
 projector's principal point is re-centred (lens shift) so the camera's view of the plane stays lit.
 

@@ -54,7 +54,7 @@ from fppsim.dataio.encoding import encode_fringe, json_default
 from fppsim.errors import ConfigError, DatasetError, UsageError
 from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
-from fppsim.owned import output_folder
+from fppsim.owned import claim, output_folder, owners
 from fppsim.phase.psp import decode_stacks
 from fppsim.dataio.readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
@@ -62,6 +62,8 @@ from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.triangulation import height_from_phase
 from fppsim.dataio.writers import NpyRowStream
+from fppsim.plots import pyplot, save_figure
+from fppsim import __version__
 
 __all__ = ["LabelRealConfig", "LabelRealReport", "PlaneFit", "Scan", "label_real", "reference_plane_phase",
            "fit_phase_offset", "plane_flatness", "detect_layout", "iter_scans", "LAYOUTS", "REPORT_NAME",
@@ -128,7 +130,6 @@ class LabelRealConfig:
     previews : write ``previews/<id>.png`` per scan (default True).
     progress : show a progress bar over the scans (stderr).
     """
-
     root: str | os.PathLike
     out: str | os.PathLike
     rig: Rig | str | os.PathLike | None = None
@@ -181,7 +182,6 @@ class Scan:
     rig : the rig to triangulate with.
     source : the file or folder it came from (for messages and the report).
     """
-
     id: str
     image: np.ndarray
     phase: np.ndarray
@@ -353,7 +353,6 @@ def _label_scan(cfg: LabelRealConfig, scan: Scan, policy: str | float, cache: di
 
 
 def _preview(path: Path, scan: Scan, height: np.ndarray, plane: PlaneFit, rec: dict) -> Path:
-    from fppsim.plots import pyplot, save_figure
 
     plt = pyplot()
     fig, ax = plt.subplots(1, 3, figsize=(16, 3.6))
@@ -396,7 +395,6 @@ def _check_targets(out: Path, targets: list[str]) -> list[str]:
     """Claim ``targets`` (:func:`fppsim.owned.claim`: refused when one exists that label-real did not
     write); returns the files earlier runs wrote that are still there and are not targets now (so a
     later run may still replace them)."""
-    from fppsim.owned import claim, owners
 
     claim(out, TOOL, targets, legacy=lambda: _legacy_files(out), hint="move it away, or use another --out")
     own = {n for n, tool in (owners(out) or {}).items() if tool == TOOL}
@@ -422,7 +420,6 @@ class LabelRealReport:
     files : relative paths written (``fringe``, ``label``, ``previews``; ``earlier``: files an earlier run
         wrote that are still there, e.g. previews of other ids, which a later run may replace).
     """
-
     out: Path
     root: str
     layout: str
@@ -461,8 +458,6 @@ class LabelRealReport:
         })
 
     def to_dict(self, status: str = "done") -> dict:
-        from fppsim import __version__
-
         return _finite({"tool": TOOL, "version": __version__, "status": status, "root": self.root,
                         "layout": self.layout, "out": str(self.out), "rig": self.rig,
                         "phase_offset_policy": self.policy, "label": self.label, "ids": self.ids,

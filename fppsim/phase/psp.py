@@ -35,6 +35,7 @@ import numpy as np
 
 from fppsim.phase import wrap
 from fppsim.phase.triangulation import height_from_phase
+from fppsim.threads import map_bands, row_bands
 
 __all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "order_consistency",
            "phase_from_sums", "phase_shifts", "phase_sums", "quality_mask", "unwrap_temporal", "wrapped_phase"]
@@ -126,7 +127,6 @@ class PhaseShift:
     background : ``A`` (image units).
     modulation : ``B`` (image units), >= 0.
     """
-
     phase: np.ndarray
     background: np.ndarray
     modulation: np.ndarray
@@ -305,7 +305,6 @@ class Unwrapped:
     residual : float64 largest ``|r_i Phi_{i-1} - phi_i - 2 pi k_i|`` over the steps (rad, in [0, pi]).
     freqs : the ladder used.
     """
-
     phase: np.ndarray
     order: np.ndarray
     reliable: np.ndarray
@@ -442,7 +441,6 @@ class Decoded:
     consistent : the order agrees with the neighbourhood (see :func:`order_consistency`).
     valid : all of the above and a finite triangulation.
     """
-
     phase: np.ndarray
     order: np.ndarray
     height: np.ndarray
@@ -507,8 +505,6 @@ def _heights(rig, phase, ok, periods, rows: slice | None = None):
 
 def _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads) -> Decoded:
     """:func:`decode_stacks` on row bands (:func:`fppsim.threads.map_bands`): the same arrays."""
-    from fppsim.threads import map_bands, row_bands
-
     stacks = {f: np.asarray(stacks[f]) for f in freqs}
     shapes = {s.shape[1:] if s.ndim == 3 else None for s in stacks.values()}
     shape = shapes.pop() if len(shapes) == 1 else None

@@ -9,14 +9,13 @@ import numpy as np
 
 from fppsim.dataio.formats import read_manifest
 from fppsim.dataio.readers import load_native_sample
+from fppsim.plots import pyplot, save_figure
 
 __all__ = ["write_preview"]
 
 
 def write_preview(root: str | os.PathLike, path: str | os.PathLike, max_samples: int = 3) -> Path:
     """Write a PNG with up to ``max_samples`` rows (fringe, height in mm, valid mask); returns its path."""
-    from fppsim.plots import pyplot, save_figure
-
     plt = pyplot()
     root, path = Path(root), Path(path)
     records = read_manifest(root)[:max_samples]

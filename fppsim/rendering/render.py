@@ -22,7 +22,7 @@ import numpy as np
 
 from fppsim.threads import beside
 from fppsim.errors import BackendError
-from fppsim.geometry.rig import along_rays
+from fppsim.geometry.rig import Device, along_rays
 
 __all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings",
            "plane_geometry", "projector_incidence"]
@@ -35,7 +35,6 @@ class Instance:
     ``key`` identifies the vertex/face arrays (e.g. the mesh file) so renderers can keep them on the GL
     side between samples; ``None`` means "upload every time".
     """
-
     vertices: np.ndarray
     faces: np.ndarray
     transform: np.ndarray = field(default_factory=lambda: np.eye(4))
@@ -138,7 +137,6 @@ class DepthRenderer:
     or Mesa's software device where no GPU exists); None keeps ``$PYOPENGL_PLATFORM``. One backend
     per process (see :func:`select_backend`).
     """
-
     def __init__(self, backend: str | None = None):
         self.backend = select_backend(backend)
         # OSMesa has no resizable framebuffers: pyrender rebuilds the GL context on every size change,
@@ -239,7 +237,6 @@ class DepthRenderer:
 @dataclass
 class ShadowSettings:
     """Depth-comparison bias of the projector shadow test: ``bias_mm + slope_pixels * |grad D|``."""
-
     bias_mm: float = 0.3
     slope_pixels: float = 1.0
 
@@ -258,7 +255,6 @@ class Geometry:
     falloff : projector irradiance per unit cos(incidence), 1 at the world origin
               (:meth:`fppsim.geometry.rig.Device.irradiance_falloff`: equal flux per projector pixel)
     """
-
     depth: np.ndarray
     points: np.ndarray
     normals: np.ndarray
@@ -346,7 +342,6 @@ def _normals_from_points(P: np.ndarray, camera_center: np.ndarray) -> np.ndarray
 
 class _GridCache:
     """Per-rig camera rays and plane depths (they do not change between samples)."""
-
     def __init__(self):
         self.key = None
         self.value = None
@@ -477,7 +472,6 @@ def projector_incidence(proj, points: np.ndarray, normals: np.ndarray,
 
 class _NothingToRender:
     """Stands in for a :class:`DepthRenderer` when there are no meshes: no surface in front of any device."""
-
     @staticmethod
     def depth(device, instances, scale: int = 1) -> np.ndarray:
         *_, W, H = device.gl_intrinsics(scale)
@@ -496,8 +490,6 @@ def _distorted_depth(cam, renderer: DepthRenderer, meshes: list[Instance], scale
     undistorted pixel position, then interpolate 1/z bilinearly there (exact inside a planar triangle);
     where the four neighbours straddle a depth edge or a silhouette, take the nearest sample.
     """
-    from fppsim.geometry.rig import Device
-
     xy = cam.normalized_rays(cam.pixel_grid(scale))
     K = cam.K
     u = K[0, 0] * xy[..., 0] + K[0, 1] * xy[..., 1] + K[0, 2]

@@ -16,7 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import MeshError
-from fppsim.geometry.rig import rotation
+from fppsim.geometry.rig import RigError, rotation
+from fppsim.rendering.meshio import PlyError, ply_has_tristrips, read_ply_tristrips
+from fppsim.rendering.render import Instance
+from fppsim.rendering.shapes import procedural
 
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
@@ -35,7 +38,6 @@ class MeshAsset:
     the principal axes are x (longest), y, z (shortest); ``faces`` (F, 3) int32. Units are the file's.
     ``canonical`` is the 4x4 transform file coordinates -> these vertices.
     """
-
     path: str
     vertices: np.ndarray
     faces: np.ndarray
@@ -84,7 +86,6 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     """
     import trimesh
 
-    from fppsim.rendering.meshio import PlyError, ply_has_tristrips, read_ply_tristrips
 
     path = str(path)
     try:
@@ -144,7 +145,6 @@ def asset_from_arrays(vertices, faces, path: str, flat_ratio: float = 1e-3) -> M
 @dataclass
 class SceneRanges:
     """Ranges of the seeded scene sampler (mm, radians). Defaults follow the real figshare data."""
-
     objects: tuple[int, int] = (1, 3)           # objects per scene, inclusive
     footprint: tuple[float, float] = (70.0, 140.0)  # longest horizontal size of one object, mm
     max_relief: tuple[float, float] = (35.0, 55.0)  # cap on an object's height above the plane, mm
@@ -186,7 +186,6 @@ class PlacedObject:
     ``pose`` (4x4) maps file coordinates multiplied by ``scale`` (mm) to world; ``transform`` maps the
     asset's canonical vertices to world (rotation times scale, translation).
     """
-
     mesh: str
     scale: float
     pose: np.ndarray
@@ -203,8 +202,6 @@ class PlacedObject:
         return self.asset.faces
 
     def instance(self):
-        from fppsim.rendering.render import Instance
-
         # procedural shapes are many and short-lived: do not keep them uploaded in the renderer
         key = None if self.asset.path.startswith((PROCEDURAL_PREFIX, PEDESTAL_PREFIX)) else self.asset.path
         return Instance(self.asset.vertices, self.asset.faces, self.transform, key=key)
@@ -262,7 +259,6 @@ def _pedestal(outline_xy: np.ndarray, centre_xy: np.ndarray, height: float, shri
 def procedural_asset(seed: int) -> MeshAsset:
     """Procedural sculpture ``seed`` (:func:`fppsim.rendering.shapes.procedural`) as a canonical asset, cached per
     process; its ``path`` is ``procedural:<kind>:<seed>``."""
-    from fppsim.rendering.shapes import procedural
 
     kind, mesh = procedural(int(seed))
     return asset_from_arrays(mesh.vertices, mesh.faces, f"{PROCEDURAL_PREFIX}{kind}:{int(seed)}")
@@ -279,8 +275,6 @@ def view_rectangle(rig, margin: float = 0.0) -> tuple[float, float, float, float
 
     Uses the image border rays that meet the plane (an oblique camera may see the horizon).
     """
-    from fppsim.geometry.rig import RigError
-
     cam = rig.camera
     t = np.linspace(0.0, 1.0, 17)
     W, H = cam.width - 1, cam.height - 1

@@ -18,6 +18,7 @@ from fppsim.rendering.render import DepthRenderer, scene_geometry
 from fppsim.geometry.jitter import RigJitter, jitter_rig
 from fppsim.geometry.rig import Rig
 from fppsim.rendering.scene import MeshAsset, SceneRanges, sample_scene
+from fppsim.phase.psp import decode_stacks
 
 __all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode"]
 
@@ -31,7 +32,6 @@ class SynthConfig:
         last entry should be ``rig.periods``. Empty disables PSP.
     min_object_fraction : a scene whose objects cover less of the image than this is redrawn.
     """
-
     rig: Rig
     optics: OpticsRanges = field(default_factory=OpticsRanges)
     scene: SceneRanges = field(default_factory=SceneRanges)
@@ -77,8 +77,6 @@ def psp_decode(images: dict[int, list[np.ndarray]], rig: Rig, freqs: tuple[int, 
     Returns float32 ``phase_psp`` (rad, absolute, highest frequency), ``height_psp`` (mm, NaN where
     rejected), ``mask_psp`` (1 where modulation suffices and the fringe order is reliable and consistent).
     """
-    from fppsim.phase.psp import decode_stacks
-
     # on two threads (the same arrays): nothing else runs beside the decode
     d = decode_stacks({f: np.stack(images[f]) for f in freqs}, rig, freqs, min_modulation=min_modulation, threads=2)
     return {

@@ -58,13 +58,14 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ValidateError
+from fppsim.errors import ConfigError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.validate.report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
                      validate_dataset, write_error_map)
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
 from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
+from fppsim.generation import GenerateConfig, generate_dataset
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "resolve_dataset", "evaluate_sample",
@@ -84,7 +85,6 @@ class ValidateConfig:
     or ``["noise=0,1", ...]``: the full grid of the given optics values, rendered into
     ``out/sweep/<setting>/``. ``edge_px``: width of the edge region for the edge/interior split (0: off).
     """
-
     out: str | os.PathLike
     dataset: str | os.PathLike | None = None
     meshes: Sequence[str] | None = None
@@ -122,7 +122,6 @@ class ValidateConfig:
 
 def _render(meshes, folder: Path, count: int, seed: int, config, noise_free: bool, workers: int, progress: bool,
             echo) -> None:
-    from fppsim.generation import generate_dataset
 
     summary = generate_dataset(meshes, folder, count, seed=seed, config=config, workers=workers,
                                noise_free=noise_free, progress=progress)
@@ -158,8 +157,6 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
         count = max(int(r["index"]) for r in read_records(root)) + 1
         base = {}
     else:
-        from fppsim.errors import ConfigError
-        from fppsim.generation import GenerateConfig
 
         try:
             synth = GenerateConfig(meshes=list(config.meshes), out=out, count=config.count, seed=config.seed,

@@ -20,6 +20,7 @@ from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import read_manifest, read_settings
 from fppsim.dataio.readers import load_native_sample, open_source
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
+from fppsim.plots import save_figure
 
 __all__ = ["resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
            "validate_dataset", "format_table", "format_sweep_table"]
@@ -89,7 +90,6 @@ def load_sample(root: Path, rec: dict) -> tuple[dict, dict | None]:
 # ====================================================================== aggregation
 class Pool:
     """Pooled statistics over samples (counts, sums of squares, histograms of |error|)."""
-
     COUNTS = ("n_valid", "n_accepted", "n_rejected", "n_order_errors", "n_order_errors_accepted",
               "n_order_errors_rejected", "n_rejected_correct_order", "n_edge", "n_interior")
 
@@ -182,7 +182,6 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     from matplotlib.figure import Figure
     from matplotlib.patches import Patch
 
-    from fppsim.plots import save_figure
 
     path = Path(path)
     ok = accepted & ~wrong

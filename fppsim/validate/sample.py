@@ -10,6 +10,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from fppsim.phase import psp
+from fppsim.rendering.synth import psp_decode
 
 __all__ = ["ORDER_ERROR_RAD", "evaluate_sample", "BREAKDOWN", "breakdown_fractions", "error_stats"]
 
@@ -115,8 +117,6 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
                 "p99_abs_mm_interior_excl_order_errors": e_int["p99_abs_mm"]})
 
     if stacks is not None and freqs:
-        from fppsim.phase import psp
-        from fppsim.rendering.synth import psp_decode
 
         if min_modulation is None:
             import inspect

@@ -9,6 +9,8 @@ import math
 from dataclasses import fields
 
 from fppsim.errors import ValidateError
+from fppsim.rendering.optics import OpticsRanges
+from fppsim.rendering.synth import SynthConfig
 
 __all__ = ["SWEEP_ALIASES", "DEFAULT_SWEEP", "parse_sweep", "sweep_settings", "ranges_with", "config_from_settings"]
 
@@ -18,7 +20,6 @@ DEFAULT_SWEEP = ("noise=0,0.5,1,2", "gamma=1,2.2")
 
 # ====================================================================== sweep
 def _optics_fields() -> dict:
-    from fppsim.rendering.optics import OpticsRanges
 
     return {f.name: getattr(OpticsRanges(), f.name) for f in fields(OpticsRanges)}
 
@@ -86,7 +87,6 @@ def _num(v) -> str:
 
 
 def ranges_with(ranges, fixed: dict):
-    from fppsim.rendering.optics import OpticsRanges
 
     d = ranges.to_dict()
     d.update(fixed)
@@ -96,8 +96,6 @@ def ranges_with(ranges, fixed: dict):
 # ====================================================================== sources
 def config_from_settings(settings: dict):
     """SynthConfig, meshes, seed, noise_free of a dataset's ``dataset.json`` (to re-render its scenes)."""
-    from fppsim.rendering.synth import SynthConfig
-
     try:
         config = SynthConfig.from_settings(settings)
         return config, list(settings["meshes"]), int(settings["seed"]), bool(settings.get("noise_free", False))

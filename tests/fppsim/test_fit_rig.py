@@ -9,7 +9,7 @@ from fppsim.fitting.fit_rig import fit_baseline
 from fppsim.fitting import height_sensitivity
 from fppsim.dataio import readers
 from fppsim.geometry.rig import Rig, RigError, make_parallel_rig
-from fppsim.phase.fringe import estimate_period
+from fppsim.phase.measure import estimate_period
 
 from _helpers import REAL_SAMPLE as REAL
 
@@ -147,7 +147,7 @@ def test_cli(tmp_path, capsys):
     for i, img in enumerate(_plane_images(truth, 2)):
         cv2.imwrite(str(tmp_path / f"frame_{i}.png"), img)
     out = tmp_path / "rig.json"
-    assert main(["fit-rig", str(tmp_path), "--out", str(out), "--params", "yaw,periods", "--json",
+    assert main(["fit-rig", str(tmp_path), "--out", str(out), "--base", "default", "--params", "yaw,periods", "--json",
                  str(tmp_path / "fit.json")]) == 0
     text = capsys.readouterr().out
     assert "measured" in text and "fitted" in text and "RMS residual" in text

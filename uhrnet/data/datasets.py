@@ -30,10 +30,11 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
 from fppsim.dataio.formats import PRESETS, LabelTransform, figshare_pair_paths
-from fppsim.dataio.readers import open_figshare_pair, open_source
+from fppsim.dataio.readers import (LABEL_SOURCES, check_figshare_arrays, open_figshare_pair, open_source,
+                                   read_fringe_image)
 from uhrnet.errors import DataError
-from fppsim.dataio.readers import LABEL_SOURCES, check_figshare_arrays, read_fringe_image
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
+from uhrnet.data.augment import augment_sample
 
 __all__ = [
     "FigshareArrays", "FppsimDataset", "open_dataset", "DatasetSubset", "MixedDataset", "MixedSampler", "Prepared",
@@ -387,7 +388,6 @@ class Prepared(Dataset):
         if self.resize is not None:
             sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
         if self.augment is not None and seed is not None and sample.get("source") == "synthetic":
-            from uhrnet.data.augment import augment_sample
 
             sample = augment_sample(sample, seed, self.augment)
         if self.crop is not None:

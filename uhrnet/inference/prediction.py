@@ -43,15 +43,19 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fppsim.dataio.encoding import as_image_stack, encode_fringe
-from fppsim.files import atomic_path
+from fppsim.dataio.encoding import as_image_stack, encode_fringe, json_default
+from fppsim.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
-from fppsim.dataio.readers import IMAGE_EXTS, read_fringe_image
-from fppsim.geometry.rig import check_image_size
+from fppsim.dataio.readers import IMAGE_EXTS, PSPMatError, open_source, read_fringe_image
+from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
+from uhrnet.physics.refine import REFINE_METHODS, refine_relief
+from fppsim.owned import claim
+from fppsim.dataio.rig_choice import resolve_rig
+from fppsim.phase.fringe_axis import oriented_single_shot_phase, rig_phase_gradient
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
@@ -129,7 +133,6 @@ class PredictConfig:
             self.inputs = [self.inputs]
         if self.refine not in (None, "none", "phase"):
             raise UsageError(f"--refine must be phase or none, got {self.refine!r}")
-        from uhrnet.physics.refine import REFINE_METHODS
 
         if self.refine_method not in REFINE_METHODS:
             raise UsageError(f"--refine-method must be one of {', '.join(REFINE_METHODS)}, got {self.refine_method!r}")
@@ -175,7 +178,6 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
-    from fppsim.dataio.readers import PSPMatError, open_source
 
     out: list[tuple[str, np.ndarray]] = []
     for item in items:
@@ -297,7 +299,6 @@ def predict(config: PredictConfig) -> PredictResult:
     size = parse_size(ckpt.get("args", {}).get("resize"))
     rig = None
     if config.rig:
-        from fppsim.geometry.rig import RigError, load_rig
 
         try:
             rig = load_rig(config.rig)
@@ -319,7 +320,6 @@ def predict(config: PredictConfig) -> PredictResult:
                 check_image_size(seen_by, fringe.shape, str(path), who=who, hint=hint, error=ConfigError)
     out = Path(config.out)
     out.mkdir(parents=True, exist_ok=True)
-    from fppsim.owned import claim
 
     names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
              ("_height.npy", "_height.tif", "_height.png")
@@ -353,8 +353,6 @@ def predict(config: PredictConfig) -> PredictResult:
     if result.refine:
         import json
 
-        from fppsim.files import atomic_write_text
-        from fppsim.dataio.encoding import json_default
 
         atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
     return result
@@ -364,7 +362,6 @@ def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
     """The rig ``--refine`` uses and its name: ``rig`` (``--rig``: a loaded rig named ``rig_path``, or a
     file), else the checkpoint's own (physics head or an adaptation's), else fppsim's default rig
     (:func:`fppsim.dataio.rig_choice.resolve_rig`)."""
-    from fppsim.dataio.rig_choice import resolve_rig
 
     own = ckpt["model"]["config"].get("rig") or ckpt.get("adapt", {}).get("rig")
     return resolve_rig(rig, name=None if rig_path is None else str(rig_path), checkpoint_rig=own,
@@ -376,8 +373,6 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     along the camera rows (vertical fringes) or down the columns (horizontal fringes: a projector above or
     below the camera) as the rig's reference-plane phase does (:func:`fppsim.phase.single_shot.single_shot_phase`
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
-    from fppsim.geometry.rig import Rig
-    from fppsim.phase.fringe_axis import oriented_single_shot_phase, rig_phase_gradient
 
     # the plane phase's gradient at the image centre: a few points of the forward model, no layer
     r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
@@ -393,7 +388,6 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
-    from uhrnet.physics.refine import refine_relief
 
     ssp = fringe_phase(fringe, rig)
     valid = np.isfinite(height_mm) & ssp.valid

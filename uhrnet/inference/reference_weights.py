@@ -32,7 +32,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 
 from fppsim.files import tmp_path, unlink_quietly
@@ -41,8 +40,7 @@ from fppsim.dataio.formats import PRESETS, LabelTransform
 from uhrnet.checkpoint import FORMAT, VERSION, atomic_save, checkpoint_kind, model_from_checkpoint, output_mm, save_epoch
 from uhrnet.errors import CheckpointError, ConfigError, ExportError, UsageError
 from uhrnet.inference.export_check import check_input, compare_outputs
-from uhrnet.models import count_parameters
-from uhrnet.models import ALIASES, build_model
+from uhrnet.models import ALIASES, build_model, count_parameters
 from uhrnet.models.heads import DEFAULT_HEAD
 from uhrnet.models.uhrnet import UHRNet
 from uhrnet.run_folder import (BEST_PT, CONFIG_JSON, IMPORT_TOOL, LAST_PT, RUN_FILES, TRAINED_FILES, claim_run_folder,

@@ -23,6 +23,13 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
+from uhrnet.errors import ConfigError
+from uhrnet.models import ALIASES, ARCHITECTURES, build_model, count_parameters, list_models, outputs_of, prediction_of
+from uhrnet.scoring.timing import peak_memory_bytes, time_call
+from uhrnet.inference.deploy import prepare_for_inference
+from uhrnet.device import select_device
+from fppsim.files import atomic_write_text, check_writable_dir
+from uhrnet.inference.export import export_model, onnx_runner
 
 DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
 REFERENCE_WIDTH = 64  # the default base width of uhrnet and unet, which --base-channels replaces
@@ -58,9 +65,6 @@ class BenchConfig:
     json: str | Path | None = None
 
     def __post_init__(self):
-        from uhrnet.errors import ConfigError
-        from uhrnet.models import list_models
-
         unknown = [m for m in self.models if m.lower() not in list_models()]
         if unknown:
             raise ConfigError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
@@ -76,7 +80,6 @@ class BenchConfig:
         if self.compile:
             self.warmup = max(self.warmup, 2)
         if self.json is not None:  # fail now, not after minutes of timing
-            from fppsim.files import check_writable_dir
 
             path = Path(self.json)
             if path.is_dir():
@@ -91,7 +94,6 @@ def build_scaled(name: str, base_channels: int | None):
     """``build_model(name)``, with every width scaled by ``base_channels / 64`` when given."""
     import inspect
 
-    from uhrnet.models import ALIASES, ARCHITECTURES, build_model
 
     if base_channels is None:
         return build_model(name)
@@ -108,9 +110,6 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
     dict, the callable of the fastest deployable form is left in it (``{form: callable}``)."""
     import torch
 
-    from uhrnet.models import count_parameters
-    from uhrnet.models import outputs_of
-    from uhrnet.scoring.timing import peak_memory_bytes, time_call
 
     model = build_scaled(name, args.base_channels).to(device)
     params = count_parameters(model)
@@ -193,7 +192,6 @@ def measure(name: str, args, device, runners: dict | None = None) -> dict:
 def _rel_diff(out, reference) -> float:
     import torch
 
-    from uhrnet.models import prediction_of
 
     out, ref = prediction_of(out), prediction_of(reference)
     span = float(ref.max() - ref.min())
@@ -213,14 +211,11 @@ def optimize_variants(model, x, reference, args, device, runners: dict | None = 
 
     import torch
 
-    from uhrnet.scoring.timing import time_call
-    from uhrnet.inference.deploy import prepare_for_inference
 
     out = {}
     for form in args.variants:
         try:
             if form in RUNTIME_FORMS:
-                from uhrnet.inference.export import export_model, onnx_runner
 
                 with tempfile.TemporaryDirectory() as tmp:
                     path = export_model(model, f"{tmp}/m.onnx", "onnx", tuple(x.shape))
@@ -258,8 +253,6 @@ def paired_times(a: Callable[[], object], b: Callable[[], object], device, warmu
     Returns ``{"a_ms", "b_ms", "ratio", "pair_ratios"}``: the median ms of each, ``a_ms / b_ms`` and the
     ratio within every pair (their spread shows how steady the machine was).
     """
-    from uhrnet.scoring.timing import time_call
-
     for fn in (a, b):
         time_call(fn, device, warmup, 1)
     ta, tb = [], []
@@ -318,8 +311,6 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
     Returns the report (also written to ``args.json`` when given)."""
     import torch
 
-    from uhrnet.device import select_device
-    from uhrnet.errors import ConfigError
 
     device = select_device(args.device)
     if args.optimize and "compile" in args.variants and device.type == "cpu":
@@ -411,7 +402,6 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "memory": memory_note,
     }
     if args.json is not None:
-        from fppsim.files import atomic_write_text
 
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)

@@ -28,6 +28,11 @@ from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import Prepared, load_sources, parse_size
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, UsageError
+from uhrnet.inference.prediction import predict_labels
+from uhrnet.models import count_parameters
+from uhrnet.scoring.metrics import image_metrics
+from uhrnet.scoring.timing import inference_seconds
+from uhrnet.plots import plot_comparison
 
 __all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "SPLITS"]
 
@@ -152,11 +157,6 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     ``row``) there. ``timing_repeats`` timed forward passes at batch 1 per model (0: no timing)."""
     from tqdm import tqdm
 
-    from uhrnet.inference.prediction import predict_labels
-    from uhrnet.models import count_parameters
-    from uhrnet.scoring.metrics import image_metrics
-    from uhrnet.scoring.timing import inference_seconds
-    from uhrnet.plots import plot_comparison
 
     data = data or EvalData()
     for flag, value, lowest in (("--batch-size", batch_size, 1), ("--figures", figures, 0),

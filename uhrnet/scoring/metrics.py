@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
-from torch import nn
+
 import torch.nn.functional as F
 
 ArrayLike = torch.Tensor | np.ndarray

@@ -44,6 +44,14 @@ import numpy as np
 from fppsim.files import atomic_write_text
 from fppsim.phase.plane import poly_basis, poly_terms
 from uhrnet.errors import ConfigError
+from uhrnet.plots import pyplot, save_figure
+from fppsim.errors import PSPMatError
+from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.data.datasets import parse_size
+from uhrnet.device import select_device
+from uhrnet.scoring.evaluation import model_names
+from uhrnet.inference.prediction import predict_labels
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
            "markdown", "plot_phase_residuals"]
@@ -52,7 +60,6 @@ __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evalua
 @dataclass
 class PhaseFit:
     """Result of :func:`fit_phase` for one image (see the module docstring for the meaning)."""
-
     rmse_rad: float
     relief_rms_rad: float
     explained: float
@@ -178,7 +185,6 @@ def evaluate_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray |
 @dataclass
 class PhaseEvalConfig:
     """What ``uhrnet evaluate-phase`` does; the fields are its flags (see :mod:`uhrnet.cli`)."""
-
     checkpoints: list
     phase_root: str | Path
     out: str | Path
@@ -223,8 +229,6 @@ def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) 
 def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, residuals: dict, path: Path,
                          title: str = "") -> Path:
     """One row per model: predicted height (mm) and residual phase (rad); the top row: image and relief."""
-    from uhrnet.plots import pyplot, save_figure
-
     plt = pyplot()
     rows = 1 + len(heights)
     fig, axes = plt.subplots(rows, 2, figsize=(10, 2.9 * rows), squeeze=False)
@@ -259,13 +263,6 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     per image (None: silent)."""
     import torch
 
-    from fppsim.errors import PSPMatError
-    from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample
-    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.data.datasets import parse_size
-    from uhrnet.device import select_device
-    from uhrnet.scoring.evaluation import model_names
-    from uhrnet.inference.prediction import predict_labels
 
     echo = echo or (lambda line: None)
     try:

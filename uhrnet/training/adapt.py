@@ -49,11 +49,20 @@ import numpy as np
 import torch
 
 from fppsim.phase import circular_mean, wrap
-from fppsim.geometry.rig import check_image_size
+from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import ConfigError, UsageError
-from uhrnet.physics.rig_layer import wrap as wrap_t
+from uhrnet.physics.rig_layer import RigLayer, wrap as wrap_t
 from uhrnet.run_folder import (CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, claim_run_folder, refuse_own_source,
                                write_history, write_run_config)
+from uhrnet.inference.prediction import fringe_phase, labels_at_input_size, read_inputs, refine_rig_for
+from fppsim.owned import output_folder
+from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
+from fppsim.dataio.encoding import json_default
+from fppsim.files import atomic_write_text
+from uhrnet.data.datasets import parse_size
+from uhrnet.device import select_device
+from uhrnet.training.tb_log import RunLog, TB_FOLDER, check_event_files, remove_own_event_files, require_tensorboard
+from uhrnet.plots import plot_adaptation
 
 __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "image_phase", "ADAPT_COLUMNS"]
 
@@ -80,7 +89,6 @@ class AdaptConfig:
         reliability of a pixel lies in [0, 1]).
     device : ``auto`` (cuda when available, as ``uhrnet train``), ``cpu`` or ``cuda``.
     """
-
     checkpoint: str | Path
     images: Sequence[str | Path]
     out: str | Path
@@ -122,7 +130,6 @@ class AdaptConfig:
         if self.w_grad == 0:
             raise UsageError("adapt needs its phase term: --w-grad must be > 0")
         if self.tensorboard:
-            from uhrnet.training.tb_log import require_tensorboard
 
             require_tensorboard()
 
@@ -146,7 +153,6 @@ class AdaptResult:
 @dataclass
 class ImagePhase:
     """One unlabelled image ready for adaptation (all (H, W) float32)."""
-
     name: str
     fringe: np.ndarray  # dataset encoding, [-1, 1]
     wrapped: np.ndarray  # rad, fppsim's phase_true convention up to a constant
@@ -156,7 +162,6 @@ class ImagePhase:
 def image_phase(name: str, fringe: np.ndarray, rig) -> ImagePhase:
     """The single-shot phase of ``fringe`` (dataset encoding) in ``rig``'s phase direction, with its
     reliability (0 on shadows: dark runs, the dataset's marker)."""
-    from uhrnet.inference.prediction import fringe_phase
 
     ssp = fringe_phase(np.asarray(fringe, np.float64), rig, name)
     rel = np.where(ssp.valid, ssp.reliability, 0.0).astype(np.float32)
@@ -202,9 +207,6 @@ def median_wrapped_residual(height_mm: np.ndarray, img: ImagePhase, layer, min_r
 
 def _rig_for(cfg: AdaptConfig, ckpt: dict):
     """The rig and its name: ``--rig``, else the checkpoint's own, else fppsim's default (as predict's refine)."""
-    from fppsim.geometry.rig import RigError
-    from uhrnet.inference.prediction import refine_rig_for
-
     try:
         return refine_rig_for(ckpt, cfg.rig)
     except RigError as exc:
@@ -214,7 +216,6 @@ def _rig_for(cfg: AdaptConfig, ckpt: dict):
 def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     """Fine-tune ``cfg.checkpoint`` on ``cfg.images`` without labels (module docstring); writes the
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
-    from fppsim.owned import output_folder
 
     refuse_own_source(Path(cfg.out), cfg.checkpoint, "RUN")
     with output_folder(cfg.out, ADAPT_TOOL, error=ConfigError):
@@ -224,7 +225,6 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
 def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
     """The adaptation in ``out`` to continue, or None for a fresh one; refused (one line naming the
     option) when it was made with other options or from another state of the source checkpoint."""
-    from uhrnet.checkpoint import load_checkpoint
 
     if not (out / LAST_PT).exists() or cfg.overwrite:
         return None
@@ -251,13 +251,6 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
 
 
 def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
-    from fppsim.dataio.encoding import json_default
-    from fppsim.files import atomic_write_text
-    from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
-    from uhrnet.data.datasets import parse_size
-    from uhrnet.device import select_device
-    from uhrnet.inference.prediction import labels_at_input_size, read_inputs
-    from uhrnet.physics.rig_layer import RigLayer
 
     out = Path(cfg.out)
     source = load_checkpoint(cfg.checkpoint, digest=True)
@@ -276,7 +269,6 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     claim_run_folder(out, ADAPT_TOOL, names, checkpoint_kind, kind="adapt")  # never replaces a file it did not write
     resume_from = _resume_from(cfg, out, source)
     if cfg.tensorboard and resume_from is None:  # foreign event files in tensorboard/: refused before any write
-        from uhrnet.training.tb_log import check_event_files
 
         check_event_files(out, ADAPT_TOOL)
     model, transform = model_from_checkpoint(source, device)
@@ -317,7 +309,6 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         from tqdm import tqdm
 
         bar = tqdm(total=(cfg.epochs - start) * len(images), desc="adapt", unit="step", dynamic_ncols=True)
-    from uhrnet.training.tb_log import TB_FOLDER, RunLog, remove_own_event_files
 
     if start == 0 and not cfg.tensorboard:  # a replaced adaptation's own curves go (with --tensorboard: RunLog)
         remove_own_event_files(out, ADAPT_TOOL)
@@ -378,7 +369,6 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         result.images.append({"name": im.name, "before_rad": b, "after_rad": after,
                               "mean_change_mm": float(np.mean(np.abs(h1 - h0)[im.reliability > 0]))})
         if cfg.figures:
-            from uhrnet.plots import plot_adaptation
 
             result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
     atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))

@@ -48,6 +48,8 @@ from pathlib import Path
 import numpy as np
 
 from uhrnet.errors import UsageError
+from uhrnet.training.losses import Loss
+from fppsim.owned import ForeignFiles, forget, owners, record_created
 
 __all__ = ["TB_FOLDER", "INSTALL_HINT", "require_tensorboard", "check_event_files", "remove_own_event_files",
            "RunLog"]
@@ -75,7 +77,6 @@ class RunLog:
     is recorded as its own in the run's ownership record, and at step 0 the event files it recorded earlier
     are removed and foreign ones refused (module docstring); None: no record, nothing removed.
     """
-
     def __init__(self, folder: str | Path | None = None, start_step: int = 0, loss=None, tool: str | None = None):
         self.writer = None
         self._terms: dict = {}
@@ -101,8 +102,6 @@ class RunLog:
         return self.writer is not None
 
     def _watch(self, loss) -> None:
-        from uhrnet.training.losses import Loss
-
         for name, module in loss.named_modules():
             if name and isinstance(module, Loss):
                 self._hooks.append(module.register_forward_hook(
@@ -200,7 +199,6 @@ def check_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> None:
     """Refuse (:class:`fppsim.errors.ForeignFiles`, one line naming the file) a fresh ``--tensorboard`` run
     of ``tool`` in ``run`` whose ``run/sub`` holds an event file the ownership record does not give to
     ``tool``: it would show as this run's curves, and only its writer may delete it."""
-    from fppsim.owned import ForeignFiles, owners
 
     run = Path(run)
     record = owners(run) or {}
@@ -217,7 +215,6 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
     """Delete the event files in ``run/sub`` that ``run``'s ownership record says ``tool`` wrote (the
     curves of the run a fresh one replaces) and drop them from the record; files it does not give to
     ``tool`` stay. Returns the removed paths."""
-    from fppsim.owned import forget, owners
 
     run = Path(run)
     record = owners(run)
@@ -239,7 +236,6 @@ def remove_own_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> 
 def _record(run: Path, tool: str, name: str) -> None:
     """Record ``name`` (the event file the writer has just created under a new name) as ``tool``'s in
     ``run``'s ownership record (the run's claims came first, under the run folder's lock)."""
-    from fppsim.owned import record_created
 
     record_created(run, tool, name)
 

@@ -11,9 +11,13 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
-from fppsim.dataio.formats import LabelTransform
+from fppsim.dataio.formats import LabelTransform, PRESETS
 from uhrnet.data.datasets import parse_size
-from uhrnet.errors import ConfigError, DataError, UsageError
+from uhrnet.errors import CheckpointError, ConfigError, DataError, UsageError
+from fppsim.dataio.readers import LABEL_SOURCES
+from uhrnet.data.splits import SPLIT_MODES
+from uhrnet.training.losses import LOSSES
+from uhrnet.models import list_models
 
 __all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "check_options", "resolve_config",
            "label_transform_from", "parse_kv"]
@@ -87,7 +91,6 @@ class TrainConfig:
     ``progress``, free to change on resume). Checks itself on construction: :class:`UsageError` for a value that is wrong
     on its own (the command line exits 2), :class:`ConfigError` otherwise.
     """
-
     out: str | os.PathLike
     real: list | None = None
     synthetic: list | None = None
@@ -131,7 +134,7 @@ class TrainConfig:
 
     def __post_init__(self):
         if self.tensorboard:  # a missing optional package stops the run before anything is read or written
-            from uhrnet.training.tb_log import require_tensorboard
+            from uhrnet.training.tb_log import require_tensorboard  # lazy: train_config loads without torch (the CLI reads it before torch)
 
             require_tensorboard()
         for key in ("real", "synthetic"):
@@ -147,11 +150,6 @@ class TrainConfig:
 def check_options(cfg: dict) -> None:
     """Raise :class:`ConfigError` (:class:`UsageError` for a value wrong on its own) naming the flag
     of the first invalid option in ``cfg``."""
-    from fppsim.dataio.formats import PRESETS
-    from fppsim.dataio.readers import LABEL_SOURCES
-    from uhrnet.data.splits import SPLIT_MODES
-    from uhrnet.training.losses import LOSSES
-    from uhrnet.models import list_models
 
     choices = {"model": list_models(), "loss": list(LOSSES), "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
                "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
@@ -177,7 +175,7 @@ def check_options(cfg: dict) -> None:
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
     if "augment" in cfg:
-        from uhrnet.data.augment import augment_config
+        from uhrnet.data.augment import augment_config  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         try:
             augment_config(cfg["augment"])
@@ -192,12 +190,12 @@ def check_options(cfg: dict) -> None:
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
         raise UsageError(f"--ema must be a decay in [0, 1) (0: off), got {cfg['ema']}")
     if "init" in cfg:
-        from uhrnet.models.init import INITS
+        from uhrnet.models.init import INITS  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         if cfg["init"] not in INITS:
             raise UsageError(f"--init must be one of {', '.join(INITS)}, got {cfg['init']!r}")
     if "freeze" in cfg:
-        from uhrnet.models.freeze import FREEZE_CHOICES
+        from uhrnet.models.freeze import FREEZE_CHOICES  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         if cfg["freeze"] not in FREEZE_CHOICES:
             raise UsageError(f"--freeze must be one of {', '.join(FREEZE_CHOICES)}, got {cfg['freeze']!r}")
@@ -249,15 +247,14 @@ def _normalise(key: str, value):
     if key == "init_from":  # the checkpoint file itself, however it was named (file or run folder)
         if not value:
             return None
-        from uhrnet.checkpoint import checkpoint_file
-        from uhrnet.errors import CheckpointError
+        from uhrnet.checkpoint import checkpoint_file  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         try:
             return str(checkpoint_file(Path(value).resolve()))
         except CheckpointError:  # a folder that no longer holds a checkpoint: compare the names
             return str(Path(value).resolve())
     if key == "augment":  # runs saved before the augmentation kinds hold a boolean
-        from uhrnet.data.augment import augment_kind
+        from uhrnet.data.augment import augment_kind  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         return augment_kind(value)
     return value

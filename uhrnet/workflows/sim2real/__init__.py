@@ -46,10 +46,8 @@ twins, level response) and
 
 from uhrnet.errors import Sim2RealError
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
-from uhrnet.workflows.sim2real.metrics import (
-    fringe_twins, level_response, object_mask, plane_level, real_metrics, twin_metrics,
-)
-from uhrnet.workflows.sim2real.metrics import error_split, object_regions
+from uhrnet.workflows.sim2real.metrics import (error_split, fringe_twins, level_response, object_mask, object_regions,
+                                               plane_level, real_metrics, twin_metrics)
 from uhrnet.workflows.sim2real.report import markdown_report, plot_real
 from uhrnet.workflows.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs, refine_labels,

@@ -20,6 +20,9 @@ from dataclasses import dataclass, field, fields
 
 from fppsim.dataio.encoding import json_default
 from uhrnet.errors import Sim2RealError, UsageError
+from fppsim.geometry.rig import RigError, data_path, load_rig
+from uhrnet.physics.refine import REFINE_METHODS
+from uhrnet.data.splits import MIN_REFERENCE_SPLIT
 
 __all__ = ["SCALES", "Variant", "Sim2RealConfig", "data_key", "generate_workers"]
 
@@ -43,18 +46,17 @@ _OWN = {"generate": ("out", "progress"), "train": ("out", "resume", "overwrite",
 
 def _packaged_meshes() -> str:
     """The meshes shipped with fppsim (``assets/meshes``), wherever the package is installed."""
-    from fppsim.geometry.rig import data_path
-
     return str(data_path("meshes"))
 
 
 def _field_names(kind: str) -> set[str]:
+    # lazy: the renderer's modules load only when a variant is checked, not when the CLI starts
     if kind == "generate":
-        from fppsim.generation import GenerateConfig as cls
+        from fppsim.generation import GenerateConfig as cls  # lazy: loads the renderer
     elif kind == "adapt":
-        from uhrnet.training.adapt import AdaptConfig as cls
+        from uhrnet.training.adapt import AdaptConfig as cls  # lazy: loads torch
     else:
-        from uhrnet.training.train_config import TrainConfig as cls
+        from uhrnet.training.train_config import TrainConfig as cls  # lazy, like the two above
     return {f.name for f in fields(cls)}
 
 
@@ -70,7 +72,6 @@ class Variant:
     generate_flags, train_flags, adapt_flags : the same changes as the user wrote them (e.g.
         ``["--pedestal", "0"]``), shown in the report; None: shown as ``field=value``.
     """
-
     name: str
     generate: dict = field(default_factory=dict)
     train: dict = field(default_factory=dict)
@@ -83,7 +84,6 @@ class Variant:
     def __post_init__(self):
         if not self.name or any(c in self.name for c in "/\\ \t") or self.name.startswith("."):
             raise Sim2RealError(f"variant name {self.name!r} must be a non-empty word without slashes or spaces")
-        from uhrnet.physics.refine import REFINE_METHODS
 
         self.refine = [self.refine] if isinstance(self.refine, str) else list(self.refine or [])
         bad = [m for m in self.refine if m not in REFINE_METHODS]
@@ -134,7 +134,6 @@ class Sim2RealConfig:
         its dataset must have ``count`` samples and, where recorded, ``seed``). A run folder copied to
         ``out/<variant>/run`` is taken the same way.
     """
-
     out: str
     real: list[str]
     meshes: list[str] = field(default_factory=lambda: [_packaged_meshes()])
@@ -175,7 +174,6 @@ class Sim2RealConfig:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
             raise UsageError(f"--object-mm must be > 0 mm, got {self.object_mm}")
-        from uhrnet.data.splits import MIN_REFERENCE_SPLIT
 
         for v in self.variants:  # the synthetic validation split is the reference one unless a variant says otherwise
             n = int(v.generate.get("count", self.count))
@@ -190,7 +188,6 @@ class Sim2RealConfig:
         if self.adapt_images is not None and not self.adapt_images:
             raise Sim2RealError("adapt_images: give at least one image or folder (None: the real folders)")
         if self.rig is not None:  # a rig that cannot measure is refused now, not after generating and training
-            from fppsim.geometry.rig import RigError, load_rig
 
             try:
                 load_rig(self.rig)

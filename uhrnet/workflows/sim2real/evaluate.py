@@ -25,8 +25,18 @@ import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe
 from fppsim.files import atomic_write_text
-from fppsim.geometry.rig import check_image_size
-from uhrnet.errors import Sim2RealError
+from fppsim.geometry.rig import RigError, check_image_size
+from uhrnet.errors import DataError, Sim2RealError
+from fppsim.dataio.readers import load_psp_folder_sample, open_source
+from uhrnet.data.datasets import load_sources, open_dataset, parse_size
+from fppsim.errors import PSPMatError
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+from uhrnet.device import select_device
+from uhrnet.inference.prediction import predict_labels, refine_rig_for, refine_with_phase
+from uhrnet.physics.refine import REFINE_METHODS
+from uhrnet.workflows.sim2real.metrics import error_split, level_response, object_mask, real_metrics, twin_metrics
+from uhrnet.workflows.sim2real.report import plot_real
+from uhrnet.scoring.phase_residual import evaluate_phase
 
 __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_real", "evaluate_real_phase",
            "evaluate_level"]
@@ -34,10 +44,6 @@ __all__ = ["find_real_pairs", "find_phase_frames", "refine_labels", "evaluate_re
 
 def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
     """Open each labelled real folder (any labelled layout) as a dataset; error names a folder that is not one."""
-    from fppsim.dataio.readers import open_source
-    from uhrnet.data.datasets import open_dataset
-    from uhrnet.errors import DataError
-
     out = []
     for f in folders:
         if not open_source(f).labelled:
@@ -53,8 +59,6 @@ def find_real_pairs(folders: Sequence[str]) -> list[tuple[str, object]]:
 def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
     """``[(folder, id), ...]`` of every frame of the real phase-shifting folders; error names a folder that is
     not one (``PSin/ PCos/ Fringe/ iPattern/`` with one ``<id>.mat`` each)."""
-    from fppsim.errors import PSPMatError
-    from fppsim.dataio.readers import open_source
 
     out = []
     for f in folders:
@@ -69,9 +73,6 @@ def find_phase_frames(folders: Sequence[str]) -> list[tuple[str, str]]:
 
 
 def _model(checkpoint, device: str):
-    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
-    from uhrnet.data.datasets import parse_size
-    from uhrnet.device import select_device
 
     ck = load_checkpoint(checkpoint)
     model, transform = model_from_checkpoint(ck, select_device(device))
@@ -82,9 +83,6 @@ def _refine_rig(ck: dict, refine: str | None, rig: str | Path | None):
     """The rig ``refine`` uses (None without ``refine``) and its name."""
     if refine is None:
         return None, None
-    from fppsim.geometry.rig import RigError
-    from uhrnet.inference.prediction import refine_rig_for
-    from uhrnet.physics.refine import REFINE_METHODS
 
     if refine not in REFINE_METHODS:
         raise Sim2RealError(f"refine method {refine!r} unknown (known: {', '.join(REFINE_METHODS)})")
@@ -98,7 +96,6 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     """``(labels, stats)``: predicted labels (H, W) after ``--refine phase --refine-method method`` on the
     image ``fringe`` (dataset encoding) through ``rig``; pixels the prediction marks invalid (or a black input)
     keep their label."""
-    from uhrnet.inference.prediction import refine_with_phase
 
     check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
                      error=Sim2RealError)
@@ -124,9 +121,6 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
     """
     import torch
 
-    from uhrnet.inference.prediction import predict_labels
-    from uhrnet.workflows.sim2real.metrics import error_split, object_mask, real_metrics, twin_metrics
-    from uhrnet.workflows.sim2real.report import plot_real
 
     out = Path(out)
     pairs = find_real_pairs(real)
@@ -176,12 +170,8 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
     on every frame of the real phase-shifting ``folders``; writes and returns ``out/real_phase.json``:
     ``{"checkpoint", "refine", "frames": [{"folder", "id", "rmse_rad", "explained", "flat_rmse_rad",
     "pixel_fraction", ...}], "mean_rmse_rad"}``."""
-    from fppsim.errors import PSPMatError
-    from fppsim.dataio.readers import load_psp_folder_sample
     import torch
 
-    from uhrnet.scoring.phase_residual import evaluate_phase
-    from uhrnet.inference.prediction import predict_labels
 
     frames = find_phase_frames(folders)
     ck, model, transform, size = _model(checkpoint, device)
@@ -222,8 +212,6 @@ def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | 
     ``synthetic`` folders (split as the run split them); writes and returns ``out/synthetic_level.json``."""
     import torch
 
-    from uhrnet.data.datasets import load_sources
-    from uhrnet.workflows.sim2real.metrics import level_response
 
     ck, model, transform, size = _model(checkpoint, device)
     args = ck.get("args", {})

@@ -56,6 +56,7 @@ import numpy as np
 from fppsim.phase.plane import plane_level, poly_basis  # plane_level re-exported: the one plane level of both packages
 from fppsim.phase import lowpass
 from uhrnet.errors import Sim2RealError
+from uhrnet.inference.prediction import predict_labels
 
 __all__ = ["plane_level", "object_mask", "real_metrics", "fringe_twins", "twin_metrics", "level_response",
            "object_regions", "error_split"]
@@ -240,8 +241,6 @@ def level_response(model, samples, units_per_mm: float = 6.0, object_mm: float =
     "prior_level_mm", "shape_rmse_mm" (RMS over objects of the error's standard deviation, i.e. the
     error without each object's bias), "n_objects", "objects": [[h, b], ...]}`` (NaN without 2 objects).
     """
-    from uhrnet.inference.prediction import predict_labels
-
     rows = []
     for s in samples:
         label = s["height"][0].numpy()
@@ -274,7 +273,6 @@ def twin_metrics(model, fringe: np.ndarray, pred: np.ndarray, label: np.ndarray,
     """
     import torch
 
-    from uhrnet.inference.prediction import predict_labels
 
     obj, _ = object_mask(label, valid, units_per_mm, object_mm, plane)
     near = valid & (np.abs(np.asarray(label, np.float64) - plane) <= 2.0 * units_per_mm)

@@ -43,6 +43,13 @@ from uhrnet.workflows.sim2real.evaluate import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs,
 )
 from uhrnet.workflows.sim2real.report import markdown_report
+from fppsim.dataio.formats import PRESETS, read_settings
+from fppsim.generation import GenerateConfig, generate
+from uhrnet.training.train_config import DEFAULTS, LEGACY, LOCKED, TrainConfig
+from uhrnet.training.adapt import AdaptConfig, adapt
+from fppsim.dataio.readers import open_source
+from uhrnet.training.trainer import train
+from fppsim.owned import claim
 
 __all__ = ["generate_config", "train_config", "adapt_config", "run_differences", "find_real_pairs", "evaluate_real",
            "evaluate_real_phase", "evaluate_level", "run_sim2real"]
@@ -54,8 +61,6 @@ def generate_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path):
     """The :class:`fppsim.generation.GenerateConfig` of ``variant``'s dataset in folder ``data``: the
     recipe (``cfg``'s meshes, count, seed and workers; figshare format with the figshare label
     transform, no phase-shifting images, a preview, no progress bar) and the variant's overrides."""
-    from fppsim.dataio.formats import PRESETS
-    from fppsim.generation import GenerateConfig
 
     base = dict(meshes=list(cfg.meshes), out=str(data), count=cfg.count, seed=cfg.seed,
                 workers=generate_workers(cfg), format="figshare", psp_freqs=(), label=PRESETS["figshare"],
@@ -71,7 +76,6 @@ def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: s
     dataset ``data`` alone: ``cfg``'s model, width, loss, epochs, batch size, learning rate and device,
     the scale's own options (:data:`SCALES`), then the variant's overrides; ``resume`` continues an
     interrupted run."""
-    from uhrnet.training.train_config import TrainConfig
 
     base = dict(out=str(run), synthetic=[str(data)], model=cfg.model, base_channels=cfg.base_channels,
                 loss=cfg.loss, epochs=cfg.epochs, batch_size=cfg.batch_size, lr=cfg.lr, device=cfg.device,
@@ -100,7 +104,6 @@ def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, 
     """The :class:`uhrnet.training.adapt.AdaptConfig` of ``variant``'s adaptation of ``checkpoint`` in folder ``out``:
     on ``cfg.adapt_images`` (default: the real and real phase-shifting folders; never their labels) through
     ``cfg.rig``, then the variant's ``adapt`` overrides."""
-    from uhrnet.training.adapt import AdaptConfig
 
     images = list(cfg.adapt_images) if cfg.adapt_images else [*cfg.real, *cfg.real_phase]
     base = dict(checkpoint=str(checkpoint), images=images, out=str(out), rig=cfg.rig, progress=False,
@@ -120,9 +123,6 @@ def run_differences(run: str | Path, tr, count: int | None = None, seed: int | N
     make: its recorded training options (``config.json``: every option a resume locks, and epochs, lr,
     weight decay, gradient clipping, AMP; not the dataset's path, device or workers) and its dataset (sample
     count ``count`` and, where the dataset records it, generator ``seed``). Empty: the same run."""
-    from fppsim.dataio.formats import read_settings
-    from fppsim.dataio.readers import open_source
-    from uhrnet.training.train_config import DEFAULTS, LEGACY, LOCKED
 
     run = Path(run)
     try:
@@ -241,10 +241,6 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
     the top of the stage logs (the ``uhrnet sim2real`` command passes the equivalent command lines); without
     it the stages' configs are stored.
     """
-    from fppsim.generation import generate
-    from uhrnet.training.adapt import adapt
-    from uhrnet.training.trainer import train
-
     say = log or (lambda line: None)
     out = Path(cfg.out)
     find_real_pairs(cfg.real)  # fail early on bad real folders, before anything is written
@@ -258,7 +254,6 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
             adapt_config(cfg, var, run / LAST_PT, out / var.name / "adapt")
         plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
     out.mkdir(parents=True, exist_ok=True)
-    from fppsim.owned import claim
 
     # the experiment's own files (its stages claim theirs): never one it did not write
     claim(out, "uhrnet sim2real", ["report.json", "report.md"] + [f"{v.name}/timing.json" for v in cfg.variants])
