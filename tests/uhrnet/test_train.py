@@ -126,8 +126,12 @@ def test_cli_errors(tmp_path, capsys):
     assert "no data" in capsys.readouterr().err
     assert main(base + ["--real", str(tmp_path / "nope"), "--out", str(tmp_path / "r1")]) == 1
     assert "nope: folder not found" in capsys.readouterr().err
-    assert main(base + ["--real", str(tmp_path / "odd"), "--out", str(tmp_path / "r2")]) == 1
-    assert "multiples of 16" in capsys.readouterr().err
+    # any size trains (issue 38: padded inside the model to multiples of 16); below 16 px is refused
+    assert main(base + ["--real", str(tmp_path / "odd"), "--out", str(tmp_path / "r2")]) == 0
+    capsys.readouterr()
+    write_figshare(tmp_path / "tiny", n=8, h=12, w=40)
+    assert main(base + ["--real", str(tmp_path / "tiny"), "--out", str(tmp_path / "r2b")]) == 1
+    assert "at least 16 x 16 pixels" in capsys.readouterr().err
     assert main(base + ["--real", str(tmp_path / "real"), "--crop", "16", "--out", str(tmp_path / "r3")]) == 1
     assert "--crop" in capsys.readouterr().err
     assert main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "ok")]) == 0

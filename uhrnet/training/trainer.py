@@ -27,10 +27,10 @@ import torch
 import torch.distributed as dist
 from torch.utils.data import DataLoader
 
-from fppsim.geometry.rig import check_image_size
+from fppsim.geometry.rig import RigError, check_image_size
 from fppsim.owned import output_folder
-from uhrnet.checkpoint import (FORMAT, VERSION, LabelHead, checkpoint_kind, load_checkpoint, rng_state, save_epoch,
-                               set_rng_state)
+from uhrnet.checkpoint import (FORMAT, LabelHead, VERSION, checkpoint_kind, init_from_checkpoint, load_checkpoint,
+                               output_mm, rng_state, save_epoch, set_rng_state)
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import select_device
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, STEP_FIELDS, LossContext, build_head_loss, build_loss
@@ -38,11 +38,15 @@ from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_d
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
 from uhrnet.scoring.metrics import image_metrics
 from uhrnet.models import HEADS, build_model, count_parameters, outputs_of
-from uhrnet.models.freeze import keep_frozen_eval
+from uhrnet.models.freeze import freeze, keep_frozen_eval
 from uhrnet.run_folder import (BEST_PT, HISTORY_CSV, LAST_PT, RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder,
                                package_version, refuse_own_source, write_history, write_run_config)
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
 from uhrnet.training.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
+from uhrnet.data.augment import augment_config
+from uhrnet.models.init import init_weights
+from uhrnet.models.any_size import any_size
+from uhrnet.training.ema import WeightEMA
 
 __all__ = ["TrainConfig", "Trainer", "train"]
 
@@ -95,7 +99,6 @@ class Trainer:
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
 
-        from uhrnet.data.augment import augment_config
 
         augment = augment_config(cfg["augment"])
         if augment is not None:
@@ -106,10 +109,9 @@ class Trainer:
             raise ConfigError("no training samples: every sample is in the val/test split "
                            "(check --real-split/--synthetic-split)")
         shape = tuple(self.train_set[0]["fringe"].shape[-2:])
-        if shape[0] % 16 or shape[1] % 16:
-            raise ConfigError(f"training images are {shape[0]}x{shape[1]}; the models need multiples of 16: "
-                           "use --crop HxW or --resize HxW")
-        self.image_shape = shape
+        if min(shape) < 16:
+            raise ConfigError(f"training images are {shape[0]}x{shape[1]}; the models need at least 16 x 16 pixels")
+        self.image_shape = shape  # sides not multiples of 16: padded inside the model (uhrnet.models.any_size)
         self.sampler = MixedSampler(sources.train.n_real, sources.train.n_synthetic, cfg["synthetic_ratio"],
                                     cfg["samples_per_epoch"], cfg["seed"], info.rank, info.world)
         workers = cfg["workers"] if cfg["workers"] is not None else (4 if self.device.type == "cuda" else 0)
@@ -137,20 +139,18 @@ class Trainer:
             net = build_model(cfg["model"], **options)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"--model {cfg['model']}: {exc}") from None
-        from uhrnet.models.init import init_weights
 
         init_weights(net, cfg["init"])  # drawn from the seeded global generator, so --seed fixes it; resume overwrites it
-        self.net = net
+
+        self.net = any_size(net)  # as inference: padded by replication to multiples of 16, cropped back
         self.n_params = count_parameters(net)
         scale, shift = (1.0, 0.0) if cfg["raw_output"] else (10.0 * self.transform.units_per_mm,
                                                              self.transform.plane_offset)
         if cfg["init_from"] and self.ckpt is None:  # a fresh run from a checkpoint's weights (a resume keeps its own)
-            from uhrnet.checkpoint import init_from_checkpoint, output_mm
 
             record = init_from_checkpoint(net, cfg["init_from"], output_mm(scale, shift, self.transform))
             cfg["init_from"] = record["path"]
             cfg["init_from_checkpoint"] = record
-        from uhrnet.models.freeze import freeze
 
         self.frozen = freeze(net, cfg["freeze"])  # before the average copies the network and DDP wraps it
         self.n_trainable = sum(p.numel() for p in net.parameters() if p.requires_grad)
@@ -158,7 +158,6 @@ class Trainer:
         self.ema = None
         self.eval_model = self.model
         if cfg["ema"]:
-            from uhrnet.training.ema import WeightEMA
 
             self.ema = WeightEMA(net, cfg["ema"])
             self.eval_model = LabelHead(self.ema.module, scale, shift)
@@ -452,7 +451,6 @@ def head_rig(rig: str | None, synthetic) -> dict:
     synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
     ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
     single rig its phases fit: refused."""
-    from fppsim.geometry.rig import RigError
     from fppsim.dataio.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
 
     try:
