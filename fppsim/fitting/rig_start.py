@@ -331,6 +331,12 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             "the same): give --distance and --baseline if you know them")
     out(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
         f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
+    if kind == "phase":  # what that makes of the objects: a check of the assumed scale for whoever knows them
+        off = np.concatenate([np.abs(r[m.valid & ~p & np.isfinite(r)]) for r, p, m in zip(fit.residuals, fit.planes, maps)])
+        off = off[off > 1.0]
+        if off.size > 50:
+            out(f"           the objects' phase relief reaches {np.percentile(off, 99):.1f} rad: about "
+                f"{np.percentile(off, 99) / abs(s):.0f} mm at this scale")
     p = fit.params
     pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k != "periods")
     out(f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
