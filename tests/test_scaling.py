@@ -99,7 +99,7 @@ def test_commands_are_exactly_what_the_driver_runs(world, monkeypatch):
 @pytest.mark.parametrize("change, message", [
     (["--arms", "a6", "nope"], "unknown or repeated arm(s) nope"),
     (["--seeds", "0", "0"], "--seeds: distinct"),
-    (["--real", "/no/such/real"], "no figshare-format pair"),
+    (["--real", "/no/such/real"], "no labelled real samples"),
     (["--resize", "banana"], "resize"),
     (["--report-only"], "does not exist"),
 ])

@@ -183,7 +183,7 @@ def test_evaluate_real_writes_metrics_predictions_and_figure(tmp_path):
         assert m["valid_rmse_mm"] == pytest.approx(row["valid_rmse_mm"])
     assert (tmp_path / "ev" / "real_0_000000.png").stat().st_size > 1000
     assert (tmp_path / "ev" / "real_metrics.json").is_file()
-    with pytest.raises(Sim2RealError, match="no figshare-format pair"):
+    with pytest.raises(Sim2RealError, match="no labelled real samples"):
         evaluate_real(run / "last.pt", [str(tmp_path)], tmp_path / "ev2")
 
 
@@ -204,7 +204,7 @@ def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, 
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     rc = mod.main(["--real", str(tmp_path), "--out", str(tmp_path / "o"), "--variant", "a: | --no-augment"])
-    assert rc == 1 and "no figshare-format pair" in capsys.readouterr().err
+    assert rc == 1 and "no labelled real samples" in capsys.readouterr().err
     abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")
     assert abl[0].name == "defaults" and abl[0].generate == abl[0].train == []
     assert {"no-pedestal", "parallel-rig", "no-augment", "old-defaults", "procedural"} <= {v.name for v in abl}
@@ -342,7 +342,7 @@ def test_a_tiny_experiment_runs_its_stages_in_process_and_resumes(tmp_path, caps
     v = report["variants"][0]
     assert v["generate"] == ["--pedestal", "0"] and v["train"] == ["--no-augment"] and v["images"] == 2
     assert report["config"]["count"] == 6 and "variants" not in report["config"]
-    assert report["recipe"]["v"]["train"].endswith("--no-progress --no-augment")
+    assert report["recipe"]["v"]["train"].endswith("--no-progress --threads 2 --no-augment")
     data = Path(v["data"])
     assert data.name == data_key({"pedestal": 0.0}) and (data / "Z.npy").is_file()
     assert (data.parent / f"{data.name}.log").read_text().startswith("$ generate --meshes")
