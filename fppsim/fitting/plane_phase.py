@@ -68,7 +68,7 @@ class PhaseMap:
         return self.valid if self.shadow is None else ~self.shadow
 
 
-def _grid(shape, valid, n: int, rng=None) -> np.ndarray:
+def _grid(valid, n: int) -> np.ndarray:
     """Up to ``n`` valid pixels (flat indices), evenly strided (deterministic)."""
     idx = np.flatnonzero(valid.ravel())
     if idx.size > n:
@@ -82,7 +82,7 @@ def plane_phase_gradient(phase: np.ndarray, valid: np.ndarray, n: int = 40_000) 
     quadratic terms take the perspective)."""
     H, W = phase.shape
     ok = valid & np.isfinite(phase)
-    idx = _grid((H, W), ok, n)
+    idx = _grid(ok, n)
     if idx.size < 50:
         raise RigError("too few pixels with a phase to measure the fringe direction")
     v, u = np.divmod(idx, W)
@@ -277,11 +277,11 @@ def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = 
     x = np.zeros(len(params))
     start_med = _plane_stats(start, maps, oks, seeds)[0]
     # the seeds are taken as they are (a map that is not absolute: unwrapped consistently there)
-    x = fit(x, [_grid((H, W), sd, pixels) for sd in seeds], "cauchy", 0.5, False)
+    x = fit(x, [_grid(sd, pixels) for sd in seeds], "cauchy", 0.5, False)
     planes = seeds
     for _ in range(int(rounds)):
         planes = _grow_planes(_adjust(start, values(x)), maps, oks, planes, tau)
-        x = fit(x, [_grid((H, W), pl, pixels) for pl in planes], "linear", 1.0, True)
+        x = fit(x, [_grid(pl, pixels) for pl in planes], "linear", 1.0, True)
     rig = _adjust(start, values(x))
     planes = _grow_planes(rig, maps, oks, planes, tau)
     rig.name = start.name + " (plane phase fitted: " + ", ".join(params) + ")"

@@ -9,12 +9,13 @@ What a set of fringe images (or phase-shifting scans) of an unknown rig can and 
   ``Phi(u, v) = (a . (u, v, 1)) / (b . (u, v, 1))`` up to a constant, i.e. four numbers besides the
   offset: the direction and size of the phase gradient (the projector's roll and the fringe periods)
   and its perspective change across the image (the projector's yaw and pitch). A phase map pins all
-  four (:func:`fit_plane_phase`); one fringe image pins them only through its wrapped phase,
-  unwrapped on the plane (:func:`image_phase_map`), and cannot tell which way the phase grows;
+  four (:func:`fppsim.fitting.plane_phase.fit_plane_phase`, which also finds the plane's pixels); one
+  fringe image pins them only through its wrapped phase, unwrapped on the plane
+  (:func:`fppsim.fitting.plane_phase.image_phase_map`), and cannot tell which way the phase grows;
 * which side of the camera the projector is on: raised surfaces shift the phase one way, the sign of
   ``grad(Phi) . (C - P)`` (camera and projector centres C, P). Objects stand on the plane, so the
-  sign of the objects' phase relief against the fitted plane gives the side
-  (:func:`relief_sign`; phase maps only: a single image's wrapped phase cannot);
+  sign of the objects' phase relief against the fitted plane gives the side (phase maps only); the
+  projector's shadows, whose far side is the plane, give it too (plain images as well);
 * NOT the depth scale: the whole scene, camera distance and baseline scaled together, gives the
   same images. The distance (default 500 mm, the default rig's) and the baseline (default 0.66 x the
   distance, the default rig's 330 mm at 500 mm: its triangulation angle) come from the user
@@ -25,7 +26,7 @@ projector of 912 x 1140 pixels (the default rig's DMD) at the camera's height, `
 (vertical fringes) or above / below it (horizontal fringes), rolled about its axis so that its
 columns run along the measured phase gradient (0, 90, 180 or -90 deg plus the fringes' lean), lens
 shift so the scene centre lands mid-projector, and a focal length that lights the camera's whole view
-with a margin. :func:`fit_plane_phase` then fits the projector's yaw, pitch, roll and the periods to
+with a margin. The plane-phase fit then adjusts the projector's yaw, pitch, roll and the periods to
 the plane's phase (least squares with a free constant offset, plane pixels chosen robustly), and
 :func:`rig_from_images` does all of it for a folder (``fppsim fit-rig`` without ``--base``).
 
