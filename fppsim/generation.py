@@ -44,6 +44,7 @@ log = logging.getLogger("fppsim")
 __all__ = ["GenerateConfig", "GenerateError", "RunSummary", "load_assets", "generate", "generate_dataset",
            "shard_indices", "merge", "read_optics_file", "FORMATS", "SUPERSAMPLE", "PROCEDURAL"]
 
+MAX_COUNT = 10_000_000  # samples of one run: more is a typo (at 3 MB a sample, 30 TB)
 FORMATS = ("native", "figshare")  # on-disk layouts generate writes
 SUPERSAMPLE = (1, 3, 5)  # odd sub-pixel factors (ground truth stays at pixel centres)
 
@@ -130,8 +131,8 @@ class GenerateConfig:
         self.meshes = [str(m) for m in self.meshes]
         if not self.meshes:
             raise UsageError("no meshes given (--meshes)")
-        if int(self.count) < 1:
-            raise UsageError(f"--count must be >= 1, got {self.count}")
+        if not 1 <= int(self.count) <= MAX_COUNT:
+            raise UsageError(f"--count must be from 1 to {MAX_COUNT:,} samples, got {self.count}")
         if self.format not in FORMATS:
             raise UsageError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
         if self.supersample not in SUPERSAMPLE:
@@ -235,7 +236,6 @@ def generate(config: GenerateConfig) -> RunSummary:
                                shard=config.shard, label=config.label, noise_free=config.noise_free,
                                progress=config.progress, backend=config.backend)
     if config.preview:
-
         root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
     return summary
@@ -399,7 +399,6 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     # figshare rows come back with the samples when this run produces all of them (else: read back)
     rows = None
     if fmt == "figshare" and todo and not summary.existing:
-
         rows = FigshareRows(out, len(wanted), config.rig.camera.height, config.rig.camera.width)
     position = {index: k for k, index in enumerate(wanted)}
     init_args = (assets, config, seed, str(native), noise_free, label if rows is not None else None, backend)

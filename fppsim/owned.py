@@ -29,7 +29,7 @@ from typing import Callable, Iterable, Iterator
 from fppsim.errors import ForeignFiles
 from fppsim.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
 
-__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "record_created", "forget", "output_folder", "same_folder"]
+__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "stamp", "record_created", "forget", "output_folder", "same_folder"]
 
 RECORD = ".fppsim-owned.json"
 
@@ -49,11 +49,42 @@ def owners(folder: str | os.PathLike) -> dict[str, str] | None:
     return {str(k): str(v) for k, v in files.items()}
 
 
-def _write(folder: Path, record: dict[str, str]) -> None:
+def _stamps(folder: Path) -> dict[str, list]:
+    """``{relative path: [size, mtime_ns]}`` recorded by :func:`stamp`; {} when none (or unreadable)."""
+    try:
+        doc = json.loads((folder / RECORD).read_text())
+    except (OSError, ValueError):
+        return {}
+    stamps = doc.get("stamps") if isinstance(doc, dict) else None
+    return stamps if isinstance(stamps, dict) else {}
+
+
+def _stamp_of(path: Path) -> list:
+    st = path.lstat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def _write(folder: Path, record: dict[str, str], stamps: dict[str, list] | None = None) -> None:
     if record:
-        atomic_write_text(folder / RECORD, json.dumps({"files": dict(sorted(record.items()))}, indent=1))
+        stamps = {k: v for k, v in (_stamps(folder) if stamps is None else stamps).items() if k in record}
+        doc = {"files": dict(sorted(record.items()))}
+        if stamps:
+            doc["stamps"] = dict(sorted(stamps.items()))
+        atomic_write_text(folder / RECORD, json.dumps(doc, indent=1))
     else:
         unlink_quietly(folder / RECORD)
+
+
+def stamp(folder: str | os.PathLike, names: Iterable[str]) -> None:
+    """Record the size and modification time of ``names`` just written: a later :func:`claim` of the
+    same tool then refuses a file that someone changed or replaced since (it is no longer the tool's)."""
+    folder = Path(folder)
+    record = owners(folder) or {}
+    stamps = _stamps(folder)
+    for name in names:
+        if name in record and (folder / name).exists():
+            stamps[name] = _stamp_of(folder / name)
+    _write(folder, record, stamps)
 
 
 def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Callable[[], Iterable[str]] | None = None,
@@ -68,10 +99,15 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
     record = owners(folder)
     if record is None:
         record = {n: tool for n in (legacy() if legacy is not None else ()) if (folder / n).exists()}
+    stamps = _stamps(folder)
     for name in names:
         path = folder / name
         owner = record.get(name)
-        if owner == tool or not (path.exists() or path.is_symlink()):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        if owner == tool:
+            if name in stamps and _stamp_of(path) != stamps[name]:
+                raise ForeignFiles(f"{path} was changed since {tool} wrote it: {hint}")
             continue
         if owner is None:
             raise ForeignFiles(f"{path} exists and was not written by {tool}: {hint}")

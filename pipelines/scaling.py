@@ -614,7 +614,8 @@ def check(args) -> tuple[list[dict], dict]:
     if args.report_only or not args.list:
         load_ledger(Path(args.ledger))  # an unreadable record is refused before anything runs
     if args.report_only and not Path(args.out).is_dir():
-        raise UsageProblem(f"--report-only: {args.out} does not exist (nothing to report)")
+        raise UsageProblem(f"--report-only: {args.out} " + ("is a file, not a study folder" if Path(args.out).exists()
+                                                           else "does not exist (nothing to report)"))
     configs = {}
     try:
         if not args.list:

@@ -122,7 +122,6 @@ class ValidateConfig:
 
 def _render(meshes, folder: Path, count: int, seed: int, config, noise_free: bool, workers: int, progress: bool,
             echo) -> None:
-
     summary = generate_dataset(meshes, folder, count, seed=seed, config=config, workers=workers,
                                noise_free=noise_free, progress=progress)
     for line in summary.lines():
@@ -157,7 +156,6 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
         count = max(int(r["index"]) for r in read_records(root)) + 1
         base = {}
     else:
-
         try:
             synth = GenerateConfig(meshes=list(config.meshes), out=out, count=config.count, seed=config.seed,
                                    rig=config.rig, objects=tuple(config.objects), optics=dict(config.optics),

@@ -117,7 +117,6 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
                 "p99_abs_mm_interior_excl_order_errors": e_int["p99_abs_mm"]})
 
     if stacks is not None and freqs:
-
         if min_modulation is None:
             import inspect
 

@@ -388,7 +388,6 @@ class Prepared(Dataset):
         if self.resize is not None:
             sample = resize_sample(sample, self.resize, self.transform.invalid_value if self.transform else -105.0)
         if self.augment is not None and seed is not None and sample.get("source") == "synthetic":
-
             sample = augment_sample(sample, seed, self.augment)
         if self.crop is not None:
             H, W = sample["fringe"].shape[-2:]

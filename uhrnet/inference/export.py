@@ -32,7 +32,7 @@ import torch
 from torch import nn
 
 from fppsim.files import atomic_path, tmp_path, unlink_quietly
-from fppsim.owned import claim, output_folder
+from fppsim.owned import claim, output_folder, stamp
 
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.inference.deploy import prepare_for_inference
@@ -51,6 +51,7 @@ DEFAULT_OPSET = 17
 OPSET_RANGE = (7, 20)
 SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
 EXPORT_TOOL = "uhrnet export"
+MAX_SIDE = 4096  # px: a check input larger than a camera is a typo (and memory a machine lacks)
 
 
 @dataclass
@@ -68,8 +69,8 @@ class ExportConfig:
 
     def __post_init__(self):
         h, w = self.height, self.width
-        if h % 16 or w % 16 or h < 16 or w < 16:
-            raise UsageError(f"--height and --width must be positive multiples of 16, got {h}x{w}")
+        if h % 16 or w % 16 or not (16 <= h <= MAX_SIDE and 16 <= w <= MAX_SIDE):
+            raise UsageError(f"--height and --width must be multiples of 16 from 16 to {MAX_SIDE}, got {h}x{w}")
         lo, hi = OPSET_RANGE
         if self.format == "onnx" and not lo <= self.opset <= hi:
             raise UsageError(f"--opset must be between {lo} and {hi}, got {self.opset}")
@@ -291,7 +292,9 @@ def export_checkpoint(config: ExportConfig) -> dict:
     with output_folder(out.parent, EXPORT_TOOL, error=ExportError):
         claim(out.parent, EXPORT_TOOL, [out.name], hint="choose another --out (export never replaces a file it "
                                                          "did not write)")
-        return _export(ckpt, out, config)
+        summary = _export(ckpt, out, config)
+        stamp(out.parent, [out.name])  # a later export refuses the file if someone changes it meanwhile
+        return summary
 
 
 def _export(ckpt: dict, out: Path, config: ExportConfig) -> dict:

@@ -53,7 +53,7 @@ from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.refine import REFINE_METHODS, refine_relief
-from fppsim.owned import claim
+from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import oriented_single_shot_phase, rig_phase_gradient
 
@@ -62,6 +62,7 @@ __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "label
            "write_ply"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
+PREDICT_TOOL = "uhrnet predict"
 MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
 
 
@@ -156,11 +157,15 @@ class PredictResult:
 
 
 def collect_inputs(items: list[str]) -> list[Path]:
+    """The input files of ``items`` (files, and folders of them), each once; a folder's files that
+    ``uhrnet predict`` wrote itself (its ownership record says so) are outputs, not inputs."""
     files: list[Path] = []
     for item in items:
         p = Path(item)
         if p.is_dir():
-            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS)
+            mine = {n for n, tool in (owners(p) or {}).items() if tool == PREDICT_TOOL}
+            found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS
+                           and q.name not in mine)
             if not found:
                 raise ConfigError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder")
             files += found
@@ -170,6 +175,8 @@ def collect_inputs(items: list[str]) -> list[Path]:
             files.append(p)
         else:
             raise ConfigError(f"{p}: input not found")
+    seen: set[Path] = set()
+    files = [f for f in files if not (f.resolve() in seen or seen.add(f.resolve()))]  # a file named twice: once
     return files
 
 
@@ -180,11 +187,14 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
 
     out: list[tuple[str, np.ndarray]] = []
+    seen: set[Path] = set()
     for item in items:
         src = open_source(item)
         if src.plain_files:  # image and .npy files, folders of them: predict's own file rules
             for path in collect_inputs([str(item)]):
-                out += [(name, fringe, path) for name, fringe in load_inputs(path)]
+                if path.resolve() not in seen:  # a file named twice is read once
+                    seen.add(path.resolve())
+                    out += [(name, fringe, path) for name, fringe in load_inputs(path)]
             continue
         try:
             for k, (name, fringe, path) in enumerate(src.inputs()):
@@ -299,7 +309,6 @@ def predict(config: PredictConfig) -> PredictResult:
     size = parse_size(ckpt.get("args", {}).get("resize"))
     rig = None
     if config.rig:
-
         try:
             rig = load_rig(config.rig)
         except RigError as exc:
@@ -319,12 +328,14 @@ def predict(config: PredictConfig) -> PredictResult:
             if seen_by is not None:
                 check_image_size(seen_by, fringe.shape, str(path), who=who, hint=hint, error=ConfigError)
     out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a folder")
     out.mkdir(parents=True, exist_ok=True)
 
     names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
              ("_height.npy", "_height.tif", "_height.png")
              + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
-    claim(out, "uhrnet predict", names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
+    claim(out, PREDICT_TOOL, names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
     for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
         label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()

@@ -302,6 +302,9 @@ def import_weights(config: ImportWeightsConfig) -> dict:
 
     state, info = read_reference_file(config.source)
     ours = from_reference_state_dict(state, what=str(config.source))
+    broken = next((k for k, v in state.items() if v.is_floating_point() and not bool(torch.isfinite(v).all())), None)
+    if broken is not None:  # a network with NaN/inf weights predicts nothing usable
+        raise CheckpointError(f"{config.source}: entry {broken!r} holds NaN or inf values; these are not usable weights")
     net = build_model("uhrnet", **REFERENCE_CONFIG)
     net.load_state_dict(ours)  # strict: the keys and shapes were checked above
     transform = dataclasses.replace(PRESETS["figshare"], plane_offset=config.plane_offset)

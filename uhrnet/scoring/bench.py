@@ -23,7 +23,7 @@ import statistics
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
-from uhrnet.errors import ConfigError
+from uhrnet.errors import ConfigError, UsageError
 from uhrnet.models import ALIASES, ARCHITECTURES, build_model, count_parameters, list_models, outputs_of, prediction_of
 from uhrnet.scoring.timing import peak_memory_bytes, time_call
 from uhrnet.inference.deploy import prepare_for_inference
@@ -68,8 +68,9 @@ class BenchConfig:
         unknown = [m for m in self.models if m.lower() not in list_models()]
         if unknown:
             raise ConfigError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
-        if self.height % 16 or self.width % 16 or self.height < 16 or self.width < 16:
-            raise ConfigError(f"--height and --width must be positive multiples of 16, got {self.height}x{self.width}")
+        if self.height % 16 or self.width % 16 or not (16 <= self.height <= 4096 and 16 <= self.width <= 4096):
+            raise UsageError(f"--height and --width must be multiples of 16 from 16 to 4096, got "
+                             f"{self.height}x{self.width}")
         if self.repeats < 1 or self.warmup < 0 or self.batch_size < 1:
             raise ConfigError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
         if self.amp not in AMP:
@@ -216,7 +217,6 @@ def optimize_variants(model, x, reference, args, device, runners: dict | None = 
     for form in args.variants:
         try:
             if form in RUNTIME_FORMS:
-
                 with tempfile.TemporaryDirectory() as tmp:
                     path = export_model(model, f"{tmp}/m.onnx", "onnx", tuple(x.shape))
                     run = onnx_runner(path, form, threads=torch.get_num_threads())
@@ -402,7 +402,6 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         "memory": memory_note,
     }
     if args.json is not None:
-
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(path, json.dumps(report, indent=2) + "\n")

@@ -51,6 +51,7 @@ import torch
 from fppsim.phase import circular_mean, wrap
 from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import ConfigError, UsageError
+from uhrnet.training.train_config import MAX_LR
 from uhrnet.physics.rig_layer import RigLayer, wrap as wrap_t
 from uhrnet.run_folder import (CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, claim_run_folder, refuse_own_source,
                                write_history, write_run_config)
@@ -114,8 +115,8 @@ class AdaptConfig:
             raise UsageError("adapt: give at least one image (--images PATH ...)")
         if int(self.epochs) != self.epochs or self.epochs < 1:
             raise UsageError(f"--epochs must be an integer >= 1, got {self.epochs!r}")
-        if not (self.lr > 0 and math.isfinite(self.lr)):
-            raise UsageError(f"--lr must be a finite rate > 0, got {self.lr!r}")
+        if not (self.lr > 0 and math.isfinite(self.lr) and self.lr <= MAX_LR):
+            raise UsageError(f"--lr must be a finite rate > 0 and at most {MAX_LR:g}, got {self.lr!r}")
         for name in ("w_grad", "w_drift", "max_step", "min_reliability"):
             v = getattr(self, name)
             if not (v >= 0 and math.isfinite(v)):
@@ -130,7 +131,6 @@ class AdaptConfig:
         if self.w_grad == 0:
             raise UsageError("adapt needs its phase term: --w-grad must be > 0")
         if self.tensorboard:
-
             require_tensorboard()
 
     def record(self) -> dict:
@@ -268,9 +268,8 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
     claim_run_folder(out, ADAPT_TOOL, names, checkpoint_kind, kind="adapt")  # never replaces a file it did not write
     resume_from = _resume_from(cfg, out, source)
-    if cfg.tensorboard and resume_from is None:  # foreign event files in tensorboard/: refused before any write
-
-        check_event_files(out, ADAPT_TOOL)
+    if cfg.tensorboard:  # tensorboard/ not a folder, or (fresh) foreign event files in it: refused before any write
+        check_event_files(out, ADAPT_TOOL, fresh=resume_from is None)
     model, transform = model_from_checkpoint(source, device)
     size = parse_size(source.get("args", {}).get("resize"))  # as predict and evaluate run it
     layer = RigLayer(rig).to(device)
@@ -369,7 +368,6 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         result.images.append({"name": im.name, "before_rad": b, "after_rad": after,
                               "mean_change_mm": float(np.mean(np.abs(h1 - h0)[im.reliability > 0]))})
         if cfg.figures:
-
             result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
     atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
     return result

@@ -195,12 +195,18 @@ def _event_files(folder: Path) -> list[Path]:
         return []
 
 
-def check_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER) -> None:
-    """Refuse (:class:`fppsim.errors.ForeignFiles`, one line naming the file) a fresh ``--tensorboard`` run
-    of ``tool`` in ``run`` whose ``run/sub`` holds an event file the ownership record does not give to
-    ``tool``: it would show as this run's curves, and only its writer may delete it."""
+def check_event_files(run: str | Path, tool: str, sub: str = TB_FOLDER, fresh: bool = True) -> None:
+    """Refuse (:class:`fppsim.errors.ForeignFiles`, one line naming the file) a ``--tensorboard`` run of
+    ``tool`` in ``run`` whose ``run/sub`` is not a folder, or, for a ``fresh`` run, holds an event file the
+    ownership record does not give to ``tool``: it would show as this run's curves, and only its writer may
+    delete it."""
 
     run = Path(run)
+    if (run / sub).exists() and not (run / sub).is_dir():
+        raise ForeignFiles(f"{run / sub} exists and is not a folder: --tensorboard writes its logs there; "
+                           "move it away or choose another --out")
+    if not fresh:
+        return
     record = owners(run) or {}
     for path in _event_files(run / sub):
         owner = record.get(f"{sub}/{path.name}")

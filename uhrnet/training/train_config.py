@@ -40,6 +40,8 @@ LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_fr
 # (the run's weights did not start from a checkpoint, nothing was frozen)
 LEGACY_LOCKED = ("init_from", "freeze", "head", "rig")
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
+MAX_EPOCHS = 1_000_000
+MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range, a traceback)
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
@@ -168,10 +170,12 @@ def check_options(cfg: dict) -> None:
     for key in ("epochs", "batch_size"):
         if key in cfg and cfg[key] < 1:
             raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
+    if cfg.get("epochs") is not None and cfg["epochs"] > MAX_EPOCHS:
+        raise UsageError(f"--epochs must be at most {MAX_EPOCHS:,}, got {cfg['epochs']}")
     if "lr" in cfg and not cfg["lr"] > 0:
         raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
-    if "lr" in cfg and not math.isfinite(cfg["lr"]):
-        raise UsageError(f"--lr must be finite, got {cfg['lr']}")
+    if "lr" in cfg and not (math.isfinite(cfg["lr"]) and cfg["lr"] <= MAX_LR):
+        raise UsageError(f"--lr must be a finite rate up to {MAX_LR:g}, got {cfg['lr']}")
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
     if "augment" in cfg:

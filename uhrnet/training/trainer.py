@@ -77,8 +77,8 @@ class Trainer:
             torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
         self.tb = RunLog()  # --tensorboard: fit() opens it on rank 0
-        if info.main and args.tensorboard and state != "resume":  # foreign event files: refused before any write
-            check_event_files(self.out, TRAIN_TOOL)
+        if info.main and args.tensorboard:  # foreign event files: refused before any write
+            check_event_files(self.out, TRAIN_TOOL, fresh=state != "resume")
         self._build()
 
     # -- construction -------------------------------------------------------------------------------
@@ -158,7 +158,6 @@ class Trainer:
         self.ema = None
         self.eval_model = self.model
         if cfg["ema"]:
-
             self.ema = WeightEMA(net, cfg["ema"])
             self.eval_model = LabelHead(self.ema.module, scale, shift)
         if info.enabled:

@@ -20,6 +20,9 @@ from dataclasses import dataclass, field, fields
 
 from fppsim.dataio.encoding import json_default
 from uhrnet.errors import Sim2RealError, UsageError
+from uhrnet.training.train_config import MAX_EPOCHS
+
+MAX_COUNT = 10_000_000  # synthetic samples (fppsim.generation's bound)
 from fppsim.geometry.rig import RigError, data_path, load_rig
 from uhrnet.physics.refine import REFINE_METHODS
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT
@@ -167,9 +170,9 @@ class Sim2RealConfig:
         names = [v.name for v in self.variants]
         if len(set(names)) != len(names):
             raise Sim2RealError(f"variant names must be unique, got {names}")
-        for key in ("count", "epochs"):  # option values wrong on their own: exit 2, before anything is generated
-            if getattr(self, key) < 1:
-                raise UsageError(f"--{key} must be >= 1, got {getattr(self, key)}")
+        for key, most in (("count", MAX_COUNT), ("epochs", MAX_EPOCHS)):  # wrong on their own: exit 2, before anything runs
+            if not 1 <= getattr(self, key) <= most:
+                raise UsageError(f"--{key} must be from 1 to {most:,}, got {getattr(self, key)}")
         if self.workers < 0:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
         if not self.object_mm > 0:
