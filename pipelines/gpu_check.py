@@ -4,6 +4,8 @@
 
     python pipelines/gpu_check.py begin OUT                     OUT made ready for a run (below), or one line, exit 2
     python pipelines/gpu_check.py settle OUT                    record what this run wrote under OUT/work
+    python pipelines/gpu_check.py guard OUT LIMIT CMD...        CMD in its own process group, stopped after LIMIT s,
+                                                                on SIGINT/SIGTERM, or when the script dies (kill -9)
     python pipelines/gpu_check.py wheels DIR                    the carried wheels this Python can install
     python pipelines/gpu_check.py env OUT BUDGET TINY PLATFORM  OUT/step_env.json: machine, versions, sizes
     python pipelines/gpu_check.py step OUT NAME RC START LIMIT  OUT/step_NAME.json: exit code, seconds
@@ -17,6 +19,13 @@ end of the run, and when it is stopped) replaces each such folder's claim by the
 re-run removes exactly the recorded paths (and what a killed run left in the folders it was writing), and
 leaves everything else in OUT alone, at any depth; a path it has to write that exists and is not its own is
 refused in one line naming it, before anything is removed or written.
+
+A run stopped uncleanly (the script killed with -9: no ``settle``) leaves folders recorded as being written.
+The steps die with the script (``guard``: the parent-death signal, forwarded to the step's process group), and
+the marker says when the run claimed them (its JSON ``claimed``) and when it was last alive (its mtime, touched
+by ``guard`` every second and when the step has stopped). A re-run takes as the stopped run's only the paths in
+those folders whose inode changed (ctime) between the two; anything newer, or any file at all where the times
+are unknown (a marker of an earlier version), is refused in one line naming it: never deleted.
 """
 
 from __future__ import annotations
@@ -24,6 +33,8 @@ from __future__ import annotations
 import json
 import os
 import platform
+import signal
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -40,6 +51,9 @@ STEPS = ("forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
 FILES = (MARKER, "setup.log", "step_env.json", *(f"{s}.log" for s in STEPS), *(f"step_{s}.json" for s in STEPS),
          "forward_fp32.json", "forward_fp16.json", "gpu_check.json", "gpu_check.md")  # fixed names in OUT
 TREES = ("work/site", "work/x11", "work/syn", "work/run", "work/ddp", "work/s2r")  # the folders the steps fill
+HEARTBEAT_S = 1.0  # how often guard marks the run alive (the marker's mtime)
+GRACE_S = 10.0     # a stopped step's time to exit after SIGINT/SIGTERM before SIGKILL
+SLACK_S = 1.0      # coarse file-system clocks: a path's ctime may read this much before the claim
 
 
 class Refused(Exception):
@@ -60,12 +74,46 @@ def _walk(top: Path) -> list[str]:
     return found
 
 
+def _run_times(out: Path) -> tuple[float, float] | None:
+    """(claimed, last alive) of the run that wrote the marker, or None where unknown (an earlier version's)."""
+    try:
+        claimed = float(json.loads((out / MARKER).read_text())["claimed"])
+        return claimed, (out / MARKER).stat().st_mtime
+    except (OSError, ValueError, TypeError, KeyError):
+        return None
+
+
+def heartbeat(out: Path) -> None:
+    """The run is alive now (the marker's mtime: what a re-run after an unclean stop takes as its end)."""
+    try:
+        os.utime(out / MARKER)
+    except OSError:
+        pass
+
+
 def _own(out: Path, record: dict[str, str]) -> set[str]:
-    """The paths in ``out`` that are the script's: recorded ones, and all of each folder a run was writing."""
+    """The paths in ``out`` that are the script's: recorded ones, and in each folder a stopped run was writing
+    what changed while it ran (module docstring); :class:`Refused` for a file there it cannot vouch for."""
     own = {n for n, t in record.items() if t in (TOOL, WRITING)}
-    for tree in [n for n, t in record.items() if t == WRITING]:
-        if (out / tree).is_dir() and not (out / tree).is_symlink():
-            own.update(f"{tree}/{r}" for r in _walk(out / tree))
+    writing = [n for n, t in record.items() if t == WRITING]
+    times = _run_times(out) if writing else None
+    for tree in writing:
+        top = out / tree
+        if not top.is_dir() or top.is_symlink():
+            continue
+        for rel in _walk(top):
+            p = top / rel
+            if p.is_dir() and not p.is_symlink():
+                own.add(f"{tree}/{rel}")  # a folder goes only when nothing else is left in it
+                continue
+            if times is None:
+                raise Refused(f"{top}: a stopped run was writing it and when it stopped is not known ({rel} may be "
+                              "someone's): move it away or give another OUTDIR")
+            ctime = p.lstat().st_ctime
+            if not times[0] - SLACK_S <= ctime <= times[1]:
+                raise Refused(f"{p} changed after the stopped run that was writing {top} ended: move it away or "
+                              "give another OUTDIR")
+            own.add(f"{tree}/{rel}")
     return own
 
 
@@ -104,6 +152,8 @@ def begin(out: Path) -> None:
     if record is None:  # a marker from before the record: the fixed names are the ones that run wrote
         record = {n: TOOL for n in FILES if (out / n).is_file() and not (out / n).is_symlink()}
     own = _own(out, record)
+    if out.is_dir() and not os.access(out, os.W_OK | os.X_OK):
+        raise Refused(f"{out}: cannot write there (Permission denied)")
     for name in FILES + ("work",) + TREES:
         p = out / name
         if not _exists(p) or name in own:
@@ -116,22 +166,30 @@ def begin(out: Path) -> None:
         if name == "work" and p.is_dir() and not p.is_symlink():
             continue  # OUT/work may hold other files (they stay); the script writes only in its TREES there
         raise Refused(f"{p} exists and was not written by {TOOL}: move it away or give another OUTDIR")
-    _remove(out, own - {"work"})
+    existed = out.is_dir()
+    try:
+        _remove(out, own - {"work"})
+    except OSError as exc:
+        raise Refused(f"{exc.filename or out}: cannot write there ({exc.strerror})") from None
     try:
         out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise Refused(f"{out}: cannot create the folder ({exc.strerror})") from None
+    try:
         made_work = not (out / "work").is_dir()
         (out / "work").mkdir(exist_ok=True)
     except OSError as exc:
-        raise Refused(f"{out}: cannot create the folder ({exc.strerror})") from None
+        raise Refused(f"{out if existed else out / 'work'}: cannot write there ({exc.strerror})") from None
     clean_stale_tmp(out)  # temp files of a killed step's writers (.fppsim-tmp-<dead pid>-<name>)
     kept = {n: t for n, t in record.items() if t not in (TOOL, WRITING) or n == "work" and _exists(out / n)}
     if made_work:
         kept["work"] = TOOL
+    claimed = time.time()  # before the folders are claimed: every path a step writes there changes later
     try:
         atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted({**kept, **{n: TOOL for n in FILES},
                                                                           **{t: WRITING for t in TREES}}.items()))},
                                                    indent=1))
-        (out / MARKER).touch()
+        (out / MARKER).write_text(json.dumps({"claimed": claimed}) + "\n")
     except OSError as exc:
         raise Refused(f"{out}: cannot write there ({exc.strerror})") from None
 
@@ -153,6 +211,88 @@ def settle(out: Path) -> dict[str, str]:
             new[name] = tool
     atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted(new.items()))}, indent=1))
     return new
+
+
+def _pdeathsig(sig: int) -> None:
+    """Linux: this process gets ``sig`` when its parent dies (kept across exec)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(sig), 0, 0, 0)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass  # elsewhere: guard still notices an orphaning within HEARTBEAT_S (its parent pid changes)
+
+
+def _killpg(proc: subprocess.Popen, sig: int) -> None:
+    for kill in (lambda: os.killpg(proc.pid, sig), lambda: proc.send_signal(sig)):
+        try:
+            kill()
+            return
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def guard(out: Path, limit: float, cmd: list[str]) -> int:
+    """Run ``cmd`` as a step of the script (its parent) and return its exit status: in a process group of its
+    own, stopped (SIGTERM, SIGKILL ``GRACE_S`` later) after ``limit`` seconds (124, like ``timeout``), or with
+    the signal this process gets (SIGINT/SIGTERM/SIGHUP: 128 + it), and when the script dies, even by
+    SIGKILL (the parent-death signal). Meanwhile the run is marked alive (:func:`heartbeat`); a step stopped
+    because the script died is settled here (the script's own settle never runs)."""
+    parent = os.getppid()
+    _pdeathsig(signal.SIGTERM)
+    got: list[int] = []
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, lambda signum, _frame: got.append(signum))
+    if os.getppid() != parent:  # the script died before the parent-death signal was set
+        return 143
+
+    def child() -> None:
+        os.setpgid(0, 0)  # the script's signals reach the step only through this guard, once
+        _pdeathsig(signal.SIGTERM)  # this guard killed with the script's process group: the step still stops
+        for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            signal.signal(s, signal.SIG_DFL)
+
+    try:
+        proc = subprocess.Popen(cmd, preexec_fn=child)
+    except OSError as exc:
+        print(f"gpu_check: {cmd[0]}: {exc.strerror}", file=sys.stderr)
+        return 127
+    deadline = time.monotonic() + limit
+    stop = None  # the signal the step was stopped with
+    timed_out = killed = False
+    kill_at = beat = 0.0
+    while True:
+        try:
+            rc = proc.wait(timeout=0.2)
+            break
+        except subprocess.TimeoutExpired:
+            pass
+        now = time.monotonic()
+        orphaned = os.getppid() != parent
+        if stop is None and (got or orphaned or now >= deadline):
+            stop = got[0] if got else signal.SIGTERM
+            timed_out = not got and not orphaned
+            _killpg(proc, stop)
+            kill_at = now + GRACE_S
+        elif stop is not None and not killed and now >= kill_at:
+            _killpg(proc, signal.SIGKILL)
+            killed = True
+        if now - beat >= HEARTBEAT_S:
+            heartbeat(out)
+            beat = now
+    if stop is not None:
+        _killpg(proc, signal.SIGKILL)  # what the step started and left behind in its group
+    heartbeat(out)  # the step has stopped: the run's last moment, if the script is gone
+    if os.getppid() != parent:
+        try:
+            settle(out)
+        except Exception:  # noqa: BLE001 -- a re-run still goes by the marker's times
+            pass
+    if timed_out:
+        return 137 if killed else 124
+    if stop is not None:
+        return 128 + stop
+    return rc if rc >= 0 else 128 - rc
 
 
 def wheels(folder: Path) -> list[str]:
@@ -311,6 +451,8 @@ def markdown(res: dict) -> str:
 
 def main(argv: list[str]) -> int:
     cmds = {"begin": 1, "settle": 1, "wheels": 1, "env": 4, "step": 5, "report": 1}
+    if argv[:1] == ["guard"] and len(argv) >= 4:
+        return guard(Path(argv[1]), float(argv[2]), argv[3:])
     if not argv or argv[0] not in cmds or len(argv) != cmds[argv[0]] + 1:
         print(__doc__, file=sys.stderr)
         return 2

@@ -22,9 +22,12 @@
 # (a handful of small files; no checkpoints or datasets: those stay in OUTDIR/work). OUTDIR must be new, empty
 # or an earlier run's (its .gpu_check marker); a re-run replaces only what this script wrote there (the
 # record OUTDIR/.fppsim-owned.json) and refuses, in one line naming it, a path it has to write that is not its own.
+# A relative OUTDIR is taken from the folder the script was started in. Ctrl-C (or SIGTERM) stops the running
+# step and the run (exit 130; 143); the steps also die with the script when it is killed with -9, and a re-run
+# then removes only what the stopped run wrote (gpu_check.py's docstring).
 #
 # Environment (optional):
-#   GPU_CHECK_BUDGET  seconds the whole run may take   [600: 10 minutes + a machine start fits in 15]
+#   GPU_CHECK_BUDGET  seconds the whole run may take, 60 to 86400   [600: 10 minutes + a machine start fits in 15]
 #                     (sizes: >= 600 s: 2000 samples, 3 epochs; >= 400 s: 1200, 2; less: 800, 2)
 #   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
@@ -32,13 +35,14 @@
 #   bash pipelines/gpu_check.sh run "$OUT"
 # Offline dry run on a CPU: docs/USAGE.md ("GPU, offline").
 set -euo pipefail
+CALLER_PWD="$PWD"   # a relative OUTDIR is the caller's, not the checkout's
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 cd "$ROOT"
 PY="${PYTHON:-python3}"
 MODE="${1:-run}"
 case "$MODE" in
   prepare|run) shift || true ;;
-  -h|--help) sed -n '2,33p' "$0" | sed 's/^# \{0,1\}//'; exit 0 ;;
+  -h|--help) awk 'NR > 1 && /^#/ { sub(/^# ?/, ""); print; next } NR > 1 { exit }' "$0"; exit 0 ;;
   *) MODE=run ;;  # bash gpu_check.sh OUTDIR
 esac
 log() { printf '[gpu_check %s] %s\n' "$(date -u +%H:%M:%S)" "$*" >&2; }
@@ -82,9 +86,12 @@ fi
 
 TINY="${GPU_CHECK_TINY:-0}"
 BUDGET="${GPU_CHECK_BUDGET:-600}"
-[[ "$BUDGET" =~ ^[0-9]+$ ]] && [ "$BUDGET" -ge 60 ] \
-  || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds >= 60, got '$BUDGET'" >&2; exit 2; }
+# digits only and a bounded length before any arithmetic (bash's own errors otherwise; 0600 is not octal)
+[[ "$BUDGET" =~ ^[0-9]{1,9}$ ]] && BUDGET=$(( 10#$BUDGET )) && [ "$BUDGET" -ge 60 ] && [ "$BUDGET" -le 86400 ] \
+  || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds from 60 to 86400, got '${GPU_CHECK_BUDGET}'" >&2; exit 2; }
+[[ "$TINY" =~ ^[01]$ ]] || { echo "gpu_check: GPU_CHECK_TINY must be 0 or 1, got '$TINY'" >&2; exit 2; }
 OUTDIR="${1:-$ROOT/out/gpu_check}"
+case "$OUTDIR" in /*) ;; *) OUTDIR="$CALLER_PWD/$OUTDIR" ;; esac
 # OUTDIR is this script's own: new, empty, or an earlier run's (its .gpu_check marker); never someone's folder
 if { [ -e "$OUTDIR" ] || [ -L "$OUTDIR" ]; } && [ ! -d "$OUTDIR" ]; then
   echo "gpu_check: $OUTDIR exists and is not a folder: give a new or empty OUTDIR" >&2; exit 2
@@ -112,13 +119,34 @@ fi
 "$PY" pipelines/gpu_check.py begin "$OUTDIR" || exit 2
 OUTDIR="$(cd "$OUTDIR" && pwd)"
 trap '"$PY" pipelines/gpu_check.py settle "$OUTDIR" || true' EXIT   # record what the run wrote under work/
-trap 'exit 143' TERM
-trap 'exit 130' INT
+STEP_PID=
+# a signal stops the running step (its guard signals the step's process group, SIGKILL 10 s later), then the
+# run: settled by the EXIT trap, exit 128 + N
+stop() {
+  trap '' INT TERM HUP
+  if [ -n "$STEP_PID" ]; then kill -s "$1" "$STEP_PID" 2>/dev/null || true; wait "$STEP_PID" 2>/dev/null || true; fi
+  log "stopped (SIG$1)"
+  exit "$2"
+}
+trap 'stop INT 130' INT
+trap 'stop TERM 143' TERM
+trap 'stop HUP 129' HUP
 WORK="$OUTDIR/work"
 T0=$(date +%s)
 left() { echo $(( BUDGET - ($(date +%s) - T0) )); }
 # a step may take CAP seconds, but never what the later steps need (RESERVE: a share of the budget)
 limit() { local cap=$1 reserve=$2 l; l=$(( $(left) - reserve )); [ "$l" -lt "$cap" ] && cap=$l; echo $(( cap < 5 ? 5 : cap )); }
+# guarded LOG LIMIT CMD...: CMD into LOG, through gpu_check.py's guard: in its own process group, at most LIMIT
+# seconds (exit 124, like timeout), stopped with the script (Ctrl-C, kill, even kill -9 of this shell), the run
+# marked alive meanwhile. Waited for in the background, so that a signal is handled at once.
+guarded() {
+  local logf=$1 lim=$2 rc=0; shift 2
+  "$PY" pipelines/gpu_check.py guard "$OUTDIR" "$lim" "$@" >"$logf" 2>&1 &
+  STEP_PID=$!
+  wait "$STEP_PID" || rc=$?
+  STEP_PID=
+  return "$rc"
+}
 
 # 0. The environment: carried wheels into a private site folder (never pip's network), GL loaders.
 SITE="$WORK/site"
@@ -127,8 +155,8 @@ if compgen -G ".whl/*.whl" >/dev/null; then
   mapfile -t whl < <("$PY" pipelines/gpu_check.py wheels .whl)
   if [ ${#whl[@]} -gt 0 ]; then
     log "installing ${#whl[@]} carried wheels into $SITE (no index, no network)"
-    "$PY" -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --disable-pip-version-check \
-      --target "$SITE" "${whl[@]}" >"$OUTDIR/setup.log" 2>&1 || { log "wheel install failed (see setup.log)"; }
+    guarded "$OUTDIR/setup.log" "$(limit 600 0)" "$PY" -m pip install -q --no-index --no-deps --no-compile \
+      --no-cache-dir --disable-pip-version-check --target "$SITE" "${whl[@]}" || log "wheel install failed (see setup.log)"
     export PYTHONPATH="$PYTHONPATH:$SITE"   # after the image's own packages: theirs win where both exist
   fi
 fi
@@ -147,6 +175,7 @@ fi
 if ! ldconfig -p 2>/dev/null | grep -q 'libXrender.so.1 ' && compgen -G ".gl/x11/*.deb" >/dev/null; then
   # pyglet (imported by pyrender) loads libX11/libXrender even headless; unpacked beside /, not over it
   for f in .gl/x11/*.deb; do dpkg -x "$f" "$WORK/x11"; done
+  touch "$OUTDIR/.gpu_check"   # the run alive after writing work/x11 (gpu_check.py heartbeat)
   export LD_LIBRARY_PATH="$WORK/x11/usr/lib/x86_64-linux-gnu${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
 fi
 "$PY" pipelines/gpu_check.py env "$OUTDIR" "$BUDGET" "$TINY" "$PYOPENGL_PLATFORM" >/dev/null
@@ -156,7 +185,7 @@ run_step() {
   local name=$1 lim=$2 start rc; shift 2
   log "step $name (limit ${lim} s): $*"
   start=$(date +%s.%N)
-  set +e; timeout "$lim" "$@" >"$OUTDIR/$name.log" 2>&1; rc=$?; set -e
+  rc=0; guarded "$OUTDIR/$name.log" "$lim" "$@" || rc=$?
   "$PY" pipelines/gpu_check.py step "$OUTDIR" "$name" "$rc" "$start" "$lim" >/dev/null
   [ "$rc" = 0 ] || log "step $name failed (exit $rc; see $name.log)"
   return 0

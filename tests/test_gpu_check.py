@@ -4,8 +4,10 @@ outputs. (The whole script's offline CPU dry run takes minutes: docs/USAGE.md "G
 import csv
 import json
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -73,14 +75,36 @@ def test_report_collects_the_steps(tmp_path):
     assert json.loads((out / "gpu_check.json").read_text())["device"] == "NVIDIA X"
 
 
-@pytest.mark.parametrize("budget", ["abc", "30", "-5"])
+@pytest.mark.parametrize("budget", ["abc", "30", "-5", "99999999999999999999999", "86401", "1e3"])
 def test_bad_budget_is_one_line_and_exit_2(tmp_path, budget):
     r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(tmp_path / "o")],
                        env={**os.environ, "GPU_CHECK_BUDGET": budget, "PYTHON": sys.executable},
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2
     assert r.stderr.strip().count("\n") == 0 and "GPU_CHECK_BUDGET" in r.stderr
+    assert "integer expression" not in r.stderr and "too great" not in r.stderr
     assert not (tmp_path / "o").exists()  # nothing made for a refused run
+
+
+def test_bad_tiny_flag_is_one_line_and_exit_2(tmp_path):
+    r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(tmp_path / "o")],
+                       env={**os.environ, "GPU_CHECK_TINY": "99999999999999999999999", "PYTHON": sys.executable},
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "GPU_CHECK_TINY" in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_relative_outdir_is_the_callers(tmp_path):
+    """OUTDIR relative to the folder the script was started in, not to the checkout."""
+    (tmp_path / "results.txt").write_text("mine")
+    (tmp_path / "theirs").mkdir()
+    (tmp_path / "theirs" / "a.txt").write_text("a")
+    for name, says in (("results.txt", "not a folder"), ("theirs", "did not write")):
+        r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", name], cwd=tmp_path,
+                           env={**os.environ, "PYTHON": sys.executable}, capture_output=True, text=True, timeout=60)
+        assert r.returncode == 2 and r.stderr.strip().count("\n") == 0, r.stderr
+        assert says in r.stderr and str(tmp_path / name) in r.stderr
+    assert not (ROOT / "results.txt").exists() and not (ROOT / "theirs").exists()
 
 
 def test_an_outdir_holding_someone_elses_files_is_refused_untouched(tmp_path):
@@ -204,6 +228,7 @@ def test_begin_and_settle_own_exactly_what_the_run_wrote(tmp_path):
     # killed before settle: the folders it was writing are its own entirely, the user's files are not
     (out / "my_notes.log").write_text("keep")
     (out / "work" / "keep.txt").write_text("keep")
+    gpu_check.heartbeat(out)  # the run was alive after writing them (its steps' guard)
     gpu_check.begin(out)
     assert _files(out) == {".fppsim-owned.json", ".gpu_check", "my_notes.log", "work/keep.txt"}
     (out / "work" / "syn").mkdir()
@@ -218,3 +243,163 @@ def test_begin_and_settle_own_exactly_what_the_run_wrote(tmp_path):
     (out / "step_train.json").mkdir()  # a folder where the run writes a file
     with pytest.raises(gpu_check.Refused, match="step_train.json exists and was not written"):
         gpu_check.begin(out)
+
+
+def test_after_an_unclean_stop_a_file_added_later_is_refused_not_deleted(tmp_path):
+    out = tmp_path / "o"
+    gpu_check.begin(out)
+    (out / "work" / "syn").mkdir()
+    (out / "work" / "syn" / "a.npy").write_text("the run's")
+    os.utime(out / ".gpu_check")  # the run's last sign of life, then it was killed with -9 (no settle)
+    time.sleep(0.05)
+    (out / "work" / "syn" / "user.txt").write_text("added after the run")
+    with pytest.raises(gpu_check.Refused, match="user.txt changed after the stopped run"):
+        gpu_check.begin(out)
+    assert (out / "work" / "syn" / "user.txt").read_text() == "added after the run"
+    assert (out / "work" / "syn" / "a.npy").exists()  # refused before anything was removed
+    (out / "work" / "syn" / "user.txt").unlink()
+    gpu_check.begin(out)  # only the run's file left: removed
+    assert not (out / "work" / "syn").exists()
+
+
+def test_after_an_unclean_stop_of_unknown_times_the_folder_is_refused(tmp_path):
+    out = tmp_path / "o"
+    gpu_check.begin(out)
+    (out / ".gpu_check").write_text("")  # an earlier version's marker: when the run ran is unknown
+    (out / "work" / "run").mkdir()
+    (out / "work" / "run" / "notes.txt").write_text("someone's?")
+    with pytest.raises(gpu_check.Refused, match=r"work/run: a stopped run was writing it"):
+        gpu_check.begin(out)
+    assert (out / "work" / "run" / "notes.txt").read_text() == "someone's?"
+
+
+def test_an_existing_outdir_that_cannot_be_written_says_so(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "ro"
+    out.mkdir()
+    real_mkdir = Path.mkdir
+
+    def mkdir(self, *a, **kw):  # a read-only folder (root, running these tests, may write anywhere)
+        if self == out / "work":
+            raise PermissionError(13, "Permission denied", str(self))
+        return real_mkdir(self, *a, **kw)
+
+    monkeypatch.setattr(Path, "mkdir", mkdir)
+    assert gpu_check.main(["begin", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip().count("\n") == 0 and "cannot write there" in err and "cannot create" not in err
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes in a read-only folder")
+def test_a_read_only_outdir_says_cannot_write_there(tmp_path, capsys):
+    out = tmp_path / "ro"
+    out.mkdir()
+    out.chmod(0o555)
+    try:
+        assert gpu_check.main(["begin", str(out)]) == 2
+    finally:
+        out.chmod(0o755)
+    err = capsys.readouterr().err
+    assert err.strip().count("\n") == 0 and "cannot write there" in err and not any(out.iterdir())
+
+
+def _sleepy_python(tmp_path) -> Path:
+    """An interpreter for a TINY run that needs no torch: ``-c`` answers "no CUDA", ``env`` writes nothing, a
+    step with --out writes a file there, notes its pid in tmp_path/pids and sleeps $FAKE_SLEEP s; a step
+    without --out fails at once; everything else is this Python."""
+    fake = tmp_path / "sleepypy"
+    fake.write_text(f"""#!/bin/bash
+[ "$1" = -c ] && {{ echo 0; exit 0; }}
+[ "$1" = pipelines/gpu_check.py ] && [ "$2" = env ] && exit 0
+if [ "$1" = -m ]; then
+  prev=""; for a in "$@"; do
+    if [ "$prev" = --out ]; then
+      mkdir -p "$a" && echo x > "$a/made-$$.txt" && echo $$ >> {tmp_path}/pids && exec sleep "${{FAKE_SLEEP:-0}}"
+    fi
+    prev=$a
+  done
+  exit 1
+fi
+exec {sys.executable} "$@"
+""")
+    fake.chmod(0o755)
+    return fake
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+def _ppid(pid: int) -> int:
+    try:
+        return int(Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[1])
+    except (OSError, IndexError, ValueError):
+        return 0
+
+
+def _until(cond, seconds: float) -> bool:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.1)
+    return cond()
+
+
+def _start_until_generating(tmp_path, out_arg: str, **kw) -> tuple[subprocess.Popen, int]:
+    env = {**os.environ, "GPU_CHECK_TINY": "1", "PYTHON": str(_sleepy_python(tmp_path)), "FAKE_SLEEP": "60"}
+    p = subprocess.Popen(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", out_arg], env=env,
+                         stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, **kw)
+    pids = tmp_path / "pids"
+    assert _until(lambda: pids.is_file() and pids.read_text().strip(), 60), "the generate step never started"
+    return p, int(pids.read_text().split()[0])
+
+
+def _cleanup(p: subprocess.Popen, tmp_path) -> None:
+    """Stop what a failed test left running: the script and the step processes it noted (by their pids)."""
+    if p.poll() is None:
+        p.kill()
+        p.wait()
+    pids = tmp_path / "pids"
+    for pid in (pids.read_text().split() if pids.is_file() else []):
+        if _alive(int(pid)):
+            os.kill(int(pid), signal.SIGKILL)
+
+
+def test_ctrl_c_stops_the_running_step_and_the_run_with_130(tmp_path):
+    out = tmp_path / "o"
+    p, step = _start_until_generating(tmp_path, str(out), start_new_session=True)
+    try:
+        os.killpg(p.pid, signal.SIGINT)  # Ctrl-C: the whole foreground process group
+        assert p.wait(timeout=20) == 130
+        assert _until(lambda: not _alive(step), 5), "the step outlived Ctrl-C"
+        rec = json.loads((out / ".fppsim-owned.json").read_text())["files"]
+        assert gpu_check.WRITING not in rec.values()  # settled: the record lists what the run wrote
+        assert any(n.startswith("work/syn/made-") for n in rec)
+    finally:
+        _cleanup(p, tmp_path)
+
+
+def test_kill_9_stops_the_step_and_a_rerun_keeps_files_added_later(tmp_path):
+    p, step = _start_until_generating(tmp_path, "o", cwd=tmp_path)  # a relative OUTDIR: the caller's folder
+    out = tmp_path / "o"
+    try:
+        assert (out / "work" / "syn").is_dir() and not (ROOT / "o").exists()
+        guard = _ppid(step)
+        p.kill()  # kill -9 of the script
+        p.wait()
+        assert _until(lambda: not _alive(step) and not _alive(guard), 20), "the step outlived the script"
+        time.sleep(0.05)
+        (out / "work" / "syn" / "user.txt").write_text("mine")
+        (out / "work" / "run").mkdir(exist_ok=True)
+        (out / "work" / "run" / "notes.txt").write_text("mine too")
+        r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(out)],
+                           env={**os.environ, "GPU_CHECK_TINY": "1", "PYTHON": str(_sleepy_python(tmp_path)),
+                                "FAKE_SLEEP": "0"}, capture_output=True, text=True, timeout=120)
+        assert (out / "work" / "syn" / "user.txt").read_text() == "mine"
+        assert (out / "work" / "run" / "notes.txt").read_text() == "mine too"
+        assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "work/" in r.stderr, r.stderr
+    finally:
+        _cleanup(p, tmp_path)
