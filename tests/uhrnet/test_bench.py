@@ -40,7 +40,7 @@ def test_bench_channels_last_without_training(capsys):
 
 def test_bench_user_errors(capsys):
     assert main(["bench", "--models", "resnet"]) == 1
-    assert main(["bench", "--height", "40"]) == 1
+    assert main(["bench", "--height", "40"]) == 2
     if not torch.cuda.is_available():
         assert main(["bench", "--device", "cuda"]) == 1
     assert "error" in capsys.readouterr().err

@@ -257,7 +257,9 @@ def test_adapt_runs_the_network_at_the_training_runs_resize_as_predict_does(tmp_
         model.register_forward_pre_hook(lambda mod, args: seen.append(tuple(args[0].shape[-2:])))
         return model, transform
 
-    monkeypatch.setattr(cp, "model_from_checkpoint", spy)
+    import uhrnet.training.adapt as adapt_module
+
+    monkeypatch.setattr(adapt_module, "model_from_checkpoint", spy)  # where adapt looks it up
     assert main(["adapt", str(run), "--images", str(tmp_path / "real"), "--rig", str(tmp_path / "rig.json"),
                  "--out", str(tmp_path / "ad"), "--epochs", "1", "--no-progress", "--no-figures"]) == 0
     assert seen and set(seen) == {(16, 32)}
@@ -316,7 +318,7 @@ def test_adapt_reads_a_scan_folder_that_holds_only_ipattern(setup, tmp_path, cap
     assert [im["name"] for im in json.loads((tmp_path / "ad" / "images.json").read_text())] == ["scan_1201"]
 
 
-@pytest.mark.parametrize("count,needle", [("0", "--count must be >= 1"), ("4", "needs at least 6 samples")])
+@pytest.mark.parametrize("count,needle", [("0", "--count must be from 1"), ("4", "needs at least 6 samples")])
 def test_sim2real_counts_it_cannot_use_are_usage_errors_before_generating(tmp_path, capsys, count, needle):
     assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "o"), "--count", count]) == 2
     _one_error(capsys, needle)
