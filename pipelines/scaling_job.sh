@@ -27,8 +27,6 @@ LEDGER="$ROOT/docs/experiments/scaling.json"
 mkdir -p "$WT/runs/scaling"
 cd "$WT"
 export PYTHONPATH="$WT${PYTHONPATH:+:$PYTHONPATH}" PYOPENGL_PLATFORM=osmesa
-# idle OpenMP threads sleep instead of spinning: the other work shares the 2 cores (results are the same bits)
-export OMP_WAIT_POLICY=PASSIVE
 for item in "$@"; do
   arm="${item%%:*}" seed="${item##*:}"
   echo "$(date -Is) start $arm seed $seed at $(git rev-parse --short HEAD)"
