@@ -221,3 +221,28 @@ def reference_plane_parameters(rig, periods: float | None = None, atol: float = 
     d = float(sx * (proj.center[0] - cam.center[0]))
     f0 = float(f * proj.K[0, 0] / (proj.width * L))
     return float(L), d, f0
+
+
+def load_pipeline(name: str):
+    """The module of ``pipelines/<name>.py`` (pipelines are scripts, not a package)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / "pipelines" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def adapt_setup(tmp_path):
+    """A tiny trained run, the rig file and two unlabelled real fringes of bumps through that rig, as the
+    adapt tests use them: ``(source run, rig path, real folder)``."""
+    write_figshare(tmp_path / "syn", n=6, h=32, w=64, seed=1)
+    source = train_tiny(tmp_path / "src", "--real", tmp_path / "syn", "--real-split", "train")
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    yy, xx = np.mgrid[0:32, 0:64].astype(float)
+    bumps = [peak * np.exp(-((xx - cx) ** 2 + (yy - 15) ** 2) / 128) for peak, cx in ((6.0, 30.0), (4.0, 40.0))]
+    real = tmp_path / "real"
+    real.mkdir()
+    np.save(real / "f1_80.npy", (np.stack([rig_fringe(rig, b) for b in bumps]) / 127.5 - 1)[..., None].astype(np.float32))
+    return source, tmp_path / "rig.json", real

@@ -2,18 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
+
+from _helpers import load_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def load_report():
-    spec = importlib.util.spec_from_file_location("bench_report", ROOT / "pipelines" / "bench_report.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_pipeline("bench_report")
 
 
 def test_report_collects_uhrnet_generate_and_gpu_json(tmp_path):

@@ -1,11 +1,12 @@
 """uhrnet.workflows.stages.read_config_file, the one reader of experiment files (pipelines/scaling.py's
 --arms-file, sim2real's --ablation): whatever the path holds, one line through the caller's error class."""
 
-import importlib.util
 import os
 from pathlib import Path
 
 import pytest
+
+from _helpers import load_pipeline
 
 from uhrnet.workflows.sim2real.variants import load_variants
 from uhrnet.workflows.stages import read_config_file
@@ -15,10 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _scaling():
-    spec = importlib.util.spec_from_file_location("scaling", ROOT / "pipelines" / "scaling.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_pipeline("scaling")
 
 
 class Problem(Exception):

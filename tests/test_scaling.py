@@ -1,7 +1,6 @@
 """pipelines/scaling.py (issue 32): the arms file, the exact equivalent `uhrnet sim2real` commands, bad input
 refused before anything runs, and a tiny study end to end (2 arms x 2 seeds) that resumes without training."""
 
-import importlib.util
 import json
 import shlex
 from pathlib import Path
@@ -12,17 +11,14 @@ import pytest
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
-from _helpers import rig_fringe, tiny_rig, write_figshare
+from _helpers import load_pipeline, rig_fringe, tiny_rig, write_figshare
 
 ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("scaling", ROOT / "pipelines" / "scaling.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_pipeline("scaling")
 
 
 scaling = _load()

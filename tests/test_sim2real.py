@@ -15,7 +15,7 @@ from uhrnet.workflows.sim2real import (
     level_response, markdown_report, object_mask, plane_level, real_metrics, train_config,
 )
 
-from _helpers import REAL_SAMPLE, train_tiny, write_figshare
+from _helpers import REAL_SAMPLE, load_pipeline, train_tiny, write_figshare
 
 
 def _scene(h=60, w=80, plane=-97.0, bump_mm=30.0):
@@ -198,11 +198,7 @@ def test_real_sample_object_pixels_reproduce_the_issue_numbers():
 
 
 def test_pipeline_script_parses_variants_and_reports_bad_real_folders(tmp_path, capsys):
-    import importlib.util
-
-    spec = importlib.util.spec_from_file_location("s2r", Path(__file__).resolve().parents[1] / "pipelines" / "sim2real.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = load_pipeline("sim2real")
     rc = mod.main(["--real", str(tmp_path), "--out", str(tmp_path / "o"), "--variant", "a: | --no-augment"])
     assert rc == 1 and "no labelled real samples" in capsys.readouterr().err
     abl = load_variants(Path(__file__).resolve().parents[1] / "pipelines" / "sim2real_ablation.yaml")

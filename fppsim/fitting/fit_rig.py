@@ -36,6 +36,7 @@ from typing import Callable
 import numpy as np
 
 from fppsim.commands import ReportLines
+from fppsim.errors import UsageError
 from fppsim.files import atomic_write_text, check_output_file
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
@@ -45,7 +46,7 @@ from fppsim.dataio.readers import FringeImage, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, load_rig
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
-           "plane_tilt", "format_fit", "unfitted", "BaselineFit", "fit_baseline", "format_baseline_fit", "FitRigConfig",
+           "plane_tilt", "format_fit", "unfitted", "BaselineFit", "fit_baseline", "format_baseline_fit", "check_fit_options", "FitRigConfig",
            "FitRigResult", "fit_rig_images"]
 
 @dataclass
@@ -154,17 +155,21 @@ class FitRigConfig:
     force: bool = False
 
     def __post_init__(self):
-        from fppsim.errors import UsageError  # option values wrong on their own: exit 2
+        check_fit_options(self)
 
-        for key in ("col_bands", "row_bands", "max_images"):
-            if getattr(self, key) < 1:
-                raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(self, key)}")
-        unknown = [p for p in self.params if p not in PARAMETERS]
-        if unknown or not self.params:
-            raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
-                             f"(known: {', '.join(PARAMETERS)})")
-        if self.sensitivity not in ("auto", "off"):
-            raise UsageError(f"--sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+
+def check_fit_options(cfg) -> None:
+    """:class:`fppsim.errors.UsageError` (exit 2) for a fit-rig option wrong on its own: the band counts,
+    ``max_images``, ``params`` and ``sensitivity`` of ``cfg`` (every fit-rig configuration has them)."""
+    for key in ("col_bands", "row_bands", "max_images"):
+        if getattr(cfg, key) < 1:
+            raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(cfg, key)}")
+    unknown = [p for p in cfg.params if p not in PARAMETERS]
+    if unknown or not cfg.params:
+        raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
+                         f"(known: {', '.join(PARAMETERS)})")
+    if cfg.sensitivity not in ("auto", "off"):
+        raise UsageError(f"--sensitivity must be 'auto' or 'off', got {cfg.sensitivity!r}")
 
 
 @dataclass

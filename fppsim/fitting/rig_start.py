@@ -47,8 +47,8 @@ from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.errors import RigError, UsageError
 from fppsim.files import atomic_write_text, check_output_file
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
-from fppsim.fitting.fit_periods import PARAMETERS, format_fit, measure_bands
-from fppsim.fitting.fit_rig import fit_baseline, format_baseline_fit
+from fppsim.fitting.fit_periods import format_fit, measure_bands
+from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit
 from fppsim.fitting.plane_phase import (PhaseMap, PlanePhaseFit, find_plane, fit_plane_phase, fringe_axis,
                                         image_phase_map, plane_phase_gradient, relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
@@ -417,15 +417,7 @@ class StartRigConfig:
                 raise UsageError(f"--{key} must be a number in {lo:g}..{hi:g}, got {v}")
         if self.projector_side is not None and self.projector_side not in SIDES:
             raise UsageError(f"--projector-side must be one of {', '.join(SIDES)}, got {self.projector_side!r}")
-        for key in ("col_bands", "row_bands", "max_images"):
-            if getattr(self, key) < 1:
-                raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(self, key)}")
-        unknown = [p for p in self.params if p not in PARAMETERS]
-        if unknown or not self.params:
-            raise UsageError(f"--params: unknown or no parameter(s) to fit: {', '.join(unknown) or 'none'} "
-                             f"(known: {', '.join(PARAMETERS)})")
-        if self.sensitivity not in ("auto", "off"):
-            raise UsageError(f"--sensitivity must be 'auto' or 'off', got {self.sensitivity!r}")
+        check_fit_options(self)
 
 
 @dataclass

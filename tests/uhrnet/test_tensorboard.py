@@ -17,7 +17,7 @@ import torch
 
 from uhrnet.cli import main
 
-from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
+from _helpers import adapt_setup, write_figshare
 
 pytest.importorskip("tensorboard", reason="tensorboard (the optional extra) not installed")
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator  # noqa: E402
@@ -179,15 +179,7 @@ def test_missing_tensorboard_is_one_line_and_exit_2_before_anything_runs(figshar
 
 @pytest.mark.slow
 def test_adapt_logs_its_loss_terms_and_resumes_the_log(tmp_path, capsys):
-    write_figshare(tmp_path / "syn", n=6, h=32, w=64, seed=1)
-    source = train_tiny(tmp_path / "src", "--real", tmp_path / "syn", "--real-split", "train")
-    rig = tiny_rig()
-    rig.save(tmp_path / "rig.json")
-    yy, xx = np.mgrid[0:32, 0:64].astype(float)
-    bumps = [peak * np.exp(-((xx - cx) ** 2 + (yy - 15) ** 2) / 128) for peak, cx in ((6.0, 30.0), (4.0, 40.0))]
-    real = tmp_path / "real"
-    real.mkdir()
-    np.save(real / "f1_80.npy", (np.stack([rig_fringe(rig, b) for b in bumps]) / 127.5 - 1)[..., None].astype(np.float32))
+    source, _, real = adapt_setup(tmp_path)
     out = tmp_path / "ad"
     cmd = ["adapt", str(source), "--images", str(real), "--out", str(out), "--rig", str(tmp_path / "rig.json"),
            "--no-figures", "--no-progress", "--tensorboard"]  # w_drift 0.5 (default)

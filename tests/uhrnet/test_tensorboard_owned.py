@@ -10,12 +10,11 @@ line before anything is written, other files there are left alone (uhrnet.traini
 import json
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from uhrnet.cli import main
 
-from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
+from _helpers import adapt_setup, write_figshare
 
 pytest.importorskip("tensorboard", reason="tensorboard (the optional extra) not installed")
 
@@ -125,15 +124,7 @@ def test_train_resume_touches_no_foreign_event_file(figshare, tmp_path):
 
 @pytest.mark.slow
 def test_adapt_tensorboard_follows_the_same_rules(tmp_path, capsys):
-    write_figshare(tmp_path / "syn", n=6, h=32, w=64, seed=1)
-    source = train_tiny(tmp_path / "src", "--real", tmp_path / "syn", "--real-split", "train")
-    rig = tiny_rig()
-    rig.save(tmp_path / "rig.json")
-    yy, xx = np.mgrid[0:32, 0:64].astype(float)
-    bumps = [peak * np.exp(-((xx - cx) ** 2 + (yy - 15) ** 2) / 128) for peak, cx in ((6.0, 30.0), (4.0, 40.0))]
-    real = tmp_path / "real"
-    real.mkdir()
-    np.save(real / "f1_80.npy", (np.stack([rig_fringe(rig, b) for b in bumps]) / 127.5 - 1)[..., None].astype(np.float32))
+    source, _, real = adapt_setup(tmp_path)
     out = tmp_path / "ad"
     cmd = ["adapt", str(source), "--images", str(real), "--out", str(out), "--rig", str(tmp_path / "rig.json"),
            "--no-figures", "--no-progress", "--epochs", "1"]
