@@ -112,8 +112,7 @@ class Source:
         """Names of the sub-folders (sorted) that are scan folders themselves (phase-shifting or native)."""
         if not self.path.is_dir():
             return []
-        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and (
-            open_source(d).is_psp or open_source(d).has_manifest))
+        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and _is_scan(open_source(d)))
 
     def ipattern_file(self, sid: str) -> Path:
         """The single-shot image file of scan ``sid`` of a scan folder."""
@@ -178,6 +177,10 @@ class Source:
         default convention) and where it exists (a scan's pixels with a phase and a non-black image; a native
         sample's ``phase_psp`` / ``mask_psp``), else None."""
         return None
+
+
+def _is_scan(src: Source) -> bool:
+    return src.is_psp or src.has_manifest
 
 
 LABELLED_HINT = ("expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, or fppsim's native samples "
@@ -371,15 +374,20 @@ class NativeSamples(Source):
 
     kind = "native"
     labelled = True
+    _ids: list[str] | None = None
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
         return (path / "manifest.jsonl").is_file() or (path / "dataset.json").is_file()
 
     def ids(self) -> list[str]:
-        if self.has_manifest:
-            return manifest_ids(self.path)
-        return sorted(p.name for p in self.path.iterdir() if (p / "arrays.npz").is_file()) if self.path.is_dir() else []
+        if self._ids is None:  # read once per reader: sample() asks for every training sample
+            if self.has_manifest:
+                self._ids = manifest_ids(self.path)
+            else:
+                self._ids = (sorted(p.name for p in self.path.iterdir() if (p / "arrays.npz").is_file())
+                             if self.path.is_dir() else [])
+        return list(self._ids)
 
     def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
         for sid in self.ids():
@@ -398,10 +406,14 @@ class NativeSamples(Source):
             check_psp_available(self.path, ids[0])
 
     def sample(self, i: int, transform, label: str = "true", mask_fringe: bool = True) -> tuple[np.ndarray, np.ndarray]:
-        return read_native_pair(self.path / self.ids()[int(i)], transform, label, mask_fringe)
+        return read_native_pair(self._folder(i), transform, label, mask_fringe)
 
     def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
-        return read_native_phase(self.path / self.ids()[int(i)], shape)
+        return read_native_phase(self._folder(i), shape)
+
+    def _folder(self, i: int) -> Path:
+        self.ids()
+        return self.path / self._ids[int(i)]
 
     def measured_phase_ids(self) -> list[str]:
         ids = self.ids()
