@@ -47,10 +47,11 @@ PAPER_MS = {"uhrnet": 22.4, "unet": 8.1, "hnet": None}  # Table 3 of the paper, 
 TOOL = "pipelines/gpu_check.sh"
 WRITING = TOOL + " (folder being written)"  # a TREES entry of a run that has not settled: all of it is the run's
 MARKER = ".gpu_check"
-STEPS = ("forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
+STEPS = ("study", "forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
+STUDY_FILES = ("study.json", "study_table.md", "study_samples.png", "study_steps.png")  # scaling.py --ledger's
 FILES = (MARKER, "setup.log", "step_env.json", *(f"{s}.log" for s in STEPS), *(f"step_{s}.json" for s in STEPS),
-         "forward_fp32.json", "forward_fp16.json", "gpu_check.json", "gpu_check.md")  # fixed names in OUT
-TREES = ("work/site", "work/x11", "work/syn", "work/run", "work/ddp", "work/s2r")  # the folders the steps fill
+         "forward_fp32.json", "forward_fp16.json", "gpu_check.json", "gpu_check.md", *STUDY_FILES)  # fixed names
+TREES = ("work/site", "work/x11", "work/study", "work/syn", "work/run", "work/ddp", "work/s2r")  # steps fill these
 HEARTBEAT_S = 1.0  # how often guard marks the run alive (the marker's mtime)
 GRACE_S = 10.0     # a stopped step's time to exit after SIGINT/SIGTERM before SIGKILL
 SLACK_S = 1.0      # coarse file-system clocks: a path's ctime may read this much before the claim
@@ -400,6 +401,12 @@ def report(out: Path) -> dict:
                            "pair_object_median_abs_mm": (row.get("real") or {}).get("object_median_abs_mm"),
                            "phase_residual_rad": {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"]
                                                   for f in row.get("real_phase") or []}}
+    study = _json(out / "study.json")
+    if study:
+        res["study"] = [{"arm": a["name"], "device": a.get("device"), "seeds": [x["seed"] for x in a["seeds"]],
+                         "minutes": [x.get("minutes") for x in a["seeds"]],
+                         "pair_object_rmse_mm": a["summary"].get("pair_object_rmse_mm"),
+                         "phase_residual_rad": a["summary"].get("phase_residual_rad")} for a in study["arms"]]
     (out / "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
     (out / "gpu_check.md").write_text(markdown(res))
     return res
@@ -415,6 +422,18 @@ def markdown(res: dict) -> str:
         if s:
             lines.append(f"| {name} | {s['exit_code']}{' (timed out)' if s['timed_out'] else ''} | "
                          f"{s['seconds']:.0f} | {s['limit_s']} |")
+    if res.get("study"):
+        lines += ["", "Scaling study (study.json; mean +- std over the seeds):", "",
+                  "| arm | device | seeds | minutes each | pair object RMSE (mm) | held-out phase residual (rad) |",
+                  "|---|---|---|---|---|---|"]
+        for a in res["study"]:
+            pair = a["pair_object_rmse_mm"] or {}
+            phase = "; ".join(f"{k} {v['mean']:.3f}" + (f" +- {v['std']:.3f}" if v.get("std") is not None else "")
+                              for k, v in (a["phase_residual_rad"] or {}).items())
+            mins = ", ".join(f"{m:.1f}" for m in a["minutes"] if m is not None)
+            lines.append(f"| {a['arm']} | {a['device']} | {', '.join(map(str, a['seeds']))} | {mins} | "
+                         + (f"{pair['mean']:.2f}" + (f" +- {pair['std']:.2f}" if pair.get("std") is not None else "")
+                            if pair.get("mean") is not None else "") + f" | {phase} |")
     if res["forward_ms"]:
         lines += ["", "Forward ms per image, batch 1 (median):", "",
                   "| model | " + " | ".join(res["forward_ms"]) + " | paper (RTX 2080 Ti) |",

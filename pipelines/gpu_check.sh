@@ -10,6 +10,10 @@
 #
 # Steps (each under its own time limit, cut to what the budget has left; a failed step is reported, the
 # others still run):
+#   0. the scaling study's arms at full size on the GPU, several at once (issue 35: it comes first in the
+#      budget): pipelines/scaling.py --device cuda --jobs N --deadline S, seeds 0 1 2, scored on the real pair
+#      and FP1523 in .gpu_data/; OUTDIR/study.json is its study record (merge it into the study's with
+#      `python pipelines/scaling.py --ledger docs/experiments/scaling.json --merge study.json`)
 #   1. forward ms per 352 x 640 image, batch 1, UHRNet / U-Net / hNet (the paper's Table 3 column), fp32
 #      and fp16 + channels_last                                     (uhrnet bench)
 #   2. synthetic data generated there, rendered through EGL (all cores; samples/s)   (fppsim generate)
@@ -30,6 +34,10 @@
 #   GPU_CHECK_BUDGET  seconds the whole run may take, 60 to 86400   [600: 10 minutes + a machine start fits in 15]
 #                     (sizes: >= 600 s: 2000 samples, 3 epochs; >= 400 s: 1200, 2; less: 800, 2)
 #   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
+#   GPU_CHECK_STEPS   the steps to run, in the order above   [study forward generate train ddp sim2real]
+#   GPU_CHECK_STUDY   the study's arms (pipelines/scaling_arms.yaml), run at once   [n100 n400 n1600 n6400 pedestal-0.8]
+#   GPU_CHECK_STUDY_SHARE  percent of the budget the study may take when other steps follow   [60]
+#   STUDY_COMMIT      the commit of the checkout sent (a copy without git), recorded with every study seed
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
 # On the lent machine (the device tool): carry .whl .gl .gpu_data and run
 #   bash pipelines/gpu_check.sh run "$OUT"
@@ -90,6 +98,21 @@ BUDGET="${GPU_CHECK_BUDGET:-600}"
 [[ "$BUDGET" =~ ^[0-9]{1,9}$ ]] && BUDGET=$(( 10#$BUDGET )) && [ "$BUDGET" -ge 60 ] && [ "$BUDGET" -le 86400 ] \
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds from 60 to 86400, got '${GPU_CHECK_BUDGET}'" >&2; exit 2; }
 [[ "$TINY" =~ ^[01]$ ]] || { echo "gpu_check: GPU_CHECK_TINY must be 0 or 1, got '$TINY'" >&2; exit 2; }
+ALL_STEPS="study forward generate train ddp sim2real"
+read -r -a STEPS <<< "${GPU_CHECK_STEPS:-$ALL_STEPS}"
+for s in "${STEPS[@]}"; do
+  [[ " $ALL_STEPS " == *" $s "* ]] || { echo "gpu_check: GPU_CHECK_STEPS: unknown step '$s' (steps: $ALL_STEPS)" >&2; exit 2; }
+done
+[ ${#STEPS[@]} -gt 0 ] || { echo "gpu_check: GPU_CHECK_STEPS names no step (steps: $ALL_STEPS)" >&2; exit 2; }
+want() { [[ " ${STEPS[*]} " == *" $1 "* ]]; }
+read -r -a STUDY_ARMS <<< "${GPU_CHECK_STUDY:-n100 n400 n1600 n6400 pedestal-0.8}"
+for a in "${STUDY_ARMS[@]}"; do
+  [[ "$a" =~ ^[A-Za-z0-9._-]{1,64}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY: '$a' is not an arm name" >&2; exit 2; }
+done
+SHARE="${GPU_CHECK_STUDY_SHARE:-60}"
+[[ "$SHARE" =~ ^[0-9]{1,3}$ ]] && [ "$((10#$SHARE))" -ge 10 ] && [ "$((10#$SHARE))" -le 100 ] \
+  || { echo "gpu_check: GPU_CHECK_STUDY_SHARE must be a percent from 10 to 100, got '$SHARE'" >&2; exit 2; }
+SHARE=$((10#$SHARE))
 OUTDIR="${1:-$ROOT/out/gpu_check}"
 case "$OUTDIR" in /*) ;; *) OUTDIR="$CALLER_PWD/$OUTDIR" ;; esac
 # OUTDIR is this script's own: new, empty, or an earlier run's (its .gpu_check marker); never someone's folder
@@ -195,28 +218,55 @@ MESHES=(assets/meshes); [ -d .gpu_data/meshes ] && MESHES+=(.gpu_data/meshes)
 REAL=(); [ -d .gpu_data/real-sample ] && REAL=(.gpu_data/real-sample)
 PHASE=(); for d in .gpu_data/real-phase/*/; do [ -d "$d/PSin" ] && PHASE+=("${d%/}"); done
 
+# 0. The scaling study first: its arms at once, each arm's seeds in turn, stopped at a deadline inside the step's
+#    limit so that what finished is recorded (OUTDIR/study.json); scored as on the CPU (the pair, FP1523), the
+#    meshes in the CPU study's order (../shared/meshes, then assets/meshes)
+if want study; then
+  if [ ${#REAL[@]} -eq 0 ]; then
+    log "step study skipped: no .gpu_data/real-sample (run prepare)"
+  else
+    SARMS=(--arms "${STUDY_ARMS[@]}"); SMESH=(assets/meshes); [ -d .gpu_data/meshes ] && SMESH=(.gpu_data/meshes assets/meshes)
+    SPHASE=(none); [ -d .gpu_data/real-phase/FP1523/PSin ] && SPHASE=(.gpu_data/real-phase/FP1523)
+    if [ "$TINY" != 0 ]; then   # the plumbing at toy sizes: two tiny arms of the study's shape
+      mkdir -p "$WORK/study"
+      printf '%s\n' "defaults: {base_channels: 4, epochs: 1, batch_size: 2, workers: 1, loss: l2}" "arms:" \
+        "  - {name: t6, series: [samples], count: 6, train: --samples-per-epoch 4}" \
+        "  - {name: t8, series: [samples], count: 8, train: --samples-per-epoch 4}" > "$WORK/study/arms.yaml"
+      SARMS=(--arms-file "$WORK/study/arms.yaml" --arms t6 t8 --resize 32x64); SPHASE=(none)
+    fi
+    others=0; for s in "${STEPS[@]}"; do [ "$s" != study ] && others=1; done
+    slim=$(limit 86400 $(( others ? BUDGET * (100 - SHARE) / 100 : 5 )))
+    run_step study "$slim" "$PY" pipelines/scaling.py "${SARMS[@]}" --seeds 0 1 2 --out "$WORK/study" \
+      --ledger "$OUTDIR/study.json" --real "${REAL[@]}" --real-phase "${SPHASE[@]}" --meshes "${SMESH[@]}" \
+      --device "$DEV" --workers "$([ "$TINY" != 0 ] && echo 1 || echo 3)" --jobs "${#STUDY_ARMS[@]}" \
+      --deadline "$(( slim > 90 ? slim - 50 : slim * 2 / 3 ))" --no-figures
+  fi
+fi
+
 # 1. Table 3's speed column
-run_step forward_fp32 "$(limit 90 $(( BUDGET * 70 / 100 )))" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device "$DEV" \
+want forward && run_step forward_fp32 "$(limit 90 $(( BUDGET * 70 / 100 )))" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device "$DEV" \
   --height "$H" --width "$W" "${REPEATS[@]}" "${WIDTH[@]}" --json "$OUTDIR/forward_fp32.json"
-if [ "$DEV" = cuda ]; then
+if want forward && [ "$DEV" = cuda ]; then
   run_step forward_fp16 "$(limit 60 $(( BUDGET * 62 / 100 )))" "$PY" -m uhrnet bench --models uhrnet unet hnet --no-train --device cuda \
     --height "$H" --width "$W" "${REPEATS[@]}" --amp fp16 --channels-last --json "$OUTDIR/forward_fp16.json"
 fi
 # 2. data generated there, through EGL on the GPU (the recipe's generator settings, figshare layout)
-run_step generate "$(limit 150 $(( BUDGET * 45 / 100 )))" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
+want generate && run_step generate "$(limit 150 $(( BUDGET * 45 / 100 )))" "$PY" -m fppsim generate --meshes "${MESHES[@]}" --out "$WORK/syn" \
   --count "$COUNT" --seed 100 --workers "$GENW" --no-psp --format figshare --backend "$PYOPENGL_PLATFORM" --no-preview
 # 3. UHRNet (AMP on a GPU) on that data (the sim-to-real gpu scale's loss, batch and lr); 5 reuses the run
 TRAIN=(--synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --loss compound --epochs "$EPOCHS" --batch-size "$BATCH"
        --lr 3e-4 --seed 0 "${AMP[@]}" --device "$DEV" --no-progress)
-run_step train "$(limit 330 $(( BUDGET * 15 / 100 )))" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"
+want train && run_step train "$(limit 330 $(( BUDGET * 15 / 100 )))" "$PY" -m uhrnet train "${TRAIN[@]}" --out "$WORK/run"
 # 4. DDP on nccl (gloo without CUDA), world size 1, one short epoch (gloo on the loopback: the dry run's
 #    network namespace has no other interface)
 export GLOO_SOCKET_IFNAME="${GLOO_SOCKET_IFNAME:-lo}"
-run_step ddp "$(limit "$([ "$TINY" != 0 ] && echo 240 || echo 90)" $(( BUDGET * 8 / 100 )))" "$PY" -m torch.distributed.run --standalone --nproc_per_node 1 -m uhrnet train \
+want ddp && run_step ddp "$(limit "$([ "$TINY" != 0 ] && echo 240 || echo 90)" $(( BUDGET * 8 / 100 )))" "$PY" -m torch.distributed.run --standalone --nproc_per_node 1 -m uhrnet train \
   --synthetic "$WORK/syn" --model uhrnet "${WIDTH[@]}" --epochs 1 --samples-per-epoch $(( 4 * BATCH )) \
   --batch-size "$BATCH" "${AMP[@]}" --seed 0 --no-progress --out "$WORK/ddp"
 # 5. the sim-to-real point: step 3's run scored on the real data that travelled
-if [ ${#REAL[@]} -gt 0 ] && [ -f "$WORK/run/last.pt" ]; then
+if ! want sim2real; then
+  :
+elif [ ${#REAL[@]} -gt 0 ] && [ -f "$WORK/run/last.pt" ]; then
   S2R=(--scale "$([ "$DEV" = cuda ] && echo gpu || echo cpu)" --real "${REAL[@]}" --out "$WORK/s2r" --count "$COUNT" --seed 100 --epochs "$EPOCHS"
        --batch-size "$BATCH" --lr 3e-4 --model uhrnet --device "$DEV" --reuse-run "default=$WORK/run" --no-figures)
   [ ${#PHASE[@]} -gt 0 ] && S2R+=(--real-phase "${PHASE[@]}")

@@ -236,7 +236,11 @@ def _same_folders(have, want) -> bool:
 
 
 def code_version() -> dict:
-    """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``."""
+    """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``. A copy of
+    the checkout without git (the tree sent to a lent GPU machine) takes the commit from ``$STUDY_COMMIT``,
+    set by whoever sent it (``"commit_from": "STUDY_COMMIT"``; dirty then unknown)."""
+    import os
+    import re
     import subprocess
 
     def git(*a):
@@ -245,8 +249,11 @@ def code_version() -> dict:
         head = git("rev-parse", "HEAD")
         dirty = git("status", "--porcelain", "--untracked-files=no")
     except (OSError, subprocess.SubprocessError):
-        return {"commit": None, "dirty": None}
-    if head.returncode:
+        head = None
+    if head is None or head.returncode:
+        given = os.environ.get("STUDY_COMMIT", "")
+        if re.fullmatch(r"[0-9a-f]{40}", given):
+            return {"commit": given, "dirty": None, "commit_from": "STUDY_COMMIT"}
         return {"commit": None, "dirty": None}
     return {"commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip())}
 
@@ -259,11 +266,13 @@ def _rel(path: str) -> str:
     return os.path.relpath(p.resolve(), ROOT) if p.exists() or p.is_absolute() else str(path)
 
 
-def study_command(args, arm: dict, seed: int) -> list[str]:
+def study_command(args, arm: dict, seed: int | list[int]) -> list[str]:
     """The ``python pipelines/scaling.py`` command, run from the repository root, that runs exactly this
-    (arm, seed): every input the study reads named explicitly (no default taken from the folder layout)."""
+    (arm, seed) (or these seeds): every input the study reads named explicitly (no default taken from the
+    folder layout)."""
+    seeds = [seed] if isinstance(seed, int) else list(seed)
     argv = ["python", "pipelines/scaling.py", "--arms-file", _rel(args.arms_file), "--arms", arm["name"],
-            "--seeds", str(seed), "--out", _rel(args.out), "--real", *map(_rel, args.real),
+            "--seeds", *map(str, seeds), "--out", _rel(args.out), "--real", *map(_rel, args.real),
             "--real-phase", *(map(_rel, args.real_phase) if args.real_phase else ["none"]),
             "--meshes", *map(_rel, args.meshes)]
     for flag, value in (("--resize", args.resize), ("--threads", args.threads), ("--device", args.device),
@@ -280,10 +289,12 @@ def seed_record(args, arm: dict, seed: int, cfg, argv: list[str]) -> dict:
 
     import torch
 
+    gpu = torch.cuda.get_device_name(0) if cfg.device != "cpu" and torch.cuda.is_available() else None
     return {"arm": arm["name"], "seed": seed, "resize": args.resize, "device": cfg.device,
             "command": shlex.join(study_command(args, arm, seed)), "sim2real_command": shlex.join(argv),
             **code_version(), "torch": torch.__version__, "torch_threads": args.threads or torch.get_num_threads(),
-            "python": platform.python_version(), "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+            **({"gpu": gpu} if gpu else {}), "python": platform.python_version(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
 def seed_result(folder: Path, cfg, variant) -> dict | None:
@@ -331,7 +342,8 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
     timing = folder / "timing.json"
     out["minutes"] = (sum(v for v in json.loads(timing.read_text()).values() if isinstance(v, (int, float))) / 60.0
                       if timing.is_file() else None)
-    for key in ("command", "sim2real_command", "commit", "dirty", "device", "torch", "torch_threads", "started"):
+    for key in ("command", "sim2real_command", "commit", "dirty", "commit_from", "device", "torch", "torch_threads",
+                "gpu", "started"):
         if key in record:
             out[key] = record[key]
     out.setdefault("device", cfg.device)
@@ -496,12 +508,8 @@ def write_report(args, arms: list[dict], configs: dict) -> dict:
     Nothing recorded is lost: a seed is keyed by (arm, resize, device, seed); results already in the record
     stay whether or not their folders are still here, and a folder whose result differs from the recorded one
     (another commit, or a re-run) keeps the earlier result in the seed's ``reruns``."""
-    from fppsim.files import atomic_write_text
-
     out, ledger = Path(args.out), Path(args.ledger)
-    doc = load_ledger(ledger)
-    entries = {_key(a): a for a in doc["arms"]}
-    order = {a["name"]: i for i, a in enumerate(load_arms(args.arms_file))}
+    entries = {_key(a): a for a in load_ledger(ledger)["arms"]}
     found, pending = 0, []
     for arm in arms:
         for seed in args.seeds:
@@ -514,21 +522,57 @@ def write_report(args, arms: list[dict], configs: dict) -> dict:
             found += 1
             res.setdefault("command", shlex.join(study_command(args, arm, seed)))
             res.setdefault("sim2real_command", shlex.join(argv))
-            key = (arm["name"], args.resize, res["device"])
-            entry = entries.setdefault(key, {"name": arm["name"], "resize": args.resize, "device": res["device"],
-                                              "seeds": []})
-            entry.update({"description": arm["description"], "series": arm["series"], "count": cfg.count,
-                          "epochs": int(var.train.get("epochs") or cfg.epochs), "steps": steps_of(cfg, var),
-                          "generate": arm["generate"], "train": arm["train"]})
-            new = {"seed": seed, **res}
-            old = next((s for s in entry["seeds"] if s["seed"] == seed), None)
-            if old is not None:
-                entry["seeds"].remove(old)
-                if not _same_result(old, new):
-                    new["reruns"] = [*old.pop("reruns", []), old]
-                elif old.get("reruns"):
-                    new["reruns"] = old["reruns"]
-            entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
+            meta = {"name": arm["name"], "resize": args.resize, "device": res["device"],
+                    "description": arm["description"], "series": arm["series"], "count": cfg.count,
+                    "epochs": int(var.train.get("epochs") or cfg.epochs), "steps": steps_of(cfg, var),
+                    "generate": arm["generate"], "train": arm["train"]}
+            _add_seed(entries, meta, {"seed": seed, **res})
+    return _write_ledger(args, ledger, entries, found, pending)
+
+
+def _add_seed(entries: dict, meta: dict, new: dict) -> None:
+    """Put one seed's result ``new`` into the arm entry of ``meta`` (its name, resize, device and description)
+    in ``entries`` (keyed by :func:`_key`): a seed recorded before with another result keeps that under
+    ``reruns``."""
+    entry = entries.setdefault(_key(meta), {"name": meta["name"], "resize": meta.get("resize"),
+                                            "device": meta.get("device", "cpu"), "seeds": []})
+    entry.update({k: v for k, v in meta.items() if k not in ("name", "resize", "device", "seeds", "summary")})
+    old = next((s for s in entry["seeds"] if s["seed"] == new["seed"]), None)
+    if old is not None:
+        entry["seeds"].remove(old)
+        if not _same_result(old, new):
+            new["reruns"] = [*old.pop("reruns", []), old]
+        elif old.get("reruns"):
+            new["reruns"] = old["reruns"]
+    entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
+
+
+def merge_records(args) -> dict:
+    """``--merge FILE ...``: add every seed of the study records FILE (e.g. brought back from a GPU machine) to
+    ``args.ledger``, with the same rules as a finished folder (nothing recorded is dropped; a differing
+    result keeps the earlier one under ``reruns``), and rewrite its table and figures."""
+    ledger = Path(args.ledger)
+    entries = {_key(a): a for a in load_ledger(ledger)["arms"]}
+    found = 0
+    for path in args.merge:
+        if Path(path).resolve() == ledger.resolve():
+            raise UsageProblem(f"--merge {path}: is the --ledger itself")
+        if not Path(path).is_file():
+            raise UsageProblem(f"--merge {path}: no such file")
+        for arm in load_ledger(Path(path))["arms"]:
+            meta = {k: v for k, v in arm.items() if k not in ("seeds", "summary")}
+            for seed in arm["seeds"]:
+                _add_seed(entries, meta, dict(seed))
+                found += 1
+    return _write_ledger(args, ledger, entries, found, [])
+
+
+def _write_ledger(args, ledger: Path, entries: dict, found: int, pending: list[str]) -> dict:
+    """Write the study record ``ledger`` from ``entries`` (arms in the arms file's order), its table and its
+    figures; returns the record with ``found`` / ``pending`` added."""
+    from fppsim.files import atomic_write_text
+
+    order = {a["name"]: i for i, a in enumerate(load_arms(args.arms_file))}
     arm_list = sorted(entries.values(), key=lambda a: (order.get(a["name"], len(order)), a["name"],
                                                        a.get("resize") or "", a.get("device", "cpu")))
     for entry in arm_list:
@@ -579,8 +623,30 @@ def parse_args(argv=None) -> argparse.Namespace:
                         "its table and figures are written beside it [OUT/scaling.json]")
     p.add_argument("--report-only", action="store_true",
                    help="add the finished folders to the record, rewrite its table and figures; run nothing")
+    p.add_argument("--jobs", type=int, default=1, metavar="N",
+                   help="arms run at once, each in its own process (its seeds one after another: they share the "
+                        "arm's folder), e.g. several arms on one GPU; output lines start with the arm [1]")
+    p.add_argument("--deadline", type=float, metavar="SECONDS",
+                   help="stop after this many seconds: the running seeds are interrupted (the same command "
+                        "resumes them), no new one starts, and the finished ones are recorded [no limit]")
+    p.add_argument("--merge", nargs="+", metavar="FILE",
+                   help="add the seeds of these study records (e.g. a scaling.json brought back from a GPU "
+                        "machine) to --ledger and rewrite its table and figures; runs nothing, needs no --out")
+    p.add_argument("--no-report", action="store_true",
+                   help="run only, write no record (what --jobs gives each arm's process; the parent reports)")
     p.add_argument("--list", action="store_true", help="print the arms and their commands; run nothing")
     return p.parse_args(argv)
+
+
+def check_merge(args) -> None:
+    """``--merge``'s own checks (:class:`UsageProblem`): a --ledger to merge into, nothing to run."""
+    if not args.ledger:
+        raise UsageProblem("--merge: give the study record to merge into as --ledger FILE")
+    if Path(args.ledger).is_dir():
+        raise UsageProblem(f"--ledger {args.ledger}: is a folder (give the scaling.json file)")
+    if args.out or args.report_only or args.list or args.arms:
+        raise UsageProblem("--merge runs nothing: give it no --out, --arms, --report-only or --list")
+    load_arms(args.arms_file)  # the arms' order in the table
 
 
 def check(args) -> tuple[list[dict], dict]:
@@ -603,6 +669,10 @@ def check(args) -> tuple[list[dict], dict]:
         raise UsageProblem(f"--seeds: distinct non-negative integers, got {args.seeds}")
     if not args.out and not args.list:
         raise UsageProblem("--out DIR is required")
+    if not 1 <= args.jobs <= 64:
+        raise UsageProblem(f"--jobs: 1 to 64 arms at once, got {args.jobs}")
+    if args.deadline is not None and not (math.isfinite(args.deadline) and 0 < args.deadline <= 30 * 86400):
+        raise UsageProblem(f"--deadline: seconds, more than 0 and at most 30 days, got {args.deadline}")
     if not args.real:
         raise UsageProblem("--real DIR: no labelled real folder given (../shared/real-sample is absent)")
     args.meshes = args.meshes or default_meshes(SHARED)
@@ -703,8 +773,111 @@ def run(args, arms: list[dict], configs: dict) -> int:
     return 1 if failed else 0
 
 
+def run_jobs(args, arms: list[dict]) -> int:
+    """Run the arms in up to ``args.jobs`` processes at once (``scaling.py --arms ARM --no-report``: each arm's
+    seeds one after another, since they share the arm's folder), their output echoed with the arm's name and
+    kept in ``OUT/<arm>/scaling.log``. At ``args.deadline`` seconds (or Ctrl-C / SIGTERM) the running ones are
+    interrupted (SIGINT to each process group, SIGKILL 30 s later): a seed cut off resumes with the same
+    command. 1 if an arm failed, 130 when interrupted, else 0 (arms left at the deadline are reported pending)."""
+    import os
+    import signal
+    import subprocess
+    import threading
+
+    from fppsim.files import die_with_parent
+
+    out, t0 = Path(args.out), time.monotonic()
+    end = t0 + args.deadline if args.deadline else None
+    queue, running, failed, stopped = list(arms), {}, [], []
+    lock = threading.Lock()
+
+    def echo(proc, name, log):
+        with log:
+            for line in proc.stdout:
+                log.write(line)
+                log.flush()
+                with lock:
+                    print(f"[{name}] {line}", end="", flush=True)
+
+    def start(arm):
+        folder = out / arm["name"]
+        folder.mkdir(parents=True, exist_ok=True)
+        argv = [sys.executable, str(Path(__file__).resolve()), *study_command(args, arm, args.seeds)[2:],
+                "--no-report"]
+        log = open(folder / "scaling.log", "a", encoding="utf-8")
+        log.write(f"# {shlex.join(argv)}\n")
+        # its own process group (stopped as a whole at the deadline); killed with this process (kill -9)
+        proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                start_new_session=True, preexec_fn=die_with_parent,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        thread = threading.Thread(target=echo, args=(proc, arm["name"], log), daemon=True)
+        thread.start()
+        running[proc] = (arm["name"], thread)
+
+    def stop_all():
+        for proc in running:
+            try:
+                os.killpg(proc.pid, signal.SIGINT)
+            except ProcessLookupError:
+                pass
+        limit = time.monotonic() + 30
+        for proc, (name, thread) in running.items():
+            try:
+                proc.wait(max(0.1, limit - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait()
+            thread.join(5)
+            stopped.append(name)
+        running.clear()
+
+    def on_term(signum, frame):
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGTERM, on_term)
+    try:
+        while queue or running:
+            while queue and len(running) < args.jobs and (end is None or time.monotonic() < end):
+                start(queue.pop(0))
+            if end is not None and time.monotonic() >= end:
+                if running or queue:
+                    print(f"scaling.py: deadline ({args.deadline:.0f} s) reached: stopping "
+                          f"{', '.join(n for n, _ in running.values()) or 'nothing running'}"
+                          + (f"; not started: {', '.join(a['name'] for a in queue)}" if queue else ""), flush=True)
+                stop_all()
+                break
+            for proc in list(running):
+                if proc.poll() is not None:
+                    name, thread = running.pop(proc)
+                    thread.join(5)
+                    if proc.returncode != 0:
+                        failed.append(f"{name} (exit {proc.returncode}; {out / name / 'scaling.log'})")
+            time.sleep(0.5)
+    except KeyboardInterrupt:
+        stop_all()
+        print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
+        return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    if failed:
+        print(f"scaling.py: error: failed: {', '.join(failed)}", file=sys.stderr)
+    return 1 if failed else 0
+
+
 def main(argv=None) -> int:
     args = parse_args(sys.argv[1:] if argv is None else list(argv))
+    if args.merge:
+        try:
+            check_merge(args)
+            doc = merge_records(args)
+        except UsageProblem as exc:
+            print(f"scaling.py: error: {exc}", file=sys.stderr)
+            return 2
+        print(f"study: {doc['found']} seed result(s) merged; {args.ledger} records "
+              f"{sum(len(a['seeds']) for a in doc['arms'])} (arm, seed) in {len(doc['arms'])} arm(s)", flush=True)
+        return 0
     try:
         arms, configs = check(args)
     except UsageProblem as exc:
@@ -720,10 +893,17 @@ def main(argv=None) -> int:
                 print("    " + shlex.join(configs[arm["name"], seed][1]))
         return 0
     try:
-        rc = 0 if args.report_only else run(args, arms, configs)
+        if args.report_only:
+            rc = 0
+        elif args.jobs > 1 or args.deadline:
+            rc = run_jobs(args, arms)
+        else:
+            rc = run(args, arms, configs)
     except KeyboardInterrupt:
         print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
         return 130
+    if rc == 130 or args.no_report:
+        return rc
     try:
         doc = write_report(args, arms, configs)
     except UsageProblem as exc:

@@ -169,11 +169,12 @@ def test_no_cuda_is_refused_before_anything_is_written(tmp_path):
 
 
 def _fake_python(tmp_path) -> Path:
-    """An interpreter for the script whose steps (``PY -m ...``) each write one file named by their process
-    into their --out folder, as the real tools would, and fail at once; everything else is this Python."""
+    """An interpreter for the script whose steps (``PY -m ...``, ``PY pipelines/scaling.py``) each write one file
+    named by their process into their --out folder, as the real tools would, and fail at once; everything else
+    is this Python."""
     fake = tmp_path / "fakepy"
     fake.write_text(f"""#!/bin/bash
-if [ "$1" = -m ]; then
+if [ "$1" = -m ] || [ "$1" = pipelines/scaling.py ]; then
   prev=""; for a in "$@"; do [ "$prev" = --out ] && mkdir -p "$a" && echo x > "$a/made-$$.txt"; prev=$a; done
   exit 1
 fi
@@ -195,7 +196,8 @@ def test_a_rerun_replaces_only_its_own_files(tmp_path):
     env = {"GPU_CHECK_TINY": "1", "PYTHON": str(_fake_python(tmp_path))}
     assert _script(out, env).returncode == 0
     first = {n for n in _files(out) if n.startswith("work/")}
-    assert first and all("made-" in n for n in first) and (out / "gpu_check.md").is_file()
+    assert "work/study/arms.yaml" in first  # the study's tiny arms file, written by the script itself
+    assert all("made-" in n for n in first - {"work/study/arms.yaml"}) and (out / "gpu_check.md").is_file()
     mine = {"my_notes.log": "notes", "work/keep.txt": "keep", "work/mine/a.txt": "a", "gpu_check.md.bak": "b"}
     for name, text in mine.items():
         (out / name).parent.mkdir(parents=True, exist_ok=True)
@@ -204,7 +206,7 @@ def test_a_rerun_replaces_only_its_own_files(tmp_path):
     assert r.returncode == 0, r.stderr
     assert all((out / n).read_text() == t for n, t in mine.items())
     second = {n for n in _files(out) if n.startswith("work/")} - set(mine)
-    assert second and not second & first  # the earlier run's files went, this run's are new
+    assert second and not (second & first) - {"work/study/arms.yaml"}  # the earlier run's went (arms.yaml rewritten)
     assert gpu_check.settle(out)  # the record lists what the run wrote, nothing of the user's
     rec = json.loads((out / ".fppsim-owned.json").read_text())["files"]
     assert second <= set(rec) and not set(mine) & set(rec)

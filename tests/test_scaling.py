@@ -212,3 +212,59 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
     (ledger.parent / "scaling_table.md").write_text("# my page\n")
     assert scaling.main(other + ["--report-only", "--ledger", str(ledger)]) == 2
     assert (ledger.parent / "scaling_table.md").read_text() == "# my page\n"
+
+
+@pytest.mark.slow
+def test_jobs_run_arms_at_once_deadline_stops_and_merge_keeps_everything(world, capsys):
+    """--jobs 2 runs both arms at once (each in its own process, lines tagged with the arm) and records the same
+    seeds as one process would; --deadline stops the running arms, resumable; --merge adds a record brought
+    back from elsewhere (a GPU machine) to a ledger without losing what it held."""
+    out = world / "study"
+    assert scaling.main(_argv(world, "--jobs", "2")) == 0
+    text = capsys.readouterr().out
+    assert "[a6] [1/2 a6 seed 0] start" in text and "[a8] [2/2 a8 seed 1] done in" in text
+    doc = json.loads((out / "scaling.json").read_text())
+    assert [(a["name"], [s["seed"] for s in a["seeds"]]) for a in doc["arms"]] == [("a6", [0, 1]), ("a8", [0, 1])]
+    assert "--arms a8 --seeds 1 " in doc["arms"][1]["seeds"][1]["command"]
+    assert (out / "a6" / "scaling.log").read_text().count("done in") == 2
+    # the same command again: every seed re-used, nothing trained
+    assert scaling.main(_argv(world, "--jobs", "2")) == 0
+    assert capsys.readouterr().out.count("finished before: re-used") == 4
+    assert json.loads((out / "scaling.json").read_text())["arms"] == doc["arms"]
+
+    # a deadline reached at once: the arm's process is stopped, nothing recorded, exit 0, the seeds pending
+    late = world / "late"
+    assert scaling.main(_argv(world, "--out", str(late), "--deadline", "0.5", "--arms", "a6")) == 0
+    text = capsys.readouterr().out
+    assert "deadline (0 s) reached: stopping a6" in text or "deadline" in text
+    assert "pending: a6 s0, a6 s1" in text
+    assert json.loads((late / "scaling.json").read_text())["arms"] == []
+
+    # merge: a record from elsewhere (another device) joins the ledger; a seed it holds with another result
+    # keeps the ledger's under reruns; merging the same again changes nothing
+    ledger = world / "docs" / "scaling.json"
+    ledger.parent.mkdir()
+    ledger.write_text(json.dumps({"arms": [{"name": "a6", "seeds": [{"seed": 0, "pair_object_rmse_mm": 9.0}]}]}))
+    gpu = json.loads((out / "scaling.json").read_text())
+    for arm in gpu["arms"]:
+        arm["device"] = "cuda"
+    gpu["arms"].append({"name": "a6", "device": "cpu", "resize": None, "seeds": [{"seed": 0, "pair_object_rmse_mm": 5.0}]})
+    (world / "gpu.json").write_text(json.dumps(gpu))
+    assert scaling.main(["--arms-file", str(world / "arms.yaml"), "--ledger", str(ledger),
+                         "--merge", str(world / "gpu.json")]) == 0
+    assert "5 seed result(s) merged" in capsys.readouterr().out
+    merged = json.loads(ledger.read_text())
+    assert [scaling.arm_label(a) for a in merged["arms"]] == ["a6", "a6 [cuda]", "a8 [cuda]"]
+    cpu0 = merged["arms"][0]["seeds"][0]
+    assert cpu0["pair_object_rmse_mm"] == 5.0 and cpu0["reruns"] == [{"seed": 0, "pair_object_rmse_mm": 9.0, "device": "cpu"}]
+    assert merged["arms"][1]["seeds"] == doc["arms"][0]["seeds"]
+    assert merged["arms"][1]["summary"] == doc["arms"][0]["summary"]
+    assert scaling.main(["--arms-file", str(world / "arms.yaml"), "--ledger", str(ledger),
+                         "--merge", str(world / "gpu.json")]) == 0
+    assert json.loads(ledger.read_text()) == merged
+    for bad, message in ((["--merge", str(world / "nope.json")], "no such file"),
+                         (["--merge", str(ledger)], "is the --ledger itself"),
+                         (["--merge", str(world / "gpu.json"), "--out", str(out)], "runs nothing")):
+        assert scaling.main(["--arms-file", str(world / "arms.yaml"), "--ledger", str(ledger), *bad]) == 2
+        assert message in capsys.readouterr().err
+    assert json.loads(ledger.read_text()) == merged
