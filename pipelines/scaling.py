@@ -236,9 +236,12 @@ def _same_folders(have, want) -> bool:
 
 
 def code_version() -> dict:
-    """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``. A copy of
-    the checkout without git (the tree sent to a lent GPU machine) takes the commit from ``$STUDY_COMMIT``,
-    set by whoever sent it (``"commit_from": "STUDY_COMMIT"``; dirty then unknown)."""
+    """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``.
+
+    ``$STUDY_COMMIT`` (40 hex digits), when set, is the commit whose tree this is, given by whoever copied the
+    checkout elsewhere (a lent GPU machine gets the working tree, on top of the git folder of an older commit:
+    its HEAD would be wrong). It is recorded as the commit (``"commit_from": "STUDY_COMMIT"``), beside what the
+    copy's git says (``checkout_head``, ``checkout_dirty``)."""
     import os
     import re
     import subprocess
@@ -248,14 +251,14 @@ def code_version() -> dict:
     try:
         head = git("rev-parse", "HEAD")
         dirty = git("status", "--porcelain", "--untracked-files=no")
+        seen = {"commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip())} if not head.returncode else None
     except (OSError, subprocess.SubprocessError):
-        head = None
-    if head is None or head.returncode:
-        given = os.environ.get("STUDY_COMMIT", "")
-        if re.fullmatch(r"[0-9a-f]{40}", given):
-            return {"commit": given, "dirty": None, "commit_from": "STUDY_COMMIT"}
-        return {"commit": None, "dirty": None}
-    return {"commit": head.stdout.strip(), "dirty": bool(dirty.stdout.strip())}
+        seen = None
+    given = os.environ.get("STUDY_COMMIT", "")
+    if re.fullmatch(r"[0-9a-f]{40}", given):
+        return {"commit": given, "dirty": None, "commit_from": "STUDY_COMMIT",
+                "checkout_head": seen and seen["commit"], "checkout_dirty": seen and seen["dirty"]}
+    return seen or {"commit": None, "dirty": None}
 
 
 def _rel(path: str) -> str:
@@ -342,8 +345,8 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
     timing = folder / "timing.json"
     out["minutes"] = (sum(v for v in json.loads(timing.read_text()).values() if isinstance(v, (int, float))) / 60.0
                       if timing.is_file() else None)
-    for key in ("command", "sim2real_command", "commit", "dirty", "commit_from", "device", "torch", "torch_threads",
-                "gpu", "started"):
+    for key in ("command", "sim2real_command", "commit", "dirty", "commit_from", "checkout_head", "checkout_dirty",
+                "device", "torch", "torch_threads", "gpu", "started"):
         if key in record:
             out[key] = record[key]
     out.setdefault("device", cfg.device)
@@ -397,55 +400,70 @@ def markdown(doc: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+GOALS = {"pair_object_rmse_mm": 4.5, "phase_residual_rad": 1.32}  # issue 35's targets (dashed in the figures)
+
+
 def plot_series(doc: dict, series: str, path: Path) -> Path | None:
     """Pair object RMSE with its level and relief parts (left) and each phase frame's residual (right), mean
-    ± std over seeds (single seeds as dots), against the arms' x of ``series``; None when no arm has a result."""
+    ± std over seeds (single seeds as dots), against the arms' x of ``series``: one row per device (full-size
+    arms only; a CPU and a GPU seed are different computations); the goals of :data:`GOALS` dashed. None when
+    no arm has a result."""
     import numpy as np
 
     from fppsim.plots import pyplot, save_figure
 
     key, xlabel = SERIES[series]
-    arms = sorted((a for a in doc["arms"] if series in a.get("series", []) and a["seeds"] and not a.get("resize")
-                   and a.get("device", "cpu") == "cpu"), key=lambda a: a[key])
+    arms = [a for a in doc["arms"] if series in a.get("series", []) and a["seeds"] and not a.get("resize")]
+    devices = sorted({a.get("device", "cpu") for a in arms}, key=lambda d: (d != "cpu", d))
     if not arms:
         return None
     plt = pyplot()
-    fig, ax = plt.subplots(1, 2, figsize=(12, 4.2))
-    x = np.array([a[key] for a in arms], float)
+    fig, axes = plt.subplots(len(devices), 2, figsize=(12, 4.2 * len(devices)), squeeze=False)
     parts = (("pair_object_rmse_mm", "object RMSE", "k", "o"),
              ("pair_level_rmse_mm", "level (region medians)", "C3", "s"),
              ("pair_relief_rmse_mm", "relief (rest)", "C0", "^"))
-    for k, label, color, marker in parts:
-        mean = np.array([a["summary"][k]["mean"] if a["summary"][k]["mean"] is not None else np.nan for a in arms])
-        std = np.array([a["summary"][k]["std"] or 0.0 for a in arms])
-        ax[0].errorbar(x, mean, yerr=std, color=color, marker=marker, capsize=4, label=label)
-        for xi, a in zip(x, arms):
-            ys = [s[k] for s in a["seeds"] if s.get(k) is not None]
-            ax[0].plot([xi] * len(ys), ys, ".", color=color, alpha=0.35)
-    ax[0].set_ylabel("labelled real pair (mm)")
-    ax[0].set_ylim(bottom=0)
-    ax[0].set_title("real pair: object RMSE, its level and relief parts (median split)", fontsize=10)
-    frames = sorted({f for a in arms for f in a["summary"]["phase_residual_rad"]})
-    for j, f in enumerate(frames):
-        mean = np.array([a["summary"]["phase_residual_rad"].get(f, {}).get("mean") or np.nan for a in arms])
-        std = np.array([a["summary"]["phase_residual_rad"].get(f, {}).get("std") or 0.0 for a in arms])
-        ax[1].errorbar(x, mean, yerr=std, color=f"C{j}", marker="o", capsize=4, label=f)
-        flat = next((s["phase_flat_rad"][f] for a in arms for s in a["seeds"]
-                     if f in s.get("phase_flat_rad", {})), None)
-        if flat is not None:
-            ax[1].axhline(flat, color=f"C{j}", ls=":", lw=1, label=f"{f}: flat plane")
-    ax[1].set_ylabel("phase residual (rad)")
-    ax[1].set_title("held-out real phase frames" if frames else "held-out real phase frames: none given")
-    for a_ in ax:
-        a_.set_xscale("log", base=2)
-        a_.set_xticks(x, [f"{int(v)}" for v in x])
-        a_.set_xlabel(xlabel)
-        a_.grid(alpha=0.3)
-        if a_.get_legend_handles_labels()[0]:
-            a_.legend(fontsize=7)
-    n = sorted({a["summary"]["n_seeds"] for a in arms})
-    fig.suptitle(f"sim-to-real scaling ({series}): mean ± std over {'/'.join(map(str, n))} training seed(s); "
-                 + ", ".join(arm_label(a) for a in arms) + " (full size, CPU)", fontsize=9)
+    for ax, device in zip(axes, devices):
+        row = sorted((a for a in arms if a.get("device", "cpu") == device), key=lambda a: a[key])
+        x = np.array([a[key] for a in row], float)
+        for k, label, color, marker in parts:
+            mean = np.array([a["summary"][k]["mean"] if a["summary"][k]["mean"] is not None else np.nan for a in row])
+            std = np.array([a["summary"][k]["std"] or 0.0 for a in row])
+            ax[0].errorbar(x, mean, yerr=std, color=color, marker=marker, capsize=4, label=label)
+            for xi, a in zip(x, row):
+                ys = [s_[k] for s_ in a["seeds"] if s_.get(k) is not None]
+                ax[0].plot([xi] * len(ys), ys, ".", color=color, alpha=0.35)
+        ax[0].axhline(GOALS["pair_object_rmse_mm"], color="k", ls="--", lw=1,
+                      label=f"goal {GOALS['pair_object_rmse_mm']} mm")
+        ax[0].set_ylabel("labelled real pair (mm)")
+        ax[0].set_ylim(bottom=0)
+        ax[0].set_title(f"{device}: real pair object RMSE, its level and relief parts", fontsize=10)
+        frames = sorted({f for a in row for f in a["summary"]["phase_residual_rad"]})
+        for j, f in enumerate(frames):
+            mean = np.array([a["summary"]["phase_residual_rad"].get(f, {}).get("mean") or np.nan for a in row])
+            std = np.array([a["summary"]["phase_residual_rad"].get(f, {}).get("std") or 0.0 for a in row])
+            ax[1].errorbar(x, mean, yerr=std, color=f"C{j}", marker="o", capsize=4, label=f)
+            for xi, a in zip(x, row):
+                ys = [s_["phase_residual_rad"][f] for s_ in a["seeds"] if f in s_.get("phase_residual_rad", {})]
+                ax[1].plot([xi] * len(ys), ys, ".", color=f"C{j}", alpha=0.35)
+        if frames:
+            ax[1].axhline(GOALS["phase_residual_rad"], color="k", ls="--", lw=1,
+                          label=f"goal {GOALS['phase_residual_rad']} rad")
+        ax[1].set_ylabel("phase residual (rad)")
+        ax[1].set_ylim(bottom=0)
+        ax[1].set_title(f"{device}: held-out real phase frames" if frames else "held-out real phase frames: none given",
+                        fontsize=10)
+        n = sorted({a["summary"]["n_seeds"] for a in row})
+        ax[0].text(0.01, 0.02, f"{'/'.join(map(str, n))} seed(s): " + ", ".join(arm_label(a) for a in row),
+                   transform=ax[0].transAxes, fontsize=7)
+        for a_ in ax:
+            a_.set_xscale("log", base=2)
+            a_.set_xticks(x, [f"{int(v)}" for v in x])
+            a_.set_xlabel(xlabel)
+            a_.grid(alpha=0.3)
+            if a_.get_legend_handles_labels()[0]:
+                a_.legend(fontsize=7)
+    fig.suptitle(f"sim-to-real scaling ({series}): mean ± std over training seeds (dots: each seed), full size",
+                 fontsize=10)
     fig.tight_layout()
     save_figure(fig, path, dpi=80)
     plt.close(fig)

@@ -268,3 +268,15 @@ def test_jobs_run_arms_at_once_deadline_stops_and_merge_keeps_everything(world, 
         assert scaling.main(["--arms-file", str(world / "arms.yaml"), "--ledger", str(ledger), *bad]) == 2
         assert message in capsys.readouterr().err
     assert json.loads(ledger.read_text()) == merged
+
+
+def test_study_commit_names_the_tree_sent_to_another_machine(monkeypatch):
+    """A copy sent to a GPU machine carries an older commit's git folder under the tree: STUDY_COMMIT, when
+    given, is recorded as the commit, beside what the copy's git says; anything but 40 hex digits is ignored."""
+    seen = scaling.code_version()
+    monkeypatch.setenv("STUDY_COMMIT", "ab" * 20)
+    given = scaling.code_version()
+    assert given["commit"] == "ab" * 20 and given["commit_from"] == "STUDY_COMMIT" and given["dirty"] is None
+    assert given["checkout_head"] == seen["commit"]
+    monkeypatch.setenv("STUDY_COMMIT", "HEAD")
+    assert scaling.code_version() == seen
