@@ -397,7 +397,90 @@ def markdown(doc: dict) -> str:
     descriptions = {a["name"]: a.get("description") for a in doc["arms"]}
     lines += ["", "Arms marked @HxW trained at that size (uhrnet train --resize), [cuda] on a GPU; the rest at full "
               "size on the CPU.", "", *[f"- {n}: {d}" for n, d in descriptions.items() if d]]
+    lines += _what_moves(doc, frames)
     return "\n".join(lines) + "\n"
+
+
+REFERENCE_ARM = "n400"  # the judged recipe: every arm is compared with it on the same device and size
+
+
+def compare(arm: dict, ref: dict, key: str, frame: str | None = None) -> dict | None:
+    """``arm`` against ``ref`` on one result (``key``, or a phase ``frame``), both with at least 2 seeds:
+    ``diff`` (difference of the means), ``spread`` (the larger of the two seed standard deviations),
+    ``beyond`` (|diff| > spread: the project's rule, a difference inside the seed spread is no difference) and
+    Welch's ``t`` (diff / sqrt(s1²/n1 + s2²/n2))."""
+    import math
+
+    def stat(a):
+        return a["summary"]["phase_residual_rad"].get(frame, {}) if frame else a["summary"].get(key, {})
+    x, r = stat(arm), stat(ref)
+    if not x or not r or x.get("std") is None or r.get("std") is None:
+        return None
+    diff, spread = x["mean"] - r["mean"], max(x["std"], r["std"])
+    se = math.sqrt(x["std"] ** 2 / x["n"] + r["std"] ** 2 / r["n"])
+    return {"diff": diff, "spread": spread, "beyond": abs(diff) > spread, "t": diff / se if se > 0 else math.inf}
+
+
+def series_slope(arms: list[dict], key: str, frame: str | None = None) -> dict | None:
+    """Least-squares slope of the per-seed results against log2(samples) over ``arms`` (one device and size):
+    ``slope`` per doubling, its standard error and 95 % interval (Student t), ``n`` seeds; None with fewer than
+    3 seeds or 2 sample counts."""
+    import numpy as np
+    from scipy import stats
+
+    x, y = [], []
+    for a in arms:
+        for s_ in a["seeds"]:
+            v = s_.get("phase_residual_rad", {}).get(frame) if frame else s_.get(key)
+            if v is not None and np.isfinite(v):
+                x.append(np.log2(a["count"]))
+                y.append(v)
+    if len(x) < 3 or len(set(x)) < 2:
+        return None
+    fit = stats.linregress(x, y)
+    half = stats.t.ppf(0.975, len(x) - 2) * fit.stderr
+    return {"slope": fit.slope, "stderr": fit.stderr, "low": fit.slope - half, "high": fit.slope + half, "n": len(x)}
+
+
+def _what_moves(doc: dict, frames: list[str]) -> list[str]:
+    """The table's second part: each arm against n400 on the same device (beyond the seed spread or not) and
+    the samples series' slope per doubling."""
+    lines = []
+    groups: dict = {}
+    for a in doc["arms"]:
+        groups.setdefault((a.get("device", "cpu"), a.get("resize")), []).append(a)
+    for (device, resize), arms in groups.items():
+        ref = next((a for a in arms if a["name"] == REFERENCE_ARM), None)
+        rows = []
+        for a in arms:
+            if ref is None or a is ref:
+                continue
+            cells = [compare(a, ref, "pair_object_rmse_mm"), *(compare(a, ref, "", f) for f in frames)]
+            if not any(cells):
+                continue
+            rows.append(f"| {arm_label(a)} | " + " | ".join(
+                "" if c is None else f"{c['diff']:+.2f} ({'beyond' if c['beyond'] else 'within'} ±{c['spread']:.2f}; "
+                                     f"t {c['t']:+.1f})" for c in cells) + " |")
+        if rows:
+            where = device + (f" @{resize}" if resize else "")
+            lines += ["", f"## Against {REFERENCE_ARM} ({where})", "",
+                      "Difference of the means (arm - n400); 'beyond' when it exceeds the larger seed standard "
+                      "deviation of the two arms (a difference inside the seed spread is no difference); t: Welch's.",
+                      "", "| arm | pair object RMSE (mm) |" + "".join(f" {f} (rad) |" for f in frames),
+                      "|---|---|" + "---|" * len(frames), *rows]
+        samples = [a for a in arms if "samples" in a.get("series", []) and a.get("count")]
+        fits = [(label, series_slope(samples, key, frame)) for label, key, frame in
+                [("pair object RMSE (mm)", "pair_object_rmse_mm", None), *((f"{f} (rad)", "", f) for f in frames)]]
+        fits = [(label, f) for label, f in fits if f]
+        if fits and len({a["count"] for a in samples}) > 2:
+            where = device + (f" @{resize}" if resize else "")
+            lines += ["", f"## Samples series slope ({where}: {', '.join(arm_label(a) for a in samples)})", "",
+                      "Least-squares slope of every seed's result against log2(samples), per doubling of the "
+                      "synthetic samples at the same steps, with its 95 % interval.", "",
+                      "| result | slope per doubling | 95 % interval | seeds |", "|---|---|---|---|",
+                      *[f"| {label} | {f['slope']:+.3f} ± {f['stderr']:.3f} | [{f['low']:+.3f}, {f['high']:+.3f}] | "
+                        f"{f['n']} |" for label, f in fits]]
+    return lines
 
 
 GOALS = {"pair_object_rmse_mm": 4.5, "phase_residual_rad": 1.32}  # issue 35's targets (dashed in the figures)

@@ -280,3 +280,26 @@ def test_study_commit_names_the_tree_sent_to_another_machine(monkeypatch):
     assert given["checkout_head"] == seen["commit"]
     monkeypatch.setenv("STUDY_COMMIT", "HEAD")
     assert scaling.code_version() == seen
+
+
+def test_what_moves_compares_with_n400_and_fits_the_samples_slope():
+    """The table's comparison with n400 (difference, larger seed std, Welch t by hand) and the slope per doubling
+    of samples (exact on results that lie on a line in log2(samples))."""
+    def arm(name, count, pair, phase=None):
+        seeds = [{"seed": i, "pair_object_rmse_mm": v,
+                  "phase_residual_rad": {"F/1": phase[i]} if phase else {}} for i, v in enumerate(pair)]
+        return {"name": name, "device": "cuda", "resize": None, "count": count, "series": ["samples"],
+                "seeds": seeds, "summary": scaling.summarise(seeds)}
+    ref = arm("n400", 400, [5.0, 6.0, 7.0], [1.0, 1.2, 1.4])
+    other = arm("n1600", 1600, [3.0, 3.5, 4.0], [1.1, 1.3, 1.5])
+    c = scaling.compare(other, ref, "pair_object_rmse_mm")
+    assert c["diff"] == pytest.approx(-2.5) and c["spread"] == pytest.approx(1.0) and c["beyond"]
+    assert c["t"] == pytest.approx(-2.5 / np.sqrt(1.0 / 3 + 0.25 / 3))
+    p = scaling.compare(other, ref, "", "F/1")
+    assert p["diff"] == pytest.approx(0.1) and not p["beyond"]
+    assert scaling.compare(arm("x", 1, [5.0]), ref, "pair_object_rmse_mm") is None  # one seed: no spread
+    line = [arm(f"n{c}", c, [8.0 - 0.5 * np.log2(c / 100)] * 2) for c in (100, 400, 1600)]
+    fit = scaling.series_slope(line, "pair_object_rmse_mm")
+    assert fit["slope"] == pytest.approx(-0.5) and fit["stderr"] == pytest.approx(0, abs=1e-6) and fit["n"] == 6
+    md = scaling.markdown({"arms": [ref, other]})
+    assert "## Against n400 (cuda)" in md and "| n1600 [cuda] | -2.50 (beyond ±1.00; t -3.9) | +0.10 (within ±0.20" in md
