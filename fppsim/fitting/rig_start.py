@@ -329,7 +329,6 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
 
     cam = rig.camera
     fov_now = math.degrees(2 * math.atan((W / 2.0) / cam.K[0, 0]))
-    tag = lambda key, flag: (f"assumed (the default rig's; {flag})" if key in assumed else "given")  # noqa: E731
     out(f"camera     {W} x {H} px (the images'); focal {cam.K[0, 0]:.1f} px = {fov_now:.1f} deg across: "
         + ("given" if "fov_deg" not in assumed else "NOT identifiable from images: assumed (the default rig's "
                                                     "field of view; --fov DEG or --focal PX)"))
