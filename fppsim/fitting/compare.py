@@ -51,6 +51,7 @@ from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt, quarter_periods
+from fppsim.phase.fringe_axis import fringe_orientation
 from fppsim.phase.plane import plane_level
 from fppsim.dataio.readers import iter_samples, open_samples
 
@@ -86,9 +87,16 @@ STAT_ROWS: list[tuple[str, str, str]] = [
 
 def sample_stats(gray: np.ndarray, label: np.ndarray, transform: LabelTransform = FIGSHARE,
                  object_mm: float = 2.0) -> dict:
-    """All statistics of one sample (gray uint8 (H, W), label float (H, W)); see the module docstring."""
+    """All statistics of one sample (gray uint8 (H, W), label float (H, W)); see the module docstring.
+    Horizontal fringes are measured on the transposed image (the fringe measurements run along rows), so
+    "left" / "right" are then the top and the bottom."""
     gray = np.asarray(gray)
     label = np.asarray(label, np.float32)
+    try:
+        if fringe_orientation(gray) == "horizontal":
+            gray, label = gray.T, label.T
+    except ValueError:  # no fringe at all: the statistics say so (NaN periods)
+        pass
     scale, invalid, threshold = transform.units_per_mm, transform.invalid_value, transform.invalid_threshold
     marker = np.isclose(label, invalid, atol=1e-4, rtol=0) | ~np.isfinite(label)
     valid = ~marker

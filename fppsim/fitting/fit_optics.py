@@ -36,6 +36,8 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
+from dataclasses import fields as dc_fields
+from dataclasses import replace as dc_replace
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -48,6 +50,8 @@ from fppsim.dataio.readers import load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
 from fppsim.phase.measure import estimate_period, fringe_modulation
+from fppsim.phase.fringe_axis import rig_phase_gradient
+from fppsim.fitting.plane_phase import plane_phase_residual
 from fppsim.generation import generate_dataset as generate
 from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
 from fppsim.rendering.synth import SynthConfig
@@ -176,8 +180,9 @@ def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
-                    ambient: float, albedo_plane: float) -> dict:
-    """Optics parameters of one image (see the module docstring); NaN where not measurable."""
+                    ambient: float, albedo_plane: float, transposed: bool = False) -> dict:
+    """Optics parameters of one image (see the module docstring); NaN where not measurable. ``transposed``:
+    ``im`` and ``model`` are the transposes of the camera's image (a rig with horizontal fringes)."""
     plane, obj = _masks(im, model)
     g = im.gray.astype(np.float64)
     b, a = fringe_modulation(g, period, im.valid)
@@ -208,7 +213,7 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
         go = float("nan")
         if getattr(im, "height_mm", None) is not None and okobj.sum() > 500:
             # heights known: the shading k of every object pixel follows from the rig, A = g_o (amb + k/2)
-            ko = object_shading(rig, im.height_mm)
+            ko = object_shading(rig, im.height_mm.T).T if transposed else object_shading(rig, im.height_mm)
             from scipy.ndimage import binary_erosion
 
             inner = okobj & binary_erosion(okobj, iterations=3) & (ko > 0.3)
@@ -248,22 +253,64 @@ class OpticsFit:
                 "per_image": self.per_image, "n_images": self.n_images}
 
 
+PLANE_RAD, OBJECT_RAD = 0.3, 1.0  # |phase - the rig's plane phase|: the plane within, objects beyond (rad)
+
+
+def rig_masks(im, rig: Rig, min_share: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
+    """Plane and object pixels of an image with real absolute phase (``im.phase``) by ``rig``'s own plane
+    phase (:func:`fppsim.fitting.plane_phase.plane_phase_residual`): the plane within :data:`PLANE_RAD` of it
+    after the constant offset, objects beyond :data:`OBJECT_RAD`. Unlike a smooth surface fitted to the phase
+    itself, this holds when an object covers most of the view (a rig fitted to these frames: ``fit-rig``).
+    None without phase, or when fewer than ``min_share`` of the valid pixels are the plane."""
+    if getattr(im, "phase", None) is None:
+        return None
+    res, _ = plane_phase_residual(rig, im.phase, im.valid & np.isfinite(im.phase))
+    plane = im.valid & (np.abs(np.nan_to_num(res, nan=np.inf)) <= PLANE_RAD)
+    if plane.sum() < max(1000, min_share * im.valid.sum()):
+        return None
+    return plane, im.valid & (np.abs(np.nan_to_num(res, nan=0.0)) > OBJECT_RAD)
+
+
+def _fringes_horizontal(rig: Rig) -> bool:
+    """Whether the rig's fringes run across the image (its plane phase changes down the columns)."""
+    gu, gv = rig_phase_gradient(rig)
+    return abs(gv) > abs(gu)
+
+
+def _transposed(im):
+    """The image with every array transposed (the row-wise measurements then run across its fringes)."""
+    t = {f.name: (getattr(im, f.name).T if isinstance(getattr(im, f.name), np.ndarray) else getattr(im, f.name))
+         for f in dc_fields(im)}
+    return type(im)(**t)
+
+
 def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: float | None = None,
                min_width: float = 0.10) -> OpticsFit:
     """Fit optics ranges to real fringe images (:class:`fppsim.dataio.readers.FringeImage`) of ``rig``.
 
     ``ambient`` and ``albedo_plane`` are the values that cannot be separated from the others (default:
     the centres of the default ranges). ``min_width``: each range spans at least +-this fraction of its
-    centre. Raises ValueError if no image has enough plane pixels with fringes.
+    centre. Images with real phase have their plane and object pixels told apart by the rig
+    (:func:`rig_masks`). A rig with horizontal fringes is measured on the transposed images, so that the
+    row-wise fringe measurements run across the fringes. Raises ValueError if no image has enough plane
+    pixels with fringes.
     """
     d = OpticsRanges()
     amb = _centre(d.ambient) if ambient is None else float(ambient)
     ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
     model = plane_model(rig)
+    across = _fringes_horizontal(rig)
+    if across:
+        model = {k: (v.T if isinstance(v, np.ndarray) else v) for k, v in model.items()}
     per, tables = [], {}
     for im in images:
         check_image_size(rig, im.gray.shape, im.name, error=ValueError, sep=" x ",
                          template="{what}: image is {got} px but {who} {camera}")
+        masks = rig_masks(im, rig)
+        if masks is not None:
+            im = dc_replace(im, plane=masks[0], obj=masks[1])
+        if across:
+            im = _transposed(im)
         period = estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
         if not np.isfinite(period):
             per.append({"name": im.name} | {k: float("nan") for k in FITTED})
@@ -271,7 +318,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
         key = round(period, 1)  # one contrast table per period (to 0.1 px)
         if key not in tables:
             tables[key] = contrast_table(rig, key, model=model)
-        per.append({"name": im.name} | image_estimates(im, rig, tables[key], period, model, amb, ap))
+        per.append({"name": im.name} | image_estimates(im, rig, tables[key], period, model, amb, ap, across))
     centre, ranges = {}, {}
     for k in FITTED:
         v = np.array([p[k] for p in per], float)
@@ -433,7 +480,9 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     if config.json:
         atomic_write_text(config.json, json.dumps(fit.to_dict(), indent=1))
     comparison = None
-    if config.compare:
+    if config.compare and not any(im.height_mm is not None for im in images):
+        say(f"--compare skipped: the images carry no height labels ({layout}), which compare-real's statistics need")
+    elif config.compare:
         say("")
         comparison = compare_before_after(config.real, fit, rig, config.compare, meshes=config.meshes,
                                           seed=config.seed)

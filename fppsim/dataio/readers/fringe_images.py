@@ -31,7 +31,8 @@ class FringeImage:
 
     gray : uint8 (H, W). valid : bool (H, W), pixels with a fringe (not the black shadow marker, phase
     present). plane, obj : bool (H, W) reference-plane and object pixels when the source tells them
-    apart (height labels, or real phase), else None. name : for messages.
+    apart (height labels, or real phase), else None. name : for messages. height_mm : labels (mm) when
+    known. phase : float (H, W), the real absolute phase (rad) of phase-shifting scans, else None.
     """
 
     gray: np.ndarray
@@ -40,6 +41,7 @@ class FringeImage:
     plane: np.ndarray | None = None
     obj: np.ndarray | None = None
     height_mm: np.ndarray | None = None
+    phase: np.ndarray | None = None  # real absolute phase (rad), phase-shifting scans only
 
     @property
     def plane_or_valid(self) -> np.ndarray:
@@ -74,7 +76,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
                     s = load_psp_folder_sample(path, sid)
                     valid = s.valid & (s.image > 0)
                     plane, obj = phase_plane_masks(s.phase, valid)
-                    out.append(FringeImage(s.image, valid, sid, plane, obj))
+                    out.append(FringeImage(s.image, valid, sid, plane, obj, phase=s.phase))
                 else:
                     img = load_ipattern(src.ipattern_file(sid))
                     out.append(FringeImage(img, img > 0, sid))
