@@ -23,6 +23,8 @@ the JSON, table and figures from the finished folders without running anything.
         --real ../shared/real-sample --real-phase ../shared/real-phase --out runs/scaling
     python pipelines/scaling.py --list                          # the arms and their commands; runs nothing
     python pipelines/scaling.py --out runs/scaling --report-only
+    python pipelines/scaling.py --arms n100 n400 --device cuda --jobs 2 --deadline 500 --out runs/s  # on a GPU
+    python pipelines/scaling.py --ledger docs/experiments/scaling.json --merge study.json  # a record from elsewhere
 
 Results per seed (``scaling.json``): ``pair_object_rmse_mm`` (object RMSE on the labelled real pair(s), mean
 over images), its split into ``pair_level_rmse_mm`` (each connected object region's median error) and
