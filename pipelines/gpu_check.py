@@ -429,7 +429,7 @@ def markdown(res: dict) -> str:
         for a in res["study"]:
             pair = a["pair_object_rmse_mm"] or {}
             phase = "; ".join(f"{k} {v['mean']:.3f}" + (f" +- {v['std']:.3f}" if v.get("std") is not None else "")
-                              for k, v in (a["phase_residual_rad"] or {}).items())
+                              for k, v in (a["phase_residual_rad"] or {}).items() if v.get("mean") is not None)
             mins = ", ".join(f"{m:.1f}" for m in a["minutes"] if m is not None)
             lines.append(f"| {a['arm']} | {a['device']} | {', '.join(map(str, a['seeds']))} | {mins} | "
                          + (f"{pair['mean']:.2f}" + (f" +- {pair['std']:.2f}" if pair.get("std") is not None else "")

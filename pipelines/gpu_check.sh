@@ -105,7 +105,10 @@ for s in "${STEPS[@]}"; do
 done
 [ ${#STEPS[@]} -gt 0 ] || { echo "gpu_check: GPU_CHECK_STEPS names no step (steps: $ALL_STEPS)" >&2; exit 2; }
 want() { [[ " ${STEPS[*]} " == *" $1 "* ]]; }
-read -r -a STUDY_ARMS <<< "${GPU_CHECK_STUDY:-n100 n400 n1600 n6400 pedestal-0.8}"
+read -r -a STUDY_ARMS <<< "${GPU_CHECK_STUDY-n100 n400 n1600 n6400 pedestal-0.8}"
+if want study && [ ${#STUDY_ARMS[@]} -eq 0 ]; then
+  echo "gpu_check: GPU_CHECK_STUDY names no arm (leave study out of GPU_CHECK_STEPS to skip it)" >&2; exit 2
+fi
 for a in "${STUDY_ARMS[@]}"; do
   [[ "$a" =~ ^[A-Za-z0-9._-]{1,64}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY: '$a' is not an arm name" >&2; exit 2; }
 done
@@ -113,6 +116,12 @@ SHARE="${GPU_CHECK_STUDY_SHARE:-60}"
 [[ "$SHARE" =~ ^[0-9]{1,3}$ ]] && [ "$((10#$SHARE))" -ge 10 ] && [ "$((10#$SHARE))" -le 100 ] \
   || { echo "gpu_check: GPU_CHECK_STUDY_SHARE must be a percent from 10 to 100, got '$SHARE'" >&2; exit 2; }
 SHARE=$((10#$SHARE))
+if [ -n "${STUDY_COMMIT+x}" ] && ! [[ "$STUDY_COMMIT" =~ ^[0-9a-f]{40}$ ]]; then
+  echo "gpu_check: STUDY_COMMIT must be the full commit (40 lowercase hex digits), got '$STUDY_COMMIT'" >&2; exit 2
+fi
+others=0; for s in "${STEPS[@]}"; do [ "$s" != study ] && others=1; done
+# the steps after the study are sized by, and share, what the study leaves of the budget
+REST=$BUDGET; want study && REST=$(( BUDGET * (100 - SHARE) / 100 ))
 OUTDIR="${1:-$ROOT/out/gpu_check}"
 case "$OUTDIR" in /*) ;; *) OUTDIR="$CALLER_PWD/$OUTDIR" ;; esac
 # OUTDIR is this script's own: new, empty, or an earlier run's (its .gpu_check marker); never someone's folder
@@ -129,11 +138,11 @@ NPROC=$(nproc)
 if [ "$TINY" != 0 ]; then
   H=64; W=128; COUNT=8; EPOCHS=1; BATCH=2; WIDTH=(--base-channels 4); DEV=cpu; REPEATS=(--repeats 1 --warmup 1)
   GENW=2; AMP=(); [ "$CUDA" = 1 ] && { DEV=cuda; AMP=(--amp); }   # bf16 autocast on a CPU is slow
-elif [ "$BUDGET" -ge 600 ]; then
+elif [ "$REST" -ge 600 ]; then
   H=352; W=640; COUNT=2000; EPOCHS=3; BATCH=8; WIDTH=(); DEV=cuda; REPEATS=(--repeats 30 --warmup 10)
   GENW=$NPROC; AMP=(--amp)
 else
-  H=352; W=640; COUNT=$([ "$BUDGET" -ge 400 ] && echo 1200 || echo 800); EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda
+  H=352; W=640; COUNT=$([ "$REST" -ge 400 ] && echo 1200 || echo 800); EPOCHS=2; BATCH=8; WIDTH=(); DEV=cuda
   REPEATS=(--repeats 20 --warmup 5); GENW=$NPROC; AMP=(--amp)
 fi
 [ "$DEV" = cuda ] && [ "$CUDA" = 0 ] && { echo "gpu_check: no CUDA device here (GPU_CHECK_TINY=1 dry-runs on the CPU)" >&2; exit 2; }
@@ -234,13 +243,14 @@ if want study; then
         "  - {name: t8, series: [samples], count: 8, train: --samples-per-epoch 4}" > "$WORK/study/arms.yaml"
       SARMS=(--arms-file "$WORK/study/arms.yaml" --arms t6 t8 --resize 32x64); SPHASE=(none)
     fi
-    others=0; for s in "${STEPS[@]}"; do [ "$s" != study ] && others=1; done
-    slim=$(limit 86400 $(( others ? BUDGET * (100 - SHARE) / 100 : 5 )))
+    slim=$(limit 86400 $(( others ? REST : 5 )))
     run_step study "$slim" "$PY" pipelines/scaling.py "${SARMS[@]}" --seeds 0 1 2 --out "$WORK/study" \
       --ledger "$OUTDIR/study.json" --real "${REAL[@]}" --real-phase "${SPHASE[@]}" --meshes "${SMESH[@]}" \
       --device "$DEV" --workers "$([ "$TINY" != 0 ] && echo 1 || echo 3)" --jobs "${#STUDY_ARMS[@]}" \
-      --deadline "$(( slim > 90 ? slim - 50 : slim * 2 / 3 ))" --no-figures
+      --deadline "$(( slim > 120 ? slim - 60 : slim / 2 ))" --no-figures
   fi
+  # the later steps' limits and reserves are shares of what is left now, not of the whole budget
+  BUDGET=$(( $(left) > 60 ? $(left) : 60 )); T0=$(date +%s)
 fi
 
 # 1. Table 3's speed column

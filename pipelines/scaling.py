@@ -420,23 +420,27 @@ def compare(arm: dict, ref: dict, key: str, frame: str | None = None) -> dict | 
         return None
     diff, spread = x["mean"] - r["mean"], max(x["std"], r["std"])
     se = math.sqrt(x["std"] ** 2 / x["n"] + r["std"] ** 2 / r["n"])
-    return {"diff": diff, "spread": spread, "beyond": abs(diff) > spread, "t": diff / se if se > 0 else math.inf}
+    t = diff / se if se > 0 else (math.copysign(math.inf, diff) if diff else math.nan)
+    return {"diff": diff, "spread": spread, "beyond": abs(diff) > spread, "t": t}
 
 
-def series_slope(arms: list[dict], key: str, frame: str | None = None) -> dict | None:
-    """Least-squares slope of the per-seed results against log2(samples) over ``arms`` (one device and size):
-    ``slope`` per doubling, its standard error and 95 % interval (Student t), ``n`` seeds; None with fewer than
-    3 seeds or 2 sample counts."""
+def series_slope(arms: list[dict], key: str, frame: str | None = None, means: bool = False) -> dict | None:
+    """Least-squares slope of the results against log2(samples) over ``arms`` (one device and size): ``slope``
+    per doubling, its standard error and 95 % interval (Student t), ``n`` points. Every seed is a point, or
+    with ``means`` every arm's mean: an arm's seeds share its synthetic data, so the per-seed interval counts
+    them as independent (optimistic); the arm means' interval has only n - 2 degrees of freedom
+    (conservative). None with fewer than 3 points or 2 sample counts."""
     import numpy as np
     from scipy import stats
 
     x, y = [], []
     for a in arms:
-        for s_ in a["seeds"]:
-            v = s_.get("phase_residual_rad", {}).get(frame) if frame else s_.get(key)
-            if v is not None and np.isfinite(v):
-                x.append(np.log2(a["count"]))
-                y.append(v)
+        vals = [s_.get("phase_residual_rad", {}).get(frame) if frame else s_.get(key) for s_ in a["seeds"]]
+        vals = [v for v in vals if v is not None and np.isfinite(v)]
+        if means and vals:
+            vals = [float(np.mean(vals))]
+        x += [np.log2(a["count"])] * len(vals)
+        y += vals
     if len(x) < 3 or len(set(x)) < 2:
         return None
     fit = stats.linregress(x, y)
@@ -471,17 +475,22 @@ def _what_moves(doc: dict, frames: list[str]) -> list[str]:
                       "", "| arm | pair object RMSE (mm) |" + "".join(f" {f} (rad) |" for f in frames),
                       "|---|---|" + "---|" * len(frames), *rows]
         samples = [a for a in arms if "samples" in a.get("series", []) and a.get("count")]
-        fits = [(label, series_slope(samples, key, frame)) for label, key, frame in
-                [("pair object RMSE (mm)", "pair_object_rmse_mm", None), *((f"{f} (rad)", "", f) for f in frames)]]
-        fits = [(label, f) for label, f in fits if f]
+        fits = [(label, series_slope(samples, key, frame), series_slope(samples, key, frame, means=True))
+                for label, key, frame in [("pair object RMSE (mm)", "pair_object_rmse_mm", None),
+                                          *((f"{f} (rad)", "", f) for f in frames)]]
+        fits = [(label, f, m) for label, f, m in fits if f]
+
+        def cell(f):
+            return "" if f is None else f"{f['slope']:+.3f} ± {f['stderr']:.3f} [{f['low']:+.3f}, {f['high']:+.3f}]"
         if fits and len({a["count"] for a in samples}) > 2:
             where = device + (f" @{resize}" if resize else "")
             lines += ["", f"## Samples series slope ({where}: {', '.join(arm_label(a) for a in samples)})", "",
-                      "Least-squares slope of every seed's result against log2(samples), per doubling of the "
-                      "synthetic samples at the same steps, with its 95 % interval.", "",
-                      "| result | slope per doubling | 95 % interval | seeds |", "|---|---|---|---|",
-                      *[f"| {label} | {f['slope']:+.3f} ± {f['stderr']:.3f} | [{f['low']:+.3f}, {f['high']:+.3f}] | "
-                        f"{f['n']} |" for label, f in fits]]
+                      "Least-squares slope against log2(samples), per doubling of the synthetic samples at the same "
+                      "steps, ± its standard error [95 % interval]: every seed a point (an arm's seeds share its "
+                      "data, so this interval is optimistic) and every arm's mean a point (conservative).", "",
+                      "| result | every seed | seeds | arm means | arms |", "|---|---|---|---|---|",
+                      *[f"| {label} | {cell(f)} | {f['n']} | {cell(m)} | {m['n'] if m else ''} |"
+                        for label, f, m in fits]]
     return lines
 
 
@@ -583,6 +592,10 @@ def load_ledger(path: Path) -> dict:
             and all(isinstance(a, dict) and isinstance(a.get("name"), str) and isinstance(a.get("seeds"), list)
                     for a in doc["arms"])):
         raise UsageProblem(f"{path}: not a scaling study record (no list of arms with seeds); name another --ledger")
+    bad = next((a["name"] for a in doc["arms"] for s_ in a["seeds"]
+                if not (isinstance(s_, dict) and isinstance(s_.get("seed"), int))), None)
+    if bad is not None:
+        raise UsageProblem(f"{path}: arm {bad!r} holds a seed entry without an integer 'seed'; not a study record")
     for arm in doc["arms"]:
         commands = arm.pop("commands", None) or []
         if "resize" not in arm:
@@ -643,10 +656,12 @@ def _add_seed(entries: dict, meta: dict, new: dict) -> None:
     old = next((s for s in entry["seeds"] if s["seed"] == new["seed"]), None)
     if old is not None:
         entry["seeds"].remove(old)
+        earlier = old.pop("reruns", [])
+        mine = [r for r in new.pop("reruns", []) if r not in earlier]
         if not _same_result(old, new):
-            new["reruns"] = [*old.pop("reruns", []), old]
-        elif old.get("reruns"):
-            new["reruns"] = old["reruns"]
+            earlier = [*earlier, old]
+        if earlier or mine:
+            new["reruns"] = [*earlier, *mine]
     entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
 
 
@@ -754,6 +769,9 @@ def check_merge(args) -> None:
 
 def check(args) -> tuple[list[dict], dict]:
     """Arms chosen and every (arm, seed)'s ``(Sim2RealConfig, argv)``; :class:`UsageProblem` before anything runs."""
+    import os
+    import re
+
     from uhrnet.errors import UhrnetError
     from uhrnet.run_folder import default_meshes
     from uhrnet.workflows.sim2real import (
@@ -772,6 +790,10 @@ def check(args) -> tuple[list[dict], dict]:
         raise UsageProblem(f"--seeds: distinct non-negative integers, got {args.seeds}")
     if not args.out and not args.list:
         raise UsageProblem("--out DIR is required")
+    given = os.environ.get("STUDY_COMMIT")
+    if given is not None and not re.fullmatch(r"[0-9a-f]{40}", given):
+        raise UsageProblem(f"STUDY_COMMIT={given!r}: give the full commit (40 lowercase hex digits, "
+                           "git rev-parse HEAD) or unset it")
     if not 1 <= args.jobs <= 64:
         raise UsageProblem(f"--jobs: 1 to 64 arms at once, got {args.jobs}")
     if args.deadline is not None and not (math.isfinite(args.deadline) and 0 < args.deadline <= 30 * 86400):
@@ -876,31 +898,39 @@ def run(args, arms: list[dict], configs: dict) -> int:
     return 1 if failed else 0
 
 
+GRACE_S = 8.0  # a stopped arm's time to exit after SIGINT before SIGKILL (gpu_check's guard allows 10 s)
+PARENT_ENV = "SCALING_PARENT_PID"  # set for the arms' processes: they die with the process that started them
+T_START = [time.monotonic()]  # main() resets it: --deadline counts from there (the checks count too)
+
+
 def run_jobs(args, arms: list[dict]) -> int:
     """Run the arms in up to ``args.jobs`` processes at once (``scaling.py --arms ARM --no-report``: each arm's
     seeds one after another, since they share the arm's folder), their output echoed with the arm's name and
-    kept in ``OUT/<arm>/scaling.log``. At ``args.deadline`` seconds (or Ctrl-C / SIGTERM) the running ones are
-    interrupted (SIGINT to each process group, SIGKILL 30 s later): a seed cut off resumes with the same
-    command. 1 if an arm failed, 130 when interrupted, else 0 (arms left at the deadline are reported pending)."""
+    kept in ``OUT/<arm>/scaling.log``. At ``args.deadline`` seconds after this process started (or on Ctrl-C /
+    SIGTERM) the running ones are interrupted (SIGINT to each process group, SIGKILL :data:`GRACE_S` later): a
+    seed cut off resumes with the same command. Returns 1 if an arm failed, 130 / 143 when interrupted
+    (SIGINT / SIGTERM), else 0; arms left at the deadline are reported pending."""
     import os
     import signal
     import subprocess
     import threading
 
-    from fppsim.files import die_with_parent
-
-    out, t0 = Path(args.out), time.monotonic()
-    end = t0 + args.deadline if args.deadline else None
-    queue, running, failed, stopped = list(arms), {}, [], []
+    out = Path(args.out)
+    end = T_START[0] + args.deadline if args.deadline else None
+    queue, running, failed = list(arms), {}, []
     lock = threading.Lock()
 
     def echo(proc, name, log):
-        with log:
-            for line in proc.stdout:
+        # read to the end whatever happens, so that a child never blocks on a full pipe
+        for line in proc.stdout:
+            try:
                 log.write(line)
                 log.flush()
                 with lock:
                     print(f"[{name}] {line}", end="", flush=True)
+            except (OSError, ValueError):
+                pass
+        log.close()
 
     def start(arm):
         folder = out / arm["name"]
@@ -909,21 +939,29 @@ def run_jobs(args, arms: list[dict]) -> int:
                 "--no-report"]
         log = open(folder / "scaling.log", "a", encoding="utf-8")
         log.write(f"# {shlex.join(argv)}\n")
-        # its own process group (stopped as a whole at the deadline); killed with this process (kill -9)
+        # its own process group (stopped as a whole); it dies with this process (PARENT_ENV, checked in main)
         proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                start_new_session=True, preexec_fn=die_with_parent,
-                                env={**os.environ, "PYTHONUNBUFFERED": "1"})
+                                errors="replace", start_new_session=True,
+                                env={**os.environ, "PYTHONUNBUFFERED": "1", PARENT_ENV: str(os.getpid())})
         thread = threading.Thread(target=echo, args=(proc, arm["name"], log), daemon=True)
         thread.start()
         running[proc] = (arm["name"], thread)
 
+    def finished(proc, name, thread, stopped=False):
+        thread.join(5)
+        rc = proc.returncode
+        if rc != 0 and not (stopped and rc in (130, -signal.SIGINT, -signal.SIGKILL)):
+            failed.append(f"{name} (exit {rc}; {out / name / 'scaling.log'})")
+
     def stop_all():
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)  # stopping already: a second signal changes nothing
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         for proc in running:
             try:
                 os.killpg(proc.pid, signal.SIGINT)
             except ProcessLookupError:
                 pass
-        limit = time.monotonic() + 30
+        limit = time.monotonic() + GRACE_S
         for proc, (name, thread) in running.items():
             try:
                 proc.wait(max(0.1, limit - time.monotonic()))
@@ -933,43 +971,60 @@ def run_jobs(args, arms: list[dict]) -> int:
                 except ProcessLookupError:
                     pass
                 proc.wait()
-            thread.join(5)
-            stopped.append(name)
+            finished(proc, name, thread, stopped=True)
         running.clear()
 
+    caught = {}
+
     def on_term(signum, frame):
+        caught["signal"] = signum
         raise KeyboardInterrupt
-    previous = signal.signal(signal.SIGTERM, on_term)
+    previous = signal.signal(signal.SIGTERM, on_term), signal.getsignal(signal.SIGINT)
+    rc = 0
     try:
         while queue or running:
             while queue and len(running) < args.jobs and (end is None or time.monotonic() < end):
                 start(queue.pop(0))
             if end is not None and time.monotonic() >= end:
-                if running or queue:
-                    print(f"scaling.py: deadline ({args.deadline:.0f} s) reached: stopping "
-                          f"{', '.join(n for n, _ in running.values()) or 'nothing running'}"
-                          + (f"; not started: {', '.join(a['name'] for a in queue)}" if queue else ""), flush=True)
+                print(f"scaling.py: deadline ({args.deadline:.0f} s) reached: stopping "
+                      f"{', '.join(n for n, _ in running.values()) or 'nothing running'}"
+                      + (f"; not started: {', '.join(a['name'] for a in queue)}" if queue else ""), flush=True)
                 stop_all()
                 break
             for proc in list(running):
                 if proc.poll() is not None:
-                    name, thread = running.pop(proc)
-                    thread.join(5)
-                    if proc.returncode != 0:
-                        failed.append(f"{name} (exit {proc.returncode}; {out / name / 'scaling.log'})")
+                    finished(proc, *running.pop(proc))
             time.sleep(0.5)
     except KeyboardInterrupt:
         stop_all()
         print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
-        return 130
+        rc = 143 if caught.get("signal") == signal.SIGTERM else 130
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        signal.signal(signal.SIGTERM, previous[0])
+        signal.signal(signal.SIGINT, previous[1])
     if failed:
         print(f"scaling.py: error: failed: {', '.join(failed)}", file=sys.stderr)
-    return 1 if failed else 0
+    return rc or (1 if failed else 0)
+
+
+def _die_with_starter() -> None:
+    """An arm's process started by :func:`run_jobs` dies with it (kill -9 too): the parent-death signal,
+    set here rather than between fork and exec (unsafe beside the parent's threads); exits at once when the
+    parent is gone already."""
+    import os
+
+    from fppsim.files import die_with_parent
+
+    pid = os.environ.pop(PARENT_ENV, None)
+    if pid:
+        die_with_parent()
+        if str(os.getppid()) != pid:
+            sys.exit(130)
 
 
 def main(argv=None) -> int:
+    T_START[0] = time.monotonic()
+    _die_with_starter()
     args = parse_args(sys.argv[1:] if argv is None else list(argv))
     if args.merge:
         try:
@@ -1005,8 +1060,8 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
         return 130
-    if rc == 130 or args.no_report:
-        return rc
+    if args.no_report or (rc in (130, 143) and not (args.jobs > 1 or args.deadline)):
+        return rc  # run_jobs has stopped its arms: what finished before the signal is still recorded
     try:
         doc = write_report(args, arms, configs)
     except UsageProblem as exc:

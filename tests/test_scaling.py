@@ -282,6 +282,31 @@ def test_study_commit_names_the_tree_sent_to_another_machine(monkeypatch):
     assert scaling.code_version() == seen
 
 
+def test_a_malformed_study_commit_is_refused_before_anything_runs(world, capsys, monkeypatch):
+    monkeypatch.setenv("STUDY_COMMIT", "adc5f24")  # a short commit would record the copy's HEAD instead
+    assert scaling.main(_argv(world)) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "STUDY_COMMIT='adc5f24'" in err[0] and not (world / "study").exists()
+
+
+def test_merge_keeps_both_histories_and_refuses_seed_entries_that_are_not_seeds(tmp_path, capsys):
+    arms = tmp_path / "arms.yaml"
+    arms.write_text(TINY)
+    ledger, other = tmp_path / "scaling.json", tmp_path / "other.json"
+    ledger.write_text(json.dumps({"arms": [{"name": "a6", "seeds": [
+        {"seed": 0, "pair_object_rmse_mm": 2.0, "reruns": [{"seed": 0, "pair_object_rmse_mm": 1.0}]}]}]}))
+    other.write_text(json.dumps({"arms": [{"name": "a6", "seeds": [
+        {"seed": 0, "pair_object_rmse_mm": 3.0, "reruns": [{"seed": 0, "pair_object_rmse_mm": 0.5}]}]}]}))
+    assert scaling.main(["--arms-file", str(arms), "--ledger", str(ledger), "--merge", str(other)]) == 0
+    s0 = json.loads(ledger.read_text())["arms"][0]["seeds"][0]
+    assert s0["pair_object_rmse_mm"] == 3.0
+    assert [r["pair_object_rmse_mm"] for r in s0["reruns"]] == [1.0, 2.0, 0.5]
+    before = ledger.read_text()
+    other.write_text(json.dumps({"arms": [{"name": "a6", "seeds": [{"pair_object_rmse_mm": 3.0}]}]}))
+    assert scaling.main(["--arms-file", str(arms), "--ledger", str(ledger), "--merge", str(other)]) == 2
+    assert "without an integer 'seed'" in capsys.readouterr().err and ledger.read_text() == before
+
+
 def test_what_moves_compares_with_n400_and_fits_the_samples_slope():
     """The table's comparison with n400 (difference, larger seed std, Welch t by hand) and the slope per doubling
     of samples (exact on results that lie on a line in log2(samples))."""
