@@ -38,3 +38,30 @@ def test_bad_thread_count_is_a_usage_error(tmp_path, value, capsys):
     err = capsys.readouterr().err
     assert "--threads must be a number of CPU threads from 1 to 1024" in err and len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o").exists()
+
+
+_STEP = """
+import sys, torch
+from uhrnet.device import keep_freed_memory
+from uhrnet.models import build_model
+applied = keep_freed_memory() if sys.argv[1] == "1" else None
+torch.manual_seed(0); torch.set_num_threads(1)
+m = build_model("unet", base_channels=4)
+x = torch.randn(2, 1, 96, 128)
+((m(x) - x) ** 2).mean().backward()
+print(applied, float(sum(p.grad.double().abs().sum() for p in m.parameters())).hex())
+"""
+
+
+def test_keeping_freed_memory_changes_no_number():
+    """uhrnet.device.keep_freed_memory (what CPU training and adapt call: glibc keeps large freed blocks instead
+    of unmapping them) changes where memory comes from, never a computed bit; it applies on Linux with glibc."""
+    import platform
+    import subprocess
+    import sys
+
+    runs = [subprocess.run([sys.executable, "-c", _STEP, flag], capture_output=True, text=True, check=True,
+                           timeout=120).stdout.split() for flag in ("0", "1")]
+    assert runs[0][1] == runs[1][1]
+    if platform.system() == "Linux" and platform.libc_ver()[0] == "glibc":
+        assert runs[1][0] == "True"

@@ -61,7 +61,7 @@ from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_check
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from uhrnet.data.datasets import parse_size
-from uhrnet.device import select_device
+from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.training.tb_log import RunLog, TB_FOLDER, check_event_files, remove_own_event_files, require_tensorboard
 from uhrnet.plots import plot_adaptation
 
@@ -256,6 +256,8 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     source = load_checkpoint(cfg.checkpoint, digest=True)
     rig, rig_name = _rig_for(cfg, source)
     device = select_device(cfg.device)
+    if device.type == "cpu":
+        keep_freed_memory()  # large maps re-used, not page-faulted in every step (same numbers)
     images = []
     for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
         check_image_size(rig, fr.shape, f"{path}: image {name}", who=f"the rig's camera ({rig_name}) is",

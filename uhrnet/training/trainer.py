@@ -32,7 +32,7 @@ from fppsim.owned import output_folder
 from uhrnet.checkpoint import (FORMAT, LabelHead, VERSION, checkpoint_kind, init_from_checkpoint, load_checkpoint,
                                output_mm, rng_state, save_epoch, set_rng_state)
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
-from uhrnet.device import select_device
+from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, STEP_FIELDS, LossContext, build_head_loss, build_loss
 from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_distributed
 from uhrnet.errors import CheckpointError, ConfigError, TrainingDiverged
@@ -73,6 +73,8 @@ class Trainer:
         if not self.cfg["real"] and not self.cfg["synthetic"]:
             raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
         self.device = select_device(self.cfg["device"], info.local_rank if info.enabled else None)
+        if self.device.type == "cpu":
+            keep_freed_memory()  # large feature maps re-used, not page-faulted in every step (same numbers)
         if self.device.type == "cuda":
             torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
         self.transform = label_transform_from(self.cfg)
