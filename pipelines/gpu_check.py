@@ -422,18 +422,9 @@ def markdown(res: dict) -> str:
         if s:
             lines.append(f"| {name} | {s['exit_code']}{' (timed out)' if s['timed_out'] else ''} | "
                          f"{s['seconds']:.0f} | {s['limit_s']} |")
-    if res.get("study"):
-        lines += ["", "Scaling study (study.json; mean +- std over the seeds):", "",
-                  "| arm | device | seeds | minutes each | pair object RMSE (mm) | held-out phase residual (rad) |",
-                  "|---|---|---|---|---|---|"]
-        for a in res["study"]:
-            pair = a["pair_object_rmse_mm"] or {}
-            phase = "; ".join(f"{k} {v['mean']:.3f}" + (f" +- {v['std']:.3f}" if v.get("std") is not None else "")
-                              for k, v in (a["phase_residual_rad"] or {}).items() if v.get("mean") is not None)
-            mins = ", ".join(f"{m:.1f}" for m in a["minutes"] if m is not None)
-            lines.append(f"| {a['arm']} | {a['device']} | {', '.join(map(str, a['seeds']))} | {mins} | "
-                         + (f"{pair['mean']:.2f}" + (f" +- {pair['std']:.2f}" if pair.get("std") is not None else "")
-                            if pair.get("mean") is not None else "") + f" | {phase} |")
+    if res.get("study"):  # scaling.py writes the study's own table beside its record
+        lines += ["", f"Scaling study: {sum(len(a['seeds']) for a in res['study'])} (arm, seed) finished in "
+                      f"{len(res['study'])} arm(s); record study.json, table (mean +- std) study_table.md."]
     if res["forward_ms"]:
         lines += ["", "Forward ms per image, batch 1 (median):", "",
                   "| model | " + " | ".join(res["forward_ms"]) + " | paper (RTX 2080 Ti) |",

@@ -288,3 +288,4 @@ fi
 "$PY" pipelines/gpu_check.py report "$OUTDIR" >/dev/null
 log "done in $(( $(date +%s) - T0 )) s of a ${BUDGET} s budget: $OUTDIR/gpu_check.md"
 cat "$OUTDIR/gpu_check.md"
+if [ -f "$OUTDIR/study_table.md" ]; then echo; cat "$OUTDIR/study_table.md"; fi

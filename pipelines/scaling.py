@@ -237,6 +237,9 @@ def _same_folders(have, want) -> bool:
     return {key(f) for f in have} == {key(f) for f in want}
 
 
+COMMIT_RE = r"[0-9a-f]{40}"  # what $STUDY_COMMIT must be: a full commit
+
+
 def code_version() -> dict:
     """``{"commit": HEAD of this checkout or None, "dirty": uncommitted changes to tracked files}``.
 
@@ -257,7 +260,7 @@ def code_version() -> dict:
     except (OSError, subprocess.SubprocessError):
         seen = None
     given = os.environ.get("STUDY_COMMIT", "")
-    if re.fullmatch(r"[0-9a-f]{40}", given):
+    if re.fullmatch(COMMIT_RE, given):
         return {"commit": given, "dirty": None, "commit_from": "STUDY_COMMIT",
                 "checkout_head": seen and seen["commit"], "checkout_dirty": seen and seen["dirty"]}
     return seen or {"commit": None, "dirty": None}
@@ -451,11 +454,15 @@ def series_slope(arms: list[dict], key: str, frame: str | None = None, means: bo
 def _what_moves(doc: dict, frames: list[str]) -> list[str]:
     """The table's second part: each arm against n400 on the same device (beyond the seed spread or not) and
     the samples series' slope per doubling."""
+    def cell(f):
+        return "" if f is None else f"{f['slope']:+.3f} ± {f['stderr']:.3f} [{f['low']:+.3f}, {f['high']:+.3f}]"
+
     lines = []
     groups: dict = {}
     for a in doc["arms"]:
         groups.setdefault((a.get("device", "cpu"), a.get("resize")), []).append(a)
     for (device, resize), arms in groups.items():
+        where = device + (f" @{resize}" if resize else "")
         ref = next((a for a in arms if a["name"] == REFERENCE_ARM), None)
         rows = []
         for a in arms:
@@ -468,7 +475,6 @@ def _what_moves(doc: dict, frames: list[str]) -> list[str]:
                 "" if c is None else f"{c['diff']:+.2f} ({'beyond' if c['beyond'] else 'within'} ±{c['spread']:.2f}; "
                                      f"t {c['t']:+.1f})" for c in cells) + " |")
         if rows:
-            where = device + (f" @{resize}" if resize else "")
             lines += ["", f"## Against {REFERENCE_ARM} ({where})", "",
                       "Difference of the means (arm - n400); 'beyond' when it exceeds the larger seed standard "
                       "deviation of the two arms (a difference inside the seed spread is no difference); t: Welch's.",
@@ -479,11 +485,7 @@ def _what_moves(doc: dict, frames: list[str]) -> list[str]:
                 for label, key, frame in [("pair object RMSE (mm)", "pair_object_rmse_mm", None),
                                           *((f"{f} (rad)", "", f) for f in frames)]]
         fits = [(label, f, m) for label, f, m in fits if f]
-
-        def cell(f):
-            return "" if f is None else f"{f['slope']:+.3f} ± {f['stderr']:.3f} [{f['low']:+.3f}, {f['high']:+.3f}]"
         if fits and len({a["count"] for a in samples}) > 2:
-            where = device + (f" @{resize}" if resize else "")
             lines += ["", f"## Samples series slope ({where}: {', '.join(arm_label(a) for a in samples)})", "",
                       "Least-squares slope against log2(samples), per doubling of the synthetic samples at the same "
                       "steps, ± its standard error [95 % interval]: every seed a point (an arm's seeds share its "
@@ -791,7 +793,7 @@ def check(args) -> tuple[list[dict], dict]:
     if not args.out and not args.list:
         raise UsageProblem("--out DIR is required")
     given = os.environ.get("STUDY_COMMIT")
-    if given is not None and not re.fullmatch(r"[0-9a-f]{40}", given):
+    if given is not None and not re.fullmatch(COMMIT_RE, given):
         raise UsageProblem(f"STUDY_COMMIT={given!r}: give the full commit (40 lowercase hex digits, "
                            "git rev-parse HEAD) or unset it")
     if not 1 <= args.jobs <= 64:
@@ -900,13 +902,12 @@ def run(args, arms: list[dict], configs: dict) -> int:
 
 GRACE_S = 8.0  # a stopped arm's time to exit after SIGINT before SIGKILL (gpu_check's guard allows 10 s)
 PARENT_ENV = "SCALING_PARENT_PID"  # set for the arms' processes: they die with the process that started them
-T_START = [time.monotonic()]  # main() resets it: --deadline counts from there (the checks count too)
 
 
-def run_jobs(args, arms: list[dict]) -> int:
+def run_jobs(args, arms: list[dict], started: float) -> int:
     """Run the arms in up to ``args.jobs`` processes at once (``scaling.py --arms ARM --no-report``: each arm's
     seeds one after another, since they share the arm's folder), their output echoed with the arm's name and
-    kept in ``OUT/<arm>/scaling.log``. At ``args.deadline`` seconds after this process started (or on Ctrl-C /
+    kept in ``OUT/<arm>/scaling.log``. At ``args.deadline`` seconds after ``started`` (``time.monotonic()``; or on Ctrl-C /
     SIGTERM) the running ones are interrupted (SIGINT to each process group, SIGKILL :data:`GRACE_S` later): a
     seed cut off resumes with the same command. Returns 1 if an arm failed, 130 / 143 when interrupted
     (SIGINT / SIGTERM), else 0; arms left at the deadline are reported pending."""
@@ -916,7 +917,7 @@ def run_jobs(args, arms: list[dict]) -> int:
     import threading
 
     out = Path(args.out)
-    end = T_START[0] + args.deadline if args.deadline else None
+    end = started + args.deadline if args.deadline else None
     queue, running, failed = list(arms), {}, []
     lock = threading.Lock()
 
@@ -1023,7 +1024,7 @@ def _die_with_starter() -> None:
 
 
 def main(argv=None) -> int:
-    T_START[0] = time.monotonic()
+    started = time.monotonic()  # --deadline counts from here: the checks count too
     _die_with_starter()
     args = parse_args(sys.argv[1:] if argv is None else list(argv))
     if args.merge:
@@ -1054,14 +1055,14 @@ def main(argv=None) -> int:
         if args.report_only:
             rc = 0
         elif args.jobs > 1 or args.deadline:
-            rc = run_jobs(args, arms)
+            rc = run_jobs(args, arms, started)  # stops its arms on a signal: what finished is still recorded
         else:
             rc = run(args, arms, configs)
     except KeyboardInterrupt:
         print("scaling.py: interrupted; the same command resumes (finished stages are re-used)", file=sys.stderr)
         return 130
-    if args.no_report or (rc in (130, 143) and not (args.jobs > 1 or args.deadline)):
-        return rc  # run_jobs has stopped its arms: what finished before the signal is still recorded
+    if args.no_report:
+        return rc
     try:
         doc = write_report(args, arms, configs)
     except UsageProblem as exc:

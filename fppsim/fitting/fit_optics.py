@@ -50,7 +50,7 @@ from fppsim.dataio.readers import load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
 from fppsim.phase.measure import estimate_period, fringe_modulation
-from fppsim.phase.fringe_axis import rig_phase_gradient
+from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
 from fppsim.fitting.plane_phase import plane_phase_residual
 from fppsim.generation import generate_dataset as generate
 from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
@@ -271,12 +271,6 @@ def rig_masks(im, rig: Rig, min_share: float = 0.02) -> tuple[np.ndarray, np.nda
     return plane, im.valid & (np.abs(np.nan_to_num(res, nan=0.0)) > OBJECT_RAD)
 
 
-def _fringes_horizontal(rig: Rig) -> bool:
-    """Whether the rig's fringes run across the image (its plane phase changes down the columns)."""
-    gu, gv = rig_phase_gradient(rig)
-    return abs(gv) > abs(gu)
-
-
 def _transposed(im):
     """The image with every array transposed (the row-wise measurements then run across its fringes)."""
     t = {f.name: (getattr(im, f.name).T if isinstance(getattr(im, f.name), np.ndarray) else getattr(im, f.name))
@@ -299,7 +293,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     amb = _centre(d.ambient) if ambient is None else float(ambient)
     ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
     model = plane_model(rig)
-    across = _fringes_horizontal(rig)
+    across = fringe_axis(rig_phase_gradient(rig)) == "horizontal"
     if across:
         model = {k: (v.T if isinstance(v, np.ndarray) else v) for k, v in model.items()}
     per, tables = [], {}

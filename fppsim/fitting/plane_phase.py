@@ -29,19 +29,12 @@ from fppsim.errors import RigError
 from fppsim.fitting.fit_periods import adjust_rig, plane_coverage
 from fppsim.geometry.rig import Rig
 from fppsim.phase import wrap
-from fppsim.phase.fringe_axis import oriented_single_shot_phase
+from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase
 from fppsim.phase.plane import plane_level
 
 __all__ = ["PhaseMap", "fringe_axis", "plane_phase_gradient", "relief_sign", "PLANE_PARAMS", "TAU", "PlanePhaseFit",
            "plane_phase_residual", "smooth_regions", "fit_plane_phase", "consensus", "find_plane", "shadow_side",
            "image_phase_map"]
-
-
-def fringe_axis(gradient) -> str:
-    """``"vertical"`` fringes (the phase grows along the camera columns) or ``"horizontal"`` (along the
-    rows), from the phase gradient ``(g_u, g_v)`` (rad/px)."""
-    gu, gv = (float(g) for g in gradient)
-    return "vertical" if abs(gu) >= abs(gv) else "horizontal"
 
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from fppsim.phase.single_shot import SingleShotPhase, single_shot_phase
 
-__all__ = ["fringe_orientation", "rig_phase_gradient", "oriented_single_shot_phase"]
+__all__ = ["fringe_orientation", "fringe_axis", "rig_phase_gradient", "oriented_single_shot_phase"]
 
 
 def fringe_orientation(image: np.ndarray, valid: np.ndarray | None = None) -> str:
@@ -42,6 +42,13 @@ def fringe_orientation(image: np.ndarray, valid: np.ndarray | None = None) -> st
         raise ValueError("no fringes found (no spectral peak between 2.5 and 64 px)")
     iy, ix = np.unravel_index(np.argmax(np.where(sel, p, -1.0)), p.shape)
     return "vertical" if abs(fx[0, ix]) >= abs(fy[iy, 0]) else "horizontal"
+
+
+def fringe_axis(gradient) -> str:
+    """``"vertical"`` fringes (the phase grows along the camera columns) or ``"horizontal"`` (along the
+    rows), from the phase gradient ``(g_u, g_v)`` (rad/px), e.g. :func:`rig_phase_gradient`'s."""
+    gu, gv = (float(g) for g in gradient)
+    return "vertical" if abs(gu) >= abs(gv) else "horizontal"
 
 
 def rig_phase_gradient(rig) -> tuple[float, float]:

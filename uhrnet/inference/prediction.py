@@ -55,7 +55,7 @@ from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.refine import REFINE_METHODS, refine_relief
 from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
-from fppsim.phase.fringe_axis import oriented_single_shot_phase, rig_phase_gradient
+from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "points_from_rig", "points_from_grid",
@@ -388,7 +388,7 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     # the plane phase's gradient at the image centre: a few points of the forward model, no layer
     r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
     gu, gv = rig_phase_gradient(r)
-    orientation = "vertical" if abs(gu) >= abs(gv) else "horizontal"
+    orientation = fringe_axis((gu, gv))
     direction = 1 if (gu if orientation == "vertical" else gv) >= 0 else -1
     try:
         return oriented_single_shot_phase(fringe, orientation, direction=direction)
