@@ -196,7 +196,8 @@ def test_a_rerun_replaces_only_its_own_files(tmp_path):
     env = {"GPU_CHECK_TINY": "1", "PYTHON": str(_fake_python(tmp_path))}
     assert _script(out, env).returncode == 0
     first = {n for n in _files(out) if n.startswith("work/")}
-    assert "work/study/arms.yaml" in first  # the study's tiny arms file, written by the script itself
+    # the study step runs (and writes its tiny arms file itself) only where prepare copied the real data
+    assert ("work/study/arms.yaml" in first) == (ROOT / ".gpu_data" / "real-sample").is_dir()
     assert all("made-" in n for n in first - {"work/study/arms.yaml"}) and (out / "gpu_check.md").is_file()
     mine = {"my_notes.log": "notes", "work/keep.txt": "keep", "work/mine/a.txt": "a", "gpu_check.md.bak": "b"}
     for name, text in mine.items():
