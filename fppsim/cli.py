@@ -334,9 +334,11 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                    help="without --base: the camera's field of view across the image width [the default rig's, 29.2]")
     p.add_argument("--focal", type=float, metavar="PX", help="without --base: the camera's focal length, instead of --fov")
     p.add_argument("--distance", type=float, metavar="MM",
-                   help="without --base: camera height above the reference plane (images cannot tell it) [500]")
+                   help="without --base: camera height above the reference plane (images cannot tell it) [500, "
+                        "or what puts the largest object inside the synthetic scenes' 70-140 mm]")
     p.add_argument("--baseline", type=float, metavar="MM",
-                   help="without --base: camera-projector distance (images cannot tell it) [0.66 x --distance]")
+                   help="without --base: camera-projector distance (images cannot tell it) [0.66 x --distance, or "
+                        "up to 1 x where the objects' phase relief would top the synthetic scenes' 55 mm]")
     p.add_argument("--projector-side", choices=("left", "right", "above", "below"),
                    help="without --base: where the projector is seen from the camera (measured from phase-shifting "
                         "scans or shadows when not given)")

@@ -20,6 +20,12 @@ What a set of fringe images (or phase-shifting scans) of an unknown rig can and 
   same images. The distance (default 500 mm, the default rig's) and the baseline (default 0.66 x the
   distance, the default rig's 330 mm at 500 mm: its triangulation angle) come from the user
   (``distance``, ``baseline``) or from height labels (``fit-rig --params ...,distance`` with a base).
+  What the user does not give is chosen for the synthetic scenes the rig will render
+  (:func:`scene_scale`, phase-shifting scans only): the distance so that the largest object is as wide
+  as the scenes' objects (:class:`fppsim.rendering.scene.SceneRanges` ``footprint``), the baseline (the
+  triangulation angle, at most 45 deg) so that the objects' phase relief is no higher than theirs
+  (``max_relief``). Relief and shadow widths go as height x the angle's tangent, so a rig with a steeper
+  angle and lower objects gives the same images; the network then trains on scenes shaped like the frames.
 
 The start rig (:func:`start_rig`): a camera looking straight down at the plane from ``distance``, a
 projector of 912 x 1140 pixels (the default rig's DMD) at the camera's height, ``baseline`` mm beside
@@ -53,9 +59,10 @@ from fppsim.fitting.plane_phase import (PhaseMap, PlanePhaseFit, find_plane, fit
                                         image_phase_map, plane_phase_gradient, relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase.fringe_axis import rig_phase_gradient
+from fppsim.rendering.scene import SceneRanges
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
-           "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "StartRigConfig", "StartFitResult",
+           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "StartRigConfig", "StartFitResult",
            "fit_rig_from_images"]
 
 # the default rig's camera: fx = 1230 px across 640 px
@@ -64,6 +71,8 @@ DEFAULT_DISTANCE = 500.0  # mm, camera above the plane (the default rig's)
 BASELINE_RATIO = 330.0 / 500.0  # baseline / distance of the default rig (its triangulation angle, 33.4 deg)
 PROJECTOR_SIZE = (912, 1140)  # DMD columns x rows (the default rig's)
 _COVER = 1.4  # the projector's image spans this many times the camera's view of the plane
+# a chosen baseline is at most the distance (45 deg): FP672's plane was no longer found from 580 mm at 500 mm
+MAX_BASELINE_RATIO = 1.0
 
 
 # ====================================================================== the start rig
@@ -174,7 +183,8 @@ class StartRigResult:
     """What :func:`rig_from_images` found: the fitted ``rig``, the plane-phase ``fit``, the maps' ``kind``
     (``"phase"`` or ``"fringe images"``), how many, the measured plane ``gradient`` (rad/px), the fringe
     ``axis``, the projector ``side`` (+1: raised surfaces lower the phase) and where it came from, the
-    assumptions made (``assumed``: name -> text) and the report ``lines``."""
+    assumptions made (``assumed``: name -> value), the report ``lines`` and why the depth scale was
+    chosen as it was (``scale_chosen``: ``distance`` / ``baseline`` -> text, :func:`scene_scale`)."""
 
     rig: Rig
     fit: PlanePhaseFit
@@ -189,6 +199,7 @@ class StartRigResult:
     assumed: dict
     lines: list
     images: list = field(default_factory=list, repr=False)
+    scale_chosen: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         cam = self.rig.camera
@@ -196,6 +207,7 @@ class StartRigResult:
                 "camera_focal_px": float(cam.K[0, 0]), "gradient_rad_per_px": list(self.gradient),
                 "fringes": self.axis, "projector": self.where, "projector_side_from": self.side_source,
                 "centre_sensitivity_rad_per_mm": self.sensitivity, "assumed": self.assumed,
+                "depth_scale_chosen": self.scale_chosen,
                 "plane_fit": self.fit.to_dict()}
 
 
@@ -231,6 +243,55 @@ def _object_extent(planes, maps, min_share: float = 0.005) -> float:
     return float(np.median(sizes)) if sizes else 0.0
 
 
+def _object_relief(fit, maps) -> float:
+    """The objects' phase relief (rad, the 99th percentile of |phase - plane| off the plane where it
+    exceeds 1 rad); 0 when fewer than 50 such pixels."""
+    off = np.concatenate([np.abs(r[m.valid & ~p & np.isfinite(r)]) for r, p, m in zip(fit.residuals, fit.planes, maps)])
+    off = off[off > 1.0]
+    return float(np.percentile(off, 99)) if off.size > 50 else 0.0
+
+
+def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: float, baseline: float,
+                sensitivity, free_distance: bool = True, free_baseline: bool = True,
+                scenes: SceneRanges | None = None) -> tuple[float, float, dict]:
+    """The depth scale that puts the frames' objects inside the synthetic scenes' ranges (module docstring).
+
+    ``extent_px``: the largest object's width (camera px, 0: none); ``relief_rad``: the objects' phase
+    relief (rad, 0: none); ``focal_px``: the camera's focal length; ``distance``, ``baseline``: the
+    current ones (mm); ``sensitivity(distance, baseline)``: |rad per mm| of the rig fitted at that scale
+    (a raised surface's phase shift grows with the baseline). Only ``free_*`` ones change: the distance
+    so that the object is ``footprint[0]``-``footprint[1]`` mm across (rounded to 10 mm), then the
+    baseline so that the relief is at most ``max_relief[1]`` mm high, never above
+    :data:`MAX_BASELINE_RATIO` x the distance (rounded to 10 mm). Returns ``(distance, baseline, why)``,
+    ``why`` holding ``{"distance": text, "baseline": text}`` for what changed."""
+    sc = scenes or SceneRanges()
+    D, B, why = float(distance), float(baseline), {}
+    lo, hi = sc.footprint
+    if free_distance and extent_px > 0:
+        across = extent_px * D / focal_px
+        if not lo <= across <= hi:
+            want = min(max(across, lo), hi)
+            D_new = max(10.0, round(D * want / across / 10.0) * 10.0)
+            if free_baseline:
+                B *= D_new / D
+            why["distance"] = (f"chosen for the synthetic scenes: the largest object, {extent_px:.0f} px across, is then "
+                               f"{extent_px * D_new / focal_px:.0f} mm across, theirs {lo:.0f}-{hi:.0f} mm; {across:.0f} mm "
+                               f"at {D:.0f} mm")
+            D = D_new
+    top = sc.max_relief[1]
+    if free_baseline and relief_rad > 0:
+        high = relief_rad / abs(sensitivity(D, B))
+        if high > top:
+            B_new = min(MAX_BASELINE_RATIO * D, round(B * high / top / 10.0) * 10.0)
+            if B_new > B:
+                now = relief_rad / abs(sensitivity(D, B_new))
+                why["baseline"] = (f"chosen for the synthetic scenes: the objects' phase relief, {relief_rad:.1f} rad, is "
+                                   f"then {now:.0f} mm high, theirs up to {top:.0f} mm; {high:.0f} mm at {B:.0f} mm"
+                                   + ("; at most the distance, 45 deg" if B_new >= MAX_BASELINE_RATIO * D else ""))
+                B = B_new
+    return D, B, why
+
+
 def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
                     baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
                     say=None) -> StartRigResult:
@@ -240,8 +301,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     plane pixels found by :func:`find_plane`); the projector side from the objects' phase relief
     (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
     (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
-    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given. ``say`` receives each report
-    line. RigError / ValueError (one line) for unusable inputs."""
+    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
+    as :func:`scene_scale` chooses them for the synthetic scenes. ``say`` receives each report line. RigError / ValueError (one line) for unusable inputs."""
     lines: list[str] = []
 
     def out(text=""):
@@ -321,6 +382,23 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     if side != 1:
         start = start_rig(W, H, gradient, side, D, baseline, fov, focal)
         fit = fit_plane_phase(start, maps, seeds=fit.planes)
+    why = {}
+    if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
+        B = BASELINE_RATIO * D if baseline is None else float(baseline)
+        fits = {(D, B): fit}
+
+        def refit(d, b):
+            if (d, b) not in fits:
+                fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, seeds=fit.planes)
+            return fits[d, b]
+
+        D, B, why = scene_scale(_object_extent(fit.planes, maps), _object_relief(fit, maps), fit.rig.camera.K[0, 0],
+                                D, B, lambda d, b: refit(d, b).rig.sensitivity(), "distance_mm" in assumed,
+                                "baseline_mm" in assumed)
+        fit = refit(D, B)
+        for key, value in (("distance_mm", D), ("baseline_mm", B)):
+            if key in assumed:
+                assumed[key] = value
     rig = fit.rig
     where = _where(rig)
     s = rig.sensitivity()
@@ -343,23 +421,24 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         f"lines {lean:+.2f} deg off the image axis")
     out(f"projector  {where}: {source}")
     base_mm = float(np.linalg.norm(rig.projector.center[:2] - cam.center[:2]))
-    d_txt = "assumed: the default rig's" if "distance_mm" in assumed else "given"
-    b_txt = "assumed: 0.66 x the distance, the default rig's angle" if "baseline_mm" in assumed else "given"
+    d_txt = ("assumed, " + why["distance"] if "distance" in why else "assumed: the default rig's") \
+        if "distance_mm" in assumed else "given"
+    b_txt = ("assumed, " + why["baseline"] if "baseline" in why else "assumed: 0.66 x the distance, the default "
+             "rig's angle") if "baseline_mm" in assumed else "given"
     out(f"depth      distance {cam.center[2]:.0f} mm ({d_txt}), baseline {base_mm:.0f} mm ({b_txt})")
     if "distance_mm" in assumed or "baseline_mm" in assumed:
         out("           NOT identifiable from images without height labels (the scene scaled as a whole looks "
             "the same): give --distance and --baseline if you know them")
     out(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
         f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
-    if kind == "phase":  # what that makes of the objects: a check of the assumed scale for whoever knows them
-        off = np.concatenate([np.abs(r[m.valid & ~p & np.isfinite(r)]) for r, p, m in zip(fit.residuals, fit.planes, maps)])
-        off = off[off > 1.0]
-        if off.size > 50:
-            across = _object_extent(fit.planes, maps) * cam.center[2] / cam.K[0, 0]
-            out(f"           the objects' phase relief reaches {np.percentile(off, 99):.1f} rad: about "
-                f"{np.percentile(off, 99) / abs(s):.0f} mm high"
-                + (f", the largest {across:.0f} mm across" if across > 0 else "") + " at this scale "
-                "(synthetic scenes: 70-140 mm across, up to about 55 mm of relief; --fov / --distance to match)")
+    relief_rad = _object_relief(fit, maps) if kind == "phase" else 0.0
+    if relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
+        across = _object_extent(fit.planes, maps) * cam.center[2] / cam.K[0, 0]
+        sc = SceneRanges()
+        out(f"           the objects' phase relief reaches {relief_rad:.1f} rad: about {relief_rad / abs(s):.0f} mm high"
+            + (f", the largest {across:.0f} mm across" if across > 0 else "") + " at this scale (synthetic "
+            f"scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up to about {sc.max_relief[1]:.0f} mm "
+            "of relief)")
     p = fit.params
     pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k != "periods")
     out(f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
@@ -372,7 +451,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     rig.check_usable()
     return StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
                           side_source=source, where=where, sensitivity=float(s), assumed=assumed, lines=lines,
-                          images=images)
+                          images=images, scale_chosen=why)
 
 
 # ====================================================================== fppsim fit-rig without --base
@@ -385,7 +464,7 @@ class StartRigConfig:
         :func:`fppsim.dataio.readers.load_fringe_images` reads. out : the rig file (refused if it exists
         unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
         (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
-        distance (images cannot tell them). projector_side : ``left`` / ``right`` / ``above`` / ``below``;
+        distance, or what :func:`scene_scale` chooses (images cannot tell them). projector_side : ``left`` / ``right`` / ``above`` / ``below``;
         None: measured (relief, shadows) or assumed. params, sensitivity, col_bands, row_bands : the
         label-based fits that follow with height labels and vertical fringes. max_images : images read
         (at most 4 phase maps are fitted). json : also write the report as JSON.

@@ -274,6 +274,52 @@ def test_real_frames_of_other_rigs(frame, sid, axis, where):
     assert res.axis == axis and where in res.where
     assert res.fit.median_rad < (0.2 if frame == "FP672" else 0.05)
     assert "NOT identifiable" in "\n".join(res.lines)
+    # the depth scale chosen for the synthetic scenes: FP672's figurine (87 rad of relief, 90 mm at the
+    # default angle) gets the steepest angle allowed; FP147's face fills the view, so the camera comes closer
+    cam, proj = res.rig.camera, res.rig.projector
+    base = float(np.linalg.norm(proj.center[:2] - cam.center[:2]))
+    if frame == "FP672":
+        assert (cam.center[2], round(base)) == (500.0, 500) and set(res.scale_chosen) == {"baseline"}
+    else:
+        assert (cam.center[2], round(base)) == (270.0, 178) and set(res.scale_chosen) == {"distance"}
+
+
+def test_the_default_rigs_frame_keeps_the_default_scale():
+    """FP1523 (the figshare rig: a bust 107 mm across, 28 rad of relief) lies inside the scenes' ranges:
+    the start keeps the default rig's distance and baseline."""
+    root = REAL_PHASE / "FP1523"
+    if not root.is_dir():
+        pytest.skip("../shared/real-phase absent")
+    res = rs.rig_from_images(root)
+    base = float(np.linalg.norm(res.rig.projector.center[:2] - res.rig.camera.center[:2]))
+    assert res.scale_chosen == {} and res.rig.camera.center[2] == 500.0 and base == pytest.approx(330.0)
+
+
+def _pinhole_sensitivity(d, b, c=0.97 * 500.0 ** 2 / 330.0):
+    """|rad/mm| of a pinhole rig with a fixed fringe period in camera px: baseline / distance over the
+    period on the plane (which grows with the distance): ``c b / d^2`` (0.97 at 500 / 330 mm)."""
+    return c * b / d ** 2
+
+
+@pytest.mark.parametrize("extent,relief,free,want", [
+    (263.0, 87.4, (True, True), (500.0, 500.0, {"baseline"})),     # tall: steepest angle allowed (45 deg)
+    (263.0, 60.0, (True, True), (500.0, 370.0, {"baseline"})),     # a little too tall: 61.9 mm -> 55.2 mm
+    (640.0, 21.5, (True, True), (270.0, 178.2, {"distance"})),     # fills the view: closer, same angle
+    (100.0, 10.0, (True, True), (860.0, 567.6, {"distance"})),     # small: farther, same angle
+    (263.0, 28.0, (True, True), (500.0, 330.0, set())),            # inside the ranges: unchanged
+    (640.0, 87.4, (False, True), (500.0, 500.0, {"baseline"})),    # a given distance stays
+    (640.0, 87.4, (True, False), (270.0, 330.0, {"distance"})),    # a given baseline stays
+    (0.0, 0.0, (True, True), (500.0, 330.0, set())),               # no object: nothing to match
+])
+def test_scene_scale_puts_the_objects_inside_the_scenes_ranges(extent, relief, free, want):
+    D, B, why = rs.scene_scale(extent, relief, 1230.0, 500.0, 330.0, _pinhole_sensitivity, *free)
+    assert (D, B) == pytest.approx(want[:2]) and set(why) == want[2]
+    across = extent * D / 1230.0
+    if free[0] and extent:
+        assert 70.0 - 5 <= across <= 140.0 + 5
+    if "baseline" in why:  # at most 55 mm high (to the 10 mm the baseline is rounded to), or capped at 45 deg
+        assert B <= D
+        assert relief / _pinhole_sensitivity(D, B) <= 56.0 or (B == D and "45 deg" in why["baseline"])
 
 
 def test_any_size_networks_train_on_odd_sizes():
