@@ -71,7 +71,7 @@ DEFAULT_DISTANCE = 500.0  # mm, camera above the plane (the default rig's)
 BASELINE_RATIO = 330.0 / 500.0  # baseline / distance of the default rig (its triangulation angle, 33.4 deg)
 PROJECTOR_SIZE = (912, 1140)  # DMD columns x rows (the default rig's)
 _COVER = 1.4  # the projector's image spans this many times the camera's view of the plane
-# a chosen baseline is at most the distance (45 deg): FP672's plane was no longer found from 580 mm at 500 mm
+# a chosen baseline is at most the distance (45 deg): steeper rigs are rare, and their shadows hide most of a tall object
 MAX_BASELINE_RATIO = 1.0
 
 
@@ -335,17 +335,24 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
     out(f"{path}: {len(maps)} {what}, {W} x {H} px")
 
-    # plane pixels per map, from a provisional start (the side does not change the plane's phase)
-    start = start_rig(W, H, gradient, 1, D, baseline, fov, focal)
-    seeds = []
+    # plane pixels per map, from a provisional start (the side does not change the plane's phase); at
+    # steep angles a start on the wrong side cannot follow the plane's perspective (its fitted projector no
+    # longer lights the whole view: FP672 at a 580 mm baseline), so the other side is tried too
+    starts = {sd: start_rig(W, H, gradient, sd, D, baseline, fov, focal) for sd in (1, -1)}
+    seeds, wins = [], 0
     for k, m in enumerate(maps):
-        plane, _, one = find_plane(start, m, gradient)
+        found = {sd: find_plane(st, m, gradient) for sd, st in starts.items()}
+        agree = {sd: max((c for _, c, _ in f[1]), default=-1.0) for sd, f in found.items()}
+        sd = -1 if agree[-1] > agree[1] + 0.05 else 1
+        wins += sd
+        plane, _, one = found[sd]
         seeds.append(plane)
         if not m.absolute and one is not None:  # its plane pixels unwrapped onto one period of the plane fit
             maps[k] = PhaseMap(np.where(m.valid, one.rig.phase_at_height(0.0) - one.offsets[0] + one.residuals[0],
                                         np.nan), m.valid, m.name, absolute=False, reliable=m.reliable,
                                shadow=m.shadow)
-    fit = fit_plane_phase(start, maps, seeds=seeds)
+    first = 1 if wins >= 0 else -1
+    fit = fit_plane_phase(starts[first], maps, seeds=seeds)
 
     # which side the projector is on
     waxis = _world_axis(gradient)
@@ -379,9 +386,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         side, source = 1, ("NOT identifiable from these images (no phase relief, no clear shadows): assumed; "
                            "give --projector-side")
         assumed["projector_side"] = "assumed"
-    if side != 1:
-        start = start_rig(W, H, gradient, side, D, baseline, fov, focal)
-        fit = fit_plane_phase(start, maps, seeds=fit.planes)
+    if side != first:
+        fit = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps, seeds=fit.planes)
     why = {}
     if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
         B = BASELINE_RATIO * D if baseline is None else float(baseline)
