@@ -62,8 +62,8 @@ from fppsim.phase.fringe_axis import rig_phase_gradient
 from fppsim.rendering.scene import SceneRanges
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
-           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "StartRigConfig", "StartFitResult",
-           "fit_rig_from_images"]
+           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "StartRigConfig",
+           "StartFitResult", "fit_rig_from_images"]
 
 # the default rig's camera: fx = 1230 px across 640 px
 DEFAULT_FOV_DEG = math.degrees(2.0 * math.atan(320.0 / 1230.0))  # 29.17 deg across the image width
@@ -71,7 +71,7 @@ DEFAULT_DISTANCE = 500.0  # mm, camera above the plane (the default rig's)
 BASELINE_RATIO = 330.0 / 500.0  # baseline / distance of the default rig (its triangulation angle, 33.4 deg)
 PROJECTOR_SIZE = (912, 1140)  # DMD columns x rows (the default rig's)
 _COVER = 1.4  # the projector's image spans this many times the camera's view of the plane
-# a chosen baseline is at most the distance (45 deg): steeper rigs are rare, and their shadows hide most of a tall object
+# a chosen baseline is at most the distance (45 deg): steeper rigs are rare, their shadows hide most of a tall object
 MAX_BASELINE_RATIO = 1.0
 
 
@@ -302,7 +302,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
     (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
     (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
-    as :func:`scene_scale` chooses them for the synthetic scenes. ``say`` receives each report line. RigError / ValueError (one line) for unusable inputs."""
+    as :func:`scene_scale` chooses them for the synthetic scenes. ``say`` receives each report line.
+    RigError / ValueError (one line) for unusable inputs."""
     lines: list[str] = []
 
     def out(text=""):
@@ -470,9 +471,10 @@ class StartRigConfig:
         :func:`fppsim.dataio.readers.load_fringe_images` reads. out : the rig file (refused if it exists
         unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
         (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
-        distance, or what :func:`scene_scale` chooses (images cannot tell them). projector_side : ``left`` / ``right`` / ``above`` / ``below``;
-        None: measured (relief, shadows) or assumed. params, sensitivity, col_bands, row_bands : the
-        label-based fits that follow with height labels and vertical fringes. max_images : images read
+        distance, or what :func:`scene_scale` chooses (images cannot tell them). projector_side :
+        ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed. params,
+        sensitivity, col_bands, row_bands : the label-based fits that follow with height labels and
+        vertical fringes. max_images : images read
         (at most 4 phase maps are fitted). json : also write the report as JSON.
     """
 
