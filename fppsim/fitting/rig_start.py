@@ -44,6 +44,7 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -59,7 +60,9 @@ from fppsim.fitting.plane_phase import (PhaseMap, PlanePhaseFit, find_plane, fit
                                         image_phase_map, plane_phase_gradient, relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase.fringe_axis import rig_phase_gradient
-from fppsim.rendering.scene import SceneRanges
+
+if TYPE_CHECKING:
+    from fppsim.rendering.scene import SceneRanges
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
            "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "StartRigConfig",
@@ -251,6 +254,14 @@ def _object_relief(fit, maps) -> float:
     return float(np.percentile(off, 99)) if off.size > 50 else 0.0
 
 
+def _scenes() -> SceneRanges:
+    """The synthetic scenes' default ranges, imported when asked for (the scene module brings trimesh, 0.6 s,
+    into fit-rig's start otherwise)."""
+    from fppsim.rendering.scene import SceneRanges  # lazy: trimesh is not needed to fit a rig
+
+    return SceneRanges()
+
+
 def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: float, baseline: float,
                 sensitivity, free_distance: bool = True, free_baseline: bool = True,
                 scenes: SceneRanges | None = None) -> tuple[float, float, dict]:
@@ -264,7 +275,7 @@ def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: 
     baseline so that the relief is at most ``max_relief[1]`` mm high, never above
     :data:`MAX_BASELINE_RATIO` x the distance (rounded to 10 mm). Returns ``(distance, baseline, why)``,
     ``why`` holding ``{"distance": text, "baseline": text}`` for what changed."""
-    sc = scenes or SceneRanges()
+    sc = scenes or _scenes()
     D, B, why = float(distance), float(baseline), {}
     lo, hi = sc.footprint
     if free_distance and extent_px > 0:
@@ -287,7 +298,9 @@ def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: 
                 now = relief_rad / abs(sensitivity(D, B_new))
                 why["baseline"] = (f"chosen for the synthetic scenes: the objects' phase relief, {relief_rad:.1f} rad, is "
                                    f"then {now:.0f} mm high, theirs up to {top:.0f} mm; {high:.0f} mm at {B:.0f} mm"
-                                   + ("; at most the distance, 45 deg" if B_new >= MAX_BASELINE_RATIO * D else ""))
+                                   + (f"; at most {MAX_BASELINE_RATIO:g} x the distance, "
+                                      f"{math.degrees(math.atan(MAX_BASELINE_RATIO)):.0f} deg"
+                                      if B_new >= MAX_BASELINE_RATIO * D else ""))
                 B = B_new
     return D, B, why
 
@@ -441,7 +454,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     relief_rad = _object_relief(fit, maps) if kind == "phase" else 0.0
     if relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
         across = _object_extent(fit.planes, maps) * cam.center[2] / cam.K[0, 0]
-        sc = SceneRanges()
+        sc = _scenes()
         out(f"           the objects' phase relief reaches {relief_rad:.1f} rad: about {relief_rad / abs(s):.0f} mm high"
             + (f", the largest {across:.0f} mm across" if across > 0 else "") + " at this scale (synthetic "
             f"scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up to about {sc.max_relief[1]:.0f} mm "
