@@ -10,7 +10,8 @@ commands through the CLIs' ``main``:
 1. ``fppsim fit-rig SCANS --out rig.json`` (no ``--base``): the rig from the scans alone; its plane
    phase must match the truth's (it can: the plane's phase pins the projector's pose and periods) and
    the projector must be below the camera; the depth scale is assumed (the default rig's field of
-   view, distance and triangulation angle) and the report says so;
+   view; distance and triangulation angle the default rig's or chosen for the synthetic scenes) and the
+   report says so;
 2. ``fppsim fit-optics SCANS --rig rig.json --out optics.yaml --compare 0``: how the scans look;
 3. ``fppsim generate --rig rig.json --format figshare --no-psp --optics-file optics.yaml``: pretraining
    data of that rig;
