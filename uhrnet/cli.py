@@ -42,6 +42,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
+    from uhrnet.scoring.phase_residual import VAL_PHASE_FRAMES
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")
@@ -57,6 +58,13 @@ def add_train(p: argparse.ArgumentParser) -> None:
     d.add_argument("--synthetic-split", choices=SPLIT_MODES, help="same for synthetic folders [reference]")
     d.add_argument("--synthetic-label", choices=LABEL_SOURCES,
                    help="train on the exact rendered height or the phase-shifting height [true]")
+    d.add_argument("--val-phase", nargs="+", metavar="DIR",
+                   help="folder(s) of REAL phase-shifting frames of your rig (PSin/ PCos/ Fringe/ iPattern/, the "
+                        "public layout; no labels, never trained on): after every epoch, the calibration-free phase "
+                        "residual of the predictions as a fraction of the flat prediction's (as uhrnet evaluate-phase "
+                        f"reports it), on at most {VAL_PHASE_FRAMES} of their frames; best.pt is then the epoch with the "
+                        "lowest, not the best on synthetic validation, which cannot tell which epoch carries over to "
+                        "real images (about 1 s per frame and epoch on CPU) [off]")
     d.add_argument("--preset", choices=sorted(PRESETS), help="label transform preset [figshare]")
     d.add_argument("--label-transform", nargs="+", metavar="KEY=VALUE",
                    help="override preset fields: units_per_mm, invalid_value, invalid_threshold, plane_offset, "

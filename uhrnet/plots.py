@@ -34,15 +34,19 @@ def _column(rows: Sequence[dict], key: str) -> np.ndarray:
 
 
 def plot_history(rows: Sequence[dict], path) -> Path:
-    """Loss, RMSE (mm) and SSIM per epoch, train vs validation (the paper's Fig. 6)."""
+    """Loss, RMSE (mm) and SSIM per epoch, train vs validation (the paper's Fig. 6); and the real frames'
+    phase residual as a fraction of flat when the run has one (``--val-phase``)."""
     plt = pyplot()
     epochs = _column(rows, "epoch")
-    fig, axes = plt.subplots(1, 3, figsize=(14, 3.8))
-    panels = (
+    panels = [
         ("loss", [("train_loss", "train")], "loss", True),
         ("RMSE (mm)", [("train_rmse_mm", "train"), ("val_rmse_mm", "validation")], "RMSE (mm)", True),
         ("SSIM", [("train_ssim", "train"), ("val_ssim", "validation")], "SSIM", False),
-    )
+    ]
+    if np.isfinite(_column(rows, "val_phase_ratio")).any():  # uhrnet train --val-phase
+        panels.append(("real frames (--val-phase)", [("val_phase_ratio", "phase residual / flat")],
+                       "residual / flat", False))
+    fig, axes = plt.subplots(1, len(panels), figsize=(14 / 3 * len(panels), 3.8))
     for ax, (title, series, ylabel, log) in zip(axes, panels):
         for key, label in series:
             y = _column(rows, key)

@@ -70,3 +70,53 @@ def test_errors_are_one_line(setup, capsys, tmp_path):
     assert "missing folder(s) PSin, PCos, Fringe, iPattern" in err
     rc = main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "o"), "--ids", "9"])
     assert rc == 1 and "no such id(s): 9" in capsys.readouterr().err
+
+
+def test_train_val_phase_picks_best_by_the_real_frames(setup, tmp_path, capsys):
+    """``uhrnet train --val-phase``: each epoch's score is what evaluate-phase reports for that epoch's
+    weights, and best.pt is the epoch the real frames score lowest, whatever the synthetic validation says."""
+    tmp, _, root, truth = setup
+    run = train_tiny(tmp_path / "vp", "--real", tmp / "real", epochs=3, extra=["--val-phase", root])
+    assert "real phase residual" in capsys.readouterr().out
+    rows = history(run)
+    ratios = [float(r["val_phase_ratio"]) for r in rows]
+    assert len(ratios) == 3 and all(np.isfinite(ratios))
+    import torch
+
+    best = torch.load(run / "best.pt", map_location="cpu", weights_only=False)
+    full = [r["val_phase_ratio"] for r in torch.load(run / "last.pt", map_location="cpu", weights_only=False)["history"]]
+    assert full == pytest.approx(ratios, rel=1e-5)
+    assert best["best"]["metric"] == "val_phase_ratio"
+    assert best["epoch"] == 1 + int(np.argmin(full))  # first of equal scores: a later one must be lower
+    assert [int(r["best"]) for r in rows][best["epoch"] - 1] == 1
+    for ckpt, row in (("best.pt", rows[best["epoch"] - 1]), ("last.pt", rows[-1])):
+        out = tmp_path / f"ev_{ckpt}"
+        assert main(["evaluate-phase", str(run / ckpt), "--phase-root", str(root), "--out", str(out),
+                     "--figures", "0", "--device", "cpu"]) == 0
+        doc = json.loads((out / "phase_results.json").read_text())
+        per = [r["models"][doc["models"][0]["name"]] for r in doc["per_image"]]
+        ratio = np.mean([m["prediction"]["rmse_rad"] / m["flat"]["rmse_rad"] for m in per])
+        assert float(row["val_phase_ratio"]) == pytest.approx(ratio, rel=1e-4)
+        assert float(row["val_phase_rad"]) == pytest.approx(np.mean([m["prediction"]["rmse_rad"] for m in per]),
+                                                            rel=1e-4)
+    # the frames that choose best.pt cannot change under a resumed run, nor be dropped from an older one
+    rc = main(["train", "--out", str(run), "--resume", "--epochs", "4", "--val-phase", str(tmp_path)])
+    assert rc == 1 and "--val-phase" in capsys.readouterr().err
+    assert main(["train", "--out", str(run), "--resume", "--epochs", "4", "--no-progress"]) == 0
+    assert "val_phase_ratio" in history(run)[-1] and np.isfinite(float(history(run)[-1]["val_phase_ratio"]))
+
+
+def test_train_val_phase_bad_folder_is_one_line(setup, tmp_path, capsys):
+    tmp, _, root, truth = setup
+    rc = main(["train", "--real", str(tmp / "real"), "--model", "unet", "--base-channels", "4", "--epochs", "1",
+               "--out", str(tmp_path / "r"), "--no-progress", "--val-phase", str(tmp_path / "nope")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and err.count("--val-phase") == 1 and "nope" in err
+    assert not (tmp_path / "r" / "last.pt").exists()
+
+
+def history(run):
+    import csv
+
+    with open(run / "history.csv") as fh:
+        return list(csv.DictReader(fh))

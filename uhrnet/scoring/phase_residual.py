@@ -54,7 +54,9 @@ from uhrnet.scoring.evaluation import model_names
 from uhrnet.inference.prediction import predict_labels
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
-           "markdown", "plot_phase_residuals"]
+           "markdown", "plot_phase_residuals", "PhaseValidation", "VAL_PHASE_FRAMES"]
+
+VAL_PHASE_FRAMES = 8  # frames a PhaseValidation scores per epoch at most (evenly spaced over its folders)
 
 
 @dataclass
@@ -257,13 +259,82 @@ def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, r
     return out
 
 
+def _fringe_input(image: np.ndarray):
+    """The network input of a uint8 (H, W) fringe image: (1, 1, H, W) float32 in [-1, 1]."""
+    import torch
+
+    return torch.from_numpy(image.astype(np.float32) / 127.5 - 1.0)[None, None]
+
+
+def _scored_pixels(sample) -> np.ndarray:
+    """The pixels a frame's fit uses: a valid phase and a lit (non-zero) image pixel."""
+    return sample.valid & (sample.image > 0)
+
+
+class PhaseValidation:
+    """Real phase-shifting frames as an UNLABELLED validation set of a training run (``uhrnet train
+    --val-phase``): :meth:`score` predicts every frame's height and returns the calibration-free phase
+    residual (:func:`fit_phase`, as ``uhrnet evaluate-phase`` with its defaults) as a fraction of the flat
+    prediction's on the same pixels, averaged over the frames.
+
+    ``roots``: folders of the public layout (``PSin/ PCos/ Fringe/ iPattern/``); at most ``max_frames`` of
+    their frames, evenly spaced over all of them in folder then id order. Frames are read and their flat
+    fits done once, here. :class:`ConfigError` naming ``what`` (the flag) and the folder or file when one
+    cannot be read.
+    """
+
+    def __init__(self, roots, max_frames: int = VAL_PHASE_FRAMES, degree: int = 3, what: str = "--val-phase"):
+        frames = []
+        for root in roots:
+            try:
+                frames += [(root, sid) for sid in list_psp_ids(root)]
+            except PSPMatError as exc:
+                raise ConfigError(f"{what}: {exc}") from None
+        if not frames:
+            raise ConfigError(f"{what}: no frames given")
+        if len(frames) > max_frames:
+            frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
+        self.degree = degree
+        self.frames = []
+        for root, sid in frames:
+            try:
+                s = load_psp_folder_sample(root, sid)
+            except PSPMatError as exc:
+                raise ConfigError(f"{what}: {exc}") from None
+            ok = _scored_pixels(s)
+            try:
+                flat = fit_phase(s.phase, np.zeros(s.phase.shape), ok, degree=degree).rmse_rad
+            except ValueError as exc:
+                raise ConfigError(f"{what}: {s.path}: {exc}") from None
+            self.frames.append({"name": f"{Path(root).name}/{sid}", "x": _fringe_input(s.image), "phase": s.phase,
+                                "pixels": ok, "flat_rad": flat})
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def score(self, model, transform, size=None) -> dict:
+        """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
+        ``model`` (label units, as :func:`uhrnet.inference.prediction.predict_labels` takes it; put in
+        eval mode) on the frames; ``transform`` turns its labels into mm; ``size``: the model's --resize."""
+        import torch
+
+        ratios, rads = [], []
+        with torch.no_grad():
+            for f in self.frames:
+                label = predict_labels(model, f["x"], size)[0, 0].cpu().numpy().astype(np.float64)
+                try:
+                    rad = fit_phase(f["phase"], transform.height_mm(label), f["pixels"], degree=self.degree).rmse_rad
+                except ValueError:  # no finite prediction on the frame's pixels
+                    rad = float("nan")
+                rads.append(rad)
+                ratios.append(rad / f["flat_rad"] if f["flat_rad"] > 0 else float("nan"))
+        return {"val_phase_ratio": _mean(ratios), "val_phase_rad": _mean(rads)}
+
+
 def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     """Evaluate ``args.checkpoints`` on the folder layout at ``args.phase_root``; writes the report to
     ``args.out`` and returns ``{"summary", "per_image", "markdown", "figures"}``. ``echo`` gets one line
     per image (None: silent)."""
-    import torch
-
-
     echo = echo or (lambda line: None)
     try:
         ids = list_psp_ids(args.phase_root)
@@ -296,7 +367,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         except PSPMatError as exc:
             raise ConfigError(str(exc)) from None
         img = s.image
-        x = torch.from_numpy(img.astype(np.float32) / 127.5 - 1.0)[None, None]
+        x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:
             _, relief = fit_phase(s.phase, np.zeros(img.shape), s.valid, return_residual=True, **fit_kw)
@@ -307,7 +378,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
             h = transform.height_mm(label)
             pred_valid = np.asarray(transform.valid(label))
-            ok = s.valid & (img > 0)
+            ok = _scored_pixels(s)
             if args.mask_predicted_invalid:
                 ok &= pred_valid
             try:

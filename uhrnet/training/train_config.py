@@ -32,13 +32,14 @@ DEFAULTS = {
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "threads": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
     "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
+    "val_phase": [],
 }
 # what a run made before an option existed used: resuming it must not switch the option on
 LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_from": None, "freeze": "none",
-          "head": "height", "rig": None}
+          "head": "height", "rig": None, "val_phase": []}
 # LEGACY options that a resume of a run made before them must not be given with another value either
 # (the run's weights did not start from a checkpoint, nothing was frozen)
-LEGACY_LOCKED = ("init_from", "freeze", "head", "rig")
+LEGACY_LOCKED = ("init_from", "freeze", "head", "rig", "val_phase")
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
 MAX_EPOCHS = 1_000_000
 MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range, a traceback)
@@ -46,7 +47,7 @@ LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
-          "augment_probability", "init", "init_from", "freeze", "head", "rig")
+          "augment_probability", "init", "init_from", "freeze", "head", "rig", "val_phase")
 
 
 @dataclass
@@ -82,6 +83,12 @@ class TrainConfig:
     file of the phase head (default: the rig recorded in the first synthetic sample's ``meta.json``, else
     fppsim's default rig); the checkpoint carries it. The phase head needs full camera-size images (no
     ``crop``/``resize``: each pixel is a camera ray).
+    ``val_phase``: folders of REAL phase-shifting frames of the rig (the public layout: ``PSin/ PCos/
+    Fringe/ iPattern/``; no labels, never trained on), scored after every epoch by the calibration-free
+    phase residual as a fraction of the flat prediction's
+    (:class:`uhrnet.scoring.phase_residual.PhaseValidation`: ``val_phase_ratio``, ``val_phase_rad`` in the
+    history); ``best.pt`` is then the epoch with the lowest ratio, since the synthetic validation set cannot
+    tell which epoch carries over to the real images.
     ``threads``: CPU threads torch computes with (``torch.set_num_threads`` for the run, restored after;
     None: torch's default, the cores). A seeded run repeats bit for bit at the same count, whatever else
     the machine is doing, but not across counts (the reductions split differently, and a long run
@@ -125,6 +132,7 @@ class TrainConfig:
     freeze: str | None = None
     head: str | None = None
     rig: str | os.PathLike | None = None
+    val_phase: list | None = None
     amp: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
@@ -139,7 +147,7 @@ class TrainConfig:
             from uhrnet.training.tb_log import require_tensorboard  # lazy: train_config loads without torch (the CLI reads it before torch)
 
             require_tensorboard()
-        for key in ("real", "synthetic"):
+        for key in ("real", "synthetic", "val_phase"):
             value = getattr(self, key)
             if isinstance(value, (str, os.PathLike)):
                 setattr(self, key, [value])
@@ -242,7 +250,7 @@ def parse_kv(items, what: str) -> dict:
 
 
 def _normalise(key: str, value):
-    if key in ("real", "synthetic"):
+    if key in ("real", "synthetic", "val_phase"):
         return [str(Path(v).resolve()) for v in (value or [])]
     if key == "rig" and value:
         return str(Path(value).resolve())
@@ -291,6 +299,7 @@ def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
             cfg[key] = default if given is None else given
     cfg["real"] = _normalise("real", cfg["real"])
     cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
+    cfg["val_phase"] = _normalise("val_phase", cfg["val_phase"])
     cfg["init_from"] = _normalise("init_from", cfg["init_from"])
     if previous is not None and previous.get("init_from_checkpoint"):
         cfg["init_from_checkpoint"] = previous["init_from_checkpoint"]

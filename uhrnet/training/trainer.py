@@ -182,8 +182,14 @@ class Trainer:
         self.optimizer = torch.optim.Adam(trainable, lr=cfg["lr"], weight_decay=cfg["weight_decay"])
         self.amp = bool(cfg["amp"])
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp and self.device.type == "cuda")
+        self.val_phase = None  # --val-phase: real frames scored on the writing rank, which picks best.pt
+        if cfg["val_phase"] and info.main:
+            from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
+
+            self.val_phase = PhaseValidation(cfg["val_phase"])
         self.history: list[dict] = []
-        self.best = {"metric": "val_rmse_mm", "value": float("inf"), "epoch": 0}
+        self.best = {"metric": "val_phase_ratio" if cfg["val_phase"] else "val_rmse_mm", "value": float("inf"),
+                     "epoch": 0}
         self.start_epoch = 0
         if self.ckpt is not None:
             self._restore(self.ckpt)
@@ -411,10 +417,14 @@ class Trainer:
                                + (" or drop --amp" if self.amp else "")) from None
             self._end_epoch_loss()
             row.update(self.validate())
+            if self.val_phase is not None:
+                row.update(self.val_phase.score(self.eval_model, self.transform, parse_size(cfg["resize"])))
             row["epoch"] = epoch + 1
             row["lr"] = self.optimizer.param_groups[0]["lr"]
-            metric = row.get("val_rmse_mm", float("nan"))
-            if not np.isfinite(metric):  # no validation split: fall back to the training RMSE
+            metric = row.get(self.best["metric"], float("nan"))
+            # no validation split: the training RMSE (--val-phase: the real frames choose, and an epoch
+            # they cannot score is not the best)
+            if not np.isfinite(metric) and self.best["metric"] == "val_rmse_mm":
                 self.best["metric"], metric = "train_rmse_mm", row["train_rmse_mm"]
             is_best = bool(np.isfinite(metric) and metric < self.best["value"])
             if is_best:
@@ -431,6 +441,8 @@ class Trainer:
                 write_history(self.history, self.out)
                 val = (f"  val RMSE {row['val_rmse_mm']:.3f} mm  val SSIM {row['val_ssim']:.4f}"
                        if "val_rmse_mm" in row else "")
+                if "val_phase_ratio" in row:
+                    val += f"  real phase residual {row['val_phase_ratio']:.3f} of flat"
                 print(f"epoch {epoch + 1}/{cfg['epochs']}  loss {row['train_loss']:.4g}  train RMSE "
                       f"{row['train_rmse_mm']:.3f} mm{val}  {row['seconds']:.1f}s" + ("  *best" if is_best else ""),
                       flush=True)
