@@ -42,7 +42,8 @@ from uhrnet.models.freeze import freeze, keep_frozen_eval
 from uhrnet.run_folder import (BEST_PT, HISTORY_CSV, LAST_PT, RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder,
                                package_version, refuse_own_source, write_history, write_run_config)
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
-from uhrnet.training.train_config import LR_FLOOR, TrainConfig, label_transform_from, parse_kv, resolve_config
+from uhrnet.training.train_config import (LR_FLOOR, RESIZE_AUTO, TrainConfig, auto_resize, label_transform_from, parse_kv,
+                                          resolve_config)
 from uhrnet.data.augment import augment_config
 from uhrnet.models.init import init_weights
 from uhrnet.models.any_size import any_size
@@ -98,6 +99,8 @@ class Trainer:
         sources = load_sources(cfg["real"], cfg["synthetic"], self.transform, cfg["real_split"],
                                cfg["synthetic_split"], cfg["synthetic_label"], phase=phase)
         self.sources = sources
+        if cfg["resize"] == RESIZE_AUTO:
+            cfg["resize"] = self._auto_resize(sources)  # config.json and the checkpoints record the size chosen
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
 
@@ -193,6 +196,34 @@ class Trainer:
         self.start_epoch = 0
         if self.ckpt is not None:
             self._restore(self.ckpt)
+
+    def _auto_resize(self, sources) -> str | None:
+        """``--resize auto``: the training size from the fringe period of the synthetic data's rig
+        (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size."""
+        from fppsim.dataio.rig_choice import dataset_rig
+        from fppsim.phase.fringe_axis import rig_phase_gradient
+
+        rig = None
+        for folder in self.cfg["synthetic"]:
+            try:
+                rig = dataset_rig(folder)[0]
+            except (RigError, OSError, KeyError, ValueError) as exc:
+                raise ConfigError(f"--resize auto: {folder}: {exc}") from None
+            if rig is not None:
+                break
+        if rig is None:
+            raise ConfigError("--resize auto needs --synthetic data that records its rig (fppsim generate does): "
+                              "the rig's fringe period sets the size; give --resize HxW instead")
+        if len(sources.train) == 0:
+            return None  # refused below: no training samples
+        shape = tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
+        if shape != (rig.camera.height, rig.camera.width):
+            raise ConfigError(f"--resize auto: the training images are {shape[0]}x{shape[1]} px but the synthetic "
+                              f"data's rig camera is {rig.camera.height}x{rig.camera.width}; give --resize HxW")
+        size, why = auto_resize(shape, 2.0 * math.pi / math.hypot(*rig_phase_gradient(rig)))
+        if self.info.main:
+            print(f"--resize auto: {why}", flush=True)
+        return None if size is None else f"{size[0]}x{size[1]}"
 
     def _restore(self, ckpt: dict) -> None:
         if ckpt["model"]["config"] != self.net.config:
