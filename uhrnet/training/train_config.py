@@ -317,7 +317,7 @@ def auto_resize(shape: tuple[int, int], period_px: float) -> tuple[tuple[int, in
     """``--resize auto``: ``(size, why)``, the training size of images ``shape`` (H, W) whose fringes are
     ``period_px`` camera pixels apart at the image centre, and a phrase saying why.
 
-    Half the size (each side rounded) when the fringes are at least :data:`HALVE_FROM_PERIOD_PX` px apart,
+    Half the size (each side halved, rounded up) when the fringes are at least :data:`HALVE_FROM_PERIOD_PX` px apart,
     so that they stay at least 5 px apart; else ``None`` (full size). At half size each pixel of the
     network's receptive field covers twice the scene, so it sees an object's surroundings (the plane that
     tells an object's height) from farther inside it, and training takes a quarter of the time: measured on
@@ -330,7 +330,7 @@ def auto_resize(shape: tuple[int, int], period_px: float) -> tuple[tuple[int, in
         return None, f"full size: the fringes are {period_px:.1f} px apart (halved from {HALVE_FROM_PERIOD_PX:g} px on)"
     if min(h, w) < 32:
         return None, f"full size: {h}x{w} px is too small to halve"
-    size = (round(h / 2), round(w / 2))
+    size = ((h + 1) // 2, (w + 1) // 2)
     return size, f"half size: the fringes are {period_px:.1f} px apart, {period_px / 2:.1f} px at {size[0]}x{size[1]}"
 
 
