@@ -119,8 +119,9 @@ def test_no_calibration_images_to_rig_to_network(tmp_path, one_thread, capsys):
     _fppsim("generate", "--meshes", REPO / "assets" / "meshes", "--rig", rig_file, "--out", syn, "--count", 64,
             "--seed", 1, "--format", "figshare", "--no-psp", "--no-preview", "-q", "--optics-file", optics)
     assert np.load(syn / "f1_80.npy", mmap_mode="r").shape == (64, 108, 144, 1)
-    _uhrnet("train", "--synthetic", syn, "--epochs", 12, "--lr", "1e-3", "--seed", 3,
-            "--out", run, *MODEL)
+    _uhrnet("train", "--synthetic", syn, "--epochs", 12, "--lr", "1e-3", "--seed", 3, "--resize", "auto",
+            "--val-phase", fit_folder, "--out", run, *MODEL)
+    assert json.loads((run / "config.json").read_text())["resize"] is None  # 108 px: the network sees it whole
 
     # 5. the score without labels on the held-out scans
     ev = tmp_path / "ev"

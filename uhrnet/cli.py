@@ -39,7 +39,7 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.data.splits import SPLIT_MODES
     from uhrnet.training.losses import LOSSES
     from uhrnet.models import HEADS, list_models
-    from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, LR_FLOOR, LR_SCHEDULES
+    from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
     from uhrnet.scoring.phase_residual import VAL_PHASE_FRAMES
@@ -74,7 +74,8 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="resize every sample to HxW first (area averaging); predict, evaluate and adapt run the model "
                         "at that size and resample its heights back. 'auto': half the images' size when the "
                         f"synthetic data's fringes are at least {HALVE_FROM_PERIOD_PX:g} px apart (its rig's period at the "
-                        "image centre), else full size; the size chosen is recorded [full size]")
+                        f"image centre) and their shorter side is at least {HALVE_FROM_SIDE_PX} px, else full size; the "
+                        "size chosen is printed and recorded [full size]")
     d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
     d.add_argument("--threads", type=int, metavar="N",

@@ -9,7 +9,7 @@ import pytest
 from _helpers import rig_fringe, tiny_rig, write_figshare, write_native_rig
 from uhrnet.cli import main
 from uhrnet.errors import ConfigError
-from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, auto_resize
+from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, auto_resize
 
 
 @pytest.mark.parametrize("shape, period, size", [
@@ -19,12 +19,15 @@ from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, auto_resize
     ((450, 601), 12.0, (225, 301)),  # odd sides: halved, rounded up
     ((448, 640), HALVE_FROM_PERIOD_PX, (224, 320)),
     ((448, 640), 9.99, None),  # finer fringes would be under 5 px apart
-    ((24, 64), 30.0, None),  # too small to halve
+    ((HALVE_FROM_SIDE_PX, 640), 30.0, (HALVE_FROM_SIDE_PX // 2, 320)),
+    ((HALVE_FROM_SIDE_PX - 1, 640), 30.0, None),  # small images: the network sees them whole
+    ((108, 144), 11.0, None),  # the rendered rig of test_own_rig_no_calibration
 ])
 def test_rule(shape, period, size):
     got, why = auto_resize(shape, period)
     assert got == size
-    assert why.startswith("half size" if size else "full size") and f"{period:.1f} px" in why or "too small" in why
+    assert why.startswith("half size" if size else "full size")
+    assert f"{period:.1f} px" in why or f"{shape[0]}x{shape[1]} px" in why
 
 
 def test_rule_refuses_a_period_that_is_not_one():
@@ -44,24 +47,29 @@ def _period_of(rig) -> float:
     return n / k
 
 
-@pytest.mark.parametrize("periods_factor, halved", [(1.0, True), (1.6, False)])
-def test_train_chooses_and_records_the_size(tmp_path, capsys, one_thread, periods_factor, halved):
-    rig = tiny_rig(96, 64)
-    rig = replace(rig, periods=rig.periods * periods_factor)  # more periods across the projector: finer fringes
+@pytest.mark.parametrize("width, height, periods_factor, expected", [
+    (320, 256, 1.0, "128x160"),  # 11.6 px fringes on a large enough image: halved
+    (320, 256, 1.6, None),  # finer fringes (more periods across the projector)
+    (96, 64, 1.0, None),  # an image the network sees whole
+])
+def test_train_chooses_and_records_the_size(tmp_path, capsys, one_thread, width, height, periods_factor, expected):
+    rig = tiny_rig(width, height)
+    rig = replace(rig, periods=rig.periods * periods_factor)
     period = _period_of(rig)
-    assert (period >= HALVE_FROM_PERIOD_PX) == halved  # the two cases straddle the threshold
-    write_native_rig(tmp_path / "syn", rig, n=10)
+    assert (period >= HALVE_FROM_PERIOD_PX) == (periods_factor == 1.0)  # the cases straddle the threshold
+    write_native_rig(tmp_path / "syn", rig, n=4)
     out = tmp_path / "run"
     rc = main(["train", "--synthetic", str(tmp_path / "syn"), "--synthetic-split", "train", "--resize", "auto",
-               "--model", "unet", "--base-channels", "4", "--epochs", "1", "--out", str(out), "--no-progress"])
+               "--model", "unet", "--base-channels", "2", "--epochs", "1", "--out", str(out), "--no-progress"])
     assert rc == 0
     text = capsys.readouterr().out
     line = next(l for l in text.splitlines() if l.startswith("--resize auto:"))
-    printed = float(line.split("fringes are ")[1].split(" px")[0])
-    assert printed == pytest.approx(period, abs=0.15)
+    assert line.startswith("--resize auto: half size" if expected else "--resize auto: full size")
+    if "fringes are" in line:
+        assert float(line.split("fringes are ")[1].split(" px")[0]) == pytest.approx(period, abs=0.15)
     recorded = json.loads((out / "config.json").read_text())["resize"]
-    assert recorded == ("32x48" if halved else None)
-    assert ("at 32x48" if halved else "at 64x96") in text
+    assert recorded == expected
+    assert f"at {expected or f'{height}x{width}'}," in text
     # a resume with the same words keeps the size chosen
     assert main(["train", "--out", str(out), "--resume", "--resize", "auto", "--epochs", "2", "--no-progress"]) == 0
     assert json.loads((out / "config.json").read_text())["resize"] == recorded

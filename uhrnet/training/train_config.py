@@ -20,6 +20,7 @@ from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
 
 __all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX",
+           "HALVE_FROM_SIDE_PX",
            "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
@@ -46,6 +47,7 @@ MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 RESIZE_AUTO = "auto"  # --resize auto: the training size from the synthetic data's fringe period (auto_resize)
 HALVE_FROM_PERIOD_PX = 10.0  # --resize auto halves the images when their fringes are at least this many px apart
+HALVE_FROM_SIDE_PX = 256  # ... and their shorter side is at least this long (smaller ones the network sees whole)
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
@@ -317,19 +319,20 @@ def auto_resize(shape: tuple[int, int], period_px: float) -> tuple[tuple[int, in
     """``--resize auto``: ``(size, why)``, the training size of images ``shape`` (H, W) whose fringes are
     ``period_px`` camera pixels apart at the image centre, and a phrase saying why.
 
-    Half the size (each side halved, rounded up) when the fringes are at least :data:`HALVE_FROM_PERIOD_PX` px apart,
-    so that they stay at least 5 px apart; else ``None`` (full size). At half size each pixel of the
-    network's receptive field covers twice the scene, so it sees an object's surroundings (the plane that
-    tells an object's height) from farther inside it, and training takes a quarter of the time: measured on
-    two other rigs' real frames in docs/own_rig.md.
+    Half the size (each side halved, rounded up) when the fringes are at least :data:`HALVE_FROM_PERIOD_PX`
+    px apart (so at least 5 px at half size) and the shorter side is at least :data:`HALVE_FROM_SIDE_PX` px;
+    else ``None`` (full size). At half size each pixel of the network's receptive field covers twice the
+    scene, so deep inside a large object it still sees the plane around it, which tells the object's
+    height; and training takes a quarter of the time. An image much smaller than that the network
+    already sees whole, and halving only loses detail. Measured in docs/own_rig.md.
     """
     h, w = (int(v) for v in shape)
     if not (math.isfinite(period_px) and period_px > 0):
         raise ConfigError(f"--resize auto: the fringe period must be > 0 px, got {period_px:g}")
     if period_px < HALVE_FROM_PERIOD_PX:
         return None, f"full size: the fringes are {period_px:.1f} px apart (halved from {HALVE_FROM_PERIOD_PX:g} px on)"
-    if min(h, w) < 32:
-        return None, f"full size: {h}x{w} px is too small to halve"
+    if min(h, w) < HALVE_FROM_SIDE_PX:
+        return None, f"full size: {h}x{w} px (halved from a shorter side of {HALVE_FROM_SIDE_PX} px on)"
     size = ((h + 1) // 2, (w + 1) // 2)
     return size, f"half size: the fringes are {period_px:.1f} px apart, {period_px / 2:.1f} px at {size[0]}x{size[1]}"
 
