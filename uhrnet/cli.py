@@ -39,10 +39,10 @@ def add_train(p: argparse.ArgumentParser) -> None:
     from uhrnet.data.splits import SPLIT_MODES
     from uhrnet.training.losses import LOSSES
     from uhrnet.models import HEADS, list_models
-    from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, LR_FLOOR, LR_SCHEDULES
+    from uhrnet.training.train_config import (HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, LR_FLOOR, LR_SCHEDULES,
+                                              VAL_PHASE_FRAMES)
     from uhrnet.models.init import INITS
     from uhrnet.models.freeze import FREEZE_CHOICES
-    from uhrnet.scoring.phase_residual import VAL_PHASE_FRAMES
 
     # defaults are applied by the library (None = not given), so --resume can tell what the user set
     d = p.add_argument_group("data (at least one of --real / --synthetic)")

@@ -54,9 +54,7 @@ from uhrnet.scoring.evaluation import model_names
 from uhrnet.inference.prediction import predict_labels
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
-           "markdown", "plot_phase_residuals", "PhaseValidation", "VAL_PHASE_FRAMES"]
-
-VAL_PHASE_FRAMES = 8  # frames a PhaseValidation scores per epoch at most (evenly spaced over its folders)
+           "markdown", "plot_phase_residuals", "PhaseValidation"]
 
 
 @dataclass
@@ -261,7 +259,7 @@ def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, r
 
 def _fringe_input(image: np.ndarray):
     """The network input of a uint8 (H, W) fringe image: (1, 1, H, W) float32 in [-1, 1]."""
-    import torch
+    import torch  # the module's plain-numpy fits load without torch
 
     return torch.from_numpy(image.astype(np.float32) / 127.5 - 1.0)[None, None]
 
@@ -283,7 +281,7 @@ class PhaseValidation:
     cannot be read.
     """
 
-    def __init__(self, roots, max_frames: int = VAL_PHASE_FRAMES, degree: int = 3, what: str = "--val-phase"):
+    def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase"):
         frames = []
         for root in roots:
             try:
@@ -316,7 +314,7 @@ class PhaseValidation:
         """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
         ``model`` (label units, as :func:`uhrnet.inference.prediction.predict_labels` takes it; put in
         eval mode) on the frames; ``transform`` turns its labels into mm; ``size``: the model's --resize."""
-        import torch
+        import torch  # the module's plain-numpy fits load without torch
 
         ratios, rads = [], []
         with torch.no_grad():

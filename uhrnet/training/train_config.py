@@ -20,7 +20,7 @@ from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
 
 __all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX",
-           "HALVE_FROM_SIDE_PX",
+           "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
            "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
 
 # Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
@@ -48,6 +48,7 @@ LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 RESIZE_AUTO = "auto"  # --resize auto: the training size from the synthetic data's fringe period (auto_resize)
 HALVE_FROM_PERIOD_PX = 10.0  # --resize auto halves the images when their fringes are at least this many px apart
 HALVE_FROM_SIDE_PX = 256  # ... and their shorter side is at least this long (smaller ones the network sees whole)
+VAL_PHASE_FRAMES = 8  # --val-phase scores at most this many frames per epoch (evenly spaced over its folders)
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",

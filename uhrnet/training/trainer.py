@@ -42,8 +42,8 @@ from uhrnet.models.freeze import freeze, keep_frozen_eval
 from uhrnet.run_folder import (BEST_PT, HISTORY_CSV, LAST_PT, RUN_FILES, TRAIN_TOOL, check_run_folder, claim_run_folder,
                                package_version, refuse_own_source, write_history, write_run_config)
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
-from uhrnet.training.train_config import (LR_FLOOR, RESIZE_AUTO, TrainConfig, auto_resize, label_transform_from, parse_kv,
-                                          resolve_config)
+from uhrnet.training.train_config import (LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, TrainConfig, auto_resize,
+                                          label_transform_from, parse_kv, resolve_config)
 from uhrnet.data.augment import augment_config
 from uhrnet.models.init import init_weights
 from uhrnet.models.any_size import any_size
@@ -189,7 +189,7 @@ class Trainer:
         if cfg["val_phase"] and info.main:
             from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
 
-            self.val_phase = PhaseValidation(cfg["val_phase"])
+            self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES)
         self.history: list[dict] = []
         self.best = {"metric": "val_phase_ratio" if cfg["val_phase"] else "val_rmse_mm", "value": float("inf"),
                      "epoch": 0}
@@ -200,8 +200,8 @@ class Trainer:
     def _auto_resize(self, sources) -> str | None:
         """``--resize auto``: the training size from the fringe period of the synthetic data's rig
         (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size."""
-        from fppsim.dataio.rig_choice import dataset_rig
-        from fppsim.phase.fringe_axis import rig_phase_gradient
+        from fppsim.dataio.rig_choice import dataset_rig  # only --resize auto reads a dataset's rig
+        from fppsim.phase.fringe_axis import rig_phase_gradient  # (scipy: not needed on a bare GPU machine otherwise)
 
         rig = None
         for folder in self.cfg["synthetic"]:
