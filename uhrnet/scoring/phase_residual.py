@@ -304,11 +304,7 @@ class PhaseValidation:
                 flat = fit_phase(s.phase, np.zeros(s.phase.shape), ok, degree=degree).rmse_rad
             except ValueError as exc:
                 raise ConfigError(f"{what}: {s.path}: {exc}") from None
-            self.frames.append({"name": f"{Path(root).name}/{sid}", "x": _fringe_input(s.image), "phase": s.phase,
-                                "pixels": ok, "flat_rad": flat})
-
-    def __len__(self) -> int:
-        return len(self.frames)
+            self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat})
 
     def score(self, model, transform, size=None) -> dict:
         """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
