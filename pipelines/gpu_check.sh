@@ -36,6 +36,7 @@
 #   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
 #   GPU_CHECK_STEPS   the steps to run, in the order above   [study forward generate train ddp sim2real]
 #   GPU_CHECK_STUDY   the study's arms (pipelines/scaling_arms.yaml), run at once   [n100 n400 n1600 n6400 pedestal-0.8]
+#   GPU_CHECK_STUDY_SEEDS  the training seeds of each study arm (a study's pending ones)   [0 1 2]
 #   GPU_CHECK_STUDY_SHARE  percent of the budget the study may take when other steps follow   [60]
 #   STUDY_COMMIT      the commit of the checkout sent (a copy without git), recorded with every study seed
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
@@ -111,6 +112,13 @@ if want study && [ ${#STUDY_ARMS[@]} -eq 0 ]; then
 fi
 for a in "${STUDY_ARMS[@]}"; do
   [[ "$a" =~ ^[A-Za-z0-9._-]{1,64}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY: '$a' is not an arm name" >&2; exit 2; }
+done
+read -r -a STUDY_SEEDS <<< "${GPU_CHECK_STUDY_SEEDS-0 1 2}"
+if want study && [ ${#STUDY_SEEDS[@]} -eq 0 ]; then
+  echo "gpu_check: GPU_CHECK_STUDY_SEEDS names no seed" >&2; exit 2
+fi
+for x in "${STUDY_SEEDS[@]}"; do
+  [[ "$x" =~ ^[0-9]{1,9}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY_SEEDS: '$x' is not a seed (a whole number)" >&2; exit 2; }
 done
 SHARE="${GPU_CHECK_STUDY_SHARE:-60}"
 [[ "$SHARE" =~ ^[0-9]{1,3}$ ]] && [ "$((10#$SHARE))" -ge 10 ] && [ "$((10#$SHARE))" -le 100 ] \
@@ -244,7 +252,7 @@ if want study; then
       SARMS=(--arms-file "$WORK/study/arms.yaml" --arms t6 t8 --resize 32x64); SPHASE=(none)
     fi
     slim=$(limit 86400 $(( others ? REST : 5 )))
-    run_step study "$slim" "$PY" pipelines/scaling.py "${SARMS[@]}" --seeds 0 1 2 --out "$WORK/study" \
+    run_step study "$slim" "$PY" pipelines/scaling.py "${SARMS[@]}" --seeds "${STUDY_SEEDS[@]}" --out "$WORK/study" \
       --ledger "$OUTDIR/study.json" --real "${REAL[@]}" --real-phase "${SPHASE[@]}" --meshes "${SMESH[@]}" \
       --device "$DEV" --workers "$([ "$TINY" != 0 ] && echo 1 || echo 3)" --jobs "${#STUDY_ARMS[@]}" \
       --deadline "$(( slim > 120 ? slim - 60 : slim / 2 ))" --no-figures

@@ -86,6 +86,15 @@ def test_bad_budget_is_one_line_and_exit_2(tmp_path, budget):
     assert not (tmp_path / "o").exists()  # nothing made for a refused run
 
 
+@pytest.mark.parametrize("seeds", ["", "1 x", "-1", "1.5"])
+def test_bad_study_seeds_are_one_line_and_exit_2(tmp_path, seeds):
+    r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(tmp_path / "o")],
+                       env={**os.environ, "GPU_CHECK_STUDY_SEEDS": seeds, "PYTHON": sys.executable},
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "GPU_CHECK_STUDY_SEEDS" in r.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_bad_tiny_flag_is_one_line_and_exit_2(tmp_path):
     r = subprocess.run(["bash", str(ROOT / "pipelines" / "gpu_check.sh"), "run", str(tmp_path / "o")],
                        env={**os.environ, "GPU_CHECK_TINY": "99999999999999999999999", "PYTHON": sys.executable},
