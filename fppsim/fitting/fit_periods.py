@@ -26,7 +26,7 @@ from fppsim.dataio.readers import FringeImage
 from fppsim.geometry.rig import Device, Rig, RigError, rotation
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
-           "plane_tilt", "format_fit", "unfitted", "plane_coverage"]
+           "plane_tilt", "format_fit", "unfitted", "plane_coverage", "cover_plane"]
 
 PARAMETERS = {
     "yaw": "rotation of the projector about its own y axis (rad); tilts the pattern's depth left to right",
@@ -198,9 +198,45 @@ def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
 
 
 def plane_coverage(rig: Rig, step: int = 8) -> float:
-    """Fraction of the camera's view of the reference plane that falls inside the projector image."""
-    _, _, T = period_map(rig, step)
-    return float(np.isfinite(T).mean())
+    """Fraction of the camera's view of the reference plane that falls inside the projector image (every
+    ``step``-th camera pixel in u and v)."""
+    cam, proj = rig.camera, rig.projector
+    uu, vv = np.meshgrid(np.arange(0, cam.width, step, dtype=np.float64),
+                         np.arange(0, cam.height, step, dtype=np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        uvp, z = proj.project(_plane_points(cam, np.stack([uu, vv], axis=-1)))
+    inside = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) \
+        & (uvp[..., 1] >= -0.5) & (uvp[..., 1] <= proj.height - 0.5)
+    return float(inside.mean())
+
+
+def cover_plane(rig: Rig, margin: int = 8) -> Rig:
+    """``rig`` itself when its projector lights the camera's whole view of the reference plane, else a copy
+    whose projector image is grown (same pose, focal length and pixel pitch; the principal point moved
+    with the added pixels, ``periods`` scaled to the new width) to hold that view plus ``margin`` projector
+    px: every plane point keeps its phase up to one constant. For rigs whose projector size is a modelling
+    choice (:mod:`fppsim.fitting.rig_start`: a start has no real DMD size), not for a calibrated one."""
+    cam, proj = rig.camera, rig.projector
+    W, H = cam.width, cam.height
+    u, v = np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64)
+    border = np.concatenate([np.stack([u, np.zeros(W)], -1), np.stack([u, np.full(W, H - 1.0)], -1),
+                             np.stack([np.zeros(H), v], -1), np.stack([np.full(H, W - 1.0), v], -1)])
+    uvp, z = proj.project(_plane_points(cam, border))
+    if not (np.all(z > 0) and np.all(np.isfinite(uvp))):
+        raise RigError("the fitted projector does not face the camera's whole view of the plane")
+    over = [-0.5 - uvp[:, 0].min(), uvp[:, 0].max() - (proj.width - 0.5),
+            -0.5 - uvp[:, 1].min(), uvp[:, 1].max() - (proj.height - 0.5)]  # px beyond each edge
+    if max(over) <= 0:
+        return rig
+    left, right, top, bottom = (int(np.ceil(o)) + margin if o > 0 else 0 for o in over)
+    K = np.array(proj.K, dtype=np.float64)
+    K[0, 2] += left
+    K[1, 2] += top
+    width = proj.width + left + right
+    grown = Device(K=K, R=proj.R, t=proj.t, width=width, height=proj.height + top + bottom, dist=proj.dist)
+    out = Rig(camera=cam, projector=grown, periods=rig.periods * width / proj.width, name=rig.name)
+    out.check()
+    return out
 
 
 # ====================================================================== measuring real images

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fppsim.errors import RigError
-from fppsim.fitting.fit_periods import adjust_rig, plane_coverage
+from fppsim.fitting.fit_periods import adjust_rig, cover_plane
 from fppsim.geometry.rig import Rig
 from fppsim.phase import wrap
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase
@@ -212,8 +212,9 @@ def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = 
     least-squares fits on the pixels within ``max(tau, 3 robust sigmas)`` of the plane found so far
     (which may grow beyond the seeds: the plane is one surface). ``pixels``: evenly strided pixels per
     map and fit. Maps that are not absolute (one fringe image's unwrapped phase) are compared modulo
-    2 pi. Raises RigError when a map has too few valid pixels or the fitted projector leaves part of
-    the camera's view of the plane unlit.
+    2 pi. The fitted projector's image is grown where it leaves part of the camera's view of the plane
+    unlit (:func:`fppsim.fitting.fit_periods.cover_plane`: the start's projector size is a modelling
+    choice). Raises RigError when a map has too few valid pixels.
     """
     from scipy.optimize import least_squares
 
@@ -279,9 +280,9 @@ def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = 
     planes = _grow_planes(rig, maps, oks, planes, tau)
     rig.name = start.name + " (plane phase fitted: " + ", ".join(params) + ")"
     rig.check()
-    coverage = plane_coverage(rig)
-    if coverage < 0.999:
-        raise RigError(f"the fitted projector lights only {coverage:.1%} of the camera's view of the plane")
+    # a start's projector size is a modelling choice: grown to light the whole view (a projector that
+    # leaves a strip of the real view dark is still identified by the lit part)
+    rig = cover_plane(rig)
     med, rms, offsets, shares, residuals = _plane_stats(rig, maps, oks, planes)
     return PlanePhaseFit(rig=rig, params={p: float(v) for p, v in values(x).items()}, offsets=offsets,
                          median_rad=med, rms_rad=rms, plane_share=shares, start_median_rad=start_med,

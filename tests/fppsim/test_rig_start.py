@@ -178,6 +178,55 @@ def test_fit_rig_without_base_on_phase_shifting_scans(tmp_path, capsys):
     assert rig2.sensitivity() == pytest.approx(truth.sensitivity(), rel=0.03)
 
 
+def test_a_projector_that_leaves_a_strip_of_the_view_dark_is_still_fitted(tmp_path, capsys):
+    """A projector turned so far that one side of the camera's view gets no light (the strip is dark and has
+    no phase, as on many real rigs): the lit part identifies the plane phase, and the fitted rig's projector
+    image is grown to light the whole view (a start has no real DMD size), its phase the truth's up to a
+    constant."""
+    from fppsim.cli import main
+    from fppsim.fitting.fit_periods import _plane_points, cover_plane, plane_coverage
+
+    start = rs.start_rig(160, 120, (2 * math.pi / 12.0, 0.0), 1, distance=420.0, baseline=260.0, fov=34.0)
+    truth = adjust_rig(start, yaw=-0.30, periods=round(start.periods))
+    assert 0.6 < plane_coverage(truth) < 0.97  # the truth itself leaves part of the view dark
+    H, W = truth.camera.height, truth.camera.width
+    height = domes(H, W, [(0.5, 0.6, 0.2, 30.0)])
+    phase, valid, image = analytic_scan(truth, height)
+    uvp, _ = truth.projector.project(_plane_points(truth.camera, truth.camera.pixel_grid()))
+    dark = (uvp[..., 0] < -0.5) | (uvp[..., 0] > truth.projector.width - 0.5)
+    assert 0.03 < dark.mean() < 0.4
+    valid &= ~dark
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+
+    save_psp_folder_sample(tmp_path / "scans", "a", *sums_from_phase(np.nan_to_num(phase), valid, 60.0),
+                           np.where(dark, 0, image).astype(np.uint8))
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out)]) == 0, capsys.readouterr().err
+    rig = Rig.load(out)
+    assert plane_coverage(rig) == 1.0 and cover_plane(rig) is rig
+    d = rig.phase_at_height(0.0) - truth.phase_at_height(0.0)
+    assert np.nanmax(np.abs((d - np.nanmedian(d[valid]))[valid & (height == 0)])) < 0.03
+    assert np.sign(rig.sensitivity()) == np.sign(truth.sensitivity())
+
+
+def test_cover_plane_keeps_every_plane_phase_up_to_one_constant():
+    """Growing the projector image moves no plane point's phase but by one constant, and lights the view."""
+    from fppsim.fitting.fit_periods import cover_plane, plane_coverage
+
+    start = rs.start_rig(200, 150, (0.0, 0.5), 1)
+    for turn in ({"pitch": -0.6}, {"roll": 0.5}, {"yaw": -0.5, "pitch": 0.5}):
+        rig = adjust_rig(start, **turn)
+        assert plane_coverage(rig) < 0.999
+        grown = cover_plane(rig)
+        assert plane_coverage(grown) == 1.0 and grown.projector.width >= rig.projector.width
+        d = grown.phase_at_height(0.0) - rig.phase_at_height(0.0)
+        assert np.ptp(d) < 1e-6
+        h = np.full((150, 200), 20.0)
+        d20 = grown.phase_at_height(h) - rig.phase_at_height(h)
+        assert np.ptp(d20) < 1e-6 and abs(np.median(d20) - np.median(d)) < 1e-6
+    assert cover_plane(start) is start
+
+
 def test_fit_rig_without_base_bad_combinations_are_one_line(tmp_path, capsys):
     from fppsim.cli import main
 
