@@ -115,6 +115,21 @@ def test_train_val_phase_bad_folder_is_one_line(setup, tmp_path, capsys):
     assert not (tmp_path / "r" / "last.pt").exists()
 
 
+def test_train_val_phase_frames_of_another_size_are_one_line(setup, tmp_path, capsys):
+    """Frames of another size than the training images are of another rig: refused before any training."""
+    tmp, _, _, _ = setup
+    rng = np.random.default_rng(3)
+    img, height, valid = scene(rng, 40, 64)
+    phase = 1.0 + 2 * np.pi * np.arange(64)[None, :] * np.ones((40, 1)) / 11.6 - 0.45 * height
+    save_psp_folder_sample(tmp_path / "other", "9", *sums_from_phase(phase, valid, 30.0), img)
+    rc = main(["train", "--real", str(tmp / "real"), "--model", "unet", "--base-channels", "4", "--epochs", "1",
+               "--out", str(tmp_path / "r"), "--no-progress", "--val-phase", str(tmp_path / "other")])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1, err
+    assert "64 x 40 px" in err and "training images are 64 x 32" in err
+    assert not (tmp_path / "r" / "last.pt").exists()
+
+
 def history(run):
     import csv
 

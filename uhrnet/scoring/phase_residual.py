@@ -278,10 +278,11 @@ class PhaseValidation:
     ``roots``: folders of the public layout (``PSin/ PCos/ Fringe/ iPattern/``); at most ``max_frames`` of
     their frames, evenly spaced over all of them in folder then id order. Frames are read and their flat
     fits done once, here. :class:`ConfigError` naming ``what`` (the flag) and the folder or file when one
-    cannot be read.
+    cannot be read, or when a frame is not ``shape`` (H, W) px (given: the training data's size; frames of
+    another size are of another rig).
     """
 
-    def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase"):
+    def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase", shape=None):
         frames = []
         for root in roots:
             try:
@@ -299,6 +300,9 @@ class PhaseValidation:
                 s = load_psp_folder_sample(root, sid)
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
+            if shape is not None and tuple(s.image.shape) != tuple(shape):
+                raise ConfigError(f"{what}: {s.path}: the frame is {s.image.shape[1]} x {s.image.shape[0]} px but the "
+                                  f"training images are {shape[1]} x {shape[0]}: give frames of the rig the data is of")
             ok = _scored_pixels(s)
             try:
                 flat = fit_phase(s.phase, np.zeros(s.phase.shape), ok, degree=degree).rmse_rad

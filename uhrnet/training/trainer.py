@@ -189,7 +189,8 @@ class Trainer:
         if cfg["val_phase"] and info.main:
             from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
 
-            self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES)
+            native = tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
+            self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES, shape=native)
         self.history: list[dict] = []
         self.best = {"metric": "val_phase_ratio" if cfg["val_phase"] else "val_rmse_mm", "value": float("inf"),
                      "epoch": 0}
