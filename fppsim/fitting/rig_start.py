@@ -387,6 +387,10 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             raise RigError(f"projector side '{projector_side}': the fringes are {axis}, so the projector is "
                            + ("left or right of" if axis == "vertical" else "above or below") + " the camera")
         side, source = int(np.sign(pdir @ waxis)), "given (--projector-side)"
+        measured = -relief if relief else shadow
+        if measured and measured != side:
+            source += ("; the scans measure the other side (" + (f"{share:.0%} of the relief off the plane" if relief
+                       else f"{n_votes} shadow runs") + "): check the option")
     elif relief:
         side, source = -relief, (f"measured: raised surfaces {'raise' if relief > 0 else 'lower'} the phase "
                                  f"({share:.0%} of the relief off the plane)")

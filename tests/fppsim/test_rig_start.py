@@ -250,6 +250,22 @@ def test_fit_rig_without_base_bad_combinations_are_one_line(tmp_path, capsys):
     assert len(err) == 1 and "640 x 352" in err[0]
 
 
+def test_a_given_projector_side_the_scans_contradict_is_said(tmp_path, capsys):
+    """--projector-side wins, but the report says when the scans measure the other side."""
+    from fppsim.cli import main
+
+    truth = truth_rig("horizontal", -1)  # projector below the camera
+    _psp_folder(tmp_path / "scans", truth, domes(truth.camera.height, truth.camera.width, SCENE), ids=("a",))
+    said = {}
+    for side in ("above", "below"):
+        assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(tmp_path / f"{side}.json"),
+                     "--projector-side", side]) == 0
+        said[side] = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("projector"))
+    assert "given (--projector-side); the scans measure the other side" in said["above"], said["above"]
+    assert "above the camera" in said["above"]
+    assert "other side" not in said["below"] and "below the camera" in said["below"]
+
+
 def test_fit_rig_without_base_on_single_fringe_images(tmp_path, capsys):
     """Plain fringe images: the single-shot phase (horizontal fringes handled by transposing), unwrapped on
     the plane. The phase's sign is a convention and the side comes from the shadows, so the rig's plane phase
