@@ -191,7 +191,8 @@ guarded() {
 # 0. The environment: carried wheels into a private site folder (never pip's network), GL loaders.
 SITE="$WORK/site"
 export PYTHONPATH="$ROOT${PYTHONPATH:+:$PYTHONPATH}"
-if compgen -G ".whl/*.whl" >/dev/null; then
+# (not when the interpreter has them already: a pip install here is minutes of CPU for nothing)
+if compgen -G ".whl/*.whl" >/dev/null && ! "$PY" -c 'import trimesh, pyrender, OpenGL, pyglet, freetype' 2>/dev/null; then
   mapfile -t whl < <("$PY" pipelines/gpu_check.py wheels .whl)
   if [ ${#whl[@]} -gt 0 ]; then
     log "installing ${#whl[@]} carried wheels into $SITE (no index, no network)"
