@@ -470,8 +470,12 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         f"{rig.periods:.2f} periods across the projector")
     if kind != "phase":
         out("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
-    out("not fitted lens distortion (none in the rig); the projector's resolution (912 x 1140, only the "
-        "periods across it matter)")
+    elif np.mean(fit.plane_share) < 0.1 or fit.median_rad > 0.25:
+        out(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {np.mean(fit.plane_share):.0%} of the "
+            "pixels): check that the scans show the reference plane and use fit-rig's phase convention, "
+            "atan2(-PSin, -PCos) + pi + 2 pi Order (not atan2(PSin, PCos) + 2 pi Order, nor PSin of the other sign)")
+    out(f"not fitted lens distortion (none in the rig); the projector's resolution ({rig.projector.width} x "
+        f"{rig.projector.height}, only the periods across it matter)")
     rig.check_usable()
     return StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
                           side_source=source, where=where, sensitivity=float(s), assumed=assumed, lines=lines,

@@ -266,6 +266,27 @@ def test_a_given_projector_side_the_scans_contradict_is_said(tmp_path, capsys):
     assert "other side" not in said["below"] and "below the camera" in said["below"]
 
 
+def test_scans_in_another_phase_convention_are_flagged(tmp_path, capsys):
+    """PSin stored with the other sign: the plane model fits a few percent of the pixels, and the report
+    says to check the convention; the same scans with the right sign do not get that line."""
+    import scipy.io
+
+    from fppsim.cli import main
+
+    truth = truth_rig("vertical", -1)
+    H, W = truth.camera.height, truth.camera.width
+    for name in ("good", "negated"):
+        _psp_folder(tmp_path / name, truth, domes(H, W, SCENE), ids=("a",))
+    f = tmp_path / "negated" / "PSin" / "a.mat"
+    scipy.io.savemat(f, {"PSin": -scipy.io.loadmat(f)["PSin"]})
+    said = {}
+    for name in ("good", "negated"):
+        assert main(["fit-rig", str(tmp_path / name), "--out", str(tmp_path / f"{name}.json")]) == 0
+        said[name] = capsys.readouterr().out
+    assert "fits poorly" not in said["good"]
+    assert "the plane model fits poorly" in said["negated"] and "atan2(-PSin, -PCos) + pi + 2 pi Order" in said["negated"]
+
+
 def test_fit_rig_without_base_on_single_fringe_images(tmp_path, capsys):
     """Plain fringe images: the single-shot phase (horizontal fringes handled by transposing), unwrapped on
     the plane. The phase's sign is a convention and the side comes from the shadows, so the rig's plane phase
