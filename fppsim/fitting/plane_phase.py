@@ -331,14 +331,19 @@ def find_plane(start: Rig, m: PhaseMap, gradient, candidates: int = 5, min_share
     radian; an object is not, even a large and nearly flat one. Each of the ``candidates`` largest
     smooth regions (:func:`smooth_regions`, at least ``min_share`` of the valid pixels) seeds a fit
     (:func:`fit_plane_phase`, one round); the hypothesis that agrees with most pixels within ``tau``
-    (:func:`consensus`) wins. Returns ``(plane, scores, fit)``: its pixels, ``(region share, consensus
+    (:func:`consensus`) wins, unless it touches no image border while another hypothesis that fits its own
+    region as well runs along the borders (a flat top inside the view is not the plane the objects stand
+    on, which reaches beyond it). Returns ``(plane, scores, fit)``: its pixels, ``(region share, consensus
     share, median |r| on the region)`` per candidate tried, and the winner's :class:`PlanePhaseFit`
     (None, with every valid pixel as the plane, when no region could seed a fit)."""
     ok = m.valid & np.isfinite(m.phase)
     lab, sizes = smooth_regions(m.phase, ok if m.reliable is None else ok & m.reliable, gradient,
                                 absolute=m.absolute)
     n_ok = max(int(ok.sum()), 1)
-    best, scores = None, []
+    edge = np.zeros(ok.shape, bool)
+    edge[:2], edge[-2:], edge[:, :2], edge[:, -2:] = True, True, True, True
+    edge &= ok
+    tried, scores = [], []
     for k in range(min(int(candidates), len(sizes))):
         if sizes[k] < max(min_share * n_ok, 200):
             break
@@ -350,10 +355,18 @@ def find_plane(start: Rig, m: PhaseMap, gradient, candidates: int = 5, min_share
         score = consensus(fit.residuals[0], tau)
         med = float(np.nanmedian(np.abs(fit.residuals[0][seed])))
         scores.append((float(sizes[k] / n_ok), score / n_ok, med))
-        if best is None or score > best[0]:
-            best = (score, fit)
-    if best is None:
+        border = float((fit.planes[0] & edge).sum() / max(int(edge.sum()), 1))
+        tried.append((score, fit, border, med))
+    if not tried:
         return ok, scores, None
+    best = max(tried, key=lambda c: c[0])
+    if best[2] < 0.05:
+        # the winner touches no image border: a flat top inside the view (a box, a plinth) rather than the
+        # plane the objects stand on, which reaches beyond the view; another surface the plane model fits
+        # as well, along the borders, is the plane (taking the top would mirror the projector's side)
+        outer = [c for c in tried if c[2] >= 0.25 and c[3] < tau and c[0] >= 0.05 * n_ok]
+        if outer:
+            best = max(outer, key=lambda c: c[0])
     return best[1].planes[0], scores, best[1]
 
 

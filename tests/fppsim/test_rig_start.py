@@ -134,6 +134,25 @@ def test_the_plane_is_found_under_a_big_flat_object():
     assert (plane & true_plane).sum() > 0.9 * true_plane.sum() and (plane & ~true_plane).sum() < 0.02 * plane.sum()
 
 
+@pytest.mark.parametrize("share", [0.6, 0.8])
+def test_a_flat_top_covering_most_of_the_view_is_not_the_plane(share):
+    """A box with a flat top (a plinth) covering most of the view inside it: its top fits the plane model as
+    exactly as the floor and covers more pixels, but the plane the objects stand on reaches beyond the view
+    (the floor runs along the image borders); taking the top would mirror the projector's side."""
+    truth = truth_rig("vertical", -1, size=(160, 120))
+    H, W = truth.camera.height, truth.camera.width
+    yy, xx = np.mgrid[0:H, 0:W]
+    f = share ** 0.5
+    box = (np.abs(xx - W / 2) < f * W / 2) & (np.abs(yy - H / 2) < f * H / 2)
+    height = np.where(box, 25.0, 0.0) + domes(H, W, [(0.5, 0.5, 0.15, 20.0)])
+    phase, valid, _ = analytic_scan(truth, height)
+    m = pp.PhaseMap(phase, valid, "plinth")
+    g = pp.plane_phase_gradient(phase, valid)
+    plane, _, _ = pp.find_plane(rs.start_rig(W, H, g, 1), m, g)
+    floor = valid & (height == 0)
+    assert (plane & floor).sum() > 0.9 * floor.sum() and (plane & box).sum() < 0.02 * plane.sum()
+
+
 def _psp_folder(root, rig, height, ids=("a", "b")):
     from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
