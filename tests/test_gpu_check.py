@@ -384,10 +384,10 @@ def _cleanup(p: subprocess.Popen, tmp_path) -> None:
 
 
 def _as_from_a_terminal() -> None:
-    """A shell started from a terminal has Ctrl-C at its default; a process started with SIGINT ignored
-    (inherited: ignored signals survive exec) cannot even trap it, as bash documents. In whole-suite runs the
-    script ignored the Ctrl-C below (its wait ran out at 120 s, once in a clean clone), so the test
-    process's own disposition, whatever set it, is not handed down."""
+    """A shell started from a terminal has Ctrl-C at its default; one started with SIGINT ignored cannot even
+    trap it (ignored signals survive exec, and bash keeps them). A test run started in the background of a
+    non-interactive shell (``pytest ... &``, as long runs often are) has SIGINT ignored, and so had the script:
+    the Ctrl-C below was lost and the wait ran out. The test process's own disposition is not handed down."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
