@@ -17,6 +17,7 @@ Units: mm, radians, camera pixels for periods.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +52,15 @@ def _plane_points(cam: Device, uv: np.ndarray) -> np.ndarray:
     return cam.backproject(uv, cam.plane_depth(uv))
 
 
+def _lit(rig: Rig, uv: np.ndarray) -> np.ndarray:
+    """(...) bool: the reference-plane points camera pixels ``uv`` (..., 2) see fall inside the projector image."""
+    proj = rig.projector
+    with np.errstate(invalid="ignore", divide="ignore"):
+        uvp, z = proj.project(_plane_points(rig.camera, uv))
+    return (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) \
+        & (uvp[..., 1] >= -0.5) & (uvp[..., 1] <= proj.height - 0.5)
+
+
 def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Horizontal fringe period (camera px) of the rig's pattern on its reference plane.
 
@@ -77,11 +87,7 @@ def period_map(rig: Rig, step: int = 4) -> tuple[np.ndarray, np.ndarray, np.ndar
     with np.errstate(divide="ignore", invalid="ignore"):
         deriv = np.abs(up[1] - up[0]) / (2 * h)
         period = proj.width / (rig.periods * deriv)
-    X = _plane_points(cam, np.stack([uu, vv], axis=-1))
-    uvp, z = proj.project(X)
-    inside = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) \
-        & (uvp[..., 1] >= -0.5) & (uvp[..., 1] <= proj.height - 0.5)
-    return u, v, np.where(inside, period, np.nan)
+    return u, v, np.where(_lit(rig, np.stack([uu, vv], axis=-1)), period, np.nan)
 
 
 def plane_tilt(rig: Rig, step: int = 8) -> float:
@@ -200,14 +206,10 @@ def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
 def plane_coverage(rig: Rig, step: int = 8) -> float:
     """Fraction of the camera's view of the reference plane that falls inside the projector image (every
     ``step``-th camera pixel in u and v)."""
-    cam, proj = rig.camera, rig.projector
+    cam = rig.camera
     uu, vv = np.meshgrid(np.arange(0, cam.width, step, dtype=np.float64),
                          np.arange(0, cam.height, step, dtype=np.float64))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        uvp, z = proj.project(_plane_points(cam, np.stack([uu, vv], axis=-1)))
-    inside = (z > 0) & (uvp[..., 0] >= -0.5) & (uvp[..., 0] <= proj.width - 0.5) \
-        & (uvp[..., 1] >= -0.5) & (uvp[..., 1] <= proj.height - 0.5)
-    return float(inside.mean())
+    return float(_lit(rig, np.stack([uu, vv], axis=-1)).mean())
 
 
 def cover_plane(rig: Rig, margin: int = 8) -> Rig:
@@ -234,7 +236,7 @@ def cover_plane(rig: Rig, margin: int = 8) -> Rig:
     K[1, 2] += top
     width = proj.width + left + right
     grown = Device(K=K, R=proj.R, t=proj.t, width=width, height=proj.height + top + bottom, dist=proj.dist)
-    out = Rig(camera=cam, projector=grown, periods=rig.periods * width / proj.width, name=rig.name)
+    out = dataclasses.replace(rig, projector=grown, periods=rig.periods * width / proj.width)
     out.check()
     return out
 

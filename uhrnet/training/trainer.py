@@ -99,8 +99,11 @@ class Trainer:
         sources = load_sources(cfg["real"], cfg["synthetic"], self.transform, cfg["real_split"],
                                cfg["synthetic_split"], cfg["synthetic_label"], phase=phase)
         self.sources = sources
+        # the data's own size (before --crop / --resize), read once for what needs it
+        native = (tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
+                  if len(sources.train) and (cfg["resize"] == RESIZE_AUTO or cfg["val_phase"]) else None)
         if cfg["resize"] == RESIZE_AUTO:
-            cfg["resize"] = self._auto_resize(sources)  # config.json and the checkpoints record the size chosen
+            cfg["resize"] = self._auto_resize(native)  # config.json and the checkpoints record the size chosen
         crop, resize = parse_size(cfg["crop"]), parse_size(cfg["resize"])
         import dataclasses
 
@@ -189,7 +192,6 @@ class Trainer:
         if cfg["val_phase"] and info.main:
             from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
 
-            native = tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
             self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES, shape=native)
         self.history: list[dict] = []
         self.best = {"metric": "val_phase_ratio" if cfg["val_phase"] else "val_rmse_mm", "value": float("inf"),
@@ -198,9 +200,10 @@ class Trainer:
         if self.ckpt is not None:
             self._restore(self.ckpt)
 
-    def _auto_resize(self, sources) -> str | None:
+    def _auto_resize(self, shape) -> str | None:
         """``--resize auto``: the training size from the fringe period of the synthetic data's rig
-        (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size."""
+        (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size. ``shape``: the
+        training data's own (H, W), None when there are no training samples (refused after)."""
         from fppsim.dataio.rig_choice import dataset_rig  # only --resize auto reads a dataset's rig
         from fppsim.phase.fringe_axis import rig_phase_gradient  # (scipy: not needed on a bare GPU machine otherwise)
 
@@ -215,9 +218,8 @@ class Trainer:
         if rig is None:
             raise ConfigError("--resize auto needs --synthetic data that records its rig (fppsim generate does): "
                               "the rig's fringe period sets the size; give --resize HxW instead")
-        if len(sources.train) == 0:
+        if shape is None:
             return None  # refused below: no training samples
-        shape = tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
         if shape != (rig.camera.height, rig.camera.width):
             raise ConfigError(f"--resize auto: the training images are {shape[0]}x{shape[1]} px but the synthetic "
                               f"data's rig camera is {rig.camera.height}x{rig.camera.width}; give --resize HxW")
