@@ -321,6 +321,16 @@ def _params(text: str) -> tuple[str, ...]:
     return names
 
 
+def add_phase_convention(p: argparse.ArgumentParser) -> None:
+    """``--convention`` and ``--negate-sin``: how scans in the public layout (PSin/ PCos/ Fringe/) make their phase."""
+    p.add_argument("--convention", choices=("auto", "benchmark", "fppsim"), default="auto",
+                   help="public layout: benchmark = atan2(-PSin,-PCos) + pi + 2 pi Order (as published); fppsim = "
+                        "atan2(PSin,PCos) + 2 pi Order; auto = benchmark unless a scan's phase is clearly written "
+                        "another way (it then jumps by pi every period or half period: read the smooth way, and said) "
+                        "[auto]")
+    p.add_argument("--negate-sin", action="store_true", help="public layout: PSin holds +sum I_n sin(delta_n)")
+
+
 def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("real", metavar="REAL_DIR",
                    help="real fringe images: figshare folder (f1_80.npy + Z.npy), the real-sample pair, native "
@@ -351,6 +361,7 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
     p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
+    add_phase_convention(p)
     p.add_argument("--sensitivity", choices=("auto", "off"), default="auto",
                    help="auto: when the images have height labels, first choose the baseline whose fringe shift "
                         "per mm matches them (re-projected labels vs the real fringes; fppsim.fitting.fit_rig.fit_baseline), "
@@ -365,7 +376,7 @@ def run_fit_rig(args) -> int:
 
     common = dict(real=args.real, out=args.out, params=tuple(args.params), col_bands=args.col_bands,
                   row_bands=args.row_bands, max_images=args.max_images, sensitivity=args.sensitivity, json=args.json,
-                  force=args.force)
+                  force=args.force, convention=args.convention, negate_sin=args.negate_sin)
     start = {"fov": args.fov, "focal": args.focal, "distance": args.distance, "baseline": args.baseline,
              "projector_side": args.projector_side}
     if args.base is None:  # no calibration: the rig from the images themselves
@@ -391,6 +402,7 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
     p.add_argument("--compare", type=int, default=4, metavar="N",
                    help="render N samples with the default and with the fitted ranges and print compare-real "
                         "before/after (0: skip) [4]")
+    add_phase_convention(p)
     p.add_argument("--meshes", nargs="+", metavar="PATH", help="meshes for --compare [assets/meshes]")
     p.add_argument("--seed", type=int, default=0, help="seed of the --compare renders [0]")
     p.add_argument("--json", metavar="FILE", help="also write the per-image estimates as JSON")
@@ -402,7 +414,8 @@ def run_fit_optics(args) -> int:
 
     fit_optics_images(FitOpticsConfig(
         real=args.real, out=args.out, rig=args.rig, max_images=args.max_images, compare=args.compare,
-        meshes=args.meshes, seed=args.seed, json=args.json, force=args.force), echo=print)
+        meshes=args.meshes, seed=args.seed, json=args.json, force=args.force, convention=args.convention,
+        negate_sin=args.negate_sin), echo=print)
     return 0
 
 
@@ -434,10 +447,7 @@ def add_label_real(p: argparse.ArgumentParser) -> None:
                         "datasets (absolute in rig terms; the fitted offset is still reported)")
     p.add_argument("--periods", type=float, default=None,
                    help="fringe periods across the projector of the public layout's phase (default: the rig's, 80)")
-    p.add_argument("--convention", choices=("benchmark", "fppsim"), default="benchmark",
-                   help="public layout: benchmark = atan2(-PSin,-PCos) + pi + 2 pi Order (as published, default); "
-                        "fppsim = atan2(PSin,PCos) + 2 pi Order")
-    p.add_argument("--negate-sin", action="store_true", help="public layout: PSin holds +sum I_n sin(delta_n)")
+    add_phase_convention(p)
     p.add_argument("--ids", nargs="+", metavar="ID", help="label only these scan ids, in this order (default: all)")
     p.add_argument("--plane-window", type=float, default=3.0, metavar="MM",
                    help="reference-plane pixels lie within this height of the plane (mm, default 3)")

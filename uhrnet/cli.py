@@ -65,6 +65,12 @@ def add_train(p: argparse.ArgumentParser) -> None:
                         f"reports it), on at most {VAL_PHASE_FRAMES} of their frames; best.pt is then the epoch with the "
                         "lowest, not the best on synthetic validation, which cannot tell which epoch carries over to "
                         "real images (about 1 s per frame and epoch on CPU) [off]")
+    d.add_argument("--val-phase-convention", choices=("auto", "benchmark", "fppsim"),
+                   help="how the --val-phase frames make their phase: benchmark = atan2(-PSin,-PCos) + pi + 2 pi Order "
+                        "(the public data), fppsim = atan2(PSin,PCos) + 2 pi Order, auto = benchmark unless a frame is "
+                        "clearly written another way (as evaluate-phase --convention auto) [auto]")
+    d.add_argument("--val-phase-negate-sin", action="store_const", const=True,
+                   help="the --val-phase frames' PSin holds +sum I_n sin(delta_n)")
     d.add_argument("--preset", choices=sorted(PRESETS), help="label transform preset [figshare]")
     d.add_argument("--label-transform", nargs="+", metavar="KEY=VALUE",
                    help="override preset fields: units_per_mm, invalid_value, invalid_threshold, plane_offset, "
@@ -333,9 +339,11 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="report folder")
     p.add_argument("--degree", type=int, default=3, help="total degree of the reference-plane polynomial in x, y [3]")
     p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
-    p.add_argument("--convention", choices=CONVENTIONS, default="benchmark",
-                   help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data) [default]; "
-                        "fppsim: atan2(PSin, PCos) + 2 pi Order")
+    p.add_argument("--convention", choices=("auto",) + tuple(CONVENTIONS), default="auto",
+                   help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data); fppsim: "
+                        "atan2(PSin, PCos) + 2 pi Order; auto: benchmark unless a frame's phase is clearly written "
+                        "another way (it then jumps by pi every period or half period: read the smooth way, and "
+                        "said) [auto]")
     p.add_argument("--negate-sin", action="store_true", help="the files store PSin with the opposite sign")
     p.add_argument("--mask-predicted-invalid", action="store_true",
                    help="leave out pixels the model labels invalid (default: keep them: real phase exists there, so "

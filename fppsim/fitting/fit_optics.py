@@ -46,7 +46,7 @@ import numpy as np
 from fppsim.commands import ReportLines
 from fppsim.files import atomic_write_text, check_output_file
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
-from fppsim.dataio.readers import load_fringe_images
+from fppsim.dataio.readers import READ_CONVENTIONS, folder_reading_note, load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
 from fppsim.phase.measure import estimate_period, fringe_modulation
@@ -420,6 +420,8 @@ class FitOpticsConfig:
         with the real images (:func:`compare_before_after`); 0 skips it.
     meshes : meshes of the ``compare`` renders (None: the packaged meshes). seed : their seed.
     json : also write the per-image estimates there (:meth:`OpticsFit.to_dict`).
+    convention / negate_sin : how the public layout's PSin / PCos / Order make the phase that tells the plane
+        from the objects (:func:`fppsim.dataio.readers.load_psp_folder_sample`).
     """
     real: str | os.PathLike
     out: str | os.PathLike
@@ -430,12 +432,16 @@ class FitOpticsConfig:
     seed: int = 0
     json: str | os.PathLike | None = None
     force: bool = False
+    convention: str = "auto"
+    negate_sin: bool = False
 
     def __post_init__(self):
-        if self.max_images < 1 or self.compare < 0:
-            from fppsim.errors import UsageError  # option values wrong on their own: exit 2
+        from fppsim.errors import UsageError  # option values wrong on their own: exit 2
 
+        if self.max_images < 1 or self.compare < 0:
             raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
+        if self.convention not in READ_CONVENTIONS:
+            raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {self.convention!r}")
 
 
 @dataclass
@@ -465,9 +471,13 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     if config.json:  # an existing report is someone's file too: replaced only with force
         check_output_file(config.json, config.force)
     rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
-    images, layout = load_fringe_images(config.real, config.max_images)
+    images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
+                                        negate_sin=config.negate_sin)
     fit = fit_optics(images, rig)
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
+    note = folder_reading_note(config.real, config.convention, config.negate_sin)
+    if note:
+        say(note)
     say(format_optics_fit(fit))
     atomic_write_text(out, ranges_yaml(fit))
     say(f"optics ranges: {out}")

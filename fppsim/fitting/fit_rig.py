@@ -42,7 +42,7 @@ from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
-from fppsim.dataio.readers import FringeImage, load_fringe_images
+from fppsim.dataio.readers import READ_CONVENTIONS, FringeImage, folder_reading_note, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, load_rig
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
@@ -138,6 +138,8 @@ class FitRigConfig:
     base : rig to start from (camera kept fixed); None: the packaged default rig.
     params : names of :data:`PARAMETERS` to fit. col_bands, row_bands : bands measured (>= 1 each).
     max_images : evenly spaced images read (>= 1).
+    convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
+        (:func:`fppsim.dataio.readers.load_psp_folder_sample`).
     sensitivity : ``"auto"``: with height labels, first choose the baseline whose fringe shift per mm
         matches them (:func:`fit_baseline`), then fit ``params`` at it; ``"off"``: keep the base baseline.
     json : also write measured / base / fitted band periods (and the sensitivity scan) there.
@@ -153,6 +155,8 @@ class FitRigConfig:
     sensitivity: str = "auto"
     json: str | os.PathLike | None = None
     force: bool = False
+    convention: str = "auto"
+    negate_sin: bool = False
 
     def __post_init__(self):
         check_fit_options(self)
@@ -160,7 +164,8 @@ class FitRigConfig:
 
 def check_fit_options(cfg) -> None:
     """:class:`fppsim.errors.UsageError` (exit 2) for a fit-rig option wrong on its own: the band counts,
-    ``max_images``, ``params`` and ``sensitivity`` of ``cfg`` (every fit-rig configuration has them)."""
+    ``max_images``, ``params``, ``sensitivity`` and ``convention`` of ``cfg`` (every fit-rig configuration has
+    them)."""
     for key in ("col_bands", "row_bands", "max_images"):
         if getattr(cfg, key) < 1:
             raise UsageError(f"--{key.replace('_', '-')} must be >= 1, got {getattr(cfg, key)}")
@@ -170,6 +175,8 @@ def check_fit_options(cfg) -> None:
                          f"(known: {', '.join(PARAMETERS)})")
     if cfg.sensitivity not in ("auto", "off"):
         raise UsageError(f"--sensitivity must be 'auto' or 'off', got {cfg.sensitivity!r}")
+    if cfg.convention not in READ_CONVENTIONS:
+        raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {cfg.convention!r}")
 
 
 @dataclass
@@ -209,9 +216,13 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     if config.json:  # an existing report is someone's file too: replaced only with force
         check_output_file(config.json, config.force)
     base = load_rig(config.base)
-    images, layout = load_fringe_images(config.real, config.max_images)
+    images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
+                                        negate_sin=config.negate_sin)
     measured = measure_bands(images, config.col_bands, config.row_bands)
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
+    note = folder_reading_note(config.real, config.convention, config.negate_sin)
+    if note:
+        say(note)
     dfit = None
     if "distance" in config.params:
         # distance (with the baseline) comes from the labels' phase-height relation, not the period map

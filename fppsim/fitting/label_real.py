@@ -56,7 +56,7 @@ from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
 from fppsim.owned import claim, output_folder, owners
 from fppsim.phase.psp import decode_stacks
-from fppsim.dataio.readers import CONVENTIONS, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
+from fppsim.dataio.readers import READ_CONVENTIONS, reading_note, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -117,7 +117,8 @@ class LabelRealConfig:
     periods : fringe periods across the projector of the scans' absolute phase (public layout only;
         default the rig's ``periods``, 80). Native scans use the top of their recorded ladder.
     convention, negate_sin : how the public layout's wrapped phase and fringe order combine and the
-        sign of its PSin (see :data:`fppsim.dataio.readers.CONVENTIONS`); default ``benchmark``, as published.
+        sign of its PSin (see :data:`fppsim.dataio.readers.CONVENTIONS`); default ``auto``: as published
+        (``benchmark``) unless a scan is clearly written another way (:data:`fppsim.dataio.readers.AUTO`).
     ids : scan ids to label, in this order (default: every id, numeric names in numeric order).
     label : label preset or transform (default ``figshare``: 6 units per mm, plane at -97, invalid -105).
     plane_window_mm : a pixel belongs to the reference plane when its height lies within this many mm
@@ -135,7 +136,7 @@ class LabelRealConfig:
     rig: Rig | str | os.PathLike | None = None
     phase_offset: str | float | None = None
     periods: float | None = None
-    convention: str = "benchmark"
+    convention: str = "auto"
     negate_sin: bool = False
     ids: Sequence[str] | None = None
     label: LabelTransform | str | dict | None = "figshare"
@@ -149,8 +150,8 @@ class LabelRealConfig:
 
     def __post_init__(self):
         self.phase_offset = _parse_offset(self.phase_offset)
-        if self.convention not in CONVENTIONS:
-            raise UsageError(f"--convention must be one of {', '.join(CONVENTIONS)}, got {self.convention!r}")
+        if self.convention not in READ_CONVENTIONS:
+            raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {self.convention!r}")
         for name in ("plane_window_mm", "max_plane_rms_mm", "max_plane_tilt_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -181,6 +182,7 @@ class Scan:
     periods : fringe periods across the projector of ``phase``.
     rig : the rig to triangulate with.
     source : the file or folder it came from (for messages and the report).
+    note : how the phase was read when ``--convention auto`` read it another way than given, else None.
     """
     id: str
     image: np.ndarray
@@ -189,6 +191,7 @@ class Scan:
     periods: float
     rig: Rig
     source: str
+    note: str | None = None
 
 
 def detect_layout(root: str | os.PathLike) -> str:
@@ -241,7 +244,8 @@ def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
     s = load_psp_folder_sample(cfg.root, sid, convention=cfg.convention, negate_sin=cfg.negate_sin)
     _check_camera(rig, s.image.shape, str(open_source(cfg.root).ipattern_file(sid)))
     return Scan(id=sid, image=s.image, phase=s.phase, valid=s.valid & np.isfinite(s.phase),
-                periods=float(cfg.periods if cfg.periods is not None else rig.periods), rig=rig, source=s.path)
+                periods=float(cfg.periods if cfg.periods is not None else rig.periods), rig=rig, source=s.path,
+                note=reading_note(s.meta))
 
 
 def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
@@ -554,6 +558,10 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                         raise DatasetError(f"{scan.source}: image size {scan.image.shape} differs from the first "
                                            f"scan's {(H, W)}")
                     height, (rec, plane) = _label_scan(cfg, scan, policy, cache)
+                    if scan.note:
+                        rec["read_as"] = scan.note
+                        if not any(w == scan.note for w in report.warnings):
+                            report.warnings.append(scan.note)
                     valid = np.isfinite(height)
                     streams[0].write(encode_fringe(scan.image, valid))
                     streams[1].write(cfg.label.label_from_height_mm(np.nan_to_num(height), valid))

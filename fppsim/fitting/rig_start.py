@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.dataio.readers import load_fringe_images, open_source
+from fppsim.dataio.readers import folder_reading_note, load_fringe_images, open_source
 from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.errors import RigError, UsageError
 from fppsim.files import atomic_write_text, check_output_file
@@ -154,21 +154,24 @@ def start_rig(width: int, height: int, gradient, side: int = 1, distance: float 
     return rig
 
 
-def phase_maps_of(path, max_maps: int = 4) -> tuple[list[PhaseMap], str, list]:
+def phase_maps_of(path, max_maps: int = 4, convention: str = "benchmark", negate_sin: bool = False
+                  ) -> tuple[list[PhaseMap], str, list]:
     """The phase maps of a folder for :func:`fppsim.fitting.plane_phase.fit_plane_phase` (at most ``max_maps``,
     evenly spaced): ``(maps, kind, images)``. Frames with a measured absolute phase (phase-shifting scans
     in the public ``PSin/PCos/Fringe`` layout, ``atan2(-PSin, -PCos) + pi + 2 pi Order``; fppsim's native
     samples with their decoded ``phase_psp``: :meth:`fppsim.dataio.readers.Source.measured_phase`) give
     absolute maps (``kind`` ``"phase"``); any other layout :func:`fppsim.dataio.readers.load_fringe_images`
     reads gives one single-shot map per image (``"fringe images"``). ``images`` are the fringe images
-    read (:class:`fppsim.dataio.readers.FringeImage`, for the label-based fits)."""
+    read (:class:`fppsim.dataio.readers.FringeImage`, for the label-based fits). ``convention`` /
+    ``negate_sin``: scans in the public layout written another way
+    (:func:`fppsim.dataio.readers.load_psp_folder_sample`)."""
     src = open_source(path)
-    images, _ = load_fringe_images(path, max_maps)
+    images, _ = load_fringe_images(path, max_maps, convention=convention, negate_sin=negate_sin)
     ids = src.measured_phase_ids()
     if ids:
         maps = []
         for i in pick_evenly(len(ids), max_maps):
-            measured = src.measured_phase(ids[int(i)])
+            measured = src.measured_phase(ids[int(i)], convention=convention, negate_sin=negate_sin)
             if measured is not None:
                 maps.append(PhaseMap(measured[0], measured[1], ids[int(i)]))
         if maps:
@@ -307,7 +310,7 @@ def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: 
 
 def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
                     baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
-                    say=None) -> StartRigResult:
+                    convention: str = "auto", negate_sin: bool = False, say=None) -> StartRigResult:
     """A rig from a folder of fringe images or phase-shifting scans alone (``fppsim fit-rig`` without
     ``--base``; module docstring): camera from the image size and ``fov`` / ``focal``; the fringe
     direction, the phase slope and its perspective from the plane's phase (:func:`phase_maps_of`,
@@ -315,7 +318,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
     (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
     (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
-    as :func:`scene_scale` chooses them for the synthetic scenes. ``say`` receives each report line.
+    as :func:`scene_scale` chooses them for the synthetic scenes; ``convention`` / ``negate_sin`` as
+    :func:`phase_maps_of`. ``say`` receives each report line.
     RigError / ValueError (one line) for unusable inputs."""
     lines: list[str] = []
 
@@ -328,7 +332,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         raise RigError(f"projector side must be one of {', '.join(SIDES)}, got {projector_side!r}")
     if fov is not None and focal is not None:
         raise RigError("give the camera's field of view or its focal length, not both")
-    maps, kind, images = phase_maps_of(path, max_maps)
+    maps, kind, images = phase_maps_of(path, max_maps, convention, negate_sin)
     if not maps:
         raise ValueError(f"{path}: no fringe images")
     H, W = maps[0].phase.shape
@@ -348,6 +352,9 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     axis = fringe_axis(gradient)
     what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
     out(f"{path}: {len(maps)} {what}, {W} x {H} px")
+    note = folder_reading_note(path, convention, negate_sin) if kind == "phase" else None
+    if note:
+        out(note)
 
     # plane pixels per map, from a provisional start (the side does not change the plane's phase); at
     # steep angles a start on the wrong side cannot follow the plane's perspective (its fitted projector no
@@ -472,8 +479,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         out("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
     elif np.mean(fit.plane_share) < 0.1 or fit.median_rad > 0.25:
         out(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {np.mean(fit.plane_share):.0%} of the "
-            "pixels): check that the scans show the reference plane and use fit-rig's phase convention, "
-            "atan2(-PSin, -PCos) + pi + 2 pi Order (not atan2(PSin, PCos) + 2 pi Order, nor PSin of the other sign)")
+            "pixels): check that the scans show the reference plane and how their phase is written (--convention, "
+            "--negate-sin)")
     out(f"not fitted lens distortion (none in the rig); the projector's resolution ({rig.projector.width} x "
         f"{rig.projector.height}, only the periods across it matter)")
     rig.check_usable()
@@ -493,7 +500,9 @@ class StartRigConfig:
         unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
         (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
         distance, or what :func:`scene_scale` chooses (images cannot tell them). projector_side :
-        ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed. params,
+        ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed.
+        convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
+        (:func:`fppsim.dataio.readers.load_psp_folder_sample`). params,
         sensitivity, col_bands, row_bands : the label-based fits that follow with height labels and
         vertical fringes. max_images : images read
         (at most 4 phase maps are fitted). json : also write the report as JSON.
@@ -506,6 +515,8 @@ class StartRigConfig:
     distance: float | None = None
     baseline: float | None = None
     projector_side: str | None = None
+    convention: str = "auto"
+    negate_sin: bool = False
     params: tuple = ("yaw", "roll", "periods")
     col_bands: int = 4
     row_bands: int = 3
@@ -570,7 +581,8 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
                        "sensitivity 'auto'")
     start = rig_from_images(config.real, fov=config.fov, focal=config.focal, distance=config.distance,
                             baseline=config.baseline, projector_side=config.projector_side,
-                            max_maps=min(int(config.max_images), 4), say=say)
+                            max_maps=min(int(config.max_images), 4), convention=config.convention,
+                            negate_sin=config.negate_sin, say=say)
     rig, fit, bfit, dfit = start.rig, None, None, None
     labelled = any(im.height_mm is not None for im in start.images)
     if "distance" in config.params and not labelled:
@@ -581,7 +593,8 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
             say("height labels: the label-based depth fits read vertical fringes only; the depth scale stays "
                 "as above")
         else:
-            images, _ = load_fringe_images(config.real, config.max_images)
+            images, _ = load_fringe_images(config.real, config.max_images, convention=config.convention,
+                                           negate_sin=config.negate_sin)
             measured = measure_bands(images, config.col_bands, config.row_bands)
             params = tuple(config.params)
             say("")

@@ -285,25 +285,59 @@ def test_a_given_projector_side_the_scans_contradict_is_said(tmp_path, capsys):
     assert "other side" not in said["below"] and "below the camera" in said["below"]
 
 
-def test_scans_in_another_phase_convention_are_flagged(tmp_path, capsys):
-    """PSin stored with the other sign: the plane model fits a few percent of the pixels, and the report
-    says to check the convention; the same scans with the right sign do not get that line."""
+def test_scans_written_another_way_are_read_that_way(tmp_path, capsys):
+    """Scans written another way (PSin of the other sign; atan2(PSin, PCos) + 2 pi Order): read as the public data
+    their phase jumps every period or half period, so --convention auto (the default) reads them the smooth way
+    and says so; --negate-sin / --convention fppsim read them so too, and all fit the truth's plane phase as the
+    public ones do. Forced to read them as the public data, the fit is wrong (the side, or a poor plane fit)."""
     import scipy.io
 
     from fppsim.cli import main
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
     truth = truth_rig("vertical", -1)
     H, W = truth.camera.height, truth.camera.width
-    for name in ("good", "negated"):
-        _psp_folder(tmp_path / name, truth, domes(H, W, SCENE), ids=("a",))
+    phase, valid, image = analytic_scan(truth, domes(H, W, SCENE))
+    for name, convention in (("good", "benchmark"), ("negated", "benchmark"), ("fppsim", "fppsim")):
+        save_psp_folder_sample(tmp_path / name, "a", *sums_from_phase(np.nan_to_num(phase), valid, 60.0, convention),
+                               image)
     f = tmp_path / "negated" / "PSin" / "a.mat"
     scipy.io.savemat(f, {"PSin": -scipy.io.loadmat(f)["PSin"]})
-    said = {}
-    for name in ("good", "negated"):
-        assert main(["fit-rig", str(tmp_path / name), "--out", str(tmp_path / f"{name}.json")]) == 0
-        said[name] = capsys.readouterr().out
+    said, rigs = {}, {}
+    for name, flags in (("good", []), ("negated", []), ("fppsim", []), ("negated+flag", ["--negate-sin"]),
+                        ("fppsim+flag", ["--convention", "fppsim"]), ("fppsim+read-as-public", ["--convention", "benchmark"])):
+        out = tmp_path / f"{name}.json"
+        assert main(["fit-rig", str(tmp_path / name.split("+")[0]), "--out", str(out), *flags]) == 0
+        said[name], rigs[name] = capsys.readouterr().out, Rig.load(out)
     assert "fits poorly" not in said["good"]
-    assert "the plane model fits poorly" in said["negated"] and "atan2(-PSin, -PCos) + pi + 2 pi Order" in said["negated"]
+    assert "written as" not in said["good"]
+    assert "written as atan2(-PSin, -PCos) + pi + 2 pi Order with PSin negated" in said["negated"]
+    assert "written as atan2(PSin, PCos) + 2 pi Order" in said["fppsim"] and "(--convention fppsim)" in said["fppsim"]
+    for name in ("good", "negated", "fppsim", "negated+flag", "fppsim+flag"):
+        assert "fits poorly" not in said[name], name
+        d = rigs[name].phase_at_height(0.0) - truth.phase_at_height(0.0)
+        assert np.nanmax(np.abs(d - np.nanmedian(d))) < 0.03, name
+        assert np.sign(rigs[name].sensitivity()) == np.sign(truth.sensitivity()), name
+    # read as the public data when told so: the plane model fits poorly, and the report says what to check
+    assert "the plane model fits poorly" in said["fppsim+read-as-public"] or \
+        np.sign(rigs["fppsim+read-as-public"].sensitivity()) != np.sign(truth.sensitivity())
+    # fit-optics reads the scans' phase the same way (it tells the plane from the objects by it)
+    for name, flags in (("good", []), ("fppsim", ["--convention", "fppsim"])):
+        assert main(["fit-optics", str(tmp_path / name), "--rig", str(tmp_path / "good.json"), "--compare", "0",
+                     "--out", str(tmp_path / f"optics_{name}.yaml"), "--json", str(tmp_path / f"optics_{name}.json"),
+                     *flags]) == 0
+    capsys.readouterr()
+    per = [json.loads((tmp_path / f"optics_{n}.json").read_text())["per_image"][0] for n in ("good", "fppsim")]
+    assert per[0]["plane_pixels"] == per[1]["plane_pixels"] > 1000
+    # label-real too: the scans' plane comes out flat at 0 mm, and a warning says how they were read
+    assert main(["label-real", str(tmp_path / "fppsim"), "--rig", str(tmp_path / "good.json"), "--out",
+                 str(tmp_path / "labelled"), "-q", "--no-preview"]) == 0
+    assert "written as atan2(PSin, PCos) + 2 pi Order" in capsys.readouterr().err
+    scan = json.loads((tmp_path / "labelled" / "label_real.json").read_text())["scans"][0]
+    assert scan["plane"]["rms_mm"] < 0.01 and scan["plane"]["share"] > 0.5 and "read_as" in scan
+    with pytest.raises(SystemExit) as exc:  # argparse's choices: exit 2
+        main(["fit-rig", str(tmp_path / "good"), "--out", str(tmp_path / "x.json"), "--convention", "nope"])
+    assert exc.value.code == 2
 
 
 def test_fit_rig_without_base_on_single_fringe_images(tmp_path, capsys):

@@ -130,6 +130,51 @@ def test_train_val_phase_frames_of_another_size_are_one_line(setup, tmp_path, ca
     assert not (tmp_path / "r" / "last.pt").exists()
 
 
+def test_frames_written_another_way_are_read_that_way(setup, tmp_path, capsys):
+    """The same frames written as atan2(PSin, PCos) + 2 pi Order, or with PSin negated: --convention auto (the
+    default of evaluate-phase and of train's --val-phase-convention) reads them the way they were written, says
+    so, and scores them exactly as the public-layout frames; read as the public data they are garbage."""
+    import scipy.io
+
+    tmp, run, root, truth = setup
+    for sid, (phase, height, valid) in truth.items():
+        img = scipy.io.loadmat(root / "iPattern" / f"{sid}.mat")["iPattern"]
+        save_psp_folder_sample(tmp_path / "fppsim", sid, *sums_from_phase(phase, valid, 30.0, "fppsim"), img)
+        save_psp_folder_sample(tmp_path / "negated", sid, *sums_from_phase(phase, valid, 30.0), img)
+        f = tmp_path / "negated" / "PSin" / f"{sid}.mat"
+        scipy.io.savemat(f, {"PSin": -scipy.io.loadmat(f)["PSin"]})
+
+    def ratios(folder, *flags):
+        out = tmp_path / f"ev_{folder.name}_{len(flags)}"
+        assert main(["evaluate-phase", str(run), "--phase-root", str(folder), "--out", str(out), "--figures", "0",
+                     "--device", "cpu", *flags]) == 0
+        doc = json.loads((out / "phase_results.json").read_text())
+        return [m["prediction"]["rmse_rad"] / m["flat"]["rmse_rad"] for r in doc["per_image"] for m in r["models"].values()]
+
+    want = ratios(root)
+    assert "written as" not in capsys.readouterr().out
+    for name, words in (("fppsim", "written as atan2(PSin, PCos) + 2 pi Order"),
+                        ("negated", "with PSin negated")):
+        assert ratios(tmp_path / name) == pytest.approx(want, rel=1e-9), name
+        text = capsys.readouterr().out
+        assert text.count(words) == len(truth), name
+    forced = ratios(tmp_path / "fppsim", "--convention", "benchmark")
+    assert forced != pytest.approx(want, rel=1e-3)
+    # train --val-phase: the same reading, said once per folder, the same score
+    scores = {}
+    for name in ("phase", "fppsim"):
+        folder = root if name == "phase" else tmp_path / name
+        r = train_tiny(tmp_path / f"vp_{name}", "--real", tmp / "real", extra=["--val-phase", folder, "--seed", 5])
+        text = capsys.readouterr().out
+        assert ("--val-phase: " in text and "(--val-phase-convention fppsim)" in text) == (name == "fppsim"), text
+        scores[name] = float(history(r)[0]["val_phase_ratio"])
+    assert scores["fppsim"] == pytest.approx(scores["phase"], rel=1e-6)
+    rc = main(["train", "--real", str(tmp / "real"), "--model", "unet", "--base-channels", "4", "--epochs", "1",
+               "--out", str(tmp_path / "r"), "--no-progress", "--val-phase-convention", "fppsim"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and len(err.splitlines()) == 1 and "give --val-phase DIR" in err
+
+
 def history(run):
     import csv
 

@@ -46,7 +46,7 @@ from fppsim.phase.plane import poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import PSPMatError
-from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample
+from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
@@ -190,7 +190,7 @@ class PhaseEvalConfig:
     out: str | Path
     degree: int = 3
     robust: bool = False
-    convention: str = "benchmark"
+    convention: str = "auto"
     negate_sin: bool = False
     mask_predicted_invalid: bool = False
     names: list | None = None
@@ -279,10 +279,12 @@ class PhaseValidation:
     their frames, evenly spaced over all of them in folder then id order. Frames are read and their flat
     fits done once, here. :class:`ConfigError` naming ``what`` (the flag) and the folder or file when one
     cannot be read, or when a frame is not ``shape`` (H, W) px (given: the training data's size; frames of
-    another size are of another rig).
+    another size are of another rig). ``convention`` / ``negate_sin``: how the frames' files make their phase
+    (:func:`fppsim.dataio.readers.load_psp_folder_sample`).
     """
 
-    def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase", shape=None):
+    def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase", shape=None,
+                 convention: str = "auto", negate_sin: bool = False):
         frames = []
         for root in roots:
             try:
@@ -294,12 +296,15 @@ class PhaseValidation:
         if len(frames) > max_frames:
             frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
         self.degree = degree
-        self.frames = []
+        self.frames, self.notes = [], []  # notes: how frames read by --convention auto another way were read
         for root, sid in frames:
             try:
-                s = load_psp_folder_sample(root, sid)
+                s = load_psp_folder_sample(root, sid, convention=convention, negate_sin=negate_sin)
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
+            note = reading_note(s.meta, (f"{what}-convention", f"{what}-negate-sin"))
+            if note and note not in self.notes:
+                self.notes.append(note)
             if shape is not None and tuple(s.image.shape) != tuple(shape):
                 raise ConfigError(f"{what}: {s.path}: the frame is {s.image.shape[1]} x {s.image.shape[0]} px but the "
                                   f"training images are {shape[1]} x {shape[0]}: give frames of the rig the data is of")
@@ -364,6 +369,9 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             s = load_psp_folder_sample(args.phase_root, sid, convention=args.convention, negate_sin=args.negate_sin)
         except PSPMatError as exc:
             raise ConfigError(str(exc)) from None
+        note = reading_note(s.meta)
+        if note:
+            echo(f"{sid}: {note}")
         img = s.image
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}

@@ -14,7 +14,7 @@ from pathlib import Path
 from fppsim.dataio.formats import LabelTransform, PRESETS
 from uhrnet.data.datasets import parse_size
 from uhrnet.errors import CheckpointError, ConfigError, DataError, UsageError
-from fppsim.dataio.readers import LABEL_SOURCES
+from fppsim.dataio.readers import LABEL_SOURCES, READ_CONVENTIONS
 from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
@@ -33,14 +33,15 @@ DEFAULTS = {
     "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "threads": None, "seed": 0,
     "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
     "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
-    "val_phase": [],
+    "val_phase": [], "val_phase_convention": "auto", "val_phase_negate_sin": False,
 }
 # what a run made before an option existed used: resuming it must not switch the option on
 LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_from": None, "freeze": "none",
-          "head": "height", "rig": None, "val_phase": []}
+          "head": "height", "rig": None, "val_phase": [], "val_phase_convention": "benchmark",
+          "val_phase_negate_sin": False}
 # LEGACY options that a resume of a run made before them must not be given with another value either
 # (the run's weights did not start from a checkpoint, nothing was frozen)
-LEGACY_LOCKED = ("init_from", "freeze", "head", "rig", "val_phase")
+LEGACY_LOCKED = ("init_from", "freeze", "head", "rig", "val_phase", "val_phase_convention", "val_phase_negate_sin")
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
 MAX_EPOCHS = 1_000_000
 MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range, a traceback)
@@ -52,7 +53,8 @@ VAL_PHASE_FRAMES = 8  # --val-phase scores at most this many frames per epoch (e
 LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
           "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
           "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
-          "augment_probability", "init", "init_from", "freeze", "head", "rig", "val_phase")
+          "augment_probability", "init", "init_from", "freeze", "head", "rig", "val_phase", "val_phase_convention",
+          "val_phase_negate_sin")
 
 
 @dataclass
@@ -93,7 +95,9 @@ class TrainConfig:
     phase residual as a fraction of the flat prediction's
     (:class:`uhrnet.scoring.phase_residual.PhaseValidation`: ``val_phase_ratio``, ``val_phase_rad`` in the
     history); ``best.pt`` is then the epoch with the lowest ratio, since the synthetic validation set cannot
-    tell which epoch carries over to the real images.
+    tell which epoch carries over to the real images. ``val_phase_convention`` / ``val_phase_negate_sin``: how
+    those frames' PSin / PCos / Order make their phase (:func:`fppsim.dataio.readers.load_psp_folder_sample`;
+    default ``auto``: the public data's ``benchmark`` unless a frame is clearly written another way).
     ``threads``: CPU threads torch computes with (``torch.set_num_threads`` for the run, restored after;
     None: torch's default, the cores). A seeded run repeats bit for bit at the same count, whatever else
     the machine is doing, but not across counts (the reductions split differently, and a long run
@@ -138,6 +142,8 @@ class TrainConfig:
     head: str | None = None
     rig: str | os.PathLike | None = None
     val_phase: list | None = None
+    val_phase_convention: str | None = None
+    val_phase_negate_sin: bool | None = None
     amp: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
@@ -204,6 +210,10 @@ def check_options(cfg: dict) -> None:
         p = cfg["augment_probability"]
         if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
             raise UsageError(f"--augment-probability must be in [0, 1], got {p}")
+    if "val_phase_convention" in cfg:
+        if cfg["val_phase_convention"] not in READ_CONVENTIONS:
+            raise UsageError(f"--val-phase-convention must be one of {', '.join(READ_CONVENTIONS)}, got "
+                             f"{cfg['val_phase_convention']!r}")
     if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
@@ -309,6 +319,11 @@ def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
     cfg["real"] = _normalise("real", cfg["real"])
     cfg["synthetic"] = _normalise("synthetic", cfg["synthetic"])
     cfg["val_phase"] = _normalise("val_phase", cfg["val_phase"])
+    if not cfg["val_phase"]:
+        given = [f"--{k.replace('_', '-')}" for k in ("val_phase_convention", "val_phase_negate_sin")
+                 if getattr(args, k, None) not in (None, DEFAULTS[k])]
+        if given:
+            raise ConfigError(f"{', '.join(given)}: how the --val-phase frames are read; give --val-phase DIR")
     cfg["init_from"] = _normalise("init_from", cfg["init_from"])
     if previous is not None and previous.get("init_from_checkpoint"):
         cfg["init_from_checkpoint"] = previous["init_from_checkpoint"]

@@ -192,7 +192,9 @@ class Trainer:
         if cfg["val_phase"] and info.main:
             from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
 
-            self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES, shape=native)
+            self.val_phase = PhaseValidation(cfg["val_phase"], max_frames=VAL_PHASE_FRAMES, shape=native,
+                                             convention=cfg["val_phase_convention"],
+                                             negate_sin=cfg["val_phase_negate_sin"])
         self.history: list[dict] = []
         self.best = {"metric": "val_phase_ratio" if cfg["val_phase"] else "val_rmse_mm", "value": float("inf"),
                      "epoch": 0}
@@ -431,6 +433,8 @@ class Trainer:
                       f"(sha256 {rec['sha256'][:12]}){other}; fresh optimizer and schedule", flush=True)
             if cfg["synthetic_ratio"] is not None and not (src.train.n_real and src.train.n_synthetic):
                 print("note: --synthetic-ratio has no effect with only one kind of training data", flush=True)
+            for note in (self.val_phase.notes if self.val_phase is not None else []):
+                print(f"--val-phase: {note}", flush=True)
         if self.start_epoch >= cfg["epochs"]:
             if info.main:
                 print(f"already trained {self.start_epoch} epochs (--epochs {cfg['epochs']}); nothing to do")

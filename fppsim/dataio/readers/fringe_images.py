@@ -48,7 +48,8 @@ class FringeImage:
         return self.valid if self.plane is None else self.plane
 
 
-def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0) -> tuple[list[FringeImage], str]:
+def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0, convention: str = "benchmark",
+                       negate_sin: bool = False) -> tuple[list[FringeImage], str]:
     """Real fringe images from a folder: figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair,
     native fppsim, the PSin/PCos/Fringe/iPattern layout (or just ``iPattern/``), or a folder of 8-bit
     images (or one image file).
@@ -56,7 +57,9 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
     ``valid`` drops black pixels (the datasets' shadow marker) and pixels without phase. Plane and
     object pixels come from the height labels (within / beyond ``plane_mm`` of the plane level) or from
     the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
-    evenly spaced images. Returns ``(images, layout)``; ValueError if nothing is readable.
+    evenly spaced images. ``convention`` / ``negate_sin``: how the public layout's PSin / PCos / Order combine
+    into its phase (:func:`fppsim.dataio.readers.load_psp_folder_sample`). Returns ``(images, layout)``;
+    ValueError if nothing is readable.
     """
     src = open_source(path)
     path = src.path
@@ -73,7 +76,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0)
             for i in pick_evenly(len(ids), max_images):
                 sid = ids[int(i)]
                 if full:
-                    s = load_psp_folder_sample(path, sid)
+                    s = load_psp_folder_sample(path, sid, convention=convention, negate_sin=negate_sin)
                     valid = s.valid & (s.image > 0)
                     plane, obj = phase_plane_masks(s.phase, valid)
                     out.append(FringeImage(s.image, valid, sid, plane, obj, phase=s.phase))

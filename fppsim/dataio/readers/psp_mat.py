@@ -36,7 +36,8 @@ from fppsim.phase.psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "FOLDERS", "CONVENTIONS",
            "check_convention", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable",
-           "load_ipattern", "load_psp_folder_sample", "iter_psp_folder"]
+           "load_ipattern", "load_psp_folder_sample", "iter_psp_folder", "AUTO", "READINGS", "phase_jump_share",
+           "reading_check", "reading_words", "reading_note", "READ_CONVENTIONS"]
 
 SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numerator", "sin_sum", "SinSum")
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
@@ -199,6 +200,10 @@ periods starting at the phase zero), as the public benchmark data store it; ``fp
 ``Phi = atan2(PSin, PCos) + 2 pi Order`` (wrapped in ``(-pi, pi]``), what :func:`fppsim.phase.psp.unwrap_temporal`
 produces. Both read ``PSin`` as proportional to ``+sin Phi``; ``negate_sin=True`` flips it.
 """
+AUTO = "auto"
+READ_CONVENTIONS = (AUTO,) + CONVENTIONS
+"""The readers' third ``convention``: the public data's (``benchmark``, with the given ``negate_sin``) unless the
+files are clearly written another way (:func:`reading_check`), then that way."""
 
 
 def check_convention(convention: str) -> str:
@@ -302,11 +307,14 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
     """One id of the folder layout as a :class:`PspMat` (``image`` = the uint8 iPattern, or None).
 
     Invalid pixels: ``PSin = PCos = 0`` (the benchmark's marker) or any input not finite; their
-    ``phase`` is NaN. ``convention``: see :data:`CONVENTIONS`. Raises :class:`PSPMatError` naming the
+    ``phase`` is NaN. ``convention``: see :data:`CONVENTIONS`, or :data:`AUTO`: then ``meta`` says how the
+    files were read (``convention``, ``negate_sin``) and, when that is not as given, ``read_as``: the
+    :func:`reading_check` that chose it. Raises :class:`PSPMatError` naming the
     file for a missing file or variable (listing the variables found), non-numeric data, non-integer
     orders, or a shape that differs from PSin's.
     """
-    check_convention(convention)
+    auto = convention == AUTO
+    convention = "benchmark" if auto else check_convention(convention)
     root = Path(root)
     roles = ("sin", "cos", "order") + (("image",) if image else ())
     arrays, paths = {}, {}
@@ -344,10 +352,19 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
         wrapped = wrapped_from_sums(np.where(valid, psin, 0.0), np.where(valid, pcos, 0.0), convention)
     phase = np.where(valid, wrapped + 2.0 * np.pi * order, np.nan)
     img = _image_u8(arrays["image"], paths["image"]) if image else None
-    return PspMat(psin=psin, pcos=pcos, order=order, wrapped=wrapped, phase=phase, valid=valid,
-                  modulation=None, keys={"sin": "PSin", "cos": "PCos", "order": "Order"},
-                  meta={"id": sid, "convention": convention, "root": str(root)}, path=str(paths["sin"]),
-                  image=img)
+    s = PspMat(psin=psin, pcos=pcos, order=order, wrapped=wrapped, phase=phase, valid=valid,
+               modulation=None, keys={"sin": "PSin", "cos": "PCos", "order": "Order"},
+               meta={"id": sid, "convention": convention, "negate_sin": bool(negate_sin), "root": str(root)},
+               path=str(paths["sin"]), image=img)
+    check = reading_check(s, convention, negate_sin) if auto else None
+    if check is not None:  # written another way: read it that way
+        conv, neg = check["best"]
+        s.psin = -psin if neg != bool(negate_sin) else psin
+        with np.errstate(invalid="ignore"):
+            s.wrapped = wrapped_from_sums(np.where(valid, s.psin, 0.0), np.where(valid, pcos, 0.0), conv)
+        s.phase = np.where(valid, s.wrapped + 2.0 * np.pi * order, np.nan)
+        s.meta.update(convention=conv, negate_sin=neg, read_as=check | {"from": (convention, bool(negate_sin))})
+    return s
 
 
 def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw):
@@ -356,3 +373,65 @@ def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw)
     roles = ("sin", "cos", "order") + (("image",) if image else ())
     for sid in (list_psp_ids(root, roles) if ids is None else ids):
         yield sid, load_psp_folder_sample(root, sid, **kw)
+
+
+# ====================================================================== which way a folder's phase is written
+READINGS = (("benchmark", False), ("benchmark", True), ("fppsim", False), ("fppsim", True))
+"""Every ``(convention, negate_sin)`` a folder's PSin / PCos / Order can be read with."""
+
+
+def phase_jump_share(phase: np.ndarray, valid: np.ndarray) -> float:
+    """The share of neighbouring valid pixel pairs whose absolute phase (rad) differs by more than pi, the
+    larger of the two image directions. A phase read the way it was written jumps only at object and shadow
+    edges (0.1-0.4 % on the public frames); read another way it jumps every period or half period (5-19 %)."""
+    phase = np.asarray(phase, np.float64)
+    valid = np.asarray(valid, bool) & np.isfinite(phase)
+    p = np.where(valid, phase, 0.0)
+    shares = []
+    for d, both in ((p[1:] - p[:-1], valid[1:] & valid[:-1]), (p[:, 1:] - p[:, :-1], valid[:, 1:] & valid[:, :-1])):
+        shares.append(float(np.mean(np.abs(d[both]) > np.pi)) if both.any() else 0.0)
+    return max(shares)
+
+
+def reading_check(s: PspMat, convention: str = "benchmark", negate_sin: bool = False, factor: float = 4.0,
+                  floor: float = 0.01) -> dict | None:
+    """Whether a folder-layout sample (:func:`load_psp_folder_sample`, read with ``convention`` /
+    ``negate_sin``) is written another way: the phase jump share (:func:`phase_jump_share`) of every
+    reading in :data:`READINGS` from the same files; None when the given one is the smoothest or within
+    ``factor`` of it, or jumps at fewer than ``floor`` of the pixel pairs. Else ``{"given": share, "best":
+    (convention, negate_sin), "best_share": share}``."""
+    psin = -s.psin if negate_sin else s.psin  # the files' own PSin
+    valid = s.valid & (s.image > 0) if s.image is not None else s.valid
+    shares = {}
+    for conv, neg in READINGS:
+        with np.errstate(invalid="ignore"):
+            w = wrapped_from_sums(np.where(s.valid, -psin if neg else psin, 0.0), np.where(s.valid, s.pcos, 0.0), conv)
+        shares[conv, neg] = phase_jump_share(w + 2.0 * np.pi * s.order, valid)
+    given = shares[convention, bool(negate_sin)]
+    best = min(READINGS, key=lambda r: shares[r])
+    if given < floor or given <= factor * shares[best]:
+        return None
+    return {"given": given, "best": best, "best_share": shares[best]}
+
+
+_READ_AS = {"benchmark": "atan2(-PSin, -PCos) + pi + 2 pi Order", "fppsim": "atan2(PSin, PCos) + 2 pi Order"}
+
+
+def reading_words(convention: str, negate_sin: bool) -> str:
+    """How a reading combines the files, in words: ``atan2(-PSin, -PCos) + pi + 2 pi Order`` (the public data's)
+    and so on, ``with PSin negated`` when ``negate_sin``."""
+    return _READ_AS[convention] + (" with PSin negated" if negate_sin else "")
+
+
+def reading_note(meta: dict, flags: tuple[str, str] = ("--convention", "--negate-sin")) -> str | None:
+    """One report line for a sample that :data:`AUTO` read another way than given (``meta`` of
+    :func:`load_psp_folder_sample`), naming the options ``flags`` that read it so; None when read as given."""
+    check = meta.get("read_as")
+    if not check:
+        return None
+    conv, neg = check["best"]
+    return (f"{meta.get('root', '')}: the phase is written as {reading_words(conv, neg)} (its phase jumps by more "
+            f"than pi between {check['best_share']:.1%} of neighbouring pixels so, {check['given']:.1%} read as "
+            f"{reading_words(*check['from'])}): read that way ({flags[0]} {conv}" + (f" {flags[1]}" if neg else "")
+            + ")")
+

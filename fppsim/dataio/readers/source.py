@@ -49,9 +49,11 @@ from fppsim.dataio.formats import FIGSHARE_PAIRS, find_figshare_pair, manifest_i
 from fppsim.errors import DatasetError
 from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
                                             read_native_pair, read_native_phase)
-from fppsim.dataio.readers.psp_mat import FOLDERS, is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
+from fppsim.dataio.readers.psp_mat import (AUTO, FOLDERS, is_psp_folder, list_psp_ids, load_ipattern,
+                                          load_psp_folder_sample, reading_note)
 
-__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout"]
+__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
+           "folder_reading_note"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
@@ -172,10 +174,13 @@ class Source:
         generated with PSP images), else []."""
         return []
 
-    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(phase, valid)`` of frame ``sid`` as a lab measured it: the absolute phase (H, W) float64 rad (the
-        default convention) and where it exists (a scan's pixels with a phase and a non-black image; a native
-        sample's ``phase_psp`` / ``mask_psp``), else None."""
+    def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(phase, valid)`` of frame ``sid`` as a lab measured it: the absolute phase (H, W) float64 rad and
+        where it exists (a scan's pixels with a phase and a non-black image; a native sample's ``phase_psp`` /
+        ``mask_psp``), else None. ``convention`` / ``negate_sin``: how the public layout's files combine
+        (:func:`fppsim.dataio.readers.load_psp_folder_sample`); fppsim's native samples hold their decoded
+        phase and ignore them."""
         return None
 
 
@@ -276,8 +281,9 @@ class PspFolder(_ScanFolder):
     def measured_phase_ids(self) -> list[str]:
         return self.ids()
 
-    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
-        s = load_psp_folder_sample(self.path, sid)
+    def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
+        s = load_psp_folder_sample(self.path, sid, convention=convention, negate_sin=negate_sin)
         phase = np.asarray(s.phase, np.float64)
         valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
         return phase, valid
@@ -425,7 +431,8 @@ class NativeSamples(Source):
         except (OSError, ValueError):
             return []
 
-    def measured_phase(self, sid: str) -> tuple[np.ndarray, np.ndarray] | None:
+    def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
+                       ) -> tuple[np.ndarray, np.ndarray] | None:
         arrays = load_native_sample(self.path / sid, keys=("phase_psp", "mask_psp"), meta=False)
         if "phase_psp" not in arrays:
             return None
@@ -489,3 +496,16 @@ def open_source(path: str | os.PathLike) -> Source:
         if cls.recognise(path):
             return cls(path, pair)
     return Folder(path, pair)
+
+
+def folder_reading_note(root, convention: str = AUTO, negate_sin: bool = False,
+                        flags: tuple[str, str] = ("--convention", "--negate-sin")) -> str | None:
+    """:func:`reading_note` of the first sample of a folder-layout ``root`` read with ``convention`` /
+    ``negate_sin`` (None for another layout, an explicit convention, or a folder read as given)."""
+    if convention != AUTO or open_source(root).kind != PspFolder.kind:
+        return None
+    ids = list_psp_ids(root, ("sin", "cos", "order"))
+    if not ids:
+        return None
+    image = (Path(root) / FOLDERS["image"][0] / f"{ids[0]}.mat").is_file()  # black pixels are not scored
+    return reading_note(load_psp_folder_sample(root, ids[0], AUTO, negate_sin, image=image).meta, flags)
