@@ -112,9 +112,10 @@ def relief_sign(residual: np.ndarray, plane: np.ndarray, valid: np.ndarray, min_
 # ====================================================================== the plane-phase fit
 PLANE_PARAMS = ("yaw", "pitch", "roll", "periods")
 _STEP = {"yaw": math.radians(2.0), "pitch": math.radians(2.0), "roll": math.radians(2.0)}
-# search bounds in the scaled units: yaw and pitch +-30 deg, roll +-20 deg (the start has the fringes'
+# search bounds in the scaled units: yaw and pitch +-60 deg (a camera tilted by 15 deg needs a yaw of 24 deg
+# from a start looking straight down, by 30 deg over 30), roll +-20 deg (the start has the fringes'
 # direction already), periods x / 2.7
-_BOUND = {"yaw": 15.0, "pitch": 15.0, "roll": 10.0, "periods": 20.0}
+_BOUND = {"yaw": 30.0, "pitch": 30.0, "roll": 10.0, "periods": 20.0}
 TAU = 0.2  # rad: a pixel agrees with a plane hypothesis within this (the real planes fit to 0.01-0.1 rad)
 
 

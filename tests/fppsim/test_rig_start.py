@@ -117,6 +117,36 @@ def test_plane_phase_fit_recovers_a_rendered_rig(axis, side):
     assert d_img == (np.sign(pdir[0]) if axis == "vertical" else -np.sign(pdir[1]))
 
 
+@pytest.mark.parametrize("axis,tilt_axis,tilt", [("vertical", "y", -30.0), ("horizontal", "x", 30.0)])
+def test_a_camera_looking_obliquely_at_the_plane_is_fitted(axis, tilt_axis, tilt):
+    """A real camera need not look straight down: tilted by 30 deg along the baseline, its plane phase has a
+    perspective the start (camera straight down) reproduces only with the projector yawed by 40-60 deg (the
+    fit's bounds were +-30 deg until 2026-11-27: 0.27 rad median, 0.4-0.47 rad on the plane). The fitted
+    rig's plane phase must be the truth's, the side right."""
+    from fppsim.geometry.rig import Device, rotation
+
+    base = truth_rig(axis, 1, size=(160, 120))
+    cam = base.camera
+    Rw = rotation(tilt_axis, math.radians(tilt))  # about the world axis through the plane's origin, away from the projector
+    R = cam.R @ Rw.T
+    tilted = Device(K=cam.K, R=R, t=-R @ (Rw @ cam.center), width=cam.width, height=cam.height)
+    truth = Rig(camera=tilted, projector=base.projector, periods=base.periods)
+    truth.check_usable()
+    assert abs(truth.sensitivity()) > 0.3  # a rig that measures height (not the camera turned onto the projector's rays)
+    H, W = cam.height, cam.width
+    phase, valid, _ = analytic_scan(truth, domes(H, W, SCENE))
+    m = pp.PhaseMap(phase, valid, "tilted")
+    g = pp.plane_phase_gradient(phase, valid)
+    start = rs.start_rig(W, H, g, 1)
+    plane, _, _ = pp.find_plane(start, m, g)
+    fit = pp.fit_plane_phase(start, [m], seeds=[plane])
+    assert fit.median_rad < 0.02 and fit.plane_share[0] > 0.6
+    d = fit.rig.phase_at_height(0.0) - truth.phase_at_height(0.0)
+    assert np.nanpercentile(np.abs(d - np.nanmedian(d)), 95) < 0.05
+    relief, share = pp.relief_sign(fit.residuals[0], fit.planes[0], valid)
+    assert relief == np.sign(truth.sensitivity()) and share > 0.95
+
+
 def test_the_plane_is_found_under_a_big_flat_object():
     """An object covering most of the view with a nearly flat top (FP147's case: the plane is 20 % of the
     image) must not be taken for the plane: the plane is what the plane model fits exactly."""
