@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from dataclasses import replace as dc_replace
 
 import numpy as np
 
@@ -32,7 +33,8 @@ from fppsim.phase import wrap
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase
 from fppsim.phase.plane import plane_level
 
-__all__ = ["PhaseMap", "fringe_axis", "plane_phase_gradient", "relief_sign", "PLANE_PARAMS", "TAU", "PlanePhaseFit",
+__all__ = ["PhaseMap", "fringe_axis", "plane_phase_gradient", "relief_sign", "PLANE_PARAMS", "LENS_PARAMS", "TAU",
+           "PlanePhaseFit",
            "plane_phase_residual", "smooth_regions", "fit_plane_phase", "consensus", "find_plane", "shadow_side",
            "image_phase_map"]
 
@@ -111,11 +113,12 @@ def relief_sign(residual: np.ndarray, plane: np.ndarray, valid: np.ndarray, min_
 
 # ====================================================================== the plane-phase fit
 PLANE_PARAMS = ("yaw", "pitch", "roll", "periods")
-_STEP = {"yaw": math.radians(2.0), "pitch": math.radians(2.0), "roll": math.radians(2.0)}
+LENS_PARAMS = ("k1",)  # the camera's radial distortion (OpenCV k1), fitted on request: lenses bend the plane's phase
+_STEP = {"yaw": math.radians(2.0), "pitch": math.radians(2.0), "roll": math.radians(2.0), "k1": 0.01}
 # search bounds in the scaled units: yaw and pitch +-60 deg (a camera tilted by 15 deg needs a yaw of 24 deg
 # from a start looking straight down, by 30 deg over 30), roll +-20 deg (the start has the fringes'
 # direction already), periods x / 2.7
-_BOUND = {"yaw": 30.0, "pitch": 30.0, "roll": 10.0, "periods": 20.0}
+_BOUND = {"yaw": 30.0, "pitch": 30.0, "roll": 10.0, "periods": 20.0, "k1": 100.0}  # k1 +-1
 TAU = 0.2  # rad: a pixel agrees with a plane hypothesis within this (the real planes fit to 0.01-0.1 rad)
 
 
@@ -145,7 +148,14 @@ class PlanePhaseFit:
 
 
 def _adjust(rig: Rig, values: dict) -> Rig:
-    return adjust_rig(rig, **values)
+    values = dict(values)
+    k1 = values.pop("k1", None)
+    out = adjust_rig(rig, **values)
+    if k1 is not None:  # the camera's radial distortion; its other coefficients stay the start's
+        dist = out.camera.dist.copy()
+        dist[0] = k1
+        out = dc_replace(out, camera=dc_replace(out.camera, dist=dist))
+    return out
 
 
 def plane_phase_residual(rig: Rig, phase: np.ndarray, valid: np.ndarray, plane: np.ndarray | None = None,
@@ -203,8 +213,8 @@ def smooth_regions(phase: np.ndarray, valid: np.ndarray, gradient, step_rad: flo
 def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = PLANE_PARAMS,
                     seeds: list | None = None, pixels: int = 6000, tau: float = TAU,
                     rounds: int = 3) -> PlanePhaseFit:
-    """Fit ``params`` (of yaw, pitch, roll, periods; the projector turned about its own axes, the
-    camera fixed) of ``start`` so its reference-plane phase matches the maps' phase on the plane, one
+    """Fit ``params`` (of yaw, pitch, roll, periods: the projector turned about its own axes; and of
+    :data:`LENS_PARAMS`: the camera's radial distortion ``k1``, the camera's pose fixed) of ``start`` so its reference-plane phase matches the maps' phase on the plane, one
     free constant offset per map (the phase origin of a scan is arbitrary).
 
     ``seeds`` (per map, (H, W) bool; default the valid pixels) are where the plane is looked for first
@@ -220,9 +230,9 @@ def fit_plane_phase(start: Rig, maps: list[PhaseMap], params: tuple[str, ...] = 
     from scipy.optimize import least_squares
 
     params = tuple(params)
-    bad = [p for p in params if p not in PLANE_PARAMS]
+    bad = [p for p in params if p not in PLANE_PARAMS + LENS_PARAMS]
     if bad:
-        raise RigError(f"the plane-phase fit adjusts {', '.join(PLANE_PARAMS)}, not {', '.join(bad)}")
+        raise RigError(f"the plane-phase fit adjusts {', '.join(PLANE_PARAMS + LENS_PARAMS)}, not {', '.join(bad)}")
     H, W = start.camera.height, start.camera.width
     for m in maps:
         if m.phase.shape != (H, W):

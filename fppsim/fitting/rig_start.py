@@ -56,8 +56,9 @@ from fppsim.files import atomic_write_text, check_output_file
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit
-from fppsim.fitting.plane_phase import (PhaseMap, PlanePhaseFit, find_plane, fit_plane_phase, fringe_axis,
-                                        image_phase_map, plane_phase_gradient, relief_sign, shadow_side)
+from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, PlanePhaseFit, find_plane,
+                                        fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
+                                        relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase.fringe_axis import rig_phase_gradient
 
@@ -76,6 +77,11 @@ PROJECTOR_SIZE = (912, 1140)  # DMD columns x rows (the default rig's)
 _COVER = 1.4  # the projector's image spans this many times the camera's view of the plane
 # a chosen baseline is at most the distance (45 deg): steeper rigs are rare, their shadows hide most of a tall object
 MAX_BASELINE_RATIO = 1.0
+# the camera's radial distortion is fitted (phase-shifting scans) when the pinhole's plane residual exceeds this
+# (rad; the real frames here fit to 0.03-0.12 without it, and k1 gains them under 10 %) and kept when it takes at
+# least LENS_GAIN of it away
+LENS_FROM_RAD = 0.1
+LENS_GAIN = 0.3
 
 
 # ====================================================================== the start rig
@@ -413,6 +419,15 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         assumed["projector_side"] = "assumed"
     if side != first:
         fit = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps, seeds=fit.planes)
+    # a lens bends the plane's phase: its radial distortion is fitted when the pinhole plane fits worse than
+    # LENS_FROM_RAD and the distortion takes LENS_GAIN of the residual away (else the rig stays a pinhole)
+    params, lens = PLANE_PARAMS, None
+    if kind == "phase" and fit.median_rad > LENS_FROM_RAD:
+        bent = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps,
+                               params=PLANE_PARAMS + LENS_PARAMS, seeds=fit.planes)
+        lens = (fit.median_rad, bent.median_rad, bent.params["k1"])
+        if bent.median_rad < (1.0 - LENS_GAIN) * fit.median_rad:
+            params, fit = PLANE_PARAMS + LENS_PARAMS, bent
     why = {}
     if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
         B = BASELINE_RATIO * D if baseline is None else float(baseline)
@@ -420,7 +435,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
 
         def refit(d, b):
             if (d, b) not in fits:
-                fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, seeds=fit.planes)
+                fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, params=params,
+                                             seeds=fit.planes)
             return fits[d, b]
 
         D, B, why = scene_scale(_object_extent(fit.planes, maps), _object_relief(fit, maps), fit.rig.camera.K[0, 0],
@@ -471,7 +487,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             f"scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up to about {sc.max_relief[1]:.0f} mm "
             "of relief)")
     p = fit.params
-    pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k != "periods")
+    pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k not in ("periods", "k1"))
     out(f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
         f"{np.mean(fit.plane_share):.0%} of the valid pixels (start: {fit.start_median_rad:.2f} rad); {pose}, "
         f"{rig.periods:.2f} periods across the projector")
@@ -481,8 +497,14 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         out(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {np.mean(fit.plane_share):.0%} of the "
             "pixels): check that the scans show the reference plane and how their phase is written (--convention, "
             "--negate-sin)")
-    out(f"not fitted lens distortion (none in the rig); the projector's resolution ({rig.projector.width} x "
-        f"{rig.projector.height}, only the periods across it matter)")
+    if "k1" in params:
+        out(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, at the assumed focal length): "
+            f"the plane's phase fits {lens[0]:.3f} rad as a pinhole, {lens[1]:.3f} with it")
+    elif lens is not None:
+        out(f"lens       no distortion fitted: k1 {lens[2]:+.4f} would leave {lens[1]:.3f} rad of the pinhole's "
+            f"{lens[0]:.3f} (less than {LENS_GAIN:.0%} gained)")
+    out(f"not fitted {'the lens beyond k1' if 'k1' in params else 'lens distortion (none in the rig)'}; the "
+        f"projector's resolution ({rig.projector.width} x {rig.projector.height}, only the periods across it matter)")
     rig.check_usable()
     return StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
                           side_source=source, where=where, sensitivity=float(s), assumed=assumed, lines=lines,
