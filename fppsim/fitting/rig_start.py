@@ -498,7 +498,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             "pixels): check that the scans show the reference plane and how their phase is written (--convention, "
             "--negate-sin)")
     if "k1" in params:
-        out(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, at the assumed focal length): "
+        out(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, for the focal length above): "
             f"the plane's phase fits {lens[0]:.3f} rad as a pinhole, {lens[1]:.3f} with it")
     elif lens is not None:
         out(f"lens       no distortion fitted: k1 {lens[2]:+.4f} would leave {lens[1]:.3f} rad of the pinhole's "
