@@ -323,7 +323,9 @@ def _params(text: str) -> tuple[str, ...]:
 
 def add_phase_convention(p: argparse.ArgumentParser) -> None:
     """``--convention`` and ``--negate-sin``: how scans in the public layout (PSin/ PCos/ Fringe/) make their phase."""
-    p.add_argument("--convention", choices=("auto", "benchmark", "fppsim"), default="auto",
+    from fppsim.dataio.readers import READ_CONVENTIONS  # numpy only
+
+    p.add_argument("--convention", choices=READ_CONVENTIONS, default="auto",
                    help="public layout: benchmark = atan2(-PSin,-PCos) + pi + 2 pi Order (as published); fppsim = "
                         "atan2(PSin,PCos) + 2 pi Order; auto = benchmark unless a scan's phase is clearly written "
                         "another way (it then jumps by pi every period or half period: read the smooth way, and said) "

@@ -331,7 +331,7 @@ def run_bench(args) -> int:
 
 # ============================================================================ evaluate-phase
 def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
-    from fppsim.dataio.readers import CONVENTIONS
+    from fppsim.dataio.readers import READ_CONVENTIONS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--phase-root", required=True, metavar="DIR",
@@ -339,7 +339,7 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="report folder")
     p.add_argument("--degree", type=int, default=3, help="total degree of the reference-plane polynomial in x, y [3]")
     p.add_argument("--robust", action="store_true", help="Huber IRLS instead of plain least squares")
-    p.add_argument("--convention", choices=("auto",) + tuple(CONVENTIONS), default="auto",
+    p.add_argument("--convention", choices=READ_CONVENTIONS, default="auto",
                    help="benchmark: phase = atan2(-PSin,-PCos) + pi + 2 pi Order (the public data); fppsim: "
                         "atan2(PSin, PCos) + 2 pi Order; auto: benchmark unless a frame's phase is clearly written "
                         "another way (it then jumps by pi every period or half period: read the smooth way, and "

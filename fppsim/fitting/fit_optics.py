@@ -46,7 +46,7 @@ import numpy as np
 from fppsim.commands import ReportLines
 from fppsim.files import atomic_write_text, check_output_file
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
-from fppsim.dataio.readers import READ_CONVENTIONS, folder_reading_note, load_fringe_images
+from fppsim.dataio.readers import check_read_convention, load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
 from fppsim.phase.measure import estimate_period, fringe_modulation
@@ -436,12 +436,11 @@ class FitOpticsConfig:
     negate_sin: bool = False
 
     def __post_init__(self):
-        from fppsim.errors import UsageError  # option values wrong on their own: exit 2
-
         if self.max_images < 1 or self.compare < 0:
+            from fppsim.errors import UsageError  # option values wrong on their own: exit 2
+
             raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
-        if self.convention not in READ_CONVENTIONS:
-            raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {self.convention!r}")
+        check_read_convention(self.convention)
 
 
 @dataclass
@@ -475,7 +474,7 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
                                         negate_sin=config.negate_sin)
     fit = fit_optics(images, rig)
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
-    note = folder_reading_note(config.real, config.convention, config.negate_sin)
+    note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder
     if note:
         say(note)
     say(format_optics_fit(fit))

@@ -42,7 +42,7 @@ from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
-from fppsim.dataio.readers import READ_CONVENTIONS, FringeImage, folder_reading_note, load_fringe_images
+from fppsim.dataio.readers import FringeImage, check_read_convention, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, load_rig
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
@@ -175,8 +175,7 @@ def check_fit_options(cfg) -> None:
                          f"(known: {', '.join(PARAMETERS)})")
     if cfg.sensitivity not in ("auto", "off"):
         raise UsageError(f"--sensitivity must be 'auto' or 'off', got {cfg.sensitivity!r}")
-    if cfg.convention not in READ_CONVENTIONS:
-        raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {cfg.convention!r}")
+    check_read_convention(cfg.convention)
 
 
 @dataclass
@@ -220,7 +219,7 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
                                         negate_sin=config.negate_sin)
     measured = measure_bands(images, config.col_bands, config.row_bands)
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
-    note = folder_reading_note(config.real, config.convention, config.negate_sin)
+    note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder
     if note:
         say(note)
     dfit = None

@@ -56,7 +56,7 @@ from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
 from fppsim.owned import claim, output_folder, owners
 from fppsim.phase.psp import decode_stacks
-from fppsim.dataio.readers import READ_CONVENTIONS, reading_note, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
+from fppsim.dataio.readers import check_read_convention, reading_note, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -150,8 +150,7 @@ class LabelRealConfig:
 
     def __post_init__(self):
         self.phase_offset = _parse_offset(self.phase_offset)
-        if self.convention not in READ_CONVENTIONS:
-            raise UsageError(f"--convention must be one of {', '.join(READ_CONVENTIONS)}, got {self.convention!r}")
+        check_read_convention(self.convention)
         for name in ("plane_window_mm", "max_plane_rms_mm", "max_plane_tilt_mm"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
@@ -558,10 +557,10 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                         raise DatasetError(f"{scan.source}: image size {scan.image.shape} differs from the first "
                                            f"scan's {(H, W)}")
                     height, (rec, plane) = _label_scan(cfg, scan, policy, cache)
-                    if scan.note:
-                        rec["read_as"] = scan.note
-                        if not any(w == scan.note for w in report.warnings):
+                    if scan.note:  # every scan's in the report, the first one's as the run's warning
+                        if not any("read_as" in r for r in report.scans):
                             report.warnings.append(scan.note)
+                        rec["read_as"] = scan.note
                     valid = np.isfinite(height)
                     streams[0].write(encode_fringe(scan.image, valid))
                     streams[1].write(cfg.label.label_from_height_mm(np.nan_to_num(height), valid))

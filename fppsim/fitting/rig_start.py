@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.dataio.readers import folder_reading_note, load_fringe_images, open_source
+from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.errors import RigError, UsageError
 from fppsim.files import atomic_write_text, check_output_file
@@ -358,7 +358,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     axis = fringe_axis(gradient)
     what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
     out(f"{path}: {len(maps)} {what}, {W} x {H} px")
-    note = folder_reading_note(path, convention, negate_sin) if kind == "phase" else None
+    note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder
     if note:
         out(note)
 

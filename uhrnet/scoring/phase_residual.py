@@ -303,7 +303,7 @@ class PhaseValidation:
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
             note = reading_note(s.meta, (f"{what}-convention", f"{what}-negate-sin"))
-            if note and note not in self.notes:
+            if note and not self.notes:  # the first frame read another way stands for the folders
                 self.notes.append(note)
             if shape is not None and tuple(s.image.shape) != tuple(shape):
                 raise ConfigError(f"{what}: {s.path}: the frame is {s.image.shape[1]} x {s.image.shape[0]} px but the "

@@ -14,7 +14,7 @@ from pathlib import Path
 from fppsim.dataio.formats import LabelTransform, PRESETS
 from uhrnet.data.datasets import parse_size
 from uhrnet.errors import CheckpointError, ConfigError, DataError, UsageError
-from fppsim.dataio.readers import LABEL_SOURCES, READ_CONVENTIONS
+from fppsim.dataio.readers import LABEL_SOURCES, check_read_convention
 from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
@@ -211,9 +211,7 @@ def check_options(cfg: dict) -> None:
         if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
             raise UsageError(f"--augment-probability must be in [0, 1], got {p}")
     if "val_phase_convention" in cfg:
-        if cfg["val_phase_convention"] not in READ_CONVENTIONS:
-            raise UsageError(f"--val-phase-convention must be one of {', '.join(READ_CONVENTIONS)}, got "
-                             f"{cfg['val_phase_convention']!r}")
+        check_read_convention(cfg["val_phase_convention"], "--val-phase-convention", UsageError)
     if "lr_schedule" in cfg and cfg["lr_schedule"] not in LR_SCHEDULES:
         raise UsageError(f"--lr-schedule must be one of {', '.join(LR_SCHEDULES)}, got {cfg['lr_schedule']!r}")
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):

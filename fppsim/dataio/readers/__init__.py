@@ -34,9 +34,8 @@ from fppsim.dataio.readers.fringe_images import IMAGE_EXTS, FringeImage, load_fr
 from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER_KEYS, SIN_KEYS, PspMat, PSPMatError, check_convention,
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, phase_jump_share, read_mat_variable, reading_check, reading_note, reading_words,
-                      wrapped_from_sums, AUTO, READINGS, READ_CONVENTIONS)
-from fppsim.dataio.readers.source import (LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, folder_reading_note, open_source,
-                                         register_layout)
+                      wrapped_from_sums, check_read_convention, AUTO, READINGS, READ_CONVENTIONS)
+from fppsim.dataio.readers.source import LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, open_source, register_layout
 
 __all__ = [
     # native, figshare, any layout
@@ -46,8 +45,8 @@ __all__ = [
     # phase-shifting .mat files
     "PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "FOLDERS", "CONVENTIONS", "check_convention",
     "load_psp_mat", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable", "load_ipattern",
-    "phase_jump_share", "reading_check", "reading_words", "reading_note", "folder_reading_note", "AUTO", "READINGS",
-    "READ_CONVENTIONS",
+    "phase_jump_share", "reading_check", "reading_words", "reading_note", "check_read_convention", "AUTO",
+    "READINGS", "READ_CONVENTIONS",
     "load_psp_folder_sample", "iter_psp_folder",
     # which layout a path holds
     "Source", "open_source", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",

@@ -19,7 +19,7 @@ import numpy as np
 from fppsim.errors import PSPMatError
 from fppsim.phase.plane import phase_plane_masks, plane_level
 from fppsim.dataio.readers.datasets import open_samples, pick_evenly
-from fppsim.dataio.readers.psp_mat import load_ipattern, load_psp_folder_sample
+from fppsim.dataio.readers.psp_mat import load_ipattern, load_psp_folder_sample, reading_note
 from fppsim.dataio.readers.source import IMAGE_EXTS, open_source
 
 __all__ = ["FringeImage", "IMAGE_EXTS", "load_fringe_images", "read_image_file"]
@@ -42,6 +42,7 @@ class FringeImage:
     obj: np.ndarray | None = None
     height_mm: np.ndarray | None = None
     phase: np.ndarray | None = None  # real absolute phase (rad), phase-shifting scans only
+    read_as: str | None = None  # how --convention auto read a scan written another way (psp_mat.reading_note)
 
     @property
     def plane_or_valid(self) -> np.ndarray:
@@ -58,7 +59,8 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
     object pixels come from the height labels (within / beyond ``plane_mm`` of the plane level) or from
     the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
     evenly spaced images. ``convention`` / ``negate_sin``: how the public layout's PSin / PCos / Order combine
-    into its phase (:func:`fppsim.dataio.readers.load_psp_folder_sample`). Returns ``(images, layout)``;
+    into its phase (:func:`fppsim.dataio.readers.load_psp_folder_sample`; each image's ``read_as`` says how
+    ``"auto"`` read one written another way). Returns ``(images, layout)``;
     ValueError if nothing is readable.
     """
     src = open_source(path)
@@ -79,7 +81,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
                     s = load_psp_folder_sample(path, sid, convention=convention, negate_sin=negate_sin)
                     valid = s.valid & (s.image > 0)
                     plane, obj = phase_plane_masks(s.phase, valid)
-                    out.append(FringeImage(s.image, valid, sid, plane, obj, phase=s.phase))
+                    out.append(FringeImage(s.image, valid, sid, plane, obj, phase=s.phase, read_as=reading_note(s.meta)))
                 else:
                     img = load_ipattern(src.ipattern_file(sid))
                     out.append(FringeImage(img, img > 0, sid))

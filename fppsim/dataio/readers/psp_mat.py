@@ -31,13 +31,13 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import PSPMatError
+from fppsim.errors import PSPMatError, UsageError
 from fppsim.phase.psp import phase_from_sums
 
 __all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "FOLDERS", "CONVENTIONS",
            "check_convention", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable",
            "load_ipattern", "load_psp_folder_sample", "iter_psp_folder", "AUTO", "READINGS", "phase_jump_share",
-           "reading_check", "reading_words", "reading_note", "READ_CONVENTIONS"]
+           "reading_check", "reading_words", "reading_note", "READ_CONVENTIONS", "check_read_convention"]
 
 SIN_KEYS = ("PSin", "psin", "Psin", "PS", "ps", "Sin", "sin", "S", "num", "numerator", "sin_sum", "SinSum")
 COS_KEYS = ("PCos", "pcos", "Pcos", "PC", "pc", "Cos", "cos", "C", "den", "denominator", "cos_sum", "CosSum")
@@ -348,9 +348,7 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
         raise PSPMatError(f"{paths['order']}: fringe order is not integer at {int(bad.sum())} pixels "
                           f"(e.g. {of[bad].ravel()[0]!r})")
     order = ok.astype(np.int64)
-    with np.errstate(invalid="ignore"):
-        wrapped = wrapped_from_sums(np.where(valid, psin, 0.0), np.where(valid, pcos, 0.0), convention)
-    phase = np.where(valid, wrapped + 2.0 * np.pi * order, np.nan)
+    wrapped, phase = _read_phase(psin, pcos, order, valid, convention)
     img = _image_u8(arrays["image"], paths["image"]) if image else None
     s = PspMat(psin=psin, pcos=pcos, order=order, wrapped=wrapped, phase=phase, valid=valid,
                modulation=None, keys={"sin": "PSin", "cos": "PCos", "order": "Order"},
@@ -360,11 +358,23 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
     if check is not None:  # written another way: read it that way
         conv, neg = check["best"]
         s.psin = -psin if neg != bool(negate_sin) else psin
-        with np.errstate(invalid="ignore"):
-            s.wrapped = wrapped_from_sums(np.where(valid, s.psin, 0.0), np.where(valid, pcos, 0.0), conv)
-        s.phase = np.where(valid, s.wrapped + 2.0 * np.pi * order, np.nan)
+        s.wrapped, s.phase = _read_phase(s.psin, pcos, order, valid, conv)
         s.meta.update(convention=conv, negate_sin=neg, read_as=check | {"from": (convention, bool(negate_sin))})
     return s
+
+
+def _read_phase(psin, pcos, order, valid, convention: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(wrapped, phase)`` of the sums and orders in ``convention``; the phase is NaN where not ``valid``."""
+    with np.errstate(invalid="ignore"):
+        wrapped = wrapped_from_sums(np.where(valid, psin, 0.0), np.where(valid, pcos, 0.0), convention)
+    return wrapped, np.where(valid, wrapped + 2.0 * np.pi * order, np.nan)
+
+
+def check_read_convention(value: str, flag: str = "--convention", error=UsageError) -> str:
+    """``value`` if it is one of :data:`READ_CONVENTIONS`, else ``error`` (exit 2) naming ``flag``."""
+    if value not in READ_CONVENTIONS:
+        raise error(f"{flag} must be one of {', '.join(READ_CONVENTIONS)}, got {value!r}")
+    return value
 
 
 def iter_psp_folder(root: str | os.PathLike, ids: list[str] | None = None, **kw):
@@ -404,9 +414,7 @@ def reading_check(s: PspMat, convention: str = "benchmark", negate_sin: bool = F
     valid = s.valid & (s.image > 0) if s.image is not None else s.valid
     shares = {}
     for conv, neg in READINGS:
-        with np.errstate(invalid="ignore"):
-            w = wrapped_from_sums(np.where(s.valid, -psin if neg else psin, 0.0), np.where(s.valid, s.pcos, 0.0), conv)
-        shares[conv, neg] = phase_jump_share(w + 2.0 * np.pi * s.order, valid)
+        shares[conv, neg] = phase_jump_share(_read_phase(-psin if neg else psin, s.pcos, s.order, s.valid, conv)[1], valid)
     given = shares[convention, bool(negate_sin)]
     best = min(READINGS, key=lambda r: shares[r])
     if given < floor or given <= factor * shares[best]:

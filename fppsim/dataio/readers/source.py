@@ -49,11 +49,9 @@ from fppsim.dataio.formats import FIGSHARE_PAIRS, find_figshare_pair, manifest_i
 from fppsim.errors import DatasetError
 from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
                                             read_native_pair, read_native_phase)
-from fppsim.dataio.readers.psp_mat import (AUTO, FOLDERS, is_psp_folder, list_psp_ids, load_ipattern,
-                                          load_psp_folder_sample, reading_note)
+from fppsim.dataio.readers.psp_mat import FOLDERS, is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
 
-__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
-           "folder_reading_note"]
+__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
@@ -497,15 +495,3 @@ def open_source(path: str | os.PathLike) -> Source:
             return cls(path, pair)
     return Folder(path, pair)
 
-
-def folder_reading_note(root, convention: str = AUTO, negate_sin: bool = False,
-                        flags: tuple[str, str] = ("--convention", "--negate-sin")) -> str | None:
-    """:func:`reading_note` of the first sample of a folder-layout ``root`` read with ``convention`` /
-    ``negate_sin`` (None for another layout, an explicit convention, or a folder read as given)."""
-    if convention != AUTO or open_source(root).kind != PspFolder.kind:
-        return None
-    ids = list_psp_ids(root, ("sin", "cos", "order"))
-    if not ids:
-        return None
-    image = (Path(root) / FOLDERS["image"][0] / f"{ids[0]}.mat").is_file()  # black pixels are not scored
-    return reading_note(load_psp_folder_sample(root, ids[0], AUTO, negate_sin, image=image).meta, flags)
