@@ -332,6 +332,7 @@ def run_bench(args) -> int:
 # ============================================================================ evaluate-phase
 def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
     from fppsim.dataio.readers import READ_CONVENTIONS
+    from uhrnet.physics.refine import REFINE_METHODS
 
     p.add_argument("checkpoints", nargs="+", metavar="CKPT", help="checkpoint files or run folders (best.pt)")
     p.add_argument("--phase-root", required=True, metavar="DIR",
@@ -352,6 +353,13 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
     p.add_argument("--ids", nargs="+", metavar="ID", help="evaluate only these ids [all]")
     p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N ids")
     p.add_argument("--figures", type=int, default=3, metavar="N", help="residual-map figures for the first N ids [3]")
+    p.add_argument("--refine", choices=("none", "phase"), default="none",
+                   help="phase: also score each model's heights after the image's own phase (as uhrnet predict "
+                        "--refine phase), one more row per model on the same pixels [none]")
+    p.add_argument("--refine-method", choices=REFINE_METHODS, default="orders",
+                   help="how --refine sets each phase region's level (as uhrnet predict) [orders]")
+    p.add_argument("--rig", metavar="FILE",
+                   help="rig calibration --refine works through [the checkpoint's rig, else fppsim's default rig]")
     p.add_argument("--device", choices=DEVICES, default="auto")
 
 
@@ -362,7 +370,11 @@ def run_evaluate_phase(args) -> int:
                              degree=args.degree, robust=args.robust, convention=args.convention,
                              negate_sin=args.negate_sin, mask_predicted_invalid=args.mask_predicted_invalid,
                              names=args.names, ids=args.ids, limit=args.limit, figures=args.figures,
-                             device=args.device)
+                             device=args.device, refine=None if args.refine == "none" else args.refine,
+                             refine_method=args.refine_method, rig=args.rig)
+    if args.refine == "none" and (args.rig or args.refine_method != "orders"):
+        from uhrnet.errors import UsageError  # noqa: PLC0415 (as the other commands)
+        raise UsageError("--rig and --refine-method are used only with --refine phase")
     result = evaluate_phase_folder(config, echo=print)
     out = Path(args.out)
     print(result["markdown"], end="")

@@ -168,3 +168,46 @@ def plot_adaptation(image, before_mm: np.ndarray, after_mm: np.ndarray, layer, p
     save_figure(fig, path)
     plt.close(fig)
     return Path(path)
+
+
+def plot_orders(fringe: np.ndarray, network_mm: np.ndarray, choice, path, error_mm: np.ndarray | None = None,
+                title: str = "") -> Path:
+    """One figure of a fringe-order choice (:class:`uhrnet.physics.orders.OrderChoice`): the fringe, the network's
+    height and the chosen one (mm, one colour range), every phase region coloured by its confidence with its
+    chosen order written at its centre (undecided regions hatched grey), and, when ``error_mm`` (chosen - truth)
+    is given, the error (mm)."""
+    from scipy import ndimage as ndi
+
+    plt = pyplot()
+    lab = choice.labels
+    both = np.concatenate([network_mm[np.isfinite(network_mm)], choice.height[np.isfinite(choice.height)]])
+    lo, hi = (np.percentile(both, [1, 99]) if both.size else (0.0, 1.0))
+    panels = [(fringe, "fringe (input)", "gray", None, None),
+              (network_mm, "network height (mm)", "viridis", lo, hi),
+              (choice.height, "orders chosen: height (mm)", "viridis", lo, hi),
+              (choice.confidence_map(), "regions: confidence (colour), order (text)", "RdYlGn", 0.0, 1.0)]
+    if error_mm is not None:
+        panels.append((error_mm, "error (mm)", "RdBu_r", -8.0, 8.0))
+    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.4))
+    for ax, (img, name, cmap, vmin, vmax) in zip(axes, panels):
+        im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax)
+        ax.set_title(name, fontsize=9)
+        ax.axis("off")
+        fig.colorbar(im, ax=ax, fraction=0.03)
+    ax = axes[3]
+    undecided = np.isin(lab, [r.label for r in choice.regions if not r.decided])
+    if undecided.any():
+        ax.contourf(undecided, levels=[0.5, 1.5], colors="none", hatches=["////"])
+    if choice.regions:
+        centres = ndi.center_of_mass(np.ones(lab.shape), lab, [r.label for r in choice.regions])
+        base = choice.regions[0].order
+        for r, (cy, cx) in zip(choice.regions, centres):
+            if r.pixels >= 300:
+                ax.text(cx, cy, f"{r.order - base:+d}", ha="center", va="center", fontsize=7,
+                        color="black" if r.decided else "grey")
+    fig.suptitle(title or "fringe orders", fontsize=10)
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    save_figure(fig, path)
+    plt.close(fig)
+    return Path(path)

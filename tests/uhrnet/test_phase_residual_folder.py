@@ -180,3 +180,27 @@ def history(run):
 
     with open(run / "history.csv") as fh:
         return list(csv.DictReader(fh))
+
+
+def test_refine_adds_a_row_on_the_same_pixels(setup, tmp_path, capsys):
+    """--refine phase scores the heights after the image's own phase beside the network's, on the same pixels; its
+    flags without --refine are refused in one line (exit 2)."""
+    from _helpers import tiny_rig
+
+    tmp, run, root, truth = setup
+    tiny_rig().save(tmp_path / "rig.json")
+    out = tmp_path / "refined"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(out), "--figures", "0",
+                 "--names", "tiny", "--device", "cpu", "--refine", "phase", "--rig", str(tmp_path / "rig.json")]) == 0
+    doc = json.loads((out / "phase_results.json").read_text())
+    assert [m["name"] for m in doc["models"]] == ["tiny", "tiny +orders"]
+    for rec in doc["per_image"]:
+        net, ref = rec["models"]["tiny"], rec["models"]["tiny +orders"]
+        assert ref["pixel_fraction"] == net["pixel_fraction"]
+        assert ref["flat"]["rmse_rad"] == net["flat"]["rmse_rad"]
+    capsys.readouterr()
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "x"),
+                 "--rig", str(tmp_path / "rig.json")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--refine phase" in err[0]
+    assert not (tmp_path / "x").exists()

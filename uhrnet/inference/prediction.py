@@ -35,7 +35,7 @@ images are refused (see :func:`fppsim.dataio.encoding.colour_to_grey`).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
 
@@ -52,7 +52,8 @@ from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
-from uhrnet.physics.refine import REFINE_METHODS, refine_relief
+from uhrnet.physics.orders import choose_orders
+from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
@@ -402,7 +403,11 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
 
     ssp = fringe_phase(fringe, rig)
     valid = np.isfinite(height_mm) & ssp.valid
-    refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid,
-                                      level="orders" if method == "orders" else "network", shadow=~ssp.valid)
+    if method == "orders":
+        choice = choose_orders(height_mm, ssp.wrapped, ssp.reliability, layer_for(rig, height_mm.shape), valid=valid,
+                               shadow=~ssp.valid)
+        refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
+    else:
+        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid, shadow=~ssp.valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

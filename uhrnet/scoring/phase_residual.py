@@ -45,13 +45,13 @@ from fppsim.files import atomic_write_text
 from fppsim.phase.plane import poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 from uhrnet.plots import pyplot, save_figure
-from fppsim.errors import PSPMatError
+from fppsim.errors import PSPMatError, RigError
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
 from uhrnet.scoring.evaluation import model_names
-from uhrnet.inference.prediction import predict_labels
+from uhrnet.inference.prediction import predict_labels, refine_rig_for, refine_with_phase
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
            "markdown", "plot_phase_residuals", "PhaseValidation"]
@@ -198,6 +198,9 @@ class PhaseEvalConfig:
     limit: int | None = None
     figures: int = 3
     device: str = "auto"
+    refine: str | None = None  # "phase": also score each model's heights refined by the image's phase (a row each)
+    refine_method: str = "orders"
+    rig: str | Path | None = None  # the rig --refine works through (default: the checkpoint's, else fppsim's)
 
     def __post_init__(self):
         if self.degree < 0:
@@ -358,7 +361,13 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     models = []
     for ck in ckpts:
         model, transform = model_from_checkpoint(ck, device)
-        models.append((model, transform, parse_size(ck.get("args", {}).get("resize"))))
+        rig = None
+        if args.refine == "phase":
+            try:
+                rig = refine_rig_for(ck, args.rig, args.rig)[0]
+            except (RigError, OSError) as exc:
+                raise ConfigError(f"--rig {args.rig}: {exc}") from None
+        models.append((model, transform, parse_size(ck.get("args", {}).get("resize")), rig))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     fit_kw = dict(degree=args.degree, robust=args.robust)
@@ -379,14 +388,19 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             _, relief = fit_phase(s.phase, np.zeros(img.shape), s.valid, return_residual=True, **fit_kw)
         except ValueError as exc:
             raise ConfigError(f"{s.path}: {exc}") from None
-        heights, residuals = {}, {}
-        for (model, transform, size), name in zip(models, names):
+        heights, residuals, scored = {}, {}, []
+        for (model, transform, size, rig), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
             h = transform.height_mm(label)
             pred_valid = np.asarray(transform.valid(label))
             ok = _scored_pixels(s)
             if args.mask_predicted_invalid:
                 ok &= pred_valid
+            scored.append((name, h, ok, pred_valid))
+            if rig is not None:  # the same pixels, the heights after the image's own phase
+                refined, _ = refine_with_phase(h, img.astype(np.float32) / 127.5 - 1.0, rig, args.refine_method)
+                scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
+        for name, h, ok, pred_valid in scored:
             try:
                 res = evaluate_phase(s.phase, h, ok, **fit_kw)
             except ValueError as exc:
@@ -404,7 +418,8 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                                      f"(flat {r['flat']['rmse_rad']:.3f}), explained {r['prediction']['explained']:.3f}"
                                      for n, r in record["models"].items()))
     summary = []
-    for ck, name in zip(ckpts, names):
+    refined = [(ck, f"{n} +{args.refine_method}") for ck, n in zip(ckpts, names)] if args.refine == "phase" else []
+    for ck, name in list(zip(ckpts, names)) + refined:
         rows = [r["models"][name] for r in per_image]
         summary.append({
             "name": name, "checkpoint": ck["path"], "images": len(rows),

@@ -1,0 +1,134 @@
+"""uhrnet.physics.orders.choose_orders on analytic scenes through the default rig: fppsim's own forward model
+(fppsim.fitting.height_sensitivity.surface_phase) is the truth, the 'network' is the truth plus level errors of
+more than half a fringe period, which rounding each region's order alone gets a whole order wrong."""
+
+import numpy as np
+import pytest
+import torch
+
+from fppsim.fitting.height_sensitivity import surface_phase
+from fppsim.geometry.rig import make_default_rig
+from uhrnet.physics.orders import choose_orders, seam_links
+from uhrnet.physics.rig_layer import RigLayer
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def wrap_phase(x):
+    """Wrap rad into (-pi, pi] (independent of the code under test)."""
+    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """A disc standing 30 mm on the plane with 4 mm of relief on top, its projector shadow computed from the
+    phases (a plane pixel left of the disc is dark when the disc's edge carries a smaller phase: the ray that
+    would light it hits the disc first), the measured phase counted from another origin (+72 rad)."""
+    rig = make_default_rig()
+    cam = rig.camera
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    disc = (xx - 360) ** 2 + (yy - 176) ** 2 < 70 ** 2
+    relief = 4.0 * np.exp(-((xx - 380) ** 2 + (yy - 160) ** 2) / (2 * 30.0 ** 2))
+    h = np.where(disc, 30.0 + relief, 0.0)
+    phase = surface_phase(rig, h)
+    plane = surface_phase(rig, np.zeros_like(h))
+    shadow = np.zeros(h.shape, bool)
+    for r in np.nonzero(disc.any(axis=1))[0]:
+        xe = int(np.argmax(disc[r]))
+        shadow[r, :xe] = plane[r, :xe] > phase[r, xe]
+    wrapped = wrap_phase(phase + 72.0)
+    wrapped[shadow] = np.nan
+    layer = RigLayer(rig)
+    period_mm = float(2 * np.pi / np.abs(layer.sensitivity(30.0).numpy()).mean())
+    return rig, layer, h, disc, shadow, wrapped, (xx, yy), period_mm
+
+
+def _errors(refined, h, mask):
+    return np.abs(refined - h)[mask & np.isfinite(refined)]
+
+
+def test_a_shadow_bridge_puts_a_region_the_network_has_wrong_at_its_order(scene):
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    estimate = h + np.where(disc, 0.7 * period, 0.2)  # the disc 0.7 of a fringe period too high
+    rel = np.where(shadow, 0.0, 1.0)
+    inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
+    alone = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow, bridges=False, seams=False)
+    assert np.median(_errors(alone.height, h, inner)) == pytest.approx(period, rel=0.1)  # a whole order off
+    got = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow)
+    assert got.stats["links"]["bridge"] >= 1
+    assert np.percentile(_errors(got.height, h, inner), 99) < 0.05
+    assert got.moved[inner].mean() > 0.99
+    disc_regions = {int(v) for v in np.unique(got.labels[inner]) if v}
+    assert all(got.regions[v - 1].decided and got.regions[v - 1].confidence > 0.9 for v in disc_regions)
+    plane = ~disc & ~shadow & (np.hypot(xx - 360, yy - 176) > 80)
+    assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
+
+
+def test_a_seam_of_unreliable_phase_joins_two_halves_into_one_vote(scene):
+    """No shadow: the disc is cut by a 3 px band of unreliable phase; its right part is 0.7 period too high in the
+    estimate, its larger left part right. Alone the right part rounds a whole order off; joined across the seam
+    both parts vote together and land right."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    w = wrap_phase(surface_phase(rig, h) + 72.0)
+    rel = np.where((xx >= 392) & (xx < 395), 0.0, 1.0)
+    estimate = h + np.where(disc & (xx >= 395), 0.7 * period, np.where(disc, 0.3, 0.0))
+    right = disc & (xx > 400) & (np.hypot(xx - 360, yy - 176) < 60)
+    left = disc & (xx < 385) & (np.hypot(xx - 360, yy - 176) < 60)
+    alone = choose_orders(estimate, w, rel, layer, seams=False, bridges=False)
+    assert np.median(_errors(alone.height, h, right)) == pytest.approx(period, rel=0.1)
+    got = choose_orders(estimate, w, rel, layer)
+    assert got.stats["links"]["seam"] >= 1
+    for part in (left, right):
+        assert np.percentile(_errors(got.height, h, part), 99) < 0.05
+    assert got.labels[right].max() != got.labels[left].max()  # two regions ...
+    a, b = got.regions[got.labels[left].max() - 1], got.regions[got.labels[right].max() - 1]
+    assert a.component == b.component  # ... one component
+
+
+def test_seam_links_vote_the_order_difference_and_skip_blocked_gaps():
+    """Two halves of a linear phase ramp, 3 px apart, unwrapped with orders 2 apart: the seam says so; a gap
+    that is blocked (a shadow, a wall) links nothing."""
+    from fppsim.phase.unwrap import phase_regions
+
+    H, W = 40, 120
+    x = np.arange(W, dtype=float)
+    phi = np.tile(0.55 * x, (H, 1))
+    usable = np.ones((H, W), bool)
+    usable[:, 60:63] = False
+    reg = phase_regions(wrap_phase(phi), usable)
+    assert reg.count == 2
+    links = seam_links(reg, wrap_phase(phi), usable, blocked=np.zeros((H, W), bool))
+    assert len(links) == 1
+    lk = links[0]
+    left, right = int(reg.labels[0, 10]), int(reg.labels[0, 100])
+    # absolute phase U - 2 pi k is the same on both sides: k_right - k_left from the two unwrapped phases
+    k_true = round(((reg.unwrapped[0, 100] - phi[0, 100]) - (reg.unwrapped[0, 10] - phi[0, 10])) / (2 * np.pi))
+    assert (lk.delta if (lk.a, lk.b) == (left, right) else -lk.delta) == k_true
+    assert lk.votes == H and lk.agreement == 1.0
+    blocked = np.zeros((H, W), bool)
+    blocked[:, 61] = True
+    assert seam_links(reg, wrap_phase(phi), usable, blocked=blocked) == []
+
+
+def test_a_region_the_path_cannot_decide_keeps_the_network_heights_and_says_so(scene):
+    """A disc with no link to anything and its estimate exactly half a fringe period off: both orders are equally
+    likely, so the region is undecided, keeps the estimate, and the statistics count it."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    w = wrap_phase(surface_phase(rig, h) + 72.0)
+    sens = np.abs(layer.sensitivity(torch.as_tensor(h)).numpy())
+    estimate = h + np.where(disc, np.pi / sens, 0.0)  # exactly half a period of height at every pixel
+    got = choose_orders(estimate, w, None, layer)
+    inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
+    undecided = [r for r in got.regions if not r.decided]
+    assert undecided and got.stats["undecided_regions"] == len(undecided)
+    assert all(0.3 < r.confidence < 0.7 for r in undecided)
+    assert np.array_equal(got.height[inner], estimate[inner])
+    assert not got.moved[inner].any()
+    plane = ~disc & (np.hypot(xx - 360, yy - 176) > 80)
+    assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
+
+
+def test_choose_orders_refuses_mismatched_shapes():
+    layer = RigLayer(make_default_rig())
+    with pytest.raises(ValueError, match="same"):
+        choose_orders(np.zeros((352, 640)), np.zeros((10, 10)), None, layer)

@@ -1,0 +1,346 @@
+"""Every phase region at one fringe order, chosen for the whole image at once (:func:`choose_orders`).
+
+One fringe image fixes the projector phase of every pixel up to whole periods. Inside a region where
+that phase is continuous (:func:`fppsim.phase.unwrap.phase_regions`) the relief is exact; what one image
+cannot tell is each region's fringe ORDER, i.e. its level. A network's height ``h`` seen through the rig
+gives every region a continuous order estimate (its *prior*, in periods):
+
+    m_r = median over r of (U - Phi(h) - o) / 2 pi
+
+(``U`` the region's unwrapped phase, ``Phi`` the rig's phase of a height, ``o`` the image's phase origin).
+Rounding each ``m_r`` alone puts a region whose network level is more than half a fringe period of height
+off (about 3.6 mm on the figshare rig) a whole order wrong. Two kinds of *link* tie regions' orders
+together without the network:
+
+* **shadow bridges** (:func:`fppsim.phase.unwrap.shadow_bridges`): the projector ray that grazes an
+  object's edge lands on the plane at the far side of its shadow; both carry one phase;
+* **seams** (:func:`seam_links`): two regions separated by a few pixels whose phase is merely unreliable
+  (low modulation, a dark patch, an FTP edge), not by a shadow nor by a step the network sees as a wall:
+  the phase continues across, so extrapolating each side's phase over the gap gives their order difference.
+
+Links are voted line by line and taken strongest first into components (a union-find that records each
+region's order relative to its component's root and skips a link that contradicts the ones taken).
+Each component then gets ONE shift, the integer that best fits all its regions' priors together
+(weighted by area), so a component's level is voted by every pixel it holds; its posterior under a
+Gaussian prior of ``sigma`` periods on the network's level error is the region's *confidence*. A
+component below ``min_confidence`` is undecided: its pixels keep the network's heights, and the result
+says so.
+
+numpy in, numpy out (the rig's float64 :class:`~uhrnet.physics.rig_layer.RigLayer` inside).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from scipy import ndimage as ndi
+
+from fppsim.phase import circular_median, wrap
+from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
+
+__all__ = ["Link", "RegionOrder", "OrderChoice", "seam_links", "choose_orders"]
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class Link:
+    """Region ``b``'s order is region ``a``'s plus ``delta`` (absolute phase ``U - 2 pi k`` equal across the link).
+
+    ``kind``: ``"bridge"`` (across a projector shadow) or ``"seam"`` (across unreliable pixels);
+    ``votes``: lines that crossed; ``agreement``: share of them within the tolerance of ``delta``."""
+
+    a: int
+    b: int
+    delta: int
+    votes: int
+    agreement: float
+    kind: str
+
+    @property
+    def strength(self) -> float:
+        return self.votes * self.agreement
+
+
+@dataclass(frozen=True)
+class RegionOrder:
+    """One phase region's choice. ``label``: its value in :attr:`OrderChoice.labels`; ``pixels``; ``prior``:
+    the network's continuous order (periods, relative to the phase origin); ``order``: the whole order chosen;
+    ``confidence``: posterior of that order given its component's priors (0..1); ``decided``: at least
+    ``min_confidence`` (else the network's heights stay); ``component``: regions tied by links share one;
+    ``links``: how many links tie it; ``moved_mm``: median height change of its moved pixels."""
+
+    label: int
+    pixels: int
+    prior: float
+    order: int
+    confidence: float
+    decided: bool
+    component: int
+    links: int
+    moved_mm: float
+
+
+@dataclass
+class OrderChoice:
+    """The result of :func:`choose_orders`.
+
+    height : (H, W) mm, the chosen heights (the network's where not decided; NaN kept).
+    moved : (H, W) bool, pixels whose height comes from the phase at the chosen order.
+    labels : (H, W) int32, the phase regions (0: none; 1..n, largest first).
+    regions : one :class:`RegionOrder` per region, in label order.
+    links : the links taken; ``conflicts``: links skipped because they contradicted stronger ones.
+    offset_rad : the image's phase origin ``o``.
+    """
+
+    height: np.ndarray
+    moved: np.ndarray
+    labels: np.ndarray
+    regions: list[RegionOrder]
+    links: list[Link]
+    conflicts: int
+    offset_rad: float
+    stats: dict = field(default_factory=dict)
+
+    def confidence_map(self) -> np.ndarray:
+        """(H, W) float, each region's confidence (NaN outside the regions)."""
+        table = np.r_[np.nan, [r.confidence for r in self.regions]]
+        return table[self.labels]
+
+
+def _local_slope(wrapped: np.ndarray, usable: np.ndarray, axis: int, size: int = 7) -> np.ndarray:
+    """Phase slope (rad / px) along ``axis``, averaged over the usable pixels of a ``size`` window."""
+    d = wrap(np.diff(wrapped, axis=axis, append=np.take(wrapped, [-1], axis=axis)))
+    ok = usable & np.roll(usable, -1, axis=axis) & np.isfinite(d)
+    num = ndi.uniform_filter(np.where(ok, d, 0.0), size)
+    den = ndi.uniform_filter(ok.astype(np.float64), size)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(den > 0, num / den, np.nan)
+
+
+def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, blocked: np.ndarray,
+               max_gap: int = 8, tolerance: float = 0.25, min_votes: int = 5,
+               min_agreement: float = 0.7) -> list[Link]:
+    """Order differences across thin seams of unreliable phase, voted along rows and columns.
+
+    A seam crossing is a pair of region pixels ``p < q`` on one row (or column), of different regions,
+    with 1 to ``max_gap`` pixels between them that belong to no region and none of which is ``blocked``
+    (a shadow, an invalid pixel, or a step the network sees as a wall: across those the phase does not
+    continue). Its vote is ``(U[p] + s (q - p) - U[q]) / 2 pi`` periods, ``s`` the mean local phase slope
+    of both ends; a pair of regions is linked when at least ``min_votes`` crossings vote and
+    ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
+
+    Returns :class:`Link` s with ``kind="seam"`` and ``b``'s order = ``a``'s + ``delta``.
+    """
+    lab, U = regions.labels, regions.unwrapped
+    w = np.asarray(wrapped, np.float64)
+    votes: dict[tuple[int, int], list[np.ndarray]] = {}
+    for axis in (1, 0):
+        L = lab if axis == 1 else lab.T
+        B = np.asarray(blocked, bool) if axis == 1 else np.asarray(blocked, bool).T
+        UU = U if axis == 1 else U.T
+        S = _local_slope(w, usable, axis) if axis == 1 else _local_slope(w, usable, axis).T
+        rows, cols = np.nonzero(L > 0)  # row-major: consecutive entries of one row are its labelled pixels
+        same_row = rows[1:] == rows[:-1]
+        p, q = cols[:-1], cols[1:]
+        gap = q - p - 1
+        la, lb = L[rows[:-1], p], L[rows[1:], q]
+        pick = same_row & (gap >= 1) & (gap <= max_gap) & (la != lb)
+        if not pick.any():
+            continue
+        cb = np.cumsum(B, axis=1)  # blocked pixels strictly between p and q: cb[q-1] - cb[p]
+        r, p, q, la, lb = rows[:-1][pick], p[pick], q[pick], la[pick], lb[pick]
+        clear = (cb[r, q - 1] - cb[r, p]) == 0
+        r, p, q, la, lb = r[clear], p[clear], q[clear], la[clear], lb[clear]
+        s = 0.5 * (S[r, p] + S[r, q])
+        v = (UU[r, p] + s * (q - p) - UU[r, q]) / TWO_PI
+        fin = np.isfinite(v)
+        lo, hi = np.minimum(la, lb), np.maximum(la, lb)
+        sign = np.where(la == lo, 1.0, -1.0)  # v is a's order minus b's in periods, stored for (lo, hi)
+        for key in set(zip(lo[fin].tolist(), hi[fin].tolist())):
+            m = fin & (lo == key[0]) & (hi == key[1])
+            votes.setdefault(key, []).append(v[m] * sign[m])
+    out = []
+    for (a, b), parts in votes.items():
+        v = np.concatenate(parts)
+        k = int(np.round(np.median(v)))
+        agree = float(np.mean(np.abs(v - k) <= tolerance))
+        if len(v) >= min_votes and agree >= min_agreement:
+            # v = (U_a - U_b) / 2 pi across the seam: k_b = k_a - v (absolute U - 2 pi k equal)
+            out.append(Link(a, b, -k, int(len(v)), agree, "seam"))
+    return out
+
+
+def _components(n: int, links: list[Link]) -> tuple[np.ndarray, np.ndarray, list[Link], int]:
+    """Union-find over regions 1..n with order offsets: (root (n+1,), relative order to the root (n+1,),
+    links taken, conflicts skipped). Strongest links first; a link contradicting the taken ones is skipped."""
+    parent = np.arange(n + 1)
+    rel = np.zeros(n + 1, np.int64)  # order of i minus order of parent[i]
+
+    def find(i):  # (root, order of i minus the root's); a few dozen regions: no path compression needed
+        off = 0
+        while parent[i] != i:
+            off += rel[i]
+            i = parent[i]
+        return i, off
+
+    taken, conflicts = [], 0
+    for lk in sorted(links, key=lambda x: -x.strength):
+        (ra, oa), (rb, ob) = find(lk.a), find(lk.b)
+        if ra == rb:
+            conflicts += int(ob - oa != lk.delta)
+            continue
+        # k_b = k_a + delta; k_a = k_ra + oa, k_b = k_rb + ob  =>  k_rb = k_ra + oa + delta - ob
+        parent[rb], rel[rb] = ra, oa + lk.delta - ob
+        taken.append(lk)
+    found = [find(i) for i in range(n + 1)]
+    roots = np.array([r for r, _ in found])
+    offs = np.array([o for _, o in found], np.int64)
+    return roots, offs, taken, conflicts
+
+
+def _origin(layer, wrapped: np.ndarray, phi: np.ndarray, h: np.ndarray, usable: np.ndarray, flat_mm: float) -> float:
+    """The image's phase origin ``o`` (rad): measured = rig phase + o, mod 2 pi. Where the estimate says
+    'plane' (within ``flat_mm`` of 0, at least a tenth of the usable pixels) the plane's own phase is the truth
+    (height 0 by definition), so a network whose plane sits a little off does not lift every region by that
+    much; otherwise the estimate's phase ``phi`` over every usable pixel."""
+    flat = usable & (np.abs(h) < flat_mm)
+    if flat.any() and flat.sum() >= 0.1 * usable.sum():
+        with torch.no_grad():
+            phi0 = layer.phase_from_height(torch.zeros(h.shape, dtype=torch.float64, device=layer.A.device))
+        return circular_median(wrap(wrapped - phi0.cpu().numpy())[flat])
+    return circular_median(wrap(wrapped - phi)[usable]) if usable.any() else 0.0
+
+
+def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, layer,
+                  valid: np.ndarray | None = None, shadow: np.ndarray | None = None, *,
+                  min_reliability: float = 0.5, max_step: float = 1.0, smooth_px: float = 3.0,
+                  min_region: int = 50, sigma: float = 0.3, min_confidence: float = 0.6,
+                  seams: bool = True, bridges: bool = True, max_move_fraction: float = 2.0,
+                  prior_layer=None, flat_mm: float = 1.0, spread_px: float = 0.0) -> OrderChoice:
+    """Heights whose every phase region sits at one whole fringe order (module docstring).
+
+    Parameters
+    ----------
+    height_mm : (H, W) float, the network's estimate, mm above the reference plane (NaN = none).
+    wrapped_phase, reliability : (H, W) the image's single-shot phase (rad) and its reliability [0, 1].
+    layer : :class:`~uhrnet.physics.rig_layer.RigLayer` on this grid (:func:`uhrnet.physics.refine.layer_for`).
+    valid : (H, W) bool, pixels that may move (default: finite estimate).
+    shadow : (H, W) bool, pixels without projector light (default: outside ``valid``).
+    min_reliability, max_step, smooth_px, min_region : the regions (:func:`uhrnet.physics.refine.refine_relief`).
+    sigma : the network's level error assumed by the confidence, in fringe periods.
+    min_confidence : a component whose chosen order has a smaller posterior keeps the network's heights.
+    seams, bridges : which links tie regions (both by default; off: each region rounds its own prior).
+    max_move_fraction : a pixel moves at most this many fringe periods of height (else the network's stays).
+    prior_layer : the rig the network's millimetres are read through for its priors (default ``layer``): the
+        rig its training images were rendered through, when heights are made through another.
+    flat_mm : the phase origin is fitted on the pixels the estimate puts within this of the plane (height 0)
+        when they are at least a tenth of the usable pixels; else on all, to the estimate's phase.
+    """
+    h_in = np.asarray(height_mm)
+    h = h_in.astype(np.float64)
+    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
+        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
+    finite = np.isfinite(h)
+    ok = finite if valid is None else finite & np.asarray(valid, bool)
+    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
+    w = np.asarray(wrapped_phase, np.float64)
+    usable = ok & (rel >= min_reliability) & np.isfinite(w)
+    filled = np.where(finite, h, 0.0)
+    if not finite.all() and finite.any():  # nearest finite value, so smoothing does not drag edges to 0
+        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+        filled = h[tuple(idx)]
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
+    with torch.no_grad():
+        phi = layer.phase_from_height(t(filled)).cpu().numpy()
+        sens = layer.sensitivity(t(filled)).cpu().numpy()
+        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
+    offset = _origin(layer, w, phi, h, usable, flat_mm)
+    walls = step_conflicts(w, expected, max_step)
+    regions = phase_regions(w, usable, cut=walls, min_size=min_region)
+    lab, n = regions.labels, regions.count
+    d = regions.unwrapped - phi - offset
+    unlit = ~ok if shadow is None else np.asarray(shadow, bool)
+    links: list[Link] = []
+    if n and bridges:
+        links += [Link(b.a, b.b, -b.periods, b.votes, b.agreement, "bridge") for b in shadow_bridges(regions, unlit)]
+    if n and seams:
+        links += seam_links(regions, w, usable, blocked=unlit | walls | ~finite)
+    roots, offs, taken, conflicts = _components(n, links)
+    if prior_layer is not None and n:
+        with torch.no_grad():
+            phi_p = prior_layer.phase_from_height(t(filled)).cpu().numpy()
+        off_p = _origin(prior_layer, w, phi_p, h, usable, flat_mm)
+        d_p = regions.unwrapped - phi_p - off_p
+        # the two rigs number orders alike up to one integer, fixed where the estimate is flat (the plane)
+        low = (lab > 0) & (np.abs(filled) < flat_mm)
+        shift = np.round(np.median((d - d_p)[low]) / TWO_PI) if low.any() else 0.0
+        d = d_p + TWO_PI * shift
+    prior = (np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, n + 1))) / TWO_PI if n
+             else np.zeros(0))
+    sizes = regions.sizes.astype(np.float64)
+    order = np.zeros(n, np.int64)
+    conf = np.zeros(n)
+    for root in np.unique(roots[1:]) if n else []:
+        members = np.nonzero(roots[1:] == root)[0]  # 0-based region indices
+        resid = prior[members] - offs[members + 1]  # each member's vote for the component's shift
+        wts = sizes[members] / sizes[members].sum()
+        centre = float(np.round(np.sum(wts * resid)))
+        cands = centre + np.arange(-3, 4)
+        energy = np.array([np.sum(wts * (resid - c) ** 2) for c in cands]) / (2 * sigma ** 2)
+        post = np.exp(-(energy - energy.min()))
+        post /= post.sum()
+        best = int(np.argmax(post))
+        order[members] = int(cands[best]) + offs[members + 1]
+        conf[members] = post[best]
+    decided = conf >= min_confidence
+    target = np.full(h.shape, np.nan)
+    inside = lab > 0
+    li = lab[inside] - 1
+    target[inside] = regions.unwrapped[inside] - offset - TWO_PI * order[li]
+    with torch.no_grad():
+        h_new = layer.height_from_phase(t(np.nan_to_num(target, nan=0.0))).cpu().numpy()
+    h_new[~np.isfinite(target)] = np.nan
+    move = h_new - h
+    with np.errstate(divide="ignore"):
+        margin = max_move_fraction * TWO_PI / np.abs(sens)
+    moved = usable & inside & np.isfinite(move) & (np.abs(move) <= margin)
+    moved[inside] &= decided[li]
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = np.where(moved, h_new, h).astype(np.float64)
+    carried = np.zeros(h.shape, bool)
+    if spread_px > 0 and moved.any():
+        # the network's level error is smooth: pixels left out (edges, dark patches) take the level correction
+        # of the moved pixels around them, a normalised Gaussian average of their moves
+        wgt = ndi.gaussian_filter(moved.astype(np.float64), spread_px)
+        corr = ndi.gaussian_filter(np.where(moved, move, 0.0), spread_px)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            corr = corr / wgt
+        carried = finite & ~moved & (wgt > 0.05)
+        refined[carried] = h[carried] + corr[carried]
+    refined = refined.astype(out_dtype, copy=False)
+    link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
+    moved_med = (np.asarray(ndi.median(np.where(moved, move, 0.0), np.where(moved, lab, 0), index=np.arange(1, n + 1)))
+                 if n else np.zeros(0))
+    table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
+                         int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
+    npx = int(finite.sum())
+    stats = {
+        "method": "orders",
+        "n_pixels": npx,
+        "moved_fraction": float(moved.sum() / npx) if npx else 0.0,
+        "reliable_fraction": float(usable.sum() / npx) if npx else 0.0,
+        "regions": n,
+        "components": int(len(np.unique(roots[1:]))) if n else 0,
+        "undecided_regions": int((~decided).sum()),
+        "undecided_fraction": float(sizes[~decided].sum() / npx) if npx else 0.0,
+        "links": {"bridge": sum(lk.kind == "bridge" for lk in taken), "seam": sum(lk.kind == "seam" for lk in taken)},
+        "conflicts": conflicts,
+        "carried_fraction": float(carried.sum() / npx) if npx else 0.0,
+        "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
+        "offset_rad": float(offset),
+    }
+    return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats)
