@@ -249,12 +249,14 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
     p.add_argument("synthetic", metavar="SYN_DIR", help="synthetic data: native fppsim folder or figshare folder")
     p.add_argument("--max-samples", type=_positive_int, default=50, help="samples read per side (default 50)")
     p.add_argument("--json", metavar="FILE", help="also write the statistics as JSON")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
 
 
 def run_compare_real(args) -> int:
     from fppsim.fitting.compare import compare_real, format_comparison
 
-    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json)
+    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json,
+                          force=args.force)
     print(format_comparison(result))
     return 0
 

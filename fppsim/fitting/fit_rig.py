@@ -37,7 +37,7 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.errors import UsageError
-from fppsim.files import atomic_write_text, check_output_file
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
@@ -211,9 +211,11 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     """
     lines = ReportLines(echo)
     say = lines.say
-    out = check_output_file(config.out, config.force)
-    if config.json:  # an existing report is someone's file too: replaced only with force
-        check_output_file(config.json, config.force)
+    out, *_ = check_outputs([Output("--out", config.out, RIG_SUFFIXES, "a rig file",
+                                    holds_keys("camera", "projector")),
+                             Output("--json", config.json, JSON_SUFFIXES, "the JSON report",
+                                    holds_keys("params", "measured"))],
+                            inputs=[config.real, config.base], force=config.force)  # before any work
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)

@@ -52,7 +52,7 @@ from fppsim.commands import ReportLines
 from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.errors import RigError, UsageError
-from fppsim.files import atomic_write_text, check_output_file
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit
@@ -595,9 +595,11 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     Writes ``config.out`` (and ``config.json``). ``echo`` receives every report line."""
     lines = ReportLines(echo)
     say = lines.say
-    out = check_output_file(config.out, config.force)
-    if config.json:
-        check_output_file(config.json, config.force)
+    out, *_ = check_outputs([Output("--out", config.out, RIG_SUFFIXES, "a rig file",
+                                    holds_keys("camera", "projector")),
+                             Output("--json", config.json, JSON_SUFFIXES, "the JSON report",
+                                    holds_keys("start"))],
+                            inputs=[config.real], force=config.force)  # before any work
     if "distance" in config.params and config.sensitivity != "auto":
         raise RigError("fitting 'distance' needs the height labels: drop it from the parameters or use "
                        "sensitivity 'auto'")
