@@ -89,3 +89,94 @@ def test_compare_real_json_is_checked_up_front(frames, tmp_path, capsys):
     assert fppsim_main(["compare-real", str(frames), str(frames), "--json", str(frames / "Z.npy"), "--force"]) == 2
     _one_line(capsys, "must end in .json")
     assert mine.read_text() == "mine"
+
+
+# ------------------------------------------------------------------------------------- item 1: the study record
+ARMS = """
+arms:
+  - name: n400
+    series: [samples]
+    count: 400
+"""
+
+
+def _record(count=400, epochs=10, lr=5e-4, seeds=((0, 5.0), (1, 6.0)), device="cuda", name="n400"):
+    return {"arms": [{"name": name, "resize": None, "device": device, "count": count, "epochs": epochs, "lr": lr,
+                      "steps": 1600, "generate": [], "train": [],
+                      "seeds": [{"seed": s, "pair_object_rmse_mm": v} for s, v in seeds]}]}
+
+
+@pytest.fixture
+def study(tmp_path):
+    import json
+
+    from _helpers import load_pipeline
+
+    scaling = load_pipeline("scaling")
+    (tmp_path / "arms.yaml").write_text(ARMS)
+    ledger = tmp_path / "study.json"
+    ledger.write_text(json.dumps(_record()))
+
+    def merge(*paths):
+        return scaling.main(["--arms-file", str(tmp_path / "arms.yaml"), "--ledger", str(ledger), "--merge",
+                             *map(str, paths)])
+    return tmp_path, ledger, merge
+
+
+def test_merge_refuses_an_arm_of_another_definition_under_the_same_name(study, capsys):
+    import json
+
+    tmp_path, ledger, merge = study
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps(_record(count=50, epochs=2, lr=1e-2, seeds=((2, 40.0),))))
+    before = ledger.read_text()
+    assert merge(other) == 2
+    _one_line(capsys, "n400 [cuda]", "count 50 vs 400", "epochs 2 vs 10", "lr 0.01 vs 0.0005")
+    assert ledger.read_text() == before and not (tmp_path / "study_table.md").exists()
+
+
+def test_merge_refuses_non_finite_numbers_and_names_the_merge_input(study, capsys):
+    tmp_path, ledger, merge = study
+    before = ledger.read_text()
+    nan = tmp_path / "nan.json"
+    nan.write_text('{"arms": [{"name": "elsewhere", "seeds": [{"seed": 0, "pair_object_rmse_mm": NaN}]}]}')
+    assert merge(nan) == 2
+    _one_line(capsys, f"--merge {nan}", "non-finite")
+    cut = tmp_path / "cut.json"
+    cut.write_text(before[: len(before) // 2])
+    assert merge(cut) == 2
+    err = _one_line(capsys, f"--merge {cut}", "not a readable scaling.json")
+    assert "--ledger" not in err
+    foreign = tmp_path / "foreign.json"
+    foreign.write_text('{"mine": 1}')
+    assert merge(foreign) == 2
+    err = _one_line(capsys, f"--merge {foreign}", "not a scaling study record")
+    assert "name another --ledger" not in err
+    assert ledger.read_text() == before
+
+
+def test_merge_counts_what_it_added_and_keeps_figures_it_did_not_write(study, capsys):
+    import json
+
+    tmp_path, ledger, merge = study
+    new = tmp_path / "new.json"
+    new.write_text(json.dumps(_record(seeds=((2, 7.0),))))
+    assert merge(new, new) == 0
+    out = capsys.readouterr().out
+    assert "1 seed result(s) merged (1 new, 0 replacing" in out and "1 already recorded" in out, out
+    assert [s["seed"] for s in json.loads(ledger.read_text())["arms"][0]["seeds"]] == [0, 1, 2]
+    assert merge(new) == 0
+    assert "0 seed result(s) merged" in capsys.readouterr().out
+    # a user's figure beside another ledger is never replaced
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "study.json").write_text(json.dumps(_record()))
+    (other / "study_samples.png").write_bytes(b"the user's figure")
+    from _helpers import load_pipeline
+
+    scaling = load_pipeline("scaling")
+    assert scaling.main(["--arms-file", str(tmp_path / "arms.yaml"), "--ledger", str(other / "study.json"),
+                         "--merge", str(new)]) == 2
+    _one_line(capsys, "study_samples.png", "not written by pipelines/scaling.py")
+    assert (other / "study_samples.png").read_bytes() == b"the user's figure"
+    assert json.loads((other / "study.json").read_text()) == _record()
