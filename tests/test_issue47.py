@@ -180,3 +180,57 @@ def test_merge_counts_what_it_added_and_keeps_figures_it_did_not_write(study, ca
     _one_line(capsys, "study_samples.png", "not written by pipelines/scaling.py")
     assert (other / "study_samples.png").read_bytes() == b"the user's figure"
     assert json.loads((other / "study.json").read_text()) == _record()
+
+
+# ------------------------------------------------------------------------------------- items 3 and 9: readings
+def _scan_folder(root):
+    import numpy as np
+
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+    from fppsim.fitting.height_sensitivity import surface_phase
+    from _helpers import rig_fringe, tiny_rig
+
+    rig = tiny_rig()
+    yy, xx = np.mgrid[0:32, 0:64].astype(float)
+    h = 6.0 * np.exp(-((xx - 25.0) ** 2 + (yy - 15.0) ** 2) / 98.0)
+    save_psp_folder_sample(root, "1201", *sums_from_phase(surface_phase(rig, h) + 72.0), rig_fringe(rig, h))
+    return rig
+
+
+@pytest.mark.parametrize("convention,negate", [("fppsim", False), ("benchmark", True), ("auto", True)])
+def test_a_reading_that_does_not_fit_the_files_is_said_whether_given_or_detected(tmp_path, convention, negate):
+    """The files are written the public way; a reading given another way (or --negate-sin with auto, which
+    auto no longer overrides: docs/own_rig.md section 4) is kept but measured and named in one line."""
+    from fppsim.dataio.readers import load_psp_folder_sample, reading_note
+
+    _scan_folder(tmp_path / "F")
+    s = load_psp_folder_sample(tmp_path / "F", "1201", convention=convention, negate_sin=negate)
+    assert s.meta["negate_sin"] is negate and s.meta["jump_share"] > 0.05
+    note = reading_note(s.meta)
+    assert note and "1201" in note and "the phase read is WRONG" in note and "--convention benchmark" in note
+    fine = load_psp_folder_sample(tmp_path / "F", "1201", convention="benchmark")
+    assert fine.meta["jump_share"] < 0.01 and reading_note(fine.meta) is None
+
+
+def test_label_real_counts_a_misread_scan_as_not_fitting(tmp_path, capsys):
+    import json
+
+    rig = _scan_folder(tmp_path / "F")
+    rig.save(tmp_path / "rig.json")
+    assert fppsim_main(["label-real", str(tmp_path / "F"), "--rig", str(tmp_path / "rig.json"), "--convention",
+                        "fppsim", "--out", str(tmp_path / "lab"), "--quiet", "--no-preview"]) == 0
+    assert "the phase read is WRONG" in capsys.readouterr().err
+    report = json.loads((tmp_path / "lab" / "label_real.json").read_text())
+    assert report["summary"]["scans_not_fitting"] == 1
+
+
+@pytest.mark.parametrize("cmd", ["fit-rig", "fit-optics", "label-real"])
+def test_an_incomplete_scan_folder_is_named_not_read_as_plain_images(tmp_path, cmd, capsys):
+    import shutil
+
+    _scan_folder(tmp_path / "F")
+    shutil.rmtree(tmp_path / "F" / "PCos")
+    out = tmp_path / ("o.yaml" if cmd == "fit-optics" else "lab" if cmd == "label-real" else "r.json")
+    assert fppsim_main([cmd, str(tmp_path / "F"), "--out", str(out)]) == 1
+    _one_line(capsys, "PCos")
+    assert not out.exists()
