@@ -24,6 +24,7 @@ from typing import Sequence
 
 from fppsim import __version__
 from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
+from fppsim.threads import check_cores
 from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
@@ -139,6 +140,7 @@ class GenerateConfig:
             raise UsageError(f"supersample must be one of {SUPERSAMPLE}, got {self.supersample}")
         if int(self.workers) < 1:
             raise UsageError(f"workers must be >= 1, got {self.workers}")
+        check_cores(int(self.workers), "--workers", "worker processes", UsageError)
         lo, hi = self.objects
         if not 1 <= lo <= hi:
             raise UsageError(f"objects must be LO-HI with 1 <= LO <= HI, got {lo}-{hi}")

@@ -234,3 +234,43 @@ def test_an_incomplete_scan_folder_is_named_not_read_as_plain_images(tmp_path, c
     assert fppsim_main([cmd, str(tmp_path / "F"), "--out", str(out)]) == 1
     _one_line(capsys, "PCos")
     assert not out.exists()
+
+
+# ------------------------------------------------------------------------------------- item 5: resources
+def test_threads_and_workers_beyond_the_cores_are_refused(tmp_path, capsys, monkeypatch):
+    import fppsim.threads as threads
+    from uhrnet.cli import main as uhrnet_main
+
+    monkeypatch.setattr(threads, "machine_cores", lambda: 2)
+    write_figshare(tmp_path / "real", n=4, h=32, w=64, seed=1)
+    assert uhrnet_main(["train", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "run"), "--model", "unet",
+                        "--base-channels", "4", "--device", "cpu", "--threads", "1000"]) == 2
+    _one_line(capsys, "--threads 1000", "2 CPU core(s)")
+    assert not (tmp_path / "run").exists()
+    assert fppsim_main(["generate", "--count", "2", "--meshes", "assets/meshes", "--workers", "64",
+                        "--out", str(tmp_path / "g")]) == 2
+    _one_line(capsys, "--workers 64", "2 CPU core(s)")
+    assert not (tmp_path / "g").exists()
+
+
+# ------------------------------------------------------------------------------------- item 4: scaling_job.sh
+def test_scaling_job_refuses_an_unknown_arm_before_creating_anything_and_fails_non_zero(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PY": sys.executable, "WORKTREE": str(tmp_path / "wt")}
+    r = subprocess.run(["bash", str(root / "pipelines" / "scaling_job.sh"), "nosucharm:0"], env=env,
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2 and "nosucharm" in r.stderr and not (tmp_path / "wt").exists(), r.stderr
+    # a seed that fails: exit 1, and the line names the log that exists
+    fake = tmp_path / "py"
+    fake.write_text(f'#!/bin/sh\ncase "$*" in *--list*) exec {sys.executable} "$@";; esac\necho boom; exit 1\n')
+    fake.chmod(0o755)
+    (tmp_path / "wt").mkdir()
+    r = subprocess.run(["bash", str(root / "pipelines" / "scaling_job.sh"), "n100:0"],
+                       env={**env, "PY": str(fake)}, capture_output=True, text=True, timeout=120)
+    assert r.returncode == 1, (r.stdout, r.stderr)
+    log = tmp_path / "wt" / "runs" / "scaling" / "job.log"
+    assert "n100 seed 0 failed" in r.stdout and str(log) in r.stdout and "boom" in log.read_text()
