@@ -349,7 +349,7 @@ def check_outputs(outputs, inputs=(), force: bool = False) -> list[Path]:
         if o.suffixes and path.suffix.lower() not in o.suffixes:
             raise UsageError(f"{o.flag} {o.path}: {o.what} must end in {', '.join(o.suffixes[:-1]) + ' or ' if len(o.suffixes) > 1 else ''}{o.suffixes[-1]}")
         if (path.exists() or path.is_symlink()) and not force and not path.is_dir():
-            raise DatasetError(f"{o.flag} {o.path}: exists; pass --force to replace it")
+            raise DatasetError(f"{o.flag} {o.path} exists; pass --force to replace it")
         for given, ikey in ins:
             if key == ikey or (path.exists() and _same_file(path, given)):
                 raise UsageError(f"{o.flag} {o.path}: is an input of this command ({given}); write elsewhere")

@@ -274,3 +274,14 @@ def test_scaling_job_refuses_an_unknown_arm_before_creating_anything_and_fails_n
     assert r.returncode == 1, (r.stdout, r.stderr)
     log = tmp_path / "wt" / "runs" / "scaling" / "job.log"
     assert "n100 seed 0 failed" in r.stdout and str(log) in r.stdout and "boom" in log.read_text()
+
+
+# ------------------------------------------------------------------------------------- item 7: unused options
+@pytest.mark.parametrize("extra", [["--params", "yaw"], ["--col-bands", "6"], ["--sensitivity", "off"],
+                                   ["--params", "yaw,roll,periods,distance"]])
+def test_fit_rig_without_base_refuses_label_fit_options_it_would_not_use(tmp_path, extra, capsys):
+    _scan_folder(tmp_path / "F")
+    out = tmp_path / "r.json"
+    assert fppsim_main(["fit-rig", str(tmp_path / "F"), "--out", str(out), *extra]) == 2
+    _one_line(capsys, extra[0], "needs height labels")
+    assert not out.exists() and capsys.readouterr().out == ""

@@ -526,8 +526,9 @@ class StartRigConfig:
         convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`). params,
         sensitivity, col_bands, row_bands : the label-based fits that follow with height labels and
-        vertical fringes. max_images : images read
-        (at most 4 phase maps are fitted). json : also write the report as JSON.
+        vertical fringes; ``label_options`` names those the user gave (``"--params"``, ...): they are refused
+        where that fit does not run (no height labels, fringes not vertical), not ignored. max_images : images
+        read (at most 4 phase maps are fitted). json : also write the report as JSON.
     """
 
     real: object
@@ -546,6 +547,7 @@ class StartRigConfig:
     sensitivity: str = "auto"
     json: object = None
     force: bool = False
+    label_options: tuple = ()  # the flags of params / col_bands / row_bands / sensitivity the user gave
 
     def __post_init__(self):
 
@@ -603,6 +605,12 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     if "distance" in config.params and config.sensitivity != "auto":
         raise RigError("fitting 'distance' needs the height labels: drop it from the parameters or use "
                        "sensitivity 'auto'")
+    given = tuple(config.label_options) + (("--params distance",) if "distance" in config.params
+                                           and "--params" not in config.label_options else ())
+    if given and not open_source(config.real).labelled:  # refused, not ignored, before any work
+        raise UsageError(f"{', '.join(given)}: without --base these steer only the label-based fit, which needs "
+                         f"height labels; {config.real} has none: drop them (the rig from the images fits its own "
+                         "parameters), or give --base RIG")
     start = rig_from_images(config.real, fov=config.fov, focal=config.focal, distance=config.distance,
                             baseline=config.baseline, projector_side=config.projector_side,
                             max_maps=min(int(config.max_images), 4), convention=config.convention,
@@ -612,6 +620,9 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     if "distance" in config.params and not labelled:
         raise RigError("fitting 'distance' needs images with height labels, objects and projector shadows "
                        "(figshare folder or the real-sample pair)")
+    if given and start.axis != "vertical":  # before anything is written
+        raise UsageError(f"{', '.join(given)}: without --base these steer only the label-based fit, which reads "
+                         f"vertical fringes; {config.real} has {start.axis} fringes: drop them, or give --base RIG")
     if labelled and config.sensitivity == "auto":
         if start.axis != "vertical":
             say("height labels: the label-based depth fits read vertical fringes only; the depth scale stays "
