@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -52,11 +53,15 @@ def _shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def _freqs(text: str) -> tuple[int, ...]:
+def _freqs(text: str) -> tuple:
+    from fppsim.dataio.formats import psp_freq  # lazy: the parser loads no data code until a command runs
+
     try:
-        f = tuple(int(p) for p in text.split(",") if p.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got '{text}'") from None
+        f = tuple(psp_freq(p) for p in text.split(",") if p.strip())
+    except (ValueError, OverflowError):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
+    if not all(math.isfinite(v) for v in f):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, got '{text}'")
     if not f or f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
         raise argparse.ArgumentTypeError(f"ladder must start at 1 and increase, got '{text}'")
     return f

@@ -285,3 +285,26 @@ def test_fit_rig_without_base_refuses_label_fit_options_it_would_not_use(tmp_pat
     assert fppsim_main(["fit-rig", str(tmp_path / "F"), "--out", str(out), *extra]) == 2
     _one_line(capsys, extra[0], "needs height labels")
     assert not out.exists() and capsys.readouterr().out == ""
+
+
+# ------------------------------------------------------------------------------------- item 6: fitted periods
+@pytest.mark.parametrize("periods,ladder,ok", [(13.9999999999, "1,4,14", True), (12.37, "1,4,12.37", True),
+                                               (12.37, "1,8,80", False)])
+def test_generate_makes_psp_data_for_a_rig_with_fitted_periods(tmp_path, capsys, periods, ladder, ok):
+    from fppsim.dataio.readers import read_native_psp
+    from fppsim.fitting.fit_periods import adjust_rig
+    from _helpers import tiny_rig
+
+    rig = adjust_rig(tiny_rig(), periods=periods)
+    rig.save(tmp_path / "rig.json")
+    root = Path(__file__).resolve().parents[1]
+    argv = ["generate", "-q", "--no-preview", "--meshes", str(root / "assets" / "meshes"), "--count", "1",
+            "--rig", str(tmp_path / "rig.json"), "--psp-freqs", ladder, "--out", str(tmp_path / "g")]
+    if not ok:
+        assert fppsim_main(argv) != 0
+        _one_line(capsys, "12.37", "got 80", "--psp-freqs 1,")
+        return
+    assert fppsim_main(argv) == 0, capsys.readouterr().err
+    sample = next(p for p in (tmp_path / "g").iterdir() if p.is_dir() and p.name.isdigit())
+    _, stacks, _, meta = read_native_psp(sample)
+    assert len(stacks) == 3 and max(stacks) == pytest.approx(periods)

@@ -203,6 +203,22 @@ class FitRigResult:
         return doc
 
 
+def unused_label_options(config, labelled: bool, axis: str = "vertical") -> None:
+    """Without a base rig (:class:`fppsim.fitting.rig_start.StartRigConfig`) the period-fit options
+    ``config.label_options`` names as given (and a ``distance`` fit) steer only the label-based fit: refused
+    (:class:`UsageError`) when it cannot run, the images having no height labels or their fringes not being
+    vertical (``axis``), instead of being ignored."""
+    given = tuple(config.label_options) + (("--params distance",) if "distance" in config.params
+                                           and "--params" not in config.label_options else ())
+    why = ("needs height labels" if not labelled else
+           "reads vertical fringes" if axis != "vertical" else None)
+    if given and why:
+        has = "none" if not labelled else f"{axis} fringes"
+        raise UsageError(f"{', '.join(given)}: without --base these steer only the label-based fit, which {why}; "
+                         f"{config.real} has {has}: drop them (the rig from the images fits its own parameters), "
+                         "or give --base RIG")
+
+
 def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = None) -> FitRigResult:
     """Read real fringe images, measure their band periods (:func:`measure_bands`), fit the rig (the
     baseline first with ``sensitivity="auto"`` and labelled images: :func:`fit_baseline`; else
