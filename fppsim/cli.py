@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import math
 import sys
 from pathlib import Path
 
@@ -52,11 +53,15 @@ def _shard(text: str) -> tuple[int, int]:
     return i, n
 
 
-def _freqs(text: str) -> tuple[int, ...]:
+def _freqs(text: str) -> tuple:
+    from fppsim.dataio.formats import psp_freq  # lazy: the parser loads no data code until a command runs
+
     try:
-        f = tuple(int(p) for p in text.split(",") if p.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated integers, got '{text}'") from None
+        f = tuple(psp_freq(p) for p in text.split(",") if p.strip())
+    except (ValueError, OverflowError):
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
+    if not all(math.isfinite(v) for v in f):
+        raise argparse.ArgumentTypeError(f"expected finite numbers, got '{text}'")
     if not f or f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
         raise argparse.ArgumentTypeError(f"ladder must start at 1 and increase, got '{text}'")
     return f
@@ -249,12 +254,14 @@ def add_compare_real(p: argparse.ArgumentParser) -> None:
     p.add_argument("synthetic", metavar="SYN_DIR", help="synthetic data: native fppsim folder or figshare folder")
     p.add_argument("--max-samples", type=_positive_int, default=50, help="samples read per side (default 50)")
     p.add_argument("--json", metavar="FILE", help="also write the statistics as JSON")
+    p.add_argument("--force", action="store_true", help="replace an existing --json file")
 
 
 def run_compare_real(args) -> int:
     from fppsim.fitting.compare import compare_real, format_comparison
 
-    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json)
+    result = compare_real(args.real, args.synthetic, max_samples=args.max_samples, json_path=args.json,
+                          force=args.force)
     print(format_comparison(result))
     return 0
 
@@ -354,17 +361,17 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("--projector-side", choices=("left", "right", "above", "below"),
                    help="without --base: where the projector is seen from the camera (measured from phase-shifting "
                         "scans or shadows when not given)")
-    p.add_argument("--params", type=_params, default=("yaw", "roll", "periods"), metavar="P1,P2,...",
+    p.add_argument("--params", type=_params, default=None, metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre; roll "
                         "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
                         "periods (across the projector), focal (projector px), distance (camera height, mm: with "
                         "height labels, fits how the sensitivity grows with height, and the baseline with it; "
                         "fppsim.fitting.fit_depth) [yaw,roll,periods]")
-    p.add_argument("--col-bands", type=int, default=4, help="column bands measured (full height each) [4]")
-    p.add_argument("--row-bands", type=int, default=3, help="row bands measured (full width each) [3]")
+    p.add_argument("--col-bands", type=int, default=None, help="column bands measured (full height each) [4]")
+    p.add_argument("--row-bands", type=int, default=None, help="row bands measured (full width each) [3]")
     p.add_argument("--max-images", type=int, default=20, help="evenly spaced images read [20]")
     add_phase_convention(p)
-    p.add_argument("--sensitivity", choices=("auto", "off"), default="auto",
+    p.add_argument("--sensitivity", choices=("auto", "off"), default=None,
                    help="auto: when the images have height labels, first choose the baseline whose fringe shift "
                         "per mm matches them (re-projected labels vs the real fringes; fppsim.fitting.fit_rig.fit_baseline), "
                         "then fit --params at that baseline; off: keep the base rig's baseline [auto]")
@@ -376,15 +383,20 @@ def run_fit_rig(args) -> int:
     from fppsim.errors import UsageError
     from fppsim.fitting.fit_rig import FitRigConfig, fit_rig_images
 
-    common = dict(real=args.real, out=args.out, params=tuple(args.params), col_bands=args.col_bands,
-                  row_bands=args.row_bands, max_images=args.max_images, sensitivity=args.sensitivity, json=args.json,
+    fitting = {"params": args.params, "col_bands": args.col_bands, "row_bands": args.row_bands,
+               "sensitivity": args.sensitivity}
+    given = tuple(f"--{k.replace('_', '-')}" for k, v in fitting.items() if v is not None)
+    defaults = {"params": ("yaw", "roll", "periods"), "col_bands": 4, "row_bands": 3, "sensitivity": "auto"}
+    fitting = {k: tuple(v) if k == "params" and v is not None else v if v is not None else defaults[k]
+               for k, v in fitting.items()}
+    common = dict(real=args.real, out=args.out, max_images=args.max_images, json=args.json, **fitting,
                   force=args.force, convention=args.convention, negate_sin=args.negate_sin)
     start = {"fov": args.fov, "focal": args.focal, "distance": args.distance, "baseline": args.baseline,
              "projector_side": args.projector_side}
     if args.base is None:  # no calibration: the rig from the images themselves
         from fppsim.fitting.rig_start import StartRigConfig, fit_rig_from_images
 
-        fit_rig_from_images(StartRigConfig(**common, **start), echo=print)
+        fit_rig_from_images(StartRigConfig(**common, **start, label_options=given), echo=print)
         return 0
     given = [f"--{k.replace('_', '-')}" for k, v in start.items() if v is not None]
     if given:

@@ -27,11 +27,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from fppsim.errors import FolderBusy
+from fppsim.errors import DatasetError, FolderBusy, UsageError
 
 __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
-           "check_writable_dir", "check_output_file", "write_fully", "atomic_path", "atomic_write_text",
+           "check_writable_dir", "check_output_file", "Output", "check_outputs", "RIG_SUFFIXES", "JSON_SUFFIXES",
+           "YAML_SUFFIXES", "holds_keys", "starts_with", "write_fully", "atomic_path", "atomic_write_text",
            "atomic_write_bytes", "fsync_dir", "unlink_quietly"]
 
 TMP_PREFIX = ".fppsim-tmp-"
@@ -255,6 +256,130 @@ def check_output_file(path: str | os.PathLike, force: bool = False) -> Path:
     if not out.parent.is_dir():
         raise ValueError(f"{out.parent}: output folder does not exist")
     return out
+
+RIG_SUFFIXES = (".json", ".yaml", ".yml")  # what fppsim.geometry.rig_files writes
+JSON_SUFFIXES = (".json",)
+YAML_SUFFIXES = (".yaml", ".yml")
+
+
+class Output:
+    """One output FILE of a command, for :func:`check_outputs`: the ``flag`` naming it (``--out``), the user's
+    ``path``, the ``suffixes`` that fit what is written (``(".json",)``; empty: any), ``what`` it is, and
+    ``ours(path) -> bool``: whether an existing file is one the command writes (what it may replace with
+    ``--force`` inside an input folder; see :func:`holds_keys`, :func:`starts_with`)."""
+
+    __slots__ = ("flag", "path", "suffixes", "what", "ours")
+
+    def __init__(self, flag: str, path: str | os.PathLike, suffixes: tuple[str, ...] = (), what: str = "file",
+                 ours=None):
+        self.flag, self.path, self.suffixes, self.what = flag, path, tuple(s.lower() for s in suffixes), what
+        self.ours = ours
+
+
+def _document(path: Path):
+    import json
+
+    text = path.read_text()
+    if path.suffix.lower() in YAML_SUFFIXES:
+        import yaml
+
+        return yaml.safe_load(text)
+    return json.loads(text)
+
+
+def holds_keys(*keys: str):
+    """An :attr:`Output.ours` predicate: the file is a JSON / YAML mapping holding every one of ``keys``."""
+    def ours(path: Path) -> bool:
+        try:
+            doc = _document(path)
+        except Exception:  # noqa: BLE001 - anything unreadable is not ours
+            return False
+        return isinstance(doc, dict) and all(k in doc for k in keys)
+    return ours
+
+
+def starts_with(text: str):
+    """An :attr:`Output.ours` predicate: the file's text starts with ``text`` (a header the command writes)."""
+    def ours(path: Path) -> bool:
+        try:
+            with open(path, encoding="utf-8", errors="replace") as fh:
+                return fh.read(len(text)) == text
+        except OSError:
+            return False
+    return ours
+
+
+def _key(path: Path) -> Path:
+    try:
+        return path.resolve()
+    except (OSError, RuntimeError):
+        return path.absolute()
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.relative_to(folder)
+        return True
+    except ValueError:
+        return False
+
+
+def check_outputs(outputs, inputs=(), force: bool = False) -> list[Path]:
+    """THE up-front check of a command's output files, before any work (every command that writes a file the
+    user names calls it once with all of them). Each :class:`Output` (None entries and empty paths skipped):
+
+    * its extension fits what is written (``--out rig.mat`` for a rig: refused);
+    * it is not one of the ``inputs`` (files or folders the command reads) nor a file that exists inside an
+      input folder (``--out FRAMES/PSin/1201.mat --force`` would replace a scan; a new name there is fine,
+      and with ``force`` a file the output's ``ours`` recognises as the command's own);
+    * it is not another output of the same command (``--out x.json --json x.json``: one would destroy the other);
+    * it is not a folder; it exists only with ``force``;
+    * its folder exists and is writable (proved by writing a probe there).
+
+    Returns the paths (as given) of the outputs checked, in order. Raises :class:`UsageError` (exit 2) for a
+    path that cannot be right (extension, input, twice) and :class:`DatasetError` (exit 1) for what the file
+    system refuses; the one line names the flag and the user's path."""
+    outs = [o for o in outputs if o is not None and o.path not in (None, "")]
+    ins = [(Path(p), _key(Path(p))) for p in inputs if p not in (None, "")]
+    seen: dict[Path, Output] = {}
+    checked = []
+    for o in outs:
+        path = Path(o.path)
+        key = _key(path)
+        if o.suffixes and path.suffix.lower() not in o.suffixes:
+            raise UsageError(f"{o.flag} {o.path}: {o.what} must end in {', '.join(o.suffixes[:-1]) + ' or ' if len(o.suffixes) > 1 else ''}{o.suffixes[-1]}")
+        if (path.exists() or path.is_symlink()) and not force and not path.is_dir():
+            raise DatasetError(f"{o.flag} {o.path} exists; pass --force to replace it")
+        for given, ikey in ins:
+            if key == ikey or (path.exists() and _same_file(path, given)):
+                raise UsageError(f"{o.flag} {o.path}: is an input of this command ({given}); write elsewhere")
+            if (path.exists() or path.is_symlink()) and ikey.is_dir() and _inside(key, ikey) \
+                    and not (force and o.ours is not None and path.is_file() and o.ours(path)):
+                raise UsageError(f"{o.flag} {o.path}: is a file of the input folder {given}; write elsewhere")
+        if key in seen:
+            raise UsageError(f"{o.flag} {o.path}: is also {seen[key].flag}; give each output its own file")
+        seen[key] = o
+        if path.is_dir():
+            raise UsageError(f"{o.flag} {o.path}: is a folder; give a file name")
+        folder = path.parent
+        if not folder.is_dir():
+            raise DatasetError(f"{o.flag} {o.path}: its folder {folder} does not exist")
+        try:
+            probe = tmp_path(folder / "write-test")
+            probe.write_bytes(b"ok")
+            probe.unlink()
+        except OSError as exc:
+            raise DatasetError(f"{o.flag} {o.path}: cannot write in {folder} ({exc.strerror or exc})") from None
+        checked.append(path)
+    return checked
+
+
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return False
+
 
 def write_fully(fh, data) -> None:
     """``fh.write`` of a bytes-like object; a short write or ENOSPC raises ``OSError`` (never SIGBUS)."""

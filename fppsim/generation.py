@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import multiprocessing as mp
 import os
 import time
@@ -24,9 +25,10 @@ from typing import Sequence
 
 from fppsim import __version__
 from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
+from fppsim.threads import check_cores
 from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
-from fppsim.dataio.formats import (FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
+from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
 from fppsim.rendering.synth import SynthConfig, synthesize
@@ -139,6 +141,7 @@ class GenerateConfig:
             raise UsageError(f"supersample must be one of {SUPERSAMPLE}, got {self.supersample}")
         if int(self.workers) < 1:
             raise UsageError(f"workers must be >= 1, got {self.workers}")
+        check_cores(int(self.workers), "--workers", "worker processes", UsageError)
         lo, hi = self.objects
         if not 1 <= lo <= hi:
             raise UsageError(f"objects must be LO-HI with 1 <= LO <= HI, got {lo}-{hi}")
@@ -148,8 +151,11 @@ class GenerateConfig:
             except ValueError as exc:
                 raise UsageError(str(exc)) from None
         if self.psp_freqs:
-            f = tuple(int(v) for v in self.psp_freqs)
-            if f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
+            try:
+                f = tuple(float(v) for v in self.psp_freqs)
+            except (TypeError, ValueError):
+                raise UsageError(f"--psp-freqs must be numbers, got {list(self.psp_freqs)}") from None
+            if not all(math.isfinite(v) for v in f) or f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
                 raise UsageError(f"--psp-freqs ladder must start at 1 and increase, got {list(f)}")
             if self.psp_steps < 3:
                 raise UsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
@@ -197,9 +203,13 @@ class GenerateConfig:
 
         rig = self.rig if isinstance(self.rig, Rig) else load_rig(self.rig)
         optics = OpticsRanges.from_dict(dict(self.optics))
-        freqs = tuple(int(f) for f in self.psp_freqs)
-        if freqs and freqs[-1] != rig.periods:
-            raise ConfigError(f"--psp-freqs must end at the rig's single-shot frequency {rig.periods:g}, got {freqs[-1]}")
+        freqs = tuple(psp_freq(f) for f in self.psp_freqs)
+        if freqs and not math.isclose(float(freqs[-1]), float(rig.periods), rel_tol=1e-6, abs_tol=1e-9):
+            top = psp_freq(rig.periods)
+            raise ConfigError(f"--psp-freqs must end at the rig's single-shot frequency {top!r}, got {freqs[-1]!r} "
+                              f"(e.g. --psp-freqs 1,{max(2, round(float(top) ** 0.5))},{top!r})")
+        if freqs:  # a ladder that ends within rounding of the rig's frequency ends exactly there
+            freqs = freqs[:-1] + (psp_freq(rig.periods),)
         extra = {} if self.pedestal is None else {"pedestal_probability": float(self.pedestal)}
         scene = SceneRanges(objects=tuple(self.objects), procedural_share=self.share,
                             procedural_pool=int(self.procedural_pool), **extra)

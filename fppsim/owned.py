@@ -97,6 +97,7 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
     folder = Path(folder)
     names = list(dict.fromkeys(str(n) for n in names))
     record = owners(folder)
+    before = None if record is None else dict(record)
     if record is None:
         record = {n: tool for n in (legacy() if legacy is not None else ()) if (folder / n).exists()}
     stamps = _stamps(folder)
@@ -113,7 +114,8 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
             raise ForeignFiles(f"{path} exists and was not written by {tool}: {hint}")
         raise ForeignFiles(f"{path} was written by {owner}, not {tool}: {hint}")
     record.update({n: tool for n in names})
-    _write(folder, record)
+    if record != before:  # an unchanged record is not rewritten (a re-run touches nothing)
+        _write(folder, record)
 
 
 def record_created(folder: str | os.PathLike, tool: str, name: str) -> None:

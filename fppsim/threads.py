@@ -16,6 +16,25 @@ from collections.abc import Callable, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import TypeVar
 
+
+def machine_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask; ``os.cpu_count()`` where there is none):
+    the bound of every resource option that starts threads or processes (``--threads``, ``--workers``)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def check_cores(value: int, flag: str, what: str, error) -> int:
+    """``value`` if it is at most :func:`machine_cores`, else ``error`` (one line saying the cost)."""
+    cores = machine_cores()
+    if int(value) > cores:
+        raise error(f"{flag} {value}: this machine has {cores} CPU core(s); more {what} than cores only slow the run "
+                    f"down (each waits for a core: an epoch took 60x longer at 1000 threads on 2 cores); give at most "
+                    f"{cores}")
+    return value
+
 T = TypeVar("T")
 
 _PREFIX = "fppsim-helper"

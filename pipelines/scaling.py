@@ -576,28 +576,39 @@ def _key(entry: dict) -> tuple:
     return entry["name"], entry.get("resize"), entry.get("device", "cpu")
 
 
-def load_ledger(path: Path) -> dict:
+def _strict_json(text: str):
+    """``json.loads`` that refuses NaN and Infinity (not JSON; a record holding them is not strict JSON)."""
+    def bad(name):
+        raise ValueError(f"non-finite number {name}")
+    return json.loads(text, parse_constant=bad)
+
+
+def load_ledger(path: Path, role: str = "--ledger") -> dict:
     """The results recorded so far in ``path`` (a ``scaling.json``; ``{"arms": []}`` when there is none).
     Files of the first version (arm-level ``commands``, no resize or device) are read too: the resize comes
-    from their commands, the device is the CPU. Anything else is refused (:class:`UsageProblem`): the report
-    replaces only a study record."""
+    from their commands, the device is the CPU. Anything else is refused (:class:`UsageProblem`, naming
+    ``role``: ``--ledger`` for the record written, ``--merge`` for one read into it): the report replaces only
+    a study record, and a record holds strict JSON (no NaN), each arm (name, resize, device) once."""
     import re
 
+    hint = "name another --ledger" if role == "--ledger" else "nothing merged"
     if not path.exists():
         return {"arms": []}
     try:
-        doc = json.loads(path.read_text())
+        doc = _strict_json(path.read_text())
     except (OSError, UnicodeDecodeError, ValueError) as exc:
-        raise UsageProblem(f"{path}: not a readable scaling.json ({type(exc).__name__}); name another --ledger") \
-            from None
+        why = str(exc) if str(exc).startswith("non-finite") else type(exc).__name__
+        raise UsageProblem(f"{role} {path}: not a readable scaling.json ({why}); {hint}") from None
     if not (isinstance(doc, dict) and isinstance(doc.get("arms"), list)
             and all(isinstance(a, dict) and isinstance(a.get("name"), str) and isinstance(a.get("seeds"), list)
                     for a in doc["arms"])):
-        raise UsageProblem(f"{path}: not a scaling study record (no list of arms with seeds); name another --ledger")
+        raise UsageProblem(f"{role} {path}: not a scaling study record (no list of arms with seeds); {hint}")
     bad = next((a["name"] for a in doc["arms"] for s_ in a["seeds"]
-                if not (isinstance(s_, dict) and isinstance(s_.get("seed"), int))), None)
+                if not (isinstance(s_, dict) and isinstance(s_.get("seed"), int) and not isinstance(s_["seed"], bool))),
+               None)
     if bad is not None:
-        raise UsageProblem(f"{path}: arm {bad!r} holds a seed entry without an integer 'seed'; not a study record")
+        raise UsageProblem(f"{role} {path}: arm {bad!r} holds a seed entry without an integer 'seed'; "
+                           f"not a study record; {hint}")
     for arm in doc["arms"]:
         commands = arm.pop("commands", None) or []
         if "resize" not in arm:
@@ -611,6 +622,15 @@ def load_ledger(path: Path) -> dict:
                 match = [c for c in commands if f"--seed {seed['seed']}'" in c]
                 if match:
                     seed["sim2real_command"] = match[0]
+    keys = [_key(a) for a in doc["arms"]]
+    twice = next((k for k in keys if keys.count(k) > 1), None)
+    if twice is not None:
+        raise UsageProblem(f"{role} {path}: holds arm {arm_label(dict(zip(('name', 'resize', 'device'), twice)))} "
+                           f"twice; not a study record; {hint}")
+    for arm in doc["arms"]:
+        seeds = [s_["seed"] for s_ in arm["seeds"]]
+        if len(set(seeds)) != len(seeds):
+            raise UsageProblem(f"{role} {path}: arm {arm_label(arm)} holds a seed twice; not a study record; {hint}")
     return doc
 
 
@@ -643,48 +663,141 @@ def write_report(args, arms: list[dict], configs: dict) -> dict:
             meta = {"name": arm["name"], "resize": args.resize, "device": res["device"],
                     "description": arm["description"], "series": arm["series"], "count": cfg.count,
                     "epochs": int(var.train.get("epochs") or cfg.epochs), "steps": steps_of(cfg, var),
+                    **{k: getattr(cfg, k) for k in ("batch_size", "lr", "base_channels", "model", "loss", "scale")},
                     "generate": arm["generate"], "train": arm["train"]}
-            _add_seed(entries, meta, {"seed": seed, **res})
+            _add_seed(entries, meta, _finite({"seed": seed, **res}),
+                      f"arm {arm['name']!r} of {args.arms_file} against --ledger {ledger}")
     return _write_ledger(args, ledger, entries, found, pending)
 
 
-def _add_seed(entries: dict, meta: dict, new: dict) -> None:
-    """Put one seed's result ``new`` into the arm entry of ``meta`` (its name, resize, device and description)
-    in ``entries`` (keyed by :func:`_key`): a seed recorded before with another result keeps that under
-    ``reruns``."""
+# what defines an arm beside its key (name, resize, device): seeds of two definitions are never pooled
+DEFINITION = ("count", "epochs", "steps", "batch_size", "lr", "base_channels", "model", "loss", "scale",
+              "generate", "train")
+
+
+def _flag_key(value):
+    """An arm's flag list as compared between records: absolute paths by their name (another machine's
+    checkout has another root)."""
+    if isinstance(value, list):
+        return [Path(v).name if isinstance(v, str) and v.startswith("/") else v for v in value]
+    return value
+
+
+def definition_conflict(have: dict, new: dict) -> str | None:
+    """How ``new``'s arm definition differs from ``have``'s (``"count 50 vs 400, epochs 2 vs 10"``), over the
+    :data:`DEFINITION` keys both give; None when they agree (a key only one gives is no conflict: records of
+    the first version carry fewer)."""
+    diffs = [f"{k} {new[k]} vs {have[k]}" for k in DEFINITION
+             if have.get(k) is not None and new.get(k) is not None and _flag_key(have[k]) != _flag_key(new[k])]
+    return ", ".join(diffs) or None
+
+
+def _check_finite(value, where: str) -> None:
+    """Refuse a non-finite number anywhere in ``value`` (:class:`UsageProblem` naming ``where``)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise UsageProblem(f"{where}: holds a non-finite number ({value}); a study record holds finite numbers")
+    if isinstance(value, dict):
+        for v in value.values():
+            _check_finite(v, where)
+    elif isinstance(value, list):
+        for v in value:
+            _check_finite(v, where)
+
+
+def _finite(value):
+    """``value`` with every non-finite number None (a finished folder's metric that could not be computed)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite(v) for v in value]
+    return value
+
+
+def _add_seed(entries: dict, meta: dict, new: dict, source: str = "the arms file") -> str:
+    """Put one seed's result ``new`` into the arm entry of ``meta`` (its name, resize, device, definition and
+    description) in ``entries`` (keyed by :func:`_key`): a seed recorded before with another result keeps
+    that under ``reruns``. An arm recorded with another definition (:data:`DEFINITION`) is refused
+    (:class:`UsageProblem` naming ``source``): its seeds are not the recorded arm's. Returns ``"added"``,
+    ``"rerun"`` (another result for a recorded seed) or ``"same"`` (already recorded: nothing changed)."""
+    entry = entries.get(_key(meta))
+    if entry is not None:
+        conflict = definition_conflict(entry, meta)
+        if conflict:
+            raise UsageProblem(f"{source}: arm {arm_label(meta)} is not the recorded {arm_label(entry)} ({conflict}): "
+                               "its seeds would be pooled with another recipe's; rename the arm or use another "
+                               "--ledger (nothing written)")
     entry = entries.setdefault(_key(meta), {"name": meta["name"], "resize": meta.get("resize"),
                                             "device": meta.get("device", "cpu"), "seeds": []})
     entry.update({k: v for k, v in meta.items() if k not in ("name", "resize", "device", "seeds", "summary")})
     old = next((s for s in entry["seeds"] if s["seed"] == new["seed"]), None)
+    status = "added"
     if old is not None:
+        if old == new:
+            return "same"
         entry["seeds"].remove(old)
         earlier = old.pop("reruns", [])
         mine = [r for r in new.pop("reruns", []) if r not in earlier]
+        status = "same" if _same_result(old, new) and not mine else "rerun"
         if not _same_result(old, new):
             earlier = [*earlier, old]
         if earlier or mine:
             new["reruns"] = [*earlier, *mine]
     entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
+    return status
 
 
 def merge_records(args) -> dict:
     """``--merge FILE ...``: add every seed of the study records FILE (e.g. brought back from a GPU machine) to
     ``args.ledger``, with the same rules as a finished folder (nothing recorded is dropped; a differing
-    result keeps the earlier one under ``reruns``), and rewrite its table and figures."""
+    result keeps the earlier one under ``reruns``; an arm of another definition under the same name, or a
+    non-finite number, refuses the whole merge before anything is written), and rewrite its table and
+    figures. The record returned counts ``found`` (seeds added or re-run) and ``merge_counts``."""
     ledger = Path(args.ledger)
     entries = {_key(a): a for a in load_ledger(ledger)["arms"]}
-    found = 0
+    counts = {"added": 0, "rerun": 0, "same": 0}
     for path in args.merge:
-        if Path(path).resolve() == ledger.resolve():
-            raise UsageProblem(f"--merge {path}: is the --ledger itself")
         if not Path(path).is_file():
             raise UsageProblem(f"--merge {path}: no such file")
-        for arm in load_ledger(Path(path))["arms"]:
+        if Path(path).resolve() == ledger.resolve():
+            raise UsageProblem(f"--merge {path}: is the --ledger itself")
+        for arm in load_ledger(Path(path), "--merge")["arms"]:
             meta = {k: v for k, v in arm.items() if k not in ("seeds", "summary")}
+            _check_finite(meta, f"--merge {path}: arm {arm_label(arm)}")
             for seed in arm["seeds"]:
-                _add_seed(entries, meta, dict(seed))
-                found += 1
-    return _write_ledger(args, ledger, entries, found, [])
+                _check_finite(seed, f"--merge {path}: arm {arm_label(arm)} seed {seed['seed']}")
+                counts[_add_seed(entries, meta, dict(seed), f"--merge {path}")] += 1
+    doc = _write_ledger(args, ledger, entries, counts["added"] + counts["rerun"], [])
+    doc["merge_counts"] = counts
+    return doc
+
+
+STUDY_TOOL = "pipelines/scaling.py"
+
+
+def claim_beside(ledger: Path, files: list[Path]) -> None:
+    """Claim the files written beside ``ledger`` (its table and figures) in the folder's ownership record
+    (:mod:`fppsim.owned`) before anything is written: a file there that the study did not write (a user's
+    ``study_samples.png``) is refused (:class:`UsageProblem`). A folder without a record adopts the table
+    scaling.py wrote (its first line) and, with it, that ledger's figures."""
+    from fppsim.errors import ForeignFiles
+    from fppsim.owned import claim
+
+    folder = ledger.parent
+    table = files[0]
+
+    def legacy():
+        try:
+            ours = table.is_file() and table.read_text(errors="replace").startswith(TABLE_MARK)
+        except OSError:
+            ours = False
+        return [f.name for f in files] if ours else []
+    try:
+        claim(folder, STUDY_TOOL, [f.name for f in files], legacy=legacy,
+              hint="move it away or name another --ledger (nothing written)")
+    except ForeignFiles as exc:
+        raise UsageProblem(str(exc)) from None
 
 
 def _write_ledger(args, ledger: Path, entries: dict, found: int, pending: list[str]) -> dict:
@@ -702,11 +815,16 @@ def _write_ledger(args, ledger: Path, entries: dict, found: int, pending: list[s
     table = ledger.with_name(f"{ledger.stem}_table.md")
     if table.exists() and not (table.is_file() and table.read_text(errors="replace").startswith(TABLE_MARK)):
         raise UsageProblem(f"{table}: exists and was not written by scaling.py; move it away")
+    try:
+        text = json.dumps(doc, indent=2, allow_nan=False)
+    except ValueError:
+        raise UsageProblem(f"--ledger {ledger}: a result is not a finite number; nothing written") from None
     ledger.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(ledger, json.dumps(doc, indent=2))
+    figures = {series: ledger.with_name(f"{ledger.stem}_{series}.png") for series in SERIES}
+    claim_beside(ledger, [table, *figures.values()])
+    atomic_write_text(ledger, text)
     atomic_write_text(table, TABLE_MARK + "\n" + markdown(doc))
-    for series in SERIES:
-        path = ledger.with_name(f"{ledger.stem}_{series}.png")
+    for series, path in figures.items():
         fig = plot_series(doc, series, path)
         print(f"figure: {fig}" if fig else f"figure {path.name}: no finished full-size arm of series {series!r}")
     doc["found"], doc["pending"] = found, pending
@@ -1034,7 +1152,9 @@ def main(argv=None) -> int:
         except UsageProblem as exc:
             print(f"scaling.py: error: {exc}", file=sys.stderr)
             return 2
-        print(f"study: {doc['found']} seed result(s) merged; {args.ledger} records "
+        c = doc["merge_counts"]
+        print(f"study: {doc['found']} seed result(s) merged ({c['added']} new, {c['rerun']} replacing another result, "
+              f"kept under its reruns; {c['same']} already recorded, unchanged); {args.ledger} records "
               f"{sum(len(a['seeds']) for a in doc['arms'])} (arm, seed) in {len(doc['arms'])} arm(s)", flush=True)
         return 0
     try:

@@ -43,7 +43,7 @@ from fppsim.errors import DatasetError
 from fppsim.files import atomic_write_text, clean_stale_tmp
 
 __all__ = [
-    "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",
+    "psp_freq", "psp_image_name", "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",
     "SAMPLE_ID_RE", "sample_id", "is_own_sample", "foreign_sample_folders", "manifest_record", "reconcile",
     "read_manifest", "manifest_ids", "append_manifest",
     "FIGSHARE_PAIRS", "find_figshare_pair",
@@ -182,6 +182,20 @@ PRESETS: dict[str, LabelTransform] = {"figshare": LabelTransform()}
 
 
 # ============================================================================================ native
+def psp_freq(value) -> int | float:
+    """A phase-shifting frequency (periods across the projector) as the native layout records it: an int when
+    it is whole (``80``), else the float itself (a fitted rig's ``35.6845...``)."""
+    v = float(value)
+    return int(v) if v.is_integer() else v
+
+
+def psp_image_name(freq, step: int) -> str:
+    """``psp/f{f}_s{n}.png``: a native sample's phase-shifting image of frequency ``freq`` and step ``step``
+    (a whole frequency as an integer, ``f80_s0``; another by its repr, ``f35.68451_s0``)."""
+    f = psp_freq(freq)
+    return f"psp/f{f if isinstance(f, int) else repr(f)}_s{int(step)}.png"
+
+
 def sample_id(index: int) -> str:
     return f"{int(index):06d}"
 

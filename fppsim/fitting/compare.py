@@ -48,7 +48,7 @@ import os
 import numpy as np
 
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import JSON_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt, quarter_periods
 from fppsim.phase.fringe_axis import fringe_orientation
@@ -175,13 +175,17 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
 
 
 def compare_real(real_dir, syn_dir, max_samples: int | None = 50, label: LabelTransform = FIGSHARE,
-                 object_mm: float = 2.0, json_path: str | os.PathLike | None = None) -> dict:
+                 object_mm: float = 2.0, json_path: str | os.PathLike | None = None, force: bool = False) -> dict:
     """Statistics of a real and a synthetic dataset, side by side (``fppsim compare-real``).
 
     ``label`` converts native fppsim heights (mm) to labels; figshare-format
     folders already hold labels.  Returns {'real': dataset_stats(...), 'synthetic': dataset_stats(...),
-    'difference': {key: synthetic - real}}, also written to ``json_path`` (atomically) when given.
+    'difference': {key: synthetic - real}}, also written to ``json_path`` (atomically) when given; an
+    existing ``json_path`` is replaced only with ``force`` (checked before anything is read).
     """
+    check_outputs([Output("--json", json_path, JSON_SUFFIXES, "the JSON statistics",
+                          holds_keys("real", "synthetic"))], inputs=[real_dir, syn_dir],
+                  force=force)
     kw = dict(max_samples=max_samples, label=label, object_mm=object_mm)
     real = dataset_stats(real_dir, **kw)
     syn = dataset_stats(syn_dir, **kw)

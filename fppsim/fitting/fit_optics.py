@@ -44,7 +44,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.files import atomic_write_text, check_output_file
+from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
@@ -341,13 +341,16 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
                      fixed=fixed, n_images=int(sum(np.isfinite(p["gain"]) for p in per)))
 
 
+OPTICS_HEADER = "# optics ranges fitted by `fppsim fit-optics`"
+
+
 def ranges_yaml(fit: OpticsFit, source: str = "") -> str:
     """The fitted ranges as YAML for ``fppsim generate --optics-file`` (only the fitted names)."""
     import yaml
 
     doc = {k: [round(float(v[0]), 5), round(float(v[1]), 5)]
            for k, v in fit.ranges.to_dict().items() if k in fit.centre}
-    head = ["# optics ranges fitted by `fppsim fit-optics`" + (f" to {source}" if source else ""),
+    head = [OPTICS_HEADER + (f" to {source}" if source else ""),
             f"# from {fit.n_images} image(s); centres: " + ", ".join(f"{k} {v:.4g}" for k, v in fit.centre.items())]
     if fit.fixed:
         head.append("# not measurable from the images, kept at: " + ", ".join(f"{k} {v:g}" for k, v in fit.fixed.items()))
@@ -466,9 +469,11 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     """
     lines = ReportLines(echo)
     say = lines.say
-    out = check_output_file(config.out, config.force)
-    if config.json:  # an existing report is someone's file too: replaced only with force
-        check_output_file(config.json, config.force)
+    out, *_ = check_outputs([Output("--out", config.out, YAML_SUFFIXES, "optics ranges (YAML)",
+                                    starts_with(OPTICS_HEADER)),
+                             Output("--json", config.json, JSON_SUFFIXES, "the JSON report",
+                                    holds_keys("centre", "per_image"))],
+                            inputs=[config.real, None if isinstance(config.rig, Rig) else config.rig], force=config.force)  # before any work
     rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)

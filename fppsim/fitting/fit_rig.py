@@ -37,7 +37,7 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.errors import UsageError
-from fppsim.files import atomic_write_text, check_output_file
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
@@ -203,6 +203,22 @@ class FitRigResult:
         return doc
 
 
+def unused_label_options(config, labelled: bool, axis: str = "vertical") -> None:
+    """Without a base rig (:class:`fppsim.fitting.rig_start.StartRigConfig`) the period-fit options
+    ``config.label_options`` names as given (and a ``distance`` fit) steer only the label-based fit: refused
+    (:class:`UsageError`) when it cannot run, the images having no height labels or their fringes not being
+    vertical (``axis``), instead of being ignored."""
+    given = tuple(config.label_options) + (("--params distance",) if "distance" in config.params
+                                           and "--params" not in config.label_options else ())
+    why = ("needs height labels" if not labelled else
+           "reads vertical fringes" if axis != "vertical" else None)
+    if given and why:
+        has = "none" if not labelled else f"{axis} fringes"
+        raise UsageError(f"{', '.join(given)}: without --base these steer only the label-based fit, which {why}; "
+                         f"{config.real} has {has}: drop them (the rig from the images fits its own parameters), "
+                         "or give --base RIG")
+
+
 def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = None) -> FitRigResult:
     """Read real fringe images, measure their band periods (:func:`measure_bands`), fit the rig (the
     baseline first with ``sensitivity="auto"`` and labelled images: :func:`fit_baseline`; else
@@ -211,9 +227,11 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     """
     lines = ReportLines(echo)
     say = lines.say
-    out = check_output_file(config.out, config.force)
-    if config.json:  # an existing report is someone's file too: replaced only with force
-        check_output_file(config.json, config.force)
+    out, *_ = check_outputs([Output("--out", config.out, RIG_SUFFIXES, "a rig file",
+                                    holds_keys("camera", "projector")),
+                             Output("--json", config.json, JSON_SUFFIXES, "the JSON report",
+                                    holds_keys("params", "measured"))],
+                            inputs=[config.real, config.base], force=config.force)  # before any work
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)

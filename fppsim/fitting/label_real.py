@@ -191,6 +191,7 @@ class Scan:
     rig: Rig
     source: str
     note: str | None = None
+    misread: bool = False  # read in a --convention its files are clearly not written in (note says so)
 
 
 def detect_layout(root: str | os.PathLike) -> str:
@@ -234,6 +235,9 @@ def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:
     return ids
 
 
+MISREAD = "phase read in a convention its files are not written in (see read_as)"
+
+
 def _check_camera(rig: Rig, shape: tuple, where: str) -> None:
     check_image_size(rig, shape, where, who="rig camera is", hint="; pass the rig of these scans with --rig",
                      error=ConfigError, template="{who} {camera} but images are {got} ({what}){hint}")
@@ -244,7 +248,7 @@ def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
     _check_camera(rig, s.image.shape, str(open_source(cfg.root).ipattern_file(sid)))
     return Scan(id=sid, image=s.image, phase=s.phase, valid=s.valid & np.isfinite(s.phase),
                 periods=float(cfg.periods if cfg.periods is not None else rig.periods), rig=rig, source=s.path,
-                note=reading_note(s.meta))
+                note=reading_note(s.meta), misread=bool(s.meta.get("misread")))
 
 
 def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
@@ -494,7 +498,7 @@ class LabelRealReport:
 
 
 def _rig_warning(report: LabelRealReport, cfg: LabelRealConfig) -> str | None:
-    bad = [s for s in report.scans if not s["fits"]]
+    bad = [s for s in report.scans if not s["fits"] and s["problems"] != [MISREAD]]
     if not bad:
         return None
     worst = max(bad, key=lambda s: (s["plane"]["rms_mm"] or math.inf))
@@ -561,6 +565,9 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                         if not any("read_as" in r for r in report.scans):
                             report.warnings.append(scan.note)
                         rec["read_as"] = scan.note
+                        if scan.misread:  # a scan read in a convention it is not written in does not fit
+                            rec["fits"] = False
+                            rec["problems"].append(MISREAD)
                     valid = np.isfinite(height)
                     streams[0].write(encode_fringe(scan.image, valid))
                     streams[1].write(cfg.label.label_from_height_mm(np.nan_to_num(height), valid))

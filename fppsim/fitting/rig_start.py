@@ -52,10 +52,10 @@ from fppsim.commands import ReportLines
 from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.errors import RigError, UsageError
-from fppsim.files import atomic_write_text, check_output_file
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
-from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit
+from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
 from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, PlanePhaseFit, find_plane,
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
@@ -526,8 +526,8 @@ class StartRigConfig:
         convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`). params,
         sensitivity, col_bands, row_bands : the label-based fits that follow with height labels and
-        vertical fringes. max_images : images read
-        (at most 4 phase maps are fitted). json : also write the report as JSON.
+        vertical fringes (``label_options``: those given, refused where it cannot run). max_images : images
+        read (at most 4 phase maps are fitted). json : also write the report as JSON.
     """
 
     real: object
@@ -546,6 +546,7 @@ class StartRigConfig:
     sensitivity: str = "auto"
     json: object = None
     force: bool = False
+    label_options: tuple = ()  # flags of params / col_bands / row_bands / sensitivity given: fit_rig.unused_label_options
 
     def __post_init__(self):
 
@@ -595,12 +596,13 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     Writes ``config.out`` (and ``config.json``). ``echo`` receives every report line."""
     lines = ReportLines(echo)
     say = lines.say
-    out = check_output_file(config.out, config.force)
-    if config.json:
-        check_output_file(config.json, config.force)
+    out, *_ = check_outputs([Output("--out", config.out, RIG_SUFFIXES, "a rig file", holds_keys("camera", "projector")),
+                             Output("--json", config.json, JSON_SUFFIXES, "the JSON report", holds_keys("start"))],
+                            inputs=[config.real], force=config.force)  # before any work
     if "distance" in config.params and config.sensitivity != "auto":
         raise RigError("fitting 'distance' needs the height labels: drop it from the parameters or use "
                        "sensitivity 'auto'")
+    unused_label_options(config, open_source(config.real).labelled)  # refused, not ignored, before any work
     start = rig_from_images(config.real, fov=config.fov, focal=config.focal, distance=config.distance,
                             baseline=config.baseline, projector_side=config.projector_side,
                             max_maps=min(int(config.max_images), 4), convention=config.convention,
@@ -610,6 +612,7 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     if "distance" in config.params and not labelled:
         raise RigError("fitting 'distance' needs images with height labels, objects and projector shadows "
                        "(figshare folder or the real-sample pair)")
+    unused_label_options(config, True, start.axis)  # before anything is written
     if labelled and config.sensitivity == "auto":
         if start.axis != "vertical":
             say("height labels: the label-based depth fits read vertical fringes only; the depth scale stays "

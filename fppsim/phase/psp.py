@@ -467,7 +467,7 @@ def decode_stacks(stacks, rig, freqs=DEFAULT_FREQS, min_modulation: float = 3.0,
         :func:`fppsim.threads.helper_pool`'s): every step is per pixel, or (the order check) reads a
         one-row halo, so the result is the very same; 1 (default) decodes in one piece.
     """
-    freqs = tuple(int(f) for f in freqs)
+    freqs = tuple(int(f) if float(f).is_integer() else float(f) for f in freqs)  # a fitted rig's need not be whole
     if threads > 1:
         return _decode_in_bands(stacks, rig, freqs, min_modulation, min_ratio, neighbour_check, shifts, threads)
     quality, un = _phases(stacks, freqs, shifts, min_modulation, min_ratio)

@@ -19,6 +19,7 @@ from fppsim.geometry.jitter import RigJitter, jitter_rig
 from fppsim.geometry.rig import Rig
 from fppsim.rendering.scene import MeshAsset, SceneRanges, sample_scene
 from fppsim.phase.psp import decode_stacks
+from fppsim.dataio.formats import psp_freq, psp_image_name
 
 __all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode"]
 
@@ -59,7 +60,7 @@ class SynthConfig:
         """Inverse of :meth:`to_dict` (the rig is stored beside it, see :meth:`from_settings`)."""
         scene = {k: tuple(v) if isinstance(v, list) else v for k, v in d["scene_ranges"].items()}
         return cls(rig=rig, optics=OpticsRanges.from_dict(d["optics_ranges"]), scene=SceneRanges(**scene),
-                   supersample=int(d["supersample"]), psp_freqs=tuple(d["psp_freqs"]), psp_steps=int(d["psp_steps"]),
+                   supersample=int(d["supersample"]), psp_freqs=tuple(psp_freq(f) for f in d["psp_freqs"]), psp_steps=int(d["psp_steps"]),
                    min_object_fraction=float(d["min_object_fraction"]), max_attempts=int(d["max_attempts"]),
                    rig_jitter=RigJitter(**d.get("rig_jitter", {"yaw": 0.0, "focal": 0.0})))
 
@@ -128,7 +129,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     for f in config.psp_freqs:
         for n in range(config.psp_steps):
             patterns.append((float(f), 2.0 * np.pi * n / config.psp_steps))
-            names.append(f"psp/f{f}_s{n}.png")
+            names.append(psp_image_name(f, n))
     # the camera noise of the images, drawn on a helper thread while the images form
     noise_rng = None if noise_free else noise_source(np.random.default_rng(noise_ss), optics,
                                                      (cam.height + 2 * m, cam.width + 2 * m), len(patterns))
@@ -144,7 +145,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         "mask": mask.astype(np.float32),
     }
     if config.psp_freqs:
-        stacks = {f: [images[f"psp/f{f}_s{n}.png"] for n in range(config.psp_steps)] for f in config.psp_freqs}
+        stacks = {f: [images[psp_image_name(f, n)] for n in range(config.psp_steps)] for f in config.psp_freqs}
         arrays.update(psp_decode(stacks, rig, tuple(config.psp_freqs)))
 
     fringe = images["fringe.png"]

@@ -17,7 +17,7 @@ from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
-from fppsim.dataio.formats import read_manifest, read_settings
+from fppsim.dataio.formats import psp_image_name, read_manifest, read_settings
 from fppsim.dataio.readers import load_native_sample, open_source
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 from fppsim.plots import save_figure
@@ -80,7 +80,7 @@ def load_sample(root: Path, rec: dict) -> tuple[dict, dict | None]:
                             "re-generate without --no-psp")
     stacks = {}
     for f in psp["freqs"]:
-        imgs = [cv2.imread(str(folder / "psp" / f"f{f}_s{n}.png"), cv2.IMREAD_UNCHANGED) for n in range(psp["steps"])]
+        imgs = [cv2.imread(str(folder / psp_image_name(f, n)), cv2.IMREAD_UNCHANGED) for n in range(psp["steps"])]
         if any(im is None for im in imgs):
             return s, None
         stacks[f] = np.stack(imgs)

@@ -188,6 +188,10 @@ def check_options(cfg: dict) -> None:
         raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
     if cfg.get("threads") is not None and not (isinstance(cfg["threads"], int) and 1 <= cfg["threads"] <= 1024):
         raise UsageError(f"--threads must be a number of CPU threads from 1 to 1024, got {cfg['threads']!r}")
+    if cfg.get("threads") is not None:
+        from fppsim.threads import check_cores  # lazy: the config module stays light for the CLI's parser
+
+        check_cores(cfg["threads"], "--threads", "threads", UsageError)
     for key in ("epochs", "batch_size"):
         if key in cfg and cfg[key] < 1:
             raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")

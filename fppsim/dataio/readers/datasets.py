@@ -24,7 +24,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.errors import DatasetError
-from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids, read_settings
+from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids, psp_freq, psp_image_name, read_settings
 
 __all__ = ["READ_ERRORS", "LABEL_SOURCES", "load_native_sample", "read_native_label", "read_fringe_image",
            "read_native_pair", "read_native_phase", "read_native_psp", "check_psp_available", "open_figshare_pair", "check_figshare_arrays",
@@ -139,7 +139,7 @@ def read_native_psp(folder: str | os.PathLike) -> tuple[np.ndarray, dict, np.nda
         raise DatasetError(f"{folder}: no phase-shifting images (generated with --no-psp?); label-real decodes "
                            "psp/f{f}_s{n}.png")
     try:
-        freqs = tuple(int(f) for f in psp["freqs"])
+        freqs = tuple(psp_freq(f) for f in psp["freqs"])
         steps = int(psp["steps"])
         shifts = np.asarray(psp.get("shifts_rad") or [2 * np.pi * n / steps for n in range(steps)], np.float64)
     except (KeyError, TypeError, ValueError):
@@ -149,7 +149,7 @@ def read_native_psp(folder: str | os.PathLike) -> tuple[np.ndarray, dict, np.nda
     for f in freqs:
         imgs = []
         for n in range(steps):
-            path = folder / "psp" / f"f{f}_s{n}.png"
+            path = folder / psp_image_name(f, n)
             img = read_gray_image(path)
             if img.shape != image.shape:
                 raise DatasetError(f"{path}: shape {img.shape} differs from fringe.png's {image.shape}")

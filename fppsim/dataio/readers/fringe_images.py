@@ -70,6 +70,8 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
     if not path.is_dir():
         raise ValueError(f"{path}: not a folder or image file")
 
+    if src.kind == "psp-partial":  # a damaged scan folder is named, never read as plain images
+        raise ValueError(src.incomplete())
     if src.kind in ("psp", "ipattern"):
         full = src.kind == "psp"
         try:

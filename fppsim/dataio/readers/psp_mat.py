@@ -354,12 +354,22 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
                modulation=None, keys={"sin": "PSin", "cos": "PCos", "order": "Order"},
                meta={"id": sid, "convention": convention, "negate_sin": bool(negate_sin), "root": str(root)},
                path=str(paths["sin"]), image=img)
-    check = reading_check(s, convention, negate_sin) if auto else None
-    if check is not None:  # written another way: read it that way
-        conv, neg = check["best"]
-        s.psin = -psin if neg != bool(negate_sin) else psin
-        s.wrapped, s.phase = _read_phase(s.psin, pcos, order, valid, conv)
-        s.meta.update(convention=conv, negate_sin=neg, read_as=check | {"from": (convention, bool(negate_sin))})
+    # how well the reading fits is measured whether it was given or detected (its phase jump share);
+    # auto chooses the convention, and the sine's sign too unless negate_sin fixes it (docs/own_rig.md)
+    given = (convention, bool(negate_sin))
+    if auto:
+        pick = reading_check(s, convention, negate_sin,
+                             readings=[r for r in READINGS if r[1]] if negate_sin else READINGS)
+        if pick["best"] is not None:  # written another way: read it that way
+            conv, neg = pick["best"]
+            s.psin = -psin if neg != bool(negate_sin) else psin
+            s.wrapped, s.phase = _read_phase(s.psin, pcos, order, valid, conv)
+            s.meta.update(convention=conv, negate_sin=neg, read_as=pick | {"from": given})
+    conv, neg = s.meta["convention"], s.meta["negate_sin"]
+    check = reading_check(s, conv, neg)
+    s.meta["jump_share"] = check["given"]
+    if check["best"] is not None:  # read as given, and clearly not how the files are written: said, not changed
+        s.meta["misread"] = check | {"from": (conv, neg)}
     return s
 
 
@@ -404,21 +414,21 @@ def phase_jump_share(phase: np.ndarray, valid: np.ndarray) -> float:
 
 
 def reading_check(s: PspMat, convention: str = "benchmark", negate_sin: bool = False, factor: float = 4.0,
-                  floor: float = 0.01) -> dict | None:
+                  floor: float = 0.01, readings=READINGS) -> dict:
     """Whether a folder-layout sample (:func:`load_psp_folder_sample`, read with ``convention`` /
     ``negate_sin``) is written another way: the phase jump share (:func:`phase_jump_share`) of every
-    reading in :data:`READINGS` from the same files; None when the given one is the smoothest or within
-    ``factor`` of it, or jumps at fewer than ``floor`` of the pixel pairs. Else ``{"given": share, "best":
-    (convention, negate_sin), "best_share": share}``."""
+    reading in ``readings`` (:data:`READINGS`) from the same files: ``{"given": share, "best": (convention, negate_sin),
+    "best_share": share}``, with ``best`` None when the given one is the smoothest or within ``factor`` of
+    it, or jumps at fewer than ``floor`` of the pixel pairs (it fits)."""
     psin = -s.psin if negate_sin else s.psin  # the files' own PSin
     valid = s.valid & (s.image > 0) if s.image is not None else s.valid
     shares = {}
-    for conv, neg in READINGS:
+    for conv, neg in {*readings, (convention, bool(negate_sin))}:
         shares[conv, neg] = phase_jump_share(_read_phase(-psin if neg else psin, s.pcos, s.order, s.valid, conv)[1], valid)
     given = shares[convention, bool(negate_sin)]
-    best = min(READINGS, key=lambda r: shares[r])
+    best = min(readings, key=lambda r: shares[r])
     if given < floor or given <= factor * shares[best]:
-        return None
+        return {"given": given, "best": None, "best_share": shares[best]}
     return {"given": given, "best": best, "best_share": shares[best]}
 
 
@@ -432,8 +442,17 @@ def reading_words(convention: str, negate_sin: bool) -> str:
 
 
 def reading_note(meta: dict, flags: tuple[str, str] = ("--convention", "--negate-sin")) -> str | None:
-    """One report line for a sample that :data:`AUTO` read another way than given (``meta`` of
-    :func:`load_psp_folder_sample`), naming the options ``flags`` that read it so; None when read as given."""
+    """One report line for a sample that :data:`AUTO` read another way than given, or that was read as given
+    although its files are clearly written another way (``meta`` of :func:`load_psp_folder_sample`: a
+    warning), naming the options ``flags`` that read it so; None when the reading fits."""
+    wrong = meta.get("misread")
+    if wrong:
+        conv, neg = wrong["best"]
+        where = f"{meta.get('root', '')}/{meta['id']}" if meta.get("id") else meta.get("root", "")
+        return (f"{where}: read as {reading_words(*wrong['from'])} its phase jumps by more than pi between "
+                f"{wrong['given']:.1%} of neighbouring pixels, {wrong['best_share']:.1%} read as "
+                f"{reading_words(conv, neg)}: the files are written that way ({flags[0]} {conv}"
+                + (f" {flags[1]}" if neg else "") + f", or {flags[0]} auto): the phase read is WRONG")
     check = meta.get("read_as")
     if not check:
         return None

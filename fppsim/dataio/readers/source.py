@@ -14,7 +14,7 @@ kind               what the path holds
 ``npy``            one ``.npy`` array file (a fringe or a stack of them)
 ``file``           any other file
 ``psp``            the phase-shifting scan folder: ``PSin/`` and ``PCos/`` (with ``Fringe/``, ``iPattern/``)
-``ipattern``       its single-shot images only: ``iPattern/`` without the ``PSin/`` + ``PCos/`` pair
+``ipattern``       its single-shot images only: ``iPattern/`` alone (with some of the others: ``psp-partial``)
 ``psp-partial``    some of those sub-folders, none of the two above (a damaged scan folder)
 ``figshare``       a figshare pair, ``f1_80.npy`` + ``Z.npy`` (either file: the other is then missing)
 ``real-sample``    the published pair ``fringe_pattern.npy`` + ``height_map.npy`` (likewise)
@@ -291,12 +291,22 @@ class IPatternFolder(_ScanFolder):
     kind = "ipattern"
 
     @classmethod
-    def recognise(cls, path: Path) -> bool:
-        return (path / FOLDERS["image"][0]).is_dir()
+    def recognise(cls, path: Path) -> bool:  # iPattern/ alone: with some of the others it is a damaged scan
+        return (path / FOLDERS["image"][0]).is_dir() and not any(
+            (path / sub).is_dir() for r, (sub, _) in FOLDERS.items() if r != "image")
 
 
 class PartialScanFolder(_ScanFolder):
     kind = "psp-partial"
+
+    def incomplete(self) -> str:
+        """One line naming what the damaged scan folder lacks (and holds)."""
+        subs = [sub for sub, _ in FOLDERS.values()]
+        missing = [f"{s}/" for s in subs if not (self.path / s).is_dir()]
+        found = [f"{s}/" for s in subs if (self.path / s).is_dir()]
+        return (f"{self.path}: incomplete phase-shifting scan folder: missing {', '.join(missing)} (found "
+                f"{', '.join(found)}); a scan needs PSin/, PCos/, Fringe/ and iPattern/ (iPattern/ alone: its "
+                "single-shot images only)")
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
