@@ -236,18 +236,18 @@ def add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
                                                  "metric x, y in the point cloud, and for --refine "
                                                  "[--refine: the checkpoint's rig, else fppsim's default rig]")
-    p.add_argument("--refine", choices=("none", "phase"), default="none",
+    p.add_argument("--refine", choices=("auto", "phase", "none"), default="auto",
                    help="phase: move the heights to agree with the image's own fringe phase (single-shot phase, "
-                        "rad) through the rig, where that phase is reliable and the move is within a margin; "
-                        "writes NAME_height_network.npy (the network's map) and refine.json (share of pixels moved) "
-                        "[none]")
-    p.add_argument("--refine-method", choices=REFINE_METHODS, default="relief",
-                   help="relief: unwrap the phase region by region, take each region's relief from the phase and "
-                        "its level from the network (no fringe-order guess; margin: moves up to 2 fringe periods "
-                        "of height); orders: the same regions with whole fringe orders, voted across projector "
-                        "shadows (one projector ray lights the shadow's far edge and the object's edge) or rounded "
-                        "from the network: levels from the phase through the rig, exact only as far as the rig's "
-                        "depth scale is [relief]")
+                        "rad) through the rig; writes NAME_height_network.npy (the network's map) and refine.json "
+                        "(per image: pixels moved; per phase region: order, confidence, decided); auto: phase when "
+                        "--rig is given (an image without readable fringes then keeps the network's heights, with a "
+                        "warning); none: the network's heights [auto]")
+    p.add_argument("--refine-method", choices=REFINE_METHODS, default="orders",
+                   help="orders: every region of continuous phase at one whole fringe order, chosen for the image at "
+                        "once from the network's level, projector-shadow bridges and seams of unreliable phase; "
+                        "level and relief from the phase through the rig (exact as far as the rig's depth scale is); "
+                        "a region it cannot decide keeps the network's heights and is named in a warning; relief: "
+                        "each region's relief from the phase, its level from the network [orders]")
     p.add_argument("--pixel-size", type=float, default=1.0, metavar="MM",
                    help="x, y spacing of the point cloud without --rig [1.0]")
     p.add_argument("--keep-all", action="store_true", help="keep every pixel (no invalid masking)")
@@ -267,14 +267,16 @@ def run_predict(args) -> int:
                            range=tuple(args.range) if args.range is not None else None, colormap=args.colormap,
                            ply=not args.no_ply, device=args.device, progress=not args.no_progress,
                            refine=None if args.refine == "none" else args.refine, refine_method=args.refine_method)
-    if args.refine == "none" and args.refine_method != "relief":
-        print("uhrnet predict: warning: --refine-method has no effect without --refine phase", file=sys.stderr)
+    if args.refine_method != "orders" and (args.refine == "none" or (args.refine == "auto" and not args.rig)):
+        print("uhrnet predict: warning: --refine-method has no effect without --refine phase or --rig", file=sys.stderr)
     result = predict(config)
     for line in result.warnings:
         print(f"uhrnet predict: warning: {line}", file=sys.stderr)
     for name, st in result.refine.items():
+        regions = (f", {st['regions']} phase regions in {st['components']} linked groups, {st['undecided_regions']} undecided"
+                   if st["method"] == "orders" else "")
         print(f"refine {name}: {st['moved_fraction']:.1%} of the pixels moved ({st['method']}, mean move "
-              f"{st['mean_abs_move_mm']:.2f} mm, phase origin {st['offset_rad']:+.2f} rad, {st['rig']})")
+              f"{st['mean_abs_move_mm']:.2f} mm, phase origin {st['offset_rad']:+.2f} rad{regions}, {st['rig']})")
     print(f"predict: {len(result.names)} height map(s) from {len(result.files)} input file(s) -> {args.out} "
           f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
           f"{', x/y from rig ' + str(args.rig) if args.rig else ''})")

@@ -158,7 +158,8 @@ def shadow_runs(shadow: np.ndarray) -> np.ndarray:
 
 
 def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80, step: int = 1, reach: int = 10,
-                   tolerance: float = 0.25, min_votes: int = 5, min_agreement: float = 0.6) -> list[Bridge]:
+                   tolerance: float = 0.25, min_votes: int = 5, min_agreement: float = 0.6,
+                   about: str = "order", max_offset: float = 0.5) -> list[Bridge]:
     """Order differences across shadows, voted row by row (module docstring).
 
     Parameters
@@ -169,7 +170,11 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
         pixel may start (the phase right at an edge is rarely trusted). step : extrapolation (px) past
         each side's last lit pixel into the shadow boundary, with the local phase slope.
     tolerance, min_votes, min_agreement : a bridge is returned when at least ``min_votes`` rows
-        crossed it and ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
+        crossed it and ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median
+        (``about="order"``), or of the median itself when ``about="median"``: real frames' votes cluster a
+        fraction of a period off the whole order (about +0.3 period on FP1523/1201, the single-shot phase
+        beside a shadow is biased), so they agree with each other but not with the order; the median must
+        then lie within ``max_offset`` periods of the order it rounds to.
 
     Returns
     -------
@@ -199,8 +204,9 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
     out = []
     for (a, b), v in votes.items():
         v = np.asarray(v)
-        k = int(np.round(np.median(v)))
-        agree = float(np.mean(np.abs(v - k) <= tolerance))
-        if len(v) >= min_votes and agree >= min_agreement:
+        med = float(np.median(v))
+        k = int(np.round(med))
+        agree = float(np.mean(np.abs(v - (k if about == "order" else med)) <= tolerance))
+        if len(v) >= min_votes and agree >= min_agreement and abs(med - k) <= max_offset:
             out.append(Bridge(a, b, k, int(len(v)), agree))
     return out

@@ -80,8 +80,18 @@ def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp
         assert net.shape == refined.shape == (32, 64)
         np.testing.assert_array_equal(np.isnan(net), np.isnan(refined))  # invalid stays invalid
         changed = np.isfinite(net) & (net != refined)  # (a moved pixel may land where it was)
-        assert changed.sum() <= stats["moved_fraction"] * np.isfinite(net).sum() + 0.5
-    # without --refine: no refine.json, no network copy
+        # orders also carries the moved pixels' level correction to the pixels left out beside them
+        touched = stats["moved_fraction"] + stats.get("carried_fraction", 0.0)
+        assert changed.sum() <= touched * np.isfinite(net).sum() + 0.5
+        if method == "orders":
+            assert len(stats["per_region"]) == stats["regions"]
+            assert all({"order", "confidence", "decided"} <= set(r) for r in stats["per_region"])
+    # with --rig the default (--refine auto) is the same path
+    assert main(["predict", str(run), str(real), "--out", str(tmp_path / "auto"), "--rig", str(tmp_path / "rig.json"),
+                 "--no-progress", "--no-ply"] + (["--refine-method", method] if method != "orders" else [])) == 0
+    for name in doc:
+        np.testing.assert_array_equal(np.load(tmp_path / "auto" / f"{name}_height.npy"), np.load(out / f"{name}_height.npy"))
+    # without --refine and --rig: no refine.json, no network copy
     assert main(["predict", str(run), str(real), "--out", str(tmp_path / "plain"), "--no-progress", "--no-ply"]) == 0
     assert not (tmp_path / "plain" / "refine.json").exists()
     assert not list((tmp_path / "plain").glob("*_height_network.npy"))
@@ -155,3 +165,22 @@ def test_a_region_merged_with_the_plane_is_rejected_by_the_margin():
     refined, moved, stats = refine_relief(estimate, wrapped, None, layer)
     assert stats["regions"] >= 2 and moved[plateau].mean() > 0.99
     assert np.abs((refined - h)[plateau] - np.median((refined - h)[plateau])).max() < 0.05
+
+
+def test_the_default_path_keeps_the_network_heights_of_an_image_without_fringes(run, tmp_path, capsys):
+    """--rig alone refines (--refine auto); an image whose fringe phase cannot be read keeps the network's heights
+    with a one-line warning, while an explicit --refine phase refuses it in one line."""
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    np.save(tmp_path / "flat.npy", np.zeros((32, 64), np.float32))
+    capsys.readouterr()
+    assert main(["predict", str(run), str(tmp_path / "flat.npy"), "--out", str(tmp_path / "o"), "--rig",
+                 str(tmp_path / "rig.json"), "--no-progress", "--no-ply"]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no fringe phase" in err[0] and "flat" in err[0]
+    np.testing.assert_array_equal(np.load(tmp_path / "o" / "flat_height.npy"),
+                                  np.load(tmp_path / "o" / "flat_height_network.npy"))
+    assert json.loads((tmp_path / "o" / "refine.json").read_text())["flat"]["method"] == "none"
+    assert main(["predict", str(run), str(tmp_path / "flat.npy"), "--out", str(tmp_path / "p"), "--rig",
+                 str(tmp_path / "rig.json"), "--refine", "phase", "--no-progress", "--no-ply"]) == 1
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1

@@ -15,13 +15,17 @@ the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image `
   are the camera rays of the calibrated rig (``fppsim.geometry.rig``) cut at the predicted height, in world
   millimetres; without it x, y are the pixel grid (times ``--pixel-size`` mm, y pointing up).
 
-``refine="phase"`` (``--refine phase``) then moves the heights to agree with the image's own fringe
-phase (:func:`fppsim.phase.single_shot.single_shot_phase`) through a rig (``rig``, default the checkpoint's own, else
-fppsim's default rig): ``refine_method="relief"`` (default, :func:`uhrnet.physics.refine.refine_relief`: the
-relief from the phase, unwrapped region by region, the level from the network) or ``"orders"`` (the
-same regions, whole fringe orders voted across projector shadows).
+With a rig (``rig``, ``--rig``) the heights are then made to agree with the image's own fringe phase
+(:func:`fppsim.phase.single_shot.single_shot_phase`) through it: ``refine="auto"`` (the default) does so when a rig
+is given, ``"phase"`` always (the rig: ``rig``, else the checkpoint's own, else fppsim's default), ``None`` never.
+``refine_method="orders"`` (default, :func:`uhrnet.physics.orders.choose_orders`): every phase region at one whole
+fringe order chosen for the image at once, its level and relief from the phase; a region whose order the path
+cannot decide keeps the network's heights (a warning says how many); ``"relief"``
+(:func:`uhrnet.physics.refine.refine_relief`): the relief from the phase, the level from the network.
 ``NAME_height.*`` is then the refined map, ``NAME_height_network.npy`` the network's own, and
-``refine.json`` lists per image the share of pixels moved (:attr:`PredictResult.refine`).
+``refine.json`` lists per image the share of pixels moved and, for ``orders``, every region's order, confidence
+and whether it was decided (:attr:`PredictResult.refine`). Under ``auto`` an image without a readable fringe
+phase keeps the network's heights with a warning; under ``"phase"`` it is an error.
 
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
 input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
@@ -127,14 +131,14 @@ class PredictConfig:
     ply: bool = True
     device: str = "auto"
     progress: bool = True
-    refine: str | None = None
-    refine_method: str = "relief"
+    refine: str | None = None  # "phase", None, or "auto": "phase" when a rig is given
+    refine_method: str = "orders"
 
     def __post_init__(self):
         if isinstance(self.inputs, (str, Path)):
             self.inputs = [self.inputs]
-        if self.refine not in (None, "none", "phase"):
-            raise UsageError(f"--refine must be phase or none, got {self.refine!r}")
+        if self.refine not in (None, "none", "phase", "auto"):
+            raise UsageError(f"--refine must be auto, phase or none, got {self.refine!r}")
 
         if self.refine_method not in REFINE_METHODS:
             raise UsageError(f"--refine-method must be one of {', '.join(REFINE_METHODS)}, got {self.refine_method!r}")
@@ -315,7 +319,8 @@ def predict(config: PredictConfig) -> PredictResult:
         except RigError as exc:
             raise ConfigError(str(exc)) from None
     refine_rig, rig_name = None, ""
-    if config.refine == "phase":
+    auto = config.refine == "auto"
+    if config.refine == "phase" or (auto and config.rig):
         refine_rig, rig_name = refine_rig_for(ckpt, rig, config.rig)
     head_rig = ckpt["model"]["config"].get("rig") if HEADS[ckpt["model"]["config"].get("head", "height")].needs_rig else None
     checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
@@ -351,7 +356,20 @@ def predict(config: PredictConfig) -> PredictResult:
         if refine_rig is not None:
             with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
                 np.save(fh, height)
-            height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)
+            try:
+                height, stats = refine_with_phase(height, fringe, refine_rig, config.refine_method)
+            except DataError as exc:
+                if not auto:
+                    raise
+                # the default path: an image whose phase cannot be read keeps the network's heights, and says so
+                stats = {"method": "none", "moved_fraction": 0.0, "mean_abs_move_mm": 0.0, "offset_rad": 0.0,
+                         "undecided_regions": 0, "error": str(exc)}
+                result.warnings.append(f"{path} ({name}): no fringe phase to refine with ({exc}): the network's heights")
+            undecided = stats.get("undecided_regions", 0)
+            if undecided:
+                result.warnings.append(
+                    f"{path} ({name}): {undecided} phase region(s), {stats['undecided_fraction']:.1%} of the pixels, "
+                    "have no fringe order the path can decide: the network's heights stay there")
             result.refine[name] = {**stats, "rig": rig_name}
         with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
             np.save(fh, height)
@@ -408,6 +426,6 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
                                shadow=~ssp.valid)
         refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
     else:
-        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid, shadow=~ssp.valid)
+        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

@@ -4,8 +4,8 @@ A single-shot fringe image fixes the projector phase of every pixel up to whole 
 phase ``phi``, :func:`fppsim.phase.single_shot.single_shot_phase`); a network's height estimate ``h`` says which
 period. Through the calibrated rig (:class:`uhrnet.physics.rig_layer.RigLayer`) the estimate implies the phase
 ``Phi(h)``. :func:`refine_relief` unwraps the phase inside regions where it is continuous and takes
-their relief from it, their level from the estimate (``relief``) or from whole fringe orders voted
-across projector shadows (``orders``).
+their relief from it, their level from the estimate (``relief``); :func:`uhrnet.physics.orders.choose_orders`
+gives every region a whole fringe order instead (``orders``).
 
 Phase origin. Real frames may count phase from another origin (the public real data count fringe
 orders from the first fringe the camera sees: DESIGN.md §9, about +72 rad): measured = fppsim phase +
@@ -35,14 +35,14 @@ import numpy as np
 
 from fppsim.geometry.rig import Rig
 from fppsim.phase import circular_median, wrap
-from fppsim.phase.unwrap import phase_regions, shadow_bridges, step_conflicts
+from fppsim.phase.unwrap import phase_regions, step_conflicts
 
 __all__ = ["refine_relief", "layer_for", "REFINE_METHODS"]
 
-REFINE_METHODS = ("relief", "orders")
-"""``relief``: :func:`refine_relief` with each region's level from the estimate (the default of ``--refine
-phase``); ``orders``: :func:`refine_relief` with whole fringe orders (from shadow bridges, else rounded from the
-estimate), exact levels where the rig's absolute phase-to-height mapping is right."""
+REFINE_METHODS = ("orders", "relief")
+"""``orders`` (the default): :func:`uhrnet.physics.orders.choose_orders`, every phase region at one whole fringe
+order chosen for the image at once (shadow bridges, seams, the network's priors), levels from the phase through
+the rig; ``relief``: :func:`refine_relief`, each region's level from the estimate, its relief from the phase."""
 
 TWO_PI = 2.0 * math.pi
 
@@ -79,8 +79,7 @@ def layer_for(rig_or_layer, shape):
 def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
                   valid: np.ndarray | None = None, min_reliability: float = 0.5, max_step: float = 1.0,
                   smooth_px: float = 3.0, max_move_mm=None, max_move_fraction: float = 2.0,
-                  min_region: int = 50, level: str = "network",
-                  shadow: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, dict]:
+                  min_region: int = 50) -> tuple[np.ndarray, np.ndarray, dict]:
     """Relief from the image's phase, level from the estimate: the least move that makes a height map
     consistent with its own fringes, region by region.
 
@@ -96,16 +95,9 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     phase-consistent height this needs no estimate within half a period, and a rig whose height scale is slightly off changes the relief by that
     fraction only, not the level.
 
-    ``level="orders"`` instead gives every region a whole fringe order, so its level comes from the
-    phase through the rig: the order across a projector shadow is voted by the rows crossing it
-    (:func:`fppsim.phase.unwrap.shadow_bridges`: the ray grazing an object's edge lands on the plane at the
-    shadow's far side, so both carry one phase), starting from the largest region with its order
-    rounded from the estimate; regions no trusted bridge reaches round their own. Exact where the
-    rig's absolute phase-to-height mapping is (a rig off by a few per cent in its depth scale moves
-    every bridged level by that much); ``shadow`` (H, W) bool are the unlit pixels (default: the
-    pixels outside ``valid``). A pixel moves only when reliable, inside a region, and when its move
-    is within ``max_move_mm`` (default ``max_move_fraction`` fringe periods of height at the pixel,
-    ``2 pi / |dPhi/dh|``: a region that swallowed a wall is rejected where it moves pixels that far).
+    A pixel moves only when reliable, inside a region, and when its move is within ``max_move_mm``
+    (default ``max_move_fraction`` fringe periods of height at the pixel, ``2 pi / |dPhi/dh|``: a region that
+    swallowed a wall is rejected where it moves pixels that far).
 
     Parameters
     ----------
@@ -124,8 +116,6 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     import torch
     from scipy import ndimage as ndi
 
-    if level not in ("network", "orders"):
-        raise ValueError(f"level must be 'network' or 'orders', got {level!r}")
     h_in = np.asarray(height_mm)
     h = h_in.astype(np.float64)
     if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
@@ -151,26 +141,8 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     lab = regions.labels
     d = regions.unwrapped - phi - offset
     target = np.full(h.shape, np.nan)
-    bridged = 0
     if regions.count:
         med = np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, regions.count + 1)))
-        if level == "orders":
-            orders = np.round(med / TWO_PI)
-            unlit = ~ok if shadow is None else np.asarray(shadow, bool)
-            fixed = {1: orders[0]}
-            bridges = shadow_bridges(regions, unlit)
-            grew = True
-            while grew:  # spread whole orders from the largest region over trusted bridges
-                grew = False
-                for b in bridges:
-                    if b.a in fixed and b.b not in fixed:
-                        fixed[b.b], grew = fixed[b.a] - b.periods, True
-                    elif b.b in fixed and b.a not in fixed:
-                        fixed[b.a], grew = fixed[b.b] + b.periods, True
-            bridged = len(fixed) - 1
-            for region, order in fixed.items():
-                orders[region - 1] = order
-            med = TWO_PI * orders
         inside = lab > 0
         target[inside] = phi[inside] + d[inside] - med[lab[inside] - 1]
     with torch.no_grad():
@@ -188,8 +160,7 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     refined = np.where(moved, h_new, h_in).astype(out_dtype, copy=False)
     n = int(finite.sum())
     stats = {
-        "method": "relief" if level == "network" else "orders",
-        "bridged_regions": bridged,
+        "method": "relief",
         "n_pixels": n,
         "moved_fraction": float(moved.sum() / n) if n else 0.0,
         "reliable_fraction": float(usable.sum() / n) if n else 0.0,

@@ -1,0 +1,203 @@
+#!/usr/bin/env python
+"""Fringe orders on real frames: the network alone against ``uhrnet predict --refine phase --refine-method orders``.
+
+For each training run given (one seed each) and on real frames only:
+
+* the labelled figshare pair (``--pair``, default ../shared/real-sample), scored in mm through the
+  depth-fitted rig (``assets/figshare_depth_rig.json``: its distance and baseline were fitted to the pair's
+  labels, a calibration of two numbers) and through fppsim's default rig: object RMSE, median |error|, share
+  within 1 mm and share at the right fringe order (|error| under half a fringe period of height at the pixel,
+  through the rig scored) over the object pixels (valid, more than 1 mm above the plane). The network's map is
+  the one ``uhrnet predict`` writes (invalid pixels NaN), the path's is its ``--refine phase --refine-method
+  orders`` through the rig. The order choice uses no label.
+* real phase-shifting frames (``--phase``, default the three folders of ../shared/real-phase): the calibration-free
+  phase residual ``uhrnet evaluate-phase`` computes (degree-3 plane + a h + b h^2 over pixels with real phase
+  and a lit input), network and path on the same pixels, and its ratio; for FP1523 (the pair's rig) through the
+  depth-fitted rig, for the other rigs through a rig ``fppsim fit-rig`` builds from the frame itself (no
+  ``--base``, written to OUT/rigs/). Also the share of the path's moved pixels whose absolute phase sits at the
+  phase-shifting data's own order (the plane as reference).
+
+Writes OUT/orders.json (every number, per run and frame), OUT/orders.md (the tables) and OUT/figures/ (per run:
+the pair and each frame, regions coloured by confidence with their chosen order, and the error where known).
+Re-running recomputes (a run takes about a minute on 2 cores).
+
+    python pipelines/orders_study.py --runs runs/s2r0/default/run runs/seed1 runs/seed2 --out docs/experiments/orders
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
+from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
+from uhrnet.inference.prediction import fringe_phase, predict_labels  # noqa: E402
+from uhrnet.physics.orders import choose_orders  # noqa: E402
+from uhrnet.physics.refine import layer_for  # noqa: E402
+from uhrnet.plots import plot_orders  # noqa: E402
+from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
+from uhrnet.workflows.sim2real.metrics import object_mask  # noqa: E402
+
+SHARED = ROOT.parent / "shared"
+
+
+def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndarray:
+    """The network's height (mm) of a dataset-encoded fringe; NaN where predict marks it invalid (when asked)."""
+    label = predict_labels(model, torch.from_numpy(fringe.astype(np.float32))[None, None], None)[0, 0].numpy()
+    h = transform.height_mm(label.astype(np.float64))
+    if mask_invalid:
+        h = np.where(transform.valid(label) & (fringe > -1 + 1e-6), h, np.nan)
+    return h
+
+
+def path(h: np.ndarray, fringe: np.ndarray, rig):
+    """The order choice as ``uhrnet predict --refine phase --refine-method orders`` makes it."""
+    ssp = fringe_phase(fringe, rig)
+    return choose_orders(h, ssp.wrapped, ssp.reliability, layer_for(rig, h.shape), valid=np.isfinite(h) & ssp.valid,
+                         shadow=~ssp.valid)
+
+
+def pair_scores(pred: np.ndarray, truth: np.ndarray, obj: np.ndarray, layer) -> dict:
+    e = pred - truth
+    m = obj & np.isfinite(pred)
+    with torch.no_grad():
+        half = np.pi / np.abs(layer.sensitivity(torch.as_tensor(np.nan_to_num(truth), dtype=torch.float64)).numpy())
+    return {"object_rmse_mm": float(np.sqrt(np.mean(e[m] ** 2))), "median_abs_mm": float(np.median(np.abs(e[m]))),
+            "within_1mm": float(np.mean(np.abs(e[m]) <= 1.0)), "right_order": float(np.mean(np.abs(e[m]) < half[m])),
+            "coverage": float(m.sum() / obj.sum())}
+
+
+def order_share(choice, layer, psp_phase: np.ndarray, scored: np.ndarray, flat_mm: float = 1.0) -> float:
+    """Share of the moved pixels whose absolute phase (rig phase of the chosen height + origin) is at the PSP
+    phase's order, relative to the plane's (the moved pixels the path puts within ``flat_mm`` of 0)."""
+    with torch.no_grad():
+        A = layer.phase_from_height(torch.as_tensor(np.nan_to_num(choice.height), dtype=torch.float64)).numpy()
+    r = (psp_phase - A - choice.offset_rad) / (2 * np.pi)
+    m = choice.moved & scored & np.isfinite(r)
+    plane = m & (np.abs(choice.height) < flat_mm)
+    if not plane.any() or not m.any():
+        return float("nan")
+    return float(np.mean(np.abs(r[m] - np.median(r[plane])) < 0.5))
+
+
+def fitted_rig(folder: Path, out: Path):
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if not out.exists():
+        subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out)], check=True,
+                       stdout=subprocess.DEVNULL)
+    return load_rig(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", nargs="+", required=True, metavar="RUN", help="training runs (best.pt) or checkpoints")
+    ap.add_argument("--out", required=True, metavar="DIR")
+    ap.add_argument("--pair", default=str(SHARED / "real-sample"), metavar="DIR",
+                    help="labelled figshare pair (fringe_pattern.npy + height_map.npy) [../shared/real-sample]")
+    ap.add_argument("--phase", nargs="*", default=[str(SHARED / "real-phase" / f) for f in ("FP1523", "FP672", "FP147")],
+                    metavar="DIR", help="phase-shifting folders; one named FP1523 is the pair's rig [../shared/real-phase/*]")
+    ap.add_argument("--depth-rig", default=str(ROOT / "assets" / "figshare_depth_rig.json"), metavar="FILE")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    out = Path(args.out)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    fringe = np.load(Path(args.pair) / "fringe_pattern.npy").astype(np.float32)
+    label = np.load(Path(args.pair) / "height_map.npy").astype(np.float64)
+    obj, plane = object_mask(label, label > -100)
+    truth = (label - plane) / 6.0
+    rigs = {"depth": load_rig(args.depth_rig), "default": make_default_rig()}
+    frames = []
+    for folder in map(Path, args.phase):
+        rig = rigs["depth"] if folder.name == "FP1523" else fitted_rig(folder, out / "rigs" / f"{folder.name}.json")
+        for sid in list_psp_ids(folder):
+            frames.append((f"{folder.name}/{sid}", load_psp_folder_sample(folder, sid), rig))
+    results = []
+    for k, run in enumerate(args.runs):
+        ck = load_checkpoint(run)
+        model, transform = model_from_checkpoint(ck, "cpu")
+        seed = ck.get("args", {}).get("seed", k)
+        row = {"run": str(run), "seed": seed, "pair": {}, "frames": {}}
+        h = network(model, transform, fringe, mask_invalid=True)
+        for name, rig in rigs.items():
+            layer = layer_for(rig, h.shape)
+            choice = path(h, fringe, rig)
+            row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
+                                 "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
+            if name == "depth":
+                plot_orders(fringe, h, choice, out / "figures" / f"pair_seed{seed}.png",
+                            error_mm=np.where(obj, choice.height - truth, np.nan),
+                            title=f"real pair, seed {seed}, depth-fitted rig: object RMSE "
+                                  f"{row['pair'][name]['orders']['object_rmse_mm']:.2f} mm (network "
+                                  f"{row['pair'][name]['network']['object_rmse_mm']:.2f})")
+        for fname, s, rig in frames:
+            img = s.image.astype(np.float32) / 127.5 - 1.0
+            hn = network(model, transform, img, mask_invalid=False)  # as evaluate-phase scores it
+            choice = path(hn, img, rig)
+            scored = s.valid & (s.image > 0)
+            net_res = fit_phase(s.phase, hn, scored).rmse_rad
+            path_res = fit_phase(s.phase, choice.height.astype(np.float64), scored).rmse_rad
+            flat_res = fit_phase(s.phase, np.zeros(hn.shape), scored).rmse_rad
+            layer = layer_for(rig, hn.shape)
+            row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
+                                    "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
+                                    "stats": choice.stats}
+            plot_orders(img, hn, choice, out / "figures" / f"{fname.replace('/', '_')}_seed{seed}.png",
+                        title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
+        results.append(row)
+        print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
+                          "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}}), flush=True)
+    atomic_write_text(out / "orders.json", json.dumps(results, indent=1, default=float))
+    atomic_write_text(out / "orders.md", markdown(results))
+    print(markdown(results))
+    return 0
+
+
+def _ms(values) -> str:
+    v = np.asarray(values, float)
+    return f"{v.mean():.2f} ± {v.std(ddof=1):.2f}" if len(v) > 1 else f"{v.mean():.2f}"
+
+
+def markdown(results: list[dict]) -> str:
+    lines = ["| seed | rig | prediction | object RMSE (mm) | median (mm) | within 1 mm | right order |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        for rig, d in r["pair"].items():
+            for what in ("network", "orders"):
+                m = d[what]
+                lines.append(f"| {r['seed']} | {rig} | {what} | {m['object_rmse_mm']:.2f} | {m['median_abs_mm']:.2f} | "
+                             f"{m['within_1mm']:.1%} | {m['right_order']:.1%} |")
+    for rig in ("depth", "default"):
+        for what in ("network", "orders"):
+            vals = [r["pair"][rig][what] for r in results]
+            lines.append(f"| mean ± sd | {rig} | {what} | {_ms([v['object_rmse_mm'] for v in vals])} | "
+                         f"{_ms([v['median_abs_mm'] for v in vals])} | {_ms([100 * v['within_1mm'] for v in vals])} % | "
+                         f"{_ms([100 * v['right_order'] for v in vals])} % |")
+    lines += ["", "| seed | frame | network (rad) | orders (rad) | flat (rad) | orders / network | moved pixels at the PSP order |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    frames = list(results[0]["frames"]) if results else []
+    for r in results:
+        for f in frames:
+            d = r["frames"][f]
+            lines.append(f"| {r['seed']} | {f} | {d['network_rad']:.3f} | {d['orders_rad']:.3f} | {d['flat_rad']:.3f} | "
+                         f"{d['ratio']:.3f} | {d['right_order_moved']:.1%} |")
+    for f in frames:
+        vals = [r["frames"][f] for r in results]
+        lines.append(f"| mean ± sd | {f} | {_ms([v['network_rad'] for v in vals])} | {_ms([v['orders_rad'] for v in vals])} | "
+                     f"{_ms([v['flat_rad'] for v in vals])} | {_ms([v['ratio'] for v in vals])} | "
+                     f"{_ms([100 * v['right_order_moved'] for v in vals])} % |")
+    return "\n".join(lines) + "\n"
+
+
+if __name__ == "__main__":
+    sys.exit(main())
