@@ -8,7 +8,10 @@ with ``g = gain * albedo_plane``, ``k = cos_incidence * falloff`` (known from th
 attenuation of the fringe by projector + camera blur (and the DMD's pixelation), tabulated once by
 rendering noise-free planes through :func:`fppsim.rendering.optics.optical_image` and measuring them with the same
 estimator as the real images (:func:`fppsim.phase.measure.fringe_modulation`), so estimator bias cancels.
-Per image, on plane pixels:
+Per image, on plane pixels (:func:`plane_masks`, one choice for every input: height labels, else the rig's
+plane phase, from a scan's phase or, for plain fringe images, the image's own single-shot phase, so a scan
+folder and the same frames as image files are measured on the same pixels; the darker background only
+where neither tells, which assumes objects brighter than the plane):
 
 * ``A``, ``B/A``: medians of the fringe background and modulation;
 * noise: fringes are vertical to within a degree or two (the real pair's -1.34 deg lean changes the
@@ -44,6 +47,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
+from fppsim.errors import RigError
 from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
@@ -51,7 +55,8 @@ from fppsim.rendering.render import plane_geometry, projector_incidence
 from fppsim.geometry.rig import Rig, check_image_size, data_path, load_rig
 from fppsim.phase.measure import estimate_period, fringe_modulation
 from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
-from fppsim.fitting.plane_phase import plane_phase_residual
+from fppsim.fitting.plane_phase import image_phase_map, plane_phase_residual
+from fppsim.phase import wrap
 from fppsim.generation import generate_dataset as generate
 from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
 from fppsim.rendering.synth import SynthConfig
@@ -165,7 +170,9 @@ def _noise_fit(gray: np.ndarray, mask: np.ndarray, shot_default: float) -> tuple
 
 
 def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
-    """Plane and object pixels; without labels/phase: the plane is the darker mode of the background."""
+    """Plane and object pixels: ``im.plane`` (:func:`plane_masks`), or where nothing told them apart the
+    darker mode of the background (objects assumed brighter than the plane; a dark object is then taken for
+    the plane: :func:`fit_optics_images` says so)."""
     if im.plane is not None and im.plane.sum() > 1000:
         return im.plane & model["lit"], im.obj
     g = im.gray.astype(np.float64)
@@ -254,21 +261,77 @@ class OpticsFit:
 
 
 PLANE_RAD, OBJECT_RAD = 0.3, 1.0  # |phase - the rig's plane phase|: the plane within, objects beyond (rad)
+FLAT_SLOPE = 0.03  # rad/px: the plane's residual from a single image's phase slopes less (_flat)
+
+PLANE_SOURCES = ("height labels", "scan phase", "image phase", "phase surface", "brightness")
+"""Where :func:`plane_masks` takes an image's plane pixels from, best first (``per_image[i]["plane_from"]``)."""
 
 
-def rig_masks(im, rig: Rig, min_share: float = 0.02) -> tuple[np.ndarray, np.ndarray] | None:
-    """Plane and object pixels of an image with real absolute phase (``im.phase``) by ``rig``'s own plane
-    phase (:func:`fppsim.fitting.plane_phase.plane_phase_residual`): the plane within :data:`PLANE_RAD` of it
-    after the constant offset, objects beyond :data:`OBJECT_RAD`. Unlike a smooth surface fitted to the phase
-    itself, this holds when an object covers most of the view (a rig fitted to these frames: ``fit-rig``).
-    None without phase, or when fewer than ``min_share`` of the valid pixels are the plane."""
-    if getattr(im, "phase", None) is None:
-        return None
-    res, _ = plane_phase_residual(rig, im.phase, im.valid & np.isfinite(im.phase))
-    plane = im.valid & (np.abs(np.nan_to_num(res, nan=np.inf)) <= PLANE_RAD)
+def rig_masks(im, rig: Rig, min_share: float = 0.02) -> tuple[np.ndarray, np.ndarray, str] | None:
+    """Plane and object pixels of an image by ``rig``'s own plane phase
+    (:func:`fppsim.fitting.plane_phase.plane_phase_residual`): the plane within :data:`PLANE_RAD` of it after
+    the constant offset, objects beyond :data:`OBJECT_RAD`. The phase is the scan's absolute phase
+    (``im.phase``, source ``"scan phase"``) or, for a plain fringe image, the image's own single-shot phase
+    unwrapped (:func:`fppsim.fitting.plane_phase.image_phase_map`, source ``"image phase"``): its sign is a
+    convention (the one more pixels fit is taken), regions cut off by shadows may sit whole periods away
+    (they are neither plane nor object: objects are told by the phase modulo 2 pi) and low-reliability
+    edges are neither. Unlike a smooth surface fitted to the phase itself, or the brightness, this holds
+    when an object covers most of the view or is darker than the plane (a rig fitted to these frames:
+    ``fit-rig``). Returns ``(plane, obj, source)``, or None when fewer than ``min_share`` of the valid
+    pixels are the plane (another rig) or the image has no usable fringe phase."""
+    if getattr(im, "phase", None) is not None:
+        res, _ = plane_phase_residual(rig, im.phase, im.valid & np.isfinite(im.phase))
+        plane = im.valid & (np.abs(np.nan_to_num(res, nan=np.inf)) <= PLANE_RAD)
+        obj, source = im.valid & (np.abs(np.nan_to_num(res, nan=0.0)) > OBJECT_RAD), "scan phase"
+    else:
+        try:
+            m = image_phase_map(im.gray, im.valid, im.name)
+        except (RigError, ValueError):  # no fringes to read a phase from
+            return None
+        best = None
+        for sign in (1.0, -1.0):
+            res, _ = plane_phase_residual(rig, sign * m.phase, m.valid)
+            plane = m.valid & (np.abs(np.nan_to_num(res, nan=np.inf)) <= PLANE_RAD)
+            if best is None or plane.sum() > best[0].sum():
+                best = plane, res
+        plane, res = best
+        plane &= _flat(res, m.valid)
+        obj, source = m.valid & (np.abs(wrap(np.nan_to_num(res, nan=0.0))) > OBJECT_RAD), "image phase"
     if plane.sum() < max(1000, min_share * im.valid.sum()):
         return None
-    return plane, im.valid & (np.abs(np.nan_to_num(res, nan=0.0)) > OBJECT_RAD)
+    return plane, obj, source
+
+
+def _flat(residual: np.ndarray, valid: np.ndarray, max_slope: float = FLAT_SLOPE, size: int = 7) -> np.ndarray:
+    """Pixels whose phase residual is flat: its gradient (rad/px), averaged over ``size`` x ``size`` valid
+    pixels, below ``max_slope``. An object whose relief passes through a whole number of periods (its
+    unwrapped single-shot phase cut at a wall or a shadow) meets the plane's phase in a band there, where
+    the residual still slopes; the plane's residual does not."""
+    from scipy.ndimage import uniform_filter
+
+    r = np.where(valid, residual, 0.0)
+    gy, gx = np.gradient(r)
+    w = valid.astype(np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        slope = uniform_filter(np.hypot(gx, gy) * w, size) / uniform_filter(w, size)
+    return valid & (slope < max_slope)
+
+
+def plane_masks(im, rig: Rig) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """THE choice of an image's plane and object pixels for the optics fit: ``(plane, obj, source)``
+    (:data:`PLANE_SOURCES`). Height labels first (the reader's masks); else the rig's plane phase
+    (:func:`rig_masks`), from the scan's phase or from the image itself, so a scan folder and its
+    single-shot images written as plain image files give the same pixels; else a smooth surface fitted to a
+    scan's phase (the reader's masks); else ``(None, None, "brightness")``: :func:`image_estimates` takes
+    the darker mode of the background for the plane (objects assumed brighter than the plane)."""
+    if getattr(im, "height_mm", None) is not None and im.plane is not None:
+        return im.plane, im.obj, "height labels"
+    masks = rig_masks(im, rig)
+    if masks is not None:
+        return masks
+    if im.plane is not None:
+        return im.plane, im.obj, "phase surface"
+    return None, None, "brightness"
 
 
 def _transposed(im):
@@ -300,19 +363,19 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     for im in images:
         check_image_size(rig, im.gray.shape, im.name, error=ValueError, sep=" x ",
                          template="{what}: image is {got} px but {who} {camera}")
-        masks = rig_masks(im, rig)
-        if masks is not None:
-            im = dc_replace(im, plane=masks[0], obj=masks[1])
+        plane, obj, source = plane_masks(im, rig)
+        if plane is not None:
+            im = dc_replace(im, plane=plane, obj=obj)
         if across:
             im = _transposed(im)
         period = estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
         if not np.isfinite(period):
-            per.append({"name": im.name} | {k: float("nan") for k in FITTED})
+            per.append({"name": im.name, "plane_from": source} | {k: float("nan") for k in FITTED})
             continue
         key = round(period, 1)  # one contrast table per period (to 0.1 px)
         if key not in tables:
             tables[key] = contrast_table(rig, key, model=model)
-        per.append({"name": im.name} | image_estimates(im, rig, tables[key], period, model, amb, ap, across))
+        per.append({"name": im.name, "plane_from": source} | image_estimates(im, rig, tables[key], period, model, amb, ap, across))
     centre, ranges = {}, {}
     for k in FITTED:
         v = np.array([p[k] for p in per], float)
@@ -483,6 +546,11 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     if note:
         say(note)
     say(format_optics_fit(fit))
+    guessed = [p["name"] for p in fit.per_image if p.get("plane_from") == "brightness"]
+    if guessed:
+        say(f"plane pixels of {len(guessed)} of {len(fit.per_image)} image(s) taken by brightness (the darker "
+            "background; objects assumed brighter than the plane): the rig's plane phase fits no part of them; "
+            "give --rig fitted to these images (fppsim fit-rig)")
     atomic_write_text(out, ranges_yaml(fit))
     say(f"optics ranges: {out}")
     if config.json:
