@@ -50,7 +50,7 @@ TWO_PI = 2.0 * math.pi
 class Link:
     """Region ``b``'s order is region ``a``'s plus ``delta`` (absolute phase ``U - 2 pi k`` equal across the link).
 
-    ``kind``: ``"bridge"`` (across a projector shadow) or ``"seam"`` (across unreliable pixels);
+    ``via``: ``"bridge"`` (across a projector shadow) or ``"seam"`` (across unreliable pixels);
     ``votes``: lines that crossed; ``agreement``: share of them within the tolerance of ``delta``."""
 
     a: int
@@ -58,7 +58,7 @@ class Link:
     delta: int
     votes: int
     agreement: float
-    kind: str
+    via: str
 
     @property
     def strength(self) -> float:
@@ -133,7 +133,7 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     of both ends; a pair of regions is linked when at least ``min_votes`` crossings vote and
     ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
 
-    Returns :class:`Link` s with ``kind="seam"`` and ``b``'s order = ``a``'s + ``delta``.
+    Returns :class:`Link` s with ``via="seam"`` and ``b``'s order = ``a``'s + ``delta``.
     """
     lab, U = regions.labels, regions.unwrapped
     w = np.asarray(wrapped, np.float64)
@@ -400,7 +400,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         "components": int(len(np.unique(roots[1:]))) if n else 0,
         "undecided_regions": int((~decided).sum()),
         "undecided_fraction": float(sizes[~decided].sum() / npx) if npx else 0.0,
-        "links": {"bridge": sum(lk.kind == "bridge" for lk in taken), "seam": sum(lk.kind == "seam" for lk in taken)},
+        "links": {"bridge": sum(lk.via == "bridge" for lk in taken), "seam": sum(lk.via == "seam" for lk in taken)},
         "conflicts": conflicts,
         "carried_fraction": float(carried.sum() / npx) if npx else 0.0,
         "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
