@@ -174,8 +174,8 @@ def plot_orders(fringe: np.ndarray, network_mm: np.ndarray, choice, path, error_
                 title: str = "") -> Path:
     """One figure of a fringe-order choice (:class:`uhrnet.physics.orders.OrderChoice`): the fringe, the network's
     height and the chosen one (mm, one colour range), every phase region coloured by its confidence with its
-    chosen order written at its centre (undecided regions hatched grey), and, when ``error_mm`` (chosen - truth)
-    is given, the error (mm)."""
+    chosen order written at its centre (undecided regions hatched grey; orders relative to the largest region),
+    where each height came from, and, when ``error_mm`` (chosen - truth) is given, the error (mm)."""
     from scipy import ndimage as ndi
 
     plt = pyplot()
@@ -186,9 +186,15 @@ def plot_orders(fringe: np.ndarray, network_mm: np.ndarray, choice, path, error_
               (network_mm, "network height (mm)", "viridis", lo, hi),
               (choice.height, "orders chosen: height (mm)", "viridis", lo, hi),
               (choice.confidence_map(), "regions: confidence (colour), order (text)", "RdYlGn", 0.0, 1.0)]
+    source = np.where(choice.moved, 2.0, np.where(np.isfinite(network_mm) & (choice.height != network_mm), 1.0, 0.0))
+    panels.append((np.where(np.isfinite(choice.height), source, np.nan),
+                   "height from: 2 the phase, 1 network + nearby correction, 0 network", "cividis", 0.0, 2.0))
     if error_mm is not None:
         panels.append((error_mm, "error (mm)", "RdBu_r", -8.0, 8.0))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.6 * len(panels), 3.4))
+    fig, axes = plt.subplots(2, 3, figsize=(15, 6.4))
+    axes = axes.ravel()
+    for ax in axes[len(panels):]:
+        ax.axis("off")
     for ax, (img, name, cmap, vmin, vmax) in zip(axes, panels):
         im = ax.imshow(img, cmap=cmap, vmin=vmin, vmax=vmax)
         ax.set_title(name, fontsize=9)
