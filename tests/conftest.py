@@ -9,10 +9,15 @@
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
 import pytest
+
+# before any test module imports pyrender (some do at collection, e.g. pytest.importorskip): off-screen GL, as
+# fppsim.rendering sets it, so every test file also passes when run alone from a plain shell
+os.environ.setdefault("PYOPENGL_PLATFORM", "osmesa")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
