@@ -54,6 +54,6 @@ Done. Where everything went:
   preview            $OUT/synthetic/preview.png   (fringe | height | mask)
   training run       $OUT/run              (history.csv, history.png, best.pt, last.pt)
   evaluation         $OUT/report           (results.md, results.csv, results.json, figures/)
-  prediction         $OUT/predict          (height .npy/.tif in mm, colour PNG, PLY point cloud)
+  prediction         $OUT/predict          (height .npy/.tif in mm from the fringe phase at the chosen orders, the network's own, colour PNG, PLY, refine.json)
 Activate the environment with: source .venv/bin/activate
 EOT
