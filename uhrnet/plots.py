@@ -214,6 +214,6 @@ def plot_orders(fringe: np.ndarray, network_mm: np.ndarray, choice, path, error_
     fig.suptitle(title or "fringe orders", fontsize=10)
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    save_figure(fig, path)
+    save_figure(fig, path, dpi=75)  # six panels: a smaller file for the write-ups
     plt.close(fig)
     return Path(path)
