@@ -234,8 +234,10 @@ def add_predict(p: argparse.ArgumentParser) -> None:
                         "phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/: their iPattern images)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder")
     p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
-                                                 "metric x, y in the point cloud, and for --refine "
-                                                 "[--refine: the checkpoint's rig, else fppsim's default rig]")
+                                                 "metric x, y in the point cloud and, by default (--refine auto), "
+                                                 "heights from the image's own fringe phase through it "
+                                                 "[--refine phase without it: the checkpoint's rig, else fppsim's "
+                                                 "default rig]")
     p.add_argument("--refine", choices=("auto", "phase", "none"), default="auto",
                    help="phase: move the heights to agree with the image's own fringe phase (single-shot phase, "
                         "rad) through the rig; writes NAME_height_network.npy (the network's map) and refine.json "
