@@ -1131,6 +1131,7 @@ def _die_with_starter() -> None:
     set here rather than between fork and exec (unsafe beside the parent's threads); exits at once when the
     parent is gone already."""
     import os
+    import signal
 
     from fppsim.files import die_with_parent
 
@@ -1139,6 +1140,10 @@ def _die_with_starter() -> None:
         die_with_parent()
         if str(os.getppid()) != pid:
             sys.exit(130)
+        # the parent stops an arm with SIGINT (--deadline, Ctrl-C): a study started from a non-interactive shell
+        # with '&' hands its children SIGINT ignored, and the arm then ran on through the grace period and
+        # recorded a seed after the deadline (seen in a whole-suite run started that way)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def main(argv=None) -> int:
