@@ -40,6 +40,7 @@ from scipy import ndimage as ndi
 
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
+from uhrnet.physics.refine import estimate_phases
 
 __all__ = ["Link", "RegionOrder", "OrderChoice", "seam_links", "choose_orders"]
 
@@ -300,25 +301,11 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     0.86 +- 0.05 of the network's).
     """
     h_in = np.asarray(height_mm)
-    h = h_in.astype(np.float64)
-    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
-        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
-    finite = np.isfinite(h)
-    ok = finite if valid is None else finite & np.asarray(valid, bool)
-    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
-    w = np.asarray(wrapped_phase, np.float64)
-    usable = ok & (rel >= min_reliability) & np.isfinite(w)
-    filled = np.where(finite, h, 0.0)
-    if not finite.all() and finite.any():  # nearest finite value, so smoothing does not drag edges to 0
-        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
-        filled = h[tuple(idx)]
+    e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
+    h, finite, ok, rel, w, usable, phi, sens = e.h, e.finite, e.ok, e.rel, e.w, e.usable, e.phi, e.sens
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
-    with torch.no_grad():
-        phi = layer.phase_from_height(t(filled)).cpu().numpy()
-        sens = layer.sensitivity(t(filled)).cpu().numpy()
-        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
     offset = _origin(layer, w, phi, h, usable, flat_mm)
-    walls = step_conflicts(w, expected, max_step)
+    walls = step_conflicts(w, e.expected, max_step)
     regions = phase_regions(w, usable, cut=walls, min_size=min_region)
     lab, n = regions.labels, regions.count
     d = regions.unwrapped - phi - offset

@@ -30,6 +30,7 @@ from __future__ import annotations
 import json
 import math
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -37,7 +38,7 @@ from fppsim.geometry.rig import Rig
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import phase_regions, step_conflicts
 
-__all__ = ["refine_relief", "layer_for", "REFINE_METHODS"]
+__all__ = ["refine_relief", "layer_for", "estimate_phases", "EstimatePhases", "REFINE_METHODS"]
 
 REFINE_METHODS = ("orders", "relief")
 """``orders`` (the default): :func:`uhrnet.physics.orders.choose_orders`, every phase region at one whole fringe
@@ -74,6 +75,59 @@ def layer_for(rig_or_layer, shape):
                          f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
                          "(RigLayer(rig, height=..., width=..., pixels=...))")
     return layer
+
+
+@dataclass
+class EstimatePhases:
+    """What both ways of levelling a height map to its image's phase start from (:func:`estimate_phases`).
+
+    h : (H, W) float64 estimate (NaN = none); finite : where it is finite; ok : finite and ``valid``;
+    rel : reliability (NaN -> 0; ones without one); w : the wrapped phase, float64; usable : ``ok`` pixels with
+    a finite phase of at least ``min_reliability``; filled : the estimate with every NaN replaced by the nearest
+    finite value (so smoothing does not drag edges to 0); phi, sens : the rig's phase of ``filled`` (rad) and its
+    sensitivity (rad / mm); expected : the phase of ``filled`` smoothed over ``smooth_px`` (the step check's);
+    layer : the :class:`~uhrnet.physics.rig_layer.RigLayer` they came through."""
+
+    h: np.ndarray
+    finite: np.ndarray
+    ok: np.ndarray
+    rel: np.ndarray
+    w: np.ndarray
+    usable: np.ndarray
+    filled: np.ndarray
+    phi: np.ndarray
+    sens: np.ndarray
+    expected: np.ndarray
+    layer: object
+
+
+def estimate_phases(height_mm, wrapped_phase, reliability, rig_or_layer, valid=None, min_reliability: float = 0.5,
+                    smooth_px: float = 3.0) -> EstimatePhases:
+    """The checked inputs of :func:`refine_relief` and :func:`uhrnet.physics.orders.choose_orders` and the
+    estimate's phases through ``rig_or_layer`` (its layer on their grid: :func:`layer_for`, kept as ``layer``).
+    ValueError when the height and the phase are not one (H, W), or the layer sees another grid."""
+    import torch  # torch: imported when refining, not with the module
+    from scipy import ndimage as ndi
+
+    h = np.asarray(height_mm).astype(np.float64)
+    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
+        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
+    layer = layer_for(rig_or_layer, h.shape)
+    finite = np.isfinite(h)
+    ok = finite if valid is None else finite & np.asarray(valid, bool)
+    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
+    w = np.asarray(wrapped_phase, np.float64)
+    usable = ok & (rel >= min_reliability) & np.isfinite(w)
+    filled = np.where(finite, h, 0.0)
+    if not finite.all() and finite.any():
+        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
+        filled = h[tuple(idx)]
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
+    with torch.no_grad():
+        phi = layer.phase_from_height(t(filled)).cpu().numpy()
+        sens = layer.sensitivity(t(filled)).cpu().numpy()
+        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
+    return EstimatePhases(h, finite, ok, rel, w, usable, filled, phi, sens, expected, layer)
 
 
 def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability: np.ndarray | None, rig_or_layer,
@@ -117,27 +171,12 @@ def refine_relief(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     from scipy import ndimage as ndi
 
     h_in = np.asarray(height_mm)
-    h = h_in.astype(np.float64)
-    if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
-        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
-    layer = layer_for(rig_or_layer, h.shape)
-    finite = np.isfinite(h)
-    ok = finite if valid is None else finite & np.asarray(valid, bool)
-    rel = np.ones(h.shape) if reliability is None else np.nan_to_num(np.asarray(reliability, np.float64))
-    w = np.asarray(wrapped_phase, np.float64)
-    usable = ok & (rel >= min_reliability) & np.isfinite(w)
-    filled = np.where(finite, h, 0.0)
-    if not finite.all():  # nearest finite value, so smoothing does not drag edges to 0
-        idx = ndi.distance_transform_edt(~finite, return_distances=False, return_indices=True)
-        filled = h[tuple(idx)] if finite.any() else filled
-    dev = layer.A.device
-    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=dev)  # noqa: E731
-    with torch.no_grad():
-        phi = layer.phase_from_height(t(filled)).cpu().numpy()
-        sens = layer.sensitivity(t(filled)).cpu().numpy()
-        expected = layer.phase_from_height(t(ndi.gaussian_filter(filled, smooth_px))).cpu().numpy()
+    e = estimate_phases(h_in, wrapped_phase, reliability, rig_or_layer, valid, min_reliability, smooth_px)
+    layer = e.layer
+    h, finite, w, usable, phi, sens = e.h, e.finite, e.w, e.usable, e.phi, e.sens
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     offset = circular_median(wrap(w - phi)[usable]) if usable.any() else 0.0
-    regions = phase_regions(w, usable, cut=step_conflicts(w, expected, max_step), min_size=min_region)
+    regions = phase_regions(w, usable, cut=step_conflicts(w, e.expected, max_step), min_size=min_region)
     lab = regions.labels
     d = regions.unwrapped - phi - offset
     target = np.full(h.shape, np.nan)
