@@ -58,25 +58,59 @@ def poly_terms(degree: int) -> list[str]:
 
 
 def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, plane_rad: float = 0.3,
-                      object_rad: float = 1.0, iterations: int = 4) -> tuple[np.ndarray, np.ndarray]:
+                      object_rad: float = 1.0, seed_rad: float = 0.3, grow_rad: float = 0.6, tries: int = 200,
+                      window: int = 24, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Reference-plane and object pixels of a real absolute phase map (rad) without labels.
 
-    The plane's phase is smooth: fit a ``degree`` polynomial in (x, y) to the valid phase, refit on
-    the pixels within 3 robust sigmas, ``iterations`` times; plane = residual within ``plane_rad``,
-    object = residual beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5 rad/mm).
+    The plane's phase is one smooth surface across the view; an object's is another, often as smooth
+    locally. A polynomial fitted to ALL pixels and trimmed bends towards an object that covers much of the
+    view (on FP1523/1201 it called 4 % of the valid pixels plane), so the plane is found by consensus
+    first: ``tries`` planes (degree 1) fitted to random ``window``-px squares (``seed``: the draw), the one
+    that most pixels follow within ``seed_rad`` taken; its followers are refitted with degrees 1, 2, 3 (up
+    to ``degree``), each time keeping the pixels within ``max(3 robust sigmas, grow_rad)``. Plane = final
+    residual within ``plane_rad``, object = beyond ``object_rad`` (about 2 mm at the figshare rig's 0.5
+    rad/mm). ``phase``, ``valid``: (H, W); returns two (H, W) bool masks (both empty when fewer than
+    100 valid pixels).
     """
     h, w = phase.shape
-    A = poly_basis(h, w, degree)
-    b = phase.ravel()
-    use = valid.ravel() & np.isfinite(b)
-    if use.sum() < 4 * A.shape[1]:
-        return np.zeros_like(valid), np.zeros_like(valid)
-    sel = use.copy()
-    for _ in range(iterations):
+    b = np.asarray(phase, np.float64).ravel()
+    use = np.asarray(valid, bool).ravel() & np.isfinite(b)
+    if use.sum() < max(100, 4 * len(poly_terms(degree))):
+        return np.zeros((h, w), bool), np.zeros((h, w), bool)
+    A1 = poly_basis(h, w, 1)
+    sub = np.flatnonzero(use)[:: max(1, int(use.sum()) // 20_000)]
+    ys, xs = np.divmod(np.flatnonzero(use), w)
+    rng = np.random.default_rng(seed)
+
+    def square(k):
+        y0, x0 = max(0, ys[k] - window), max(0, xs[k] - window)
+        yy, xx = np.mgrid[y0:min(h, ys[k] + window), x0:min(w, xs[k] + window)]
+        idx = (yy * w + xx).ravel()
+        return idx[use[idx]]
+
+    best, best_fit = -1, None
+    # a quadric through several squares was tried: on FP147/109 it takes the face (a larger smooth surface
+    # than the plane in view) for the plane, where one plane through one square finds the plane
+    for k in rng.integers(len(ys), size=tries):
+        idx = square(k)
+        if idx.size < 100:
+            continue
+        coef = np.linalg.lstsq(A1[idx], b[idx], rcond=None)[0]
+        n = int(np.sum(np.abs(b[sub] - A1[sub] @ coef) < seed_rad))
+        if n > best:
+            best, best_fit = n, (A1, coef)
+    if best_fit is None:
+        return np.zeros((h, w), bool), np.zeros((h, w), bool)
+    r = b - best_fit[0] @ best_fit[1]
+    sel = use & (np.abs(r) < seed_rad)
+    for deg in [d for d in (1, 2, 2, 3, 3, 3) if d <= max(int(degree), 1)]:
+        if sel.sum() < 4 * len(poly_terms(deg)):
+            break
+        A = poly_basis(h, w, deg)
         idx = np.flatnonzero(sel)[:: max(1, int(sel.sum()) // 50_000)]
-        coef = np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
-        r = np.where(use, b - A @ coef, np.inf)
-        s = 1.4826 * np.median(np.abs(r[use] - np.median(r[use])))
-        sel = use & (np.abs(r) <= max(3 * s, plane_rad))
-    r = r.reshape(h, w)
+        r = b - A @ np.linalg.lstsq(A[idx], b[idx], rcond=None)[0]
+        rs = r[sel]
+        s = 1.4826 * np.median(np.abs(rs - np.median(rs)))
+        sel = use & (np.abs(r) <= max(3 * s, grow_rad))
+    r = np.where(use, r, np.inf).reshape(h, w)
     return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)

@@ -89,3 +89,37 @@ def test_errors():
         fit_phase(np.ones((10, 10)), np.ones((10, 10)), v)
     with pytest.raises(ValueError, match="degree"):
         poly_basis(4, 4, -1)
+
+
+def _dome_scene(h=120, w=160):
+    """An analytic frame: a tilted, curved plane phase plus a*height of a wide dome covering most of the view."""
+    yy, xx = np.mgrid[0:h, 0:w]
+    plane_phase = 0.9 * xx + 0.05 * yy + 1e-4 * (xx - 60.0) ** 2 - 5e-5 * xx * yy  # curved a little, as seen
+    r2 = ((xx - 0.5 * w) / (0.42 * w)) ** 2 + ((yy - 0.5 * h) / (0.45 * h)) ** 2
+    height = np.where(r2 < 1, 40.0 * np.sqrt(np.clip(1 - r2, 0, 1)), 0.0)  # mm
+    return plane_phase, height
+
+
+def test_plane_pixel_score_is_not_bent_by_an_object_covering_most_of_the_view():
+    """Issue 50: with the plane fitted on its own pixels the flat baseline's residual is exactly the relief
+    a * h (its RMS known in closed form), the true heights leave nothing, and the all-pixel plane, bent by
+    the dome, credits the flat prediction with a smaller residual than the relief it leaves."""
+    from fppsim.phase.plane import phase_plane_masks
+
+    a = -0.6  # rad/mm
+    plane_phase, height = _dome_scene()
+    phase = plane_phase + a * height
+    valid = np.ones(phase.shape, bool)
+    assert (height > 0).mean() > 0.55  # most of the view
+    plane, obj = phase_plane_masks(phase, valid, degree=2)
+    truth_plane = height == 0
+    assert (plane == truth_plane).mean() > 0.98 and not (obj & truth_plane).any()
+    flat = fit_phase(phase, np.zeros_like(height), valid, degree=2, plane_pixels=plane)
+    assert flat.rmse_rad == pytest.approx(np.sqrt(np.mean((a * height) ** 2)), rel=1e-3)
+    exact = fit_phase(phase, height, valid, degree=2, plane_pixels=plane)
+    assert exact.rmse_rad < 1e-6 and exact.a_rad_per_mm == pytest.approx(a, rel=1e-6)
+    bent = fit_phase(phase, np.zeros_like(height), valid, degree=2)
+    assert bent.rmse_rad < 0.8 * flat.rmse_rad
+    res = evaluate_phase(phase, height, valid, plane_pixels=plane, degree=2)
+    assert res["plane"]["flat"]["rmse_rad"] == pytest.approx(flat.rmse_rad)
+    assert evaluate_phase(phase, height, valid, plane_pixels=np.zeros_like(valid), degree=2)["plane"] is None

@@ -41,6 +41,10 @@ def test_report(setup, capsys):
     doc = json.loads((out / "phase_results.json").read_text())
     assert [r["id"] for r in doc["per_image"]] == ["0", "1", "2"]
     assert doc["models"][0]["name"] == "tiny" and doc["degree"] == 2
+    row = doc["models"][0]
+    assert row["ratio"] == pytest.approx(np.mean([r["models"]["tiny"]["prediction"]["rmse_rad"]
+                                                  / r["models"]["tiny"]["flat"]["rmse_rad"] for r in doc["per_image"]]))
+    assert np.isfinite(row["plane_ratio"]) and "Plane-pixel plane" in text
     for rec in doc["per_image"]:
         m = rec["models"]["tiny"]
         assert m["flat"]["explained"] == pytest.approx(0.0, abs=1e-9)
@@ -49,6 +53,10 @@ def test_report(setup, capsys):
         assert m["flat"]["relief_rms_rad"] > 1.0
         assert m["prediction"]["rmse_rad"] <= m["flat"]["rmse_rad"] + 1e-9  # h terms can only lower SS
         assert rec["valid_phase_fraction"] == pytest.approx(valid.mean())
+        # the second score: the plane fitted on the plane's own pixels, found in the phase (h == 0 there)
+        plane = m["plane"]
+        assert plane["flat"]["plane_pixels"] > 0 and plane["flat"]["plane_pixels"] <= (valid & (height == 0)).sum() + 5
+        assert plane["prediction"]["rmse_rad"] <= plane["flat"]["rmse_rad"] + 1e-9
     assert sorted(p.name for p in (out / "figures").iterdir()) == ["0.png", "1.png"]
     # the predicted-invalid mask option leaves out what the model calls shadow
     rc = main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp / "r2"), "--figures", "0",

@@ -19,6 +19,13 @@ by least squares over the valid pixels, ``x, y`` being the pixel column / row sc
 * ``a_rad_per_mm, b_rad_per_mm2`` and the plane coefficients; ``rmse_mm_equiv = rmse_rad / |a|``, the
   residual expressed in mm at the fitted phase-per-mm scale (rough: ignores the h^2 term).
 
+A second score fits the plane polynomial on the reference plane's own pixels alone (``plane_pixels``; the
+folder evaluation finds them in the real phase, :func:`fppsim.phase.plane.phase_plane_masks`), then ``a, b``
+with that plane held: when an object covers much of the view the all-pixel plane bows at the object's edge
+(up to +-10 rad seen on a life-size head), which penalises the flat prediction and the network alike. The
+all-pixel score stays the default (it needs no plane in view, and every earlier number is in it); the
+report gives both, each with its flat baseline.
+
 ``robust=True`` replaces least squares by a few iteratively reweighted (Huber) iterations, which keeps
 shadow edges, wrong fringe orders and prediction outliers from dominating; the reported sums are then
 over the same pixels, unweighted.
@@ -42,7 +49,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.files import atomic_write_text
-from fppsim.phase.plane import poly_basis, poly_terms
+from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import PSPMatError, RigError
@@ -71,6 +78,7 @@ class PhaseFit:
     pixels: int
     degree: int
     robust: bool
+    plane_pixels: int | None = None  # None: the plane fitted with the heights on every pixel; else on these alone
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -104,7 +112,7 @@ def _solve(A: np.ndarray, b: np.ndarray, robust: bool, iterations: int, huber: f
 
 def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None = None, degree: int = 3,
               robust: bool = False, iterations: int = 5, huber: float = 1.345, max_pixels: int | None = 200_000,
-              return_residual: bool = False):
+              return_residual: bool = False, plane_pixels: np.ndarray | None = None):
     """Fit ``phase ~ plane(x, y) + a h + b h^2`` over valid pixels (see the module docstring).
 
     Parameters
@@ -119,6 +127,11 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
     max_pixels : fit on an evenly strided subset of at most this many pixels (None: all); the reported
         statistics use every valid pixel.
     return_residual : also return the (H, W) residual phase map (NaN outside the fitted pixels).
+    plane_pixels : (H, W) bool, the reference plane's own pixels (e.g. :func:`fppsim.phase.plane.phase_plane_masks`):
+        the plane polynomial is fitted on these alone (``h`` not used), then ``a, b`` on every valid pixel with
+        the plane held. An object covering much of the view then cannot bend the plane (the all-pixel fit's
+        plane bows at its edge, which penalises a flat and a good prediction alike); the relief is the phase
+        minus that plane. ValueError when fewer plane pixels than twice the plane's terms.
 
     Returns
     -------
@@ -147,8 +160,17 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
         return np.concatenate([Pf[:, sel].T, hv[sel, None], hv[sel, None] ** 2], axis=1)
 
     A = design(fit_idx)
-    coef_plane = _solve(A[:, :-2], b[fit_idx], robust, iterations, huber)
-    coef = _solve(A, b[fit_idx], robust, iterations, huber)
+    if plane_pixels is None:
+        coef_plane = _solve(A[:, :-2], b[fit_idx], robust, iterations, huber)
+        coef = _solve(A, b[fit_idx], robust, iterations, huber)
+    else:
+        pidx = np.flatnonzero(ok & np.asarray(plane_pixels, bool))
+        if pidx.size < 2 * len(names):
+            raise ValueError(f"only {pidx.size} plane pixels for {len(names)} plane terms (degree {degree})")
+        if max_pixels is not None and pidx.size > max_pixels:
+            pidx = pidx[:: int(np.ceil(pidx.size / max_pixels))]
+        coef_plane = _solve(Pf[:, pidx].T, b[pidx], robust, iterations, huber)
+        coef = np.r_[coef_plane, _solve(A[:, -2:], b[fit_idx] - A[:, :-2] @ coef_plane, robust, iterations, huber)]
     Aall = design(idx)
     relief = b[idx] - Aall[:, :-2] @ coef_plane
     resid = b[idx] - Aall @ coef
@@ -161,7 +183,7 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
         a_rad_per_mm=a, b_rad_per_mm2=float(coef[-1]),
         rmse_mm_equiv=float(np.sqrt(ss_res / n) / abs(a)) if a != 0 else float("nan"),
         plane_coefficients=[float(c) for c in coef[:-2]], plane_terms=names, pixels=n, degree=int(degree),
-        robust=bool(robust))
+        robust=bool(robust), plane_pixels=None if plane_pixels is None else int((ok & np.asarray(plane_pixels, bool)).sum()))
     if not return_residual:
         return out
     res_map = np.full(phi.size, np.nan)
@@ -169,16 +191,26 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
     return out, res_map.reshape(phi.shape)
 
 
-def evaluate_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None = None, **kw) -> dict:
+def evaluate_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None = None,
+                   plane_pixels: np.ndarray | None = None, **kw) -> dict:
     """:func:`fit_phase` for the prediction and for the flat (h = 0) baseline on the same pixels.
 
-    Returns ``{"prediction": PhaseFit dict, "flat": PhaseFit dict, "residual": (H, W) map}``.
+    Returns ``{"prediction": PhaseFit dict, "flat": PhaseFit dict, "residual": (H, W) map}``; with
+    ``plane_pixels`` also ``"plane": {"prediction", "flat"}``, the same two fits with the plane fitted on
+    those pixels alone (None when they are too few to fit it).
     """
     h = np.asarray(height_mm, dtype=np.float64)
     ok = np.isfinite(h) if valid is None else (np.asarray(valid, bool) & np.isfinite(h))
     pred, res = fit_phase(phase, h, ok, return_residual=True, **kw)
     flat = fit_phase(phase, np.zeros_like(h), ok, **kw)
-    return {"prediction": pred.to_dict(), "flat": flat.to_dict(), "residual": res}
+    out = {"prediction": pred.to_dict(), "flat": flat.to_dict(), "residual": res}
+    if plane_pixels is not None:
+        try:
+            out["plane"] = {"prediction": fit_phase(phase, h, ok, plane_pixels=plane_pixels, **kw).to_dict(),
+                            "flat": fit_phase(phase, np.zeros_like(h), ok, plane_pixels=plane_pixels, **kw).to_dict()}
+        except ValueError:  # too few plane pixels in view: the all-pixel score stands alone
+            out["plane"] = None
+    return out
 
 
 # ------------------------------------------------------------------------------ a folder of real data
@@ -218,14 +250,18 @@ def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) 
              f"Real absolute phase fitted by a degree-{degree} polynomial in (x, y) plus a*h + b*h^2 of the "
              f"predicted height h (mm), {'Huber IRLS' if robust else 'least squares'} over valid pixels. "
              "Explained = 1 - SS_residual / SS_relief, relief = phase minus the plane-only fit. "
-             "Flat = the same fit with h = 0 on the same pixels (explains 0 by construction). Means over images.", "",
-             "| Model | Residual RMSE (rad) | Explained | Flat RMSE (rad) | a (rad/mm) | b (rad/mm^2) "
-             "| Residual (mm equiv.) | Pixels used |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|"]
+             "Flat = the same fit with h = 0 on the same pixels (explains 0 by construction); ratio = residual / flat "
+             "(the default score). Plane-pixel columns: the same with the plane polynomial fitted on the reference "
+             "plane's own pixels only (found in the phase, fppsim.phase.plane.phase_plane_masks), so an object "
+             "covering much of the view cannot bend it. Means over images.", "",
+             "| Model | Residual RMSE (rad) | Flat RMSE (rad) | Ratio | Explained | Plane-pixel plane: residual "
+             "| flat | ratio | a (rad/mm) | b (rad/mm^2) | Residual (mm equiv.) | Pixels used |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for r in summary:
-        lines.append(f"| {r['name']} | {r['rmse_rad']:.4f} | {r['explained']:.4f} | {r['flat_rmse_rad']:.4f} | "
-                     f"{r['a_rad_per_mm']:+.4f} | {r['b_rad_per_mm2']:+.2e} | {r['rmse_mm_equiv']:.2f} | "
-                     f"{r['pixel_fraction']:.1%} |")
+        lines.append(f"| {r['name']} | {r['rmse_rad']:.4f} | {r['flat_rmse_rad']:.4f} | {r['ratio']:.3f} | "
+                     f"{r['explained']:.4f} | {r['plane_rmse_rad']:.4f} | {r['plane_flat_rmse_rad']:.4f} | "
+                     f"{r['plane_ratio']:.3f} | {r['a_rad_per_mm']:+.4f} | {r['b_rad_per_mm2']:+.2e} | "
+                     f"{r['rmse_mm_equiv']:.2f} | {r['pixel_fraction']:.1%} |")
     return "\n".join(lines) + "\n"
 
 
@@ -400,12 +436,14 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             if rig is not None:  # the same pixels, the heights after the image's own phase
                 refined, _ = refine_with_phase(h, img.astype(np.float32) / 127.5 - 1.0, rig, args.refine_method)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
+        plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
+        record["plane_pixel_fraction"] = float(plane.mean())
         for name, h, ok, pred_valid in scored:
             try:
-                res = evaluate_phase(s.phase, h, ok, **fit_kw)
+                res = evaluate_phase(s.phase, h, ok, plane_pixels=plane, **fit_kw)
             except ValueError as exc:
                 raise ConfigError(f"{s.path}: {name}: {exc}") from None
-            record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"],
+            record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"], "plane": res["plane"],
                                       "pixel_fraction": float(ok.mean()),
                                       "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
             heights[name] = np.where(ok, h, np.nan)
@@ -416,6 +454,8 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                                                 title=f"{sid}: calibration-free phase fit (degree {args.degree})"))
         echo(f"{sid}: " + ", ".join(f"{n} residual {r['prediction']['rmse_rad']:.3f} rad "
                                      f"(flat {r['flat']['rmse_rad']:.3f}), explained {r['prediction']['explained']:.3f}"
+                                     + (f"; plane-pixel plane {r['plane']['prediction']['rmse_rad']:.3f} "
+                                        f"(flat {r['plane']['flat']['rmse_rad']:.3f})" if r["plane"] else "")
                                      for n, r in record["models"].items()))
     summary = []
     refined = [(ck, f"{n} +{args.refine_method}") for ck, n in zip(ckpts, names)] if args.refine == "phase" else []
@@ -426,6 +466,11 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             **{key: _mean(r["prediction"][key] for r in rows)
                for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "rmse_mm_equiv", "relief_rms_rad")},
             "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
+            "ratio": _mean(r["prediction"]["rmse_rad"] / r["flat"]["rmse_rad"] for r in rows if r["flat"]["rmse_rad"] > 0),
+            "plane_rmse_rad": _mean(r["plane"]["prediction"]["rmse_rad"] for r in rows if r["plane"]),
+            "plane_flat_rmse_rad": _mean(r["plane"]["flat"]["rmse_rad"] for r in rows if r["plane"]),
+            "plane_ratio": _mean(r["plane"]["prediction"]["rmse_rad"] / r["plane"]["flat"]["rmse_rad"]
+                                 for r in rows if r["plane"] and r["plane"]["flat"]["rmse_rad"] > 0),
             "flat_explained": _mean(r["flat"]["explained"] for r in rows),
             "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
             "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
