@@ -387,5 +387,5 @@ def test_augment_probability_option(tmp_path, capsys):
     for p, kind in ((0.25, None), (1.0, "photometric"), (0.5, "off")):
         cfg = TrainConfig(out=tmp_path / f"run{p}", synthetic=[syn], model="unet", base_channels=4, epochs=1,
                           augment_probability=p, augment=kind, progress=False)
-        aug = Trainer(cfg, DistInfo()).train_set.augment
+        aug = Trainer(cfg, DistInfo()).data.train_set.augment
         assert (aug is None) if kind == "off" else (aug.probability == p)
