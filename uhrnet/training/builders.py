@@ -11,14 +11,17 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+from contextlib import nullcontext
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
+import torch.distributed as dist
 from torch.utils.data import DataLoader
 
 from fppsim.geometry.rig import RigError, check_image_size
-from uhrnet.checkpoint import LabelHead, checkpoint_kind, load_checkpoint, set_rng_state
+from uhrnet.checkpoint import LabelHead, checkpoint_kind, load_checkpoint, rng_state, set_rng_state
 from uhrnet.data.augment import augment_config
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
 from uhrnet.device import keep_freed_memory, select_device
@@ -33,7 +36,7 @@ from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES
 
 __all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
            "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
-           "restore", "lr_at"]
+           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng"]
 
 
 # -- run folder and device ----------------------------------------------------------------------------
@@ -290,3 +293,39 @@ def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, ra
     elif states:
         print(f"warning: {ckpt['path']} holds RNG state for {len(states)} process(es); rank "
               f"{rank} starts a fresh stream", file=sys.stderr)
+
+
+def gather_rng(info: DistInfo) -> list:
+    """The RNG streams of every rank, what a checkpoint carries so that a resume draws the same numbers."""
+    state = rng_state()
+    if not info.enabled:
+        return [state]
+    states = [None] * info.world
+    dist.all_gather_object(states, state)
+    return states
+
+
+# -- steps and epochs ---------------------------------------------------------------------------------
+def autocast(amp: bool, device: torch.device):
+    """``--amp``: float16 on CUDA, bfloat16 on CPU; else no autocast."""
+    if not amp:
+        return nullcontext()
+    return torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16)
+
+
+def first_best(cfg: RunConfig) -> dict:
+    """The best-epoch record before any epoch: ``--val-phase`` runs are judged by the real frames, since the
+    synthetic validation set cannot tell which epoch carries over to them."""
+    return {"metric": "val_phase_ratio" if cfg.val_phase else "val_rmse_mm", "value": float("inf"), "epoch": 0}
+
+
+def update_best(best: dict, row: dict) -> bool:
+    """Whether the epoch of history ``row`` is the best so far (``best`` updated if so). Without a validation
+    split the training RMSE judges; with ``--val-phase`` an epoch the real frames cannot score is not the best."""
+    metric = row.get(best["metric"], float("nan"))
+    if not np.isfinite(metric) and best["metric"] == "val_rmse_mm":
+        best["metric"], metric = "train_rmse_mm", row["train_rmse_mm"]
+    is_best = bool(np.isfinite(metric) and metric < best["value"])
+    if is_best:
+        best.update(value=float(metric), epoch=row["epoch"])
+    return is_best

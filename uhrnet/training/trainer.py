@@ -19,15 +19,13 @@ from __future__ import annotations
 import dataclasses
 import sys
 import time
-from contextlib import nullcontext
 from pathlib import Path
 
-import numpy as np
 import torch
 import torch.distributed as dist
 
 from fppsim.owned import output_folder
-from uhrnet.checkpoint import FORMAT, VERSION, checkpoint_kind, init_from_checkpoint, output_mm, rng_state, save_epoch
+from uhrnet.checkpoint import FORMAT, VERSION, checkpoint_kind, init_from_checkpoint, output_mm, save_epoch
 from uhrnet.data.datasets import parse_size
 from uhrnet.errors import ConfigError, TrainingDiverged
 from uhrnet.models import HEADS, count_parameters, outputs_of
@@ -90,8 +88,7 @@ class Trainer:
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp and self.device.type == "cuda")
         self.val_phase = builders.build_val_phase(cfg, self.info, self.data.native)
         self.history: list[dict] = []
-        self.best = {"metric": "val_phase_ratio" if cfg.val_phase else "val_rmse_mm", "value": float("inf"),
-                     "epoch": 0}
+        self.best = builders.first_best(cfg)
         self.start_epoch = 0
         if self.ckpt is not None:
             builders.restore(self.ckpt, self.net, self.network.ema, self.optimizer, self.loss_fn, self.scaler, cfg,
@@ -101,12 +98,6 @@ class Trainer:
             self.start_epoch = int(self.ckpt["epoch"])
 
     # -- one epoch ------------------------------------------------------------------------------------
-    def _autocast(self):
-        if not self.amp:
-            return nullcontext()
-        dtype = torch.float16 if self.device.type == "cuda" else torch.bfloat16
-        return torch.autocast(self.device.type, dtype=dtype)
-
     def _to_device(self, batch, names) -> list:
         """The batch fields ``names`` on the device (None for a field the batch lacks)."""
         nb = self.device.type == "cuda"
@@ -131,7 +122,7 @@ class Trainer:
                        dynamic_ncols=True)
         for step, batch in enumerate(bar if bar is not None else loader):
             x, y, m = self._to_device(batch, STEP_FIELDS)
-            with self._autocast():
+            with builders.autocast(self.amp, self.device):
                 out = ddp(x)
             outs = outputs_of(out)  # hNet: the fused and the side outputs, all supervised
             extra = self._to_device(batch, self.loss_entry.batch)  # what the loss takes after the mask
@@ -161,8 +152,9 @@ class Trainer:
                                    + (" (on another process)" if torch.isfinite(loss) else ""))
 
     def _step(self, loss, epoch: int, step: int) -> None:
+        lr = self.lr_at(epoch, step)
         for group in self.optimizer.param_groups:
-            group["lr"] = self.lr_at(epoch, step)
+            group["lr"] = lr
         self.optimizer.zero_grad(set_to_none=True)
         self.scaler.scale(loss).backward()
         if self.cfg.grad_clip:
@@ -182,7 +174,7 @@ class Trainer:
         sums = MetricSums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"])
         for batch in self.data.val_loader:
             x, y, m = self._to_device(batch, STEP_FIELDS)
-            with self._autocast():
+            with builders.autocast(self.amp, self.device):
                 pred = model(x)
             r, s = image_metrics(pred, y, m, self.transform)
             sums.add("rmse", r)
@@ -198,12 +190,6 @@ class Trainer:
             for src in ("real", "synthetic"):
                 row[f"val_rmse_mm_{src}"], row[f"val_ssim_{src}"] = res[f"rmse_{src}"], res[f"ssim_{src}"]
         return row
-
-    def _end_epoch_loss(self) -> None:
-        """Sum the loss's per-epoch accumulators over ranks, so every rank re-ranks identically."""
-        if self.info.enabled:
-            self.loss_fn.reduce_state(dist.all_reduce)
-        self.loss_fn.end_epoch()
 
     # -- checkpoints ----------------------------------------------------------------------------------
     def _payload(self, epoch: int, rng: list) -> dict:
@@ -231,14 +217,6 @@ class Trainer:
             "world_size": self.info.world,
             "uhrnet_version": package_version(),
         }
-
-    def _gather_rng(self) -> list:
-        state = rng_state()
-        if not self.info.enabled:
-            return [state]
-        states = [None] * self.info.world
-        dist.all_gather_object(states, state)
-        return states
 
     # -- main loop ------------------------------------------------------------------------------------
     def _open(self) -> None:
@@ -273,7 +251,7 @@ class Trainer:
             remove_own_event_files(self.out, TRAIN_TOOL)
         for epoch in range(self.start_epoch, cfg.epochs):
             row, is_best = self._epoch(epoch)
-            rng = self._gather_rng()
+            rng = builders.gather_rng(self.info)
             if info.main:
                 self.tb.validation_images((epoch + 1) * steps, self.network.eval_model, self.data.val_set,
                                           self.transform, self.device)
@@ -298,20 +276,15 @@ class Trainer:
             hint = f"; the last good checkpoint is {last}" if last.exists() else ""
             raise TrainingDiverged(f"training diverged: {exc}{hint}; try a lower --lr (now {self.cfg.lr:g})"
                                    + (" or drop --amp" if self.amp else "")) from None
-        self._end_epoch_loss()
+        if self.info.enabled:  # the loss's per-epoch accumulators summed over ranks: every rank re-ranks alike
+            self.loss_fn.reduce_state(dist.all_reduce)
+        self.loss_fn.end_epoch()
         row.update(self.validate())
         if self.val_phase is not None:
             row.update(self.val_phase.score(self.network.eval_model, self.transform, parse_size(self.cfg.resize)))
         row["epoch"] = epoch + 1
         row["lr"] = self.optimizer.param_groups[0]["lr"]
-        metric = row.get(self.best["metric"], float("nan"))
-        # no validation split: the training RMSE (--val-phase: the real frames choose, and an epoch
-        # they cannot score is not the best)
-        if not np.isfinite(metric) and self.best["metric"] == "val_rmse_mm":
-            self.best["metric"], metric = "train_rmse_mm", row["train_rmse_mm"]
-        is_best = bool(np.isfinite(metric) and metric < self.best["value"])
-        if is_best:
-            self.best.update(value=float(metric), epoch=epoch + 1)
+        is_best = builders.update_best(self.best, row)
         row["best"] = int(is_best)
         row["seconds"] = time.perf_counter() - t0
         self.history.append(row)
