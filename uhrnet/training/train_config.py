@@ -21,8 +21,8 @@ from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
 
-__all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX",
-           "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
+__all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LEGACY_LOCKED", "LR_SCHEDULES",
+           "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
            "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
 
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)

@@ -2,7 +2,9 @@
 synthetic (fppsim) data; ``uhrnet train`` calls it.
 
 The run's options live in :mod:`uhrnet.training.train_config`, its files in :mod:`uhrnet.run_folder`, the
-process layout under torchrun in :mod:`uhrnet.training.distributed`; this module is the loop.
+process layout under torchrun in :mod:`uhrnet.training.distributed`, the pieces it is built of (data,
+network, loss, optimizer, schedule) in :mod:`uhrnet.training.builders` and its console lines in
+:mod:`uhrnet.training.run_messages`; this module is the loop.
 
 Per epoch: training loss, train/validation RMSE (mm) and SSIM go to ``RUN/history.csv`` and
 ``RUN/history.png`` (the paper's Fig. 6); ``RUN/last.pt`` is written atomically after every epoch and
