@@ -68,10 +68,10 @@ def test_init_copies_the_weights_with_a_fresh_optimizer(source, tmp_path):
     assert trainer.optimizer.state_dict()["state"] == {}  # no Adam step count or moments
     assert trainer.start_epoch == 0 and trainer.history == [] and trainer.best["epoch"] == 0
     assert trainer.lr_at(0, 0) == pytest.approx(1e-4)  # the schedule starts from its beginning
-    assert trainer.ema is None  # this run's own options: no average
-    record = trainer.cfg["init_from_checkpoint"]
+    assert trainer.network.ema is None  # this run's own options: no average
+    record = trainer.cfg.init_from_checkpoint
     best = (source / "unet" / "best.pt").resolve()
-    assert trainer.cfg["init_from"] == record["path"] == str(best)
+    assert trainer.cfg.init_from == record["path"] == str(best)
     assert record["sha256"] == hashlib.sha256(best.read_bytes()).hexdigest()
     assert record["epoch"] == 1 and record["weights"] == "ema" and record["model"] == "unet"
 
@@ -127,7 +127,7 @@ def test_fine_tune_records_its_start_and_resume_continues(source, tmp_path, caps
     assert trainer.start_epoch == 1 and trainer.optimizer.state_dict()["state"]
     for k, v in first["state_dict"].items():
         assert torch.equal(trainer.net.state_dict()[k], v), k
-    assert trainer.cfg["init_from_checkpoint"] == config["init_from_checkpoint"]
+    assert trainer.cfg.init_from_checkpoint == config["init_from_checkpoint"]
     del trainer
     assert main(["train", "--out", str(run), "--resume", "--epochs", "2", "--init-from", str(last),
                  "--no-progress"]) == 0  # the same --init-from is allowed and ignored

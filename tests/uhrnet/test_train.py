@@ -180,9 +180,9 @@ def test_nan_loss_stops_with_clear_message(tmp_path, capsys, monkeypatch):
         loss.forward = poisoned
         return loss
 
-    import uhrnet.training.trainer
+    import uhrnet.training.builders
 
-    monkeypatch.setattr(uhrnet.training.trainer, "build_loss", nan_after_two)  # the name the trainer calls
+    monkeypatch.setattr(uhrnet.training.builders, "build_loss", nan_after_two)  # the name the builder calls
     write_figshare(tmp_path / "real", n=8, h=32, w=64)
     rc = main(["train", "--real", str(tmp_path / "real"), "--model", "unet", "--base-channels", "4", "--loss",
                "l2", "--epochs", "3", "--batch-size", "2", "--out", str(tmp_path / "run"), "--no-progress"])
@@ -387,5 +387,5 @@ def test_augment_probability_option(tmp_path, capsys):
     for p, kind in ((0.25, None), (1.0, "photometric"), (0.5, "off")):
         cfg = TrainConfig(out=tmp_path / f"run{p}", synthetic=[syn], model="unet", base_channels=4, epochs=1,
                           augment_probability=p, augment=kind, progress=False)
-        aug = Trainer(cfg, DistInfo()).train_set.augment
+        aug = Trainer(cfg, DistInfo()).data.train_set.augment
         assert (aug is None) if kind == "off" else (aug.probability == p)

@@ -2,13 +2,15 @@
 
 ``None`` means "not given" for every option, so a resumed run can tell what the user set: options in
 :data:`LOCKED` must then match the checkpoint's, the others may change (e.g. ``--epochs``, ``--lr``).
+:class:`RunConfig`, the frozen result the trainer reads, declares each option's default and resume
+behaviour once.
 """
 
 from __future__ import annotations
 
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 from fppsim.dataio.formats import LabelTransform, PRESETS
@@ -19,29 +21,10 @@ from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
 
-__all__ = ["TrainConfig", "DEFAULTS", "LOCKED", "LEGACY", "LR_SCHEDULES", "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX",
-           "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
+__all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LEGACY_LOCKED", "LR_SCHEDULES",
+           "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
            "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
 
-# Defaults are applied after parsing (argparse defaults are None) so --resume can tell which options
-# the user set; LOCKED options must match the checkpoint's, the others may change on resume.
-DEFAULTS = {
-    "model": "uhrnet", "loss": "compound", "real": [], "synthetic": [], "synthetic_ratio": None,
-    "real_split": "reference", "synthetic_split": "reference", "synthetic_label": "true",
-    "preset": "figshare", "label_transform": [], "epochs": 200, "batch_size": 1, "lr": 1e-4,
-    "weight_decay": 0.0, "device": "auto", "amp": False, "base_channels": None, "model_option": [],
-    "crop": None, "resize": None, "samples_per_epoch": None, "workers": None, "threads": None, "seed": 0,
-    "raw_output": False, "grad_clip": None, "augment": "shading", "lr_schedule": "cosine", "ema": 0.0,
-    "augment_probability": 0.8, "init": "auto", "init_from": None, "freeze": "none", "head": "height", "rig": None,
-    "val_phase": [], "val_phase_convention": "auto", "val_phase_negate_sin": False,
-}
-# what a run made before an option existed used: resuming it must not switch the option on
-LEGACY = {"augment": "off", "lr_schedule": "constant", "init": "torch", "init_from": None, "freeze": "none",
-          "head": "height", "rig": None, "val_phase": [], "val_phase_convention": "benchmark",
-          "val_phase_negate_sin": False}
-# LEGACY options that a resume of a run made before them must not be given with another value either
-# (the run's weights did not start from a checkpoint, nothing was frozen)
-LEGACY_LOCKED = ("init_from", "freeze", "head", "rig", "val_phase", "val_phase_convention", "val_phase_negate_sin")
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
 MAX_EPOCHS = 1_000_000
 MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range, a traceback)
@@ -50,17 +33,93 @@ RESIZE_AUTO = "auto"  # --resize auto: the training size from the synthetic data
 HALVE_FROM_PERIOD_PX = 10.0  # --resize auto halves the images when their fringes are at least this many px apart
 HALVE_FROM_SIDE_PX = 256  # ... and their shorter side is at least this long (smaller ones the network sees whole)
 VAL_PHASE_FRAMES = 8  # --val-phase scores at most this many frames per epoch (evenly spaced over its folders)
-LOCKED = ("model", "loss", "real", "synthetic", "synthetic_ratio", "real_split", "synthetic_split",
-          "synthetic_label", "preset", "label_transform", "batch_size", "base_channels", "model_option",
-          "crop", "resize", "samples_per_epoch", "seed", "raw_output", "augment", "lr_schedule", "ema",
-          "augment_probability", "init", "init_from", "freeze", "head", "rig", "val_phase", "val_phase_convention",
-          "val_phase_negate_sin")
+
+
+def option(default, *, locked: bool = False, legacy=MISSING, legacy_locked: bool = False):
+    """A field of :class:`RunConfig`: its ``default`` for a fresh run; ``locked``: a resume must keep the
+    checkpoint's value; ``legacy``: the value of a run made before the option existed (resuming it must not
+    switch the option on); ``legacy_locked``: such a resume refuses another value too (its weights did not
+    start from a checkpoint, nothing was frozen)."""
+    meta = {"locked": locked, "legacy_locked": legacy_locked}
+    if legacy is not MISSING:
+        meta["legacy"] = legacy
+    if isinstance(default, list):  # a fresh list per config (dataclasses refuse a shared mutable default)
+        return field(default_factory=list, metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The resolved options of a run, what the trainer reads: the user's :class:`TrainConfig` after the
+    defaults (fresh run) or the checkpoint's values (resume), by :func:`resolve_config`.
+
+    Each option's default and resume behaviour is declared here, once (:func:`option`); :data:`DEFAULTS`,
+    :data:`LOCKED` and :data:`LEGACY` are read off these fields. ``init_from_checkpoint``: the record of
+    ``--init-from`` (:func:`uhrnet.checkpoint.init_from_checkpoint`), None for a run that did not start
+    from a checkpoint. The field order is the order of ``config.json`` and the checkpoint's ``args``.
+    """
+    model: str = option("uhrnet", locked=True)
+    loss: str = option("compound", locked=True)
+    real: list = option([], locked=True)
+    synthetic: list = option([], locked=True)
+    synthetic_ratio: float | None = option(None, locked=True)
+    real_split: str = option("reference", locked=True)
+    synthetic_split: str = option("reference", locked=True)
+    synthetic_label: str = option("true", locked=True)
+    preset: str = option("figshare", locked=True)
+    label_transform: list = option([], locked=True)
+    epochs: int = option(200)
+    batch_size: int = option(1, locked=True)
+    lr: float = option(1e-4)
+    weight_decay: float = option(0.0)
+    device: str = option("auto")
+    amp: bool = option(False)
+    base_channels: int | None = option(None, locked=True)
+    model_option: list = option([], locked=True)
+    crop: str | None = option(None, locked=True)
+    resize: str | None = option(None, locked=True)
+    samples_per_epoch: int | None = option(None, locked=True)
+    workers: int | None = option(None)
+    threads: int | None = option(None)
+    seed: int = option(0, locked=True)
+    raw_output: bool = option(False, locked=True)
+    grad_clip: float | None = option(None)
+    augment: str | bool = option("shading", locked=True, legacy="off")
+    lr_schedule: str = option("cosine", locked=True, legacy="constant")
+    ema: float = option(0.0, locked=True)
+    augment_probability: float = option(0.8, locked=True)
+    init: str = option("auto", locked=True, legacy="torch")
+    init_from: str | None = option(None, locked=True, legacy=None, legacy_locked=True)
+    freeze: str = option("none", locked=True, legacy="none", legacy_locked=True)
+    head: str = option("height", locked=True, legacy="height", legacy_locked=True)
+    rig: str | None = option(None, locked=True, legacy=None, legacy_locked=True)
+    val_phase: list = option([], locked=True, legacy=[], legacy_locked=True)
+    val_phase_convention: str = option("auto", locked=True, legacy="benchmark", legacy_locked=True)
+    val_phase_negate_sin: bool = option(False, locked=True, legacy=False, legacy_locked=True)
+    init_from_checkpoint: dict | None = None
+
+    def to_dict(self) -> dict:
+        """The options as ``config.json`` and the checkpoint's ``args`` hold them (no
+        ``init_from_checkpoint`` key for a run that did not start from a checkpoint)."""
+        out = {f.name: getattr(self, f.name) for f in fields(self)}
+        if out["init_from_checkpoint"] is None:
+            del out["init_from_checkpoint"]
+        return out
+
+
+_OPTIONS = [f for f in fields(RunConfig) if "locked" in f.metadata]
+# derived from RunConfig's fields for the code that reads them by name (resolve_config, the sim2real workflow)
+DEFAULTS = {f.name: f.default_factory() if f.default is MISSING else f.default for f in _OPTIONS}
+LOCKED = tuple(f.name for f in _OPTIONS if f.metadata["locked"])
+LEGACY = {f.name: f.metadata["legacy"] for f in _OPTIONS if "legacy" in f.metadata}
+LEGACY_LOCKED = tuple(f.name for f in _OPTIONS if f.metadata["legacy_locked"])
 
 
 @dataclass
 class TrainConfig:
-    """Options of a training run; ``None`` means "not given": the default of :data:`DEFAULTS` for a
-    fresh run, the checkpoint's value on ``resume`` (options in :data:`LOCKED` must then match it).
+    """Options of a training run as the user gives them; ``None`` means "not given": the default of
+    :class:`RunConfig` for a fresh run, the checkpoint's value on ``resume`` (options
+    :class:`RunConfig` declares locked must then match it).
 
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
@@ -165,7 +224,7 @@ class TrainConfig:
         given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
         check_options(given)
         if not self.resume:  # a fresh run's label transform must be usable before anything is written
-            label_transform_from({**DEFAULTS, **given})
+            label_transform_from(RunConfig(**{**DEFAULTS, **given}))
 
 
 def check_options(cfg: dict) -> None:
@@ -355,9 +414,9 @@ def auto_resize(shape: tuple[int, int], period_px: float) -> tuple[tuple[int, in
     return size, f"half size: the fringes are {period_px:.1f} px apart, {period_px / 2:.1f} px at {size[0]}x{size[1]}"
 
 
-def label_transform_from(cfg: dict) -> LabelTransform:
-    overrides = parse_kv(cfg["label_transform"], "--label-transform")
+def label_transform_from(cfg: RunConfig) -> LabelTransform:
+    overrides = parse_kv(cfg.label_transform, "--label-transform")
     try:
-        return LabelTransform.from_dict({"preset": cfg["preset"], "name": cfg["preset"], **overrides})
+        return LabelTransform.from_dict({"preset": cfg.preset, "name": cfg.preset, **overrides})
     except DataError as exc:
         raise UsageError(f"--label-transform: {exc}") from None

@@ -1,0 +1,331 @@
+"""What a training run is made of, built from its :class:`~uhrnet.training.train_config.RunConfig`: the run
+folder's checkpoint, the data, the network, the loss, the optimizer and its schedule.
+
+Plain functions apart from the loop (:mod:`uhrnet.training.trainer`), so each piece can be read and tested
+alone. The order in which the trainer calls them is part of a seeded run's numbers (the seeded global
+generator draws the weights after the data is built).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import sys
+from contextlib import nullcontext
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch.utils.data import DataLoader
+
+from fppsim.geometry.rig import RigError, check_image_size
+from uhrnet.checkpoint import LabelHead, checkpoint_kind, load_checkpoint, rng_state, set_rng_state
+from uhrnet.data.augment import augment_config
+from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.device import keep_freed_memory, select_device
+from uhrnet.errors import CheckpointError, ConfigError
+from uhrnet.models import build_model
+from uhrnet.models.init import init_weights
+from uhrnet.run_folder import LAST_PT, check_run_folder
+from uhrnet.training.distributed import DistInfo
+from uhrnet.training.ema import WeightEMA
+from uhrnet.training.losses import HEAD_LOSSES, LOSSES, LossContext, build_head_loss, build_loss
+from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize, parse_kv
+
+__all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
+           "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
+           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng"]
+
+
+# -- run folder and device ----------------------------------------------------------------------------
+def open_run(out: Path, resume, overwrite: bool) -> tuple[dict | None, str]:
+    """``(checkpoint or None, state)`` of the run folder ``out``: the training checkpoint to continue on
+    ``resume``, else None; ``state`` as :func:`uhrnet.run_folder.check_run_folder` says."""
+    state = check_run_folder(out, resume, overwrite)
+    if state == "fresh":  # killed before its first checkpoint: nothing trained yet, so start the run afresh
+        print(f"note: {out} has no {LAST_PT} yet; starting the run from epoch 1", file=sys.stderr)
+    if state != "resume":
+        return None, state
+    path = out / LAST_PT if resume == "auto" else Path(resume)
+    ckpt = load_checkpoint(path)
+    if "args" not in ckpt:  # imported weights or an adaptation: no training state to continue
+        made = {"import": "imported weights", "adapt": "an adaptation"}.get(checkpoint_kind(ckpt),
+                                                                          "not a training checkpoint")
+        raise ConfigError(f"--resume: {path} is {made}, not a training run to continue; start a new run "
+                          "from it with --init-from (and another --out)")
+    return ckpt, state
+
+
+def training_device(name: str, info: DistInfo) -> torch.device:
+    """The device of this process, with the settings that keep a run fast there."""
+    device = select_device(name, info.local_rank if info.enabled else None)
+    if device.type == "cpu":
+        keep_freed_memory()  # large feature maps re-used, not page-faulted in every step (same numbers)
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed input size; exact resume is promised on CPU
+    return device
+
+
+def loss_entry(cfg: RunConfig, head):
+    """``(entry, needs_rig, phase)``: the registry entry the training loss is called as (the head's loss,
+    which wraps the run's, or the run's own), whether a rig is needed, whether samples carry phase targets."""
+    run_loss = LOSSES[cfg.loss.lower()]
+    entry = HEAD_LOSSES[head.loss] if head.loss else run_loss
+    if head.loss and not run_loss.plain:
+        raise ConfigError(f"--loss {cfg.loss} needs more than (prediction, label, mask); the {head.name} "
+                          "head's loss wraps only such a loss")
+    needs_rig = head.needs_rig or run_loss.needs_rig or entry.needs_rig
+    return entry, needs_rig, head.phase_targets or entry.phase_targets
+
+
+# -- data ---------------------------------------------------------------------------------------------
+@dataclass
+class TrainingData:
+    """The samples of a run and their loaders. ``resize``: the run's ``--resize`` with ``auto`` resolved
+    (what config.json and the checkpoints record); ``native``: the data's own (H, W) before --crop /
+    --resize, read only when something needs it, else None."""
+    sources: object
+    train_set: Prepared
+    val_set: Prepared
+    sampler: MixedSampler
+    loader: DataLoader
+    val_loader: DataLoader
+    image_shape: tuple
+    native: tuple | None
+    resize: str | None
+
+
+def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: torch.device) -> TrainingData:
+    """The training and validation sets of ``cfg`` and their loaders (this rank's share of them)."""
+    sources = load_sources(cfg.real, cfg.synthetic, transform, cfg.real_split, cfg.synthetic_split,
+                           cfg.synthetic_label, phase=phase)
+    native = (tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
+              if len(sources.train) and (cfg.resize == RESIZE_AUTO or cfg.val_phase) else None)
+    resize = auto_resize_of(cfg.synthetic, native, info.main) if cfg.resize == RESIZE_AUTO else cfg.resize
+    crop, size = parse_size(cfg.crop), parse_size(resize)
+    augment = augment_config(cfg.augment)
+    if augment is not None:
+        augment = dataclasses.replace(augment, probability=float(cfg.augment_probability))
+    train_set = Prepared(sources.train, crop, size, random_crop=True, augment=augment, phase=phase)
+    val_set = Prepared(sources.val, crop, size, random_crop=False, phase=phase)
+    if len(train_set) == 0:
+        raise ConfigError("no training samples: every sample is in the val/test split "
+                          "(check --real-split/--synthetic-split)")
+    shape = tuple(train_set[0]["fringe"].shape[-2:])
+    if min(shape) < 16:  # sides not multiples of 16 are padded inside the model (uhrnet.models.any_size)
+        raise ConfigError(f"training images are {shape[0]}x{shape[1]}; the models need at least 16 x 16 pixels")
+    sampler = MixedSampler(sources.train.n_real, sources.train.n_synthetic, cfg.synthetic_ratio,
+                           cfg.samples_per_epoch, cfg.seed, info.rank, info.world)
+    workers = cfg.workers if cfg.workers is not None else (4 if device.type == "cuda" else 0)
+    pin = device.type == "cuda"
+    loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=workers,
+                        pin_memory=pin, drop_last=False)
+    val_idx = list(range(info.rank, len(val_set), info.world))
+    val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_idx, num_workers=workers,
+                            pin_memory=pin)
+    return TrainingData(sources, train_set, val_set, sampler, loader, val_loader, shape, native, resize)
+
+
+def auto_resize_of(synthetic: list, shape, main: bool) -> str | None:
+    """``--resize auto``: the training size from the fringe period of the synthetic data's rig
+    (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size. ``shape``: the
+    training data's own (H, W), None when there are no training samples (refused after)."""
+    from fppsim.dataio.rig_choice import dataset_rig  # only --resize auto reads a dataset's rig
+    from fppsim.phase.fringe_axis import rig_phase_gradient  # (scipy: not needed on a bare GPU machine otherwise)
+
+    rig = None
+    for folder in synthetic:
+        try:
+            rig = dataset_rig(folder)[0]
+        except (RigError, OSError, KeyError, ValueError) as exc:
+            raise ConfigError(f"--resize auto: {folder}: {exc}") from None
+        if rig is not None:
+            break
+    if rig is None:
+        raise ConfigError("--resize auto needs --synthetic data that records its rig (fppsim generate does): "
+                          "the rig's fringe period sets the size; give --resize HxW instead")
+    if shape is None:
+        return None  # refused below: no training samples
+    if shape != (rig.camera.height, rig.camera.width):
+        raise ConfigError(f"--resize auto: the training images are {shape[0]}x{shape[1]} px but the synthetic "
+                          f"data's rig camera is {rig.camera.height}x{rig.camera.width}; give --resize HxW")
+    size, why = auto_resize(shape, 2.0 * math.pi / math.hypot(*rig_phase_gradient(rig)))
+    if main:
+        print(f"--resize auto: {why}", flush=True)
+    return None if size is None else f"{size[0]}x{size[1]}"
+
+
+# -- network ------------------------------------------------------------------------------------------
+def head_rig(rig: str | None, synthetic) -> dict:
+    """The rig of a head or loss that needs one, as a dictionary: ``rig`` (a calibration file) or the nominal rig of the first
+    synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
+    ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
+    single rig its phases fit: refused."""
+    from fppsim.dataio.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
+
+    try:
+        return resolve_rig(rig or None, datasets=synthetic or ())[0].to_dict()
+    except (RigError, OSError, KeyError, ValueError) as exc:
+        raise ConfigError(f"--rig: {exc}") from None
+
+
+def build_network(cfg: RunConfig, head, shape: tuple, needs_rig: bool):
+    """``(net, rig)``: the run's network, its weights drawn from the global generator seeded with ``--seed``
+    (a resume overwrites them), and the rig (a dictionary) of a head or loss that needs one, else None."""
+    torch.manual_seed(cfg.seed)
+    options = parse_kv(cfg.model_option, "--model-option")
+    if cfg.base_channels is not None:
+        options["base_channels"] = cfg.base_channels
+    rig = head_rig(cfg.rig, cfg.synthetic) if needs_rig else None
+    if rig is not None:
+        check_image_size(rig, shape, f"--rig {cfg.rig}" if cfg.rig else "the synthetic data's rig",
+                         who=f"the {head.name} head" if head.needs_rig else f"the {cfg.loss} loss",
+                         error=ConfigError, template="{what}: its camera is {camera} but the training images are "
+                                                     "{got}; {who} needs the rig of these images")
+    options["head"] = head.name
+    if head.needs_rig:
+        options["rig"] = rig
+    try:
+        net = build_model(cfg.model, **options)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"--model {cfg.model}: {exc}") from None
+    init_weights(net, cfg.init)
+    return net, rig
+
+
+@dataclass
+class Network:
+    """The network as the loop uses it: ``model`` (labels out, on the device), ``ddp`` (what trains: ``model``
+    or its DistributedDataParallel wrapper), ``ema`` (the moving average, or None) and ``eval_model``
+    (what validation and the checkpoints see: the average's labels, else ``model``)."""
+    model: LabelHead
+    ddp: torch.nn.Module
+    ema: WeightEMA | None
+    eval_model: LabelHead
+
+
+def wrap_network(net, cfg: RunConfig, scale: float, shift: float, device: torch.device, info: DistInfo) -> Network:
+    """``net`` with its label scale, its moving average (``--ema``) and, under torchrun, DDP."""
+    model = LabelHead(net, scale, shift).to(device)
+    ema, eval_model = None, model
+    if cfg.ema:
+        ema = WeightEMA(net, cfg.ema)
+        eval_model = LabelHead(ema.module, scale, shift)
+    ddp = model
+    if info.enabled:
+        torch.manual_seed(cfg.seed + 1_000_003 * info.rank)  # distinct dropout streams per rank
+        from torch.nn.parallel import DistributedDataParallel as DDP
+
+        ddp = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
+    return Network(model, ddp, ema, eval_model)
+
+
+def build_loss_fn(cfg: RunConfig, head, transform, scale: float, shift: float, rig, device: torch.device):
+    """The training loss of ``cfg``, wrapped by the head's loss when the head learns more than the height."""
+    context = LossContext(data_range=transform.data_range, scale=scale, shift=shift,
+                          mm_per_unit=transform.mm_per_unit, rig=rig)
+    try:
+        loss_fn = build_loss(cfg.loss, data_range=transform.data_range, context=context).to(device)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"--loss {cfg.loss}: {exc}") from None
+    if head.loss:
+        loss_fn = build_head_loss(head.loss, loss_fn, context).to(device)
+    return loss_fn
+
+
+# -- optimizer, schedule, validation on real frames ---------------------------------------------------
+def build_optimizer(net, cfg: RunConfig) -> torch.optim.Adam:
+    """Adam over the trainable weights (``--freeze``: frozen weights never move)."""
+    trainable = [p for p in net.parameters() if p.requires_grad]
+    return torch.optim.Adam(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+
+def lr_at(cfg: RunConfig, steps_per_epoch: int, epoch: int, step: int) -> float:
+    """Learning rate of ``step`` (0-based) of ``epoch`` (0-based): a function of the position in the
+    run alone, so a resumed run follows the same curve.
+
+    cosine: ``lr * (f + (1 - f) * (1 + cos(pi * t / (T - 1))) / 2)`` with ``t`` the global step,
+    ``T`` the steps of all ``--epochs`` and ``f`` = ``LR_FLOOR``; constant: ``lr``.
+    """
+    if cfg.lr_schedule == "constant":
+        return cfg.lr
+    per = max(1, steps_per_epoch)
+    total = max(2, per * cfg.epochs)
+    t = min(epoch * per + step, total - 1)
+    frac = t / (total - 1)
+    return cfg.lr * (LR_FLOOR + (1.0 - LR_FLOOR) * 0.5 * (1.0 + math.cos(math.pi * frac)))
+
+
+def build_val_phase(cfg: RunConfig, info: DistInfo, native):
+    """``--val-phase``: the real frames scored after every epoch, on the writing rank (which picks
+    ``best.pt``); None without them or on another rank."""
+    if not (cfg.val_phase and info.main):
+        return None
+    from uhrnet.scoring.phase_residual import PhaseValidation  # matplotlib, scipy's .mat reader: only when asked
+
+    return PhaseValidation(cfg.val_phase, max_frames=VAL_PHASE_FRAMES, shape=native,
+                           convention=cfg.val_phase_convention, negate_sin=cfg.val_phase_negate_sin)
+
+
+# -- resume -------------------------------------------------------------------------------------------
+def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, rank: int) -> None:
+    """Load a training checkpoint's state into the run's pieces and this rank's RNG streams.
+
+    ``--lr`` / ``--weight-decay`` may change on resume: ``cfg``'s replace the checkpoint's."""
+    if ckpt["model"]["config"] != net.config:
+        raise CheckpointError(f"{ckpt['path']}: model {ckpt['model']['config']} differs from {net.config}")
+    # with --ema, "state_dict" holds the average (what every later use loads) and "train_state_dict"
+    # the optimised weights
+    net.load_state_dict(ckpt.get("train_state_dict", ckpt["state_dict"]))
+    if ema is not None:
+        ema.load_state_dict(ckpt["state_dict"], ckpt["ema"]["updates"])
+    optimizer.load_state_dict(ckpt["optimizer"])
+    for group in optimizer.param_groups:
+        group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
+    loss_fn.load_state_dict(ckpt["loss"])
+    if ckpt.get("scaler"):
+        scaler.load_state_dict(ckpt["scaler"])
+    states = ckpt.get("rng", [])
+    if rank < len(states):
+        set_rng_state(states[rank])
+    elif states:
+        print(f"warning: {ckpt['path']} holds RNG state for {len(states)} process(es); rank "
+              f"{rank} starts a fresh stream", file=sys.stderr)
+
+
+def gather_rng(info: DistInfo) -> list:
+    """The RNG streams of every rank, what a checkpoint carries so that a resume draws the same numbers."""
+    state = rng_state()
+    if not info.enabled:
+        return [state]
+    states = [None] * info.world
+    dist.all_gather_object(states, state)
+    return states
+
+
+# -- steps and epochs ---------------------------------------------------------------------------------
+def autocast(amp: bool, device: torch.device):
+    """``--amp``: float16 on CUDA, bfloat16 on CPU; else no autocast."""
+    if not amp:
+        return nullcontext()
+    return torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16)
+
+
+def first_best(cfg: RunConfig) -> dict:
+    """The best-epoch record before any epoch: ``--val-phase`` runs are judged by the real frames, since the
+    synthetic validation set cannot tell which epoch carries over to them."""
+    return {"metric": "val_phase_ratio" if cfg.val_phase else "val_rmse_mm", "value": float("inf"), "epoch": 0}
+
+
+def update_best(best: dict, row: dict) -> bool:
+    """Whether the epoch of history ``row`` is the best so far (``best`` updated if so). Without a validation
+    split the training RMSE judges; with ``--val-phase`` an epoch the real frames cannot score is not the best."""
+    metric = row.get(best["metric"], float("nan"))
+    if not np.isfinite(metric) and best["metric"] == "val_rmse_mm":
+        best["metric"], metric = "train_rmse_mm", row["train_rmse_mm"]
+    is_best = bool(np.isfinite(metric) and metric < best["value"])
+    if is_best:
+        best.update(value=float(metric), epoch=row["epoch"])
+    return is_best
