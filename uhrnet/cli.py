@@ -33,19 +33,22 @@ DEVICES = ("auto", "cpu", "cuda")
 
 # ============================================================================ train
 def add_train(p: argparse.ArgumentParser) -> None:
+    """train's flags, in the three groups its help shows."""
+    # defaults are applied by the library (None = not given), so --resume can tell what the user set
+    _add_train_data(p.add_argument_group("data (at least one of --real / --synthetic)"))
+    _add_train_model(p.add_argument_group("model and optimisation"))
+    _add_train_run(p.add_argument_group("run"))
+
+
+def _add_train_data(d) -> None:
+    """train's data flags: folders, splits, labels, the --val-phase frames, label transform, sizes, loading and
+    augmentation."""
     from fppsim.dataio.formats import PRESETS
     from uhrnet.data.augment import AUGMENTS
     from fppsim.dataio.readers import LABEL_SOURCES
     from uhrnet.data.splits import SPLIT_MODES
-    from uhrnet.training.losses import LOSSES
-    from uhrnet.models import HEADS, list_models
-    from uhrnet.training.train_config import (HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, LR_FLOOR, LR_SCHEDULES,
-                                              VAL_PHASE_FRAMES)
-    from uhrnet.models.init import INITS
-    from uhrnet.models.freeze import FREEZE_CHOICES
+    from uhrnet.training.train_config import HALVE_FROM_PERIOD_PX, HALVE_FROM_SIDE_PX, VAL_PHASE_FRAMES
 
-    # defaults are applied by the library (None = not given), so --resume can tell what the user set
-    d = p.add_argument_group("data (at least one of --real / --synthetic)")
     d.add_argument("--real", nargs="+", metavar="DIR", help="figshare-layout folder(s) (f1_80.npy + Z.npy)")
     d.add_argument("--synthetic", nargs="+", metavar="DIR",
                    help="fppsim folder(s): native (manifest.jsonl) or figshare-format exports")
@@ -96,7 +99,16 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="no augmentation (same as --augment off)")
     d.add_argument("--augment-probability", type=float, metavar="P",
                    help="chance that a synthetic training sample is augmented; the rest are shown as rendered [0.8]")
-    m = p.add_argument_group("model and optimisation")
+
+
+def _add_train_model(m) -> None:
+    """train's model and optimisation flags: architecture, loss, schedule, initialisation, transfer, head."""
+    from uhrnet.training.losses import LOSSES
+    from uhrnet.models import HEADS, list_models
+    from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
+    from uhrnet.models.init import INITS
+    from uhrnet.models.freeze import FREEZE_CHOICES
+
     m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
     m.add_argument("--model-option", nargs="+", metavar="KEY=VALUE", help="extra model constructor options")
@@ -148,7 +160,10 @@ def add_train(p: argparse.ArgumentParser) -> None:
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
                         "above the plane")
     m.add_argument("--seed", type=int, help="seed of weights, data order, crops and dropout [0]")
-    r = p.add_argument_group("run")
+
+
+def _add_train_run(r) -> None:
+    """train's run flags: the run folder, resuming or replacing it, device and logging."""
     r.add_argument("--out", required=True, metavar="RUN_DIR", help="run folder (history, checkpoints, plots)")
     r.add_argument("--resume", nargs="?", const="auto", metavar="CKPT",
                    help="continue from RUN_DIR/last.pt (or CKPT) with the same settings")

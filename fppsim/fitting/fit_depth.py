@@ -35,6 +35,7 @@ refined by a bounded scalar search. Units: mm, radians.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -264,8 +265,6 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     ``bridge_ref``: see :func:`depth_check`. Returns None when no image has height labels, enough object
     pixels and projector shadows. Raises RigError when no candidate distance gives a usable rig.
     """
-    from scipy.optimize import minimize_scalar
-
     labelled = [im for im in images if im.height_mm is not None]
     if not labelled:
         return None
@@ -274,6 +273,47 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     if unknown:
         raise RigError(f"unknown parameter(s) {', '.join(unknown)} (known: {', '.join(PARAMETERS)})")
     b0 = base_values(base)
+    distances = _candidate_distances(labelled, b0, distances)
+
+    def checks_of(rig: Rig) -> list[DepthCheck]:
+        return [c for c in (depth_check(rig, im, smooth, bridge_ref) for im in labelled) if c is not None]
+
+    base_checks = checks_of(base)
+    if not base_checks or not np.isfinite(_pooled(base_checks, "object_offset")):
+        return None
+    cache: dict = {}
+
+    def solve(distance: float):
+        """The zero-offset baseline at this distance, solved once per distance (rounded to 1 um)."""
+        key = round(float(distance), 3)
+        if key not in cache:
+            cache[key] = _zero_offset_baseline(distance, base, b0, measured, period_params, checks_of)
+        return cache[key]
+
+    done = _scan_distances(distances, solve, cache, tol_mm)
+    best_key = min(done, key=lambda kv: kv[1][0]["cost"])[0]
+    row, fit, checks = cache[best_key]
+    scan = [v[0] for _, v in done]
+    base_cost = _pooled(base_checks, "cost")
+    if not row["cost"] < base_cost:  # never a rig worse than the start on this objective: keep the base
+        return _base_kept(base, b0, measured, period_params, row["cost"], base_cost, scan, base_checks)
+    fit.rig.name = (f"fit-rig depth fit: camera {row['distance_mm']:.1f} mm above the plane, baseline "
+                    f"{row['baseline_mm']:.1f} mm, {abs(row['sensitivity_0']):.3f} rad/mm at the plane "
+                    f"({', '.join(period_params)} refitted to the plane; started from: {base.name})")
+    notes = []
+    if best_key in (done[0][0], done[-1][0]):
+        notes.append("the best distance is at the end of the scanned range: widen --distances / distances")
+    return DepthFit(distance=row["distance_mm"], baseline=row["baseline_mm"], fit=fit,
+                    scan=scan, checks=checks, base_checks=base_checks,
+                    sensitivity=row["sensitivity_0"], sensitivity_40=row["sensitivity_40"],
+                    base_distance=b0["distance"], base_baseline=b0["baseline"],
+                    base_sensitivity=centre_sensitivity(base), base_sensitivity_40=sensitivity_at(base, 40.0),
+                    notes=notes)
+
+
+def _candidate_distances(labelled: list[FringeImage], b0: dict, distances) -> np.ndarray:
+    """The camera heights to try (default 0.4 .. 4 x the base rig's, evenly in ``1 / distance``), above 3 x
+    the highest label: nearer, the ``D / (D - h)`` growth the fit measures is no longer a small correction."""
     top = max(float(np.nanmax(np.where(im.valid, np.nan_to_num(im.height_mm), 0.0))) for im in labelled)
     d_min = max(3.0 * top, 0.05 * b0["distance"])
     if distances is None:
@@ -282,66 +322,58 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
     distances = np.array([d for d in np.asarray(distances, dtype=np.float64) if d > d_min])
     if not distances.size:
         raise RigError(f"no candidate distance above {d_min:.0f} mm (3 x the highest label)")
+    return distances
 
-    def checks_of(rig: Rig) -> list[DepthCheck]:
-        return [c for c in (depth_check(rig, im, smooth, bridge_ref) for im in labelled) if c is not None]
 
-    base_checks = checks_of(base)
-    if not base_checks or not np.isfinite(_pooled(base_checks, "object_offset")):
-        return None
-
-    def at(distance: float, baseline: float):
-        rig = adjust_rig(base, distance=distance, baseline=baseline)
-        fit = fit_rig(measured, rig, period_params) if period_params else \
-            unfitted(measured, rig, "only distance and baseline fitted")
-        return fit, checks_of(fit.rig)
-
-    cache: dict = {}
-
-    def solve(distance: float):
-        """The baseline whose pooled absolute object offset is 0 at this distance (secant steps)."""
-        key = round(float(distance), 3)
-        if key in cache:
-            return cache[key]
-        k = distance / b0["distance"]
-        xs, ys, last = [], [], None
-        b = b0["baseline"] * k
-        try:
-            for it in range(8):
-                fit, checks = at(distance, b)
-                y = _pooled(checks, "object_offset")
-                if not np.isfinite(y):
-                    raise RigError("no shadow crossings")
-                xs.append(b)
-                ys.append(y)
-                last = (fit, checks)
-                if abs(y) < 0.01:
+def _zero_offset_baseline(distance: float, base: Rig, b0: dict, measured: BandPeriods, period_params: tuple,
+                          checks_of: Callable[[Rig], list]):
+    """The baseline whose pooled absolute object offset is 0 at this distance (secant steps), as (scan row,
+    period fit, checks); None when the rig there loses the shadow crossings or the baseline diverges."""
+    k = distance / b0["distance"]
+    xs, ys, last = [], [], None
+    b = b0["baseline"] * k
+    try:
+        for it in range(8):
+            rig = adjust_rig(base, distance=distance, baseline=b)
+            fit = fit_rig(measured, rig, period_params) if period_params else \
+                unfitted(measured, rig, "only distance and baseline fitted")
+            checks = checks_of(fit.rig)
+            y = _pooled(checks, "object_offset")
+            if not np.isfinite(y):
+                raise RigError("no shadow crossings")
+            xs.append(b)
+            ys.append(y)
+            last = (fit, checks)
+            if abs(y) < 0.01:
+                break
+            if len(xs) < 2:
+                # phase shift ~ proportional to the baseline: scale it by the offset's share
+                # (signed: a residual ahead of the rig wants less shift when the phase falls with height)
+                total = sensitivity_at(fit.rig, 20.0) * 40.0
+                b = b * (1.0 + y / total) if abs(total) > 1.0 else 1.1 * b
+            else:
+                slope = (ys[-1] - ys[-2]) / (xs[-1] - xs[-2]) if xs[-1] != xs[-2] else 0.0
+                if slope == 0.0:
                     break
-                if len(xs) < 2:
-                    # phase shift ~ proportional to the baseline: scale it by the offset's share
-                    # (signed: a residual ahead of the rig wants less shift when the phase falls with height)
-                    total = sensitivity_at(fit.rig, 20.0) * 40.0
-                    b = b * (1.0 + y / total) if abs(total) > 1.0 else 1.1 * b
-                else:
-                    slope = (ys[-1] - ys[-2]) / (xs[-1] - xs[-2]) if xs[-1] != xs[-2] else 0.0
-                    if slope == 0.0:
-                        break
-                    b = xs[-1] - ys[-1] / slope
-                if not (0.05 * b0["baseline"] * k < abs(b) < 20.0 * abs(b0["baseline"]) * k + 1.0):
-                    raise RigError("baseline diverged")
-        except RigError:
-            cache[key] = None
-            return None
-        fit, checks = last
-        cost = _pooled(checks, "cost")
-        row = {"distance_mm": float(distance), "baseline_mm": float(xs[-1]), "cost": cost,
-               "object_offset": _pooled(checks, "object_offset"),
-               "object_residual": _pooled(checks, "object_residual"), "slope": _pooled(checks, "slope"),
-               "plane_residual": _pooled(checks, "plane_residual"),
-               "sensitivity_0": centre_sensitivity(fit.rig), "sensitivity_40": sensitivity_at(fit.rig, 40.0),
-               "rms_px": fit.rms_fitted}
-        cache[key] = (row, fit, checks)
-        return cache[key]
+                b = xs[-1] - ys[-1] / slope
+            if not (0.05 * b0["baseline"] * k < abs(b) < 20.0 * abs(b0["baseline"]) * k + 1.0):
+                raise RigError("baseline diverged")
+    except RigError:
+        return None
+    fit, checks = last
+    row = {"distance_mm": float(distance), "baseline_mm": float(xs[-1]), "cost": _pooled(checks, "cost"),
+           "object_offset": _pooled(checks, "object_offset"),
+           "object_residual": _pooled(checks, "object_residual"), "slope": _pooled(checks, "slope"),
+           "plane_residual": _pooled(checks, "plane_residual"),
+           "sensitivity_0": centre_sensitivity(fit.rig), "sensitivity_40": sensitivity_at(fit.rig, 40.0),
+           "rms_px": fit.rms_fitted}
+    return row, fit, checks
+
+
+def _scan_distances(distances: np.ndarray, solve: Callable, cache: dict, tol_mm: float) -> list:
+    """Solve every candidate distance, then refine between the best one's neighbours by a bounded scalar
+    search (``solve`` fills ``cache``); the solved distances as sorted (key, (row, fit, checks)) pairs."""
+    from scipy.optimize import minimize_scalar
 
     for D in distances:
         solve(float(D))
@@ -357,34 +389,23 @@ def fit_depth(images: list[FringeImage], measured: BandPeriods, base: Rig,
             v = solve(float(D))
             return np.inf if v is None else v[0]["cost"]
         minimize_scalar(f, bounds=(lo, hi), method="bounded", options={"xatol": tol_mm})
-    done = sorted((k, v) for k, v in cache.items() if v is not None)
-    best_key = min(done, key=lambda kv: kv[1][0]["cost"])[0]
-    row, fit, checks = cache[best_key]
-    base_cost = _pooled(base_checks, "cost")
-    if not row["cost"] < base_cost:  # never a rig worse than the start on this objective: keep the base
-        refit = f" (with {', '.join(period_params)} refitted to the plane)" if period_params else ""
-        note = (f"no distance and baseline{refit} explains the labels better than the base rig (cost "
-                f"{row['cost']:.4f} at best vs {base_cost:.4f}): the base rig is kept (labels made through it can only confirm it)")
-        s0, s40 = centre_sensitivity(base), sensitivity_at(base, 40.0)
-        return DepthFit(distance=b0["distance"], baseline=b0["baseline"],
-                        fit=unfitted(measured, base, "the base rig kept (see the note above)"),
-                        scan=[v[0] for _, v in done], checks=base_checks, base_checks=base_checks,
-                        sensitivity=s0, sensitivity_40=s40, base_distance=b0["distance"],
-                        base_baseline=b0["baseline"], base_sensitivity=s0, base_sensitivity_40=s40, notes=[note],
-                        kept=True)
-    fit.rig.name = (f"fit-rig depth fit: camera {row['distance_mm']:.1f} mm above the plane, baseline "
-                    f"{row['baseline_mm']:.1f} mm, {abs(row['sensitivity_0']):.3f} rad/mm at the plane "
-                    f"({', '.join(period_params)} refitted to the plane; started from: {base.name})")
-    notes = []
-    if best_key in (done[0][0], done[-1][0]):
-        notes.append("the best distance is at the end of the scanned range: widen --distances / distances")
-    return DepthFit(distance=row["distance_mm"], baseline=row["baseline_mm"], fit=fit,
-                    scan=[v[0] for _, v in done], checks=checks, base_checks=base_checks,
-                    sensitivity=row["sensitivity_0"], sensitivity_40=row["sensitivity_40"],
-                    base_distance=b0["distance"], base_baseline=b0["baseline"],
-                    base_sensitivity=centre_sensitivity(base), base_sensitivity_40=sensitivity_at(base, 40.0),
-                    notes=notes)
+    return sorted((k, v) for k, v in cache.items() if v is not None)
 
+
+def _base_kept(base: Rig, b0: dict, measured: BandPeriods, period_params: tuple, best_cost: float,
+               base_cost: float, scan: list, base_checks: list) -> DepthFit:
+    """The result when no distance and baseline beat the base rig on the fit's own objective: the base rig
+    itself (labels made through it can only confirm it), with a note saying so."""
+    refit = f" (with {', '.join(period_params)} refitted to the plane)" if period_params else ""
+    note = (f"no distance and baseline{refit} explains the labels better than the base rig (cost "
+            f"{best_cost:.4f} at best vs {base_cost:.4f}): the base rig is kept (labels made through it can only confirm it)")
+    s0, s40 = centre_sensitivity(base), sensitivity_at(base, 40.0)
+    return DepthFit(distance=b0["distance"], baseline=b0["baseline"],
+                    fit=unfitted(measured, base, "the base rig kept (see the note above)"),
+                    scan=scan, checks=base_checks, base_checks=base_checks,
+                    sensitivity=s0, sensitivity_40=s40, base_distance=b0["distance"],
+                    base_baseline=b0["baseline"], base_sensitivity=s0, base_sensitivity_40=s40, notes=[note],
+                    kept=True)
 
 def format_depth_fit(fit: DepthFit) -> str:
     """Plain-text summary of :func:`fit_depth`: the distance scan and the base vs fitted rig."""

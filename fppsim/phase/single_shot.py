@@ -2,8 +2,40 @@
 (:func:`single_shot_phase`, result :class:`SingleShotPhase`); numpy and SciPy.
 
 Fourier-transform profilometry (or per-row analytic signals) followed by local demodulation passes, with
-an error model fitted to exact phase; the details, conventions and measured accuracy are in
-:func:`single_shot_phase`. Units: radians, pixels.
+an error model fitted to exact phase; the method's steps are in :func:`single_shot_phase`, its conventions and
+measured accuracy below. Units: radians, pixels.
+
+Convention: fppsim renders the single-shot ``fringe.png`` with the pattern ``0.5 + 0.5 cos(2 pi f
+u_p / W_p + 0)`` (phase shift 0), so ``wrapped ~ fppsim.phase.wrap(phase_true)``: measured offset
+``median wrap(wrapped - phase_true)`` 0.000 rad (sample-to-sample SD 0.001). On the real figshare-rig
+frame FP1523/1201 (public layout, absolute phase ``atan2(-PSin, -PCos) + pi + 2 pi Order``):
+``wrapped ~ wrap(absolute)`` with an offset of -0.011 rad and the same sign, i.e. the single-shot
+image is the public convention's ``A + B cos(Phi)``, and ``wrapped = atan2(PSin, PCos)`` up to noise.
+
+Accuracy (rad, ``|wrap(wrapped - truth - offset)|``, median / 90th / 99th percentile; default settings;
+measured 2026-11-24, scenes from ``fppsim generate --meshes ../shared/meshes --count 8 --seed 7``):
+
+================================  ==========================  =======================
+data                              pixels                      median / p90 / p99
+================================  ==========================  =======================
+rendered plain plane (4 images)   all                         0.010 / 0.028 / 0.17
+                                  >= 6 px from the border     0.010 / 0.026 / 0.044
+rendered scenes (8 images)        reference plane             0.010 / 0.032 / 0.33
+                                  object interiors            0.046 / 0.30 / 1.46
+                                  edges (< 3 px from a mask   0.40 / 1.88 / 3.0
+                                  boundary or a 2 mm step)
+                                  all valid (mask)            0.013 / 0.14 / 1.58
+                                  reliability > 0.5 (83 %)    0.010 / 0.031 / 0.24
+real frame FP1523/1201 vs PSP     all valid                   0.028 / 0.18 / 1.14
+                                  < 3 px from invalid         0.55 / 1.71 / 2.8
+                                  reliability > 0.5 (82 %)    0.023 / 0.075 / 0.31
+================================  ==========================  =======================
+
+Without ``refine`` (plain FTP): object interiors 0.12 / 0.57 / 2.1, real frame 0.033 / 0.23 / 1.25.
+``method="rows"``: plane 0.020 (1-D, noisier), objects 0.045, real frame 0.030. A windowed Fourier
+ridge (Kemao) tried during development was slower and no better after ``refine`` (objects 0.061).
+Shadows are meaningless by construction (reliability 0); edges and phase steps are the limit of any
+local method (the window straddles the step) and get low reliability.
 """
 
 from __future__ import annotations
@@ -112,40 +144,38 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
     method against exact ``phase_true`` on 8 rendered samples; on the real frame the error ranks the
     pixels (Spearman 0.56) but underestimates by about 1.5x (its PSP reference is noisy too).
 
-    Convention: fppsim renders the single-shot ``fringe.png`` with the pattern ``0.5 + 0.5 cos(2 pi f
-    u_p / W_p + 0)`` (phase shift 0), so ``wrapped ~ fppsim.phase.wrap(phase_true)``: measured offset
-    ``median wrap(wrapped - phase_true)`` 0.000 rad (sample-to-sample SD 0.001). On the real figshare-rig
-    frame FP1523/1201 (public layout, absolute phase ``atan2(-PSin, -PCos) + pi + 2 pi Order``):
-    ``wrapped ~ wrap(absolute)`` with an offset of -0.011 rad and the same sign, i.e. the single-shot
-    image is the public convention's ``A + B cos(Phi)``, and ``wrapped = atan2(PSin, PCos)`` up to noise.
-
-    Accuracy (rad, ``|wrap(wrapped - truth - offset)|``, median / 90th / 99th percentile; default settings;
-    measured 2026-11-24, scenes from ``fppsim generate --meshes ../shared/meshes --count 8 --seed 7``):
-
-    ================================  ==========================  =======================
-    data                              pixels                      median / p90 / p99
-    ================================  ==========================  =======================
-    rendered plain plane (4 images)   all                         0.010 / 0.028 / 0.17
-                                      >= 6 px from the border     0.010 / 0.026 / 0.044
-    rendered scenes (8 images)        reference plane             0.010 / 0.032 / 0.33
-                                      object interiors            0.046 / 0.30 / 1.46
-                                      edges (< 3 px from a mask   0.40 / 1.88 / 3.0
-                                      boundary or a 2 mm step)
-                                      all valid (mask)            0.013 / 0.14 / 1.58
-                                      reliability > 0.5 (83 %)    0.010 / 0.031 / 0.24
-    real frame FP1523/1201 vs PSP     all valid                   0.028 / 0.18 / 1.14
-                                      < 3 px from invalid         0.55 / 1.71 / 2.8
-                                      reliability > 0.5 (82 %)    0.023 / 0.075 / 0.31
-    ================================  ==========================  =======================
-
-    Without ``refine`` (plain FTP): object interiors 0.12 / 0.57 / 2.1, real frame 0.033 / 0.23 / 1.25.
-    ``method="rows"``: plane 0.020 (1-D, noisier), objects 0.045, real frame 0.030. A windowed Fourier
-    ridge (Kemao) tried during development was slower and no better after ``refine`` (objects 0.061).
-    Shadows are meaningless by construction (reliability 0); edges and phase steps are the limit of any
-    local method (the window straddles the step) and get low reliability.
-    About 0.4 s for 352 x 640 on one core.
+    Conventions and measured accuracy: the module notes. About 0.4 s for 352 x 640 on one core.
     """
-    from scipy import ndimage as ndi
+    x, valid = _checked_image(image, mask, method, direction)
+    guess = _period_guess(x, valid, period)
+    valid &= ~_dark_runs(x, guess, dark)
+    if valid.sum() < 64:
+        raise ValueError("single_shot_phase: fewer than 64 pixels carry fringes")
+    bg = _local_background(x, valid, guess)
+    g = np.where(valid, x - bg, 0.0)
+    fx0, fy0 = _normalised_carrier(g, valid, guess, period)
+    f0 = float(np.hypot(fx0, fy0))
+    per = 1.0 / f0
+    a = _analytic(g, fx0, fy0, per, method, band)
+    for s in refine:
+        a = _demodulate(g, a, valid, s * per)
+    err = _phase_error(g, a, valid, fx0, fy0, per)
+    rel = np.where(valid, 1.0 / (1.0 + (err / error_scale) ** 2), 0.0)
+    wrapped = np.angle(a)
+    if direction < 0:
+        wrapped = -wrapped
+    return SingleShotPhase(
+        wrapped=wrapped.astype(np.float32), reliability=rel.astype(np.float32),
+        error=np.where(valid, err, np.pi).astype(np.float32),
+        modulation=np.where(valid, 2.0 * np.abs(a), 0.0).astype(np.float32), background=bg.astype(np.float32),
+        valid=valid, period=per, tilt=float(np.degrees(np.arctan(-fy0 / fx0))),
+        carrier=(direction * fx0, direction * fy0), method=method)
+
+
+def _checked_image(image: np.ndarray, mask: np.ndarray | None, method: str,
+                   direction: int) -> tuple[np.ndarray, np.ndarray]:
+    """The image as float64 (NaN/inf set to its finite minimum) and its usable pixels (finite, in ``mask``):
+    every argument is checked before any filtering, so a bad call fails fast and says why."""
     x = np.asarray(image)
     if x.ndim == 3 and x.shape[-1] == 1:
         x = x[..., 0]
@@ -170,35 +200,25 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
         valid &= mask
     if not valid.any():
         raise ValueError("single_shot_phase: no valid pixel")
+    return x, valid
+
+
+def _period_guess(x: np.ndarray, valid: np.ndarray, period: float | None) -> float:
+    """The period that sizes the dark-run and background windows: ``period`` when given, else the spectrum
+    peak of the mean-removed image (good enough for windows; the carrier itself is found after them)."""
     if period is None:
         fx0, fy0 = _carrier_peak(np.where(valid, x - x[valid].mean(), 0.0), None)
-        guess = 1.0 / np.hypot(fx0, fy0)
-    else:
-        guess = float(period)
-    valid &= ~_dark_runs(x, guess, dark)
-    if valid.sum() < 64:
-        raise ValueError("single_shot_phase: fewer than 64 pixels carry fringes")
-    bg = _local_background(x, valid, guess)
-    g = np.where(valid, x - bg, 0.0)
-    # amplitude-normalised for the carrier search: every pixel counts alike, not the bright ones
+        return 1.0 / np.hypot(fx0, fy0)
+    return float(period)
+
+
+def _normalised_carrier(g: np.ndarray, valid: np.ndarray, guess: float,
+                        period: float | None) -> tuple[float, float]:
+    """Carrier (fx, fy) of the background-removed image ``g`` normalised by its local amplitude, so that
+    every pixel counts alike in the spectrum, not the bright ones."""
+    from scipy import ndimage as ndi
     env = np.sqrt(2.0 * ndi.gaussian_filter(g * g, guess) / np.maximum(ndi.gaussian_filter(valid * 1.0, guess), 1e-6))
-    fx0, fy0 = _carrier_peak(np.where(valid, g / np.maximum(env, 1e-9 * env.max() + 1e-300), 0.0), period)
-    f0 = float(np.hypot(fx0, fy0))
-    per = 1.0 / f0
-    a = _analytic(g, fx0, fy0, per, method, band)
-    for s in refine:
-        a = _demodulate(g, a, valid, s * per)
-    err = _phase_error(g, a, valid, fx0, fy0, per)
-    rel = np.where(valid, 1.0 / (1.0 + (err / error_scale) ** 2), 0.0)
-    wrapped = np.angle(a)
-    if direction < 0:
-        wrapped = -wrapped
-    return SingleShotPhase(
-        wrapped=wrapped.astype(np.float32), reliability=rel.astype(np.float32),
-        error=np.where(valid, err, np.pi).astype(np.float32),
-        modulation=np.where(valid, 2.0 * np.abs(a), 0.0).astype(np.float32), background=bg.astype(np.float32),
-        valid=valid, period=per, tilt=float(np.degrees(np.arctan(-fy0 / fx0))),
-        carrier=(direction * fx0, direction * fy0), method=method)
+    return _carrier_peak(np.where(valid, g / np.maximum(env, 1e-9 * env.max() + 1e-300), 0.0), period)
 
 
 def _dark_runs(x: np.ndarray, period: float, dark: float) -> np.ndarray:

@@ -311,70 +311,18 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
     Returns the report (also written to ``args.json`` when given)."""
     import torch
 
-
-    device = select_device(args.device)
-    if args.optimize and "compile" in args.variants and device.type == "cpu":
-        import shutil
-
-        if shutil.which("g++") is None and shutil.which("c++") is None:
-            args.variants = [v for v in args.variants if v != "compile"]  # inductor needs a C++ compiler on CPU
-    if device.type == "cuda":
-        torch.backends.cudnn.benchmark = True
-        where = torch.cuda.get_device_name(device)
-    else:
-        where = f"cpu, {torch.get_num_threads()} threads"
+    device, where = _bench_device(args)
     echo(
         f"uhrnet bench: {where}; input {args.batch_size}x{args.height}x{args.width}; "
         f"median of {args.repeats} after {args.warmup} warm-up; channels_last {'on' if args.channels_last else 'off'}; "
         f"torch.compile {'on' if args.compile else 'off'}"
         + (f"; --optimize: {' '.join(args.variants)}" if args.optimize else ""),
     )
-    results, runners, paired = [], {}, None
-    for name in args.models:
-        keep = {} if args.optimize and name.lower() in ("uhrnet", "unet") else None
-        if keep is not None:
-            runners[name.lower()] = keep
-        try:
-            results.append(measure(name, args, device, keep))
-        except ValueError as exc:
-            raise ConfigError(f"{name}: {exc}") from exc
-        r = results[-1]
-        echo(f"  {name}: forward {_ms(r['forward_ms'])} ms, train step {_ms(r['train_step_ms'])} ms")
-        if runners.get("uhrnet") and runners.get("unet"):
-            # the two fastest forms in alternating pairs, now: before the other models' memory is measured
-            (a,), (b,) = runners["uhrnet"].values(), runners["unet"].values()
-            paired = paired_times(a, b, device, args.warmup, args.repeats)
-            runners.clear()
-        gc.collect()
-        if device.type == "cuda":
-            torch.cuda.empty_cache()
+    results, paired = _measure_models(args, device, echo)
     echo(format_table(results))
     if args.optimize:
         echo(format_optimized(results))
-    by_name = {r["model"].lower(): r for r in results}
-    ratio = None
-    if "uhrnet" in by_name and "unet" in by_name:
-        ratio = by_name["uhrnet"]["forward_ms"] / by_name["unet"]["forward_ms"]
-        paper = PAPER_SECONDS["uhrnet"] / PAPER_SECONDS["unet"]
-        echo(
-            f"UHRNet / U-Net forward time{' (fastest torch forms)' if args.optimize else ''}: {ratio:.2f} "
-            f"(paper: {PAPER_SECONDS['uhrnet']} s / "
-            f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
-        )
-    runtime_ratios, best_ratio, torch_ratio = {}, None, None
-    if args.optimize and "uhrnet" in by_name and "unet" in by_name:
-        u, n = by_name["uhrnet"], by_name["unet"]
-        for form in RUNTIME_FORMS:
-            a, b = u.get(f"{form}_ms"), n.get(f"{form}_ms")
-            runtime_ratios[form] = a / b if a and b else None
-            if runtime_ratios[form] is not None:
-                echo(f"UHRNet / U-Net forward time under {form}: {runtime_ratios[form]:.2f}")
-        torch_ratio = ratio
-        best_ratio = ratio = paired["ratio"]  # (timed as soon as both models were measured)
-        echo(f"UHRNet / U-Net forward time, each in its fastest deployable form ({u['best_deployable_form']} / "
-             f"{n['best_deployable_form']}; {args.repeats} alternating pairs: {paired['a_ms']:.1f} / "
-             f"{paired['b_ms']:.1f} ms): {best_ratio:.2f}")
-    runners.clear()
+    ratio, torch_ratio, best_ratio, runtime_ratios = _forward_ratios(args, results, paired, echo)
     memory_note = (
         "peak memory: torch.cuda.max_memory_allocated (weights, optimizer state and activations)"
         if device.type == "cuda"
@@ -407,3 +355,79 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         atomic_write_text(path, json.dumps(report, indent=2) + "\n")
         echo(f"wrote {path}")
     return report
+
+
+def _bench_device(args: BenchConfig):
+    """The device and its description; drops the compile variant on a CPU without a C++ compiler (inductor
+    needs one) and lets cuDNN pick its fastest kernels on CUDA."""
+    import torch
+
+    device = select_device(args.device)
+    if args.optimize and "compile" in args.variants and device.type == "cpu":
+        import shutil
+
+        if shutil.which("g++") is None and shutil.which("c++") is None:
+            args.variants = [v for v in args.variants if v != "compile"]  # inductor needs a C++ compiler on CPU
+    if device.type == "cuda":
+        torch.backends.cudnn.benchmark = True
+        where = torch.cuda.get_device_name(device)
+    else:
+        where = f"cpu, {torch.get_num_threads()} threads"
+    return device, where
+
+
+def _measure_models(args: BenchConfig, device, echo: Callable[[str], None]) -> tuple[list[dict], dict | None]:
+    """:func:`measure` of every model in turn (a line each), and with ``optimize`` the UHRNet / U-Net pairs of
+    their fastest forms, timed as soon as both exist: before the other models' memory is measured."""
+    import torch
+
+    results, runners, paired = [], {}, None
+    for name in args.models:
+        keep = {} if args.optimize and name.lower() in ("uhrnet", "unet") else None
+        if keep is not None:
+            runners[name.lower()] = keep
+        try:
+            results.append(measure(name, args, device, keep))
+        except ValueError as exc:
+            raise ConfigError(f"{name}: {exc}") from exc
+        r = results[-1]
+        echo(f"  {name}: forward {_ms(r['forward_ms'])} ms, train step {_ms(r['train_step_ms'])} ms")
+        if runners.get("uhrnet") and runners.get("unet"):
+            (a,), (b,) = runners["uhrnet"].values(), runners["unet"].values()
+            paired = paired_times(a, b, device, args.warmup, args.repeats)
+            runners.clear()
+        gc.collect()
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    runners.clear()
+    return results, paired
+
+
+def _forward_ratios(args: BenchConfig, results: list[dict], paired: dict | None, echo: Callable[[str], None]):
+    """The UHRNet / U-Net forward-time ratios, each echoed: (the reported one, the torch forms', the fastest
+    deployable forms', {runtime: ratio}). None / empty without both models; without ``optimize`` only the
+    first (the torch forms') is set."""
+    by_name = {r["model"].lower(): r for r in results}
+    ratio = None
+    if "uhrnet" in by_name and "unet" in by_name:
+        ratio = by_name["uhrnet"]["forward_ms"] / by_name["unet"]["forward_ms"]
+        paper = PAPER_SECONDS["uhrnet"] / PAPER_SECONDS["unet"]
+        echo(
+            f"UHRNet / U-Net forward time{' (fastest torch forms)' if args.optimize else ''}: {ratio:.2f} "
+            f"(paper: {PAPER_SECONDS['uhrnet']} s / "
+            f"{PAPER_SECONDS['unet']} s = {paper:.2f} on an RTX 2080 Ti)"
+        )
+    runtime_ratios, best_ratio, torch_ratio = {}, None, None
+    if args.optimize and "uhrnet" in by_name and "unet" in by_name:
+        u, n = by_name["uhrnet"], by_name["unet"]
+        for form in RUNTIME_FORMS:
+            a, b = u.get(f"{form}_ms"), n.get(f"{form}_ms")
+            runtime_ratios[form] = a / b if a and b else None
+            if runtime_ratios[form] is not None:
+                echo(f"UHRNet / U-Net forward time under {form}: {runtime_ratios[form]:.2f}")
+        torch_ratio = ratio
+        best_ratio = ratio = paired["ratio"]  # (timed as soon as both models were measured)
+        echo(f"UHRNet / U-Net forward time, each in its fastest deployable form ({u['best_deployable_form']} / "
+             f"{n['best_deployable_form']}; {args.repeats} alternating pairs: {paired['a_ms']:.1f} / "
+             f"{paired['b_ms']:.1f} ms): {best_ratio:.2f}")
+    return ratio, torch_ratio, best_ratio, runtime_ratios

@@ -155,9 +155,6 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     """Evaluate checkpoints (files or run folders) on ``data``; with ``out``, write the report files and
     comparison figures (``figures`` evenly spaced images, or the ids in ``samples``; cross-section
     ``row``) there. ``timing_repeats`` timed forward passes at batch 1 per model (0: no timing)."""
-    from tqdm import tqdm
-
-
     data = data or EvalData()
     for flag, value, lowest in (("--batch-size", batch_size, 1), ("--figures", figures, 0),
                                 ("--timing-repeats", timing_repeats, 0)):
@@ -165,11 +162,53 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
             raise UsageError(f"{flag} must be >= {lowest}, got {value}")
     ckpts = [load_checkpoint(p) for p in checkpoints]
     names = model_names(ckpts, names)
+    transform = _shared_transform(ckpts)
+    sources, subset, ds, n = _open_split(data, ckpts, transform)
+    split = data.split
+    figure_idx = _figure_indices(subset.ids, n, samples, figures) if out is not None else []
+    device = select_device(device)
+    image_shape = tuple(ds[0]["fringe"].shape[-2:])
+    if row is not None and not 0 <= row < image_shape[0]:
+        raise ConfigError(f"--row {row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+
+    per_sample: list[dict] = []
+    summary: list[dict] = []
+    preds: dict[int, dict[str, np.ndarray]] = {i: {} for i in figure_idx}
+    loader = DataLoader(torch.utils.data.Subset(ds, list(range(n))), batch_size=batch_size, shuffle=False)
+    for ck, name in zip(ckpts, names):
+        rows, entry = _score_model(ck, name, loader, transform, device, preds, image_shape, timing_repeats,
+                                   progress, batch_size)
+        per_sample += rows
+        summary.append(entry)
+
+    per_source = any(r["images_real"] for r in summary) and any(r["images_synthetic"] for r in summary)
+    report = Report(split=split, images=n, data=sources.description, label_transform=transform.to_dict(),
+                    models=summary, per_sample=per_sample, table=markdown_table(summary, per_source),
+                    header=_report_header(split, n, per_sample, transform, device))
+    if out is None:
+        return report
+    report.write(out)
+    if preds:
+        _write_figures(report, ds, figure_idx, preds, transform, row, out)
+    return report
+
+
+def _shared_transform(ckpts: list[dict]) -> LabelTransform:
+    """The label transform of the checkpoints, which must all share it: one table compares their heights."""
     transform = LabelTransform.from_dict(ckpts[0]["label_transform"])
     for c in ckpts[1:]:
         if LabelTransform.from_dict(c["label_transform"]) != transform:
             raise ConfigError(f"{c['path']}: label transform {c['label_transform']} differs from "
                            f"{ckpts[0]['path']}'s {transform.to_dict()}")
+    return transform
+
+
+def _open_split(data: EvalData, ckpts: list[dict], transform: LabelTransform):
+    """(sources, the split's subset, its prepared dataset, the number of images evaluated): ``data``'s
+    folders and splits, each unset one as the first checkpoint was trained; refused when empty."""
     first = ckpts[0].get("args", {})
     real = data.real if data.real is not None else (first.get("real") or [])
     synthetic = data.synthetic if data.synthetic is not None else (first.get("synthetic") or [])
@@ -189,86 +228,77 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     if n == 0:
         raise ConfigError(f"the {split} split is empty ({len(sources.train)} train / {len(sources.val)} val / "
                        f"{len(sources.test)} test images); try --split all or --real-split test")
-    indices = list(range(n))
-    figure_idx = _figure_indices(subset.ids, n, samples, figures) if out is not None else []
-    device = select_device(device)
-    image_shape = tuple(ds[0]["fringe"].shape[-2:])
-    if row is not None and not 0 <= row < image_shape[0]:
-        raise ConfigError(f"--row {row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
+    return sources, subset, ds, n
 
-    per_sample: list[dict] = []
-    summary: list[dict] = []
-    preds: dict[int, dict[str, np.ndarray]] = {i: {} for i in figure_idx}
-    loader = DataLoader(torch.utils.data.Subset(ds, indices), batch_size=batch_size, shuffle=False)
-    for ck, name in zip(ckpts, names):
-        model, _ = model_from_checkpoint(ck, device)
-        size = parse_size(ck.get("args", {}).get("resize"))
-        rows = []
-        pos = 0
-        bar = tqdm(loader, desc=f"evaluate {name}", unit="img", unit_scale=batch_size, leave=False,
-                   disable=not progress)
-        for batch in bar:
-            y, m = batch["height"].to(device), batch["mask"].to(device)
-            pred = predict_labels(model, batch["fringe"], size)
-            r, s = image_metrics(pred, y, m, transform)
-            for k in range(len(r)):
-                i = pos + k
-                rows.append({"model": name, "id": batch["id"][k], "source": batch["source"][k],
-                             "rmse_mm": float(r[k]), "ssim": float(s[k])})
-                if i in preds:
-                    preds[i][name] = transform.height_mm(pred[k, 0].cpu().numpy().astype(np.float64))
-            pos += len(r)
-        bar.close()
-        per_sample += rows
-        seconds = None
-        if timing_repeats > 0:
-            seconds = inference_seconds(model, (1, 1, *(_mult16(size or image_shape))), device,
-                                        warmup=1, repeats=timing_repeats)
-        entry = {
-            "name": name, "checkpoint": ck["path"], "model": ck["model"]["name"], "config": ck["model"]["config"],
-            "epoch": ck.get("epoch"), "images": len(rows),
-            "rmse_mm": _nanmean([r["rmse_mm"] for r in rows]), "rmse_mm_std": _nanstd([r["rmse_mm"] for r in rows]),
-            "ssim": _nanmean([r["ssim"] for r in rows]), "ssim_std": _nanstd([r["ssim"] for r in rows]),
-            "parameters": int(count_parameters(model.net)), "seconds_per_image": seconds,
-            "timing_shape": list(_mult16(size or image_shape)), "device": str(device),
-        }
-        for src in ("real", "synthetic"):
-            sel = [r for r in rows if r["source"] == src]
-            entry[f"rmse_mm_{src}"] = _nanmean([r["rmse_mm"] for r in sel])
-            entry[f"ssim_{src}"] = _nanmean([r["ssim"] for r in sel])
-            entry[f"images_{src}"] = len(sel)
-        summary.append(entry)
-        del model
 
-    per_source = any(r["images_real"] for r in summary) and any(r["images_synthetic"] for r in summary)
-    md = markdown_table(summary, per_source)
-    header = (f"# Evaluation: {split} split, {n} images ({sum(1 for r in per_sample[:n] if r['source'] == 'real')} "
-              f"real, {sum(1 for r in per_sample[:n] if r['source'] == 'synthetic')} synthetic)\n\n"
-              f"RMSE over valid pixels in mm (label transform {transform.name}: {transform.units_per_mm:g} units/mm, "
-              f"invalid <= {transform.invalid_threshold:g}), SSIM with L = {transform.data_range:g}, "
-              f"time = one forward pass at batch 1 on {device}.\n\n")
-    report = Report(split=split, images=n, data=sources.description, label_transform=transform.to_dict(),
-                    models=summary, per_sample=per_sample, table=md, header=header)
-    if out is None:
-        return report
-    report.write(out)
-    if preds:
-        (out / "figures").mkdir(exist_ok=True)
-        for i in figure_idx:
-            sample = ds[i]
-            fringe = sample["fringe"][0].numpy()
-            label = sample["height"][0].numpy().astype(np.float64)
-            valid = sample["mask"][0].numpy() > 0.5
-            truth = transform.height_mm(label)
-            r = row if row is not None else _cross_row(truth, valid)
-            path = out / "figures" / f"{sample['source']}_{sample['id']}.png"
-            report.figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=r,
-                                                  title=f"{sample['source']} sample {sample['id']} ({split} split)"))
-    return report
+def _score_model(ck: dict, name: str, loader, transform: LabelTransform, device, preds: dict, image_shape: tuple,
+                 timing_repeats: int, progress: bool, batch_size: int) -> tuple[list[dict], dict]:
+    """One checkpoint on every image: its per-image rows and its summary entry; the heights of the figure
+    images go into ``preds`` (only those, so the figures never hold every prediction in memory)."""
+    from tqdm import tqdm
 
+    model, _ = model_from_checkpoint(ck, device)
+    size = parse_size(ck.get("args", {}).get("resize"))
+    rows = []
+    pos = 0
+    bar = tqdm(loader, desc=f"evaluate {name}", unit="img", unit_scale=batch_size, leave=False,
+               disable=not progress)
+    for batch in bar:
+        y, m = batch["height"].to(device), batch["mask"].to(device)
+        pred = predict_labels(model, batch["fringe"], size)
+        r, s = image_metrics(pred, y, m, transform)
+        for k in range(len(r)):
+            i = pos + k
+            rows.append({"model": name, "id": batch["id"][k], "source": batch["source"][k],
+                         "rmse_mm": float(r[k]), "ssim": float(s[k])})
+            if i in preds:
+                preds[i][name] = transform.height_mm(pred[k, 0].cpu().numpy().astype(np.float64))
+        pos += len(r)
+    bar.close()
+    seconds = None
+    if timing_repeats > 0:
+        seconds = inference_seconds(model, (1, 1, *(_mult16(size or image_shape))), device,
+                                    warmup=1, repeats=timing_repeats)
+    entry = {
+        "name": name, "checkpoint": ck["path"], "model": ck["model"]["name"], "config": ck["model"]["config"],
+        "epoch": ck.get("epoch"), "images": len(rows),
+        "rmse_mm": _nanmean([r["rmse_mm"] for r in rows]), "rmse_mm_std": _nanstd([r["rmse_mm"] for r in rows]),
+        "ssim": _nanmean([r["ssim"] for r in rows]), "ssim_std": _nanstd([r["ssim"] for r in rows]),
+        "parameters": int(count_parameters(model.net)), "seconds_per_image": seconds,
+        "timing_shape": list(_mult16(size or image_shape)), "device": str(device),
+    }
+    for src in ("real", "synthetic"):
+        sel = [r for r in rows if r["source"] == src]
+        entry[f"rmse_mm_{src}"] = _nanmean([r["rmse_mm"] for r in sel])
+        entry[f"ssim_{src}"] = _nanmean([r["ssim"] for r in sel])
+        entry[f"images_{src}"] = len(sel)
+    return rows, entry
+
+
+def _report_header(split: str, n: int, per_sample: list[dict], transform: LabelTransform, device) -> str:
+    """results.md's heading: what was evaluated and how each column was measured."""
+    return (f"# Evaluation: {split} split, {n} images ({sum(1 for r in per_sample[:n] if r['source'] == 'real')} "
+            f"real, {sum(1 for r in per_sample[:n] if r['source'] == 'synthetic')} synthetic)\n\n"
+            f"RMSE over valid pixels in mm (label transform {transform.name}: {transform.units_per_mm:g} units/mm, "
+            f"invalid <= {transform.invalid_threshold:g}), SSIM with L = {transform.data_range:g}, "
+            f"time = one forward pass at batch 1 on {device}.\n\n")
+
+
+def _write_figures(report: Report, ds, figure_idx: list[int], preds: dict, transform: LabelTransform,
+                   row: int | None, out: Path) -> None:
+    """The comparison figure of each figure image (fringe, truth, every model's height and error, a cross
+    section along ``row`` or the row crossing the most object pixels), into ``out/figures`` and ``report``."""
+    (out / "figures").mkdir(exist_ok=True)
+    for i in figure_idx:
+        sample = ds[i]
+        fringe = sample["fringe"][0].numpy()
+        label = sample["height"][0].numpy().astype(np.float64)
+        valid = sample["mask"][0].numpy() > 0.5
+        truth = transform.height_mm(label)
+        r = row if row is not None else _cross_row(truth, valid)
+        path = out / "figures" / f"{sample['source']}_{sample['id']}.png"
+        report.figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=r,
+                                              title=f"{sample['source']} sample {sample['id']} ({report.split} split)"))
 
 def _mult16(shape) -> tuple[int, int]:
     h, w = shape

@@ -258,14 +258,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     device = select_device(cfg.device)
     if device.type == "cpu":
         keep_freed_memory()  # large maps re-used, not page-faulted in every step (same numbers)
-    images = []
-    for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
-        check_image_size(rig, fr.shape, f"{path}: image {name}", who=f"the rig's camera ({rig_name}) is",
-                         error=ConfigError, template="{what} is {got} but {who} {camera}{hint}")
-        images.append(image_phase(name, fr, rig))
-    if not any((im.reliability >= max(cfg.min_reliability, 1e-12)).any() for im in images):
-        raise ConfigError(f"no pixel of the {len(images)} image(s) has a fringe phase reliability >= "
-                          f"{cfg.min_reliability:g} (--min-reliability): nothing to adapt to")
+    images = _read_images(cfg, rig, rig_name)
     names = [LAST_PT, HISTORY_CSV, CONFIG_JSON, IMAGES_JSON]
     names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
     claim_run_folder(out, ADAPT_TOOL, names, checkpoint_kind, kind="adapt")  # never replaces a file it did not write
@@ -290,14 +283,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         sources = [heights(batch(im)[0]) for im in images]
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.Adam(params, lr=cfg.lr)
-    history: list[dict] = []
-    start = 0
-    if resume_from is not None:
-        model.net.load_state_dict(resume_from["state_dict"])
-        optim.load_state_dict(resume_from["adapt"]["optimizer"])
-        history = list(resume_from["adapt"]["history"])
-        start = int(resume_from["adapt"]["epoch"])
-        log(f"adapt: resuming {out} at epoch {start + 1}")
+    history, start = _resume_into(model, optim, resume_from, out, log)
     if start > cfg.epochs:
         log(f"adapt: {out} already holds {start} epochs (--epochs {cfg.epochs}); nothing to do")
     record = {**cfg.record(), "epochs": max(int(cfg.epochs), start)}  # what the weights in last.pt hold
@@ -305,12 +291,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     gen = torch.Generator().manual_seed(int(cfg.seed))
     before = [median_wrapped_residual(s[0, 0].cpu().numpy(), im, layer.cpu()) for s, im in zip(sources, images)]
     layer.to(device)
-    bar = None
-    if cfg.progress and start < cfg.epochs:
-        from tqdm import tqdm
-
-        bar = tqdm(total=(cfg.epochs - start) * len(images), desc="adapt", unit="step", dynamic_ncols=True)
-
+    bar = _progress_bar(cfg, start, len(images))
     if start == 0 and not cfg.tensorboard:  # a replaced adaptation's own curves go (with --tensorboard: RunLog)
         remove_own_event_files(out, ADAPT_TOOL)
     tb = RunLog(out / TB_FOLDER if cfg.tensorboard and start < cfg.epochs else None, start * len(images),
@@ -343,16 +324,8 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
                 tb.height_images((epoch + 1) * len(images), "adapt_image", heights(batch(images[0])[0]),
                                  sources[0], images[0].reliability > 0, "change", images[0].name)
             tb.epoch((epoch + 1) * len(images), row)
-        payload = {k: v for k, v in source.items() if k not in ("path", "sha256", "optimizer", "scaler", "loss", "rng")}
-        payload.update({
-            "state_dict": model.net.state_dict(), "epoch": int(source.get("epoch", 0)),
-            "adapt": {"config": cfg.record(), "epoch": epoch + 1, "history": history, "source": source["path"],
-                      "source_sha256": source["sha256"],
-                      "rig": rig.to_dict(), "optimizer": optim.state_dict(), "rng": rng_state()},
-        })
-        payload.pop("train_state_dict", None)
-        payload.pop("ema", None)
-        save_epoch(out, payload, is_best=False)  # an adaptation has no validation: last.pt only
+        # an adaptation has no validation: last.pt only
+        save_epoch(out, _adapted_checkpoint(source, model, optim, cfg, rig, history, epoch + 1), is_best=False)
         write_history(history, out, ADAPT_COLUMNS, extra=True, plot=False)
         if not cfg.progress:
             log(f"adapt epoch {epoch + 1}/{cfg.epochs}  loss {sums['loss']:.4g}  grad {sums['grad']:.4g}  "
@@ -363,13 +336,70 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     result = AdaptResult(out, max(int(cfg.epochs), start), history)
     with torch.no_grad():
         afters = [heights(batch(im)[0]) for im in images]
-    layer.cpu()
+    _compare_images(result, images, sources, afters, before, layer.cpu(), cfg.figures)
+    atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
+    return result
+
+
+def _read_images(cfg: AdaptConfig, rig, rig_name: str) -> list[ImagePhase]:
+    """The images and their single-shot phases, each checked against the rig's camera size; refused when no
+    pixel is reliable enough to adapt to (before the run folder is claimed)."""
+    images = []
+    for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
+        check_image_size(rig, fr.shape, f"{path}: image {name}", who=f"the rig's camera ({rig_name}) is",
+                         error=ConfigError, template="{what} is {got} but {who} {camera}{hint}")
+        images.append(image_phase(name, fr, rig))
+    if not any((im.reliability >= max(cfg.min_reliability, 1e-12)).any() for im in images):
+        raise ConfigError(f"no pixel of the {len(images)} image(s) has a fringe phase reliability >= "
+                          f"{cfg.min_reliability:g} (--min-reliability): nothing to adapt to")
+    return images
+
+
+def _resume_into(model, optim, resume_from: dict | None, out: Path, log: Callable[[str], None]) -> tuple[list, int]:
+    """Load a resumed adaptation's weights and optimizer state; its history and the epochs done (a fresh
+    one: none)."""
+    if resume_from is None:
+        return [], 0
+    model.net.load_state_dict(resume_from["state_dict"])
+    optim.load_state_dict(resume_from["adapt"]["optimizer"])
+    history = list(resume_from["adapt"]["history"])
+    start = int(resume_from["adapt"]["epoch"])
+    log(f"adapt: resuming {out} at epoch {start + 1}")
+    return history, start
+
+
+def _progress_bar(cfg: AdaptConfig, start: int, n_images: int):
+    """A step progress bar over the epochs still to run, or None (--no-progress, or nothing to run)."""
+    if not (cfg.progress and start < cfg.epochs):
+        return None
+    from tqdm import tqdm  # only a run with a progress bar needs it
+
+    return tqdm(total=(cfg.epochs - start) * n_images, desc="adapt", unit="step", dynamic_ncols=True)
+
+
+def _adapted_checkpoint(source: dict, model, optim, cfg: AdaptConfig, rig, history: list, epochs: int) -> dict:
+    """last.pt of an adaptation: the source checkpoint with the adapted weights, less its training state,
+    plus what resuming needs (options, history, source digest, rig, optimizer, RNG)."""
+    payload = {k: v for k, v in source.items() if k not in ("path", "sha256", "optimizer", "scaler", "loss", "rng")}
+    payload.update({
+        "state_dict": model.net.state_dict(), "epoch": int(source.get("epoch", 0)),
+        "adapt": {"config": cfg.record(), "epoch": epochs, "history": history, "source": source["path"],
+                  "source_sha256": source["sha256"],
+                  "rig": rig.to_dict(), "optimizer": optim.state_dict(), "rng": rng_state()},
+    })
+    payload.pop("train_state_dict", None)
+    payload.pop("ema", None)
+    return payload
+
+
+def _compare_images(result: AdaptResult, images: list[ImagePhase], sources: list, afters: list, before: list,
+                    layer, figures: bool) -> None:
+    """Per image, the median wrapped residual before and after and the mean height change on reliable
+    pixels, into ``result`` (and its figure with ``figures``)."""
     for im, s, a, b in zip(images, sources, afters, before):
         h0, h1 = s[0, 0].cpu().numpy(), a[0, 0].cpu().numpy()
         after = median_wrapped_residual(h1, im, layer)
         result.images.append({"name": im.name, "before_rad": b, "after_rad": after,
                               "mean_change_mm": float(np.mean(np.abs(h1 - h0)[im.reliability > 0]))})
-        if cfg.figures:
-            result.figures.append(plot_adaptation(im, h0, h1, layer, out / "figures" / f"{im.name}_adapt.png"))
-    atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
-    return result
+        if figures:
+            result.figures.append(plot_adaptation(im, h0, h1, layer, result.out / "figures" / f"{im.name}_adapt.png"))
