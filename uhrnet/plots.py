@@ -44,7 +44,8 @@ def plot_history(rows: Sequence[dict], path) -> Path:
         ("SSIM", [("train_ssim", "train"), ("val_ssim", "validation")], "SSIM", False),
     ]
     if np.isfinite(_column(rows, "val_phase_ratio")).any():  # uhrnet train --val-phase
-        panels.append(("real frames (--val-phase)", [("val_phase_ratio", "phase residual / flat")],
+        panels.append(("real frames (--val-phase)", [("val_phase_ratio", "phase residual / flat: choosing best.pt"),
+                                                      ("val_phase_heldout_ratio", "held-out frames")],
                        "residual / flat", False))
     fig, axes = plt.subplots(1, len(panels), figsize=(14 / 3 * len(panels), 3.8))
     for ax, (title, series, ylabel, log) in zip(axes, panels):

@@ -57,7 +57,8 @@ TRAINED_FILES = (BEST_PT, LAST_PT, HISTORY_CSV)  # a folder holding any of them 
 
 HISTORY_COLUMNS = ("epoch", "train_loss", "train_rmse_mm", "train_ssim", "val_rmse_mm", "val_ssim",
                    "val_rmse_mm_real", "val_ssim_real", "val_rmse_mm_synthetic", "val_ssim_synthetic",
-                   "val_phase_ratio", "val_phase_rad", "lr", "seconds", "best")
+                   "val_phase_ratio", "val_phase_rad", "val_phase_heldout_ratio", "val_phase_heldout_rad", "lr",
+                   "seconds", "best")
 
 
 # ---------------------------------------------------------------------------------------------- history

@@ -85,7 +85,8 @@ def test_train_val_phase_picks_best_by_the_real_frames(setup, tmp_path, capsys):
     weights, and best.pt is the epoch the real frames score lowest, whatever the synthetic validation says."""
     tmp, _, root, truth = setup
     run = train_tiny(tmp_path / "vp", "--real", tmp / "real", epochs=3, extra=["--val-phase", root])
-    assert "real phase residual" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "real phase residual" in printed and "(held-out frames " in printed
     rows = history(run)
     ratios = [float(r["val_phase_ratio"]) for r in rows]
     assert len(ratios) == 3 and all(np.isfinite(ratios))
@@ -103,10 +104,13 @@ def test_train_val_phase_picks_best_by_the_real_frames(setup, tmp_path, capsys):
                      "--figures", "0", "--device", "cpu"]) == 0
         doc = json.loads((out / "phase_results.json").read_text())
         per = [r["models"][doc["models"][0]["name"]] for r in doc["per_image"]]
-        ratio = np.mean([m["prediction"]["rmse_rad"] / m["flat"]["rmse_rad"] for m in per])
-        assert float(row["val_phase_ratio"]) == pytest.approx(ratio, rel=1e-4)
-        assert float(row["val_phase_rad"]) == pytest.approx(np.mean([m["prediction"]["rmse_rad"] for m in per]),
-                                                            rel=1e-4)
+        # frames 0 and 2 choose best.pt, frame 1 is held out (issue 50: no best.pt chosen on its own score)
+        for keys, frames in ((("val_phase_ratio", "val_phase_rad"), [per[0], per[2]]),
+                             (("val_phase_heldout_ratio", "val_phase_heldout_rad"), [per[1]])):
+            ratio = np.mean([m["prediction"]["rmse_rad"] / m["flat"]["rmse_rad"] for m in frames])
+            assert float(row[keys[0]]) == pytest.approx(ratio, rel=1e-4)
+            assert float(row[keys[1]]) == pytest.approx(np.mean([m["prediction"]["rmse_rad"] for m in frames]),
+                                                        rel=1e-4)
     # the frames that choose best.pt cannot change under a resumed run, nor be dropped from an older one
     rc = main(["train", "--out", str(run), "--resume", "--epochs", "4", "--val-phase", str(tmp_path)])
     assert rc == 1 and "--val-phase" in capsys.readouterr().err
@@ -212,3 +216,19 @@ def test_refine_adds_a_row_on_the_same_pixels(setup, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--refine phase" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_val_phase_holds_out_every_second_frame_and_says_when_it_cannot(setup, tmp_path):
+    """Issue 50: with several frames every second one is held out of the choice of best.pt; with one frame the
+    run is told that best.pt is chosen on the frame it is scored on."""
+    from uhrnet.scoring.phase_residual import PhaseValidation
+
+    tmp, _, root, truth = setup
+    pv = PhaseValidation([root], max_frames=8)
+    assert [f["held_out"] for f in pv.frames] == [False, True, False] and not pv.notes
+    phase, height, valid = truth["0"]
+    one = tmp_path / "one"
+    save_psp_folder_sample(one, "7", *sums_from_phase(phase, valid, 30.0), np.full(phase.shape, 120, np.uint8))
+    pv = PhaseValidation([one], max_frames=8)
+    assert [f["held_out"] for f in pv.frames] == [False]
+    assert len(pv.notes) == 1 and "chosen on the frame it is scored on" in pv.notes[0]

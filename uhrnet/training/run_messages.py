@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from uhrnet.run_folder import BEST_PT, HISTORY_CSV, LAST_PT
 from uhrnet.training.train_config import RunConfig
 
@@ -43,6 +45,8 @@ def epoch_line(row: dict, epochs: int, is_best: bool) -> str:
            if "val_rmse_mm" in row else "")
     if "val_phase_ratio" in row:
         val += f"  real phase residual {row['val_phase_ratio']:.3f} of flat"
+        if np.isfinite(row.get("val_phase_heldout_ratio", float("nan"))):
+            val += f" (held-out frames {row['val_phase_heldout_ratio']:.3f})"
     return (f"epoch {row['epoch']}/{epochs}  loss {row['train_loss']:.4g}  train RMSE "
             f"{row['train_rmse_mm']:.3f} mm{val}  {row['seconds']:.1f}s" + ("  *best" if is_best else ""))
 
