@@ -103,7 +103,7 @@ def _add_train_data(d) -> None:
 
 def _add_train_model(m) -> None:
     """train's model and optimisation flags: architecture, loss, schedule, initialisation, transfer, head."""
-    from uhrnet.training.losses import LOSSES
+    from uhrnet.training.losses import LOSSES, loss_help
     from uhrnet.models import HEADS, list_models
     from uhrnet.training.train_config import LR_FLOOR, LR_SCHEDULES
     from uhrnet.models.init import INITS
@@ -112,7 +112,7 @@ def _add_train_model(m) -> None:
     m.add_argument("--model", choices=list_models(), help="architecture [uhrnet]")
     m.add_argument("--base-channels", type=int, metavar="N", help="width of the first level [model default]")
     m.add_argument("--model-option", nargs="+", metavar="KEY=VALUE", help="extra model constructor options")
-    m.add_argument("--loss", choices=list(LOSSES), help="training loss [compound]")
+    m.add_argument("--loss", choices=list(LOSSES), help=loss_help("compound"))
     m.add_argument("--epochs", type=int, help="total epochs (the paper: 200) [200]")
     m.add_argument("--batch-size", type=int, help="images per step (per process under torchrun) [1]")
     m.add_argument("--lr", type=float, help="Adam learning rate [1e-4]")
@@ -516,7 +516,7 @@ def adapt_options(args) -> dict:
 
 
 def add_sim2real(p: argparse.ArgumentParser) -> None:
-    from uhrnet.training.losses import LOSSES
+    from uhrnet.training.losses import LOSSES, loss_help
     from uhrnet.models import list_models
     from uhrnet.physics.refine import REFINE_METHODS
     from uhrnet.workflows.sim2real import SCALES
@@ -570,7 +570,7 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         p.add_argument(f"--{name}", type=typ, metavar="N" if typ is int else "X",
                        help=f"{what} [{scales(key)}]")
     p.add_argument("--model", choices=list_models(), help=f"architecture [{scales('model')}]")
-    p.add_argument("--loss", choices=list(LOSSES), help=f"training loss [{scales('loss')}]")
+    p.add_argument("--loss", choices=list(LOSSES), help=loss_help(scales("loss")))
     p.add_argument("--device", choices=DEVICES, help=f"training device; evaluation runs on cuda if this is cuda, else on cpu [{scales('device')}]")
     p.add_argument("--variant", action="append", default=[], metavar="SPEC",
                    help=f"{VARIANT_SYNTAX} (flags of fppsim generate / uhrnet train / uhrnet adapt; "

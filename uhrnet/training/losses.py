@@ -364,9 +364,8 @@ each wraps the run's loss (``context.base``, a plain one)."""
 
 def build_loss(name: str, data_range: float | None = None, *, context: LossContext | None = None,
                **options) -> Loss:
-    """Run loss by (case-insensitive) name of :data:`LOSSES`: ``"compound"`` (:class:`CompoundLoss`), ``"l2"``
-    (:class:`L2Loss`), ``"chunked"`` (:class:`ChunkedL2Loss`), ``"ssim"`` (:class:`SSIMLoss`). ``data_range``
-    (or ``context.data_range``) is required for the two SSIM-based ones and ignored by the others;
+    """Run loss by (case-insensitive) name of :data:`LOSSES` (:func:`loss_help` says what each is).
+    ``data_range`` (or ``context.data_range``) is required by the SSIM-based ones and ignored by the others;
     ``context`` gives what else a loss may need (:class:`LossContext`); ``options`` go to the constructor."""
     key = name.lower()
     if key not in LOSSES:
@@ -375,6 +374,12 @@ def build_loss(name: str, data_range: float | None = None, *, context: LossConte
     if data_range is not None:
         context = replace(context, data_range=data_range)
     return LOSSES[key].build(context, **options)
+
+
+def loss_help(default: str | None = None) -> str:
+    """``--loss``'s help, from :data:`LOSSES`: each name with its entry's ``help``, then ``[default]``."""
+    text = "training loss: " + "; ".join(f"{name} = {entry.help}" for name, entry in LOSSES.items())
+    return text + (f" [{default}]" if default else "")
 
 
 def build_head_loss(name: str, base: Loss, context: LossContext, **options) -> Loss:

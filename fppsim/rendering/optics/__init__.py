@@ -14,9 +14,8 @@ noise and shot noise (variance ``noise_sigma**2 + shot_noise * E``), saturates a
 its response ``255*(x/255)**(1/camera_gamma)`` and quantises to uint8.
 
 Layout: one module per effect (or closely related group) declares its parameters and its step
-(:class:`~fppsim.rendering.optics.model.Effect`): :mod:`.shading` (gain, ambient, albedos), :mod:`.projector`
-(DMD pixels, pattern bits, projector gamma and defocus), :mod:`.camera` (blur, gamma), :mod:`.noise`,
-:mod:`.texture`, :mod:`.dirt`, :mod:`.specular`, :mod:`.subsurface`, :mod:`.vignetting`.
+(:class:`~fppsim.rendering.optics.model.Effect`); :data:`EFFECTS` lists them in the order they act (the one
+list: ``OpticsRanges.range_names()``, ``--optics`` and ``--help`` read it, so it is not repeated here).
 :mod:`.model` derives :class:`Optics` (one value per parameter), :class:`OpticsRanges` (a (lo, hi)
 range per number, one :class:`Optics` drawn per sample from a seeded generator) and
 :data:`OPTICS_LIMITS` from :data:`EFFECTS`; :mod:`.stage` runs the effects in order
