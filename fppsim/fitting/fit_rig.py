@@ -43,7 +43,7 @@ from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_
                           measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
 from fppsim.dataio.readers import FringeImage, check_read_convention, load_fringe_images
-from fppsim.geometry.rig import Rig, RigError, load_rig
+from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
            "plane_tilt", "format_fit", "unfitted", "BaselineFit", "fit_baseline", "format_baseline_fit", "check_fit_options", "FitRigConfig",
@@ -235,6 +235,9 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     base = load_rig(config.base)
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)
+    if images:  # before measuring: another rig's images fail there with a less telling message
+        check_image_size(base, images[0].gray.shape, "", template="the images are {got} px but the rig's camera is "
+                         "{camera}", sep=" x ")
     measured = measure_bands(images, config.col_bands, config.row_bands)
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
     note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder

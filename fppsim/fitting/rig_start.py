@@ -43,7 +43,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -56,7 +56,8 @@ from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text,
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
-from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, PlanePhaseFit, find_plane,
+from fppsim.fitting.start_result import StartRigResult, first_lines, plane_fits_poorly, start_lines
+from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, find_plane,
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
@@ -66,7 +67,7 @@ if TYPE_CHECKING:
     from fppsim.rendering.scene import SceneRanges
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
-           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "StartRigConfig",
+           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
            "StartFitResult", "fit_rig_from_images"]
 
 # the default rig's camera: fx = 1230 px across 640 px
@@ -190,39 +191,6 @@ SIDES = {"right": (1.0, 0.0), "left": (-1.0, 0.0), "above": (0.0, 1.0), "below":
 """``--projector-side`` words -> the projector's direction from the camera in world x, y (image right, up)."""
 
 
-@dataclass
-class StartRigResult:
-    """What :func:`rig_from_images` found: the fitted ``rig``, the plane-phase ``fit``, the maps' ``kind``
-    (``"phase"`` or ``"fringe images"``), how many, the measured plane ``gradient`` (rad/px), the fringe
-    ``axis``, the projector ``side`` (+1: raised surfaces lower the phase) and where it came from, the
-    assumptions made (``assumed``: name -> value), the report ``lines`` and why the depth scale was
-    chosen as it was (``scale_chosen``: ``distance`` / ``baseline`` -> text, :func:`scene_scale`)."""
-
-    rig: Rig
-    fit: PlanePhaseFit
-    kind: str
-    n_maps: int
-    gradient: tuple
-    axis: str
-    side: int
-    side_source: str
-    where: str
-    sensitivity: float
-    assumed: dict
-    lines: list
-    images: list = field(default_factory=list, repr=False)
-    scale_chosen: dict = field(default_factory=dict)
-
-    def to_dict(self) -> dict:
-        cam = self.rig.camera
-        return {"source": self.kind, "maps": self.n_maps, "camera_px": [cam.width, cam.height],
-                "camera_focal_px": float(cam.K[0, 0]), "gradient_rad_per_px": list(self.gradient),
-                "fringes": self.axis, "projector": self.where, "projector_side_from": self.side_source,
-                "centre_sensitivity_rad_per_mm": self.sensitivity, "assumed": self.assumed,
-                "depth_scale_chosen": self.scale_chosen,
-                "plane_fit": self.fit.to_dict()}
-
-
 def _world_axis(gradient) -> np.ndarray:
     gw = np.array([gradient[0], -gradient[1]], float)
     return np.array([np.sign(gw[0]), 0.0]) if abs(gw[0]) >= abs(gw[1]) else np.array([0.0, np.sign(gw[1])])
@@ -314,30 +282,7 @@ def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: 
     return D, B, why
 
 
-def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
-                    baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
-                    convention: str = "auto", negate_sin: bool = False, say=None) -> StartRigResult:
-    """A rig from a folder of fringe images or phase-shifting scans alone (``fppsim fit-rig`` without
-    ``--base``; module docstring): camera from the image size and ``fov`` / ``focal``; the fringe
-    direction, the phase slope and its perspective from the plane's phase (:func:`phase_maps_of`,
-    plane pixels found by :func:`find_plane`); the projector side from the objects' phase relief
-    (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
-    (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
-    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
-    as :func:`scene_scale` chooses them for the synthetic scenes; ``convention`` / ``negate_sin`` as
-    :func:`phase_maps_of`. ``say`` receives each report line.
-    RigError / ValueError (one line) for unusable inputs."""
-    lines: list[str] = []
-
-    def out(text=""):
-        lines.append(text)
-        if say is not None:
-            say(text)
-
-    if projector_side is not None and projector_side not in SIDES:
-        raise RigError(f"projector side must be one of {', '.join(SIDES)}, got {projector_side!r}")
-    if fov is not None and focal is not None:
-        raise RigError("give the camera's field of view or its focal length, not both")
+def _maps_and_size(path, max_maps, convention, negate_sin):
     maps, kind, images = phase_maps_of(path, max_maps, convention, negate_sin)
     if not maps:
         raise ValueError(f"{path}: no fringe images")
@@ -345,28 +290,16 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     for m in maps[1:]:
         if m.phase.shape != (H, W):
             raise ValueError(f"{m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first is {W} x {H}")
-    assumed = {}
-    D = DEFAULT_DISTANCE if distance is None else float(distance)
-    if distance is None:
-        assumed["distance_mm"] = D
-    if baseline is None:
-        assumed["baseline_mm"] = BASELINE_RATIO * D
-    if fov is None and focal is None:
-        assumed["fov_deg"] = DEFAULT_FOV_DEG
-    grads = np.array([plane_phase_gradient(m.phase, m.valid) for m in maps])
-    gradient = tuple(float(v) for v in np.median(grads, axis=0))
-    axis = fringe_axis(gradient)
-    what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
-    out(f"{path}: {len(maps)} {what}, {W} x {H} px")
-    note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder
-    if note:
-        out(note)
+    return maps, kind, images, W, H
 
-    # plane pixels per map, from a provisional start (the side does not change the plane's phase); at
-    # steep angles a start on the wrong side cannot follow the plane's perspective (its fitted projector no
-    # longer lights the whole view: FP672 at a 580 mm baseline), so the other side is tried too
+
+def _first_plane_fit(maps, W, H, gradient, D, baseline, fov, focal):
+    """Plane pixels per map from a provisional start (the side does not change the plane's phase), then the
+    plane fit on the side most maps prefer: ``(fit, side, maps)`` (single-shot maps unwrapped on the plane).
+    At steep angles a start on the wrong side cannot follow the plane's perspective (its fitted projector no
+    longer lights the whole view: FP672 at a 580 mm baseline), so both sides are tried."""
     starts = {sd: start_rig(W, H, gradient, sd, D, baseline, fov, focal) for sd in (1, -1)}
-    seeds, wins = [], 0
+    maps, seeds, wins = list(maps), [], 0
     for k, m in enumerate(maps):
         found = {sd: find_plane(st, m, gradient) for sd, st in starts.items()}
         agree = {sd: max((c for _, c, _ in f[1]), default=-1.0) for sd, f in found.items()}
@@ -379,11 +312,14 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                                         np.nan), m.valid, m.name, absolute=False, reliable=m.reliable,
                                shadow=m.shadow)
     first = 1 if wins >= 0 else -1
-    fit = fit_plane_phase(starts[first], maps, seeds=seeds)
+    return fit_plane_phase(starts[first], maps, seeds=seeds), first, maps
 
-    # which side the projector is on
+
+def _projector_side(fit, maps, kind, gradient, axis, projector_side, assumed) -> tuple[int, str]:
+    """Which side of the camera the projector is on (+1: raised surfaces lower the phase) and where that
+    came from: the option when given (the measurement said beside it when it disagrees), else the objects'
+    phase relief (scans), else the shadows, else assumed (``assumed["projector_side"]``)."""
     waxis = _world_axis(gradient)
-    side, source = 0, ""
     relief, share = 0, float("nan")
     if kind == "phase":
         res = np.concatenate([r[m.valid].ravel() for r, m in zip(fit.residuals, maps)])
@@ -404,111 +340,126 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         if measured and measured != side:
             source += ("; the scans measure the other side (" + (f"{share:.0%} of the relief off the plane" if relief
                        else f"{n_votes} shadow runs") + "): check the option")
-    elif relief:
-        side, source = -relief, (f"measured: raised surfaces {'raise' if relief > 0 else 'lower'} the phase "
-                                 f"({share:.0%} of the relief off the plane)")
-        if shadow and shadow != side:
+        return side, source
+    if relief:
+        source = (f"measured: raised surfaces {'raise' if relief > 0 else 'lower'} the phase "
+                  f"({share:.0%} of the relief off the plane)")
+        if shadow and shadow != -relief:
             source += f"; the shadows say the other side ({n_votes} runs): check the scans"
         elif shadow:
             source += f", and the shadows agree ({n_votes} runs)"
-    elif shadow:
-        side, source = shadow, f"measured from the projector's shadows ({n_votes} shadow runs)"
-    else:
-        side, source = 1, ("NOT identifiable from these images (no phase relief, no clear shadows): assumed; "
-                           "give --projector-side")
-        assumed["projector_side"] = "assumed"
+        return -relief, source
+    if shadow:
+        return shadow, f"measured from the projector's shadows ({n_votes} shadow runs)"
+    assumed["projector_side"] = "assumed"
+    return 1, ("NOT identifiable from these images (no phase relief, no clear shadows): assumed; "
+               "give --projector-side")
+
+
+def _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal):
+    """``(params, fit, lens)``: a lens bends the plane's phase: its radial distortion is fitted when the
+    pinhole plane fits worse than LENS_FROM_RAD and kept when it takes LENS_GAIN of the residual away;
+    ``lens``: (pinhole rad, with k1 rad, k1) when tried, else None."""
+    if fit.median_rad <= LENS_FROM_RAD:
+        return PLANE_PARAMS, fit, None
+    bent = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps,
+                           params=PLANE_PARAMS + LENS_PARAMS, seeds=fit.planes)
+    lens = (fit.median_rad, bent.median_rad, bent.params["k1"])
+    if bent.median_rad < (1.0 - LENS_GAIN) * fit.median_rad:
+        return PLANE_PARAMS + LENS_PARAMS, bent, lens
+    return PLANE_PARAMS, fit, lens
+
+
+def _depth_scale(fit, maps, params, W, H, gradient, side, D, baseline, fov, focal, assumed):
+    """The distance and baseline :func:`scene_scale` chooses where the user gave none: ``(fit, why)``, the
+    plane refitted at that scale (``assumed`` updated)."""
+    B = BASELINE_RATIO * D if baseline is None else float(baseline)
+    fits = {(D, B): fit}
+
+    def refit(d, b):
+        if (d, b) not in fits:
+            fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, params=params,
+                                         seeds=fit.planes)
+        return fits[d, b]
+
+    D, B, why = scene_scale(_object_extent(fit.planes, maps), _object_relief(fit, maps), fit.rig.camera.K[0, 0],
+                            D, B, lambda d, b: refit(d, b).rig.sensitivity(), "distance_mm" in assumed,
+                            "baseline_mm" in assumed)
+    for key, value in (("distance_mm", D), ("baseline_mm", B)):
+        if key in assumed:
+            assumed[key] = value
+    return refit(D, B), why
+
+
+def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
+                    baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
+                    convention: str = "auto", negate_sin: bool = False, say=None) -> StartRigResult:
+    """A rig from a folder of fringe images or phase-shifting scans alone (``fppsim fit-rig`` without
+    ``--base``; module docstring): camera from the image size and ``fov`` / ``focal``; the fringe
+    direction, the phase slope and its perspective from the plane's phase (:func:`phase_maps_of`,
+    plane pixels found by :func:`find_plane`); the projector side from the objects' phase relief
+    (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
+    (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
+    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
+    as :func:`scene_scale` chooses them for the synthetic scenes; ``convention`` / ``negate_sin`` as
+    :func:`phase_maps_of`. ``say`` receives each report line (:func:`fppsim.fitting.start_result.start_lines`).
+
+    Scans whose plane model fits poorly (:func:`plane_fits_poorly`: no reference plane in view, e.g. busts on
+    a black background, or a phase read the wrong way) cannot pin the projector's pose: a RigError names what
+    is needed, unless ``distance``, ``baseline`` and ``projector_side`` are all given; then the rig is the
+    start rig at that geometry (projector aimed at the view's centre, the measured fringe period), its pose
+    assumed and said so (``StartRigResult.no_plane``). RigError / ValueError (one line) for unusable inputs."""
+    if projector_side is not None and projector_side not in SIDES:
+        raise RigError(f"projector side must be one of {', '.join(SIDES)}, got {projector_side!r}")
+    if fov is not None and focal is not None:
+        raise RigError("give the camera's field of view or its focal length, not both")
+    say = say or (lambda line: None)
+    maps, kind, images, W, H = _maps_and_size(path, max_maps, convention, negate_sin)
+    D = DEFAULT_DISTANCE if distance is None else float(distance)
+    assumed = {k: v for k, v, given in (("distance_mm", D, distance), ("baseline_mm", BASELINE_RATIO * D, baseline),
+                                       ("fov_deg", DEFAULT_FOV_DEG, fov if focal is None else focal)) if given is None}
+    gradient = tuple(float(v) for v in np.median([plane_phase_gradient(m.phase, m.valid) for m in maps], axis=0))
+    axis = fringe_axis(gradient)
+    lines = first_lines(path, maps, kind, images)
+    for line in lines:
+        say(line)
+    fit, first, maps = _first_plane_fit(maps, W, H, gradient, D, baseline, fov, focal)
+    side, source = _projector_side(fit, maps, kind, gradient, axis, projector_side, assumed)
     if side != first:
         fit = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps, seeds=fit.planes)
-    # a lens bends the plane's phase: its radial distortion is fitted when the pinhole plane fits worse than
-    # LENS_FROM_RAD and the distortion takes LENS_GAIN of the residual away (else the rig stays a pinhole)
-    params, lens = PLANE_PARAMS, None
-    if kind == "phase" and fit.median_rad > LENS_FROM_RAD:
-        bent = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps,
-                               params=PLANE_PARAMS + LENS_PARAMS, seeds=fit.planes)
-        lens = (fit.median_rad, bent.median_rad, bent.params["k1"])
-        if bent.median_rad < (1.0 - LENS_GAIN) * fit.median_rad:
-            params, fit = PLANE_PARAMS + LENS_PARAMS, bent
-    why = {}
-    if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
-        B = BASELINE_RATIO * D if baseline is None else float(baseline)
-        fits = {(D, B): fit}
-
-        def refit(d, b):
-            if (d, b) not in fits:
-                fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, params=params,
-                                             seeds=fit.planes)
-            return fits[d, b]
-
-        D, B, why = scene_scale(_object_extent(fit.planes, maps), _object_relief(fit, maps), fit.rig.camera.K[0, 0],
-                                D, B, lambda d, b: refit(d, b).rig.sensitivity(), "distance_mm" in assumed,
-                                "baseline_mm" in assumed)
-        fit = refit(D, B)
-        for key, value in (("distance_mm", D), ("baseline_mm", B)):
-            if key in assumed:
-                assumed[key] = value
-    rig = fit.rig
+    params, lens, why = PLANE_PARAMS, None, {}
+    if kind == "phase":  # before the plane is judged: a lens bends it
+        params, fit, lens = _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal)
+    no_plane = kind == "phase" and plane_fits_poorly(fit)
+    if no_plane:
+        missing = [f"--{k.replace('_', '-')}" for k, v in (("distance", distance), ("baseline", baseline),
+                                                         ("projector_side", projector_side)) if v is None]
+        if missing:
+            raise RigError(f"{path}: the plane model fits the scans poorly ({fit.median_rad:.2f} rad on "
+                           f"{np.mean(fit.plane_share):.0%} of the valid pixels): no reference plane in view (or the "
+                           "phase is written another way: --convention, --negate-sin), so the projector's pose cannot "
+                           f"be fitted; give scans that show the plane, or {', '.join(missing)} for a rig whose "
+                           "projector pose is assumed")
+        rig = start_rig(W, H, gradient, side, D, baseline, fov, focal)
+    else:
+        if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
+            fit, why = _depth_scale(fit, maps, params, W, H, gradient, side, D, baseline, fov, focal, assumed)
+        rig = fit.rig
     where = _where(rig)
-    s = rig.sensitivity()
-    rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; plane phase fitted, "
-                f"depth scale {'given' if 'distance_mm' not in assumed and 'baseline_mm' not in assumed else 'assumed'})")
-
-    cam = rig.camera
-    fov_now = math.degrees(2 * math.atan((W / 2.0) / cam.K[0, 0]))
-    out(f"camera     {W} x {H} px (the images'); focal {cam.K[0, 0]:.1f} px = {fov_now:.1f} deg across: "
-        + ("given" if "fov_deg" not in assumed else "NOT identifiable from images: assumed (the default rig's "
-                                                    "field of view; --fov DEG or --focal PX)"))
-    gu, gv = rig_phase_gradient(rig)  # the fitted rig's, at the image centre
-    period = 2 * math.pi / math.hypot(gu, gv)
-    # the lines' angle from the image's vertical (horizontal), positive leaning right going down (up)
-    lean = math.degrees(math.atan(-gv / gu)) if axis == "vertical" else math.degrees(math.atan(-gu / gv))
-    grows = ("to the right" if gradient[0] > 0 else "to the left") if axis == "vertical" else \
-        ("downwards" if gradient[1] > 0 else "upwards")
-    conv = "measured" if kind == "phase" else "a convention: one fringe image cannot tell"
-    out(f"fringes    {axis}: {period:.2f} px per period at the centre, the phase grows {grows} ({conv}), "
-        f"lines {lean:+.2f} deg off the image axis")
-    out(f"projector  {where}: {source}")
-    base_mm = float(np.linalg.norm(rig.projector.center[:2] - cam.center[:2]))
-    d_txt = ("assumed, " + why["distance"] if "distance" in why else "assumed: the default rig's") \
-        if "distance_mm" in assumed else "given"
-    b_txt = ("assumed, " + why["baseline"] if "baseline" in why else "assumed: 0.66 x the distance, the default "
-             "rig's angle") if "baseline_mm" in assumed else "given"
-    out(f"depth      distance {cam.center[2]:.0f} mm ({d_txt}), baseline {base_mm:.0f} mm ({b_txt})")
-    if "distance_mm" in assumed or "baseline_mm" in assumed:
-        out("           NOT identifiable from images without height labels (the scene scaled as a whole looks "
-            "the same): give --distance and --baseline if you know them")
-    out(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
-        f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
-    relief_rad = _object_relief(fit, maps) if kind == "phase" else 0.0
-    if relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
-        across = _object_extent(fit.planes, maps) * cam.center[2] / cam.K[0, 0]
-        sc = _scenes()
-        out(f"           the objects' phase relief reaches {relief_rad:.1f} rad: about {relief_rad / abs(s):.0f} mm high"
-            + (f", the largest {across:.0f} mm across" if across > 0 else "") + " at this scale (synthetic "
-            f"scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up to about {sc.max_relief[1]:.0f} mm "
-            "of relief)")
-    p = fit.params
-    pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k not in ("periods", "k1"))
-    out(f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
-        f"{np.mean(fit.plane_share):.0%} of the valid pixels (start: {fit.start_median_rad:.2f} rad); {pose}, "
-        f"{rig.periods:.2f} periods across the projector")
-    if kind != "phase":
-        out("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
-    elif np.mean(fit.plane_share) < 0.1 or fit.median_rad > 0.25:
-        out(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {np.mean(fit.plane_share):.0%} of the "
-            "pixels): check that the scans show the reference plane and how their phase is written (--convention, "
-            "--negate-sin)")
-    if "k1" in params:
-        out(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, for the focal length above): "
-            f"the plane's phase fits {lens[0]:.3f} rad as a pinhole, {lens[1]:.3f} with it")
-    elif lens is not None:
-        out(f"lens       no distortion fitted: k1 {lens[2]:+.4f} would leave {lens[1]:.3f} rad of the pinhole's "
-            f"{lens[0]:.3f} (less than {LENS_GAIN:.0%} gained)")
-    out(f"not fitted {'the lens beyond k1' if 'k1' in params else 'lens distortion (none in the rig)'}; the "
-        f"projector's resolution ({rig.projector.width} x {rig.projector.height}, only the periods across it matter)")
+    depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
+    rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "
+                + ("projector pose assumed: no plane in view" if no_plane else "plane phase fitted")
+                + f", depth scale {depth})")
+    result = StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
+                            side_source=source, where=where, sensitivity=float(rig.sensitivity()), assumed=assumed,
+                            lines=lines, images=images, scale_chosen=why, params=params, lens=lens,
+                            relief_rad=_object_relief(fit, maps) if kind == "phase" else 0.0,
+                            extent_px=_object_extent(fit.planes, maps), no_plane=no_plane, absolute=kind == "phase")
+    for line in start_lines(result):
+        lines.append(line)
+        say(line)
     rig.check_usable()
-    return StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
-                          side_source=source, where=where, sensitivity=float(s), assumed=assumed, lines=lines,
-                          images=images, scale_chosen=why)
+    return result
 
 
 # ====================================================================== fppsim fit-rig without --base

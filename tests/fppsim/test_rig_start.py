@@ -551,3 +551,35 @@ def test_any_size_networks_train_on_odd_sizes():
     net.eval(), plain.eval()
     with torch.no_grad():
         torch.testing.assert_close(net(x16), plain(x16))  # multiples of 16: nothing changes
+
+
+def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
+    """Issue 50: busts on a black background (only the objects' phase is valid): the plane model cannot pin the
+    projector's pose, so fit-rig refuses in one line naming what it needs; given the distance, baseline and side it
+    writes a rig whose pose is assumed and says so, with the truth's phase per mm within 5 %."""
+    from fppsim.cli import main
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+
+    truth = truth_rig("vertical", 1, size=(200, 150))
+    H, W = truth.camera.height, truth.camera.width
+    height = domes(H, W, [(0.5, 0.35, 0.45, 40.0), (0.5, 0.72, 0.4, 30.0)])
+    phase, valid, image = analytic_scan(truth, height)
+    valid &= height > 0  # nothing of the plane: black around the objects
+    for sid in ("a", "b"):
+        save_psp_folder_sample(tmp_path / "scans", sid, *sums_from_phase(np.nan_to_num(phase), valid, 60.0),
+                               np.where(valid, image, 0).astype(np.uint8))
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out)]) == 1
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "no reference plane in view" in err[0], err
+    assert "--distance, --baseline, --projector-side" in err[0] and not out.exists()
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out), "--distance", "420", "--projector-side",
+                 "right"]) == 1
+    assert "--baseline for a rig" in capsys.readouterr().err
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out), "--distance", "420", "--baseline", "260",
+                 "--projector-side", "right", "--fov", "34"]) == 0
+    text = capsys.readouterr().out
+    assert "the projector's pose is ASSUMED" in text
+    rig = Rig.load(out)
+    assert "no plane in view" in rig.name
+    assert rig.sensitivity() == pytest.approx(truth.sensitivity(), rel=0.05)

@@ -1,0 +1,161 @@
+"""What ``fppsim fit-rig`` without ``--base`` found (:class:`StartRigResult`, made by
+:func:`fppsim.fitting.rig_start.rig_from_images`) and its report: what the images told and what was assumed,
+one line each (:func:`first_lines` before the fit, :func:`start_lines` after it); nothing here fits.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from fppsim.fitting.plane_phase import PlanePhaseFit
+from fppsim.geometry.rig import Rig
+from fppsim.phase.fringe_axis import rig_phase_gradient
+
+__all__ = ["StartRigResult", "POOR_PLANE_SHARE", "POOR_PLANE_RAD", "plane_fits_poorly", "first_lines", "start_lines"]
+
+# the plane model fits scans poorly (no plane in view, or a phase read the wrong way) on less than this share of
+# the valid pixels or beyond this median residual (rad): the real frames with a plane fit to 0.03-0.13 rad
+POOR_PLANE_SHARE = 0.1
+POOR_PLANE_RAD = 0.25
+
+
+@dataclass
+class StartRigResult:
+    """What :func:`fppsim.fitting.rig_start.rig_from_images` found: the fitted ``rig``, the plane-phase ``fit``,
+    the maps' ``kind`` (``"phase"`` or ``"fringe images"``), how many, the measured plane ``gradient`` (rad/px), the fringe
+    ``axis``, the projector ``side`` (+1: raised surfaces lower the phase) and where it came from, the
+    assumptions made (``assumed``: name -> value), the report ``lines`` and why the depth scale was
+    chosen as it was (``scale_chosen``: ``distance`` / ``baseline`` -> text, :func:`fppsim.fitting.rig_start.scene_scale`)."""
+
+    rig: Rig
+    fit: PlanePhaseFit
+    kind: str
+    n_maps: int
+    gradient: tuple
+    axis: str
+    side: int
+    side_source: str
+    where: str
+    sensitivity: float
+    assumed: dict
+    lines: list
+    images: list = field(default_factory=list, repr=False)
+    scale_chosen: dict = field(default_factory=dict)
+    params: tuple = ()  # the plane fit's parameters (PLANE_PARAMS, + LENS_PARAMS when a lens was fitted)
+    lens: tuple | None = None  # (pinhole rad, with k1 rad, k1) when a lens was tried
+    relief_rad: float = 0.0  # the objects' phase relief (scans)
+    extent_px: float = 0.0  # the largest object's extent
+    no_plane: bool = False  # no plane in view: the projector's pose is assumed (given distance, baseline, side)
+    absolute: bool = True  # the maps are measured absolute phase (scans), not single-shot phase
+
+    def to_dict(self) -> dict:
+        cam = self.rig.camera
+        return {"source": self.kind, "maps": self.n_maps, "camera_px": [cam.width, cam.height],
+                "camera_focal_px": float(cam.K[0, 0]), "gradient_rad_per_px": list(self.gradient),
+                "fringes": self.axis, "projector": self.where, "projector_side_from": self.side_source,
+                "centre_sensitivity_rad_per_mm": self.sensitivity, "assumed": self.assumed,
+                "depth_scale_chosen": self.scale_chosen, "no_plane": self.no_plane,
+                "plane_fit": self.fit.to_dict()}
+
+
+
+
+def plane_fits_poorly(fit: PlanePhaseFit) -> bool:
+    """The plane model explains the scans' phase poorly: on under :data:`POOR_PLANE_SHARE` of the valid
+    pixels, or with a median residual above :data:`POOR_PLANE_RAD`: no reference plane in view, or a phase
+    written another way than it was read."""
+    return float(np.mean(fit.plane_share)) < POOR_PLANE_SHARE or fit.median_rad > POOR_PLANE_RAD
+
+
+
+
+def first_lines(path, maps, kind: str, images) -> list[str]:
+    """What was read: how many maps of which kind, their size, and how the scans' files were read."""
+    H, W = maps[0].phase.shape
+    what = "phase-shifting scan(s): absolute phase" if kind == "phase" else "fringe image(s): single-shot phase"
+    lines = [f"{path}: {len(maps)} {what}, {W} x {H} px"]
+    note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for all
+    return lines + ([note] if note else [])
+
+
+def _camera_and_fringes(r: StartRigResult) -> list[str]:
+    cam, (W, H) = r.rig.camera, (r.rig.camera.width, r.rig.camera.height)
+    fov_now = math.degrees(2 * math.atan((W / 2.0) / cam.K[0, 0]))
+    gu, gv = rig_phase_gradient(r.rig)  # the fitted rig's, at the image centre
+    period = 2 * math.pi / math.hypot(gu, gv)
+    # the lines' angle from the image's vertical (horizontal), positive leaning right going down (up)
+    lean = math.degrees(math.atan(-gv / gu)) if r.axis == "vertical" else math.degrees(math.atan(-gu / gv))
+    grows = ("to the right" if r.gradient[0] > 0 else "to the left") if r.axis == "vertical" else \
+        ("downwards" if r.gradient[1] > 0 else "upwards")
+    conv = "measured" if r.absolute else "a convention: one fringe image cannot tell"
+    return [f"camera     {W} x {H} px (the images'); focal {cam.K[0, 0]:.1f} px = {fov_now:.1f} deg across: "
+            + ("given" if "fov_deg" not in r.assumed else "NOT identifiable from images: assumed (the default rig's "
+                                                          "field of view; --fov DEG or --focal PX)"),
+            f"fringes    {r.axis}: {period:.2f} px per period at the centre, the phase grows {grows} ({conv}), "
+            f"lines {lean:+.2f} deg off the image axis",
+            f"projector  {r.where}: {r.side_source}"]
+
+
+def _depth(r: StartRigResult) -> list[str]:
+    from fppsim.rendering.scene import SceneRanges  # trimesh: only when a report line names the scenes' ranges
+
+    cam, s, why, assumed = r.rig.camera, r.sensitivity, r.scale_chosen, r.assumed
+    base_mm = float(np.linalg.norm(r.rig.projector.center[:2] - cam.center[:2]))
+    d_txt = ("assumed, " + why["distance"] if "distance" in why else "assumed: the default rig's") \
+        if "distance_mm" in assumed else "given"
+    b_txt = ("assumed, " + why["baseline"] if "baseline" in why else "assumed: 0.66 x the distance, the default "
+             "rig's angle") if "baseline_mm" in assumed else "given"
+    lines = [f"depth      distance {cam.center[2]:.0f} mm ({d_txt}), baseline {base_mm:.0f} mm ({b_txt})"]
+    if "distance_mm" in assumed or "baseline_mm" in assumed:
+        lines.append("           NOT identifiable from images without height labels (the scene scaled as a whole "
+                     "looks the same): give --distance and --baseline if you know them")
+    lines.append(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
+                 f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
+    if r.relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
+        across = r.extent_px * cam.center[2] / cam.K[0, 0]
+        sc = SceneRanges()
+        lines.append(f"           the objects' phase relief reaches {r.relief_rad:.1f} rad: about "
+                     f"{r.relief_rad / abs(s):.0f} mm high" + (f", the largest {across:.0f} mm across" if across > 0 else "")
+                     + f" at this scale (synthetic scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up "
+                     f"to about {sc.max_relief[1]:.0f} mm of relief)")
+    return lines
+
+
+def _plane_and_lens(r: StartRigResult) -> list[str]:
+    fit, rig, params, lens = r.fit, r.rig, r.params, r.lens
+    share = float(np.mean(fit.plane_share))
+    if r.no_plane:
+        return [f"plane fit  none: the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the valid "
+                "pixels), no reference plane in view; the projector's pose is ASSUMED (aimed at the view's centre "
+                f"from the given distance, baseline and side), {rig.periods:.2f} periods across it from the measured "
+                "fringe period",
+                "not fitted the projector's yaw, pitch and roll beyond the fringes' direction; lens distortion"]
+    p = fit.params
+    pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k not in ("periods", "k1"))
+    lines = [f"plane fit  {', '.join(p)}: median |residual| {fit.median_rad:.3f} rad (RMS {fit.rms_rad:.3f}) on "
+             f"{share:.0%} of the valid pixels (start: {fit.start_median_rad:.2f} rad); {pose}, "
+             f"{rig.periods:.2f} periods across the projector"]
+    if not r.absolute:
+        lines.append("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
+    elif plane_fits_poorly(fit):
+        lines.append(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the "
+                     "pixels): check that the scans show the reference plane and how their phase is written "
+                     "(--convention, --negate-sin)")
+    if "k1" in params:
+        lines.append(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, for the focal "
+                     f"length above): the plane's phase fits {lens[0]:.3f} rad as a pinhole, {lens[1]:.3f} with it")
+    elif lens is not None:
+        lines.append(f"lens       no distortion fitted: k1 {lens[2]:+.4f} would leave {lens[1]:.3f} rad of the "
+                     f"pinhole's {lens[0]:.3f} ({1 - lens[1] / lens[0]:.0%} gained: too little)")
+    lines.append(f"not fitted {'the lens beyond k1' if 'k1' in params else 'lens distortion (none in the rig)'}; the "
+                 f"projector's resolution ({rig.projector.width} x {rig.projector.height}, only the periods across it "
+                 "matter)")
+    return lines
+
+
+def start_lines(r: StartRigResult) -> list[str]:
+    """The report after the fit: camera, fringes, projector side, depth scale, plane fit, lens."""
+    return _camera_and_fringes(r) + _depth(r) + _plane_and_lens(r)
