@@ -51,7 +51,8 @@ from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe,
 from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
 from fppsim.errors import DatasetError, PSPMatError
 from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
-                                            open_figshare_pair, pick_evenly, read_native_pair, read_native_phase)
+                                            open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
+                                            read_native_psp)
 from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,
                                            load_psp_folder_sample)
 
@@ -71,6 +72,7 @@ class Source:
     labelled = False  # height labels: sample() and height_labels() work
     plain_files = False  # image / .npy files and folders of them: callers apply their own file rules
     described_as: str | None = None  # how reports name the layout (None: its kind)
+    is_psp = False  # phase-shifting scans, whole or in part: scan_ids() and scan() read them (or name what is missing)
 
     def __init__(self, path: str | os.PathLike, pair: tuple[Path, Path] | None = None):
         self.path = Path(path)
@@ -93,11 +95,6 @@ class Source:
     def problem(self) -> str | None:
         """One line saying why the path cannot be read as it looks (a damaged scan folder), else None."""
         return None
-
-    @property
-    def is_psp(self) -> bool:
-        """Any phase-shifting scan folder (``psp``, ``ipattern`` or ``psp-partial``)."""
-        return self.kind in PSP_KINDS
 
     @property
     def has_images(self) -> bool:
@@ -201,10 +198,16 @@ class Source:
         :func:`fppsim.dataio.readers.load_psp_folder_sample`. :class:`PSPMatError` naming the file otherwise."""
         raise PSPMatError(f"{self.path}: no phase-shifting scans here ({self.kind})")
 
+    def psp_images(self, sid: str) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+        """The phase-shifting images of sample ``sid`` as rendered (fppsim's native samples generated with them):
+        ``(fringe grey, {f: grey stack (steps, H, W)}, shifts (steps,) rad, meta)``
+        (:func:`fppsim.dataio.readers.read_native_psp`); :class:`DatasetError` naming the path otherwise."""
+        raise DatasetError(f"{self.path}: no phase-shifting images here ({self.kind})")
+
     def measured_phase_ids(self) -> list[str]:
-        """The ids of the frames with a MEASURED absolute phase (phase-shifting scans; fppsim's native samples
-        generated with PSP images), else []."""
-        return []
+        """The ids of the frames with a MEASURED absolute phase (phase-shifting scans: :meth:`phase_ids`; fppsim's
+        native samples generated with PSP images), else []."""
+        return self.phase_ids()
 
     def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
                        ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -212,8 +215,13 @@ class Source:
         where it exists (a scan's pixels with a phase and a non-black image; a native sample's ``phase_psp`` /
         ``mask_psp``), else None. ``convention`` / ``negate_sin``: how the public layout's files combine
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`); fppsim's native samples hold their decoded
-        phase and ignore them."""
-        return None
+        phase and ignore them. The base reads the frame's :meth:`scan`."""
+        if sid not in self.phase_ids():
+            return None
+        s = self.scan(sid, convention=convention, negate_sin=negate_sin)
+        phase = np.asarray(s.phase, np.float64)
+        valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
+        return phase, valid
 
 
 def _is_scan(src: Source) -> bool:
@@ -286,6 +294,8 @@ class Missing(_File):
 class _ScanFolder(Source):
     """A phase-shifting scan folder, whole or in part (``PSin/ PCos/ Fringe/ iPattern/``)."""
 
+    is_psp = True
+
     def ids(self) -> list[str]:
         return self.image_ids()
 
@@ -325,16 +335,6 @@ class PspFolder(_ScanFolder):
 
     def phase(self, sid: str, **kw) -> np.ndarray | None:
         return load_psp_folder_sample(self.path, sid, **kw).phase
-
-    def measured_phase_ids(self) -> list[str]:
-        return self.ids()
-
-    def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
-                       ) -> tuple[np.ndarray, np.ndarray] | None:
-        s = self.scan(sid, convention=convention, negate_sin=negate_sin)
-        phase = np.asarray(s.phase, np.float64)
-        valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
-        return phase, valid
 
 
 class IPatternFolder(_ScanFolder):
@@ -492,6 +492,9 @@ class NativeSamples(Source):
 
     def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
         return read_native_phase(self._folder(i), shape)
+
+    def psp_images(self, sid: str) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+        return read_native_psp(self.path / sid)
 
     def _folder(self, i: int) -> Path:
         self.ids()
