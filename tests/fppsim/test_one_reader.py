@@ -196,3 +196,51 @@ def test_one_image_reader_one_colour_and_depth_policy(tmp_path):
     images, _ = readers.load_fringe_images(tmp_path / "deep")
     assert images[0].gray.dtype == np.uint8 and np.array_equal(images[0].gray, g8)
     assert np.array_equal(to_8bit(g8.astype(np.uint16) * 257), g8)
+
+
+def test_the_fppsim_commands_read_a_registered_layout(tmp_path, toy, capsys):
+    """compare-real, fit-rig (its rig start on the scans' phase), fit-optics and label-real, through main(argv)."""
+    import json
+
+    from fppsim.cli import main
+
+    rig = tiny_rig(W, H)
+    lab, scans = tmp_path / "lab", tmp_path / "scans"
+    _write_labelled(lab)
+    _write_scans(scans, rig)
+    (tmp_path / "rig.json").write_text(json.dumps(rig.to_dict()))
+    assert main(["compare-real", str(lab), str(lab), "--max-samples", "2", "--json", str(tmp_path / "c.json")]) == 0
+    assert json.loads((tmp_path / "c.json").read_text())["real"]["layout"] == "toy-png"
+    assert main(["fit-rig", str(scans), "--out", str(tmp_path / "fitted.json")]) == 0
+    assert "2 phase-shifting scan(s): absolute phase" in capsys.readouterr().out
+    assert main(["fit-optics", str(lab), "--out", str(tmp_path / "optics.yaml"), "--rig", str(tmp_path / "rig.json"),
+                 "--compare", "0"]) == 0
+    assert "3 image(s), layout toy-png" in capsys.readouterr().out
+    assert main(["label-real", str(scans), "--out", str(tmp_path / "labelled"), "--rig", str(tmp_path / "rig.json"),
+                 "--quiet", "--no-preview"]) == 0
+    assert np.load(tmp_path / "labelled" / "Z.npy").shape == (2, H, W, 1)
+
+
+@pytest.mark.slow
+def test_the_uhrnet_commands_read_a_registered_layout(tmp_path, toy):
+    """train --real (with --val-phase on the toy scans), evaluate, predict, evaluate-phase and the sim2real
+    phase evaluation, on one tiny model."""
+    from uhrnet.cli import main
+    from uhrnet.workflows.sim2real.evaluate import evaluate_real_phase
+
+    lab, scans, run = tmp_path / "lab", tmp_path / "scans", tmp_path / "run"
+    _write_labelled(lab, n=6)
+    _write_scans(scans, tiny_rig(W, H))
+    assert main(["train", "--real", str(lab), "--val-phase", str(scans), "--out", str(run), "--model", "unet",
+                 "--base-channels", "4", "--epochs", "1", "--batch-size", "2", "--device", "cpu", "--no-progress",
+                 "--threads", "1"]) == 0
+    assert main(["evaluate", str(run), "--real", str(lab), "--split", "test", "--out", str(tmp_path / "ev"),
+                 "--device", "cpu"]) == 0
+    assert main(["predict", str(run), str(scans), "--out", str(tmp_path / "pred"), "--no-ply", "--device", "cpu",
+                 "--no-progress"]) == 0
+    assert sorted(p.name for p in (tmp_path / "pred").glob("*_height.npy")) == ["scans_f0_height.npy",
+                                                                               "scans_f1_height.npy"]
+    assert main(["evaluate-phase", str(run / "last.pt"), "--phase-root", str(scans), "--out", str(tmp_path / "ep"),
+                 "--device", "cpu"]) == 0
+    doc = evaluate_real_phase(run / "last.pt", [str(scans)], tmp_path / "s2r")
+    assert [f["id"] for f in doc["frames"]] == ["f0", "f1"]

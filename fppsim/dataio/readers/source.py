@@ -98,8 +98,9 @@ class Source:
 
     @property
     def has_images(self) -> bool:
-        """Single-shot images a scan folder holds (``iPattern/``): ``psp`` or ``ipattern`` kinds."""
-        return self.kind in ("psp", "ipattern") and (self.path / FOLDERS["image"][0]).is_dir()
+        """Single-shot images a scan folder holds (``iPattern/``): a whole scan folder or its images alone, not a
+        damaged one (:meth:`problem`)."""
+        return self.is_psp and self.problem() is None and (self.path / FOLDERS["image"][0]).is_dir()
 
     @property
     def has_manifest(self) -> bool:
