@@ -291,8 +291,7 @@ class PhaseValidation:
         frames = []
         for root in roots:
             try:
-                src = open_source(root)
-                frames += [(src, sid) for sid in src.scan_ids()]
+                frames += [(root, sid) for sid in open_source(root).scan_ids()]
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
         if not frames:
@@ -301,9 +300,9 @@ class PhaseValidation:
             frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
         self.degree = degree
         self.frames, self.notes = [], []  # notes: how frames read by --convention auto another way were read
-        for src, sid in frames:
+        for root, sid in frames:
             try:
-                s = src.scan(sid, convention=convention, negate_sin=negate_sin)
+                s = open_source(root).scan(sid, convention=convention, negate_sin=negate_sin)
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
             note = reading_note(s.meta, (f"{what}-convention", f"{what}-negate-sin"))
