@@ -84,7 +84,7 @@ def test_the_command_line_lives_in_one_module_per_package():
 
 # ---------------------------------------------------------------------------- seams (issue 24)
 MAX_LINES = 650
-ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_samples", "open_source", "mean_phasor", "circular_median",
+ONE_DEFINITION = ("plane_level", "poly_basis", "open_dataset", "open_labelled", "open_source", "mean_phasor", "circular_median",
                   "lowpass", "demodulate",
                   "demodulated_residual", "object_residual", "phase_at_height", "ray_cut")
 TWINS = {"wrap": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"], "circular_mean": ["fppsim/phase/__init__.py", "uhrnet/physics/rig_layer.py"],
@@ -115,7 +115,7 @@ def test_no_library_module_is_longer_than_the_limit():
 
 def test_shared_helpers_are_defined_once():
     """One plane level, one polynomial plane basis, one name per dataset opener (a torch Dataset:
-    ``uhrnet.data.datasets.open_dataset``; a numpy reader: ``fppsim.dataio.readers.open_samples``), one home for the phase
+    ``uhrnet.data.datasets.open_dataset``; a numpy reader: ``fppsim.dataio.readers.open_labelled``), one home for the phase
     helpers and the camera ray cut at a height."""
     where: dict[str, list[str]] = {name: [] for name in ONE_DEFINITION + tuple(TWINS)}
     for pkg in PACKAGES + ("pipelines",):
@@ -126,7 +126,7 @@ def test_shared_helpers_are_defined_once():
     twins = {k: sorted(p.split(":")[0] for p in where.pop(k)) for k in TWINS}
     assert twins == TWINS, twins
     assert {k: len(v) for k, v in where.items()} == {k: 1 for k in where}, where
-    assert where["open_dataset"][0].startswith("uhrnet/data/datasets.py") and where["open_samples"][0].startswith("fppsim/dataio/readers/")
+    assert where["open_dataset"][0].startswith("uhrnet/data/datasets.py") and where["open_labelled"][0].startswith("fppsim/dataio/readers/")
     assert where["plane_level"][0].startswith("fppsim/phase/plane.py") and where["poly_basis"][0].startswith("fppsim/phase/plane.py")
     assert where["circular_median"][0].startswith("fppsim/phase/__init__.py")
 

@@ -2,8 +2,8 @@
 
 * the fringe encoding of the dataset contract: 8-bit intensity ``I/127.5 - 1`` in [-1, 1]
   (:func:`encode_fringe` / :func:`decode_fringe`), shape normalisation of image stacks
-  (:func:`as_image_stack`), grey image files (:func:`read_gray_image`, colour refused unless grey:
-  :func:`colour_to_grey`);
+  (:func:`as_image_stack`), grey image files (:func:`read_gray_image`, THE image reader: colour refused unless
+  grey, :func:`colour_to_grey`) and the one 16-bit to 8-bit conversion (:func:`to_8bit`);
 * the writers' fast codecs: :func:`encode_png` (8-bit grey PNG) and :func:`save_npz` (an ``.npz`` that
   ``np.load`` reads), both through zlib-ng when installed (the same formats, faster), with fixed
   timestamps so the same arrays give the same bytes; :func:`json_default` for numpy values in JSON.
@@ -29,17 +29,31 @@ except ImportError:  # a tree installed before zlib-ng became a dependency: the 
     _deflate = zlib
 
 __all__ = ["encode_fringe", "decode_fringe", "as_image_stack", "COLOUR_TOLERANCE", "colour_to_grey", "read_gray_image",
-           "json_default", "save_npz", "encode_png"]
+           "LEVELS_16_PER_8", "to_8bit", "json_default", "save_npz", "encode_png"]
 
 
 # ============================================================================================ fringe and grey images
+LEVELS_16_PER_8 = 257.0  # 16-bit grey levels per 8-bit level: 65535 = 255 * 257
+
+
+def to_8bit(image: np.ndarray) -> np.ndarray:
+    """A grey image as uint8: uint8 as it is, uint16 scaled to 8-bit levels (``I / 257``, rounded): THE 16-bit to
+    8-bit conversion of every reader. Any other dtype: :class:`DatasetError`."""
+    img = np.asarray(image)
+    if img.dtype == np.uint8:
+        return img
+    if img.dtype != np.uint16:
+        raise DatasetError(f"{img.dtype} image, expected 8-bit (or 16-bit) grey")
+    return np.clip(np.rint(img / LEVELS_16_PER_8), 0, 255).astype(np.uint8)
+
+
 def encode_fringe(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
     """Grey image (uint8, or uint16 scaled to 8-bit levels) -> float32 ``I/127.5 - 1`` in [-1, 1];
     -1 on invalid pixels when ``mask`` is given."""
     img = np.asarray(image)
     f = img.astype(np.float32)
     if img.dtype == np.uint16:
-        f = f * np.float32(1.0 / 257.0)  # 16-bit -> 8-bit intensity scale
+        f = f * np.float32(1.0 / LEVELS_16_PER_8)  # 16-bit -> 8-bit intensity scale (not rounded)
     f = f / np.float32(127.5) - np.float32(1.0)
     if mask is not None:
         f = np.where(np.asarray(mask) > 0, f, np.float32(-1.0)).astype(np.float32)
@@ -89,7 +103,7 @@ def colour_to_grey(img: np.ndarray, path: str | os.PathLike = "image") -> np.nda
         raise DatasetError(f"{path}: {img.shape[2]}-channel image, expected grey (or colour with equal channels)")
     img = np.ascontiguousarray(img)
     grey = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
-    scale = 257.0 if img.dtype == np.uint16 else 1.0
+    scale = LEVELS_16_PER_8 if img.dtype == np.uint16 else 1.0
     spread = float(np.abs(img.astype(np.float32) - grey[..., None].astype(np.float32)).mean()) / scale
     if spread > COLOUR_TOLERANCE:
         raise DatasetError(f"{path}: colour image whose channels differ by {spread:.1f} gray levels on average; the "

@@ -1,12 +1,13 @@
 """Compare a synthetic FPP dataset with real figshare-format data: statistics side by side.
 
-Used by ``fppsim compare-real REAL_DIR SYN_DIR``: both folders are read with
-:func:`fppsim.dataio.readers.iter_samples` (three layouts, see below), every sample is measured with
+Used by ``fppsim compare-real REAL_DIR SYN_DIR``: both folders are read by their readers
+(:func:`fppsim.dataio.readers.open_labelled`, :func:`fppsim.dataio.readers.iter_samples`: any labelled layout,
+see below), every sample is measured with
 :func:`sample_stats` (the fringe measurements of :mod:`fppsim.phase.measure`), the per-sample values
 are aggregated by their median (:func:`dataset_stats`) and :func:`format_comparison` prints a
 side-by-side table, so a user can tune the rig and optics to their own lab data.
 
-Folder layouts (detected in this order):
+Folder layouts (recognised by :func:`fppsim.dataio.readers.open_source`; a layout registered there is read too):
 
 (a) figshare: ``f1_80.npy`` (fringe, 8-bit intensity / 127.5 - 1) and ``Z.npy`` (height label), shape
     (N, H, W, 1), (N, H, W) or (H, W); memory-mapped, so large files are cheap to sample;
@@ -15,7 +16,7 @@ Folder layouts (detected in this order):
     (``height`` mm world z, ``mask`` 1 = valid); heights become labels through a
     :class:`fppsim.dataio.formats.LabelTransform` (the figshare preset by default).
 
-All three are read by :class:`fppsim.dataio.readers.SampleReader`.
+All are read through their :class:`fppsim.dataio.readers.Source`.
 
 Statistics per sample (fringe in 8-bit gray levels, labels in label units):
 
@@ -53,7 +54,7 @@ from fppsim.dataio.formats import PRESETS, LabelTransform
 from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt, quarter_periods
 from fppsim.phase.fringe_axis import fringe_orientation
 from fppsim.phase.plane import plane_level
-from fppsim.dataio.readers import iter_samples, open_samples
+from fppsim.dataio.readers import iter_samples, open_labelled
 
 __all__ = ["sample_stats", "dataset_stats", "compare_real", "format_comparison", "format_value", "STAT_ROWS"]
 
@@ -156,9 +157,9 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
     Returns {'path', 'layout', 'n_total', 'n_samples', 'shape', 'stats': {key: median},
     'spread': {key: [min, max] over samples}, 'per_sample': [dict, ...]}.
     """
-    ds = open_samples(folder, label)
+    ds = open_labelled(folder, label)
     per, shape = [], None
-    for gray, lab in iter_samples(ds, max_samples):
+    for gray, lab in iter_samples(ds, max_samples, label):
         shape = list(gray.shape)
         per.append(sample_stats(gray, lab, label, object_mm=object_mm))
     if not per:
@@ -170,7 +171,7 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
         fin = vals[np.isfinite(vals)]
         stats[k] = float(np.median(fin)) if fin.size else float("nan")
         spread[k] = [float(fin.min()), float(fin.max())] if fin.size else [float("nan")] * 2
-    return {"path": str(folder), "layout": ds.layout, "n_total": len(ds), "n_samples": len(per),
+    return {"path": str(folder), "layout": ds.layout, "n_total": len(ds.ids()), "n_samples": len(per),
             "shape": shape, "stats": stats, "spread": spread, "per_sample": per}
 
 

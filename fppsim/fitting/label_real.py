@@ -53,10 +53,10 @@ import numpy as np
 from fppsim.dataio.encoding import encode_fringe, json_default
 from fppsim.errors import ConfigError, DatasetError, UsageError
 from fppsim.files import atomic_write_text, tmp_path
-from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform, manifest_ids
+from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform
 from fppsim.owned import claim, output_folder, owners
 from fppsim.phase.psp import decode_stacks
-from fppsim.dataio.readers import check_read_convention, reading_note, list_psp_ids, load_psp_folder_sample, open_source, read_native_psp
+from fppsim.dataio.readers import check_read_convention, reading_note, open_source
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -195,9 +195,10 @@ class Scan:
 
 
 def detect_layout(root: str | os.PathLike) -> str:
-    """:data:`LAYOUTS` ``[0]`` (``"public"``: the scans' absolute phase is on disk, any of PSin/ PCos/ Fringe/
-    iPattern/ present) or ``[1]`` (``"native"``: fppsim's samples, whose phase-shifting images are decoded here),
-    as the folder's reader tells.
+    """:data:`LAYOUTS` ``[0]`` (``"public"``: the scans' absolute phase is on disk, as the reader's
+    :meth:`~fppsim.dataio.readers.Source.scan` reads it: any of PSin/ PCos/ Fringe/ iPattern/ present, or a
+    registered layout with :meth:`~fppsim.dataio.readers.Source.phase_ids`) or ``[1]`` (``"native"``: fppsim's
+    samples, whose phase-shifting images are decoded here), as the folder's reader tells.
 
     Raises :class:`DatasetError` (one line naming ``root``) for anything else.
     """
@@ -207,7 +208,7 @@ def detect_layout(root: str | os.PathLike) -> str:
         raise DatasetError(f"{root}: no such folder")
     if not root.is_dir():
         raise DatasetError(f"{root}: not a folder")
-    if src.is_psp:
+    if src.is_psp or src.phase_ids():  # a scan folder (whole or damaged: scan_ids names what it lacks), or scans
         return PUBLIC
     if src.has_manifest:
         return NATIVE
@@ -220,10 +221,11 @@ def detect_layout(root: str | os.PathLike) -> str:
 
 
 def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:
+    src = open_source(cfg.root)
     if layout == PUBLIC:
-        ids = list_psp_ids(cfg.root)
+        ids = src.scan_ids()
     else:
-        ids = manifest_ids(cfg.root)
+        ids = src.ids()
         if not ids:
             raise DatasetError(f"{cfg.root}: manifest.jsonl lists no sample")
     if cfg.ids is not None:
@@ -244,8 +246,9 @@ def _check_camera(rig: Rig, shape: tuple, where: str) -> None:
 
 
 def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
-    s = load_psp_folder_sample(cfg.root, sid, convention=cfg.convention, negate_sin=cfg.negate_sin)
-    _check_camera(rig, s.image.shape, str(open_source(cfg.root).ipattern_file(sid)))
+    src = open_source(cfg.root)
+    s = src.scan(sid, convention=cfg.convention, negate_sin=cfg.negate_sin)
+    _check_camera(rig, s.image.shape, str(src.ipattern_file(sid)))
     return Scan(id=sid, image=s.image, phase=s.phase, valid=s.valid & np.isfinite(s.phase),
                 periods=float(cfg.periods if cfg.periods is not None else rig.periods), rig=rig, source=s.path,
                 note=reading_note(s.meta), misread=bool(s.meta.get("misread")))
@@ -253,7 +256,7 @@ def _public_scan(cfg: LabelRealConfig, sid: str, rig: Rig) -> Scan:
 
 def _native_scan(cfg: LabelRealConfig, sid: str, rig: Rig | None) -> Scan:
     folder = Path(cfg.root) / sid
-    image, stacks, shifts, meta = read_native_psp(folder)
+    image, stacks, shifts, meta = open_source(cfg.root).psp_images(sid)
     freqs = tuple(stacks)
     if rig is None:
         try:

@@ -1,5 +1,5 @@
 """fppsim.fitting.compare (real vs synthetic statistics), the fringe measurements of fppsim.phase.measure and the
-any-layout reader fppsim.dataio.readers.open_samples that compare-real uses."""
+any-layout numpy reader fppsim.dataio.readers.open_labelled / grey_sample that compare-real uses."""
 
 import json
 import cv2
@@ -166,26 +166,26 @@ def test_three_layouts_read_the_same_samples(tmp_path):
     np.save(tmp_path / "one" / "height_map.npy", zz[0, ..., 0])
     _write_native(tmp_path / "nat", samples)
 
-    fig = readers.open_samples(tmp_path / "fig")
-    one = readers.open_samples(tmp_path / "one")
-    nat = readers.open_samples(tmp_path / "nat")
-    assert (fig.layout, len(fig)) == ("figshare", 3)
-    assert (one.layout, len(one)) == ("real-sample", 1)
-    assert (nat.layout, len(nat)) == ("native", 3)
+    fig = readers.open_labelled(tmp_path / "fig")
+    one = readers.open_labelled(tmp_path / "one")
+    nat = readers.open_labelled(tmp_path / "nat")
+    assert (fig.layout, len(fig.ids())) == ("figshare", 3)
+    assert (one.layout, len(one.ids())) == ("real-sample", 1)
+    assert (nat.layout, len(nat.ids())) == ("native", 3)
     for i in range(3):
-        g_f, l_f = fig.sample(i)
-        g_n, l_n = nat.sample(i)
+        g_f, l_f = readers.grey_sample(fig, i)
+        g_n, l_n = readers.grey_sample(nat, i)
         assert np.array_equal(g_f, samples[i][0]) and np.array_equal(g_n, samples[i][0])
         assert np.array_equal(l_f, samples[i][1])
         assert np.allclose(l_n, samples[i][1], atol=1e-3)
-    g1, l1 = one.sample(0)
+    g1, l1 = readers.grey_sample(one, 0)
     assert np.array_equal(g1, samples[0][0]) and np.array_equal(l1, samples[0][1])
 
     # (N, H, W) stacks are accepted too
     (tmp_path / "fig3").mkdir()
     np.save(tmp_path / "fig3" / "f1_80.npy", fr[..., 0])
     np.save(tmp_path / "fig3" / "Z.npy", zz[..., 0])
-    assert len(readers.open_samples(tmp_path / "fig3")) == 3
+    assert len(readers.open_labelled(tmp_path / "fig3").ids()) == 3
 
     a = compare.dataset_stats(tmp_path / "fig")
     b = compare.dataset_stats(tmp_path / "nat")
@@ -206,7 +206,8 @@ def test_three_layouts_read_the_same_samples(tmp_path):
 def test_native_preset_is_configurable(tmp_path):
     gray, label = _scene()
     _write_native(tmp_path / "nat", [(gray, label)])
-    _, lab = readers.open_samples(tmp_path / "nat", LabelTransform(units_per_mm=10.0, plane_offset=0.0, invalid_value=-1.0)).sample(0)
+    transform = LabelTransform(units_per_mm=10.0, plane_offset=0.0, invalid_value=-1.0)
+    _, lab = readers.grey_sample(readers.open_labelled(tmp_path / "nat", transform), 0, transform)
     valid = label != -105.0
     assert np.allclose(lab[valid], (label[valid] + 97.0) / 6.0 * 10.0, atol=1e-3)
     assert np.all(lab[~valid] == -1.0)
@@ -214,19 +215,19 @@ def test_native_preset_is_configurable(tmp_path):
 
 def test_bad_folders_raise_value_error_naming_the_folder(tmp_path):
     with pytest.raises(ValueError, match="no dataset found") as e:
-        readers.open_samples(tmp_path)
+        readers.open_labelled(tmp_path)
     assert str(tmp_path) in str(e.value)
     with pytest.raises(ValueError, match="not a folder"):
-        readers.open_samples(tmp_path / "missing")
+        readers.open_labelled(tmp_path / "missing")
     (tmp_path / "bad").mkdir()
     np.save(tmp_path / "bad" / "f1_80.npy", np.zeros((2, 8, 16, 1), np.float32))
     np.save(tmp_path / "bad" / "Z.npy", np.zeros((3, 8, 16, 1), np.float32))
     with pytest.raises(ValueError, match="3 samples but f1_80.npy has 2"):
-        readers.open_samples(tmp_path / "bad")
+        readers.open_labelled(tmp_path / "bad")
     (tmp_path / "empty").mkdir()
     (tmp_path / "empty" / "manifest.jsonl").write_text("")
-    with pytest.raises(ValueError, match="lists no sample"):
-        readers.open_samples(tmp_path / "empty")
+    with pytest.raises(ValueError, match="no samples"):
+        readers.open_labelled(tmp_path / "empty")
 
 
 @pytest.mark.skipif(not (REAL / "fringe_pattern.npy").is_file(), reason="../shared/real-sample not present")

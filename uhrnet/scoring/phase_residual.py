@@ -53,7 +53,7 @@ from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
 from uhrnet.errors import ConfigError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import PSPMatError, RigError
-from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample, reading_note
+from fppsim.dataio.readers import open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
@@ -332,7 +332,7 @@ class PhaseValidation:
         frames = []
         for root in roots:
             try:
-                frames += [(root, sid) for sid in list_psp_ids(root)]
+                frames += [(root, sid) for sid in open_source(root).scan_ids()]
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
         if not frames:
@@ -346,7 +346,7 @@ class PhaseValidation:
                               "more frames (not those the rig was fitted to) for a held-out score")
         for k, (root, sid) in enumerate(frames):
             try:
-                s = load_psp_folder_sample(root, sid, convention=convention, negate_sin=negate_sin)
+                s = open_source(root).scan(sid, convention=convention, negate_sin=negate_sin)
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
             note = reading_note(s.meta, (f"{what}-convention", f"{what}-negate-sin"))
@@ -390,8 +390,9 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     ``args.out`` and returns ``{"summary", "per_image", "markdown", "figures"}``. ``echo`` gets one line
     per image (None: silent)."""
     echo = echo or (lambda line: None)
+    src = open_source(args.phase_root)
     try:
-        ids = list_psp_ids(args.phase_root)
+        ids = src.scan_ids()
     except PSPMatError as exc:
         raise ConfigError(str(exc)) from None
     if args.ids:
@@ -423,7 +424,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     per_image, figures = [], []
     for k, sid in enumerate(ids):
         try:
-            s = load_psp_folder_sample(args.phase_root, sid, convention=args.convention, negate_sin=args.negate_sin)
+            s = src.scan(sid, convention=args.convention, negate_sin=args.negate_sin)
         except PSPMatError as exc:
             raise ConfigError(str(exc)) from None
         note = reading_note(s.meta)

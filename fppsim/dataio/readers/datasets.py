@@ -3,8 +3,8 @@
 Layouts (named in :mod:`fppsim.dataio.formats`, the contract): the native per-sample folders
 (``manifest.jsonl``, ``<id>/fringe.png``, ``<id>/arrays.npz``), the figshare pair (``f1_80.npy`` +
 ``Z.npy``, memory-mapped) and the single published real sample (``fringe_pattern.npy`` +
-``height_map.npy``). :class:`SampleReader` (:func:`open_samples`) reads any of them as grey images and
-labels; :func:`read_native_pair` and :func:`open_figshare_pair` give what the networks read (the fringe
+``height_map.npy``); every layout's reader is a :class:`fppsim.dataio.readers.Source`
+(:mod:`fppsim.dataio.readers.source`), built on these functions. :func:`read_native_pair` and :func:`open_figshare_pair` give what the networks read (the fringe
 in the dataset encoding, intensity / 127.5 - 1), and the checks refuse data the models would silently
 misread (NaN/inf, raw 8-bit fringes, a figshare export labelled with another transform, PSP labels of
 a ``--no-psp`` dataset). ``uhrnet.data.datasets`` wraps these readers into torch datasets. Every error is a
@@ -18,19 +18,17 @@ import os
 import zipfile
 import zlib
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 
-from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
+from fppsim.dataio.encoding import as_image_stack, encode_fringe, read_gray_image
 from fppsim.errors import DatasetError
-from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, manifest_ids, psp_freq, psp_image_name, read_settings
+from fppsim.dataio.formats import LabelTransform, psp_freq, psp_image_name, read_settings
 
 __all__ = ["READ_ERRORS", "LABEL_SOURCES", "load_native_sample", "read_native_label", "read_fringe_image",
            "read_native_pair", "read_native_phase", "read_native_psp", "check_psp_available", "open_figshare_pair", "check_figshare_arrays",
-           "check_export_labels", "SampleReader", "open_samples", "pick_evenly", "iter_samples"]
+           "check_export_labels", "pick_evenly"]
 
-FIGSHARE = PRESETS["figshare"]
 LABEL_SOURCES = ("true", "psp")  # native ground truth: exact rendered height or phase-shifting height
 READ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)  # what a damaged file raises
 
@@ -260,83 +258,7 @@ def check_export_labels(root: Path, transform: LabelTransform) -> None:
         return
 
 
-# ============================================================================================ any layout
-def _complete_pair(folder: Path) -> tuple[str, Path, Path] | None:
-    """``(kind, fringe, label)`` of the first figshare-format pair of which BOTH files exist, else None."""
-    for kind, (f, z) in zip(("figshare", "real-sample"), FIGSHARE_PAIRS):
-        if (folder / f).is_file() and (folder / z).is_file():
-            return kind, folder / f, folder / z
-    return None
-
-
-class SampleReader:
-    """Grey fringe images and labels of any dataset folder, one sample at a time, without torch.
-
-    Layouts, detected in this order: ``figshare`` (``f1_80.npy`` + ``Z.npy``, memory-mapped),
-    ``real-sample`` (``fringe_pattern.npy`` + ``height_map.npy``) and ``native`` (``manifest.jsonl``
-    with ``<id>/fringe.png`` + ``<id>/arrays.npz``; heights become labels through ``label``).
-    :meth:`sample` returns ``(grey uint8 (H, W), label float32 (H, W))``. The torch datasets of
-    ``uhrnet.data.datasets`` read the same files through the same functions of this module.
-    """
-
-    def __init__(self, folder: str | os.PathLike, label: LabelTransform | None = None):
-        self.path = Path(folder)
-        self.label = label or PRESETS["figshare"]
-        if not self.path.is_dir():
-            raise DatasetError(f"{self.path}: not a folder")
-        self._fringes = self._labels = None
-        complete = _complete_pair(self.path)
-        if complete is not None:
-            self.layout, f, z = complete
-            self._fringes, self._labels = open_figshare_pair(f, z)
-            self.ids = [str(i) for i in range(len(self._fringes))]
-            return
-        if (self.path / "manifest.jsonl").is_file():
-            self.layout = "native"
-            self.ids = [s for s in manifest_ids(self.path)
-                        if (self.path / s / "fringe.png").is_file() and (self.path / s / "arrays.npz").is_file()]
-            if not self.ids:
-                raise DatasetError(f"{self.path}: manifest.jsonl lists no sample with fringe.png and arrays.npz")
-            return
-        raise DatasetError(
-            f"{self.path}: no dataset found (expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, "
-            "or manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)")
-
-    def __len__(self) -> int:
-        return len(self.ids)
-
-    def sample(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """(grey uint8 (H, W), label float32 (H, W)) of sample ``i``."""
-        if self._fringes is not None:
-            gray = decode_fringe(np.asarray(self._fringes[i], dtype=np.float32))
-            lab = np.asarray(self._labels[i], dtype=np.float32)
-        else:
-            folder = self.path / self.ids[i]
-            s = load_native_sample(folder, keys=("height", "mask"), meta=False)
-            gray = s["fringe"]
-            if gray.dtype == np.uint16:
-                gray = np.clip(np.rint(gray / 257.0), 0, 255).astype(np.uint8)
-            if "height" not in s:
-                raise DatasetError(f"{folder / 'arrays.npz'}: has no 'height'")
-            height = s["height"].astype(np.float64)
-            mask = s["mask"] > 0.5 if "mask" in s else np.isfinite(height)
-            lab = self.label.label_from_height_mm(height, mask & np.isfinite(height))
-        if gray.shape != lab.shape:
-            raise DatasetError(f"{self.path}: sample {self.ids[i]}: fringe {gray.shape} and height {lab.shape} "
-                               "differ in shape")
-        return gray, lab
-
-
-def open_samples(folder, label: LabelTransform = FIGSHARE) -> SampleReader:
-    """Detect the layout of ``folder`` and open it as a :class:`SampleReader` (numpy, arrays memory-mapped);
-    :class:`DatasetError` (a ValueError) if unreadable. (``uhrnet.data.datasets.open_dataset`` opens the same
-    folders as a torch dataset.)
-
-    ``label`` turns native heights (mm) into labels; figshare-format folders already hold labels.
-    """
-    return SampleReader(folder, label)
-
-
+# ============================================================================================ sampling
 def pick_evenly(n: int, max_samples: int | None) -> np.ndarray:
     """Evenly spaced indices (int (k,)) of ``max_samples`` out of ``n`` (all when max_samples is None or >= n)."""
     if max_samples is None or max_samples >= n:
@@ -344,11 +266,3 @@ def pick_evenly(n: int, max_samples: int | None) -> np.ndarray:
     if max_samples < 1:
         raise ValueError(f"max_samples must be >= 1, got {max_samples}")
     return np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))
-
-
-def iter_samples(folder, max_samples: int | None = None,
-                 label: LabelTransform = FIGSHARE) -> Iterator[tuple[np.ndarray, np.ndarray]]:
-    """Yield (gray uint8 (H, W), label float32 (H, W)) for up to max_samples evenly spaced samples."""
-    ds = folder if isinstance(folder, SampleReader) else open_samples(folder, label)
-    for i in pick_evenly(len(ds), max_samples):
-        yield ds.sample(int(i))

@@ -1,10 +1,10 @@
-"""Real fringe images for fitting the simulator: the five real-data layouts, read as one list.
+"""Real fringe images for fitting the simulator: every layout, read as one list.
 
-:func:`load_fringe_images` reads a figshare folder (``f1_80.npy`` + ``Z.npy``), the published
-real-sample pair, a native fppsim folder (all three through :class:`fppsim.dataio.readers.SampleReader`), the
-phase-shifting ``PSin/PCos/Fringe/iPattern`` folders (or just ``iPattern/``) and a folder of 8-bit
-images (or one image file), and returns :class:`FringeImage` records: the grey image, its valid
-pixels, and plane / object pixels where the source tells them apart (height labels, or the real
+:func:`load_fringe_images` reads whatever layout a path holds through its reader
+(:func:`fppsim.dataio.readers.open_source`): a figshare folder (``f1_80.npy`` + ``Z.npy``), the published
+real-sample pair, a native fppsim folder, the phase-shifting ``PSin/PCos/Fringe/iPattern`` folders (or just
+``iPattern/``), a folder of grey images (or one image file), or a layout registered since, and returns
+:class:`FringeImage` records: the grey image, its valid pixels, and plane / object pixels where the source tells them apart (height labels, or the real
 phase through :func:`fppsim.phase.plane.phase_plane_masks`). ``fppsim fit-rig`` and ``fppsim fit-optics``
 measure these.
 """
@@ -12,17 +12,18 @@ measure these.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
+from fppsim.dataio.encoding import to_8bit
+from fppsim.dataio.formats import PRESETS
 from fppsim.errors import PSPMatError
 from fppsim.phase.plane import phase_plane_masks, plane_level
-from fppsim.dataio.readers.datasets import open_samples, pick_evenly
-from fppsim.dataio.readers.psp_mat import load_ipattern, load_psp_folder_sample, reading_note
-from fppsim.dataio.readers.source import IMAGE_EXTS, open_source
+from fppsim.dataio.readers.datasets import pick_evenly
+from fppsim.dataio.readers.psp_mat import reading_note
+from fppsim.dataio.readers.source import IMAGE_EXTS, Source, grey_sample, open_labelled, open_source
 
-__all__ = ["FringeImage", "IMAGE_EXTS", "load_fringe_images", "read_image_file"]
+__all__ = ["FringeImage", "IMAGE_EXTS", "load_fringe_images"]
 
 
 @dataclass
@@ -51,84 +52,70 @@ class FringeImage:
 
 def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0, convention: str = "benchmark",
                        negate_sin: bool = False) -> tuple[list[FringeImage], str]:
-    """Real fringe images from a folder: figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair,
-    native fppsim, the PSin/PCos/Fringe/iPattern layout (or just ``iPattern/``), or a folder of 8-bit
-    images (or one image file).
+    """Real fringe images of whatever layout ``path`` holds, as its reader (:func:`open_source`) provides them:
+    figshare (``f1_80.npy`` + ``Z.npy``), the real-sample pair, native fppsim, the PSin/PCos/Fringe/iPattern
+    layout (or just ``iPattern/``), a folder of 8- or 16-bit grey images (or one image file), or any layout
+    registered since.
 
-    ``valid`` drops black pixels (the datasets' shadow marker) and pixels without phase. Plane and
-    object pixels come from the height labels (within / beyond ``plane_mm`` of the plane level) or from
-    the real phase (:func:`phase_plane_masks`); plain images have neither. At most ``max_images``
-    evenly spaced images. ``convention`` / ``negate_sin``: how the public layout's PSin / PCos / Order combine
-    into its phase (:func:`fppsim.dataio.readers.load_psp_folder_sample`; each image's ``read_as`` says how
-    ``"auto"`` read one written another way). Returns ``(images, layout)``;
-    ValueError if nothing is readable.
+    Frames with an absolute phase (:meth:`Source.phase_ids`, read by :meth:`Source.scan`) tell plane from object
+    pixels by their phase (:func:`phase_plane_masks`); labelled samples (:func:`grey_sample`) by their heights
+    (within / beyond ``plane_mm`` of the plane level); plain images have neither. ``valid`` drops black pixels
+    (the datasets' shadow marker) and pixels without phase or label. At most ``max_images`` evenly spaced
+    images. ``convention`` / ``negate_sin``: how the public layout's PSin / PCos / Order combine into its phase
+    (:func:`fppsim.dataio.readers.load_psp_folder_sample`; each image's ``read_as`` says how ``"auto"`` read one
+    written another way). Images are read by :func:`fppsim.dataio.encoding.read_gray_image` (a colour image is
+    refused unless its channels are equal) and made 8-bit by :func:`fppsim.dataio.encoding.to_8bit`. Returns
+    ``(images, layout)`` (:attr:`Source.layout`); ValueError if nothing is readable.
     """
     src = open_source(path)
     path = src.path
-    if src.kind == "image":
-        return [read_image_file(path)], "image"
-    if not path.is_dir():
-        raise ValueError(f"{path}: not a folder or image file")
-
-    if src.kind == "psp-partial":  # a damaged scan folder is named, never read as plain images
-        raise ValueError(src.incomplete())
-    if src.kind in ("psp", "ipattern"):
-        full = src.kind == "psp"
-        try:
-            ids = src.ids()
-            out = []
-            for i in pick_evenly(len(ids), max_images):
-                sid = ids[int(i)]
-                if full:
-                    s = load_psp_folder_sample(path, sid, convention=convention, negate_sin=negate_sin)
-                    valid = s.valid & (s.image > 0)
-                    plane, obj = phase_plane_masks(s.phase, valid)
-                    out.append(FringeImage(s.image, valid, sid, plane, obj, phase=s.phase, read_as=reading_note(s.meta)))
-                else:
-                    img = load_ipattern(src.ipattern_file(sid))
-                    out.append(FringeImage(img, img > 0, sid))
-        except PSPMatError as exc:
-            raise ValueError(str(exc)) from None
-        return out, "psp-folders" if full else "ipattern"
-    files = sorted(p for p in path.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTS)
+    problem = src.problem()
+    if problem:  # a damaged scan folder is named, never read as plain images
+        raise ValueError(problem)
     try:
-        ds = open_samples(path)
-    except ValueError:
-        if not files:
-            raise ValueError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
-                             "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
-                             f"{'/'.join(IMAGE_EXTS)} files)") from None
-        files = [files[i] for i in pick_evenly(len(files), max_images)]
-        return [read_image_file(f) for f in files], "images"
+        scans = src.phase_ids()
+        if scans:
+            out = []
+            for i in pick_evenly(len(scans), max_images):
+                s = src.scan(scans[int(i)], convention=convention, negate_sin=negate_sin)
+                valid = s.valid & (s.image > 0)
+                plane, obj = phase_plane_masks(s.phase, valid)
+                out.append(FringeImage(to_8bit(s.image), valid, scans[int(i)], plane, obj, phase=s.phase,
+                                       read_as=reading_note(s.meta)))
+            return out, src.layout
+        if src.labelled:
+            return _labelled_images(open_labelled(path), max_images, plane_mm), src.layout
+        ids = src.ids()
+        out = []
+        for i in pick_evenly(len(ids), max_images):
+            gray = to_8bit(src.fringe_image(ids[int(i)]))
+            out.append(FringeImage(gray, gray > 0, ids[int(i)]))
+    except PSPMatError as exc:
+        raise ValueError(str(exc)) from None
+    if not out:
+        if not path.is_dir():
+            raise ValueError(f"{path}: not a folder or image file")
+        raise ValueError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
+                         "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
+                         f"{'/'.join(IMAGE_EXTS)} files)")
+    return out, src.layout
+
+
+def _labelled_images(src: Source, max_images: int | None, plane_mm: float) -> list[FringeImage]:
+    """:class:`FringeImage` records of a labelled reader's samples, labels in the figshare preset's units."""
+    label = PRESETS["figshare"]
     out = []
-    for i in pick_evenly(len(ds), max_images):
-        gray, label = ds.sample(int(i))
-        marker = np.isclose(label, ds.label.invalid_value, atol=1e-4) | ~np.isfinite(label)
+    for i in pick_evenly(len(src.ids()), max_images):
+        gray, lab = grey_sample(src, int(i), label)
+        marker = np.isclose(lab, label.invalid_value, atol=1e-4) | ~np.isfinite(lab)
         valid = ~marker & (gray > 0)
         plane = obj = np.zeros_like(valid)
         if valid.any():
-            level = plane_level(label, valid)
-            plane = valid & (np.abs(label - level) <= plane_mm * ds.label.units_per_mm)
-            obj = valid & (label > level + plane_mm * ds.label.units_per_mm)
-            height = np.where(valid, (label - level) / ds.label.units_per_mm, np.nan)
+            level = plane_level(lab, valid)
+            plane = valid & (np.abs(lab - level) <= plane_mm * label.units_per_mm)
+            obj = valid & (lab > level + plane_mm * label.units_per_mm)
+            height = np.where(valid, (lab - level) / label.units_per_mm, np.nan)
         else:
-            height = np.full(label.shape, np.nan)
-        out.append(FringeImage(gray, valid, f"{ds.layout}[{int(i)}]", plane, obj, height))
-    return out, ds.layout
-
-
-def read_image_file(path: Path) -> FringeImage:
-    """One 8- or 16-bit grey (or colour, converted) image file as a :class:`FringeImage` (16-bit scaled
-    to 8-bit; black pixels invalid); ValueError naming the file otherwise."""
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise ValueError(f"{path}: cannot read this image")
-    if img.ndim == 3:
-        img = cv2.cvtColor(img[..., :3], cv2.COLOR_BGR2GRAY)
-    if img.dtype == np.uint16:
-        img = np.clip(np.rint(img / 257.0), 0, 255).astype(np.uint8)
-    if img.dtype != np.uint8:
-        raise ValueError(f"{path}: expected an 8- or 16-bit gray image, got {img.dtype}")
-    return FringeImage(img, img > 0, path.name)
+            height = np.full(lab.shape, np.nan)
+        out.append(FringeImage(gray, valid, f"{src.layout}[{int(i)}]", plane, obj, height))
+    return out

@@ -30,7 +30,10 @@ What a reader provides (the base class answers "nothing" where a layout has noth
 * labelled layouts (``labelled``): :meth:`~Source.sample` ``(fringe, label)`` as the networks read them,
   :meth:`~Source.check_samples` (refuse what would be misread, before training), :meth:`~Source.height_labels`;
   ``array_files`` for layouts stored as two memory-mappable ``.npy`` stacks;
-* phase-shifting scans: :meth:`~Source.phase` and :meth:`~Source.phase_ids` (frames with an absolute phase);
+* phase-shifting scans: :meth:`~Source.phase` and :meth:`~Source.phase_ids` (frames with an absolute phase),
+  :meth:`~Source.scan_ids` and :meth:`~Source.scan` (one frame: single-shot image, phase, valid pixels, how it
+  was read);
+* one image by id (:meth:`~Source.fringe_image`), and what would stop the path being read (:meth:`~Source.problem`);
 * :meth:`~Source.fppsim_samples`: fppsim's native sample folders behind the path (the samples themselves,
   or the ``native/`` folder a figshare export keeps beside its arrays): where ``dataset.json``, the
   rig and each sample's exact phase are.
@@ -45,13 +48,16 @@ from typing import Iterator
 import numpy as np
 
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
-from fppsim.dataio.formats import FIGSHARE_PAIRS, find_figshare_pair, manifest_ids
-from fppsim.errors import DatasetError
+from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
+from fppsim.errors import DatasetError, PSPMatError
 from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
-                                            read_native_pair, read_native_phase)
-from fppsim.dataio.readers.psp_mat import FOLDERS, is_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample
+                                            open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
+                                            read_native_psp)
+from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,
+                                           load_psp_folder_sample)
 
-__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout"]
+__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
+           "open_labelled", "grey_sample", "iter_samples"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
@@ -65,6 +71,8 @@ class Source:
     kind = "folder"
     labelled = False  # height labels: sample() and height_labels() work
     plain_files = False  # image / .npy files and folders of them: callers apply their own file rules
+    described_as: str | None = None  # how reports name the layout (None: its kind)
+    is_psp = False  # phase-shifting scans, whole or in part: scan_ids() and scan() read them (or name what is missing)
 
     def __init__(self, path: str | os.PathLike, pair: tuple[Path, Path] | None = None):
         self.path = Path(path)
@@ -80,14 +88,19 @@ class Source:
 
     # ------------------------------------------------------------------ what the layout is
     @property
-    def is_psp(self) -> bool:
-        """Any phase-shifting scan folder (``psp``, ``ipattern`` or ``psp-partial``)."""
-        return self.kind in PSP_KINDS
+    def layout(self) -> str:
+        """How reports name the layout (``fit-rig``'s "layout ..." line, ``compare-real``'s ``layout``)."""
+        return self.described_as or self.kind
+
+    def problem(self) -> str | None:
+        """One line saying why the path cannot be read as it looks (a damaged scan folder), else None."""
+        return None
 
     @property
     def has_images(self) -> bool:
-        """Single-shot images a scan folder holds (``iPattern/``): ``psp`` or ``ipattern`` kinds."""
-        return self.kind in ("psp", "ipattern") and (self.path / FOLDERS["image"][0]).is_dir()
+        """Single-shot images a scan folder holds (``iPattern/``): a whole scan folder or its images alone, not a
+        damaged one (:meth:`problem`)."""
+        return self.is_psp and self.problem() is None and (self.path / FOLDERS["image"][0]).is_dir()
 
     @property
     def has_manifest(self) -> bool:
@@ -133,6 +146,13 @@ class Source:
         """``(id, grey uint8 (H, W))`` of every fringe image the path holds."""
         return iter(())
 
+    def fringe_image(self, sid: str) -> np.ndarray:
+        """The grey image of id ``sid`` (one of :meth:`ids`); the base reads :meth:`fringe_images` up to it."""
+        for k, gray in self.fringe_images():
+            if k == sid:
+                return gray
+        raise DatasetError(f"{self.path}: no fringe image {sid!r}")
+
     def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
         """What ``predict`` reads: ``(name, fringe float32 (H, W) in the dataset encoding, file)`` of every
         fringe image, named ``<folder>_<id>``."""
@@ -167,10 +187,28 @@ class Source:
         :func:`fppsim.dataio.readers.load_psp_folder_sample`), else None."""
         return None
 
+    def scan_ids(self) -> list[str]:
+        """The ids of the phase-shifting scans :meth:`scan` reads. A path without them raises
+        :class:`fppsim.errors.PSPMatError`, one line naming what a scan folder would need and what it holds."""
+        return list_psp_ids(self.path)
+
+    def scan(self, sid: str, convention: str = "benchmark", negate_sin: bool = False) -> PspMat:
+        """Phase-shifting scan ``sid`` as a :class:`fppsim.dataio.readers.PspMat`: ``image`` (the single-shot
+        uint8 image), ``phase`` (absolute, NaN where there is none), ``valid``, ``path`` and ``meta`` (how it
+        was read: :func:`fppsim.dataio.readers.reading_note`); ``convention`` / ``negate_sin`` as
+        :func:`fppsim.dataio.readers.load_psp_folder_sample`. :class:`PSPMatError` naming the file otherwise."""
+        raise PSPMatError(f"{self.path}: no phase-shifting scans here ({self.kind})")
+
+    def psp_images(self, sid: str) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+        """The phase-shifting images of sample ``sid`` as rendered (fppsim's native samples generated with them):
+        ``(fringe grey, {f: grey stack (steps, H, W)}, shifts (steps,) rad, meta)``
+        (:func:`fppsim.dataio.readers.read_native_psp`); :class:`DatasetError` naming the path otherwise."""
+        raise DatasetError(f"{self.path}: no phase-shifting images here ({self.kind})")
+
     def measured_phase_ids(self) -> list[str]:
-        """The ids of the frames with a MEASURED absolute phase (phase-shifting scans; fppsim's native samples
-        generated with PSP images), else []."""
-        return []
+        """The ids of the frames with a MEASURED absolute phase (phase-shifting scans: :meth:`phase_ids`; fppsim's
+        native samples generated with PSP images), else []."""
+        return self.phase_ids()
 
     def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
                        ) -> tuple[np.ndarray, np.ndarray] | None:
@@ -178,8 +216,13 @@ class Source:
         where it exists (a scan's pixels with a phase and a non-black image; a native sample's ``phase_psp`` /
         ``mask_psp``), else None. ``convention`` / ``negate_sin``: how the public layout's files combine
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`); fppsim's native samples hold their decoded
-        phase and ignore them."""
-        return None
+        phase and ignore them. The base reads the frame's :meth:`scan`."""
+        if sid not in self.phase_ids():
+            return None
+        s = self.scan(sid, convention=convention, negate_sin=negate_sin)
+        phase = np.asarray(s.phase, np.float64)
+        valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
+        return phase, valid
 
 
 def _is_scan(src: Source) -> bool:
@@ -195,18 +238,6 @@ class _File(Source):
 
     plain_files = True
 
-    def ids(self) -> list[str]:
-        return [self.path.stem] if self.kind in ("image", "npy") else []
-
-    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
-        if self.kind == "image":
-            yield self.path.stem, read_gray_image(self.path)
-        elif self.kind == "npy":
-            arr = as_image_stack(np.load(self.path, mmap_mode="r", allow_pickle=False), self.path)
-            for k in range(arr.shape[0]):
-                a = np.asarray(arr[k])
-                yield f"{self.path.stem}_{k:04d}", a if a.dtype == np.uint8 else decode_fringe(a.astype(np.float32))
-
 
 class ImageFile(_File):
     kind = "image"
@@ -215,6 +246,15 @@ class ImageFile(_File):
     def recognise(cls, path: Path) -> bool:
         return path.is_file() and path.suffix.lower() in IMAGE_EXTS
 
+    def ids(self) -> list[str]:
+        return [self.path.stem]
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        yield self.path.stem, read_gray_image(self.path)
+
+    def fringe_image(self, sid: str) -> np.ndarray:
+        return read_gray_image(self.path)
+
 
 class NpyFile(_File):
     kind = "npy"
@@ -222,6 +262,18 @@ class NpyFile(_File):
     @classmethod
     def recognise(cls, path: Path) -> bool:
         return path.is_file() and path.suffix.lower() == ".npy"
+
+    def _stack(self) -> np.ndarray:
+        return as_image_stack(np.load(self.path, mmap_mode="r", allow_pickle=False), self.path)
+
+    def ids(self) -> list[str]:
+        return [f"{self.path.stem}_{k:04d}" for k in range(self._stack().shape[0])]
+
+    def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
+        arr = self._stack()
+        for k in range(arr.shape[0]):
+            a = np.asarray(arr[k])
+            yield f"{self.path.stem}_{k:04d}", a if a.dtype == np.uint8 else decode_fringe(a.astype(np.float32))
 
 
 class OtherFile(_File):
@@ -243,6 +295,8 @@ class Missing(_File):
 class _ScanFolder(Source):
     """A phase-shifting scan folder, whole or in part (``PSin/ PCos/ Fringe/ iPattern/``)."""
 
+    is_psp = True
+
     def ids(self) -> list[str]:
         return self.image_ids()
 
@@ -254,6 +308,12 @@ class _ScanFolder(Source):
         for sid in self.image_ids():
             yield sid, load_ipattern(self.ipattern_file(sid))
 
+    def fringe_image(self, sid: str) -> np.ndarray:
+        return load_ipattern(self.ipattern_file(sid))
+
+    def scan(self, sid: str, convention: str = "benchmark", negate_sin: bool = False) -> PspMat:
+        return load_psp_folder_sample(self.path, sid, convention=convention, negate_sin=negate_sin)
+
     def inputs(self) -> Iterator[tuple[str, np.ndarray, Path]]:
         for sid in self.image_ids():  # only the single-shot images are read
             f = self.ipattern_file(sid)
@@ -262,6 +322,7 @@ class _ScanFolder(Source):
 
 class PspFolder(_ScanFolder):
     kind = "psp"
+    described_as = "psp-folders"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -276,16 +337,6 @@ class PspFolder(_ScanFolder):
     def phase(self, sid: str, **kw) -> np.ndarray | None:
         return load_psp_folder_sample(self.path, sid, **kw).phase
 
-    def measured_phase_ids(self) -> list[str]:
-        return self.ids()
-
-    def measured_phase(self, sid: str, convention: str = "benchmark", negate_sin: bool = False
-                       ) -> tuple[np.ndarray, np.ndarray] | None:
-        s = load_psp_folder_sample(self.path, sid, convention=convention, negate_sin=negate_sin)
-        phase = np.asarray(s.phase, np.float64)
-        valid = s.valid & np.isfinite(phase) & (s.image > 0 if s.image is not None else True)
-        return phase, valid
-
 
 class IPatternFolder(_ScanFolder):
     kind = "ipattern"
@@ -298,6 +349,9 @@ class IPatternFolder(_ScanFolder):
 
 class PartialScanFolder(_ScanFolder):
     kind = "psp-partial"
+
+    def problem(self) -> str | None:
+        return self.incomplete()
 
     def incomplete(self) -> str:
         """One line naming what the damaged scan folder lacks (and holds)."""
@@ -357,6 +411,17 @@ class _Pair(Source):
             yield (f"{self.path.name}_{k:04d}" if arr.shape[0] > 1 else self.path.name,
                    np.asarray(arr[k], dtype=np.float32), self.pair[0])
 
+    def fringe_image(self, sid: str) -> np.ndarray:
+        return decode_fringe(np.asarray(self._fringes()[int(sid)], dtype=np.float32))
+
+    def sample(self, i: int, transform, label: str = "true", mask_fringe: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """The stored fringe and label (already in label units: ``transform`` is what they were labelled with,
+        :meth:`check_samples`; the stored fringe is masked as written)."""
+        if not self.labelled:
+            return super().sample(i, transform, label, mask_fringe)
+        fringes, labels = open_figshare_pair(*self.pair)
+        return np.asarray(fringes[int(i)], dtype=np.float32), np.asarray(labels[int(i)], dtype=np.float32)
+
     def height_labels(self) -> np.ndarray | None:
         if not self.labelled:
             return None
@@ -368,6 +433,7 @@ class _Pair(Source):
         if label == "psp":
             raise DatasetError(f"{self.path}: --synthetic-label psp needs native samples with PSP arrays, but this "
                                "is a figshare-format export (its Z is the exact height); use its native/ folder")
+        open_figshare_pair(*self.pair)  # the two files agree in shape (DatasetError naming the file)
         check_export_labels(self.path, transform)
 
 
@@ -405,7 +471,10 @@ class NativeSamples(Source):
 
     def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
         for sid in self.ids():
-            yield sid, read_gray_image(self.path / sid / "fringe.png")
+            yield sid, self.fringe_image(sid)
+
+    def fringe_image(self, sid: str) -> np.ndarray:
+        return read_gray_image(self.path / sid / "fringe.png")
 
     def check_samples(self, transform, label: str = "true") -> None:
         ids = self.ids()
@@ -424,6 +493,9 @@ class NativeSamples(Source):
 
     def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
         return read_native_phase(self._folder(i), shape)
+
+    def psp_images(self, sid: str) -> tuple[np.ndarray, dict, np.ndarray, dict]:
+        return read_native_psp(self.path / sid)
 
     def _folder(self, i: int) -> Path:
         self.ids()
@@ -464,6 +536,7 @@ class Folder(Source):
     """Anything else: a folder of images (or of scan folders), or an empty one."""
 
     kind = "folder"
+    described_as = "images"
     plain_files = True
 
     @classmethod
@@ -479,6 +552,12 @@ class Folder(Source):
     def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
         for p in self._images():
             yield p.stem, read_gray_image(p)
+
+    def fringe_image(self, sid: str) -> np.ndarray:
+        path = next((p for p in self._images() if p.stem == sid), None)
+        if path is None:
+            raise DatasetError(f"{self.path}: no fringe image {sid!r}")
+        return read_gray_image(path)
 
 
 LAYOUTS: list[type[Source]] = [ImageFile, NpyFile, OtherFile, Missing, PspFolder, IPatternFolder, PartialScanFolder,
@@ -505,3 +584,35 @@ def open_source(path: str | os.PathLike) -> Source:
             return cls(path, pair)
     return Folder(path, pair)
 
+
+
+# ============================================================================================ labelled samples
+def open_labelled(path: str | os.PathLike, transform: LabelTransform = PRESETS["figshare"]) -> Source:
+    """The reader of the labelled layout at ``path`` (:func:`open_source`), checked for ``transform``
+    (:meth:`Source.check_samples`): THE numpy opener of labelled data (``compare-real``, fitting). Raises
+    :class:`DatasetError` (a ValueError) naming the path when it holds no labelled samples or damaged ones."""
+    src = open_source(path)
+    if not src.labelled:
+        if not src.path.exists():
+            raise DatasetError(f"{src.path}: not a folder (no such path)")
+        raise DatasetError(f"{src.path}: no dataset found ({LABELLED_HINT})")
+    src.check_samples(transform)
+    return src
+
+
+def grey_sample(src: Source, i: int, transform: LabelTransform = PRESETS["figshare"]) -> tuple[np.ndarray, np.ndarray]:
+    """``(grey uint8 (H, W), label float32 (H, W))`` of sample ``i`` of a labelled reader: its
+    :meth:`Source.sample` (fringe not masked), the fringe decoded to 8-bit grey levels."""
+    fringe, label = src.sample(int(i), transform, "true", mask_fringe=False)
+    gray, label = decode_fringe(fringe), np.asarray(label, dtype=np.float32)
+    if gray.shape != label.shape:
+        raise DatasetError(f"{src.path}: sample {i}: fringe {gray.shape} and height {label.shape} differ in shape")
+    return gray, label
+
+
+def iter_samples(src: "Source | str | os.PathLike", max_samples: int | None = None,
+                 transform: LabelTransform = PRESETS["figshare"]) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """:func:`grey_sample` of up to ``max_samples`` evenly spaced samples of a labelled reader (or path)."""
+    src = src if isinstance(src, Source) else open_labelled(src, transform)
+    for i in pick_evenly(len(src.ids()), max_samples):
+        yield grey_sample(src, int(i), transform)

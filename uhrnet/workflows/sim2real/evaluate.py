@@ -27,7 +27,7 @@ from fppsim.dataio.encoding import encode_fringe
 from fppsim.files import atomic_write_text
 from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import DataError, Sim2RealError
-from fppsim.dataio.readers import load_psp_folder_sample, open_source
+from fppsim.dataio.readers import open_source
 from uhrnet.data.datasets import load_sources, open_dataset, parse_size
 from fppsim.errors import PSPMatError
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
@@ -179,7 +179,7 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
     rows = []
     for folder, sid in frames:
         try:
-            s = load_psp_folder_sample(folder, sid)
+            s = open_source(folder).scan(sid)
         except PSPMatError as exc:
             raise Sim2RealError(str(exc)) from None
         fringe = encode_fringe(s.image)
