@@ -17,8 +17,8 @@ from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
-from fppsim.dataio.formats import psp_image_name, read_manifest, read_settings
-from fppsim.dataio.readers import load_native_sample, open_source
+from fppsim.dataio.formats import read_manifest, read_settings
+from fppsim.dataio.readers import load_native_sample, open_source, read_native_psp
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 from fppsim.plots import save_figure
 
@@ -66,8 +66,6 @@ def read_dataset_settings(root: Path) -> dict | None:
 
 def load_sample(root: Path, rec: dict) -> tuple[dict, dict | None]:
     """Arrays + meta of one sample and its PSP stacks ``{f: (N, H, W) uint8}`` (None if images are missing)."""
-    import cv2
-
     folder = root / str(rec["id"])
     try:
         s = load_native_sample(folder)
@@ -78,12 +76,10 @@ def load_sample(root: Path, rec: dict) -> tuple[dict, dict | None]:
     if not psp or "phase_psp" not in s or "height_psp" not in s or "mask_psp" not in s:
         raise ValidateError(f"{root}: no PSP data in sample {rec['id']} (generated with --no-psp?): "
                             "re-generate without --no-psp")
-    stacks = {}
-    for f in psp["freqs"]:
-        imgs = [cv2.imread(str(folder / psp_image_name(f, n)), cv2.IMREAD_UNCHANGED) for n in range(psp["steps"])]
-        if any(im is None for im in imgs):
-            return s, None
-        stacks[f] = np.stack(imgs)
+    try:
+        _, stacks, _, _ = read_native_psp(folder)  # the one reader of a sample's phase-shifting images
+    except DatasetError:  # images missing or damaged: the sample is scored without the rejection reasons
+        return s, None
     return s, stacks
 
 
