@@ -26,17 +26,16 @@ import math
 import sys
 from pathlib import Path
 
-from fppsim.commands import Command, build_command_parser, run_commands
+from fppsim.commands import Command, build_command_parser, parse_numbers, run_commands
 
 __all__ = ["main", "build_parser", "COMMANDS"]
 
 
 # ============================================================================ argument types
 def _range_int(text: str) -> tuple[int, int]:
-    try:
-        parts = [int(p) for p in text.split("-")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected N or LO-HI, got '{text}'") from None
+    parts = parse_numbers(text, int, "-")
+    if parts is None:
+        raise argparse.ArgumentTypeError(f"expected N or LO-HI, got '{text}'")
     lo, hi = (parts[0], parts[0]) if len(parts) == 1 else parts if len(parts) == 2 else (0, -1)
     if not 1 <= lo <= hi:
         raise argparse.ArgumentTypeError(f"expected N or LO-HI with 1 <= LO <= HI, got '{text}'")
@@ -44,10 +43,10 @@ def _range_int(text: str) -> tuple[int, int]:
 
 
 def _shard(text: str) -> tuple[int, int]:
-    try:
-        i, n = (int(p) for p in text.split("/"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected I/N, got '{text}'") from None
+    parts = parse_numbers(text, int, "/")
+    if parts is None or len(parts) != 2:
+        raise argparse.ArgumentTypeError(f"expected I/N, got '{text}'")
+    i, n = parts
     if not (n >= 1 and 0 <= i < n):
         raise argparse.ArgumentTypeError(f"shard I/N needs 0 <= I < N, got '{text}'")
     return i, n
@@ -56,10 +55,10 @@ def _shard(text: str) -> tuple[int, int]:
 def _freqs(text: str) -> tuple:
     from fppsim.dataio.formats import psp_freq  # lazy: the parser loads no data code until a command runs
 
-    try:
-        f = tuple(psp_freq(p) for p in text.split(",") if p.strip())
-    except (ValueError, OverflowError):
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'") from None
+    f = parse_numbers(text, psp_freq, ",", skip_empty=True)
+    if f is None:
+        raise argparse.ArgumentTypeError(f"expected comma-separated numbers, got '{text}'")
+    f = tuple(f)
     if not all(math.isfinite(v) for v in f):
         raise argparse.ArgumentTypeError(f"expected finite numbers, got '{text}'")
     if not f or f[0] != 1 or any(b <= a for a, b in zip(f, f[1:])):
@@ -69,10 +68,10 @@ def _freqs(text: str) -> tuple:
 
 def _min_int(lowest: int):
     def parse(text: str) -> int:
-        try:
-            v = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'") from None
+        v = parse_numbers(text, int, None)
+        if v is None:
+            raise argparse.ArgumentTypeError(f"expected an integer, got '{text}'")
+        v = v[0]
         if v < lowest:
             raise argparse.ArgumentTypeError(f"expected an integer >= {lowest}, got {v}")
         return v
@@ -86,10 +85,9 @@ def _optics_override(text: str) -> tuple[str, list[float]]:
     key, sep, val = text.partition("=")
     if not sep:
         raise argparse.ArgumentTypeError(f"expected NAME=VALUE or NAME=LO,HI, got '{text}'")
-    try:
-        nums = [float(v) for v in val.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"optics value for '{key}' must be numbers, got '{val}'") from None
+    nums = parse_numbers(val, float, ",")
+    if nums is None:
+        raise argparse.ArgumentTypeError(f"optics value for '{key}' must be numbers, got '{val}'")
     return key.strip(), nums
 
 
@@ -157,20 +155,19 @@ def add_generate(p: argparse.ArgumentParser) -> None:
 
 
 def _fraction(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got '{text}'") from None
+    v = parse_numbers(text, float, None)
+    if v is None:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got '{text}'")
+    v = v[0]
     if not 0.0 <= v <= 1.0:
         raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {v}")
     return v
 
 
 def _jitter(text: str) -> tuple[float, float]:
-    try:
-        nums = [float(v) for v in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected YAW,FOCAL (e.g. 0.02,0.03) or 0, got '{text}'") from None
+    nums = parse_numbers(text, float, ",")
+    if nums is None:
+        raise argparse.ArgumentTypeError(f"expected YAW,FOCAL (e.g. 0.02,0.03) or 0, got '{text}'")
     if len(nums) == 1 and nums[0] == 0:
         nums = [0.0, 0.0]
     if len(nums) != 2 or not (0 <= nums[0] < 0.5 and 0 <= nums[1] < 0.5):
@@ -526,8 +523,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from fppsim.errors import FppsimError, UsageError
 
-    # ValueError/OSError: bad values and unreadable/unwritable files surface as one line, like ours
-    return run_commands(build_parser(), COMMANDS, argv, (FppsimError, ValueError), _setup_logging,
+    # only fppsim's own errors (bad input, every one an FppsimError) and OSError (unreadable / unwritable files)
+    # are one line: any other exception, a bare ValueError included, is a bug and keeps its traceback
+    return run_commands(build_parser(), COMMANDS, argv, (FppsimError,), _setup_logging,
                         usage_errors=(UsageError,))
 
 

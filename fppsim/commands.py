@@ -16,7 +16,7 @@ from typing import Callable
 
 from fppsim.files import signals_raise
 
-__all__ = ["Command", "ReportLines", "build_command_parser", "one_line", "run_commands"]
+__all__ = ["parse_numbers", "Command", "ReportLines", "build_command_parser", "one_line", "run_commands"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +72,17 @@ def one_line(exc: BaseException) -> str:
         head, sep, rest = last.partition(": ")
         return rest if sep and "." in head and " " not in head else last
     return lines[0]
+
+
+def parse_numbers(text: str, kind=float, sep: str | None = ",", skip_empty: bool = False) -> list | None:
+    """The numbers of an option's ``text`` split at ``sep`` (None: one number), each made by ``kind`` (``int``,
+    ``float`` or a parser such as ``psp_freq``), or None when one is not a number: the command lines' argument
+    types turn None into their own one-line message, so no command line catches ValueError itself."""
+    parts = [text] if sep is None else text.split(sep)
+    try:
+        return [kind(p) for p in parts if p.strip() or not skip_empty]
+    except (ValueError, OverflowError):
+        return None
 
 
 def run_commands(parser: argparse.ArgumentParser, commands: dict[str, Command], argv: list[str] | None,

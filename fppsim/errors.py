@@ -7,13 +7,18 @@ own errors, and every other :class:`FppsimError` to exit status 1. No library mo
 
 from __future__ import annotations
 
-__all__ = ["FppsimError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
+__all__ = ["FppsimError", "InputError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
            "ValidateError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy",
            "ForeignFiles"]
 
 
 class FppsimError(Exception):
     """Base class of every error fppsim raises on purpose."""
+
+
+class InputError(FppsimError, ValueError):
+    """An argument a library function cannot use (a shape, a range, a value out of its domain): bad input, not a
+    bug; the message names it. Both packages raise it where they used to raise a bare ValueError."""
 
 
 class DatasetError(FppsimError, ValueError):

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
-from fppsim.errors import DatasetError, FolderBusy, UsageError
+from fppsim.errors import DatasetError, FolderBusy, UsageError, InputError
 
 __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
@@ -236,14 +236,14 @@ def check_writable_dir(folder: str | os.PathLike, flag: str = "--out") -> Path:
     """Create ``folder`` if needed and prove it is a writable directory; ``OSError`` -> one-line ValueError."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
-        raise ValueError(f"{flag} {folder} is a file, not a folder")
+        raise InputError(f"{flag} {folder} is a file, not a folder")
     try:
         folder.mkdir(parents=True, exist_ok=True)
         probe = tmp_path(folder / "write-test")
         probe.write_bytes(b"ok")
         probe.unlink()
     except OSError as exc:
-        raise ValueError(f"{flag} {folder}: cannot write there ({exc.strerror or exc})") from None
+        raise InputError(f"{flag} {folder}: cannot write there ({exc.strerror or exc})") from None
     return folder
 
 
@@ -252,9 +252,9 @@ def check_output_file(path: str | os.PathLike, force: bool = False) -> Path:
     folder must exist; one-line ValueError otherwise."""
     out = Path(path)
     if out.exists() and not force:
-        raise ValueError(f"{out} exists; pass --force to replace it")
+        raise InputError(f"{out} exists; pass --force to replace it")
     if not out.parent.is_dir():
-        raise ValueError(f"{out.parent}: output folder does not exist")
+        raise InputError(f"{out.parent}: output folder does not exist")
     return out
 
 RIG_SUFFIXES = (".json", ".yaml", ".yml")  # what fppsim.geometry.rig_files writes

@@ -24,7 +24,7 @@ from typing import Sequence
 
 
 from fppsim import __version__
-from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError
+from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError
 from fppsim.threads import check_cores
 from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
                     tmp_path)
@@ -269,7 +269,7 @@ def shard_indices(count: int, shard: tuple[int, int] | None) -> list[int]:
         return list(range(count))
     i, n = shard
     if not (n >= 1 and 0 <= i < n):
-        raise ValueError(f"shard must be I/N with 0 <= I < N, got {i}/{n}")
+        raise InputError(f"shard must be I/N with 0 <= I < N, got {i}/{n}")
     return list(range(i, count, n))
 
 

@@ -8,9 +8,9 @@ the CLI.
 
 from __future__ import annotations
 
-from fppsim.errors import DatasetError as DataError, FolderBusy
+from fppsim.errors import DatasetError as DataError, FolderBusy, InputError
 
-__all__ = ["UhrnetError", "DataError", "CheckpointError", "ConfigError", "UsageError", "TrainingDiverged",
+__all__ = ["UhrnetError", "InputError", "DataError", "CheckpointError", "ConfigError", "UsageError", "TrainingDiverged",
            "ExportError", "Sim2RealError", "FolderBusy"]
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import DatasetError
+from fppsim.errors import DatasetError, InputError
 
 try:  # the same deflate format as the stdlib zlib, written 2x (PNG) to 10x (npz, level 1) faster
     from zlib_ng import zlib_ng as _deflate
@@ -165,7 +165,7 @@ def save_npz(path: str | os.PathLike, arrays: dict, compresslevel: int = 1, min_
         for key, arr in arrays.items():
             arr = np.asarray(arr, order="C")  # (np.ascontiguousarray would make a 0-d array 1-d)
             if arr.dtype.hasobject:
-                raise ValueError(f"save_npz: '{key}' holds Python objects (not allowed without pickle)")
+                raise InputError(f"save_npz: '{key}' holds Python objects (not allowed without pickle)")
             header = _npy_header(arr)
             info = zipfile.ZipInfo(key + ".npy", date_time=_ZIP_EPOCH)
             info.compress_type = zipfile.ZIP_DEFLATED if _deflate_pays(arr, compresslevel, min_gain) \
@@ -218,14 +218,14 @@ def encode_png(img: np.ndarray) -> bytes:
     img = np.asarray(img)
     if img.dtype not in (np.uint8, np.uint16) or 0 in img.shape \
             or not (img.ndim == 2 or img.ndim == 3 and img.shape[2] in (3, 4)):
-        raise ValueError(f"encode_png: a PNG holds a non-empty uint8/uint16 image of shape (H, W), (H, W, 3) "
+        raise InputError(f"encode_png: a PNG holds a non-empty uint8/uint16 image of shape (H, W), (H, W, 3) "
                          f"or (H, W, 4), got {img.dtype} {img.shape}")
     if img.dtype != np.uint8 or img.ndim != 2:
         import cv2
 
         ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 1])
         if not ok:
-            raise ValueError(f"encode_png: OpenCV cannot encode a {img.dtype} array of shape {img.shape}")
+            raise InputError(f"encode_png: OpenCV cannot encode a {img.dtype} array of shape {img.shape}")
         return buf.tobytes()
     h, w = img.shape
     rows = np.empty((h, w + 1), np.uint8)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe, encode_png, save_npz
-from fppsim.errors import DatasetError, PSPMatError
+from fppsim.errors import DatasetError, PSPMatError, InputError
 from fppsim.files import atomic_path, clean_stale_tmp, tmp_path, write_fully
 from fppsim.dataio.formats import LabelTransform, is_own_sample, read_manifest
 from fppsim.dataio.readers import FOLDERS, check_convention, load_native_sample, wrapped_from_sums
@@ -210,7 +210,7 @@ class FigshareRows:
 
     def put(self, k: int, fringe: np.ndarray, label: np.ndarray) -> None:
         if fringe.shape != self.shape[1:3] or label.shape != self.shape[1:3]:
-            raise ValueError(f"figshare row {k}: image size {fringe.shape} differs from {self.shape[1:3]}")
+            raise InputError(f"figshare row {k}: image size {fringe.shape} differs from {self.shape[1:3]}")
         self._maps["f1_80.npy"][k, :, :, 0] = fringe
         self._maps["Z.npy"][k, :, :, 0] = label
         self._filled[k] = True
@@ -221,7 +221,7 @@ class FigshareRows:
 
     def commit(self) -> int:
         if not self.complete:
-            raise ValueError(f"figshare arrays: {int((~self._filled).sum())} of {self.shape[0]} rows missing")
+            raise InputError(f"figshare arrays: {int((~self._filled).sum())} of {self.shape[0]} rows missing")
         for m in self._maps.values():
             m.flush()
         self._maps.clear()

@@ -55,6 +55,7 @@ from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt
 from fppsim.phase.fringe_axis import fringe_orientation
 from fppsim.phase.plane import plane_level
 from fppsim.dataio.readers import iter_samples, open_labelled
+from fppsim.errors import InputError
 
 __all__ = ["sample_stats", "dataset_stats", "compare_real", "format_comparison", "format_value", "STAT_ROWS"]
 
@@ -163,7 +164,7 @@ def dataset_stats(folder, max_samples: int | None = 50, label: LabelTransform = 
         shape = list(gray.shape)
         per.append(sample_stats(gray, lab, label, object_mm=object_mm))
     if not per:
-        raise ValueError(f"{folder}: the dataset is empty")
+        raise InputError(f"{folder}: the dataset is empty")
     keys = list(per[0])
     stats, spread = {}, {}
     for k in keys:

@@ -47,7 +47,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.errors import RigError
+from fppsim.errors import RigError, InputError
 from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
@@ -396,7 +396,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
             hi = min(hi, 1.0)
         centre[k], ranges[k] = c, (lo, hi)
     if "gain" not in centre:
-        raise ValueError("no image has enough reference-plane pixels with fringes to fit the optics")
+        raise InputError("no image has enough reference-plane pixels with fringes to fit the optics")
     fixed = {"albedo_plane": ap} if "albedo_object" not in centre or centre["albedo_plane"] == ap else {}
     if ambient is None and all(abs(p.get("ambient", amb) - amb) < 1e-12 for p in per if np.isfinite(p.get("ambient", np.nan))):
         fixed["ambient"] = amb

@@ -25,6 +25,7 @@ import numpy as np
 from fppsim.phase.measure import estimate_period, fringe_tilt
 from fppsim.dataio.readers import FringeImage
 from fppsim.geometry.rig import Device, Rig, RigError, rotation
+from fppsim.errors import InputError
 
 __all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
            "plane_tilt", "format_fit", "unfitted", "plane_coverage", "cover_plane"]
@@ -267,12 +268,12 @@ class BandPeriods:
 def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int = 3) -> BandPeriods:
     """Fringe period of every column band, row band and half of each image (plane pixels), median over images."""
     if not images:
-        raise ValueError("no images to measure")
+        raise InputError("no images to measure")
     shape = images[0].gray.shape
     per = {"columns": [], "rows": [], "halves": [], "tilt_deg": []}
     for im in images:
         if im.gray.shape != shape:
-            raise ValueError(f"{im.name}: image shape {im.gray.shape} differs from the first image's {shape}")
+            raise InputError(f"{im.name}: image shape {im.gray.shape} differs from the first image's {shape}")
         g = im.gray.astype(np.float64)
         H, W = shape
         ce, re = _band_edges(W, col_bands), _band_edges(H, row_bands)
@@ -294,7 +295,7 @@ def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int 
             spread[k] = np.stack([np.nanmin(a, axis=0), np.nanmax(a, axis=0)], axis=1)
     n = int(np.isfinite(np.array(per["halves"])).all(axis=1).sum())
     if not np.isfinite(med["columns"]).any():
-        raise ValueError("no fringe period could be measured in any image (no vertical fringes on the plane?)")
+        raise InputError("no fringe period could be measured in any image (no vertical fringes on the plane?)")
     return BandPeriods(med["columns"], med["rows"], med["halves"], spread, n, tuple(shape), med["tilt_deg"])
 
 

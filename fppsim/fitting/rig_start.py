@@ -51,7 +51,7 @@ import numpy as np
 from fppsim.commands import ReportLines
 from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.datasets import pick_evenly
-from fppsim.errors import RigError, UsageError
+from fppsim.errors import RigError, UsageError, InputError
 from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
@@ -285,11 +285,11 @@ def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: 
 def _maps_and_size(path, max_maps, convention, negate_sin):
     maps, kind, images = phase_maps_of(path, max_maps, convention, negate_sin)
     if not maps:
-        raise ValueError(f"{path}: no fringe images")
+        raise InputError(f"{path}: no fringe images")
     H, W = maps[0].phase.shape
     for m in maps[1:]:
         if m.phase.shape != (H, W):
-            raise ValueError(f"{m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first is {W} x {H}")
+            raise InputError(f"{m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first is {W} x {H}")
     return maps, kind, images, W, H
 
 

@@ -18,6 +18,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from fppsim.geometry.rig import Device, Rig, rotation
+from fppsim.errors import InputError
 
 __all__ = ["RigJitter", "jitter_rig"]
 
@@ -35,7 +36,7 @@ class RigJitter:
 
     def __post_init__(self):
         if not (0 <= self.yaw < 0.5 and 0 <= self.focal < 0.5):
-            raise ValueError(f"rig jitter must satisfy 0 <= yaw < 0.5 rad and 0 <= focal < 0.5, got {self}")
+            raise InputError(f"rig jitter must satisfy 0 <= yaw < 0.5 rad and 0 <= focal < 0.5, got {self}")
 
     @property
     def enabled(self) -> bool:

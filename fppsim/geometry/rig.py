@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import RigError
+from fppsim.errors import RigError, InputError
 from fppsim.geometry.rig_files import checked_matrix, read_rig_file, save_rig
 
 __all__ = ["Device", "Rig", "RigError", "check_image_size", "checked_matrix", "data_path", "default_rig_path", "load_rig",
@@ -559,7 +559,7 @@ def rotation(axis: str, angle: float) -> np.ndarray:
         return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     if axis == "z":
         return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    raise ValueError(f"rotation axis must be x, y or z, got {axis!r}")
+    raise InputError(f"rotation axis must be x, y or z, got {axis!r}")
 
 
 def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, baseline: float = 180.0,

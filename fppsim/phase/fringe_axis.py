@@ -17,6 +17,7 @@ from dataclasses import replace
 import numpy as np
 
 from fppsim.phase.single_shot import SingleShotPhase, single_shot_phase
+from fppsim.errors import InputError
 
 __all__ = ["fringe_orientation", "fringe_axis", "rig_phase_gradient", "oriented_single_shot_phase"]
 
@@ -30,7 +31,7 @@ def fringe_orientation(image: np.ndarray, valid: np.ndarray | None = None) -> st
         x = x[..., 0]
     ok = np.isfinite(x) if valid is None else (np.asarray(valid, bool) & np.isfinite(x))
     if ok.sum() < 64:
-        raise ValueError("too few valid pixels to tell the fringe direction")
+        raise InputError("too few valid pixels to tell the fringe direction")
     g = np.where(ok, x - x[ok].mean(), 0.0)
     h, w = g.shape
     p = np.abs(np.fft.rfft2(g * np.outer(np.hanning(h), np.hanning(w)))) ** 2
@@ -39,7 +40,7 @@ def fringe_orientation(image: np.ndarray, valid: np.ndarray | None = None) -> st
     fr = np.hypot(fx, fy)
     sel = (fr >= 1.0 / 64.0) & (fr <= 1.0 / 2.5)
     if not np.any(p[sel] > 0):
-        raise ValueError("no fringes found (no spectral peak between 2.5 and 64 px)")
+        raise InputError("no fringes found (no spectral peak between 2.5 and 64 px)")
     iy, ix = np.unravel_index(np.argmax(np.where(sel, p, -1.0)), p.shape)
     return "vertical" if abs(fx[0, ix]) >= abs(fy[iy, 0]) else "horizontal"
 
@@ -75,7 +76,7 @@ def oriented_single_shot_phase(image: np.ndarray, orientation: str | None = None
     if orientation is None:
         orientation = fringe_orientation(x)
     if orientation not in ("vertical", "horizontal"):
-        raise ValueError(f"orientation must be 'vertical' or 'horizontal', got {orientation!r}")
+        raise InputError(f"orientation must be 'vertical' or 'horizontal', got {orientation!r}")
     if orientation == "vertical":
         return single_shot_phase(x, direction=direction, **kw)
     mask = kw.pop("mask", None)

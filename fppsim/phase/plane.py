@@ -12,6 +12,7 @@ Units: those of the map (mm, label units, radians); pixels for coordinates.
 from __future__ import annotations
 
 import numpy as np
+from fppsim.errors import InputError
 
 __all__ = ["plane_level", "poly_basis", "poly_terms", "phase_plane_masks"]
 
@@ -41,7 +42,7 @@ def poly_basis(h: int, w: int, degree: int) -> np.ndarray:
     the power of y (names: :func:`poly_terms`); column 0 is the constant. ValueError for a degree that is
     not an integer >= 0."""
     if int(degree) != degree or degree < 0:
-        raise ValueError(f"plane degree must be an integer >= 0, got {degree!r}")
+        raise InputError(f"plane degree must be an integer >= 0, got {degree!r}")
     yy, xx = np.mgrid[0:h, 0:w]
     x, y = xx.ravel() / max(w - 1, 1) * 2 - 1, yy.ravel() / max(h - 1, 1) * 2 - 1
     return np.stack([x ** i * y ** j for t in range(int(degree) + 1) for j in range(t + 1) for i in [t - j]], axis=1)

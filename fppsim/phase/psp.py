@@ -36,6 +36,7 @@ import numpy as np
 from fppsim.phase import wrap
 from fppsim.phase.triangulation import height_from_phase
 from fppsim.threads import map_bands, row_bands
+from fppsim.errors import InputError
 
 __all__ = ["DEFAULT_FREQS", "Decoded", "PhaseShift", "Unwrapped", "decode_stacks", "order_consistency",
            "phase_from_sums", "phase_shifts", "phase_sums", "quality_mask", "unwrap_temporal", "wrapped_phase"]
@@ -51,7 +52,7 @@ def phase_shifts(n_steps: int) -> np.ndarray:
     """The ``N`` equally spaced phase shifts ``delta_n = 2*pi*n/N`` (rad), float64 of shape (N,)."""
     n = int(n_steps)
     if n != n_steps or n < 3:
-        raise ValueError(f"phase shifting needs an integer number of steps >= 3, got {n_steps!r}")
+        raise InputError(f"phase shifting needs an integer number of steps >= 3, got {n_steps!r}")
     return TWO_PI * np.arange(n) / n
 
 
@@ -75,7 +76,7 @@ def _shift_weights(shifts: np.ndarray) -> np.ndarray:
     d = np.asarray(shifts, dtype=np.float64).ravel()
     n = d.size
     if n < 3 or not np.all(np.isfinite(d)):
-        raise ValueError(f"phase shifting needs at least 3 finite shifts, got {d.tolist()}")
+        raise InputError(f"phase shifting needs at least 3 finite shifts, got {d.tolist()}")
     e1, e2 = np.exp(1j * d).sum(), np.exp(2j * d).sum()
     if abs(e1) < 1e-9 * n and abs(e2) < 1e-9 * n:
         w = np.stack([np.full(n, 1.0 / n), np.cos(d), -np.sin(d)])
@@ -84,7 +85,7 @@ def _shift_weights(shifts: np.ndarray) -> np.ndarray:
         return w
     M = np.stack([np.ones(n), np.cos(d), np.sin(d)], axis=1)  # I = A + a cos d + b sin d
     if np.linalg.matrix_rank(M) < 3:
-        raise ValueError(f"phase shifts {d.tolist()} do not determine A, B and phi (rank < 3)")
+        raise InputError(f"phase shifts {d.tolist()} do not determine A, B and phi (rank < 3)")
     P = np.linalg.pinv(M)  # (3, N): A, a = B cos(phi), b = -B sin(phi)
     return np.stack([P[0], (n / 2.0) * P[1], -(n / 2.0) * P[2]])
 
@@ -94,7 +95,7 @@ def _resolve_shifts(n: int, shifts) -> np.ndarray:
         return phase_shifts(n)
     d = np.asarray(shifts, dtype=np.float64).ravel()
     if d.size != n:
-        raise ValueError(f"got {n} images but {d.size} phase shifts")
+        raise InputError(f"got {n} images but {d.size} phase shifts")
     return d
 
 
@@ -114,7 +115,7 @@ def phase_sums(images: np.ndarray, shifts: np.ndarray | None = None) -> tuple[np
     """
     I = np.asarray(images, dtype=np.float64)
     if I.ndim < 1:
-        raise ValueError("images must be a stack of shape (N, ...)")
+        raise InputError("images must be a stack of shape (N, ...)")
     w = _shift_weights(_resolve_shifts(I.shape[0], shifts))
     return np.tensordot(w[2], I, axes=1), np.tensordot(w[1], I, axes=1)
 
@@ -153,7 +154,7 @@ def wrapped_phase(images: np.ndarray, shifts: np.ndarray | None = None) -> Phase
     """
     I = np.asarray(images)
     if I.ndim < 1:
-        raise ValueError("images must be a stack of shape (N, ...)")
+        raise InputError("images must be a stack of shape (N, ...)")
     n = I.shape[0]
     w = _shift_weights(_resolve_shifts(n, shifts))
     sums = _exact_int_sums(I, w)
@@ -285,11 +286,11 @@ def quality_mask(background: np.ndarray, modulation: np.ndarray, min_modulation:
 def _check_ladder(freqs) -> np.ndarray:
     f = np.asarray(freqs, dtype=np.float64).ravel()
     if f.size < 1 or not np.all(np.isfinite(f)):
-        raise ValueError(f"frequency ladder must be finite numbers, got {list(freqs)}")
+        raise InputError(f"frequency ladder must be finite numbers, got {list(freqs)}")
     if f[0] != 1:
-        raise ValueError(f"frequency ladder must start at 1 period (unambiguous phase), got {f.tolist()}")
+        raise InputError(f"frequency ladder must start at 1 period (unambiguous phase), got {f.tolist()}")
     if np.any(np.diff(f) <= 0):
-        raise ValueError(f"frequency ladder must be strictly increasing, got {f.tolist()}")
+        raise InputError(f"frequency ladder must be strictly increasing, got {f.tolist()}")
     return f
 
 
@@ -358,19 +359,19 @@ def unwrap_temporal(wrapped, freqs=None, max_residual: float = np.pi / 2, seam_m
             freqs = sorted(wrapped)
         missing = [f for f in freqs if f not in wrapped]
         if missing:
-            raise ValueError(f"no wrapped phase for frequencies {missing} (have {sorted(wrapped)})")
+            raise InputError(f"no wrapped phase for frequencies {missing} (have {sorted(wrapped)})")
         phases = [wrapped[f] for f in freqs]
     else:
         phases = list(wrapped)
         if freqs is None:
             freqs = DEFAULT_FREQS
         if len(phases) != len(freqs):
-            raise ValueError(f"got {len(phases)} wrapped phases for the {len(freqs)}-frequency ladder {tuple(freqs)}")
+            raise InputError(f"got {len(phases)} wrapped phases for the {len(freqs)}-frequency ladder {tuple(freqs)}")
     f = _check_ladder(freqs)
     phases = [np.asarray(p, dtype=np.float64) for p in phases]
     shape = phases[0].shape
     if any(p.shape != shape for p in phases):
-        raise ValueError(f"wrapped phases differ in shape: {[p.shape for p in phases]}")
+        raise InputError(f"wrapped phases differ in shape: {[p.shape for p in phases]}")
     if seam_margin is None:
         seam_margin = max_residual / (f[1] / f[0]) if f.size > 1 else 0.0
 

@@ -45,6 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fppsim.phase import lowpass
+from fppsim.errors import InputError
 
 __all__ = ["SingleShotPhase", "SINGLE_SHOT_METHODS", "single_shot_phase"]
 
@@ -150,7 +151,7 @@ def single_shot_phase(image: np.ndarray, period: float | None = None, mask: np.n
     guess = _period_guess(x, valid, period)
     valid &= ~_dark_runs(x, guess, dark)
     if valid.sum() < 64:
-        raise ValueError("single_shot_phase: fewer than 64 pixels carry fringes")
+        raise InputError("single_shot_phase: fewer than 64 pixels carry fringes")
     bg = _local_background(x, valid, guess)
     g = np.where(valid, x - bg, 0.0)
     fx0, fy0 = _normalised_carrier(g, valid, guess, period)
@@ -180,26 +181,26 @@ def _checked_image(image: np.ndarray, mask: np.ndarray | None, method: str,
     if x.ndim == 3 and x.shape[-1] == 1:
         x = x[..., 0]
     if x.ndim != 2 or x.dtype.kind not in "biuf":
-        raise ValueError(f"single_shot_phase: image must be a 2-D real array, got shape {x.shape} dtype {x.dtype}")
+        raise InputError(f"single_shot_phase: image must be a 2-D real array, got shape {x.shape} dtype {x.dtype}")
     h, w = x.shape
     if min(h, w) < 16:
-        raise ValueError(f"single_shot_phase: image {h} x {w} is too small (need at least 16 x 16)")
+        raise InputError(f"single_shot_phase: image {h} x {w} is too small (need at least 16 x 16)")
     if method not in SINGLE_SHOT_METHODS:
-        raise ValueError(f"single_shot_phase: method must be one of {SINGLE_SHOT_METHODS}, got {method!r}")
+        raise InputError(f"single_shot_phase: method must be one of {SINGLE_SHOT_METHODS}, got {method!r}")
     if direction not in (1, -1):
-        raise ValueError(f"single_shot_phase: direction must be +1 or -1, got {direction!r}")
+        raise InputError(f"single_shot_phase: direction must be +1 or -1, got {direction!r}")
     x = x.astype(np.float64)
     valid = np.isfinite(x)
     if not valid.any():
-        raise ValueError("single_shot_phase: no finite pixel")
+        raise InputError("single_shot_phase: no finite pixel")
     x = np.where(valid, x, np.min(x[valid]))  # NaN-free; these pixels stay invalid
     if mask is not None:
         mask = np.asarray(mask, bool)
         if mask.shape != (h, w):
-            raise ValueError(f"single_shot_phase: mask shape {mask.shape} differs from the image's {(h, w)}")
+            raise InputError(f"single_shot_phase: mask shape {mask.shape} differs from the image's {(h, w)}")
         valid &= mask
     if not valid.any():
-        raise ValueError("single_shot_phase: no valid pixel")
+        raise InputError("single_shot_phase: no valid pixel")
     return x, valid
 
 
@@ -280,7 +281,7 @@ def _carrier_peak(g: np.ndarray, period: float | None, min_period: float = 2.5,
     if period is not None:
         sel &= np.abs(fr * period - 1.0) <= 0.2
     if not sel.any() or not np.any(p[sel] > 0):
-        raise ValueError("single_shot_phase: no fringe carrier found (no spectral peak between "
+        raise InputError("single_shot_phase: no fringe carrier found (no spectral peak between "
                          f"{min_period:g} and {max_period:g} px)")
     iy, ix = np.unravel_index(np.argmax(np.where(sel, p, -1.0)), p.shape)
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from fppsim.geometry.rig import along_rays
+from fppsim.errors import InputError
 
 __all__ = ["Triangulation", "triangulate", "height_from_phase"]
 
@@ -126,21 +127,21 @@ def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, 
     Phi = np.asarray(phase, dtype=np.float64)
     if rows is not None:
         if pixels is not None or proj.has_distortion:
-            raise ValueError("rows= needs the camera grid (no pixels=) and a projector without distortion")
+            raise InputError("rows= needs the camera grid (no pixels=) and a projector without distortion")
         band = range(cam.height)[rows]
         if band.step != 1 or Phi.shape != (len(band), cam.width):
-            raise ValueError(f"phase has shape {Phi.shape}, not the {len(band)} x {cam.width} of camera rows {rows}")
+            raise InputError(f"phase has shape {Phi.shape}, not the {len(band)} x {cam.width} of camera rows {rows}")
         origin, d = _camera_rays(cam)
         d = d[band.start:band.stop]
     elif pixels is None:
         if Phi.shape != (cam.height, cam.width):
-            raise ValueError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
+            raise InputError(f"phase has shape {Phi.shape} but the camera is {cam.height} x {cam.width} "
                              "(pass pixels= for other sampling grids)")
         origin, d = _camera_rays(cam)
     else:
         pixels = np.asarray(pixels, dtype=np.float64)
         if pixels.shape != Phi.shape + (2,):
-            raise ValueError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
+            raise InputError(f"pixels has shape {pixels.shape}, expected {Phi.shape + (2,)} for phase {Phi.shape}")
         origin, d = cam.pixel_rays(pixels)
     f = rig.periods if periods is None else float(periods)
     u = rig.column_of_phase(Phi, f)
@@ -148,7 +149,7 @@ def _triangulate(rig, phase, periods=None, mask=None, pixels=None, max_iter=20, 
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
         if m.shape != Phi.shape:
-            raise ValueError(f"mask has shape {m.shape}, phase has {Phi.shape}")
+            raise InputError(f"mask has shape {m.shape}, phase has {Phi.shape}")
         valid &= m
     u = np.where(valid, u, proj.K[0, 2])
 

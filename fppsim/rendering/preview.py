@@ -10,6 +10,7 @@ import numpy as np
 from fppsim.dataio.formats import read_manifest
 from fppsim.dataio.readers import load_native_sample
 from fppsim.plots import pyplot, save_figure
+from fppsim.errors import InputError
 
 __all__ = ["write_preview"]
 
@@ -20,7 +21,7 @@ def write_preview(root: str | os.PathLike, path: str | os.PathLike, max_samples:
     root, path = Path(root), Path(path)
     records = read_manifest(root)[:max_samples]
     if not records:
-        raise ValueError(f"{root}: no finished samples to preview")
+        raise InputError(f"{root}: no finished samples to preview")
     fig, axes = plt.subplots(len(records), 3, figsize=(15, 3.0 * len(records)), squeeze=False)
     for row, rec in zip(axes, records):
         s = load_native_sample(root / rec["id"])

@@ -21,7 +21,7 @@ BACKENDS = ("osmesa", "egl")
 import numpy as np
 
 from fppsim.threads import beside
-from fppsim.errors import BackendError
+from fppsim.errors import BackendError, InputError
 from fppsim.geometry.rig import Device, along_rays
 
 __all__ = ["BACKENDS", "BackendError", "DepthRenderer", "Geometry", "Instance", "scene_geometry", "ShadowSettings",
@@ -407,7 +407,7 @@ def scene_geometry(rig, meshes: list[Instance], renderer: DepthRenderer,
     Two depth renders: the camera (what is seen) and the projector (shadow map).
     """
     if scale < 1 or scale % 2 == 0:
-        raise ValueError(f"supersampling factor must be an odd integer >= 1, got {scale}")
+        raise InputError(f"supersampling factor must be an odd integer >= 1, got {scale}")
     shadow = shadow or ShadowSettings()
     cam, proj = rig.camera, rig.projector
     origin, dirs, plane_depth = _GRID.get(cam, scale)

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import MeshError
+from fppsim.errors import MeshError, InputError
 from fppsim.geometry.rig import RigError, rotation
 from fppsim.rendering.meshio import PlyError, ply_has_tristrips, read_ply_tristrips
 from fppsim.rendering.render import Instance
@@ -164,19 +164,19 @@ class SceneRanges:
     def __post_init__(self):
         lo, hi = self.objects
         if not (1 <= lo <= hi):
-            raise ValueError(f"objects range must satisfy 1 <= lo <= hi, got {self.objects}")
+            raise InputError(f"objects range must satisfy 1 <= lo <= hi, got {self.objects}")
         if not 0.0 <= self.procedural_share <= 1.0:
-            raise ValueError(f"procedural_share must be in [0, 1], got {self.procedural_share}")
+            raise InputError(f"procedural_share must be in [0, 1], got {self.procedural_share}")
         if self.procedural_pool < 1:
-            raise ValueError(f"procedural_pool must be >= 1, got {self.procedural_pool}")
+            raise InputError(f"procedural_pool must be >= 1, got {self.procedural_pool}")
         if not 0.0 <= self.pedestal_probability <= 1.0:
-            raise ValueError(f"pedestal_probability must be in [0, 1], got {self.pedestal_probability}")
+            raise InputError(f"pedestal_probability must be in [0, 1], got {self.pedestal_probability}")
         lo, hi = self.pedestal_height
         if not (0.0 < lo <= hi and np.isfinite(hi)):
-            raise ValueError(f"pedestal_height must satisfy 0 < lo <= hi (mm), got {self.pedestal_height}")
+            raise InputError(f"pedestal_height must satisfy 0 < lo <= hi (mm), got {self.pedestal_height}")
         lo, hi = self.pedestal_shrink
         if not (0.0 < lo <= hi <= 1.0):
-            raise ValueError(f"pedestal_shrink must satisfy 0 < lo <= hi <= 1, got {self.pedestal_shrink}")
+            raise InputError(f"pedestal_shrink must satisfy 0 < lo <= hi <= 1, got {self.pedestal_shrink}")
 
 
 @dataclass

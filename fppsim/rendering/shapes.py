@@ -25,6 +25,7 @@ from typing import Callable
 
 import numpy as np
 import trimesh
+from fppsim.errors import InputError
 
 __all__ = ["SHAPES", "make_shape", "procedural", "add_detail", "PROCEDURAL_KINDS", "bust", "figurine", "animal", "mask", "blob", "relief", "vase"]
 
@@ -498,9 +499,9 @@ def make_shape(kind: str, seed: int = 0, size_mm=DEFAULT_SIZE_MM) -> trimesh.Tri
     try:
         fn = _REGISTRY[kind]
     except KeyError:
-        raise ValueError(f"unknown shape kind {kind!r}; choose one of {', '.join(SHAPES)}") from None
+        raise InputError(f"unknown shape kind {kind!r}; choose one of {', '.join(SHAPES)}") from None
     if int(seed) < 0:
-        raise ValueError(f"seed must be non-negative, got {seed}")
+        raise InputError(f"seed must be non-negative, got {seed}")
     return fn(int(seed), size_mm=size_mm)
 
 
@@ -561,7 +562,7 @@ def procedural(seed: int, size_mm=DEFAULT_SIZE_MM, detail: bool = True) -> tuple
     ``detail``, surface detail at three scales (:func:`add_detail`). Deterministic in ``seed``.
     """
     if int(seed) < 0:
-        raise ValueError(f"seed must be non-negative, got {seed}")
+        raise InputError(f"seed must be non-negative, got {seed}")
     rng = np.random.default_rng([int(seed), 99])
     kinds, weights = zip(*PROCEDURAL_KINDS)
     kind = kinds[int(rng.choice(len(kinds), p=np.asarray(weights) / np.sum(weights)))]

@@ -23,6 +23,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 import torch
+from uhrnet.errors import InputError
 
 __all__ = ["AugmentConfig", "AUGMENTS", "augment_kind", "augment_config", "augment_fringe", "augment_sample"]
 
@@ -77,7 +78,7 @@ def augment_config(kind) -> AugmentConfig | None:
     try:
         return AUGMENTS[augment_kind(kind)]
     except (KeyError, TypeError):
-        raise ValueError(f"augmentation {kind!r}: choose from {', '.join(AUGMENTS)}") from None
+        raise InputError(f"augmentation {kind!r}: choose from {', '.join(AUGMENTS)}") from None
 
 
 def _gauss(x: np.ndarray, sigma: float) -> np.ndarray:

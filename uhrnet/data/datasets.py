@@ -32,7 +32,7 @@ from torch.utils.data import Dataset, Sampler
 from fppsim.dataio.formats import PRESETS, LabelTransform, figshare_pair_paths
 from fppsim.dataio.readers import (LABEL_SOURCES, check_figshare_arrays, open_figshare_pair, open_source,
                                    read_fringe_image)
-from uhrnet.errors import DataError
+from uhrnet.errors import DataError, InputError
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 from uhrnet.data.augment import augment_sample
 
@@ -146,7 +146,7 @@ class FppsimDataset(Dataset):
         self.mask_fringe = mask_fringe
         self.arrays: FigshareArrays | None = None
         if label not in LABEL_SOURCES:
-            raise ValueError(f"label must be 'true' or 'psp', got {label!r}")
+            raise InputError(f"label must be 'true' or 'psp', got {label!r}")
         if not self.root.exists():
             raise DataError(f"{self.root}: folder not found")
         if not self.root.is_dir():
@@ -257,7 +257,7 @@ class MixedSampler(Sampler):
                  num_samples: int | None = None, seed: int = 0, rank: int = 0, world_size: int = 1,
                  shuffle: bool = True, pad: bool = True):
         if synthetic_ratio is not None and not 0.0 <= synthetic_ratio <= 1.0:
-            raise ValueError(f"synthetic_ratio must be in [0, 1], got {synthetic_ratio}")
+            raise InputError(f"synthetic_ratio must be in [0, 1], got {synthetic_ratio}")
         self.n_real, self.n_synthetic = int(n_real), int(n_synthetic)
         self.total = self.n_real + self.n_synthetic
         if self.total == 0:
@@ -329,9 +329,9 @@ def parse_size(text: str | None) -> tuple[int, int] | None:
     try:
         h, w = (int(v) for v in str(text).lower().replace("×", "x").split("x"))
     except ValueError:
-        raise ValueError(f"expected HxW (e.g. 176x320), got {text!r}") from None
+        raise InputError(f"expected HxW (e.g. 176x320), got {text!r}") from None
     if h <= 0 or w <= 0:
-        raise ValueError(f"expected positive HxW, got {text!r}")
+        raise InputError(f"expected positive HxW, got {text!r}")
     return h, w
 
 

@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from uhrnet.errors import DataError
+from uhrnet.errors import DataError, InputError
 
 __all__ = ["MIN_REFERENCE_SPLIT", "SPLIT_MODES", "reference_split", "split_indices"]
 
@@ -56,9 +56,9 @@ def split_indices(n: int, part: str, mode: str = "reference") -> np.ndarray:
     if part == "all":
         return np.arange(n)
     if part not in ("train", "val", "test"):
-        raise ValueError(f"unknown split {part!r}")
+        raise InputError(f"unknown split {part!r}")
     if mode == "reference":
         return reference_split(n)[part]
     if mode in ("train", "val", "test"):
         return np.arange(n) if part == mode else np.zeros(0, dtype=np.int64)
-    raise ValueError(f"unknown split mode {mode!r} (known: {', '.join(SPLIT_MODES)})")
+    raise InputError(f"unknown split mode {mode!r} (known: {', '.join(SPLIT_MODES)})")

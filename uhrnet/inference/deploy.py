@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from uhrnet.models.blocks import conv_bn_pairs
+from uhrnet.errors import InputError
 
 __all__ = [
     "fold_batchnorm",
@@ -38,10 +39,10 @@ def fold_conv_bn(conv: nn.Conv2d | nn.ConvTranspose2d, bn: nn.BatchNorm2d) -> nn
     ``(in, out/groups, kh, kw)``, so there the output channel is (group, dim 1).
     """
     if not bn.track_running_stats or bn.running_mean is None or bn.running_var is None:
-        raise ValueError("cannot fold a BatchNorm2d without running statistics")
+        raise InputError("cannot fold a BatchNorm2d without running statistics")
     out_channels = conv.out_channels
     if bn.num_features != out_channels:
-        raise ValueError(f"BatchNorm2d has {bn.num_features} features but the conv {out_channels} outputs")
+        raise InputError(f"BatchNorm2d has {bn.num_features} features but the conv {out_channels} outputs")
     fused = copy.deepcopy(conv)
     with torch.no_grad():
         w = conv.weight.detach().double()

@@ -34,6 +34,7 @@ from uhrnet.models.outputs import outputs_of, prediction_of
 from uhrnet.models.heads import DEFAULT_HEAD, HEADS, Head
 from uhrnet.models.unet import UNet
 from uhrnet.models.uhrnet import UHRNet
+from uhrnet.errors import InputError
 
 __all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "count_parameters", "list_models", "outputs_of",
            "prediction_of"]
@@ -74,7 +75,7 @@ def build_model(name: str, head: str = DEFAULT_HEAD, rig: dict | None = None, **
     (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
     if head not in HEADS:
-        raise ValueError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
+        raise InputError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
     spec = HEADS[head]
     owners: dict[str, list[str]] = {"rig": [h.name for h in HEADS.values() if h.needs_rig]}  # option -> its heads
     for h in HEADS.values():
@@ -87,12 +88,12 @@ def build_model(name: str, head: str = DEFAULT_HEAD, rig: dict | None = None, **
     foreign = [k for k in given if k not in spec.options and not (k == "rig" and spec.needs_rig)]
     if foreign:
         heads = sorted({n for k in foreign for n in owners[k]})
-        raise ValueError(f"{' and '.join(k + '=' for k in foreign)} belong to the {' / '.join(heads)} head "
+        raise InputError(f"{' and '.join(k + '=' for k in foreign)} belong to the {' / '.join(heads)} head "
                          f"(head={heads[0]!r}), not the {head} head")
     if spec.wrap is None:
         return _architecture(name, options)
     if spec.needs_rig and rig is None:
-        raise ValueError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
+        raise InputError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
     if spec.backbone_channels is not None:
         options = {**options, "out_channels": spec.backbone_channels}
     given.pop("rig", None)
@@ -106,17 +107,17 @@ def _architecture(name: str, options: dict) -> nn.Module:
         arch, fixed = ALIASES[key]
         for option, value in fixed.items():
             if option != "base_channels" and option in options and options[option] != value:
-                raise ValueError(f"{key} is {arch} with {option}={value!r}; got {option}={options[option]!r}")
+                raise InputError(f"{key} is {arch} with {option}={value!r}; got {option}={options[option]!r}")
         options = {**fixed, **options}
     elif key in ARCHITECTURES:
         arch = key
     else:
-        raise ValueError(f"unknown model {name!r}; known models: {', '.join(list_models())}")
+        raise InputError(f"unknown model {name!r}; known models: {', '.join(list_models())}")
     cls = ARCHITECTURES[arch]
     accepted = list(inspect.signature(cls).parameters)
     unknown = sorted(set(options) - set(accepted))
     if unknown:
-        raise ValueError(f"{key} does not take option(s) {', '.join(unknown)}; it takes {', '.join(accepted)}")
+        raise InputError(f"{key} does not take option(s) {', '.join(unknown)}; it takes {', '.join(accepted)}")
     model = cls(**options)
     model.config = {**model.config, "name": key}
     return model

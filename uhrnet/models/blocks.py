@@ -17,6 +17,7 @@ from collections.abc import Callable, Iterator, Sequence
 import torch
 from torch import nn
 import torch.nn.functional as F
+from uhrnet.errors import InputError
 
 BlockFactory = Callable[[int, int], nn.Module]
 """``factory(in_channels, out_channels) -> module`` for a block that keeps the spatial size."""
@@ -130,7 +131,7 @@ class Encoder(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         h, w = x.shape[-2:]
         if h % self.divisor or w % self.divisor:
-            raise ValueError(f"input height and width must be multiples of {self.divisor}, got {h}x{w}")
+            raise InputError(f"input height and width must be multiples of {self.divisor}, got {h}x{w}")
         skips = []
         for block in self.blocks:
             x = block(x)
@@ -175,5 +176,5 @@ class Decoder(nn.Module):
 def widths_for(base_channels: int, levels: int = 5) -> list[int]:
     """``[b, 2b, 4b, ...]``: the channel widths of a U-shaped network, bottleneck last."""
     if base_channels < 1:
-        raise ValueError(f"base_channels must be positive, got {base_channels}")
+        raise InputError(f"base_channels must be positive, got {base_channels}")
     return [base_channels * 2**i for i in range(levels)]

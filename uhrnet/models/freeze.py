@@ -22,6 +22,7 @@ initialised with. Dropout is not a weight and behaves as in the rest of the netw
 from __future__ import annotations
 
 from torch import nn
+from uhrnet.errors import InputError
 
 __all__ = ["FREEZE_CHOICES", "parts_of", "freeze", "keep_frozen_eval"]
 
@@ -38,7 +39,7 @@ def parts_of(net: nn.Module) -> dict[str, list[nn.Module]]:
     while not hasattr(type(owner), "PARTS"):
         inner = getattr(owner, "backbone", None)
         if not isinstance(inner, nn.Module):
-            raise ValueError(f"{type(net).__name__} declares no PARTS: cannot tell its encoder from its decoder")
+            raise InputError(f"{type(net).__name__} declares no PARTS: cannot tell its encoder from its decoder")
         owner = inner
     out = {}
     for part, names in type(owner).PARTS.items():
@@ -53,7 +54,7 @@ def freeze(net: nn.Module, part: str) -> list[nn.Module]:
         return []
     parts = parts_of(net)
     if part not in parts:
-        raise ValueError(f"{type(net).__name__} has no part {part!r}; it has {', '.join(parts)}")
+        raise InputError(f"{type(net).__name__} has no part {part!r}; it has {', '.join(parts)}")
     for module in parts[part]:
         for p in module.parameters():
             p.requires_grad_(False)

@@ -36,6 +36,7 @@ import torch
 from torch import nn
 
 from uhrnet.models.blocks import conv_bn_pairs
+from uhrnet.errors import InputError
 
 __all__ = ["INITS", "init_weights"]
 
@@ -60,7 +61,7 @@ def init_weights(model: nn.Module, scheme: str = "auto", generator: torch.Genera
     which the trainer seeds), in module order, so the same seed gives the same weights.
     """
     if scheme not in INITS:
-        raise ValueError(f"unknown init {scheme!r}; choose from {', '.join(INITS)}")
+        raise InputError(f"unknown init {scheme!r}; choose from {', '.join(INITS)}")
     if scheme == "auto":
         scheme = "torch" if any(isinstance(m, nn.modules.batchnorm._BatchNorm) for m in model.modules()) else "he"
     if scheme == "torch":

@@ -38,6 +38,7 @@ from torch import nn
 from uhrnet.physics.rig_layer import RigLayer, circular_mean
 
 from uhrnet.models.outputs import outputs_of
+from uhrnet.errors import InputError
 
 __all__ = ["PhaseHead", "PHASE_CHANNELS"]
 
@@ -59,7 +60,7 @@ class PhaseHead(nn.Module):
     def __init__(self, backbone: nn.Module, rig: dict, min_confidence: float = 0.3) -> None:
         super().__init__()
         if backbone.config.get("out_channels") != PHASE_CHANNELS:
-            raise ValueError(f"the phase head needs a backbone with {PHASE_CHANNELS} outputs, "
+            raise InputError(f"the phase head needs a backbone with {PHASE_CHANNELS} outputs, "
                              f"got {backbone.config.get('out_channels')}")
         self.backbone = backbone
         rig = rig.to_dict() if hasattr(rig, "to_dict") else dict(rig)
@@ -91,7 +92,7 @@ class PhaseHead(nn.Module):
         """Every intermediate (module docstring) for each backbone output (hNet trains several)."""
         cam = self.layer.grid_shape
         if tuple(x.shape[-2:]) != tuple(cam):
-            raise ValueError(f"the phase head's rig sees {cam[1]}x{cam[0]} px images; got {x.shape[-1]}x{x.shape[-2]}")
+            raise InputError(f"the phase head's rig sees {cam[1]}x{cam[0]} px images; got {x.shape[-1]}x{x.shape[-2]}")
         return [self._combine(o) for o in outputs_of(self.backbone(x))]
 
     def forward(self, x: torch.Tensor):

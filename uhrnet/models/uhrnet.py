@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from uhrnet.models.blocks import ConvBNAct, Decoder, Encoder, activation, downsample_conv, upsample_conv, widths_for
+from uhrnet.errors import InputError
 
 
 class MultiLevelConvBlock(nn.Module):
@@ -37,7 +38,7 @@ class MultiLevelConvBlock(nn.Module):
         super().__init__()
         n = len(self.BRANCH_DILATIONS)
         if out_channels % n:
-            raise ValueError(f"MultiLevelConvBlock needs out_channels divisible by {n}, got {out_channels}")
+            raise InputError(f"MultiLevelConvBlock needs out_channels divisible by {n}, got {out_channels}")
         width = out_channels // n
         self.shortcut = ConvBNAct(in_channels, out_channels, kernel_size=1, act=False)
         self.branches = nn.ModuleList(
@@ -117,7 +118,7 @@ class UHRNet(nn.Module):
             "dropout": dropout,
         }
         if base_channels % 4:
-            raise ValueError(f"uhrnet needs base_channels divisible by 4, got {base_channels}")
+            raise InputError(f"uhrnet needs base_channels divisible by 4, got {base_channels}")
         widths = widths_for(base_channels)
         self.encoder = Encoder(in_channels, widths[:-1], MultiLevelConvBlock)
         self.dropout = nn.Dropout(dropout)

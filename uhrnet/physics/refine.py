@@ -37,6 +37,7 @@ import numpy as np
 from fppsim.geometry.rig import Rig
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import phase_regions, step_conflicts
+from uhrnet.errors import InputError
 
 __all__ = ["refine_relief", "layer_for", "estimate_phases", "EstimatePhases", "REFINE_METHODS"]
 
@@ -71,7 +72,7 @@ def layer_for(rig_or_layer, shape):
         while len(_LAYERS) > MAX_CACHED_LAYERS:
             _LAYERS.popitem(last=False)
     if tuple(shape[-2:]) != layer.grid_shape:
-        raise ValueError(f"height map is {shape[-1]} x {shape[-2]} px but the layer's grid is "
+        raise InputError(f"height map is {shape[-1]} x {shape[-2]} px but the layer's grid is "
                          f"{layer.grid_shape[1]} x {layer.grid_shape[0]}: pass a RigLayer built for this grid "
                          "(RigLayer(rig, height=..., width=..., pixels=...))")
     return layer
@@ -111,7 +112,7 @@ def estimate_phases(height_mm, wrapped_phase, reliability, rig_or_layer, valid=N
 
     h = np.asarray(height_mm).astype(np.float64)
     if h.ndim != 2 or np.shape(wrapped_phase) != h.shape:
-        raise ValueError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
+        raise InputError(f"height {h.shape} and wrapped phase {np.shape(wrapped_phase)} must be the same (H, W)")
     layer = layer_for(rig_or_layer, h.shape)
     finite = np.isfinite(h)
     ok = finite if valid is None else finite & np.asarray(valid, bool)

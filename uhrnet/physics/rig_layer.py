@@ -59,6 +59,7 @@ import torch
 from torch import nn
 
 from fppsim.geometry.rig import Rig
+from uhrnet.errors import InputError
 
 __all__ = ["RigLayer", "wrap", "circular_mean"]
 
@@ -120,20 +121,20 @@ class RigLayer(nn.Module):
         cam, proj = rig.camera, rig.projector
         self.periods = float(rig.periods if periods is None else periods)
         if not (self.periods > 0 and math.isfinite(self.periods)):
-            raise ValueError(f"periods must be > 0, got {periods!r}")
+            raise InputError(f"periods must be > 0, got {periods!r}")
         self.max_iter = int(max_iter)
         self.tol = tol
         self._window = None
         H = cam.height if height is None else int(height)
         W = cam.width if width is None else int(width)
         if H < 1 or W < 1:
-            raise ValueError(f"image grid must be at least 1 x 1, got {W} x {H}")
+            raise InputError(f"image grid must be at least 1 x 1, got {W} x {H}")
         self._size = (H, W)
         if pixels is not None and not (isinstance(pixels, (tuple, list)) and len(pixels) == 2
                                        and all(isinstance(p, slice) for p in pixels)):
             uv = np.asarray(pixels, dtype=np.float64)
             if uv.ndim != 3 or uv.shape[-1] != 2:
-                raise ValueError(f"pixels must be (rows, cols) slices or an (H, W, 2) array, got shape {uv.shape}")
+                raise InputError(f"pixels must be (rows, cols) slices or an (H, W, 2) array, got shape {uv.shape}")
             self._size = None  # an explicit sampling: not serialisable as a grid
         else:
             # pixel centres of the (resized) grid in camera pixels; float64 as fppsim's pixel_grid
@@ -143,7 +144,7 @@ class RigLayer(nn.Module):
                 rows, cols = pixels
                 u, v = u[cols], v[rows]
                 if u.size == 0 or v.size == 0:
-                    raise ValueError(f"pixels {pixels} select no pixel of the {W} x {H} grid")
+                    raise InputError(f"pixels {pixels} select no pixel of the {W} x {H} grid")
                 self._window = (rows, cols)
             uu, vv = np.meshgrid(u, v)
             uv = np.stack([uu, vv], axis=-1)
@@ -203,7 +204,7 @@ class RigLayer(nn.Module):
     def _input(self, x: torch.Tensor, name: str) -> torch.Tensor:
         x = torch.as_tensor(x, device=self.A.device)
         if x.shape[-2:] != self.grid_shape:
-            raise ValueError(f"{name} has shape {tuple(x.shape)}; the layer's grid is {self.grid_shape} (..., H, W)")
+            raise InputError(f"{name} has shape {tuple(x.shape)}; the layer's grid is {self.grid_shape} (..., H, W)")
         return x.to(self.dtype)
 
     @staticmethod
@@ -341,7 +342,7 @@ class RigLayer(nn.Module):
         ``[[start, stop, step], [start, stop, step]]`` or None). Raises ValueError for an explicit
         pixel array (rebuild those with the array)."""
         if self._size is None:
-            raise ValueError("a layer built on an explicit pixel array cannot be described by a dictionary")
+            raise InputError("a layer built on an explicit pixel array cannot be described by a dictionary")
         win = None if self._window is None else [_slice_tuple(s) for s in self._window]
         return {"rig": self.rig.to_dict(), "periods": self.periods, "height": self._size[0], "width": self._size[1],
                 "pixels": win, "max_iter": self.max_iter, "tol": self.tol}

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 import torch.nn.functional as F
+from uhrnet.errors import InputError
 
 ArrayLike = torch.Tensor | np.ndarray
 
@@ -63,12 +64,12 @@ def ssim_map(
     autocast).
     """
     if window % 2 == 0:
-        raise ValueError(f"window must be odd, got {window}")
+        raise InputError(f"window must be odd, got {window}")
     if pred.shape != target.shape or pred.dim() != 4:
-        raise ValueError(f"pred and target must be equal (N, C, H, W) shapes, got {pred.shape} and {target.shape}")
+        raise InputError(f"pred and target must be equal (N, C, H, W) shapes, got {pred.shape} and {target.shape}")
     n, c, h, w = pred.shape
     if h < window or w < window:
-        raise ValueError(f"image {h}x{w} is smaller than the {window}x{window} SSIM window")
+        raise InputError(f"image {h}x{w} is smaller than the {window}x{window} SSIM window")
     dtype = torch.promote_types(pred.dtype, torch.float32)  # never filter in half precision
     with torch.autocast(pred.device.type, enabled=False):
         return _ssim_map(pred.to(dtype), target.to(dtype), data_range, window, sigma, k1, k2)
@@ -114,9 +115,9 @@ def ssim(
     gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=L)``.
     """
     if data_range is None or not data_range > 0:
-        raise ValueError(f"data_range must be a positive number, got {data_range!r}")
+        raise InputError(f"data_range must be a positive number, got {data_range!r}")
     if reduction not in ("mean", "none"):
-        raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
+        raise InputError(f"reduction must be 'mean' or 'none', got {reduction!r}")
     valid = valid_mask(mask, pred)
     if valid is not None:
         pred = torch.where(valid, pred, target)
@@ -147,14 +148,14 @@ def rmse(
     float64 tensor, NaN for an image without valid pixels. Computed in float64 without gradient.
     """
     if reduction not in ("mean", "none"):
-        raise ValueError(f"reduction must be 'mean' or 'none', got {reduction!r}")
+        raise InputError(f"reduction must be 'mean' or 'none', got {reduction!r}")
     with torch.no_grad():
         pred = torch.as_tensor(pred).detach().to(torch.float64)
         target = torch.as_tensor(target).to(device=pred.device, dtype=torch.float64)
         if pred.shape != target.shape:
-            raise ValueError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
+            raise InputError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
         if pred.dim() < 2:
-            raise ValueError("expected a batch of images (N, ...)")
+            raise InputError("expected a batch of images (N, ...)")
         valid = valid_mask(mask, pred)
         sq = (pred - target) ** 2
         if valid is None:

@@ -50,7 +50,7 @@ import numpy as np
 
 from fppsim.files import atomic_write_text
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
-from uhrnet.errors import ConfigError
+from uhrnet.errors import ConfigError, InputError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
@@ -141,7 +141,7 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
     phi = np.asarray(phase, dtype=np.float64)
     h = np.asarray(height_mm, dtype=np.float64)
     if phi.ndim != 2 or phi.shape != h.shape:
-        raise ValueError(f"phase {phi.shape} and height {h.shape} must be the same 2-D shape")
+        raise InputError(f"phase {phi.shape} and height {h.shape} must be the same 2-D shape")
     ok = np.isfinite(phi) & np.isfinite(h)
     if valid is not None:
         ok &= np.asarray(valid, dtype=bool)
@@ -149,7 +149,7 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
     n_unknown = len(names) + 2
     n = int(ok.sum())
     if n < 2 * n_unknown:
-        raise ValueError(f"only {n} valid pixels for {n_unknown} unknowns (degree {degree})")
+        raise InputError(f"only {n} valid pixels for {n_unknown} unknowns (degree {degree})")
     idx = np.flatnonzero(ok)
     fit_idx = idx if max_pixels is None or n <= max_pixels else idx[:: int(np.ceil(n / max_pixels))]
     Pf = P.T
@@ -166,7 +166,7 @@ def fit_phase(phase: np.ndarray, height_mm: np.ndarray, valid: np.ndarray | None
     else:
         pidx = np.flatnonzero(ok & np.asarray(plane_pixels, bool))
         if pidx.size < 2 * len(names):
-            raise ValueError(f"only {pidx.size} plane pixels for {len(names)} plane terms (degree {degree})")
+            raise InputError(f"only {pidx.size} plane pixels for {len(names)} plane terms (degree {degree})")
         if max_pixels is not None and pidx.size > max_pixels:
             pidx = pidx[:: int(np.ceil(pidx.size / max_pixels))]
         coef_plane = _solve(Pf[:, pidx].T, b[pidx], robust, iterations, huber)

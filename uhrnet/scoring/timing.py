@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from uhrnet.device import synchronize
+from uhrnet.errors import InputError
 
 __all__ = ["time_call", "model_device", "inference_seconds", "peak_memory_bytes"]
 
@@ -27,7 +28,7 @@ def time_call(fn: Callable[[], object], device: torch.device | str, warmup: int 
     """Wall-clock seconds of ``repeats`` calls of ``fn()`` after ``warmup`` untimed calls, each call
     bracketed by :func:`synchronize` so that GPU time is included."""
     if repeats < 1:
-        raise ValueError(f"repeats must be >= 1, got {repeats}")
+        raise InputError(f"repeats must be >= 1, got {repeats}")
     for _ in range(warmup):
         fn()
     synchronize(device)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import copy
 
 import torch
+from uhrnet.errors import InputError
 
 __all__ = ["WeightEMA"]
 
@@ -25,7 +26,7 @@ class WeightEMA:
 
     def __init__(self, net: torch.nn.Module, decay: float):
         if not 0.0 < decay < 1.0:
-            raise ValueError(f"decay must be in (0, 1), got {decay}")
+            raise InputError(f"decay must be in (0, 1), got {decay}")
         self.decay = float(decay)
         self.updates = 0
         self.module = copy.deepcopy(net).eval()
@@ -36,7 +37,7 @@ class WeightEMA:
     def _pair(self, net: torch.nn.Module):
         src, dst = net.state_dict(keep_vars=True), self.module.state_dict(keep_vars=True)
         if src.keys() != dst.keys():
-            raise ValueError("the network's parameters differ from the average's")
+            raise InputError("the network's parameters differ from the average's")
         floats = [(dst[k], src[k]) for k in src if src[k].is_floating_point()]
         others = [(dst[k], src[k]) for k in src if not src[k].is_floating_point()]
         return floats, others

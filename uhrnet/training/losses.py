@@ -21,6 +21,7 @@ from torch import nn
 import torch.nn.functional as F
 
 from uhrnet.scoring.metrics import ssim, valid_mask
+from uhrnet.errors import InputError
 
 
 class Loss(nn.Module):
@@ -44,7 +45,7 @@ class Loss(nn.Module):
 def _squared_error(pred: torch.Tensor, target: torch.Tensor, mask) -> tuple[torch.Tensor, torch.Tensor]:
     """``(pred - target)^2`` zeroed at invalid pixels, and the valid indicator as float (same shape)."""
     if pred.shape != target.shape:
-        raise ValueError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
+        raise InputError(f"pred and target shapes differ: {tuple(pred.shape)} vs {tuple(target.shape)}")
     valid = valid_mask(mask, pred)
     dtype = torch.promote_types(pred.dtype, torch.float32)  # sums of squares in at least float32
     diff = pred.to(dtype) - target.to(dtype)
@@ -111,7 +112,7 @@ class ChunkedL2Loss(Loss):
         super().__init__()
         gh, gw = (int(g) for g in grid)
         if gh < 1 or gw < 1:
-            raise ValueError(f"grid must be two positive integers, got {grid}")
+            raise InputError(f"grid must be two positive integers, got {grid}")
         self.grid = (gh, gw)
         n = gh * gw
         if weights is None:
@@ -119,7 +120,7 @@ class ChunkedL2Loss(Loss):
         else:
             w = torch.as_tensor(weights, dtype=torch.float64).flatten()
             if len(w) != n:
-                raise ValueError(f"need {n} weights for a {gh}x{gw} grid, got {len(w)}")
+                raise InputError(f"need {n} weights for a {gh}x{gw} grid, got {len(w)}")
         self.register_buffer("weights", w.float())
         self.register_buffer("ranks", torch.zeros(n, dtype=torch.long))
         self.register_buffer("epoch_sse", torch.zeros(n, dtype=torch.float64))
@@ -191,7 +192,7 @@ class SSIMLoss(Loss):
     ) -> None:
         super().__init__()
         if data_range is None or not data_range > 0:
-            raise ValueError(f"SSIMLoss needs a positive data_range (fixed per dataset), got {data_range!r}")
+            raise InputError(f"SSIMLoss needs a positive data_range (fixed per dataset), got {data_range!r}")
         self.data_range = float(data_range)
         self.window, self.sigma, self.k1, self.k2 = window, sigma, k1, k2
 
@@ -339,7 +340,7 @@ class LossEntry:
 
 def _data_range(context: LossContext, name: str) -> float:
     if context.data_range is None:
-        raise ValueError(f"the {name} loss needs data_range (the label range L of the dataset)")
+        raise InputError(f"the {name} loss needs data_range (the label range L of the dataset)")
     return context.data_range
 
 
@@ -369,7 +370,7 @@ def build_loss(name: str, data_range: float | None = None, *, context: LossConte
     ``context`` gives what else a loss may need (:class:`LossContext`); ``options`` go to the constructor."""
     key = name.lower()
     if key not in LOSSES:
-        raise ValueError(f"unknown loss {name!r}; known losses: {', '.join(LOSSES)}")
+        raise InputError(f"unknown loss {name!r}; known losses: {', '.join(LOSSES)}")
     context = context or LossContext()
     if data_range is not None:
         context = replace(context, data_range=data_range)

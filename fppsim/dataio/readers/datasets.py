@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.dataio.encoding import as_image_stack, encode_fringe, read_gray_image
-from fppsim.errors import DatasetError
+from fppsim.errors import DatasetError, InputError
 from fppsim.dataio.formats import LabelTransform, psp_freq, psp_image_name, read_settings
 
 __all__ = ["READ_ERRORS", "LABEL_SOURCES", "load_native_sample", "read_native_label", "read_fringe_image",
@@ -264,5 +264,5 @@ def pick_evenly(n: int, max_samples: int | None) -> np.ndarray:
     if max_samples is None or max_samples >= n:
         return np.arange(n)
     if max_samples < 1:
-        raise ValueError(f"max_samples must be >= 1, got {max_samples}")
+        raise InputError(f"max_samples must be >= 1, got {max_samples}")
     return np.unique(np.linspace(0, n - 1, max_samples).round().astype(int))

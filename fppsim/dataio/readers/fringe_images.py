@@ -17,7 +17,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import to_8bit
 from fppsim.dataio.formats import PRESETS
-from fppsim.errors import PSPMatError
+from fppsim.errors import PSPMatError, InputError
 from fppsim.phase.plane import phase_plane_masks, plane_level
 from fppsim.dataio.readers.datasets import pick_evenly
 from fppsim.dataio.readers.psp_mat import reading_note
@@ -71,7 +71,7 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
     path = src.path
     problem = src.problem()
     if problem:  # a damaged scan folder is named, never read as plain images
-        raise ValueError(problem)
+        raise InputError(problem)
     try:
         scans = src.phase_ids()
         if scans:
@@ -91,11 +91,11 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
             gray = to_8bit(src.fringe_image(ids[int(i)]))
             out.append(FringeImage(gray, gray > 0, ids[int(i)]))
     except PSPMatError as exc:
-        raise ValueError(str(exc)) from None
+        raise InputError(str(exc)) from None
     if not out:
         if not path.is_dir():
-            raise ValueError(f"{path}: not a folder or image file")
-        raise ValueError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
+            raise InputError(f"{path}: not a folder or image file")
+        raise InputError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
                          "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
                          f"{'/'.join(IMAGE_EXTS)} files)")
     return out, src.layout

@@ -49,7 +49,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
-from fppsim.errors import DatasetError, PSPMatError
+from fppsim.errors import DatasetError, PSPMatError, InputError
 from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
                                             open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
                                             read_native_psp)
@@ -569,7 +569,7 @@ def register_layout(cls: type[Source], before: str = "folder") -> type[Source]:
     """Add a layout's reader to :data:`LAYOUTS`, asked before the layout named ``before`` (default: before
     the catch-all ``folder``); usable as a class decorator. A kind registered twice is refused."""
     if any(c.kind == cls.kind for c in LAYOUTS):
-        raise ValueError(f"layout {cls.kind!r} is registered already")
+        raise InputError(f"layout {cls.kind!r} is registered already")
     at = next((k for k, c in enumerate(LAYOUTS) if c.kind == before), len(LAYOUTS))
     LAYOUTS.insert(at, cls)
     return cls

@@ -16,6 +16,7 @@ from functools import lru_cache
 from typing import Any, Callable
 
 import numpy as np
+from fppsim.errors import InputError
 
 __all__ = ["Param", "Effect", "Context", "OpticsModel", "SITES", "interval"]
 
@@ -45,7 +46,7 @@ def interval(text: str) -> Limits:
     """``"(0, inf)"``, ``"[0, 1)"``, ... -> ``(lo, lo_inclusive, hi, hi_inclusive)`` (hi None: no bound)."""
     m = re.fullmatch(r"\s*([\[(])\s*([-+.\w]+)\s*,\s*([-+.\w]+)\s*([\])])\s*", text)
     if not m:
-        raise ValueError(f"interval must look like '[0, 1)' or '(0, inf)', got {text!r}")
+        raise InputError(f"interval must look like '[0, 1)' or '(0, inf)', got {text!r}")
     hi = None if m[3] == "inf" else float(m[3])
     return float(m[2]), m[1] == "[", hi, None if hi is None else m[4] == "]"
 
@@ -83,7 +84,7 @@ class Param:
 
     def __post_init__(self):
         if (self.sample is None) != (self.limits is None) or (self.sample is None) == (self.check is None):
-            raise ValueError(f"optics parameter '{self.name}' must declare sample + limits (a number) "
+            raise InputError(f"optics parameter '{self.name}' must declare sample + limits (a number) "
                              f"or check (a setting)")
 
     @property
@@ -94,17 +95,17 @@ class Param:
         """``v`` as stored (a float for numbers); ValueError naming the parameter when invalid."""
         if not self.is_number:
             if not self.check(v):
-                raise ValueError(f"optics '{self.name}' must be {self.expect}, got {v!r}")
+                raise InputError(f"optics '{self.name}' must be {self.expect}, got {v!r}")
             return v
         if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
-            raise ValueError(f"optics '{self.name}' must be a number, got {v!r}")
+            raise InputError(f"optics '{self.name}' must be a number, got {v!r}")
         v = float(v)
         lo, lo_incl, hi, hi_incl = limits = interval(self.limits)
         ok = np.isfinite(v) and (v >= lo if lo_incl else v > lo)
         if hi is not None:
             ok = ok and (v <= hi if hi_incl else v < hi)
         if not ok:
-            raise ValueError(f"optics '{self.name}' must be in {_describe(limits)}, got {v:g}")
+            raise InputError(f"optics '{self.name}' must be in {_describe(limits)}, got {v:g}")
         return v
 
 
@@ -151,7 +152,7 @@ class Effect:
 
     def __post_init__(self):
         if self.site not in SITES:
-            raise ValueError(f"optics effect '{self.name}': unknown site '{self.site}' (known: {', '.join(SITES)})")
+            raise InputError(f"optics effect '{self.name}': unknown site '{self.site}' (known: {', '.join(SITES)})")
 
     def is_on(self, optics) -> bool:
         if self.on is not None:
@@ -177,7 +178,7 @@ class _OpticsMethods:
         known = {f.name for f in fields(cls)}
         unknown = set(d) - known
         if unknown:
-            raise ValueError(f"unknown optics parameter(s): {', '.join(sorted(unknown))}")
+            raise InputError(f"unknown optics parameter(s): {', '.join(sorted(unknown))}")
         return cls(**d)
 
     def noise_free(self):
@@ -196,10 +197,10 @@ class _RangesMethods:
         for p in self.model.numbers:
             v = getattr(self, p.name)
             if not isinstance(v, (tuple, list)) or len(v) != 2:
-                raise ValueError(f"optics range '{p.name}' must be a number or [lo, hi], got {v!r}")
+                raise InputError(f"optics range '{p.name}' must be a number or [lo, hi], got {v!r}")
             lo, hi = p.validate(v[0]), p.validate(v[1])
             if lo > hi:
-                raise ValueError(f"optics range '{p.name}' must have lo <= hi, got [{lo:g}, {hi:g}]")
+                raise InputError(f"optics range '{p.name}' must have lo <= hi, got [{lo:g}, {hi:g}]")
             setattr(self, p.name, (lo, hi))
         for p in self.model.settings:
             p.validate(getattr(self, p.name))
@@ -234,11 +235,11 @@ class _RangesMethods:
         out = {}
         for k, v in d.items():
             if k not in known:
-                raise ValueError(f"unknown optics parameter '{k}' (known: {', '.join(known)})")
+                raise InputError(f"unknown optics parameter '{k}' (known: {', '.join(known)})")
             if known[k].is_number:
                 if isinstance(v, (list, tuple)):
                     if len(v) != 2:
-                        raise ValueError(f"optics range '{k}' must be a number or [lo, hi], got {list(v)}")
+                        raise InputError(f"optics range '{k}' must be a number or [lo, hi], got {list(v)}")
                     v = (known[k].validate(v[0]), known[k].validate(v[1]))
                 else:
                     v = (known[k].validate(v),) * 2
@@ -274,7 +275,7 @@ class OpticsModel:
         self.params = {}
         for p in params:
             if p.name in self.params:
-                raise ValueError(f"optics parameter '{p.name}' is declared twice")
+                raise InputError(f"optics parameter '{p.name}' is declared twice")
             for v in (p.default, *(p.sample if p.is_number else ())):
                 p.validate(v)
             self.params[p.name] = p

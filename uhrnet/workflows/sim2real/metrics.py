@@ -55,7 +55,7 @@ import numpy as np
 
 from fppsim.phase.plane import plane_level, poly_basis  # plane_level re-exported: the one plane level of both packages
 from fppsim.phase import lowpass
-from uhrnet.errors import Sim2RealError
+from uhrnet.errors import Sim2RealError, InputError
 from uhrnet.inference.prediction import predict_labels
 
 __all__ = ["plane_level", "object_mask", "real_metrics", "fringe_twins", "twin_metrics", "level_response",
@@ -102,7 +102,7 @@ def error_split(err_mm: np.ndarray, obj: np.ndarray, min_region_px: int = 50) ->
     obj = np.asarray(obj, bool)
     err = np.asarray(err_mm, np.float64)
     if err.shape != obj.shape:
-        raise ValueError(f"error_split: error map {err.shape} and object mask {obj.shape} differ")
+        raise InputError(f"error_split: error map {err.shape} and object mask {obj.shape} differ")
     labels, n = object_regions(obj)
     nan = float("nan")
     out = {"rmse_mm": nan, "level_rmse_mm": nan, "relief_rmse_mm": nan, "level_rmse_mean_mm": nan,
