@@ -13,6 +13,8 @@ The dataset contract both fppsim and uhrnet use lives in :mod:`fppsim.dataio.for
 imported lazily, so ``import fppsim.dataio.formats`` does not load the renderer.
 """
 
+import importlib
+
 __version__ = "0.1.0"
 
 _LAZY = {
@@ -34,8 +36,6 @@ __all__ = ["__version__", *_LAZY]
 
 def __getattr__(name):
     if name in _LAZY:
-        import importlib
-
         module, attr = _LAZY[name]
         value = getattr(importlib.import_module(module), attr)
         globals()[name] = value

@@ -17,6 +17,8 @@ Rules this module implements:
 
 from __future__ import annotations
 
+import ctypes
+import json
 import errno
 import fcntl
 import os
@@ -223,8 +225,6 @@ def ignore_sigint() -> None:
 def die_with_parent() -> None:
     """Linux: SIGKILL this worker when its parent dies (kill -9 of the parent leaves no orphans)."""
     try:
-        import ctypes
-
         libc = ctypes.CDLL(None, use_errno=True)
         PR_SET_PDEATHSIG = 1
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
@@ -277,8 +277,6 @@ class Output:
 
 
 def _document(path: Path):
-    import json
-
     text = path.read_text()
     if path.suffix.lower() in YAML_SUFFIXES:
         import yaml

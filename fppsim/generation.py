@@ -12,6 +12,7 @@ duplicates. Samples are independent of the worker count (see :mod:`fppsim.render
 
 from __future__ import annotations
 
+import shutil
 import json
 import logging
 import math
@@ -492,8 +493,6 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
 
 
 def _merge(out, target, natives, settings, fmt, link):
-    import shutil
-
     _check_settings(target / SETTINGS_FILE, {**settings, "version": __version__})
     reconcile(target)
     for nd in natives:

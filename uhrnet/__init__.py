@@ -14,6 +14,8 @@ Data files are read through :mod:`fppsim.dataio.readers` (the dataset contract: 
 lazily (``import uhrnet`` does not import torch).
 """
 
+import importlib
+
 __version__ = "0.1.0"
 
 _LAZY = {
@@ -35,8 +37,6 @@ __all__ = ["__version__", *_LAZY]
 
 def __getattr__(name):
     if name in _LAZY:
-        import importlib
-
         module, attr = _LAZY[name]
         value = getattr(importlib.import_module(module), attr)
         globals()[name] = value

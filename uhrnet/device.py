@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
+import platform
 import torch
 
 from uhrnet.errors import ConfigError
@@ -41,10 +44,6 @@ def keep_freed_memory() -> bool:
     (``munmap`` and zeroed pages). ``mallopt(M_MMAP_MAX, 0)`` takes everything from the heap and a high
     ``M_TRIM_THRESHOLD`` keeps it there: the same numbers, the process holds its peak heap. Process-wide and
     for good; returns whether it was applied (False on other C libraries)."""
-    import ctypes
-    import ctypes.util
-    import platform
-
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
         return False
     try:

@@ -32,6 +32,7 @@ from typing import Callable
 
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
+from uhrnet.plots import plot_history  # matplotlib itself loads only when a history is drawn (plots.pyplot)
 from fppsim.geometry.rig import data_path
 from fppsim.owned import claim, same_folder
 from uhrnet import __version__
@@ -85,8 +86,6 @@ def write_history(rows: list[dict], out: Path, columns: tuple[str, ...] = HISTOR
     if not plot:
         return
     try:
-        from uhrnet.plots import plot_history  # matplotlib: loaded only when a history is drawn
-
         plot_history(rows, out / HISTORY_PNG)
     except Exception as exc:  # a plotting problem must not stop training
         print(f"warning: could not draw {HISTORY_PNG} ({exc})", file=sys.stderr)

@@ -36,6 +36,7 @@ The ranges are [min, max] of the per-image estimates, widened to at least +-10 %
 
 from __future__ import annotations
 
+import tempfile
 import json
 import os
 from dataclasses import dataclass, field
@@ -47,7 +48,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.errors import RigError, InputError
+from fppsim.errors import InputError, RigError, UsageError
 from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
@@ -442,8 +443,6 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
                          workdir=None) -> str:
     """Render ``count`` samples with the default and with the fitted ranges (temporary folders, PSP off)
     and return compare-real's statistics side by side: statistic | real | default | fitted."""
-    import tempfile
-
 
     if meshes is None:
         meshes = [str(data_path("meshes"))]
@@ -503,8 +502,6 @@ class FitOpticsConfig:
 
     def __post_init__(self):
         if self.max_images < 1 or self.compare < 0:
-            from fppsim.errors import UsageError  # option values wrong on their own: exit 2
-
             raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
         check_read_convention(self.convention)
 

@@ -17,6 +17,7 @@ Units: mm, radians, camera pixels for periods.
 
 from __future__ import annotations
 
+import warnings
 import dataclasses
 from dataclasses import dataclass, field
 
@@ -284,8 +285,6 @@ def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int 
                               estimate_period(g[:, W // 2:], m[:, W // 2:])])
         period = estimate_period(g, m)
         per["tilt_deg"].append([fringe_tilt(g, period, m) if np.isfinite(period) else np.nan])
-    import warnings
-
     med, spread = {}, {}
     for k, rows in per.items():
         a = np.array(rows, dtype=np.float64)

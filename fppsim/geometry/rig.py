@@ -18,6 +18,7 @@ Calibration files (fppsim JSON/YAML, OpenCV stereo FileStorage) are read and wri
 
 from __future__ import annotations
 
+import importlib.resources
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,9 +40,7 @@ def data_path(*parts: str) -> Path:
     found through importlib.resources so it works from a wheel as from a checkout. In the repository
     ``fppsim/data`` is a link to the top-level ``assets/`` folder (the files live there once); a wheel
     holds real copies."""
-    from importlib.resources import files
-
-    return Path(str(files("fppsim").joinpath("data", *parts)))
+    return Path(str(importlib.resources.files("fppsim").joinpath("data", *parts)))
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor

@@ -11,6 +11,7 @@ shadowed, facing it) and the incidence cosine.
 
 from __future__ import annotations
 
+import sys
 import os
 from concurrent.futures import wait
 from dataclasses import dataclass, field
@@ -55,8 +56,6 @@ def select_backend(backend: str | None = None) -> str:
     ``None`` keeps ``$PYOPENGL_PLATFORM`` (osmesa unless set). PyOpenGL binds its platform once per
     process, so asking for another one after the first render raises :class:`BackendError`.
     """
-    import sys
-
     current = os.environ.get("PYOPENGL_PLATFORM", "osmesa")
     backend = current if backend is None else backend
     if backend not in BACKENDS:

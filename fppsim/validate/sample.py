@@ -7,6 +7,7 @@ into edge and interior pixels. See :mod:`fppsim.validate` for the definitions.
 
 from __future__ import annotations
 
+import inspect
 import math
 
 import numpy as np
@@ -118,8 +119,6 @@ def evaluate_sample(arrays: dict, meta: dict, stacks: dict | None = None, edge_p
 
     if stacks is not None and freqs:
         if min_modulation is None:
-            import inspect
-
             min_modulation = inspect.signature(psp_decode).parameters["min_modulation"].default
         dec = psp.decode_stacks(stacks, None, tuple(freqs), min_modulation=min_modulation)
         low_mod = valid & ~dec.quality

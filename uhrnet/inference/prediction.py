@@ -39,6 +39,7 @@ images are refused (see :func:`fppsim.dataio.encoding.colour_to_grey`).
 
 from __future__ import annotations
 
+import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -381,8 +382,6 @@ def predict(config: PredictConfig) -> PredictResult:
             write_ply(out / f"{name}.ply", pts, grey)
         result.names.append(name)
     if result.refine:
-        import json
-
 
         atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
     return result

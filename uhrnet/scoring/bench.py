@@ -17,6 +17,9 @@ included) and the growth of the peak resident set size on CPU (roughly: activati
 
 from __future__ import annotations
 
+import inspect
+import shutil
+import tempfile
 import gc
 import json
 import statistics
@@ -93,8 +96,6 @@ class BenchConfig:
 
 def build_scaled(name: str, base_channels: int | None):
     """``build_model(name)``, with every width scaled by ``base_channels / 64`` when given."""
-    import inspect
-
 
     if base_channels is None:
         return build_model(name)
@@ -207,9 +208,6 @@ def optimize_variants(model, x, reference, args, device, runners: dict | None = 
     that cannot be made here (no C++ compiler for torch.compile, no onnxruntime ...). The timed
     callable of each form that passes goes into ``runners`` when given.
     """
-    import statistics
-    import tempfile
-
     import torch
 
 
@@ -364,8 +362,6 @@ def _bench_device(args: BenchConfig):
 
     device = select_device(args.device)
     if args.optimize and "compile" in args.variants and device.type == "cpu":
-        import shutil
-
         if shutil.which("g++") is None and shutil.which("c++") is None:
             args.variants = [v for v in args.variants if v != "compile"]  # inductor needs a C++ compiler on CPU
     if device.type == "cuda":

@@ -20,7 +20,8 @@ from dataclasses import dataclass, field, fields
 
 from fppsim.dataio.encoding import json_default
 from uhrnet.errors import Sim2RealError, UsageError
-from uhrnet.training.train_config import MAX_EPOCHS
+from uhrnet.training.adapt import AdaptConfig
+from uhrnet.training.train_config import MAX_EPOCHS, TrainConfig
 
 MAX_COUNT = 10_000_000  # synthetic samples (fppsim.generation's bound)
 from fppsim.geometry.rig import RigError, data_path, load_rig
@@ -53,13 +54,10 @@ def _packaged_meshes() -> str:
 
 
 def _field_names(kind: str) -> set[str]:
-    # lazy: the renderer's modules load only when a variant is checked, not when the CLI starts
     if kind == "generate":
-        from fppsim.generation import GenerateConfig as cls  # lazy: loads the renderer
-    elif kind == "adapt":
-        from uhrnet.training.adapt import AdaptConfig as cls  # lazy: loads torch
+        from fppsim.generation import GenerateConfig as cls  # heavy: the renderer (pyrender, OpenGL) loads only here
     else:
-        from uhrnet.training.train_config import TrainConfig as cls  # lazy, like the two above
+        cls = AdaptConfig if kind == "adapt" else TrainConfig
     return {f.name for f in fields(cls)}
 
 

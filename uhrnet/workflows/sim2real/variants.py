@@ -17,6 +17,8 @@ command lines that run them (``report.json``'s ``recipe``).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import argparse
 import shlex
 from pathlib import Path
@@ -135,9 +137,6 @@ def train_flags(cfg, data, run) -> list[str]:
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
     """``parser.parse_args(argv)``, its error as a :class:`Sim2RealError` naming ``where``."""
-    import contextlib
-    import io
-
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):
