@@ -1,0 +1,118 @@
+"""One (arm, seed) of the scaling study on disk (``OUT/<arm>/s<seed>``): its record ``study.json`` (what the
+seed is and the command that ran it) and its results, read from a finished folder.
+
+Results per seed: ``pair_object_rmse_mm`` (object RMSE on the labelled real pair(s), mean over images), its
+split into ``pair_level_rmse_mm`` (each connected object region's median error) and ``pair_relief_rmse_mm``
+(the rest), the exact mean split (``pair_level_rmse_mean_mm`` / ``pair_relief_rmse_mean_mm``: level^2 +
+relief^2 = RMSE^2; :func:`uhrnet.workflows.sim2real.metrics.error_split`) and ``phase_residual_rad``
+(``uhrnet evaluate-phase``'s calibration-free residual on each held-out real phase-shifting frame).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from fppsim.files import atomic_write_text
+from uhrnet.run_folder import CONFIG_JSON, LAST_PT, fresh, read_history, run_done
+from uhrnet.workflows.sim2real import run_differences, train_config
+from uhrnet.workflows.sim2real.config import data_key
+from uhrnet.workflows.scaling.arms import steps_of
+
+__all__ = ["PAIR_KEYS", "RECORD", "same_folders", "seed_result", "write_seed_record", "arm_meta"]
+
+# what a seed reports (scaling.json key <- real_metrics mean key)
+PAIR_KEYS = {"pair_object_rmse_mm": "object_rmse_mm", "pair_level_rmse_mm": "object_level_rmse_mm",
+             "pair_relief_rmse_mm": "object_relief_rmse_mm", "pair_level_rmse_mean_mm": "object_level_rmse_mean_mm",
+             "pair_relief_rmse_mean_mm": "object_relief_rmse_mean_mm", "pair_regions": "object_regions",
+             "pair_valid_rmse_mm": "valid_rmse_mm", "pair_median_abs_mm": "object_median_abs_mm",
+             "pair_within_1mm": "object_within_1mm", "pair_relief_effect_mm": "relief_effect_mm"}
+RECORD = "study.json"  # OUT/<arm>/s<seed>/study.json: what the seed is and the command that ran it
+RECORD_KEYS = ("command", "sim2real_command", "commit", "dirty", "commit_from", "checkout_head", "checkout_dirty",
+               "device", "torch", "torch_threads", "gpu", "started")
+"""What a seed's result takes from its ``study.json``."""
+
+
+def same_folders(have, want) -> bool:
+    """Whether two lists of folders name the same folders (resolved paths: ``../shared/x`` and its absolute
+    path are one folder)."""
+    def key(f):
+        try:
+            return str(Path(f).resolve())
+        except OSError:
+            return str(f)
+    return {key(f) for f in have} == {key(f) for f in want}
+
+
+def seed_result(folder: Path, cfg, variant) -> dict | None:
+    """The results of a finished (arm, seed) folder (``OUT/<arm>/s<seed>``), None when it is not a finished
+    run OF THIS (arm, seed): found by what the folder holds, not by its path: a run with ``last.pt`` at the
+    variant's epochs whose recorded training options and dataset are the variant's (resize, seed, samples per
+    epoch, ...; :func:`~uhrnet.workflows.sim2real.run_differences`), an evaluation newer than it of the same
+    real folders (resolved paths) with the level / relief split and, with ``cfg.real_phase``, the phase
+    residuals of exactly those frames."""
+    folder = Path(folder)
+    run, ev = folder / "run", folder / "eval"
+    epochs = int(variant.train.get("epochs") or cfg.epochs)
+    if not run_done(run, epochs) or not fresh(ev / "real_metrics.json", run / LAST_PT):
+        return None
+    if run_differences(run, train_config(cfg, variant, "DATA", run), cfg.count, cfg.seed):
+        return None
+    try:
+        recorded = json.loads((run / CONFIG_JSON).read_text())
+        metrics = json.loads((ev / "real_metrics.json").read_text())
+        frames = json.loads((ev / "real_phase.json").read_text())["frames"] if cfg.real_phase else []
+        record = json.loads((folder / RECORD).read_text()) if (folder / RECORD).is_file() else {}
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if [Path(f).name for f in recorded.get("synthetic") or []] != [data_key(variant.generate)]:
+        return None
+    if not same_folders([r["folder"] for r in metrics.get("per_image", [])], cfg.real) \
+            or "object_level_rmse_mm" not in metrics.get("mean", {}):
+        return None
+    if cfg.real_phase and not (fresh(ev / "real_phase.json", run / LAST_PT)
+                               and same_folders([f["folder"] for f in frames], cfg.real_phase)):
+        return None
+    rows = read_history(run)
+    out = {"folder": str(folder)}
+    out.update({k: metrics["mean"].get(src) for k, src in PAIR_KEYS.items()})
+    out["pair_images"] = metrics["images"]
+    out["pair_regions_per_image"] = [{"image": f"{Path(r['folder']).name}/{r['index']}",
+                                      "regions": r.get("object_region_errors")} for r in metrics["per_image"]]
+    out["phase_residual_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"] for f in frames}
+    out["phase_flat_rad"] = {f"{Path(f['folder']).name}/{f['id']}": f["flat_rmse_rad"] for f in frames}
+    out["synthetic_val_rmse_mm"] = rows[-1].get("val_rmse_mm")
+    out["epochs"] = int(rows[-1]["epoch"])
+    timing = folder / "timing.json"
+    out["minutes"] = (sum(v for v in json.loads(timing.read_text()).values() if isinstance(v, (int, float))) / 60.0
+                      if timing.is_file() else None)
+    for key in RECORD_KEYS:
+        if key in record:
+            out[key] = record[key]
+    out.setdefault("device", cfg.device)
+    return out
+
+
+def write_seed_record(folder: Path, record: dict) -> None:
+    """Write the seed's ``study.json``; a seed resumed later keeps its first record (the commit it started
+    at) and lists every later start under ``resumes``."""
+    path = Path(folder) / RECORD
+    try:
+        first = json.loads(path.read_text()) if path.is_file() else None
+    except (OSError, ValueError):
+        first = None
+    if isinstance(first, dict) and first.get("arm") == record["arm"] and first.get("seed") == record["seed"]:
+        first.setdefault("resumes", []).append({k: record[k] for k in ("commit", "dirty", "torch_threads", "started")})
+        record = first
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(record, indent=2))
+
+
+def arm_meta(arm: dict, cfg, variant, resize: str | None, device: str) -> dict:
+    """What the study record holds of an arm beside its seeds: its key (name, resize, device), description,
+    series and definition (sample count, epochs, steps, the sim2real options, its flags)."""
+    return {"name": arm["name"], "resize": resize, "device": device,
+            "description": arm["description"], "series": arm["series"], "count": cfg.count,
+            "epochs": int(variant.train.get("epochs") or cfg.epochs), "steps": steps_of(cfg, variant),
+            **{k: getattr(cfg, k) for k in ("batch_size", "lr", "base_channels", "model", "loss", "scale")},
+            "generate": arm["generate"], "train": arm["train"]}
