@@ -134,9 +134,10 @@ def finite(value):
 def add_seed(entries: dict, meta: dict, new: dict, source: str = "the arms file") -> str:
     """Put one seed's result ``new`` into the arm entry of ``meta`` (its name, resize, device, definition and
     description) in ``entries`` (keyed by :func:`~uhrnet.workflows.scaling.arms.arm_key`): a seed recorded
-    before with another result keeps that under ``reruns``. An arm recorded with another definition (:data:`DEFINITION`) is refused
-    (:class:`UsageProblem` naming ``source``): its seeds are not the recorded arm's. Returns ``"added"``,
-    ``"rerun"`` (another result for a recorded seed) or ``"same"`` (already recorded: nothing changed)."""
+    before with another result keeps that under ``reruns``. An arm recorded with another definition
+    (:data:`DEFINITION`) is refused (:class:`UsageProblem` naming ``source``): its seeds are not the recorded
+    arm's. Returns ``"added"``, ``"rerun"`` (another result for a recorded seed) or ``"same"`` (already
+    recorded: nothing changed)."""
     entry = entries.get(arm_key(meta))
     if entry is not None:
         conflict = definition_conflict(entry, meta)
