@@ -164,19 +164,9 @@ def study_command(args, arm: dict, seed: int | list[int]) -> list[str]:
     return argv + (["--no-figures"] if args.no_figures else [])
 
 
-def seed_record(args, arm: dict, seed: int, cfg, argv: list[str]) -> dict:
-    """What ``OUT/<arm>/s<seed>/study.json`` holds: the seed's identity (arm, seed, resize, device) and how it
-    ran (the exact commands, the code's commit, torch and its CPU threads)."""
-    import platform
-
-    import torch
-
-    gpu = torch.cuda.get_device_name(0) if cfg.device != "cpu" and torch.cuda.is_available() else None
-    return {"arm": arm["name"], "seed": seed, "resize": args.resize, "device": cfg.device,
-            "command": shlex.join(study_command(args, arm, seed)), "sim2real_command": shlex.join(argv),
-            **code_version(), "torch": torch.__version__, "torch_threads": args.threads or torch.get_num_threads(),
-            **({"gpu": gpu} if gpu else {}), "python": platform.python_version(),
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+def seed_commands(args, arm: dict, seed: int, argv: list[str]) -> dict:
+    """The (arm, seed)'s command lines as its record holds them: this study's and ``uhrnet sim2real``'s."""
+    return {"command": shlex.join(study_command(args, arm, seed)), "sim2real_command": shlex.join(argv)}
 
 
 def arm_order(args) -> list[str]:
@@ -193,26 +183,14 @@ def write_report(args, arms: list[dict], configs: dict) -> dict:
     Nothing recorded is lost: a seed is keyed by (arm, resize, device, seed); results already in the record
     stay whether or not their folders are still here, and a folder whose result differs from the recorded one
     (another commit, or a re-run) keeps the earlier result in the seed's ``reruns``."""
-    from uhrnet.workflows.scaling.arms import arm_key, seed_folder, variant_of
-    from uhrnet.workflows.scaling.ledger import add_seed, finite, load_ledger, write_ledger
-    from uhrnet.workflows.scaling.results import arm_meta, seed_result
+    from uhrnet.workflows.scaling.arms import arm_key
+    from uhrnet.workflows.scaling.ledger import add_finished, load_ledger, write_ledger
 
-    out, ledger = Path(args.out), Path(args.ledger)
+    ledger = Path(args.ledger)
     entries = {arm_key(a): a for a in load_ledger(ledger)["arms"]}
-    found, pending = 0, []
-    for arm in arms:
-        for seed in args.seeds:
-            cfg, argv = configs[arm["name"], seed]
-            var = variant_of(cfg, seed)
-            res = seed_result(seed_folder(out, arm, seed), cfg, var)
-            if res is None:
-                pending.append(f"{arm['name']} s{seed}")
-                continue
-            found += 1
-            res.setdefault("command", shlex.join(study_command(args, arm, seed)))
-            res.setdefault("sim2real_command", shlex.join(argv))
-            add_seed(entries, arm_meta(arm, cfg, var, args.resize, res["device"]), finite({"seed": seed, **res}),
-                     f"arm {arm['name']!r} of {args.arms_file} against --ledger {ledger}")
+    found, pending = add_finished(entries, Path(args.out), arms, args.seeds, configs, args.resize,
+                                  lambda arm, seed: seed_commands(args, arm, seed, configs[arm["name"], seed][1]),
+                                  f"of {args.arms_file} against --ledger {ledger}")
     return write_ledger(ledger, entries, found, pending, arm_order(args), _rel(args.arms_file))
 
 
@@ -281,20 +259,13 @@ def check(args) -> tuple[list[dict], dict]:
 
     from uhrnet.errors import UhrnetError
     from uhrnet.run_folder import default_meshes
-    from uhrnet.workflows.scaling.arms import UsageProblem, load_arms, variant_of
+    from uhrnet.workflows.scaling.arms import UsageProblem, load_arms, select_arms, variant_of
     from uhrnet.workflows.scaling.ledger import load_ledger
     from uhrnet.workflows.sim2real import (
         Sim2RealError, find_phase_frames, find_real_pairs, generate_config, train_config,
     )
 
-    arms = load_arms(args.arms_file, ROOT)
-    by_name = {a["name"]: a for a in arms}
-    if args.arms:
-        unknown = [n for n in args.arms if n not in by_name]
-        if unknown or len(set(args.arms)) != len(args.arms):
-            raise UsageProblem(f"--arms: unknown or repeated arm(s) {', '.join(unknown) or 'repeated'} "
-                               f"(arms of {args.arms_file}: {', '.join(by_name)})")
-        arms = [by_name[n] for n in args.arms]
+    arms = select_arms(load_arms(args.arms_file, ROOT), args.arms, args.arms_file)
     if any(s < 0 for s in args.seeds) or len(set(args.seeds)) != len(args.seeds):
         raise UsageProblem(f"--seeds: distinct non-negative integers, got {args.seeds}")
     if not args.out and not args.list:
@@ -343,7 +314,7 @@ def run(args, arms: list[dict], configs: dict) -> int:
     from fppsim.errors import FppsimError
     from uhrnet.workflows.sim2real import run_sim2real
     from uhrnet.workflows.scaling.arms import seed_folder, variant_of
-    from uhrnet.workflows.scaling.results import seed_result, write_seed_record
+    from uhrnet.workflows.scaling.results import result_line, seed_record, seed_result, write_seed_record
 
     out, t_start, failed = Path(args.out), time.perf_counter(), []
     todo = [(arm, seed) for arm in arms for seed in args.seeds]
@@ -360,7 +331,9 @@ def run(args, arms: list[dict], configs: dict) -> int:
                                 variant_of(configs[arm["name"], s][0], s)) is not None]
         if done:
             cfg = replace(cfg, variants=sorted([*done, variant_of(cfg, seed)], key=lambda v: int(v.name[1:])))
-        write_seed_record(folder, seed_record(args, arm, seed, cfg, argv))
+        record = seed_record(arm, seed, args.resize, cfg.device, seed_commands(args, arm, seed, argv), code_version(),
+                             args.threads)
+        write_seed_record(folder, record)
         print(f"{tag} start ({(time.perf_counter() - t_start) / 60:.1f} min into the study): {shlex.join(argv)}",
               flush=True)
         t0 = time.perf_counter()
@@ -377,16 +350,11 @@ def run(args, arms: list[dict], configs: dict) -> int:
                   file=sys.stderr, flush=True)
             continue
         res = seed_result(folder, cfg, variant_of(cfg, seed)) or {}
-        parts = ", ".join(f"{k} {res[v]:.2f} mm" for k, v in (("pair object RMSE", "pair_object_rmse_mm"),
-                          ("level", "pair_level_rmse_mm"), ("relief", "pair_relief_rmse_mm")) if res.get(v) is not None)
-        phase = ", ".join(f"{f} {v:.3f} rad" for f, v in res.get("phase_residual_rad", {}).items())
-        print(f"{tag} done in {(time.perf_counter() - t0) / 60:.1f} min: {parts}{'; ' + phase if phase else ''}",
-              flush=True)
+        print(f"{tag} done in {(time.perf_counter() - t0) / 60:.1f} min: {result_line(res)}", flush=True)
     if failed:
         print(f"scaling.py: error: failed: {', '.join(failed)} (re-run the same command to retry; logs in "
               f"{out}/<arm>/s<seed>/train.log and {out}/<arm>/data/*.log)", file=sys.stderr)
     return 1 if failed else 0
-
 
 
 GRACE_S = 8.0  # a stopped arm's time to exit after SIGINT before SIGKILL (gpu_check's guard allows 10 s)
@@ -520,7 +488,7 @@ def _die_with_starter() -> None:
 def main(argv=None) -> int:
     started = time.monotonic()  # --deadline counts from here: the checks count too
     _die_with_starter()
-    from uhrnet.workflows.scaling.arms import UsageProblem, steps_of, variant_of
+    from uhrnet.workflows.scaling.arms import UsageProblem, arm_line, variant_of
     from uhrnet.workflows.scaling.ledger import merge_records
 
     args = parse_args(sys.argv[1:] if argv is None else list(argv))
@@ -543,10 +511,8 @@ def main(argv=None) -> int:
         return 2
     if args.list:
         for arm in arms:
-            cfg, _ = configs[arm["name"], args.seeds[0]]
-            var = variant_of(cfg, args.seeds[0])
-            print(f"{arm['name']}: {cfg.count} samples, {steps_of(cfg, var)} steps, series "
-                  f"{', '.join(arm['series']) or '-'}; {arm['description']}")
+            cfg = configs[arm["name"], args.seeds[0]][0]
+            print(arm_line(arm, cfg, variant_of(cfg, args.seeds[0])))
             for seed in args.seeds:
                 print("    " + shlex.join(configs[arm["name"], seed][1]))
         return 0

@@ -10,12 +10,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from uhrnet.workflows.scaling.arms import UsageProblem, arm_key, arm_label, load_arms
+from uhrnet.workflows.scaling.arms import UsageProblem, arm_key, arm_label, load_arms, select_arms
 from uhrnet.workflows.scaling.ledger import (
     add_seed, check_finite, definition_conflict, finite, load_ledger, merge_records, write_ledger,
 )
 from uhrnet.workflows.scaling.report import TABLE_MARK, markdown
-from uhrnet.workflows.scaling.results import seed_result, write_seed_record
+from uhrnet.workflows.scaling.results import result_line, seed_result, write_seed_record
 from uhrnet.workflows.scaling.stats import compare, mean_std, series_slope, summarise
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,6 +67,23 @@ def test_arm_paths_resolve_from_the_root_and_an_arm_is_keyed_by_resize_and_devic
     assert load_arms(tmp_path / "arms.yaml", ROOT)[0]["generate"] == ["--rig", rig]
     assert arm_label({"name": "n400", "resize": "32x64", "device": "cuda"}) == "n400 @32x64 [cuda]"
     assert arm_label({"name": "n400"}) == "n400" and arm_key({"name": "n400"}) == ("n400", None, "cpu")
+
+
+def test_arms_are_chosen_by_name_in_the_order_given():
+    arms = [{"name": "a"}, {"name": "b"}, {"name": "c"}]
+    assert select_arms(arms, None, "f.yaml") == arms
+    assert [a["name"] for a in select_arms(arms, ["c", "a"], "f.yaml")] == ["c", "a"]
+    for names, message in ((["a", "x"], "unknown or repeated arm.s. x .arms of f.yaml: a, b, c."),
+                           (["a", "a"], "repeated")):
+        with pytest.raises(UsageProblem, match=message):
+            select_arms(arms, names, "f.yaml")
+
+
+def test_a_seed_result_in_one_line():
+    res = {"pair_object_rmse_mm": 4.25, "pair_level_rmse_mm": None, "pair_relief_rmse_mm": 2.0,
+           "phase_residual_rad": {"F/1": 1.23456}}
+    assert result_line(res) == "pair object RMSE 4.25 mm, relief 2.00 mm; F/1 1.235 rad"
+    assert result_line({}) == ""
 
 
 def test_mean_std_skips_missing_and_non_finite_values():

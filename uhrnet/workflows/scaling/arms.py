@@ -16,8 +16,8 @@ from pathlib import Path
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, split_indices
 from uhrnet.workflows.stages import read_config_file
 
-__all__ = ["UsageProblem", "CONFIG_FLAGS", "ARM_KEYS", "SERIES", "load_arms", "seed_folder",
-           "variant_of", "steps_of", "arm_label", "arm_key"]
+__all__ = ["UsageProblem", "CONFIG_FLAGS", "ARM_KEYS", "SERIES", "load_arms", "select_arms", "seed_folder",
+           "variant_of", "steps_of", "arm_line", "arm_label", "arm_key"]
 
 # arm keys that are Sim2RealConfig fields, with their `uhrnet sim2real` flags
 CONFIG_FLAGS = {"scale": "--scale", "count": "--count", "epochs": "--epochs", "batch_size": "--batch-size",
@@ -106,6 +106,19 @@ def load_arms(path: str | Path, root: str | Path | None = None) -> list[dict]:
     return arms
 
 
+def select_arms(arms: list[dict], names: list[str] | None, arms_file) -> list[dict]:
+    """The arms ``names`` (``--arms``) of ``arms``, in that order; every arm without names. An unknown or
+    repeated name is refused (:class:`UsageProblem`, listing the arms of ``arms_file``)."""
+    if not names:
+        return arms
+    by_name = {a["name"]: a for a in arms}
+    unknown = [n for n in names if n not in by_name]
+    if unknown or len(set(names)) != len(names):
+        raise UsageProblem(f"--arms: unknown or repeated arm(s) {', '.join(unknown) or 'repeated'} "
+                           f"(arms of {arms_file}: {', '.join(by_name)})")
+    return [by_name[n] for n in names]
+
+
 def seed_folder(out: Path, arm: dict, seed: int) -> Path:
     """``OUT/<arm>/s<seed>``: the folder of one (arm, seed)."""
     return Path(out) / arm["name"] / f"s{seed}"
@@ -125,6 +138,12 @@ def steps_of(cfg, variant) -> int:
     if not draws:
         draws = len(split_indices(cfg.count, "train")) if cfg.count >= MIN_REFERENCE_SPLIT else cfg.count
     return epochs * math.ceil(int(draws) / batch)
+
+
+def arm_line(arm: dict, cfg, variant) -> str:
+    """An arm in one line (``--list``): its name, samples, optimizer steps, series and description."""
+    return (f"{arm['name']}: {cfg.count} samples, {steps_of(cfg, variant)} steps, series "
+            f"{', '.join(arm['series']) or '-'}; {arm['description']}")
 
 
 def arm_label(entry: dict) -> str:

@@ -14,12 +14,13 @@ from typing import Callable
 from fppsim.errors import ForeignFiles
 from fppsim.files import atomic_write_text
 from fppsim.owned import claim
-from uhrnet.workflows.scaling.arms import SERIES, UsageProblem, arm_key, arm_label
+from uhrnet.workflows.scaling.arms import SERIES, UsageProblem, arm_key, arm_label, seed_folder, variant_of
 from uhrnet.workflows.scaling.report import TABLE_MARK, markdown, plot_series
+from uhrnet.workflows.scaling.results import arm_meta, seed_result
 from uhrnet.workflows.scaling.stats import summarise
 
 __all__ = ["STUDY", "STUDY_TOOL", "DEFINITION", "load_ledger", "definition_conflict", "check_finite", "finite",
-           "add_seed", "merge_records", "claim_beside", "write_ledger"]
+           "add_seed", "add_finished", "merge_records", "claim_beside", "write_ledger"]
 
 STUDY = "sim-to-real scaling (pipelines/scaling.py)"  # the record's "study"
 STUDY_TOOL = "pipelines/scaling.py"  # who writes the table and figures (the folder's ownership record)
@@ -163,6 +164,30 @@ def add_seed(entries: dict, meta: dict, new: dict, source: str = "the arms file"
             new["reruns"] = [*earlier, *mine]
     entry["seeds"] = sorted([*entry["seeds"], new], key=lambda s: s["seed"])
     return status
+
+
+def add_finished(entries: dict, out: Path, arms: list[dict], seeds: list[int], configs: dict, resize: str | None,
+                 commands: Callable[[dict, int], dict], where: str) -> tuple[int, list[str]]:
+    """Add every finished (arm, seed) folder under ``out`` (:func:`~uhrnet.workflows.scaling.results.seed_result`
+    of ``configs[name, seed][0]``, the seed's ``Sim2RealConfig``) to ``entries`` (:func:`add_seed`; a refusal
+    names the arm and ``where``: ``"of ARMS_FILE against --ledger FILE"``), its command lines the ones its
+    ``study.json`` recorded, else ``commands(arm, seed)`` (``{"command", "sim2real_command"}``). Returns
+    ``(found, pending)``: how many are finished and the others' ``"<arm> s<seed>"``."""
+    found, pending = 0, []
+    for arm in arms:
+        for seed in seeds:
+            cfg = configs[arm["name"], seed][0]
+            var = variant_of(cfg, seed)
+            res = seed_result(seed_folder(out, arm, seed), cfg, var)
+            if res is None:
+                pending.append(f"{arm['name']} s{seed}")
+                continue
+            found += 1
+            for key, value in commands(arm, seed).items():
+                res.setdefault(key, value)
+            add_seed(entries, arm_meta(arm, cfg, var, resize, res["device"]), finite({"seed": seed, **res}),
+                     f"arm {arm['name']!r} {where}")
+    return found, pending
 
 
 def merge_records(ledger: Path, paths: list, order: list[str], arms_file: str,

@@ -11,6 +11,8 @@ relief^2 = RMSE^2; :func:`uhrnet.workflows.sim2real.metrics.error_split`) and ``
 from __future__ import annotations
 
 import json
+import platform
+import time
 from pathlib import Path
 
 from fppsim.files import atomic_write_text
@@ -19,7 +21,8 @@ from uhrnet.workflows.sim2real import run_differences, train_config
 from uhrnet.workflows.sim2real.config import data_key
 from uhrnet.workflows.scaling.arms import steps_of
 
-__all__ = ["PAIR_KEYS", "RECORD", "same_folders", "seed_result", "write_seed_record", "arm_meta"]
+__all__ = ["PAIR_KEYS", "RECORD", "same_folders", "seed_result", "result_line", "seed_record", "write_seed_record",
+           "arm_meta"]
 
 # what a seed reports (scaling.json key <- real_metrics mean key)
 PAIR_KEYS = {"pair_object_rmse_mm": "object_rmse_mm", "pair_level_rmse_mm": "object_level_rmse_mm",
@@ -91,6 +94,30 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
             out[key] = record[key]
     out.setdefault("device", cfg.device)
     return out
+
+
+def result_line(res: dict) -> str:
+    """A seed's results in one line: the pair's object RMSE, its level and relief parts (mm), and each phase
+    frame's residual (rad)."""
+    parts = ", ".join(f"{k} {res[v]:.2f} mm" for k, v in (("pair object RMSE", "pair_object_rmse_mm"),
+                      ("level", "pair_level_rmse_mm"), ("relief", "pair_relief_rmse_mm")) if res.get(v) is not None)
+    phase = ", ".join(f"{f} {v:.3f} rad" for f, v in res.get("phase_residual_rad", {}).items())
+    return f"{parts}{'; ' + phase if phase else ''}"
+
+
+def seed_record(arm: dict, seed: int, resize: str | None, device: str, commands: dict, version: dict,
+                threads: int | None) -> dict:
+    """What ``OUT/<arm>/s<seed>/study.json`` holds: the seed's identity (arm, seed, resize, device) and how it
+    ran (``commands``: the study's and sim2real's command lines; ``version``: the code's commit; torch and
+    its CPU threads: ``threads``, else torch's)."""
+    import torch  # torch's version and threads: imported where they are read, the record's readers need no torch
+
+    gpu = torch.cuda.get_device_name(0) if device != "cpu" and torch.cuda.is_available() else None
+    return {"arm": arm["name"], "seed": seed, "resize": resize, "device": device,
+            "command": commands["command"], "sim2real_command": commands["sim2real_command"],
+            **version, "torch": torch.__version__, "torch_threads": threads or torch.get_num_threads(),
+            **({"gpu": gpu} if gpu else {}), "python": platform.python_version(),
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
 
 
 def write_seed_record(folder: Path, record: dict) -> None:
