@@ -50,7 +50,6 @@ import math
 import shlex
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -79,39 +78,12 @@ def phase_folders(dirs: list[str]) -> list[str]:
 
 
 def arm_config(arm: dict, seed: int, args) -> tuple[object, list[str]]:
-    """``(Sim2RealConfig, argv)``: the sim-to-real experiment of ``arm`` at training ``seed`` (its one variant
-    ``s<seed>``, in ``OUT/<arm>``) and the ``uhrnet sim2real`` command line that runs exactly the same."""
+    """``(Sim2RealConfig, argv)`` of ``arm`` at training ``seed`` with this command line's options
+    (:func:`uhrnet.workflows.scaling.arms.arm_config`, ``--variant`` flags read by ``uhrnet``'s own parsers)."""
     from uhrnet.cli import variant_commands
-    from uhrnet.workflows.scaling.arms import CONFIG_FLAGS
-    from uhrnet.workflows.sim2real import Sim2RealConfig
-    from uhrnet.workflows.sim2real.variants import VariantFlags, variant_from_flags
+    from uhrnet.workflows.scaling.arms import arm_config as study_arm_config
 
-    out = Path(args.out) / arm["name"]
-    given = {k: arm[k] for k in CONFIG_FLAGS if k in arm}
-    if args.device:
-        given["device"] = args.device
-    if args.workers is not None:
-        given["workers"] = args.workers
-    cfg = Sim2RealConfig(out=str(out), real=list(args.real), meshes=list(args.meshes), real_phase=list(args.real_phase),
-                         figures=not args.no_figures, **given)
-    train = (list(arm["train"]) + (["--resize", args.resize] if args.resize else [])
-             + (["--threads", str(args.threads)] if args.threads else []) + ["--seed", str(seed)])
-    flags = VariantFlags(f"s{seed}", list(arm["generate"]), train)
-    variant = variant_from_flags(cfg, flags, variant_commands())
-    cfg = replace(cfg, variants=[variant])
-    argv = ["uhrnet", "sim2real", "--real", *cfg.real, "--out", str(out), "--meshes", *cfg.meshes]
-    for key, flag in CONFIG_FLAGS.items():
-        if key in given:
-            argv += [flag, str(given[key])]
-    if "device" in given:
-        argv += ["--device", given["device"]]
-    if cfg.real_phase:
-        argv += ["--real-phase", *cfg.real_phase]
-    if args.no_figures:
-        argv.append("--no-figures")
-    argv += ["--variant", f"{flags.name}: {shlex.join(flags.generate)} | {shlex.join(flags.train)}"]
-    return cfg, argv
-
+    return study_arm_config(arm, seed, args, variant_commands())
 
 
 def code_version() -> dict:
@@ -314,7 +286,9 @@ def run(args, arms: list[dict], configs: dict) -> int:
     from fppsim.errors import FppsimError
     from uhrnet.workflows.sim2real import run_sim2real
     from uhrnet.workflows.scaling.arms import seed_folder, variant_of
-    from uhrnet.workflows.scaling.results import result_line, seed_record, seed_result, write_seed_record
+    from uhrnet.workflows.scaling.results import (
+        result_line, seed_record, seed_result, with_finished_seeds, write_seed_record,
+    )
 
     out, t_start, failed = Path(args.out), time.perf_counter(), []
     todo = [(arm, seed) for arm in arms for seed in args.seeds]
@@ -325,12 +299,7 @@ def run(args, arms: list[dict], configs: dict) -> int:
         if seed_result(folder, cfg, variant_of(cfg, seed)) is not None:
             print(f"{tag} finished before: re-used", flush=True)
             continue
-        # the arm's other finished seeds ride along (re-used, nothing re-run) so OUT/<arm>/report.md lists them all
-        done = [variant_of(configs[arm["name"], s][0], s) for s in args.seeds if s != seed
-                and seed_result(seed_folder(out, arm, s), configs[arm["name"], s][0],
-                                variant_of(configs[arm["name"], s][0], s)) is not None]
-        if done:
-            cfg = replace(cfg, variants=sorted([*done, variant_of(cfg, seed)], key=lambda v: int(v.name[1:])))
+        cfg = with_finished_seeds(out, arm, seed, args.seeds, configs)
         record = seed_record(arm, seed, args.resize, cfg.device, seed_commands(args, arm, seed, argv), code_version(),
                              args.threads)
         write_seed_record(folder, record)

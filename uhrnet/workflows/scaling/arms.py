@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import math
 import shlex
+from dataclasses import replace
 from pathlib import Path
+from typing import Mapping
 
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, split_indices
+from uhrnet.workflows.sim2real import Sim2RealConfig
+from uhrnet.workflows.sim2real.variants import FlagReader, VariantFlags, variant_from_flags
 from uhrnet.workflows.stages import read_config_file
 
-__all__ = ["UsageProblem", "CONFIG_FLAGS", "ARM_KEYS", "SERIES", "load_arms", "select_arms", "seed_folder",
-           "variant_of", "steps_of", "arm_line", "arm_label", "arm_key"]
+__all__ = ["UsageProblem", "CONFIG_FLAGS", "ARM_KEYS", "SERIES", "load_arms", "select_arms", "arm_config",
+           "seed_folder", "variant_of", "steps_of", "arm_line", "arm_label", "arm_key"]
 
 # arm keys that are Sim2RealConfig fields, with their `uhrnet sim2real` flags
 CONFIG_FLAGS = {"scale": "--scale", "count": "--count", "epochs": "--epochs", "batch_size": "--batch-size",
@@ -117,6 +121,40 @@ def select_arms(arms: list[dict], names: list[str] | None, arms_file) -> list[di
         raise UsageProblem(f"--arms: unknown or repeated arm(s) {', '.join(unknown) or 'repeated'} "
                            f"(arms of {arms_file}: {', '.join(by_name)})")
     return [by_name[n] for n in names]
+
+
+def arm_config(arm: dict, seed: int, options,
+               commands: Mapping[str, FlagReader]) -> tuple[Sim2RealConfig, list[str]]:
+    """``(Sim2RealConfig, argv)``: the sim-to-real experiment of ``arm`` at training ``seed`` (its one variant
+    ``s<seed>``, in ``OUT/<arm>``) and the ``uhrnet sim2real`` command line that runs exactly the same.
+    ``options``: the study's options for every arm (``pipelines/scaling.py``'s parsed flags ``out``, ``real``,
+    ``real_phase``, ``meshes``, ``device``, ``workers``, ``resize``, ``threads``, ``no_figures``); ``commands``:
+    how ``--variant`` flags are read (the command layer's parsers, ``uhrnet.cli.variant_commands()``)."""
+    out = Path(options.out) / arm["name"]
+    given = {k: arm[k] for k in CONFIG_FLAGS if k in arm}
+    if options.device:
+        given["device"] = options.device
+    if options.workers is not None:
+        given["workers"] = options.workers
+    cfg = Sim2RealConfig(out=str(out), real=list(options.real), meshes=list(options.meshes),
+                         real_phase=list(options.real_phase), figures=not options.no_figures, **given)
+    train = (list(arm["train"]) + (["--resize", options.resize] if options.resize else [])
+             + (["--threads", str(options.threads)] if options.threads else []) + ["--seed", str(seed)])
+    flags = VariantFlags(f"s{seed}", list(arm["generate"]), train)
+    variant = variant_from_flags(cfg, flags, commands)
+    cfg = replace(cfg, variants=[variant])
+    argv = ["uhrnet", "sim2real", "--real", *cfg.real, "--out", str(out), "--meshes", *cfg.meshes]
+    for key, flag in CONFIG_FLAGS.items():
+        if key in given:
+            argv += [flag, str(given[key])]
+    if "device" in given:
+        argv += ["--device", given["device"]]
+    if cfg.real_phase:
+        argv += ["--real-phase", *cfg.real_phase]
+    if options.no_figures:
+        argv.append("--no-figures")
+    argv += ["--variant", f"{flags.name}: {shlex.join(flags.generate)} | {shlex.join(flags.train)}"]
+    return cfg, argv
 
 
 def seed_folder(out: Path, arm: dict, seed: int) -> Path:

@@ -13,16 +13,17 @@ from __future__ import annotations
 import json
 import platform
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from fppsim.files import atomic_write_text
 from uhrnet.run_folder import CONFIG_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.sim2real import run_differences, train_config
 from uhrnet.workflows.sim2real.config import data_key
-from uhrnet.workflows.scaling.arms import steps_of
+from uhrnet.workflows.scaling.arms import seed_folder, steps_of, variant_of
 
-__all__ = ["PAIR_KEYS", "RECORD", "same_folders", "seed_result", "result_line", "seed_record", "write_seed_record",
-           "arm_meta"]
+__all__ = ["PAIR_KEYS", "RECORD", "same_folders", "seed_result", "with_finished_seeds", "result_line", "seed_record",
+           "write_seed_record", "arm_meta"]
 
 # what a seed reports (scaling.json key <- real_metrics mean key)
 PAIR_KEYS = {"pair_object_rmse_mm": "object_rmse_mm", "pair_level_rmse_mm": "object_level_rmse_mm",
@@ -94,6 +95,19 @@ def seed_result(folder: Path, cfg, variant) -> dict | None:
             out[key] = record[key]
     out.setdefault("device", cfg.device)
     return out
+
+
+def with_finished_seeds(out: Path, arm: dict, seed: int, seeds: list[int], configs: dict):
+    """The ``Sim2RealConfig`` that runs ``arm`` at ``seed`` (``configs[name, seed][0]``) with the arm's other
+    finished seeds of ``seeds`` riding along (re-used, nothing re-run), so that ``OUT/<arm>/report.md`` lists
+    them all; the variants in seed order."""
+    cfg = configs[arm["name"], seed][0]
+    done = [variant_of(configs[arm["name"], s][0], s) for s in seeds if s != seed
+            and seed_result(seed_folder(out, arm, s), configs[arm["name"], s][0],
+                            variant_of(configs[arm["name"], s][0], s)) is not None]
+    if not done:
+        return cfg
+    return replace(cfg, variants=sorted([*done, variant_of(cfg, seed)], key=lambda v: int(v.name[1:])))
 
 
 def result_line(res: dict) -> str:
