@@ -6,17 +6,12 @@ from pathlib import Path
 
 import pytest
 
-from _helpers import load_pipeline
-
+from uhrnet.workflows.scaling.arms import UsageProblem, load_arms
 from uhrnet.workflows.sim2real.variants import load_variants
 from uhrnet.workflows.stages import read_config_file
 from uhrnet.errors import Sim2RealError
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _scaling():
-    return load_pipeline("scaling")
 
 
 class Problem(Exception):
@@ -59,11 +54,10 @@ def test_a_folder_or_a_missing_file_is_named_as_such(tmp_path):
 
 
 def test_the_callers_refuse_them_in_one_line(tmp_path):
-    scaling = _scaling()
     binary = tmp_path / "arms.bin"
     binary.write_bytes(b"\xff\xd8\xff\xe0JFIF\x00")
     for path, message in ((binary, "not a text YAML/JSON file"), (tmp_path, "is a folder")):
-        with pytest.raises(scaling.UsageProblem, match=message):
-            scaling.load_arms(path)
+        with pytest.raises(UsageProblem, match=message):
+            load_arms(path)
         with pytest.raises(Sim2RealError, match=message):
             load_variants(path)

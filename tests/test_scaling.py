@@ -11,6 +11,8 @@ import pytest
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 
+from uhrnet.workflows.scaling.arms import UsageProblem, arm_label, load_arms, steps_of
+
 from _helpers import load_pipeline, rig_fringe, tiny_rig, write_figshare
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -57,14 +59,14 @@ def _argv(w, *extra):
 
 
 def test_shipped_arms_file_fixed_step_budget_and_commands(tmp_path):
-    arms = {a["name"]: a for a in scaling.load_arms(scaling.DEFAULT_ARMS)}
+    arms = {a["name"]: a for a in load_arms(scaling.DEFAULT_ARMS, ROOT)}
     assert {"n100", "n400", "n1600", "n6400", "n400-e20", "n400-e40", "depth-rig"} <= set(arms)
     args = scaling.parse_args(["--out", str(tmp_path / "o"), "--real", "R", "--real-phase", "none", "--meshes", "M"])
     args.real_phase, args.meshes = [], ["M"]
     steps = {}
     for name in ("n100", "n400", "n1600", "n6400", "n400-e40"):
         cfg, argv = scaling.arm_config(arms[name], 1, args)
-        steps[name] = scaling.steps_of(cfg, cfg.variants[0])
+        steps[name] = steps_of(cfg, cfg.variants[0])
         assert cfg.variants[0].train["seed"] == 1 and argv[-1].endswith("--seed 1")
         assert cfg.out == str(tmp_path / "o" / name)
     # the recipe: 80 % of 400 samples, 10 epochs, batch 2 = 1,600 steps; every count arm the same budget
@@ -106,23 +108,11 @@ def test_bad_input_is_one_line_and_exit_2_before_anything_runs(world, capsys, ch
     assert not (world / "study").exists()
 
 
-def test_bad_arms_files_are_refused(tmp_path):
-    for text, message in (("- name: x", "a mapping with a non-empty list"),
-                          ("arms: [{name: x, cuont: 4}]", "unknown keys ['cuont']"),
-                          ("arms: [{name: x}, {name: x}]", "unique word"),
-                          ("arms: [{name: x, series: [time]}]", "series must be"),
-                          ("arms: [{name: x, train: '--a \"b'}]", "train"),
-                          ("arms: [{name: x, count: 1.5}]", "count must be an integer"),
-                          ("arms: [{name: x, lr: fast}]", "lr must be a number")):
-        (tmp_path / "a.yaml").write_text(text)
-        with pytest.raises(scaling.UsageProblem, match=message.replace("[", r"\[").replace("]", r"\]")):
-            scaling.load_arms(tmp_path / "a.yaml")
-    (tmp_path / "a.yaml").write_text("arms: [{name: x, lr: 5e-4, count: '400'}]")  # YAML reads 5e-4 as text
-    assert {k: scaling.load_arms(tmp_path / "a.yaml")[0][k] for k in ("lr", "count")} == {"lr": 5e-4, "count": 400}
+def test_an_arm_whose_flags_its_command_refuses_is_refused_by_check(tmp_path):
     args = scaling.parse_args(["--arms-file", str(tmp_path / "b.yaml"), "--out", str(tmp_path), "--real", "r",
                                "--real-phase", "none", "--list"])
     (tmp_path / "b.yaml").write_text("arms: [{name: x, count: 6, train: --no-such-flag}]")
-    with pytest.raises(scaling.UsageProblem, match="variant 's0': train"):
+    with pytest.raises(UsageProblem, match="variant 's0': train"):
         scaling.check(args)
 
 
@@ -191,7 +181,7 @@ def test_a_tiny_study_runs_resumes_and_reports(world, capsys):
     other = [a.replace(str(world / "real"), str(world / "phase" / ".." / "real")) for a in _argv(world)]
     assert scaling.main(other + ["--report-only", "--ledger", str(ledger)]) == 0
     merged = json.loads(ledger.read_text())
-    labels = [scaling.arm_label(a) for a in merged["arms"]]
+    labels = [arm_label(a) for a in merged["arms"]]
     assert labels == ["a6", "a6 @16x32", "a8"], labels
     assert merged["arms"][1]["seeds"] == [{"seed": 0, "pair_object_rmse_mm": 9.0, "device": "cpu",
                                             "sim2real_command": old["arms"][0]["commands"][0]}]
@@ -254,7 +244,7 @@ def test_jobs_run_arms_at_once_deadline_stops_and_merge_keeps_everything(world, 
                          "--merge", str(world / "gpu.json")]) == 0
     assert "5 seed result(s) merged" in capsys.readouterr().out
     merged = json.loads(ledger.read_text())
-    assert [scaling.arm_label(a) for a in merged["arms"]] == ["a6", "a6 [cuda]", "a8 [cuda]"]
+    assert [arm_label(a) for a in merged["arms"]] == ["a6", "a6 [cuda]", "a8 [cuda]"]
     cpu0 = merged["arms"][0]["seeds"][0]
     assert cpu0["pair_object_rmse_mm"] == 5.0 and cpu0["reruns"] == [{"seed": 0, "pair_object_rmse_mm": 9.0, "device": "cpu"}]
     assert merged["arms"][1]["seeds"] == doc["arms"][0]["seeds"]
@@ -305,26 +295,3 @@ def test_merge_keeps_both_histories_and_refuses_seed_entries_that_are_not_seeds(
     other.write_text(json.dumps({"arms": [{"name": "a6", "seeds": [{"pair_object_rmse_mm": 3.0}]}]}))
     assert scaling.main(["--arms-file", str(arms), "--ledger", str(ledger), "--merge", str(other)]) == 2
     assert "without an integer 'seed'" in capsys.readouterr().err and ledger.read_text() == before
-
-
-def test_what_moves_compares_with_n400_and_fits_the_samples_slope():
-    """The table's comparison with n400 (difference, larger seed std, Welch t by hand) and the slope per doubling
-    of samples (exact on results that lie on a line in log2(samples))."""
-    def arm(name, count, pair, phase=None):
-        seeds = [{"seed": i, "pair_object_rmse_mm": v,
-                  "phase_residual_rad": {"F/1": phase[i]} if phase else {}} for i, v in enumerate(pair)]
-        return {"name": name, "device": "cuda", "resize": None, "count": count, "series": ["samples"],
-                "seeds": seeds, "summary": scaling.summarise(seeds)}
-    ref = arm("n400", 400, [5.0, 6.0, 7.0], [1.0, 1.2, 1.4])
-    other = arm("n1600", 1600, [3.0, 3.5, 4.0], [1.1, 1.3, 1.5])
-    c = scaling.compare(other, ref, "pair_object_rmse_mm")
-    assert c["diff"] == pytest.approx(-2.5) and c["spread"] == pytest.approx(1.0) and c["beyond"]
-    assert c["t"] == pytest.approx(-2.5 / np.sqrt(1.0 / 3 + 0.25 / 3))
-    p = scaling.compare(other, ref, "", "F/1")
-    assert p["diff"] == pytest.approx(0.1) and not p["beyond"]
-    assert scaling.compare(arm("x", 1, [5.0]), ref, "pair_object_rmse_mm") is None  # one seed: no spread
-    line = [arm(f"n{c}", c, [8.0 - 0.5 * np.log2(c / 100)] * 2) for c in (100, 400, 1600)]
-    fit = scaling.series_slope(line, "pair_object_rmse_mm")
-    assert fit["slope"] == pytest.approx(-0.5) and fit["stderr"] == pytest.approx(0, abs=1e-6) and fit["n"] == 6
-    md = scaling.markdown({"arms": [ref, other]})
-    assert "## Against n400 (cuda)" in md and "| n1600 [cuda] | -2.50 (beyond ±1.00; t -3.9) | +0.10 (within ±0.20" in md

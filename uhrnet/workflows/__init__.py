@@ -12,4 +12,7 @@ uhrnet imports it, and it is the only part of uhrnet that may import fppsim's re
   file; a run folder's history, finished epochs and the resume checks are :mod:`uhrnet.run_folder`'s.
 - :mod:`~uhrnet.workflows.sim2real`: the sim-to-real experiment (``uhrnet sim2real``, ``pipelines/sim2real.py``,
   ``pipelines/scaling.py``), with its variant grammar (:mod:`~uhrnet.workflows.sim2real.variants`).
+- :mod:`~uhrnet.workflows.scaling`: the scaling study's library (``pipelines/scaling.py``: arms x training seeds
+  of sim2real): its arms file, a seed's folder and record, the study record ``scaling.json`` (add, merge,
+  resume), its statistics, table and figures; the pipeline only parses its command line and launches the arms.
 """
