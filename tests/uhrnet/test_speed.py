@@ -18,6 +18,7 @@ from uhrnet.data.augment import AugmentConfig, augment_sample
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources
 from uhrnet.data.device_augment import augment_fringes, draw, gaussian_blur
 from uhrnet.data.device_data import DeviceLoader, DeviceSet
+from uhrnet.training.builders import match_layout
 from uhrnet.training.distributed import DistInfo, MetricSums
 from uhrnet.training.speed import DeviceSums, LossWatch, resolve_speed
 from uhrnet.training.train_config import RunConfig
@@ -125,3 +126,20 @@ def test_the_device_path_trains_on_a_cpu(tmp_path):
     assert cfg["device_data"] == "on" and cfg["host_sync"] == "epoch" and cfg["channels_last"] == "on"
     rows = torch.load(out / "last.pt", weights_only=False)["history"]
     assert len(rows) == 2 and all(np.isfinite(r["train_loss"]) and np.isfinite(r["val_rmse_mm"]) for r in rows)
+
+
+def test_resumed_optimizer_state_takes_the_weights_layout():
+    """--channels-last: moments loaded from a checkpoint are strided as their weights (builders.match_layout)."""
+    conv = torch.nn.Conv2d(3, 4, 3)
+    opt = torch.optim.Adam(conv.parameters())
+    conv(torch.randn(1, 3, 8, 8)).sum().backward()
+    opt.step()
+    saved = opt.state_dict()
+    conv = conv.to(memory_format=torch.channels_last)
+    opt = torch.optim.Adam(conv.parameters())
+    opt.load_state_dict(saved)
+    w = conv.weight
+    before = opt.state[w]["exp_avg"].clone()
+    assert opt.state[w]["exp_avg"].stride() != w.stride()
+    match_layout(opt)
+    assert opt.state[w]["exp_avg"].stride() == w.stride() and torch.equal(opt.state[w]["exp_avg"], before)

@@ -38,7 +38,7 @@ from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES
 
 __all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
            "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
-           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng", "use_device_data",
+           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng", "use_device_data", "match_layout",
            "checkpoint_payload"]
 
 DEVICE_DATA_SHARE = 0.25  # --device-data auto: the samples may take this share of the GPU's free memory
@@ -317,6 +317,7 @@ def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, ra
     if ema is not None:
         ema.load_state_dict(ckpt["state_dict"], ckpt["ema"]["updates"])
     optimizer.load_state_dict(ckpt["optimizer"])
+    match_layout(optimizer)
     for group in optimizer.param_groups:
         group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
     loss_fn.load_state_dict(ckpt["loss"])
@@ -328,6 +329,15 @@ def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, ra
     elif states:
         print(f"warning: {ckpt['path']} holds RNG state for {len(states)} process(es); rank "
               f"{rank} starts a fresh stream", file=sys.stderr)
+
+
+def match_layout(optimizer) -> None:
+    """Optimizer state loaded from a checkpoint in the memory layout of its weights (``--channels-last``: the
+    fused and foreach kernels expect each weight's moments strided as the weight); a no-op where they match."""
+    for p, state in optimizer.state.items():
+        for k, v in state.items():
+            if torch.is_tensor(v) and v.shape == p.shape and v.stride() != p.stride():
+                state[k] = torch.empty_like(p, dtype=v.dtype).copy_(v)
 
 
 def gather_rng(info: DistInfo) -> list:

@@ -37,10 +37,11 @@ class Speed:
     fused_adam: bool
     compile: bool
 
-    def describe(self) -> str:
-        """One line for the run's opening lines."""
-        on = [n for n, v in (("channels_last", self.channels_last), ("host sync per epoch", self.epoch_sync),
-                             ("fused Adam", self.fused_adam), ("torch.compile", self.compile)) if v]
+    def describe(self, on_device: bool) -> str:
+        """One line for the run's opening lines; ``on_device``: whether the samples live on the device."""
+        on = [n for n, v in (("samples on the device", on_device), ("channels_last", self.channels_last),
+                             ("host sync per epoch", self.epoch_sync), ("fused Adam", self.fused_adam),
+                             ("torch.compile", self.compile)) if v]
         return f"amp dtype {str(self.amp_dtype).replace('torch.', '')}; " + (", ".join(on) or "no speed options")
 
 

@@ -29,6 +29,7 @@ import torch.distributed as dist
 from fppsim.owned import output_folder
 from uhrnet.checkpoint import checkpoint_kind, init_from_checkpoint, output_mm, save_epoch
 from uhrnet.data.datasets import parse_size
+from uhrnet.data.device_data import DeviceLoader
 from uhrnet.errors import ConfigError, TrainingDiverged
 from uhrnet.models import HEADS, count_parameters, outputs_of
 from uhrnet.models.any_size import any_size
@@ -224,6 +225,8 @@ class Trainer:
                               image_shape=self.data.image_shape, device=self.device, world=info.world,
                               distributed=info.enabled, out=self.out, start_epoch=self.start_epoch,
                               val_phase_notes=self.val_phase.notes if self.val_phase is not None else [])
+        if self.device.type == "cuda":  # (a CPU run says what it always said)
+            lines.append(f"speed: {self.speed.describe(isinstance(self.data.loader, DeviceLoader))}")
         for line in lines:
             print(line, flush=True)
 
