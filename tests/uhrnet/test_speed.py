@@ -143,3 +143,22 @@ def test_resumed_optimizer_state_takes_the_weights_layout():
     assert opt.state[w]["exp_avg"].stride() != w.stride()
     match_layout(opt)
     assert opt.state[w]["exp_avg"].stride() == w.stride() and torch.equal(opt.state[w]["exp_avg"], before)
+
+
+def test_cpu_auto_is_every_option_off_bit_for_bit(tmp_path):
+    """On a CPU the speed options' defaults are the path runs took before them: a seeded run with them equals,
+    tensor for tensor, one with each asked off (and the float16 type, which a CPU never uses)."""
+    write_figshare(tmp_path / "d", n=8, h=32, w=64, seed=4)
+    common = ["train", "--synthetic", str(tmp_path / "d"), "--model", "unet", "--base-channels", "4", "--epochs", "2",
+              "--batch-size", "2", "--device", "cpu", "--seed", "3", "--threads", "1", "--amp", "--ema", "0.9",
+              "--no-progress"]
+    off = ["--amp-dtype", "fp16", "--channels-last", "off", "--device-data", "off", "--host-sync", "step",
+           "--fused-adam", "off"]
+    assert main([*common, "--out", str(tmp_path / "auto")]) == 0
+    assert main([*common, *off, "--out", str(tmp_path / "off")]) == 0
+    a, b = (torch.load(tmp_path / r / "last.pt", weights_only=False) for r in ("auto", "off"))
+    for key in ("state_dict", "train_state_dict"):
+        assert a[key].keys() == b[key].keys() and all(torch.equal(a[key][k], b[key][k]) for k in a[key])
+    sa, sb = a["optimizer"]["state"], b["optimizer"]["state"]
+    assert all(torch.equal(sa[i][k], sb[i][k]) for i in sa for k in sa[i])
+    assert [r["train_loss"] for r in a["history"]] == [r["train_loss"] for r in b["history"]]
