@@ -437,6 +437,8 @@ def speed_table(speed: dict | None) -> list[str]:
     lines += ["", "before: " + ", ".join(f"{k} {v}" for k, v in speed["before"]["settings"].items()) + "; after: "
               + ", ".join(f"{k} {v}" for k, v in speed["after"]["settings"].items())
               + (" (TINY dry run: numbers not meaningful)" if speed.get("tiny_dry_run") else "") + "."]
+    if "unet_recipe_amp_seed_train_s" in speed["after"]:
+        lines.append(f"The recipe seed with --amp too ('after'): {speed['after']['unet_recipe_amp_seed_train_s']:.1f} s.")
     return lines
 
 

@@ -41,6 +41,8 @@
 #   GPU_CHECK_STEPS   the steps to run, in the order above   [speed study forward generate train ddp sim2real]
 #   GPU_CHECK_STUDY   the study's arms (pipelines/scaling_arms.yaml), run at once   [n100 n400 n1600 n6400 pedestal-0.8]
 #   GPU_CHECK_STUDY_SEEDS  the training seeds of each study arm (a study's pending ones)   [0 1 2]
+#   GPU_CHECK_SPEED_ARGS  the speed step's 'after' also with: --compile (torch.compile), --recipe-amp (the recipe
+#                     seed with --amp too)   [none]
 #   GPU_CHECK_STUDY_SHARE  percent of the budget the study may take when other steps follow   [60]
 #   STUDY_COMMIT      the commit of the checkout sent (a copy without git), recorded with every study seed
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
@@ -123,6 +125,10 @@ if want study && [ ${#STUDY_SEEDS[@]} -eq 0 ]; then
 fi
 for x in "${STUDY_SEEDS[@]}"; do
   [[ "$x" =~ ^[0-9]{1,9}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY_SEEDS: '$x' is not a seed (a whole number)" >&2; exit 2; }
+done
+read -r -a SPEED_EXTRA <<< "${GPU_CHECK_SPEED_ARGS-}"
+for a in "${SPEED_EXTRA[@]}"; do
+  case "$a" in --compile|--recipe-amp) ;; *) echo "gpu_check: GPU_CHECK_SPEED_ARGS: '$a' (known: --compile --recipe-amp)" >&2; exit 2 ;; esac
 done
 SHARE="${GPU_CHECK_STUDY_SHARE:-60}"
 [[ "$SHARE" =~ ^[0-9]{1,3}$ ]] && [ "$((10#$SHARE))" -ge 10 ] && [ "$((10#$SHARE))" -le 100 ] \
@@ -244,7 +250,7 @@ PHASE=(); for d in .gpu_data/real-phase/*/; do [ -d "$d/PSin" ] && PHASE+=("${d%
 if want speed; then
   SPEED=(--out "$WORK/speed" --bench-dir "$ROOT/docs/benchmarks/gpu")
   [ "$TINY" != 0 ] && SPEED=(--out "$WORK/speed" --tiny --bench-dir "$WORK/speed/bench")   # a dry run leaves docs/ alone
-  run_step speed "$(limit 420 $(( BUDGET * 30 / 100 )))" "$PY" pipelines/gpu_speed.py "${SPEED[@]}"
+  run_step speed "$(limit 420 $(( BUDGET * 30 / 100 )))" "$PY" pipelines/gpu_speed.py "${SPEED[@]}" "${SPEED_EXTRA[@]}"
   [ -f "$WORK/speed/speed.json" ] && cp "$WORK/speed/speed.json" "$OUTDIR/speed.json"
 fi
 

@@ -27,6 +27,7 @@ The data are random scenes in the figshare layout (speed does not depend on what
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -133,8 +134,9 @@ def _steady(history: list) -> float:
     return sum(steady) / len(steady)
 
 
-def measure(setting: dict, data: Path, work: Path, sizes: dict, device: str, amp: bool) -> dict:
-    """The numbers of one setting (module docstring)."""
+def measure(setting: dict, data: Path, work: Path, sizes: dict, device: str, amp: bool, recipe_amp: bool = False) -> dict:
+    """The numbers of one setting (module docstring); ``recipe_amp``: the recipe once more with ``--amp``
+    (``unet_recipe_amp_seed_train_s``: whether a GPU seed may use it is for the seed spread to say)."""
     common = dict(synthetic=[str(data)], device=device, seed=0, progress=False, overwrite=True, **setting)
     uh = TrainConfig(out=str(work / "uhrnet"), model="uhrnet", base_channels=sizes["uhrnet_base"], loss="compound",
                      epochs=sizes["uhrnet_epochs"], batch_size=sizes["uhrnet_batch"], lr=3e-4,
@@ -152,6 +154,9 @@ def measure(setting: dict, data: Path, work: Path, sizes: dict, device: str, amp
     out["unet_recipe_seed_train_s"] = sum(secs)
     out["unet_recipe_steps"] = sizes["recipe_epochs"] * -(-sizes["recipe_draws"] // 2)
     out["unet_recipe_samples_per_s"] = sizes["recipe_draws"] / _steady(res["history"])
+    if recipe_amp:
+        res = train(dataclasses.replace(recipe, out=str(work / "recipe_amp"), amp=True))
+        out["unet_recipe_amp_seed_train_s"] = sum(float(r["seconds"]) for r in res["history"])
     prof = TrainConfig(out=str(work / "profile"), model="uhrnet", base_channels=sizes["uhrnet_base"], loss="compound",
                        epochs=1, batch_size=sizes["uhrnet_batch"], lr=3e-4, amp=amp, **common)
     out["uhrnet_step"] = step_shares(prof, sizes["profile_steps"])
@@ -195,6 +200,7 @@ def main(argv=None) -> int:
                    help="where the dated report goes too [docs/benchmarks/gpu]")
     p.add_argument("--commit", help="the commit measured [$STUDY_COMMIT, else git rev-parse HEAD]")
     p.add_argument("--compile", action="store_true", help="'after' with torch.compile too")
+    p.add_argument("--recipe-amp", action="store_true", help="'after' also times the recipe with --amp")
     args = p.parse_args(argv)
     cuda = torch.cuda.is_available()
     if not cuda and not args.tiny:
@@ -208,7 +214,8 @@ def main(argv=None) -> int:
     runs = {}
     for name, setting in (("before", BEFORE), ("after", after)):
         print(f"gpu_speed: {name}: {setting}", flush=True)
-        runs[name] = measure(setting, data, args.out / name, sizes, "cuda" if cuda else "cpu", amp=cuda)
+        runs[name] = measure(setting, data, args.out / name, sizes, "cuda" if cuda else "cpu", amp=cuda,
+                             recipe_amp=args.recipe_amp and name == "after")
     rec = report(runs["before"], runs["after"], commit=commit_of(args.commit), device=device, tiny=args.tiny,
                  sizes=sizes)
     text = json.dumps(rec, indent=1) + "\n"
