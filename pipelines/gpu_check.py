@@ -47,11 +47,11 @@ PAPER_MS = {"uhrnet": 22.4, "unet": 8.1, "hnet": None}  # Table 3 of the paper, 
 TOOL = "pipelines/gpu_check.sh"
 WRITING = TOOL + " (folder being written)"  # a TREES entry of a run that has not settled: all of it is the run's
 MARKER = ".gpu_check"
-STEPS = ("study", "forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
+STEPS = ("speed", "study", "forward_fp32", "forward_fp16", "generate", "train", "ddp", "sim2real")
 STUDY_FILES = ("study.json", "study_table.md", "study_samples.png", "study_steps.png")  # scaling.py --ledger's
 FILES = (MARKER, "setup.log", "step_env.json", *(f"{s}.log" for s in STEPS), *(f"step_{s}.json" for s in STEPS),
-         "forward_fp32.json", "forward_fp16.json", "gpu_check.json", "gpu_check.md", *STUDY_FILES)  # fixed names
-TREES = ("work/site", "work/x11", "work/study", "work/syn", "work/run", "work/ddp", "work/s2r")  # steps fill these
+         "forward_fp32.json", "forward_fp16.json", "speed.json", "gpu_check.json", "gpu_check.md", *STUDY_FILES)  # fixed names
+TREES = ("work/site", "work/x11", "work/speed", "work/study", "work/syn", "work/run", "work/ddp", "work/s2r")  # steps fill these
 HEARTBEAT_S = 1.0  # how often guard marks the run alive (the marker's mtime)
 GRACE_S = 10.0     # a stopped step's time to exit after SIGINT/SIGTERM before SIGKILL
 SLACK_S = 1.0      # coarse file-system clocks: a path's ctime may read this much before the claim
@@ -401,6 +401,9 @@ def report(out: Path) -> dict:
                            "pair_object_median_abs_mm": (row.get("real") or {}).get("object_median_abs_mm"),
                            "phase_residual_rad": {f"{Path(f['folder']).name}/{f['id']}": f["rmse_rad"]
                                                   for f in row.get("real_phase") or []}}
+    speed = _json(out / "speed.json")
+    if speed:
+        res["speed"] = speed
     study = _json(out / "study.json")
     if study:
         res["study"] = [{"arm": a["name"], "device": a.get("device"), "seeds": [x["seed"] for x in a["seeds"]],
@@ -410,6 +413,33 @@ def report(out: Path) -> dict:
     (out / "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
     (out / "gpu_check.md").write_text(markdown(res))
     return res
+
+
+PHASES = ("data", "forward", "backward", "optimizer")
+
+
+def speed_table(speed: dict | None) -> list[str]:
+    """The speed step's table (pipelines/gpu_speed.py): before / after the speed options, one row each."""
+    if not speed:
+        return []
+    s = speed["sizes"]
+    lines = ["", f"Training speed ({speed['device']}, commit {speed['commit'][:12]}; gpu_speed.py):", "",
+             f"| setting | UHRNet samples/s ({s['h']}x{s['w']}, batch {s['uhrnet_batch']}{', AMP' if speed.get('amp') else ''}, validation incl.) | "
+             f"U-Net recipe samples/s | s per study seed ({s['recipe_epochs']} x {s['recipe_draws']} draws) | "
+             + " | ".join(f"{p} %" for p in PHASES) + " | step ms |",
+             "|---|---|---|---|" + "---|" * len(PHASES) + "---|"]
+    for name in ("before", "after"):
+        r = speed[name]
+        share = r["uhrnet_step"]["share"]
+        lines.append(f"| {name} | {r['uhrnet_train_samples_per_s']:.1f} | {r['unet_recipe_samples_per_s']:.1f} | "
+                     f"{r['unet_recipe_seed_train_s']:.1f} | " + " | ".join(f"{100 * share[p]:.0f}" for p in PHASES)
+                     + f" | {r['uhrnet_step']['step_ms']:.1f} |")
+    lines += ["", "before: " + ", ".join(f"{k} {v}" for k, v in speed["before"]["settings"].items()) + "; after: "
+              + ", ".join(f"{k} {v}" for k, v in speed["after"]["settings"].items())
+              + (" (TINY dry run: numbers not meaningful)" if speed.get("tiny_dry_run") else "") + "."]
+    if "unet_recipe_amp_seed_train_s" in speed["after"]:
+        lines.append(f"The recipe seed with --amp too ('after'): {speed['after']['unet_recipe_amp_seed_train_s']:.1f} s.")
+    return lines
 
 
 def markdown(res: dict) -> str:
@@ -422,6 +452,7 @@ def markdown(res: dict) -> str:
         if s:
             lines.append(f"| {name} | {s['exit_code']}{' (timed out)' if s['timed_out'] else ''} | "
                          f"{s['seconds']:.0f} | {s['limit_s']} |")
+    lines += speed_table(res.get("speed"))
     if res.get("study"):  # scaling.py writes the study's own table beside its record
         lines += ["", f"Scaling study: {sum(len(a['seeds']) for a in res['study'])} (arm, seed) finished in "
                       f"{len(res['study'])} arm(s); record study.json, table (mean +- std) study_table.md."]

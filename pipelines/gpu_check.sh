@@ -10,6 +10,10 @@
 #
 # Steps (each under its own time limit, cut to what the budget has left; a failed step is reported, the
 # others still run):
+#   s. training speed before / after the speed options (issue 49): UHRNet samples/s at 352 x 640, seconds of
+#      one study seed (the recipe's U-Net), each step's share in data / forward / backward / optimizer
+#                                                                   (pipelines/gpu_speed.py; OUTDIR/speed.json,
+#      also docs/benchmarks/gpu/<date>_<card>.json in the checkout: commit OUTDIR/speed.json under that name)
 #   0. the scaling study's arms at full size on the GPU, several at once (issue 35: it comes first in the
 #      budget): pipelines/scaling.py --device cuda --jobs N --deadline S, seeds 0 1 2, scored on the real pair
 #      and FP1523 in .gpu_data/; OUTDIR/study.json is its study record (merge it into the study's with
@@ -34,9 +38,11 @@
 #   GPU_CHECK_BUDGET  seconds the whole run may take, 60 to 86400   [600: 10 minutes + a machine start fits in 15]
 #                     (sizes: >= 600 s: 2000 samples, 3 epochs; >= 400 s: 1200, 2; less: 800, 2)
 #   GPU_CHECK_TINY=1  dry run of the plumbing on a CPU at tiny sizes (what CI-like machines can check)
-#   GPU_CHECK_STEPS   the steps to run, in the order above   [study forward generate train ddp sim2real]
+#   GPU_CHECK_STEPS   the steps to run, in the order above   [speed study forward generate train ddp sim2real]
 #   GPU_CHECK_STUDY   the study's arms (pipelines/scaling_arms.yaml), run at once   [n100 n400 n1600 n6400 pedestal-0.8]
 #   GPU_CHECK_STUDY_SEEDS  the training seeds of each study arm (a study's pending ones)   [0 1 2]
+#   GPU_CHECK_SPEED_ARGS  the speed step's 'after' also with: --compile (torch.compile), --recipe-amp (the recipe
+#                     seed with --amp too)   [none]
 #   GPU_CHECK_STUDY_SHARE  percent of the budget the study may take when other steps follow   [60]
 #   STUDY_COMMIT      the commit of the checkout sent (a copy without git), recorded with every study seed
 #   PYTHON            the interpreter that holds PyTorch                 [python3]
@@ -99,7 +105,7 @@ BUDGET="${GPU_CHECK_BUDGET:-600}"
 [[ "$BUDGET" =~ ^[0-9]{1,9}$ ]] && BUDGET=$(( 10#$BUDGET )) && [ "$BUDGET" -ge 60 ] && [ "$BUDGET" -le 86400 ] \
   || { echo "gpu_check: GPU_CHECK_BUDGET must be a whole number of seconds from 60 to 86400, got '${GPU_CHECK_BUDGET}'" >&2; exit 2; }
 [[ "$TINY" =~ ^[01]$ ]] || { echo "gpu_check: GPU_CHECK_TINY must be 0 or 1, got '$TINY'" >&2; exit 2; }
-ALL_STEPS="study forward generate train ddp sim2real"
+ALL_STEPS="speed study forward generate train ddp sim2real"
 read -r -a STEPS <<< "${GPU_CHECK_STEPS:-$ALL_STEPS}"
 for s in "${STEPS[@]}"; do
   [[ " $ALL_STEPS " == *" $s "* ]] || { echo "gpu_check: GPU_CHECK_STEPS: unknown step '$s' (steps: $ALL_STEPS)" >&2; exit 2; }
@@ -119,6 +125,10 @@ if want study && [ ${#STUDY_SEEDS[@]} -eq 0 ]; then
 fi
 for x in "${STUDY_SEEDS[@]}"; do
   [[ "$x" =~ ^[0-9]{1,9}$ ]] || { echo "gpu_check: GPU_CHECK_STUDY_SEEDS: '$x' is not a seed (a whole number)" >&2; exit 2; }
+done
+read -r -a SPEED_EXTRA <<< "${GPU_CHECK_SPEED_ARGS-}"
+for a in "${SPEED_EXTRA[@]}"; do
+  case "$a" in --compile|--recipe-amp) ;; *) echo "gpu_check: GPU_CHECK_SPEED_ARGS: '$a' (known: --compile --recipe-amp)" >&2; exit 2 ;; esac
 done
 SHARE="${GPU_CHECK_STUDY_SHARE:-60}"
 [[ "$SHARE" =~ ^[0-9]{1,3}$ ]] && [ "$((10#$SHARE))" -ge 10 ] && [ "$((10#$SHARE))" -le 100 ] \
@@ -235,6 +245,14 @@ run_step() {
 MESHES=(assets/meshes); [ -d .gpu_data/meshes ] && MESHES+=(.gpu_data/meshes)
 REAL=(); [ -d .gpu_data/real-sample ] && REAL=(.gpu_data/real-sample)
 PHASE=(); for d in .gpu_data/real-phase/*/; do [ -d "$d/PSin" ] && PHASE+=("${d%/}"); done
+
+# s. Training speed before / after the speed options (issue 49), in one process: the numbers the issue judges
+if want speed; then
+  SPEED=(--out "$WORK/speed" --bench-dir "$ROOT/docs/benchmarks/gpu")
+  [ "$TINY" != 0 ] && SPEED=(--out "$WORK/speed" --tiny --bench-dir "$WORK/speed/bench")   # a dry run leaves docs/ alone
+  run_step speed "$(limit 420 $(( BUDGET * 30 / 100 )))" "$PY" pipelines/gpu_speed.py "${SPEED[@]}" "${SPEED_EXTRA[@]}"
+  [ -f "$WORK/speed/speed.json" ] && cp "$WORK/speed/speed.json" "$OUTDIR/speed.json"
+fi
 
 # 0. The scaling study first: its arms at once, each arm's seeds in turn, stopped at a deadline inside the step's
 #    limit so that what finished is recorded (OUTDIR/study.json); scored as on the CPU (the pair, FP1523), the

@@ -178,12 +178,12 @@ def test_no_cuda_is_refused_before_anything_is_written(tmp_path):
 
 
 def _fake_python(tmp_path) -> Path:
-    """An interpreter for the script whose steps (``PY -m ...``, ``PY pipelines/scaling.py``) each write one file
+    """An interpreter for the script whose steps (``PY -m ...``, ``PY pipelines/scaling.py``/``gpu_speed.py``) each write one file
     named by their process into their --out folder, as the real tools would, and fail at once; everything else
     is this Python."""
     fake = tmp_path / "fakepy"
     fake.write_text(f"""#!/bin/bash
-if [ "$1" = -m ] || [ "$1" = pipelines/scaling.py ]; then
+if [ "$1" = -m ] || [ "$1" = pipelines/scaling.py ] || [ "$1" = pipelines/gpu_speed.py ]; then
   prev=""; for a in "$@"; do [ "$prev" = --out ] && mkdir -p "$a" && echo x > "$a/made-$$.txt"; prev=$a; done
   exit 1
 fi

@@ -155,7 +155,18 @@ def _add_train_model(m) -> None:
     m.add_argument("--rig", metavar="FILE",
                    help="with --head phase: the rig (fppsim JSON/YAML or OpenCV stereo calibration) [the rig in the first "
                         "synthetic sample's meta.json, else fppsim's default rig]")
-    m.add_argument("--amp", action="store_const", const=True, help="mixed precision (fp16 on CUDA, bf16 on CPU)")
+    m.add_argument("--amp", action="store_const", const=True,
+                   help="mixed precision (CUDA: --amp-dtype; CPU: bf16)")
+    m.add_argument("--amp-dtype", choices=("auto", "fp16", "bf16"),
+                   help="--amp's type on CUDA: bf16 needs no gradient scaler [auto: bf16 where the GPU has it]")
+    m.add_argument("--channels-last", choices=("auto", "on", "off"), help="NHWC network and input [auto: on on CUDA]")
+    m.add_argument("--device-data", choices=("auto", "on", "off"),
+                   help="samples decoded once onto the device and augmented there, no DataLoader [auto: on CUDA "
+                        "when they fit in a quarter of its free memory]")
+    m.add_argument("--host-sync", choices=("auto", "step", "epoch"),
+                   help="when the loss check and metrics reach the host [auto: epoch on CUDA, step on CPU]")
+    m.add_argument("--fused-adam", choices=("auto", "on", "off"), help="fused Adam kernel [auto: on on CUDA]")
+    m.add_argument("--compile", action="store_const", const=True, help="torch.compile the network [off]")
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
                         "above the plane")

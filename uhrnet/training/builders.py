@@ -21,22 +21,27 @@ import torch.distributed as dist
 from torch.utils.data import DataLoader
 
 from fppsim.geometry.rig import RigError, check_image_size
-from uhrnet.checkpoint import LabelHead, checkpoint_kind, load_checkpoint, rng_state, set_rng_state
+from uhrnet.checkpoint import FORMAT, VERSION, LabelHead, checkpoint_kind, load_checkpoint, rng_state, set_rng_state
 from uhrnet.data.augment import augment_config
 from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_size
+from uhrnet.data.device_data import DeviceLoader, DeviceSet, device_bytes
 from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.errors import CheckpointError, ConfigError
 from uhrnet.models import build_model
 from uhrnet.models.init import init_weights
-from uhrnet.run_folder import LAST_PT, check_run_folder
+from uhrnet.run_folder import LAST_PT, check_run_folder, package_version
 from uhrnet.training.distributed import DistInfo
 from uhrnet.training.ema import WeightEMA
+from uhrnet.training.speed import Speed
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, LossContext, build_head_loss, build_loss
 from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize, parse_kv
 
 __all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
            "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
-           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng"]
+           "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng", "use_device_data", "match_layout",
+           "checkpoint_payload"]
+
+DEVICE_DATA_SHARE = 0.25  # --device-data auto: the samples may take this share of the GPU's free memory
 
 
 # -- run folder and device ----------------------------------------------------------------------------
@@ -90,15 +95,17 @@ class TrainingData:
     train_set: Prepared
     val_set: Prepared
     sampler: MixedSampler
-    loader: DataLoader
-    val_loader: DataLoader
+    loader: DataLoader | DeviceLoader
+    val_loader: DataLoader | DeviceLoader
     image_shape: tuple
     native: tuple | None
     resize: str | None
 
 
-def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: torch.device) -> TrainingData:
-    """The training and validation sets of ``cfg`` and their loaders (this rank's share of them)."""
+def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: torch.device,
+               speed: Speed | None = None) -> TrainingData:
+    """The training and validation sets of ``cfg`` and their loaders (this rank's share of them): DataLoaders,
+    or with ``--device-data`` (:func:`use_device_data`) the sets on the device and their :class:`DeviceLoader`."""
     sources = load_sources(cfg.real, cfg.synthetic, transform, cfg.real_split, cfg.synthetic_split,
                            cfg.synthetic_label, phase=phase)
     native = (tuple(Prepared(sources.train, None, None, random_crop=False)[0]["fringe"].shape[-2:])
@@ -120,12 +127,33 @@ def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: t
                            cfg.samples_per_epoch, cfg.seed, info.rank, info.world)
     workers = cfg.workers if cfg.workers is not None else (4 if device.type == "cuda" else 0)
     pin = device.type == "cuda"
+    val_idx = list(range(info.rank, len(val_set), info.world))
+    if speed is not None and use_device_data(speed.device_data, device, train_set, val_set, phase):
+        loader = DeviceLoader(DeviceSet(train_set, device, workers), sampler, cfg.batch_size, augment)
+        val_loader = DeviceLoader(DeviceSet(val_set, device, workers, crop_later=False), val_idx, cfg.batch_size)
+        return TrainingData(sources, train_set, val_set, sampler, loader, val_loader, shape, native, resize)
     loader = DataLoader(train_set, batch_size=cfg.batch_size, sampler=sampler, num_workers=workers,
                         pin_memory=pin, drop_last=False)
-    val_idx = list(range(info.rank, len(val_set), info.world))
     val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_idx, num_workers=workers,
                             pin_memory=pin)
     return TrainingData(sources, train_set, val_set, sampler, loader, val_loader, shape, native, resize)
+
+
+def use_device_data(choice: str, device: torch.device, train_set: Prepared, val_set: Prepared, phase: bool) -> bool:
+    """``--device-data``: ``on`` (refused for samples with phase targets, which stay in the DataLoader), ``off``,
+    or ``auto``: on CUDA when the sets take at most :data:`DEVICE_DATA_SHARE` of its free memory (never on a CPU)."""
+    if choice == "off" or (choice == "auto" and device.type != "cuda"):
+        return False
+    if phase:
+        if choice == "on":
+            raise ConfigError("--device-data on: samples with phase targets (--head phase) are read by the DataLoader; "
+                              "drop --device-data")
+        return False
+    if choice == "on":
+        return True
+    full = tuple(Prepared(train_set.dataset, None, train_set.resize, random_crop=False)[0]["fringe"].shape[-2:])
+    need = device_bytes(train_set, full) + device_bytes(val_set, full)
+    return need <= DEVICE_DATA_SHARE * torch.cuda.mem_get_info(device)[0]
 
 
 def auto_resize_of(synthetic: list, shape, main: bool) -> str | None:
@@ -206,9 +234,13 @@ class Network:
     eval_model: LabelHead
 
 
-def wrap_network(net, cfg: RunConfig, scale: float, shift: float, device: torch.device, info: DistInfo) -> Network:
-    """``net`` with its label scale, its moving average (``--ema``) and, under torchrun, DDP."""
+def wrap_network(net, cfg: RunConfig, scale: float, shift: float, device: torch.device, info: DistInfo,
+                 speed: Speed | None = None) -> Network:
+    """``net`` with its label scale, its moving average (``--ema``) and, under torchrun, DDP; ``speed``: its
+    memory layout (``--channels-last``, before the average copies it) and ``--compile`` (what trains)."""
     model = LabelHead(net, scale, shift).to(device)
+    if speed is not None and speed.channels_last:
+        model = model.to(memory_format=torch.channels_last)
     ema, eval_model = None, model
     if cfg.ema:
         ema = WeightEMA(net, cfg.ema)
@@ -219,6 +251,8 @@ def wrap_network(net, cfg: RunConfig, scale: float, shift: float, device: torch.
         from torch.nn.parallel import DistributedDataParallel as DDP
 
         ddp = DDP(model, device_ids=[device.index] if device.type == "cuda" else None)
+    if speed is not None and speed.compile:
+        ddp = torch.compile(ddp)
     return Network(model, ddp, ema, eval_model)
 
 
@@ -236,10 +270,11 @@ def build_loss_fn(cfg: RunConfig, head, transform, scale: float, shift: float, r
 
 
 # -- optimizer, schedule, validation on real frames ---------------------------------------------------
-def build_optimizer(net, cfg: RunConfig) -> torch.optim.Adam:
-    """Adam over the trainable weights (``--freeze``: frozen weights never move)."""
+def build_optimizer(net, cfg: RunConfig, speed: Speed | None = None) -> torch.optim.Adam:
+    """Adam over the trainable weights (``--freeze``: frozen weights never move); ``--fused-adam``: its fused kernel."""
     trainable = [p for p in net.parameters() if p.requires_grad]
-    return torch.optim.Adam(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    fused = {"fused": True} if speed is not None and speed.fused_adam else {}
+    return torch.optim.Adam(trainable, lr=cfg.lr, weight_decay=cfg.weight_decay, **fused)
 
 
 def lr_at(cfg: RunConfig, steps_per_epoch: int, epoch: int, step: int) -> float:
@@ -282,6 +317,7 @@ def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, ra
     if ema is not None:
         ema.load_state_dict(ckpt["state_dict"], ckpt["ema"]["updates"])
     optimizer.load_state_dict(ckpt["optimizer"])
+    match_layout(optimizer)
     for group in optimizer.param_groups:
         group["lr"], group["weight_decay"] = cfg.lr, cfg.weight_decay
     loss_fn.load_state_dict(ckpt["loss"])
@@ -295,6 +331,15 @@ def restore(ckpt: dict, net, ema, optimizer, loss_fn, scaler, cfg: RunConfig, ra
               f"{rank} starts a fresh stream", file=sys.stderr)
 
 
+def match_layout(optimizer) -> None:
+    """Optimizer state loaded from a checkpoint in the memory layout of its weights (``--channels-last``: the
+    fused and foreach kernels expect each weight's moments strided as the weight); a no-op where they match."""
+    for p, state in optimizer.state.items():
+        for k, v in state.items():
+            if torch.is_tensor(v) and v.shape == p.shape and v.stride() != p.stride():
+                state[k] = torch.empty_like(p, dtype=v.dtype).copy_(v)
+
+
 def gather_rng(info: DistInfo) -> list:
     """The RNG streams of every rank, what a checkpoint carries so that a resume draws the same numbers."""
     state = rng_state()
@@ -306,11 +351,14 @@ def gather_rng(info: DistInfo) -> list:
 
 
 # -- steps and epochs ---------------------------------------------------------------------------------
-def autocast(amp: bool, device: torch.device):
-    """``--amp``: float16 on CUDA, bfloat16 on CPU; else no autocast."""
+def autocast(amp: bool, device: torch.device, dtype: torch.dtype | None = None):
+    """``--amp``: ``dtype`` (:func:`uhrnet.training.speed.resolve_speed`: ``--amp-dtype`` on CUDA, bfloat16 on a
+    CPU; None: float16 on CUDA, bfloat16 on CPU); else no autocast."""
     if not amp:
         return nullcontext()
-    return torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16)
+    if dtype is None:
+        dtype = torch.float16 if device.type == "cuda" else torch.bfloat16
+    return torch.autocast(device.type, dtype=dtype)
 
 
 def first_best(cfg: RunConfig) -> dict:
@@ -329,3 +377,31 @@ def update_best(best: dict, row: dict) -> bool:
     if is_best:
         best.update(value=float(metric), epoch=row["epoch"])
     return is_best
+
+
+def checkpoint_payload(t, epoch: int, rng: list) -> dict:
+    """What a checkpoint of the :class:`~uhrnet.training.trainer.Trainer` ``t`` after ``epoch`` epochs holds."""
+    ema = t.network.ema
+    return {
+        "format": FORMAT, "version": VERSION,
+        "model": {"name": t.net.config["name"], "config": dict(t.net.config)},
+        "state_dict": (ema.state_dict() if ema is not None else t.net.state_dict()),
+        **({"train_state_dict": t.net.state_dict(),
+            "ema": {"decay": ema.decay, "updates": ema.updates}} if ema is not None else {}),
+        "output": {"scale": t.network.model.scale, "shift": t.network.model.shift},
+        "label_transform": t.transform.to_dict(),
+        "epoch": epoch,
+        "optimizer": t.optimizer.state_dict(),
+        "scaler": t.scaler.state_dict() if t.scaler.is_enabled() else None,
+        "loss": {k: v for k, v in t.loss_fn.state_dict().items()},
+        "loss_name": t.cfg.loss,
+        "rng": rng,
+        "best": dict(t.best),
+        "history": [dict(r) for r in t.history],
+        "args": t.cfg.to_dict(),
+        "data": t.data.sources.description,
+        "image_shape": list(t.data.image_shape),
+        "n_parameters": int(t.n_params),
+        "world_size": t.info.world,
+        "uhrnet_version": package_version(),
+    }

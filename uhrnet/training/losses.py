@@ -153,7 +153,11 @@ class ChunkedL2Loss(Loss):
         if update is None:
             update = pred.requires_grad
         ranks = self.ranks
-        if not self.has_ranks:
+        if pred.device.type != "cpu":  # the same ranks, chosen on the device: the host does not wait for it
+            ranks = torch.where(self.ranks.min() > 0, self.ranks, ranks_of(l2.detach()))
+            if update:
+                self.ranks.copy_(ranks)
+        elif not self.has_ranks:
             ranks = ranks_of(l2.detach())
             if update:
                 self.ranks.copy_(ranks)

@@ -22,7 +22,7 @@ from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
 
 __all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LEGACY_LOCKED", "LR_SCHEDULES",
-           "LR_FLOOR", "RESIZE_AUTO", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
+           "LR_FLOOR", "RESIZE_AUTO", "AMP_DTYPES", "SWITCHES", "HOST_SYNCS", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
            "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
 
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
@@ -32,6 +32,9 @@ LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 RESIZE_AUTO = "auto"  # --resize auto: the training size from the synthetic data's fringe period (auto_resize)
 HALVE_FROM_PERIOD_PX = 10.0  # --resize auto halves the images when their fringes are at least this many px apart
 HALVE_FROM_SIDE_PX = 256  # ... and their shorter side is at least this long (smaller ones the network sees whole)
+AMP_DTYPES = ("auto", "fp16", "bf16")  # --amp-dtype (CUDA)
+SWITCHES = ("auto", "on", "off")  # --channels-last, --device-data, --fused-adam
+HOST_SYNCS = ("auto", "step", "epoch")  # --host-sync
 VAL_PHASE_FRAMES = 8  # --val-phase scores at most this many frames per epoch (evenly spaced over its folders)
 
 
@@ -96,6 +99,14 @@ class RunConfig:
     val_phase: list = option([], locked=True, legacy=[], legacy_locked=True)
     val_phase_convention: str = option("auto", locked=True, legacy="benchmark", legacy_locked=True)
     val_phase_negate_sin: bool = option(False, locked=True, legacy=False, legacy_locked=True)
+    # speed on CUDA (issue 49; :mod:`uhrnet.training.speed`): "auto" is each one's standard win on CUDA and
+    # what every run did before on a CPU, where nothing changes; free to change on resume
+    amp_dtype: str = option("auto")
+    channels_last: str = option("auto")
+    device_data: str = option("auto")
+    host_sync: str = option("auto")
+    fused_adam: str = option("auto")
+    compile: bool = option(False)
     init_from_checkpoint: dict | None = None
 
     def to_dict(self) -> dict:
@@ -162,6 +173,17 @@ class TrainConfig:
     the machine is doing, but not across counts (the reductions split differently, and a long run
     amplifies the last bits); ``config.json`` records the count used as ``torch_threads``. Free to change
     on resume.
+    Speed on CUDA (:mod:`uhrnet.training.speed`; each ``auto`` = its CUDA default below, and on a CPU what
+    every run did before: a CPU run is unchanged bit for bit): ``amp_dtype`` (``auto``: bfloat16 where the
+    GPU has it, no gradient scaler; ``fp16``: float16 with the scaler; a CPU's ``--amp`` is bfloat16
+    whatever it says), ``channels_last`` (``auto``/``on``/``off``: the network and its input in NHWC),
+    ``device_data`` (``auto``: on when the samples fit in a quarter of the free GPU memory: the training
+    and validation sets decoded once onto the device, fringes as float16, augmented there with the same
+    draws; no DataLoader in the loop), ``host_sync`` (``step``: the loss is checked and the metrics read
+    on the host every step, as before; ``epoch``: summed on the device and read once per epoch, a
+    non-finite loss still stops the run at the epoch's end naming its first step; ``auto``: ``epoch`` on
+    CUDA), ``fused_adam`` (``auto``: PyTorch's fused Adam kernel on CUDA), ``compile`` (``torch.compile``
+    the network: off unless given).
     ``ema``: decay per optimizer step of the exponential moving average of the weights that validation,
     ``best.pt`` and every later use of the checkpoint see (0: off). ``tensorboard``: also log to
     ``out/tensorboard/`` (:mod:`uhrnet.training.tb_log`; needs the optional ``tensorboard`` package; like
@@ -204,6 +226,12 @@ class TrainConfig:
     val_phase_convention: str | None = None
     val_phase_negate_sin: bool | None = None
     amp: bool | None = None
+    amp_dtype: str | None = None
+    channels_last: str | None = None
+    device_data: str | None = None
+    host_sync: str | None = None
+    fused_adam: str | None = None
+    compile: bool | None = None
     raw_output: bool | None = None
     seed: int | None = None
     device: str | None = None
@@ -232,7 +260,9 @@ def check_options(cfg: dict) -> None:
     of the first invalid option in ``cfg``."""
 
     choices = {"model": list_models(), "loss": list(LOSSES), "real_split": SPLIT_MODES, "synthetic_split": SPLIT_MODES,
-               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda")}
+               "synthetic_label": LABEL_SOURCES, "preset": sorted(PRESETS), "device": ("auto", "cpu", "cuda"),
+               "amp_dtype": AMP_DTYPES, "channels_last": SWITCHES, "device_data": SWITCHES, "host_sync": HOST_SYNCS,
+               "fused_adam": SWITCHES}
     for key, allowed in choices.items():
         if key in cfg and cfg[key] not in allowed:
             raise ConfigError(f"--{key.replace('_', '-')} {cfg[key]!r}: choose from {', '.join(allowed)}")

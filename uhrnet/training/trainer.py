@@ -27,17 +27,19 @@ import torch
 import torch.distributed as dist
 
 from fppsim.owned import output_folder
-from uhrnet.checkpoint import FORMAT, VERSION, checkpoint_kind, init_from_checkpoint, output_mm, save_epoch
+from uhrnet.checkpoint import checkpoint_kind, init_from_checkpoint, output_mm, save_epoch
 from uhrnet.data.datasets import parse_size
+from uhrnet.data.device_data import DeviceLoader
 from uhrnet.errors import ConfigError, TrainingDiverged
 from uhrnet.models import HEADS, count_parameters, outputs_of
 from uhrnet.models.any_size import any_size
 from uhrnet.models.freeze import freeze, keep_frozen_eval
-from uhrnet.run_folder import (LAST_PT, RUN_FILES, TRAIN_TOOL, claim_run_folder, package_version, refuse_own_source,
-                               write_history, write_run_config)
+from uhrnet.run_folder import (LAST_PT, RUN_FILES, TRAIN_TOOL, claim_run_folder, refuse_own_source, write_history,
+                               write_run_config)
 from uhrnet.scoring.metrics import image_metrics
 from uhrnet.training import builders
-from uhrnet.training.distributed import DistInfo, MetricSums, all_reduce, init_distributed
+from uhrnet.training.distributed import DistInfo, all_reduce, init_distributed
+from uhrnet.training.speed import LossWatch, device_metrics, metric_sums, only, resolve_speed, to_layout
 from uhrnet.training.losses import STEP_FIELDS
 from uhrnet.training.run_messages import closing_line, epoch_line, opening_lines
 from uhrnet.training.tb_log import TB_FOLDER, RunLog, check_event_files, remove_own_event_files
@@ -61,6 +63,7 @@ class Trainer:
         if not cfg.real and not cfg.synthetic:
             raise ConfigError("no data: give --real DIR and/or --synthetic DIR")
         self.device = builders.training_device(cfg.device, info)
+        self.speed = resolve_speed(cfg, self.device)  # --amp-dtype, --channels-last, ... (uhrnet.training.speed)
         self.transform = label_transform_from(cfg)
         self.tb = RunLog()  # --tensorboard: fit() opens it on rank 0
         if info.main and args.tensorboard:  # foreign event files: refused before any write
@@ -70,7 +73,7 @@ class Trainer:
     def _build(self, cfg: RunConfig) -> None:
         head = HEADS[cfg.head]
         self.loss_entry, needs_rig, phase = builders.loss_entry(cfg, head)
-        self.data = builders.build_data(cfg, self.transform, phase, self.info, self.device)
+        self.data = builders.build_data(cfg, self.transform, phase, self.info, self.device, self.speed)
         cfg = dataclasses.replace(cfg, resize=self.data.resize)  # config.json and checkpoints: the size chosen
         net, rig = builders.build_network(cfg, head, self.data.image_shape, needs_rig)
         self.net = any_size(net)  # as inference: padded by replication to multiples of 16, cropped back
@@ -83,11 +86,11 @@ class Trainer:
         self.cfg = cfg
         self.frozen = freeze(net, cfg.freeze)  # before the average copies the network and DDP wraps it
         self.n_trainable = sum(p.numel() for p in net.parameters() if p.requires_grad)
-        self.network = builders.wrap_network(net, cfg, scale, shift, self.device, self.info)
+        self.network = builders.wrap_network(net, cfg, scale, shift, self.device, self.info, self.speed)
         self.loss_fn = builders.build_loss_fn(cfg, head, self.transform, scale, shift, rig, self.device)
-        self.optimizer = builders.build_optimizer(net, cfg)
+        self.optimizer = builders.build_optimizer(net, cfg, self.speed)
         self.amp = bool(cfg.amp)
-        self.scaler = torch.amp.GradScaler("cuda", enabled=self.amp and self.device.type == "cuda")
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.speed.scaler)  # float16 on CUDA only
         self.val_phase = builders.build_val_phase(cfg, self.info, self.data.native)
         self.history: list[dict] = []
         self.best = builders.first_best(cfg)
@@ -103,7 +106,8 @@ class Trainer:
     def _to_device(self, batch, names) -> list:
         """The batch fields ``names`` on the device (None for a field the batch lacks)."""
         nb = self.device.type == "cuda"
-        return [batch[f].to(self.device, non_blocking=nb) if f in batch else None for f in names]
+        out = [batch[f].to(self.device, non_blocking=nb) if f in batch else None for f in names]
+        return [to_layout(out[0], self.speed), *out[1:]] if names and names[0] == "fringe" else out
 
     def lr_at(self, epoch: int, step: int) -> float:
         """Learning rate of ``step`` of ``epoch`` (both 0-based): :func:`uhrnet.training.builders.lr_at`."""
@@ -115,7 +119,8 @@ class Trainer:
         loader.generator = torch.Generator().manual_seed(self.cfg.seed * 100_003 + epoch)
         ddp.train()
         keep_frozen_eval(self.frozen)  # --freeze: the frozen part's batch norms keep their statistics
-        sums = MetricSums(["loss", "rmse", "ssim"])
+        sums = metric_sums(["loss", "rmse", "ssim"], self.speed, self.device)
+        metrics, watch = (device_metrics, LossWatch(self.device)) if self.speed.epoch_sync else (image_metrics, None)
         bar = None
         if self.info.main and self.args.progress:  # tqdm only when it shows (a bare GPU machine may lack it)
             from tqdm import tqdm
@@ -124,7 +129,7 @@ class Trainer:
                        dynamic_ncols=True)
         for step, batch in enumerate(bar if bar is not None else loader):
             x, y, m = self._to_device(batch, STEP_FIELDS)
-            with builders.autocast(self.amp, self.device):
+            with builders.autocast(self.amp, self.device, self.speed.amp_dtype):
                 out = ddp(x)
             outs = outputs_of(out)  # hNet: the fused and the side outputs, all supervised
             extra = self._to_device(batch, self.loss_entry.batch)  # what the loss takes after the mask
@@ -132,17 +137,24 @@ class Trainer:
                 loss = self.loss_fn(self.net.last_parts, y, m, *extra)
             else:
                 loss = sum(self.loss_fn(o.float(), y, m, *extra) for o in outs)
-            self._stop_if_diverged(loss, epoch, step)
+            if watch is None:
+                self._stop_if_diverged(loss, epoch, step)
+            else:  # --host-sync epoch: read once, after the epoch
+                watch.note(loss, step)
             self._step(loss, epoch, step)
             self.tb.step(epoch * len(loader) + step + 1, loss.detach(), self.optimizer.param_groups[0]["lr"])
-            sums.add("loss", loss.detach().double().cpu().reshape(1))
-            r, s = image_metrics(outs[0], y, m, self.transform)
+            sums.add("loss", loss.detach().double().reshape(1) if watch else loss.detach().double().cpu().reshape(1))
+            r, s = metrics(outs[0], y, m, self.transform)
             sums.add("rmse", r)
             sums.add("ssim", s)
-            if bar is not None:
+            if bar is not None and (watch is None or step % 50 == 0):
                 bar.set_postfix(loss=f"{loss.item():.4g}", rmse_mm=f"{float(r.nanmean()):.3f}", refresh=False)
         if bar is not None:
             bar.close()
+        bad = watch.first_bad(self.info, self.device) if watch is not None else None
+        if bad is not None:
+            raise TrainingDiverged(f"loss became {bad[1]:g} at epoch {epoch + 1}, step {bad[0] + 1}"
+                                   + ("" if bad[2] else " (on another process)"))
         res = sums.reduce(self.info, self.device)
         return {"train_loss": res["loss"], "train_rmse_mm": res["rmse"], "train_ssim": res["ssim"]}
 
@@ -173,19 +185,20 @@ class Trainer:
             return {}
         model = self.network.eval_model
         model.eval()
-        sums = MetricSums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"])
+        sums = metric_sums(["rmse", "ssim", "rmse_real", "ssim_real", "rmse_synthetic", "ssim_synthetic"], self.speed,
+                           self.device)
         for batch in self.data.val_loader:
             x, y, m = self._to_device(batch, STEP_FIELDS)
-            with builders.autocast(self.amp, self.device):
+            with builders.autocast(self.amp, self.device, self.speed.amp_dtype):
                 pred = model(x)
-            r, s = image_metrics(pred, y, m, self.transform)
+            r, s = (device_metrics if self.speed.epoch_sync else image_metrics)(pred, y, m, self.transform)
             sums.add("rmse", r)
             sums.add("ssim", s)
             for src in ("real", "synthetic"):
                 sel = torch.tensor([v == src for v in batch["source"]])
                 if sel.any():
-                    sums.add(f"rmse_{src}", r[sel])
-                    sums.add(f"ssim_{src}", s[sel])
+                    sums.add(f"rmse_{src}", only(r, sel))
+                    sums.add(f"ssim_{src}", only(s, sel))
         res = sums.reduce(self.info, self.device)
         row = {"val_rmse_mm": res["rmse"], "val_ssim": res["ssim"]}
         if self.data.sources.val.n_real and self.data.sources.val.n_synthetic:
@@ -195,30 +208,7 @@ class Trainer:
 
     # -- checkpoints ----------------------------------------------------------------------------------
     def _payload(self, epoch: int, rng: list) -> dict:
-        ema = self.network.ema
-        return {
-            "format": FORMAT, "version": VERSION,
-            "model": {"name": self.net.config["name"], "config": dict(self.net.config)},
-            "state_dict": (ema.state_dict() if ema is not None else self.net.state_dict()),
-            **({"train_state_dict": self.net.state_dict(),
-                "ema": {"decay": ema.decay, "updates": ema.updates}} if ema is not None else {}),
-            "output": {"scale": self.network.model.scale, "shift": self.network.model.shift},
-            "label_transform": self.transform.to_dict(),
-            "epoch": epoch,
-            "optimizer": self.optimizer.state_dict(),
-            "scaler": self.scaler.state_dict() if self.scaler.is_enabled() else None,
-            "loss": {k: v for k, v in self.loss_fn.state_dict().items()},
-            "loss_name": self.cfg.loss,
-            "rng": rng,
-            "best": dict(self.best),
-            "history": [dict(r) for r in self.history],
-            "args": self.cfg.to_dict(),
-            "data": self.data.sources.description,
-            "image_shape": list(self.data.image_shape),
-            "n_parameters": int(self.n_params),
-            "world_size": self.info.world,
-            "uhrnet_version": package_version(),
-        }
+        return builders.checkpoint_payload(self, epoch, rng)
 
     # -- main loop ------------------------------------------------------------------------------------
     def _open(self) -> None:
@@ -235,6 +225,8 @@ class Trainer:
                               image_shape=self.data.image_shape, device=self.device, world=info.world,
                               distributed=info.enabled, out=self.out, start_epoch=self.start_epoch,
                               val_phase_notes=self.val_phase.notes if self.val_phase is not None else [])
+        if self.device.type == "cuda":  # (a CPU run says what it always said)
+            lines.append(f"speed: {self.speed.describe(isinstance(self.data.loader, DeviceLoader))}")
         for line in lines:
             print(line, flush=True)
 
