@@ -234,7 +234,7 @@ def _object_relief(fit, maps) -> float:
 def _scenes() -> SceneRanges:
     """The synthetic scenes' default ranges, imported when asked for (the scene module brings trimesh, 0.6 s,
     into fit-rig's start otherwise)."""
-    from fppsim.rendering.scene import SceneRanges  # lazy: trimesh is not needed to fit a rig
+    from fppsim.rendering.scene import SceneRanges  # heavy (trimesh, scipy): only when the scenes' ranges are asked
 
     return SceneRanges()
 
@@ -446,6 +446,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             fit, why = _depth_scale(fit, maps, params, W, H, gradient, side, D, baseline, fov, focal, assumed)
         rig = fit.rig
     where = _where(rig)
+    relief = _object_relief(fit, maps) if kind == "phase" else 0.0
+    scenes = _scenes() if relief else None  # only the report's line on the objects' relief names their ranges
     depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
     rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "
                 + ("projector pose assumed: no plane in view" if no_plane else "plane phase fitted")
@@ -453,8 +455,10 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     result = StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
                             side_source=source, where=where, sensitivity=float(rig.sensitivity()), assumed=assumed,
                             lines=lines, images=images, scale_chosen=why, params=params, lens=lens,
-                            relief_rad=_object_relief(fit, maps) if kind == "phase" else 0.0,
-                            extent_px=_object_extent(fit.planes, maps), no_plane=no_plane, absolute=kind == "phase")
+                            relief_rad=relief,
+                            extent_px=_object_extent(fit.planes, maps), no_plane=no_plane, absolute=kind == "phase",
+                            scene_footprint=tuple(scenes.footprint) if scenes else (0.0, 0.0),
+                            scene_max_relief=float(scenes.max_relief[1]) if scenes else 0.0)
     for line in start_lines(result):
         lines.append(line)
         say(line)

@@ -50,6 +50,8 @@ class StartRigResult:
     extent_px: float = 0.0  # the largest object's extent
     no_plane: bool = False  # no plane in view: the projector's pose is assumed (given distance, baseline, side)
     absolute: bool = True  # the maps are measured absolute phase (scans), not single-shot phase
+    scene_footprint: tuple = (0.0, 0.0)  # the synthetic scenes' object sizes (mm), which the report compares with
+    scene_max_relief: float = 0.0  # and their highest relief (mm)
 
     def to_dict(self) -> dict:
         cam = self.rig.camera
@@ -100,8 +102,6 @@ def _camera_and_fringes(r: StartRigResult) -> list[str]:
 
 
 def _depth(r: StartRigResult) -> list[str]:
-    from fppsim.rendering.scene import SceneRanges  # trimesh: only when a report line names the scenes' ranges
-
     cam, s, why, assumed = r.rig.camera, r.sensitivity, r.scale_chosen, r.assumed
     base_mm = float(np.linalg.norm(r.rig.projector.center[:2] - cam.center[:2]))
     d_txt = ("assumed, " + why["distance"] if "distance" in why else "assumed: the default rig's") \
@@ -116,11 +116,11 @@ def _depth(r: StartRigResult) -> list[str]:
                  f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
     if r.relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
         across = r.extent_px * cam.center[2] / cam.K[0, 0]
-        sc = SceneRanges()
+        (lo, hi), top = r.scene_footprint, r.scene_max_relief
         lines.append(f"           the objects' phase relief reaches {r.relief_rad:.1f} rad: about "
                      f"{r.relief_rad / abs(s):.0f} mm high" + (f", the largest {across:.0f} mm across" if across > 0 else "")
-                     + f" at this scale (synthetic scenes: {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, up "
-                     f"to about {sc.max_relief[1]:.0f} mm of relief)")
+                     + f" at this scale (synthetic scenes: {lo:.0f}-{hi:.0f} mm across, up to about {top:.0f} mm of "
+                     "relief)")
     return lines
 
 

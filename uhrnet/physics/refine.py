@@ -38,6 +38,7 @@ from fppsim.geometry.rig import Rig
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import phase_regions, step_conflicts
 from uhrnet.errors import InputError
+from uhrnet.physics.rig_layer import RigLayer
 
 __all__ = ["refine_relief", "layer_for", "estimate_phases", "EstimatePhases", "REFINE_METHODS"]
 
@@ -60,7 +61,6 @@ def layer_for(rig_or_layer, shape):
     :data:`MAX_CACHED_LAYERS` rigs, keyed by the rig's whole document: a changed rig gets its own layer).
     The layer is read only (``torch.no_grad``), so a kept one gives the same numbers as a new one.
     ValueError when the layer's grid is not ``(H, W)``."""
-    from uhrnet.physics.rig_layer import RigLayer  # torch: imported when refining, not with the module
 
     if isinstance(rig_or_layer, RigLayer):
         layer = rig_or_layer

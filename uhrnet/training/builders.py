@@ -35,6 +35,8 @@ from uhrnet.training.ema import WeightEMA
 from uhrnet.training.speed import Speed
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, LossContext, build_head_loss, build_loss
 from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize, parse_kv
+from fppsim.dataio.rig_choice import dataset_rig, resolve_rig
+from fppsim.phase.fringe_axis import rig_phase_gradient
 
 __all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
            "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
@@ -160,8 +162,6 @@ def auto_resize_of(synthetic: list, shape, main: bool) -> str | None:
     """``--resize auto``: the training size from the fringe period of the synthetic data's rig
     (:func:`uhrnet.training.train_config.auto_resize`), as ``"HxW"``, or None for full size. ``shape``: the
     training data's own (H, W), None when there are no training samples (refused after)."""
-    from fppsim.dataio.rig_choice import dataset_rig  # only --resize auto reads a dataset's rig
-    from fppsim.phase.fringe_axis import rig_phase_gradient  # (scipy: not needed on a bare GPU machine otherwise)
 
     rig = None
     for folder in synthetic:
@@ -191,7 +191,6 @@ def head_rig(rig: str | None, synthetic) -> dict:
     synthetic dataset (its ``dataset.json``, else its first sample's ``meta.json``; a figshare export's
     ``native/`` folder too), else fppsim's default rig. A dataset rendered with ``--rig-jitter`` has no
     single rig its phases fit: refused."""
-    from fppsim.dataio.rig_choice import resolve_rig  # a dataset's unreadable dataset.json: DatasetError, a ValueError
 
     try:
         return resolve_rig(rig or None, datasets=synthetic or ())[0].to_dict()

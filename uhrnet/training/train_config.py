@@ -20,6 +20,13 @@ from fppsim.dataio.readers import LABEL_SOURCES, check_read_convention
 from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
 from uhrnet.models import list_models
+from uhrnet.training.tb_log import require_tensorboard
+from fppsim.threads import check_cores
+from uhrnet.models.init import INITS
+from uhrnet.models.freeze import FREEZE_CHOICES
+from uhrnet.models.heads import HEADS
+from uhrnet.checkpoint import checkpoint_file
+from uhrnet.data.augment import augment_config, augment_kind
 
 __all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LEGACY_LOCKED", "LR_SCHEDULES",
            "LR_FLOOR", "RESIZE_AUTO", "AMP_DTYPES", "SWITCHES", "HOST_SYNCS", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
@@ -242,7 +249,6 @@ class TrainConfig:
 
     def __post_init__(self):
         if self.tensorboard:  # a missing optional package stops the run before anything is read or written
-            from uhrnet.training.tb_log import require_tensorboard  # lazy: train_config loads without torch (the CLI reads it before torch)
 
             require_tensorboard()
         for key in ("real", "synthetic", "val_phase"):
@@ -278,8 +284,6 @@ def check_options(cfg: dict) -> None:
     if cfg.get("threads") is not None and not (isinstance(cfg["threads"], int) and 1 <= cfg["threads"] <= 1024):
         raise UsageError(f"--threads must be a number of CPU threads from 1 to 1024, got {cfg['threads']!r}")
     if cfg.get("threads") is not None:
-        from fppsim.threads import check_cores  # lazy: the config module stays light for the CLI's parser
-
         check_cores(cfg["threads"], "--threads", "threads", UsageError)
     for key in ("epochs", "batch_size"):
         if key in cfg and cfg[key] < 1:
@@ -293,8 +297,6 @@ def check_options(cfg: dict) -> None:
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
         raise UsageError(f"--grad-clip must be a finite gradient norm > 0, got {cfg['grad_clip']}")
     if "augment" in cfg:
-        from uhrnet.data.augment import augment_config  # lazy: train_config loads without torch (the CLI reads it before torch)
-
         try:
             augment_config(cfg["augment"])
         except ValueError as exc:
@@ -310,18 +312,13 @@ def check_options(cfg: dict) -> None:
     if "ema" in cfg and not (isinstance(cfg["ema"], (int, float)) and 0.0 <= cfg["ema"] < 1.0):
         raise UsageError(f"--ema must be a decay in [0, 1) (0: off), got {cfg['ema']}")
     if "init" in cfg:
-        from uhrnet.models.init import INITS  # lazy: train_config loads without torch (the CLI reads it before torch)
-
         if cfg["init"] not in INITS:
             raise UsageError(f"--init must be one of {', '.join(INITS)}, got {cfg['init']!r}")
     if "freeze" in cfg:
-        from uhrnet.models.freeze import FREEZE_CHOICES  # lazy: train_config loads without torch (the CLI reads it before torch)
-
         if cfg["freeze"] not in FREEZE_CHOICES:
             raise UsageError(f"--freeze must be one of {', '.join(FREEZE_CHOICES)}, got {cfg['freeze']!r}")
         if cfg["freeze"] != "none" and "init_from" in cfg and not cfg["init_from"]:
             raise ConfigError(f"--freeze {cfg['freeze']} needs --init-from CKPT (frozen random weights never learn)")
-    from uhrnet.models.heads import HEADS  # torch: loaded when the options are checked, not on import
 
     if "head" in cfg:
         if cfg["head"] not in HEADS:
@@ -367,14 +364,12 @@ def _normalise(key: str, value):
     if key == "init_from":  # the checkpoint file itself, however it was named (file or run folder)
         if not value:
             return None
-        from uhrnet.checkpoint import checkpoint_file  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         try:
             return str(checkpoint_file(Path(value).resolve()))
         except CheckpointError:  # a folder that no longer holds a checkpoint: compare the names
             return str(Path(value).resolve())
     if key == "augment":  # runs saved before the augmentation kinds hold a boolean
-        from uhrnet.data.augment import augment_kind  # lazy: train_config loads without torch (the CLI reads it before torch)
 
         return augment_kind(value)
     return value
