@@ -302,19 +302,17 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
-    h, finite, ok, rel, w, usable, phi, sens = e.h, e.finite, e.ok, e.rel, e.w, e.usable, e.phi, e.sens
-    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
+    h, finite, ok, rel, w, usable, phi = e.h, e.finite, e.ok, e.rel, e.w, e.usable, e.phi
     offset = _origin(layer, w, phi, h, usable, flat_mm)
     walls = step_conflicts(w, e.expected, max_step)
     regions = phase_regions(w, usable, cut=walls, min_size=min_region)
-    lab, n = regions.labels, regions.count
-    d = regions.unwrapped - phi - offset
+    n = regions.count
     unlit = ~ok if shadow is None else np.asarray(shadow, bool)
     core = usable.copy()
-    prior = (np.asarray(ndi.median(np.nan_to_num(d), lab, index=np.arange(1, n + 1))) / TWO_PI if n
-             else np.zeros(0))  # voted on the reliable cores only
+    prior = (np.asarray(ndi.median(np.nan_to_num(regions.unwrapped - phi - offset), regions.labels,
+                                   index=np.arange(1, n + 1))) / TWO_PI if n else np.zeros(0))  # the reliable cores
     core_sizes = regions.sizes.astype(np.float64)
-    U = regions.unwrapped
+    lab, U = regions.labels, regions.unwrapped
     if grow and n:
         lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~walls & ~unlit, thresholds=grow)
         usable = usable | (lab > 0)
@@ -326,7 +324,28 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if n and seams:
         links += seam_links(regions, w, usable, blocked=unlit | walls | ~finite)
     roots, offs, taken, conflicts = _components(n, links)
-    sizes = core_sizes
+    order, conf = _component_orders(n, roots, offs, prior, core_sizes, sigma)
+    decided = conf >= min_confidence
+    if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
+        lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
+        usable = usable | (lab > 0)
+    refined, moved, move, carried = _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit,
+                                                   max_move_fraction, spread_px)
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = refined.astype(out_dtype, copy=False)
+    link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
+    moved_med = (np.asarray(ndi.median(np.where(moved, move, 0.0), np.where(moved, lab, 0), index=np.arange(1, n + 1)))
+                 if n else np.zeros(0))
+    table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
+                         int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
+    stats = _choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, carried, move,
+                          offset)
+    return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats)
+
+
+def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, np.ndarray]:
+    """Each region's whole order and its confidence: ONE shift per linked component, the integer that best fits
+    all its regions' priors together (area-weighted), its posterior under a Gaussian of ``sigma`` periods."""
     order = np.zeros(n, np.int64)
     conf = np.zeros(n)
     for root in np.unique(roots[1:]) if n else []:
@@ -341,10 +360,16 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         best = int(np.argmax(post))
         order[members] = int(cands[best]) + offs[members + 1]
         conf[members] = post[best]
-    decided = conf >= min_confidence
-    if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
-        lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
-        usable = usable | (lab > 0)
+    return order, conf
+
+
+def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px):
+    """Heights from the phase at the chosen orders where a decided region holds the pixel and the move is at
+    most ``max_move_fraction`` periods of height; the pixels left out (not the shadows, not undecided regions)
+    take the level correction of the moved pixels around them (a normalised Gaussian of ``spread_px``):
+    ``(refined float64, moved, move, carried)``."""
+    h, finite = e.h, e.finite
+    t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     target = np.full(h.shape, np.nan)
     inside = lab > 0
     li = lab[inside] - 1
@@ -354,10 +379,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     h_new[~np.isfinite(target)] = np.nan
     move = h_new - h
     with np.errstate(divide="ignore"):
-        margin = max_move_fraction * TWO_PI / np.abs(sens)
+        margin = max_move_fraction * TWO_PI / np.abs(e.sens)
     moved = usable & inside & np.isfinite(move) & (np.abs(move) <= margin)
     moved[inside] &= decided[li]
-    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = np.where(moved, h_new, h).astype(np.float64)
     carried = np.zeros(h.shape, bool)
     if spread_px > 0 and moved.any():
@@ -371,14 +395,13 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         undecided[inside] = ~decided[li]
         carried = finite & ~moved & ~unlit & ~undecided & (wgt > 0.05)
         refined[carried] = h[carried] + corr[carried]
-    refined = refined.astype(out_dtype, copy=False)
-    link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
-    moved_med = (np.asarray(ndi.median(np.where(moved, move, 0.0), np.where(moved, lab, 0), index=np.arange(1, n + 1)))
-                 if n else np.zeros(0))
-    table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
-                         int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
+    return refined, moved, move, carried
+
+
+def _choice_stats(finite, moved, core, usable, roots, n, decided, sizes, taken, conflicts, carried, move,
+                  offset) -> dict:
     npx = int(finite.sum())
-    stats = {
+    return {
         "method": "orders",
         "n_pixels": npx,
         "moved_fraction": float(moved.sum() / npx) if npx else 0.0,
@@ -394,4 +417,3 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
         "offset_rad": float(offset),
     }
-    return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats)

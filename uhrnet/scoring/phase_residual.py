@@ -385,6 +385,45 @@ class PhaseValidation:
                 "val_phase_heldout_ratio": _mean(ratios[True]), "val_phase_heldout_rad": _mean(rads[True])}
 
 
+def _phase_models(ckpts, args: PhaseEvalConfig) -> list:
+    """``(model, transform, size, rig)`` per checkpoint; ``rig``: what ``--refine phase`` refines through, else None."""
+    device = select_device(args.device)
+    models = []
+    for ck in ckpts:
+        model, transform = model_from_checkpoint(ck, device)
+        rig = None
+        if args.refine == "phase":
+            try:
+                rig = refine_rig_for(ck, args.rig, args.rig)[0]
+            except (RigError, OSError) as exc:
+                raise ConfigError(f"--rig {args.rig}: {exc}") from None
+        models.append((model, transform, parse_size(ck.get("args", {}).get("resize")), rig))
+    return models
+
+
+def _phase_summary(ckpts, names, per_image: list, args: PhaseEvalConfig) -> list[dict]:
+    """One row per model (and per refined model): the per-image numbers averaged over the images."""
+    summary = []
+    refined = [(ck, f"{n} +{args.refine_method}") for ck, n in zip(ckpts, names)] if args.refine == "phase" else []
+    for ck, name in list(zip(ckpts, names)) + refined:
+        rows = [r["models"][name] for r in per_image]
+        summary.append({
+            "name": name, "checkpoint": ck["path"], "images": len(rows),
+            **{key: _mean(r["prediction"][key] for r in rows)
+               for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "rmse_mm_equiv", "relief_rms_rad")},
+            "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
+            "ratio": _mean(r["prediction"]["rmse_rad"] / r["flat"]["rmse_rad"] for r in rows if r["flat"]["rmse_rad"] > 0),
+            "plane_rmse_rad": _mean(r["plane"]["prediction"]["rmse_rad"] for r in rows if r["plane"]),
+            "plane_flat_rmse_rad": _mean(r["plane"]["flat"]["rmse_rad"] for r in rows if r["plane"]),
+            "plane_ratio": _mean(r["plane"]["prediction"]["rmse_rad"] / r["plane"]["flat"]["rmse_rad"]
+                                 for r in rows if r["plane"] and r["plane"]["flat"]["rmse_rad"] > 0),
+            "flat_explained": _mean(r["flat"]["explained"] for r in rows),
+            "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
+            "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
+        })
+    return summary
+
+
 def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     """Evaluate ``args.checkpoints`` on the folder layout at ``args.phase_root``; writes the report to
     ``args.out`` and returns ``{"summary", "per_image", "markdown", "figures"}``. ``echo`` gets one line
@@ -406,17 +445,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         raise ConfigError(f"{args.phase_root}: nothing to evaluate")
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = model_names(ckpts, args.names)
-    device = select_device(args.device)
-    models = []
-    for ck in ckpts:
-        model, transform = model_from_checkpoint(ck, device)
-        rig = None
-        if args.refine == "phase":
-            try:
-                rig = refine_rig_for(ck, args.rig, args.rig)[0]
-            except (RigError, OSError) as exc:
-                raise ConfigError(f"--rig {args.rig}: {exc}") from None
-        models.append((model, transform, parse_size(ck.get("args", {}).get("resize")), rig))
+    models = _phase_models(ckpts, args)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     fit_kw = dict(degree=args.degree, robust=args.robust)
@@ -470,24 +499,7 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                                      + (f"; plane-pixel plane {r['plane']['prediction']['rmse_rad']:.3f} "
                                         f"(flat {r['plane']['flat']['rmse_rad']:.3f})" if r["plane"] else "")
                                      for n, r in record["models"].items()))
-    summary = []
-    refined = [(ck, f"{n} +{args.refine_method}") for ck, n in zip(ckpts, names)] if args.refine == "phase" else []
-    for ck, name in list(zip(ckpts, names)) + refined:
-        rows = [r["models"][name] for r in per_image]
-        summary.append({
-            "name": name, "checkpoint": ck["path"], "images": len(rows),
-            **{key: _mean(r["prediction"][key] for r in rows)
-               for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "rmse_mm_equiv", "relief_rms_rad")},
-            "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
-            "ratio": _mean(r["prediction"]["rmse_rad"] / r["flat"]["rmse_rad"] for r in rows if r["flat"]["rmse_rad"] > 0),
-            "plane_rmse_rad": _mean(r["plane"]["prediction"]["rmse_rad"] for r in rows if r["plane"]),
-            "plane_flat_rmse_rad": _mean(r["plane"]["flat"]["rmse_rad"] for r in rows if r["plane"]),
-            "plane_ratio": _mean(r["plane"]["prediction"]["rmse_rad"] / r["plane"]["flat"]["rmse_rad"]
-                                 for r in rows if r["plane"] and r["plane"]["flat"]["rmse_rad"] > 0),
-            "flat_explained": _mean(r["flat"]["explained"] for r in rows),
-            "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
-            "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
-        })
+    summary = _phase_summary(ckpts, names, per_image, args)
     md = markdown(summary, len(ids), args.phase_root, args.degree, args.robust)
     atomic_write_text(out / "phase_results.md", md)
     atomic_write_text(out / "phase_results.json", json.dumps(
