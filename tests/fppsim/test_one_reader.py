@@ -17,7 +17,7 @@ import pytest
 
 from fppsim.dataio import readers
 from fppsim.dataio.encoding import encode_fringe, read_gray_image
-from fppsim.dataio.readers import LAYOUTS, PspMat, Source, open_source, register_layout
+from fppsim.dataio.readers import LAYOUTS, PspMat, Source, open_labelled, open_source, register_layout
 from fppsim.errors import DatasetError, PSPMatError
 from fppsim.fitting.height_sensitivity import surface_phase
 from tests._helpers import scene, tiny_rig
@@ -27,6 +27,7 @@ H, W = 32, 64
 
 class ToyLayout(Source):
     kind = "toy-png"
+    holds = "8-bit PNG fringes <id>.toy.png + heights <id>.npy (mm)"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -244,3 +245,22 @@ def test_the_uhrnet_commands_read_a_registered_layout(tmp_path, toy):
                  "--device", "cpu"]) == 0
     doc = evaluate_real_phase(run / "last.pt", [str(scans)], tmp_path / "s2r")
     assert [f["id"] for f in doc["frames"]] == ["f0", "f1"]
+
+
+def test_the_registry_reaches_the_words(tmp_path, toy):
+    """Issue 48 item 5: the layout table and the error naming the labelled layouts come from LAYOUTS, so a layout
+    registered in one module is in both (here the toy layout, labelled per path); without it, neither names it."""
+    from fppsim.dataio.readers import describe_layouts, labelled_hint
+    from fppsim.errors import DatasetError
+
+    assert "toy-png: " + ToyLayout.holds in describe_layouts().splitlines()
+    assert ToyLayout.holds in labelled_hint() and "f1_80.npy + Z.npy" in labelled_hint()
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="no dataset found") as e:
+        open_labelled(tmp_path / "empty")
+    assert ToyLayout.holds in str(e.value)
+    LAYOUTS.remove(ToyLayout)
+    try:
+        assert ToyLayout.holds not in labelled_hint() and "toy-png" not in describe_layouts()
+    finally:
+        register_layout(ToyLayout)

@@ -35,8 +35,8 @@ from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, phase_jump_share, read_mat_variable, reading_check, reading_note, reading_words,
                       wrapped_from_sums, check_read_convention, AUTO, READINGS, READ_CONVENTIONS)
-from fppsim.dataio.readers.source import (LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, grey_sample, iter_samples, open_labelled,
-                                          open_source, register_layout)
+from fppsim.dataio.readers.source import (LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, describe_layouts, grey_sample,
+                                          iter_samples, labelled_hint, open_labelled, open_source, register_layout)
 
 __all__ = [
     # native, figshare, any layout
@@ -52,7 +52,7 @@ __all__ = [
     # which layout a path holds
     "Source", "open_source", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
     # any labelled layout, as grey images and labels
-    "open_labelled", "grey_sample", "iter_samples",
+    "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint",
     # real images for fitting
     "FringeImage", "IMAGE_EXTS", "load_fringe_images",
 ]

@@ -4,24 +4,11 @@ Every layout (real or synthetic) is a subclass of :class:`Source` registered in 
 whether it :meth:`~Source.recognise` a path and reads what the layout has. Every command that reads
 data from a path the user names asks :func:`open_source` for the reader and uses what it provides,
 never testing file names or layout kinds itself (``tests/test_layers.py`` checks that layout names and
-``.kind`` tests appear only in :mod:`fppsim.dataio`). Layouts, in the order they are recognised (the
-first that fits wins; :func:`register_layout` adds one):
-
-=================  ===================================================================================
-kind               what the path holds
-=================  ===================================================================================
-``image``          one image file (:data:`IMAGE_EXTS`)
-``npy``            one ``.npy`` array file (a fringe or a stack of them)
-``file``           any other file
-``psp``            the phase-shifting scan folder: ``PSin/`` and ``PCos/`` (with ``Fringe/``, ``iPattern/``)
-``ipattern``       its single-shot images only: ``iPattern/`` alone (with some of the others: ``psp-partial``)
-``psp-partial``    some of those sub-folders, none of the two above (a damaged scan folder)
-``figshare``       a figshare pair, ``f1_80.npy`` + ``Z.npy`` (either file: the other is then missing)
-``real-sample``    the published pair ``fringe_pattern.npy`` + ``height_map.npy`` (likewise)
-``native``         fppsim's native samples (``manifest.jsonl``, or ``<id>/arrays.npz`` folders)
-``folder``         anything else: a folder of images, of scan folders (:meth:`Source.scan_folders`), or nothing
-``missing``        nothing at that path
-=================  ===================================================================================
+``.kind`` tests appear only in :mod:`fppsim.dataio`). The layouts, in the order they are recognised (the
+first that fits wins; :func:`register_layout` adds one), are :data:`LAYOUTS`: each class's ``kind`` and
+``holds`` (what the path holds) are the one description, which :func:`describe_layouts` lists and the error
+naming the labelled layouts (:func:`labelled_hint`) is built from; ``python -c "from fppsim.dataio.readers import
+describe_layouts; print(describe_layouts())"`` prints them.
 
 What a reader provides (the base class answers "nothing" where a layout has nothing):
 
@@ -41,6 +28,7 @@ What a reader provides (the base class answers "nothing" where a layout has noth
 
 from __future__ import annotations
 
+import inspect
 import os
 from pathlib import Path
 from typing import Iterator
@@ -57,7 +45,7 @@ from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_
                                            load_psp_folder_sample)
 
 __all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
-           "open_labelled", "grey_sample", "iter_samples"]
+           "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
@@ -70,6 +58,7 @@ class Source:
 
     kind = "folder"
     labelled = False  # height labels: sample() and height_labels() work
+    holds = ""  # what a path of this layout holds, one line: describe_layouts() and labelled_hint() read it
     plain_files = False  # image / .npy files and folders of them: callers apply their own file rules
     described_as: str | None = None  # how reports name the layout (None: its kind)
     is_psp = False  # phase-shifting scans, whole or in part: scan_ids() and scan() read them (or name what is missing)
@@ -167,12 +156,12 @@ class Source:
         """Refuse (:class:`fppsim.errors.DatasetError`, naming the file) a labelled layout the networks would
         misread with ``transform`` / ``label`` (``"true"`` or ``"psp"`` heights), before training."""
         if not self.labelled:
-            raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {LABELLED_HINT}")
+            raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {labelled_hint()}")
 
     def sample(self, i: int, transform, label: str = "true", mask_fringe: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """``(fringe, label)`` float32 (H, W) of sample ``i`` as the networks read them: the fringe in the
         dataset encoding (intensity / 127.5 - 1), the height in ``transform``'s label units."""
-        raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {LABELLED_HINT}")
+        raise DatasetError(f"{self.path}: no labelled samples here ({self.kind}); {labelled_hint()}")
 
     def exact_phase(self, i: int, shape: tuple[int, ...] | None = None) -> np.ndarray:
         """The exact projector phase (H, W) float32 of sample ``i`` (fppsim's native samples)."""
@@ -229,8 +218,18 @@ def _is_scan(src: Source) -> bool:
     return src.is_psp or src.has_manifest
 
 
-LABELLED_HINT = ("expected f1_80.npy + Z.npy, fringe_pattern.npy + height_map.npy, or fppsim's native samples "
-                 "(manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)")
+def describe_layouts() -> str:
+    """The registered layouts in the order they are recognised, one line each: ``kind: what the path holds``."""
+    return "\n".join(f"{cls.kind}: {cls.holds}" for cls in LAYOUTS)
+
+
+def labelled_hint() -> str:
+    """``expected A, B or C``: what the registered labelled layouts hold (a layout is labelled when its
+    ``labelled`` is True or decided per path), for the errors that find no labelled samples."""
+    kinds = list(dict.fromkeys(cls.holds for cls in LAYOUTS
+                               if cls.holds and (inspect.getattr_static(cls, "labelled") is True
+                                                 or isinstance(inspect.getattr_static(cls, "labelled"), property))))
+    return "expected " + (", ".join(kinds[:-1]) + " or " + kinds[-1] if len(kinds) > 1 else "".join(kinds))
 
 
 class _File(Source):
@@ -241,6 +240,7 @@ class _File(Source):
 
 class ImageFile(_File):
     kind = "image"
+    holds = "one image file (IMAGE_EXTS)"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -258,6 +258,7 @@ class ImageFile(_File):
 
 class NpyFile(_File):
     kind = "npy"
+    holds = "one .npy array file (a fringe or a stack of them)"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -278,6 +279,7 @@ class NpyFile(_File):
 
 class OtherFile(_File):
     kind = "file"
+    holds = "any other file"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -286,6 +288,7 @@ class OtherFile(_File):
 
 class Missing(_File):
     kind = "missing"
+    holds = "nothing at that path"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
@@ -322,6 +325,7 @@ class _ScanFolder(Source):
 
 class PspFolder(_ScanFolder):
     kind = "psp"
+    holds = "the phase-shifting scan folder: PSin/ and PCos/ (with Fringe/, iPattern/)"
     described_as = "psp-folders"
 
     @classmethod
@@ -340,6 +344,7 @@ class PspFolder(_ScanFolder):
 
 class IPatternFolder(_ScanFolder):
     kind = "ipattern"
+    holds = "its single-shot images only: iPattern/ alone (with some of the others: psp-partial)"
 
     @classmethod
     def recognise(cls, path: Path) -> bool:  # iPattern/ alone: with some of the others it is a damaged scan
@@ -349,6 +354,7 @@ class IPatternFolder(_ScanFolder):
 
 class PartialScanFolder(_ScanFolder):
     kind = "psp-partial"
+    holds = "some of those sub-folders, none of the two above (a damaged scan folder)"
 
     def problem(self) -> str | None:
         return self.incomplete()
@@ -440,11 +446,13 @@ class _Pair(Source):
 
 class FigsharePair(_Pair):
     kind = "figshare"
+    holds = "f1_80.npy + Z.npy (a figshare pair)"
     pair_index = 0
 
 
 class RealSamplePair(_Pair):
     kind = "real-sample"
+    holds = "fringe_pattern.npy + height_map.npy (the published real pair)"
     pair_index = 1
 
 
@@ -453,6 +461,7 @@ class NativeSamples(Source):
     ``<id>/fringe.png`` and ``<id>/arrays.npz`` per sample."""
 
     kind = "native"
+    holds = "fppsim's native samples (manifest.jsonl with <id>/fringe.png + <id>/arrays.npz)"
     labelled = True
     _ids: list[str] | None = None
 
@@ -527,6 +536,8 @@ class NativeSamples(Source):
 class NativeFolders(NativeSamples):
     """fppsim's native sample folders without a manifest (``<id>/arrays.npz``): readable as samples."""
 
+    holds = "fppsim's native sample folders without a manifest (<id>/arrays.npz)"
+
     @classmethod
     def recognise(cls, path: Path) -> bool:
         return path.is_dir() and any((p / "arrays.npz").is_file() for p in path.iterdir())
@@ -536,6 +547,7 @@ class Folder(Source):
     """Anything else: a folder of images (or of scan folders), or an empty one."""
 
     kind = "folder"
+    holds = "anything else: a folder of images, of scan folders, or nothing"
     described_as = "images"
     plain_files = True
 
@@ -595,7 +607,7 @@ def open_labelled(path: str | os.PathLike, transform: LabelTransform = PRESETS["
     if not src.labelled:
         if not src.path.exists():
             raise DatasetError(f"{src.path}: not a folder (no such path)")
-        raise DatasetError(f"{src.path}: no dataset found ({LABELLED_HINT})")
+        raise DatasetError(f"{src.path}: no dataset found ({labelled_hint()})")
     src.check_samples(transform)
     return src
 
