@@ -315,7 +315,7 @@ def run_validate(args) -> int:
 
 # ============================================================================ fit-rig, fit-optics
 def _params(text: str) -> tuple[str, ...]:
-    from fppsim.fitting.fit_rig import PARAMETERS
+    from fppsim.fitting.fit_periods import PARAMETERS
 
     names = tuple(p.strip() for p in text.split(",") if p.strip())
     bad = [p for p in names if p not in PARAMETERS]

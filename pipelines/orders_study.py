@@ -47,7 +47,7 @@ from uhrnet.physics.orders import choose_orders  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
-from uhrnet.workflows.sim2real.metrics import object_mask  # noqa: E402
+from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 

@@ -1,4 +1,4 @@
-"""The level / relief split of the object error on real data (uhrnet.workflows.sim2real.metrics.error_split, issue 32):
+"""The level / relief split of the object error on real data (uhrnet.workflows.sim2real.real_metrics.error_split, issue 32):
 synthetic label maps whose regions, offsets and relief are known by construction."""
 
 import numpy as np

@@ -564,7 +564,7 @@ def add_sim2real(p: argparse.ArgumentParser) -> None:
         "Real data: figshare-format folders (f1_80.npy + Z.npy, or fringe_pattern.npy + height_map.npy);\n"
         "labels <= -100 are invalid and mm = label / 6. Metrics in mm: object RMSE over valid pixels more\n"
         "than --object-mm above the reference plane, median |error|, share within 1 mm, coverage (share of\n"
-        "object pixels predicted valid), RMSE over all valid pixels, and more (see uhrnet.workflows.sim2real.metrics).\n"
+        "object pixels predicted valid), RMSE over all valid pixels, and more (see uhrnet.workflows.sim2real.real_metrics).\n"
         "--real-phase: real phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/, no labels): the\n"
         "calibration-free phase residual (rad) of every row on every frame, as uhrnet evaluate-phase reports.")
     p.add_argument("--scale", choices=sorted(SCALES), default="cpu", help="recipe size [cpu]")

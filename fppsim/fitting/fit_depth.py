@@ -5,10 +5,10 @@ A raised surface shifts the fringe phase by ``Phi(h)``; for a projector at dista
 plane with baseline ``b`` (parallel axes, image centre) ``Phi(h) ~ s0 D h / (D - h)``: the
 sensitivity ``s0`` at the plane grows as ``(D / (D - h))^2`` with height. Two rigs with the same plane
 (periods, fringe tilt) and the same slope at one height can therefore disagree by whole fringes at
-40 mm. The fit changes ``distance`` (:func:`fppsim.fitting.fit_rig.adjust_rig`: camera and projector move
+40 mm. The fit changes ``distance`` (:func:`fppsim.fitting.fit_periods.adjust_rig`: camera and projector move
 away from the scene together, focal lengths with them, the plane's image and fringes stay) and the
 ``baseline`` (the level of the sensitivity), re-fitting the projector's yaw / roll / periods to the
-plane's band periods and tilt after each change (:func:`fppsim.fitting.fit_rig.fit_rig`).
+plane's band periods and tilt after each change (:func:`fppsim.fitting.fit_periods.fit_rig_periods`).
 
 Measurement (:func:`depth_check`), per labelled image (:class:`fppsim.dataio.readers.FringeImage` with
 ``height_mm``), on the rig-vs-labels check :func:`fppsim.fitting.height_sensitivity.label_residual`:
@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fppsim.errors import RigError
-from fppsim.fitting.fit_periods import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig, unfitted
+from fppsim.fitting.fit_periods import PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig_periods, unfitted
 from fppsim.fitting.height_sensitivity import centre_sensitivity, label_residual, surface_phase
 from fppsim.phase import wrap
 from fppsim.phase.unwrap import shadow_runs
@@ -335,7 +335,7 @@ def _zero_offset_baseline(distance: float, base: Rig, b0: dict, measured: BandPe
     try:
         for it in range(8):
             rig = adjust_rig(base, distance=distance, baseline=b)
-            fit = fit_rig(measured, rig, period_params) if period_params else \
+            fit = fit_rig_periods(measured, rig, period_params) if period_params else \
                 unfitted(measured, rig, "only distance and baseline fitted")
             checks = checks_of(fit.rig)
             y = _pooled(checks, "object_offset")

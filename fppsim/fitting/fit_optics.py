@@ -58,7 +58,7 @@ from fppsim.phase.measure import estimate_period, fringe_modulation
 from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
 from fppsim.fitting.plane_phase import image_phase_map, plane_phase_residual
 from fppsim.phase import wrap
-from fppsim.generation import generate_dataset as generate
+from fppsim.generation import generate_dataset
 from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
 from fppsim.rendering.synth import SynthConfig
 
@@ -451,7 +451,7 @@ def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, mes
         for name, ranges in (("default", OpticsRanges()), ("fitted", fit.ranges)):
             out = Path(tmp) / name
             cfg = SynthConfig(rig=rig, optics=ranges, psp_freqs=())
-            generate(meshes, out, count, seed=seed, config=cfg, workers=1, progress=False)
+            generate_dataset(meshes, out, count, seed=seed, config=cfg, workers=1, progress=False)
             results[name] = dataset_stats(out, max_samples=count)
     rows = [("statistic", "real", "default", "fitted")]
     skip = {"height_p1", "height_p50", "height_p99", "plane_level", "object_fraction", "relief_p99_mm",

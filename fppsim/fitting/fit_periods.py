@@ -7,7 +7,7 @@ The fringe period a camera sees on the reference plane follows from the rig alon
     T(u, v) = W_p / (f |d u_p / d u|)
 
 (:func:`period_map`; no rendering). :func:`measure_bands` measures the period per column band and per
-row band of real images, :func:`fit_rig` adjusts a few projector parameters until the band periods of
+row band of real images, :func:`fit_rig_periods` adjusts a few projector parameters until the band periods of
 :func:`period_map` match, and the fringe lines' angle on the plane (:func:`plane_tilt`). The baseline
 fit (:mod:`fppsim.fitting.fit_rig`) and the depth fit (:mod:`fppsim.fitting.fit_depth`) both build on this module, and
 the ``fit-rig`` workflow (:func:`fppsim.fitting.fit_rig.fit_rig_images`) on all three.
@@ -28,7 +28,7 @@ from fppsim.dataio.readers import FringeImage
 from fppsim.geometry.rig import Device, Rig, RigError, rotation
 from fppsim.errors import InputError
 
-__all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
+__all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig_periods",
            "plane_tilt", "format_fit", "unfitted", "plane_coverage", "cover_plane"]
 
 PARAMETERS = {
@@ -42,7 +42,7 @@ PARAMETERS = {
                 "together (positions scaled about the world origin, both focal lengths with them: the plane's "
                 "image and fringes stay); sets how fast the height sensitivity grows with height",
 }
-"""Parameters :func:`fit_rig` can adjust (name -> meaning)."""
+"""Parameters :func:`fit_rig_periods` can adjust (name -> meaning)."""
 
 # typical scales: keep the optimiser's steps comparable and the weak prior meaningful
 _SCALE = {"yaw": np.radians(2.0), "pitch": np.radians(2.0), "roll": np.radians(2.0), "baseline": 20.0,
@@ -301,7 +301,7 @@ def measure_bands(images: list[FringeImage], col_bands: int = 4, row_bands: int 
 # ====================================================================== fitting
 @dataclass
 class RigFit:
-    """Result of :func:`fit_rig`: the fitted rig, parameter values, band periods (measured, base and
+    """Result of :func:`fit_rig_periods`: the fitted rig, parameter values, band periods (measured, base and
     fitted rig) and the RMS residual over the bands (camera px)."""
 
     rig: Rig
@@ -333,7 +333,7 @@ def _residual(model: dict, measured: BandPeriods) -> np.ndarray:
     return np.where(np.isfinite(r), r, 0.0)
 
 
-def fit_rig(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", "roll", "periods"),
+def fit_rig_periods(measured: BandPeriods, base: Rig, params: tuple[str, ...] = ("yaw", "roll", "periods"),
             prior: float = 0.02, step: int = 4) -> RigFit:
     """Adjust ``params`` of ``base`` so its band periods and fringe tilt (:func:`band_model`) match
     ``measured`` (the tilt, in degrees, weighs ``TILT_WEIGHT`` px per degree; ``roll`` is what sets it).

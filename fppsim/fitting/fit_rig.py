@@ -39,14 +39,13 @@ from fppsim.commands import ReportLines
 from fppsim.errors import UsageError
 from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
-from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, band_model, fit_rig, format_fit,  # re-exported:
-                          measure_bands, period_map, plane_tilt, unfitted)  # fppsim.fitting.fit_rig's public names
+from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, fit_rig_periods, format_fit,
+                                        measure_bands)
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
 from fppsim.dataio.readers import FringeImage, check_read_convention, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 
-__all__ = ["PARAMETERS", "BandPeriods", "RigFit", "period_map", "band_model", "adjust_rig", "measure_bands", "fit_rig",
-           "plane_tilt", "format_fit", "unfitted", "BaselineFit", "fit_baseline", "format_baseline_fit", "check_fit_options", "FitRigConfig",
+__all__ = ["BaselineFit", "fit_baseline", "format_baseline_fit", "check_fit_options", "FitRigConfig",
            "FitRigResult", "fit_rig_images"]
 
 @dataclass
@@ -89,7 +88,7 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
         b = round(float(b), 3)
         if b not in cache:
             try:
-                fit = fit_rig(measured, adjust_rig(base, baseline=b), params)
+                fit = fit_rig_periods(measured, adjust_rig(base, baseline=b), params)
             except RigError:
                 cache[b] = (-1.0, None, [])
                 return cache[b]
@@ -136,7 +135,7 @@ class FitRigConfig:
     real : real fringe images (any layout :func:`fppsim.dataio.readers.load_fringe_images` reads).
     out : the fitted rig file (.json, or .yaml/.yml); refused if it exists unless ``force``.
     base : rig to start from (camera kept fixed); None: the packaged default rig.
-    params : names of :data:`PARAMETERS` to fit. col_bands, row_bands : bands measured (>= 1 each).
+    params : names of :data:`fppsim.fitting.fit_periods.PARAMETERS` to fit. col_bands, row_bands : bands measured (>= 1 each).
     max_images : evenly spaced images read (>= 1).
     convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`).
@@ -266,7 +265,7 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     else:
         if config.sensitivity == "auto":
             say("height sensitivity: no labelled images with enough object pixels; baseline kept")
-        fit = fit_rig(measured, base, config.params)
+        fit = fit_rig_periods(measured, base, config.params)
     say(format_fit(fit))
     fit.rig.save(out)
     say(f"rig: {out}")

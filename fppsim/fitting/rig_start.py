@@ -50,7 +50,7 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.dataio.readers import load_fringe_images, open_source
-from fppsim.dataio.readers.datasets import pick_evenly
+from fppsim.dataio.readers.samples import pick_evenly
 from fppsim.errors import RigError, UsageError, InputError
 from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit

@@ -565,7 +565,7 @@ def projector_for(camera: Device, yaw: float = 0.0, focal: float = 1208.8, basel
                   height: float = 500.0, width: int = 912, rows: int = 1140, roll: float = 0.0) -> Device:
     """A projector at ``(baseline, 0, height)`` mm looking down, turned ``yaw`` rad about its own y axis
     (positive: its axis leans towards -x, the scene), then ``roll`` rad about its optical axis (tilts
-    the fringes; as :func:`fppsim.fitting.fit_rig.adjust_rig` applies it), principal point shifted so the world
+    the fringes; as :func:`fppsim.fitting.fit_periods.adjust_rig` applies it), principal point shifted so the world
     origin lands in the middle of the DMD (lens shift, as DLP projectors have)."""
     R = rotation("z", float(roll)) @ rotation("y", float(yaw)) @ np.diag([1.0, -1.0, -1.0])
     t = -R @ np.array([float(baseline), 0.0, float(height)])

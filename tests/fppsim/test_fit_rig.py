@@ -73,7 +73,7 @@ def test_fit_recovers_a_perturbed_rig():
     truth = fr.adjust_rig(base, yaw=np.radians(-2.5), pitch=np.radians(1.5), periods=78.5)
     images = [readers.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 3))]
     measured = fr.measure_bands(images)
-    fit = fr.fit_rig(measured, base, ("yaw", "pitch", "periods"))
+    fit = fr.fit_rig_periods(measured, base, ("yaw", "pitch", "periods"))
     _, _, t_true = fr.period_map(truth)
     _, _, t_fit = fr.period_map(fit.rig)
     assert np.nanmax(np.abs(t_fit - t_true)) < 0.05
@@ -94,7 +94,7 @@ def test_fit_recovers_a_rolled_projector_from_the_fringe_tilt():
     measured = fr.measure_bands(images)
     assert float(measured.tilt_deg[0]) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
     assert abs(fr.plane_tilt(truth)) > 1.0
-    fit = fr.fit_rig(measured, base)
+    fit = fr.fit_rig_periods(measured, base)
     assert "roll" in fit.params
     assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.1))
     assert fr.plane_tilt(fit.rig) == pytest.approx(fr.plane_tilt(truth), abs=0.05)
@@ -109,7 +109,7 @@ def test_default_fit_recovers_the_roll_of_a_yawed_rig():
     unrolled = fr.adjust_rig(make_default_rig(), roll=-DEFAULT_PROJECTOR_ROLL)
     truth = fr.adjust_rig(unrolled, roll=np.radians(-1.3))
     images = [readers.FringeImage(g, np.ones(g.shape, bool), str(i)) for i, g in enumerate(_plane_images(truth, 2))]
-    fit = fr.fit_rig(fr.measure_bands(images), unrolled)
+    fit = fr.fit_rig_periods(fr.measure_bands(images), unrolled)
     assert set(fit.params) == {"yaw", "roll", "periods"}
     assert fit.params["roll"] == pytest.approx(np.radians(-1.3), abs=np.radians(0.05))
 
@@ -131,7 +131,7 @@ def test_default_rig_fringes_lean_like_the_real_ones():
 def test_fit_reproduces_the_real_trend():
     images, layout = readers.load_fringe_images(REAL)
     assert layout == "real-sample"
-    fit = fr.fit_rig(fr.measure_bands(images), make_parallel_rig())
+    fit = fr.fit_rig_periods(fr.measure_bands(images), make_parallel_rig())
     left, right = fit.fitted_model["halves"]
     assert left == pytest.approx(11.96, abs=0.1) and right == pytest.approx(11.49, abs=0.1)
     assert left - right > 0.35

@@ -121,7 +121,7 @@ def test_a_registered_layout_reaches_every_reading_command(tmp_path, toy):
     from uhrnet.data.datasets import open_dataset
     from uhrnet.inference.prediction import read_inputs
     from uhrnet.scoring.phase_residual import PhaseValidation
-    from uhrnet.workflows.sim2real.evaluate import find_phase_frames, find_real_pairs
+    from uhrnet.workflows.sim2real.score_real import find_phase_frames, find_real_pairs
 
     rig = tiny_rig(W, H)
     lab, scans = tmp_path / "lab", tmp_path / "scans"
@@ -227,7 +227,7 @@ def test_the_uhrnet_commands_read_a_registered_layout(tmp_path, toy):
     """train --real (with --val-phase on the toy scans), evaluate, predict, evaluate-phase and the sim2real
     phase evaluation, on one tiny model."""
     from uhrnet.cli import main
-    from uhrnet.workflows.sim2real.evaluate import evaluate_real_phase
+    from uhrnet.workflows.sim2real.score_real import evaluate_real_phase
 
     lab, scans, run = tmp_path / "lab", tmp_path / "scans", tmp_path / "run"
     _write_labelled(lab, n=6)

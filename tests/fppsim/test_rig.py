@@ -90,7 +90,7 @@ def test_figshare_like_fringe_period_falls_left_to_right(figshare_rig):
     np.testing.assert_allclose(grid, np.broadcast_to(grid[:1], grid.shape), rtol=2e-3)  # nothing top to bottom
     assert grid[0, 0] == pytest.approx(12.2, abs=0.1) and grid[0, -1] == pytest.approx(11.25, abs=0.1)
     # the fringe lines lean like the real ones: a line of constant u_p moves du/dv = -(du_p/dv)/(du_p/du)
-    # = tan(-1.34 deg) camera px per row (the projector's roll; see fit_rig.plane_tilt)
+    # = tan(-1.34 deg) camera px per row (the projector's roll; see fit_periods.plane_tilt)
     X3 = cam.backproject(uv + [0, 1], cam.plane_depth(uv + [0, 1]))
     X4 = cam.backproject(uv + [1, 0], cam.plane_depth(uv + [1, 0]))
     dv = rig.projector.project(X3)[0][:, 0] - u_p

@@ -20,14 +20,14 @@ which layout a path holds     :func:`open_source` -> the layout's reader, a :cla
 ============================  =====================================================================
 
 The file names and the label transform are the contract of :mod:`fppsim.dataio.formats`; the writers of the
-same layouts are in :mod:`fppsim.dataio.writers`. Submodules: :mod:`.datasets` (native, figshare, any
+same layouts are in :mod:`fppsim.dataio.writers`. Submodules: :mod:`.samples` (native, figshare, any
 layout), :mod:`.psp_mat` (``.mat`` files), :mod:`.fringe_images` (real images for fitting),
 :mod:`.source` (which layout a path holds).
 """
 
 from __future__ import annotations
 
-from fppsim.dataio.readers.datasets import (LABEL_SOURCES, READ_ERRORS, check_export_labels, check_figshare_arrays,
+from fppsim.dataio.readers.samples import (LABEL_SOURCES, READ_ERRORS, check_export_labels, check_figshare_arrays,
                        check_psp_available, load_native_sample, open_figshare_pair, pick_evenly, read_fringe_image, read_native_label, read_native_pair,
                        read_native_phase, read_native_psp)
 from fppsim.dataio.readers.fringe_images import IMAGE_EXTS, FringeImage, load_fringe_images

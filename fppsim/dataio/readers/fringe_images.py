@@ -19,7 +19,7 @@ from fppsim.dataio.encoding import to_8bit
 from fppsim.dataio.formats import PRESETS
 from fppsim.errors import PSPMatError, InputError
 from fppsim.phase.plane import phase_plane_masks, plane_level
-from fppsim.dataio.readers.datasets import pick_evenly
+from fppsim.dataio.readers.samples import pick_evenly
 from fppsim.dataio.readers.psp_mat import reading_note
 from fppsim.dataio.readers.source import IMAGE_EXTS, Source, grey_sample, open_labelled, open_source
 

@@ -38,7 +38,7 @@ import numpy as np
 from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
 from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
 from fppsim.errors import DatasetError, PSPMatError, InputError
-from fppsim.dataio.readers.datasets import (check_export_labels, check_psp_available, load_native_sample,
+from fppsim.dataio.readers.samples import (check_export_labels, check_psp_available, load_native_sample,
                                             open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
                                             read_native_psp)
 from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,

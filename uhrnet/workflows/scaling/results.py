@@ -4,7 +4,7 @@ seed is and the command that ran it) and its results, read from a finished folde
 Results per seed: ``pair_object_rmse_mm`` (object RMSE on the labelled real pair(s), mean over images), its
 split into ``pair_level_rmse_mm`` (each connected object region's median error) and ``pair_relief_rmse_mm``
 (the rest), the exact mean split (``pair_level_rmse_mean_mm`` / ``pair_relief_rmse_mean_mm``: level^2 +
-relief^2 = RMSE^2; :func:`uhrnet.workflows.sim2real.metrics.error_split`) and ``phase_residual_rad``
+relief^2 = RMSE^2; :func:`uhrnet.workflows.sim2real.real_metrics.error_split`) and ``phase_residual_rad``
 (``uhrnet evaluate-phase``'s calibration-free residual on each held-out real phase-shifting frame).
 """
 

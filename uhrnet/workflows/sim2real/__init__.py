@@ -37,19 +37,19 @@ finished evaluation are re-used.
 Modules: :mod:`~uhrnet.workflows.sim2real.config` (:class:`Sim2RealConfig`, :data:`SCALES`, :class:`Variant`),
 :mod:`~uhrnet.workflows.sim2real.variants` (the ``--variant SPEC`` / ``--ablation`` grammar -> :class:`Variant`),
 :mod:`~uhrnet.workflows.sim2real.run` (the stages and :func:`run_sim2real`),
-:mod:`~uhrnet.workflows.sim2real.evaluate` (one checkpoint on the real pairs, the real phase frames and the
+:mod:`~uhrnet.workflows.sim2real.score_real` (one checkpoint on the real pairs, the real phase frames and the
 synthetic validation split),
-:mod:`~uhrnet.workflows.sim2real.metrics` (object RMSE and its level / relief split, median error, coverage, fringe
+:mod:`~uhrnet.workflows.sim2real.real_metrics` (object RMSE and its level / relief split, median error, coverage, fringe
 twins, level response) and
 :mod:`~uhrnet.workflows.sim2real.report` (``report.md``, figures).
 """
 
 from uhrnet.errors import Sim2RealError
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key
-from uhrnet.workflows.sim2real.metrics import (error_split, fringe_twins, level_response, object_mask, object_regions,
+from uhrnet.workflows.sim2real.real_metrics import (error_split, fringe_twins, level_response, object_mask, object_regions,
                                                plane_level, real_metrics, twin_metrics)
 from uhrnet.workflows.sim2real.report import markdown_report, plot_real
-from uhrnet.workflows.sim2real.evaluate import (
+from uhrnet.workflows.sim2real.score_real import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs, refine_labels,
 )
 from uhrnet.workflows.sim2real.run import adapt_config, generate_config, run_differences, run_sim2real, train_config

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.plots import pyplot, save_figure
-from uhrnet.workflows.sim2real.metrics import object_mask
+from uhrnet.workflows.sim2real.real_metrics import object_mask
 
 __all__ = ["markdown_report", "plot_real"]
 
@@ -65,7 +65,7 @@ def _rows_table(report: dict) -> list[str]:
              "the object pixels), coverage = share of object pixels the prediction marks valid. Level / relief: "
              "the object RMSE split over the object's connected regions into each region's median error (level) "
              "and the rest (relief); the median split does not add up exactly, the mean split (each region's "
-             "mean error) does: level^2 + relief^2 = RMSE^2 (`uhrnet.workflows.sim2real.metrics.error_split`). Phase frames: "
+             "mean error) does: level^2 + relief^2 = RMSE^2 (`uhrnet.workflows.sim2real.real_metrics.error_split`). Phase frames: "
              "calibration-free phase residual (rad) of the prediction, as `uhrnet evaluate-phase` reports it "
              "(lower is better; the flat plane h = 0 is in the last line).", "",
              "| row | object RMSE (mm) | level (mm) | relief (mm) | level / relief, mean split (mm) | "
@@ -139,7 +139,7 @@ def plot_real(fringe: np.ndarray, label: np.ndarray, valid: np.ndarray, pred: np
     """Real fringe | truth | prediction | error (mm above the plane) and a cross-section row.
 
     ``fringe`` (H, W) in [-1, 1]; ``label``, ``valid``, ``pred``: real and predicted labels (H, W);
-    ``metrics``: the image's :func:`~uhrnet.workflows.sim2real.metrics.real_metrics` (plane label, RMSEs).
+    ``metrics``: the image's :func:`~uhrnet.workflows.sim2real.real_metrics.real_metrics` (plane label, RMSEs).
     """
     plt = pyplot()
     plane = metrics["plane_label"]

@@ -39,7 +39,7 @@ from uhrnet.errors import Sim2RealError, UhrnetError
 from uhrnet.run_folder import CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.stages import dataset_count, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
-from uhrnet.workflows.sim2real.evaluate import (
+from uhrnet.workflows.sim2real.score_real import (
     evaluate_level, evaluate_real, evaluate_real_phase, find_phase_frames, find_real_pairs,
 )
 from uhrnet.workflows.sim2real.report import markdown_report

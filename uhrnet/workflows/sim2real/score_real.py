@@ -1,8 +1,8 @@
 """Measuring one checkpoint of a sim-to-real experiment on real data (and its synthetic validation split).
 
 * :func:`evaluate_real`: every image of the real figshare-format folders (labelled pairs) ->
-  :func:`~uhrnet.workflows.sim2real.metrics.real_metrics` (object RMSE, median |error|, share within 1 mm, coverage, ...)
-  and, for the network's own prediction, the fringe twins (:func:`~uhrnet.workflows.sim2real.metrics.twin_metrics`);
+  :func:`~uhrnet.workflows.sim2real.real_metrics.real_metrics` (object RMSE, median |error|, share within 1 mm, coverage, ...)
+  and, for the network's own prediction, the fringe twins (:func:`~uhrnet.workflows.sim2real.real_metrics.twin_metrics`);
 * :func:`evaluate_real_phase`: every frame of real phase-shifting folders (``PSin/ PCos/ Fringe/ iPattern/``,
   no labels) -> the calibration-free phase residual of the prediction, the metric ``uhrnet evaluate-phase``
   reports with its defaults (:func:`uhrnet.scoring.phase_residual.evaluate_phase`: degree-3 plane, least squares,
@@ -34,7 +34,7 @@ from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.device import select_device
 from uhrnet.inference.prediction import predict_labels, refine_rig_for, refine_with_phase
 from uhrnet.physics.refine import REFINE_METHODS
-from uhrnet.workflows.sim2real.metrics import error_split, level_response, object_mask, real_metrics, twin_metrics
+from uhrnet.workflows.sim2real.real_metrics import error_split, level_response, object_mask, real_metrics, twin_metrics
 from uhrnet.workflows.sim2real.report import plot_real
 from uhrnet.scoring.phase_residual import evaluate_phase
 
@@ -111,10 +111,10 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
                   device: str = "cpu", figures: bool = True, title: str = "", refine: str | None = None,
                   rig: str | Path | None = None) -> dict:
     """Predict every real image with ``checkpoint`` (then ``refine`` it, module docstring) and measure it
-    (:mod:`uhrnet.workflows.sim2real.metrics`; the fringe twins for the network's own prediction only).
+    (:mod:`uhrnet.workflows.sim2real.real_metrics`; the fringe twins for the network's own prediction only).
 
     Each per-image row also lists its object regions' errors (``object_region_errors``: area in px, median
-    and mean error in mm, largest first; :func:`~uhrnet.workflows.sim2real.metrics.error_split`).
+    and mean error in mm, largest first; :func:`~uhrnet.workflows.sim2real.real_metrics.error_split`).
     Writes ``out/real_metrics.json``, ``out/predictions.npz`` (float32 predicted labels, one array per
     image: ``<folder index>_<sample index>``) and, with ``figures``, ``out/real_<k>.png``.
     Returns the JSON document: per-image rows and their means.
@@ -208,7 +208,7 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
 
 def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | Path, object_mm: float = 5.0,
                    device: str = "cpu") -> dict:
-    """:func:`~uhrnet.workflows.sim2real.metrics.level_response` of ``checkpoint`` on the validation split of the
+    """:func:`~uhrnet.workflows.sim2real.real_metrics.level_response` of ``checkpoint`` on the validation split of the
     ``synthetic`` folders (split as the run split them); writes and returns ``out/synthetic_level.json``."""
     import torch
 
