@@ -185,8 +185,14 @@ def add_realism_arguments(p: argparse.ArgumentParser) -> None:
                    help="number of distinct procedural sculptures (seeds 0..N-1; any N) (default 96)")
     p.add_argument("--pedestal", type=_fraction, default=None, metavar="P",
                    help="chance that each object stands on a prism pedestal (its outline shrunk 0.7-1x, 10-35 mm "
-                        "high, object + pedestal at most 55 mm), like plaster casts on thick flat backs "
+                        "high, object + pedestal at most 55 mm, or as --scenes says), like plaster casts on thick flat backs "
                         "(default 0.5; 0 = the scenes of fppsim before 2026-11-23)")
+    p.add_argument("--scenes", default="auto", metavar="auto|default|FILE",
+                   help="the objects' sizes, relief caps and pedestal heights (mm): auto = the rig file's scenes "
+                        "(fppsim fit-rig writes them to follow its frames), else the defaults, objects 70-140 mm "
+                        "across, relief capped at 35-55 mm, pedestals 10-35 mm; default = those; FILE = a JSON/YAML "
+                        "rig file with scenes, or a mapping footprint / max_relief / pedestal_height -> [lo, hi] "
+                        "(default auto)")
     p.add_argument("--rig-jitter", type=_jitter, default=(0.0, 0.0), metavar="YAW,FOCAL",
                    help="per-sample projector jitter: yaw +-YAW rad and focal length +-FOCAL (relative), so the "
                         "fringe period map varies like real rigs, e.g. 0.02,0.03 (default 0 = off)")
@@ -210,7 +216,7 @@ def generate_options(args) -> dict:
         supersample=args.supersample, optics=optics, noise_free=args.noise_free, psp_steps=args.psp_steps,
         psp_freqs=() if args.no_psp else tuple(args.psp_freqs), label=label,
         procedural_share=args.procedural_share, procedural_pool=args.procedural_pool, rig_jitter=args.rig_jitter,
-        pedestal=args.pedestal,
+        pedestal=args.pedestal, scenes=args.scenes,
         preview=args.preview, backend=args.backend, progress=not args.quiet)
 
 
@@ -218,8 +224,8 @@ def run_generate(args) -> int:
     from fppsim.generation import GenerateConfig, generate
     from fppsim.geometry.rig import load_rig
 
-    rig = load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
-    summary = generate(GenerateConfig(**{**generate_options(args), "rig": rig}))
+    load_rig(args.rig)  # a bad rig file is named first, before anything else is checked
+    summary = generate(GenerateConfig(**generate_options(args)))
     for line in summary.lines():
         print(line)
     return 0
@@ -350,11 +356,10 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
                    help="without --base: the camera's field of view across the image width [the default rig's, 29.2]")
     p.add_argument("--focal", type=float, metavar="PX", help="without --base: the camera's focal length, instead of --fov")
     p.add_argument("--distance", type=float, metavar="MM",
-                   help="without --base: camera height above the reference plane (images cannot tell it) [500, "
-                        "or what puts the largest object inside the synthetic scenes' 70-140 mm]")
+                   help="without --base: camera height above the reference plane (images cannot tell it; the rig "
+                        "file's scenes follow the frames at any scale) [500]")
     p.add_argument("--baseline", type=float, metavar="MM",
-                   help="without --base: camera-projector distance (images cannot tell it) [0.66 x --distance, or "
-                        "up to 1 x where the objects' phase relief would top the synthetic scenes' 55 mm]")
+                   help="without --base: camera-projector distance (images cannot tell it) [0.66 x --distance]")
     p.add_argument("--projector-side", choices=("left", "right", "above", "below"),
                    help="without --base: where the projector is seen from the camera (measured from phase-shifting "
                         "scans or shadows when not given)")

@@ -39,13 +39,14 @@ from fppsim.dataio.readers import open_source
 from fppsim.rendering.optics import OpticsRanges
 from fppsim.geometry.jitter import RigJitter
 from fppsim.geometry.rig import Rig, load_rig
+from fppsim.geometry.rig_files import read_rig_file
 from fppsim.rendering.render import DepthRenderer, select_backend
 from fppsim.rendering.preview import write_preview
 
 log = logging.getLogger("fppsim")
 
 __all__ = ["GenerateConfig", "GenerateError", "RunSummary", "load_assets", "generate", "generate_dataset",
-           "shard_indices", "merge", "read_optics_file", "FORMATS", "SUPERSAMPLE", "PROCEDURAL"]
+           "shard_indices", "merge", "read_optics_file", "resolve_scenes", "SCENE_FIELDS", "FORMATS", "SUPERSAMPLE", "PROCEDURAL"]
 
 MAX_COUNT = 10_000_000  # samples of one run: more is a typo (at 3 MB a sample, 30 TB)
 FORMATS = ("native", "figshare")  # on-disk layouts generate writes
@@ -63,10 +64,13 @@ class RunSummary:
     seconds: float = 0.0
     figshare: str | None = None
     preview: str | None = None
+    scenes: str | None = None
 
     def lines(self) -> list[str]:
         out = [f"samples: {self.written} written, {self.existing} already there, {len(self.failed)} failed "
                f"(of {self.requested} in this shard) in {self.seconds:.1f} s -> {self.out}"]
+        if self.scenes:
+            out.append(f"scenes: {self.scenes}")
         for path, reason in self.skipped_meshes:
             out.append(f"skipped mesh: {reason}")
         for index, reason in self.failed[:10]:
@@ -98,7 +102,11 @@ class GenerateConfig:
     transform. procedural_share : chance that an object is a procedural sculpture (None: 1 when
     ``meshes`` is just ``"procedural"``, else 0); procedural_pool : distinct sculptures. rig_jitter :
     per-sample projector (yaw rad, relative focal) jitter, (0, 0) = off. pedestal : chance that an
-    object stands on a prism pedestal (None: ``SceneRanges.pedestal_probability``). preview : also write
+    object stands on a prism pedestal (None: ``SceneRanges.pedestal_probability``). scenes : the objects'
+    sizes, relief caps and pedestal heights (:data:`SCENE_FIELDS` of :class:`SceneRanges`): ``"auto"`` (the
+    rig file's ``scenes``, written by ``fppsim fit-rig`` to follow the frames, else the defaults),
+    ``"default"``, a JSON/YAML file (a rig file with ``scenes``, or such a mapping) or the mapping itself
+    (:func:`resolve_scenes`). preview : also write
     ``out/preview.png``. backend : GL platform ``osmesa``/``egl`` (None: ``$PYOPENGL_PLATFORM``).
 
     A value that is wrong on its own raises :class:`UsageError` (the command line exits 2, before
@@ -127,6 +135,7 @@ class GenerateConfig:
     preview: bool = False
     backend: str | None = None
     progress: bool = True
+    scenes: "str | dict" = "auto"
 
     def __post_init__(self):
         if isinstance(self.meshes, (str, os.PathLike)):
@@ -182,6 +191,7 @@ class GenerateConfig:
             self.label.check()
         except DatasetError as exc:
             raise UsageError(f"--label-*: {exc}") from None
+        self.scene_fields()  # a bad --scenes file is named before anything is written
 
     @property
     def mesh_paths(self) -> list[str]:
@@ -198,6 +208,10 @@ class GenerateConfig:
     def jitter(self):
         return RigJitter(*self.rig_jitter)
 
+    def scene_fields(self) -> tuple[dict, str]:
+        """The :data:`SCENE_FIELDS` the scenes take (``{}``: the defaults) and where from, in words."""
+        return resolve_scenes(self.scenes, None if isinstance(self.rig, Rig) else self.rig)
+
     def synth_config(self) -> SynthConfig:
         """The renderer's configuration: loads the rig and checks the ladder against it
         (:class:`RigError` / :class:`ConfigError`)."""
@@ -212,10 +226,66 @@ class GenerateConfig:
         if freqs:  # a ladder that ends within rounding of the rig's frequency ends exactly there
             freqs = freqs[:-1] + (psp_freq(rig.periods),)
         extra = {} if self.pedestal is None else {"pedestal_probability": float(self.pedestal)}
+        extra.update(self.scene_fields()[0])
         scene = SceneRanges(objects=tuple(self.objects), procedural_share=self.share,
                             procedural_pool=int(self.procedural_pool), **extra)
         return SynthConfig(rig=rig, optics=optics, scene=scene, supersample=self.supersample, psp_freqs=freqs,
                            psp_steps=self.psp_steps, rig_jitter=self.jitter())
+
+
+SCENE_FIELDS = ("footprint", "max_relief", "pedestal_height")
+"""The scene ranges a rig's frames set (``fppsim.fitting.frame_scenes``); the rest of :class:`SceneRanges` stays."""
+
+
+def _scene_mapping(doc, where: str) -> dict:
+    fields = {}
+    for k in SCENE_FIELDS:
+        if k in doc:
+            v = doc[k]
+            if not (isinstance(v, (list, tuple)) and len(v) == 2
+                    and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v)):
+                raise ConfigError(f"{where}: {k} must be [lo, hi] in mm, got {v!r}")
+            fields[k] = (float(v[0]), float(v[1]))
+    if not fields:
+        raise ConfigError(f"{where}: no scene ranges ({', '.join(SCENE_FIELDS)})")
+    try:
+        SceneRanges(**fields)
+    except InputError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    return fields
+
+
+def resolve_scenes(scenes, rig_path=None) -> tuple[dict, str]:
+    """The scene ranges of ``scenes`` (:data:`SCENE_FIELDS` -> (lo, hi) mm; ``{}``: the defaults) and where
+    they came from, in words: ``"default"``; ``"auto"``: the ``scenes`` section of the rig file ``rig_path``
+    (``fppsim fit-rig`` writes it to follow the frames), else the defaults; a mapping; or a JSON/YAML file
+    holding a rig with ``scenes`` or the mapping itself. :class:`ConfigError` naming the file otherwise."""
+    if isinstance(scenes, dict):
+        return _scene_mapping(scenes, "scenes"), "given"
+    if scenes in ("default", None):
+        return {}, "the default scenes"
+    if scenes == "auto":
+        if rig_path is None:
+            return {}, "the default scenes"
+        doc = read_rig_file(rig_path)
+        if not isinstance(doc, dict) or doc.get("scenes") is None:
+            return {}, f"the default scenes ({rig_path} has no scenes)"
+        return _scene_mapping(doc["scenes"], f"{rig_path}: scenes"), f"the rig file's scenes ({rig_path})"
+    p = Path(scenes)
+    if not p.is_file():
+        raise ConfigError(f"--scenes: file not found: {p} (or 'auto' / 'default')")
+    import yaml
+
+    try:
+        doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
+    except Exception as exc:
+        raise ConfigError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
+    if not isinstance(doc, dict):
+        raise ConfigError(f"{p}: expected a mapping of {', '.join(SCENE_FIELDS)} -> [lo, hi] mm (or a rig with scenes)")
+    inner = doc.get("scenes", doc)
+    if not isinstance(inner, dict):
+        raise ConfigError(f"{p}: scenes must be a mapping, got {type(inner).__name__}")
+    return _scene_mapping(inner, str(p)), f"{p}"
 
 
 def read_optics_file(path: str | os.PathLike) -> dict:
@@ -246,6 +316,11 @@ def generate(config: GenerateConfig) -> RunSummary:
                                config=config.synth_config(), workers=config.workers, fmt=config.format,
                                shard=config.shard, label=config.label, noise_free=config.noise_free,
                                progress=config.progress, backend=config.backend)
+    fields, source = config.scene_fields()
+    sc = SceneRanges(**fields)
+    summary.scenes = (f"objects {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, relief capped at "
+                      f"{sc.max_relief[0]:.0f}-{sc.max_relief[1]:.0f} mm, pedestals {sc.pedestal_height[0]:.0f}-"
+                      f"{sc.pedestal_height[1]:.0f} mm: {source}")
     if config.preview:
         root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))

@@ -10,8 +10,8 @@ commands through the CLIs' ``main``:
 1. ``fppsim fit-rig SCANS --out rig.json`` (no ``--base``): the rig from the scans alone; its plane
    phase must match the truth's (it can: the plane's phase pins the projector's pose and periods) and
    the projector must be below the camera; the depth scale is assumed (the default rig's field of
-   view; distance and triangulation angle the default rig's or chosen for the synthetic scenes) and the
-   report says so;
+   view; distance and triangulation angle the default rig's) and the report says so; the rig file's scenes
+   follow the scans' objects;
 2. ``fppsim fit-optics SCANS --rig rig.json --out optics.yaml --compare 0``: how the scans look;
 3. ``fppsim generate --rig rig.json --format figshare --no-psp --optics-file optics.yaml``: pretraining
    data of that rig;
@@ -119,6 +119,9 @@ def test_no_calibration_images_to_rig_to_network(tmp_path, one_thread, capsys):
     _fppsim("generate", "--meshes", REPO / "assets" / "meshes", "--rig", rig_file, "--out", syn, "--count", 64,
             "--seed", 1, "--format", "figshare", "--no-psp", "--no-preview", "-q", "--optics-file", optics)
     assert np.load(syn / "f1_80.npy", mmap_mode="r").shape == (64, 108, 144, 1)
+    # the scenes follow the scans' objects: the rig file's scenes are what the data were drawn from
+    drawn = json.loads((syn / "native" / "dataset.json").read_text())["config"]["scene_ranges"]
+    assert drawn["footprint"] == json.loads(rig_file.read_text())["scenes"]["footprint"]
     _uhrnet("train", "--synthetic", syn, "--epochs", 12, "--lr", "1e-3", "--seed", 3, "--resize", "auto",
             "--val-phase", fit_folder, "--out", run, *MODEL)
     assert json.loads((run / "config.json").read_text())["resize"] is None  # 108 px: the network sees it whole

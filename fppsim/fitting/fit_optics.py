@@ -62,7 +62,8 @@ from fppsim.generation import generate_dataset
 from fppsim.fitting.compare import STAT_ROWS, dataset_stats, format_value
 from fppsim.rendering.synth import SynthConfig
 
-__all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "fit_optics", "ranges_yaml",
+__all__ = ["OpticsFit", "plane_model", "contrast_table", "image_estimates", "object_estimates", "unlit_share",
+           "NO_PLANE_SHARE", "NO_PLANE", "fit_optics", "ranges_yaml",
            "format_optics_fit", "compare_before_after", "FitOpticsConfig", "FitOpticsResult", "fit_optics_images"]
 
 FITTED = ("gain", "ambient", "albedo_plane", "albedo_object", "projector_blur", "camera_blur", "noise_sigma",
@@ -187,6 +188,66 @@ def _masks(im, model: dict) -> tuple[np.ndarray, np.ndarray | None]:
     return v & (local >= lo) & (local <= hi), None  # objects not identifiable: albedo_object not measured
 
 
+def _blur(contrast: float, k: float, ambient: float, table, rig: Rig, period: float) -> tuple[float, float, float, float]:
+    """``(projector_blur, camera_blur, ambient, c)`` from a surface's fringe contrast ``B/A`` under shading ``k``
+    (module docstring): the attenuation ``c`` inverted through the contrast ``table``; sharper than its
+    sharpest entry, no blur and the ambient solved for instead."""
+    sig, cs = table
+    c0 = float(cs[0])
+    amb = float(ambient)
+    c = contrast * (amb + 0.5 * k) / (0.5 * k)
+    if c >= c0:  # sharper than the sharpest table entry: no blur, the ambient explains the rest
+        sigma = 0.0
+        amb = max(0.5 * k * (c0 / contrast - 1.0), 0.0)
+        c = c0
+    else:
+        order = np.argsort(cs)  # c falls with sigma
+        sigma = float(np.interp(c, cs[order], sig[order]))
+    pb, cb = _split(sigma, _default_ratio(rig, period))
+    return pb, cb, amb, c
+
+
+NO_PLANE_SHARE = 0.4
+"""An image this much without fringes has no plane in view (objects on a black background): real frames with a
+plane have 3-11 % (shadows, dark patches), busts rendered on a black plane 65-82 %."""
+NO_PLANE = "none: no plane in view"
+
+
+def unlit_share(gray: np.ndarray, period: float) -> float:
+    """The share of the image without fringes: modulation under 3 gray levels or 15 % of the image's median
+    (:func:`fppsim.phase.measure.fringe_modulation` along the rows: give the transposed image for horizontal
+    fringes)."""
+    b, _ = fringe_modulation(gray.astype(np.float64), period, np.ones(gray.shape, bool))
+    lit = b >= 3.0
+    if not lit.any():
+        return 1.0
+    return float(np.mean(b < max(3.0, 0.15 * float(np.median(b[lit])))))
+
+
+def object_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, ambient: float,
+                     albedo_object: float) -> dict:
+    """Optics parameters of an image with no plane in view (:data:`NO_PLANE_SHARE`): ``albedo_plane`` 0 (what
+    ``generate`` renders as a black background) and the rest from the objects' fringes. Their brightest fifth
+    faces the projector (shading ``k`` about 1): its contrast gives the blur as on the plane, its background
+    ``A = gain albedo_object (ambient + 1/2)`` the product ``gain x albedo_object``, of which only the
+    product is visible (``albedo_object`` kept, ``gain`` from it). NaN where fewer than 500 pixels carry
+    fringes."""
+    g = im.gray.astype(np.float64)
+    b, a = fringe_modulation(g, period, im.valid)
+    lit = im.valid & (b >= 3.0) & (a > 1) & (im.gray < 255)
+    if lit.sum() < 500:
+        return {k: float("nan") for k in FITTED} | {"plane_pixels": 0}
+    bright = lit & (a >= np.percentile(a[lit], 80))
+    contrast = float(np.median(b[bright] / a[bright]))
+    pb, cb, amb, _ = _blur(contrast, 1.0, ambient, table, rig, period)
+    gain = float(np.median(a[bright])) / (amb + 0.5) / albedo_object
+    noise, shot = _noise_fit(im.gray, lit, _centre(OpticsRanges().shot_noise))
+    return {"gain": gain, "ambient": amb, "albedo_plane": 0.0, "albedo_object": albedo_object,
+            "albedo_object_p25": albedo_object, "albedo_object_p75": albedo_object, "projector_blur": pb,
+            "camera_blur": cb, "noise_sigma": noise, "shot_noise": shot, "contrast": contrast,
+            "background": float(np.median(a[bright])), "plane_pixels": 0, "period_px": period}
+
+
 def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: float, model: dict,
                     ambient: float, albedo_plane: float, transposed: bool = False) -> dict:
     """Optics parameters of one image (see the module docstring); NaN where not measurable. ``transposed``:
@@ -200,18 +261,7 @@ def image_estimates(im, rig: Rig, table: tuple[np.ndarray, np.ndarray], period: 
     contrast = float(np.median(b[ok] / a[ok]))
     A = float(np.median(a[ok]))
     k = float(np.median(model["k"][ok]))
-    sig, cs = table
-    c0 = float(cs[0])
-    amb = float(ambient)
-    c = contrast * (amb + 0.5 * k) / (0.5 * k)
-    if c >= c0:  # sharper than the sharpest table entry: no blur, the ambient explains the rest
-        sigma = 0.0
-        amb = max(0.5 * k * (c0 / contrast - 1.0), 0.0)
-        c = c0
-    else:
-        order = np.argsort(cs)  # c falls with sigma
-        sigma = float(np.interp(c, cs[order], sig[order]))
-    pb, cb = _split(sigma, _default_ratio(rig, period))
+    pb, cb, amb, c = _blur(contrast, k, float(ambient), table, rig, period)
     gp = A / (amb + 0.5 * k)
     gain = gp / albedo_plane
     ap = albedo_plane
@@ -264,7 +314,7 @@ class OpticsFit:
 PLANE_RAD, OBJECT_RAD = 0.3, 1.0  # |phase - the rig's plane phase|: the plane within, objects beyond (rad)
 FLAT_SLOPE = 0.03  # rad/px: the plane's residual from a single image's phase slopes less (_flat)
 
-PLANE_SOURCES = ("height labels", "scan phase", "image phase", "phase surface", "brightness")
+PLANE_SOURCES = ("height labels", "scan phase", "image phase", "phase surface", "brightness", NO_PLANE)
 """Where :func:`plane_masks` takes an image's plane pixels from, best first (``per_image[i]["plane_from"]``)."""
 
 
@@ -356,6 +406,7 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     d = OpticsRanges()
     amb = _centre(d.ambient) if ambient is None else float(ambient)
     ap = _centre(d.albedo_plane) if albedo_plane is None else float(albedo_plane)
+    ao = _centre(d.albedo_object)  # images with no plane in view keep it: only gain x albedo_object is seen
     model = plane_model(rig)
     across = fringe_axis(rig_phase_gradient(rig)) == "horizontal"
     if across:
@@ -376,7 +427,13 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
         key = round(period, 1)  # one contrast table per period (to 0.1 px)
         if key not in tables:
             tables[key] = contrast_table(rig, key, model=model)
-        per.append({"name": im.name, "plane_from": source} | image_estimates(im, rig, tables[key], period, model, amb, ap, across))
+        unlit = unlit_share(im.gray, period)
+        if unlit >= NO_PLANE_SHARE:  # before the phase's plane: its constant offset finds one on any flat top
+            per.append({"name": im.name, "plane_from": NO_PLANE, "unlit_share": unlit}
+                       | object_estimates(im, rig, tables[key], period, amb, ao))
+            continue
+        per.append({"name": im.name, "plane_from": source, "unlit_share": unlit}
+                   | image_estimates(im, rig, tables[key], period, model, amb, ap, across))
     centre, ranges = {}, {}
     for k in FITTED:
         v = np.array([p[k] for p in per], float)
@@ -399,6 +456,8 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     if "gain" not in centre:
         raise InputError("no image has enough reference-plane pixels with fringes to fit the optics")
     fixed = {"albedo_plane": ap} if "albedo_object" not in centre or centre["albedo_plane"] == ap else {}
+    if all(p["plane_from"] == NO_PLANE for p in per if np.isfinite(p["gain"])):
+        fixed = {"albedo_object": ao}
     if ambient is None and all(abs(p.get("ambient", amb) - amb) < 1e-12 for p in per if np.isfinite(p.get("ambient", np.nan))):
         fixed["ambient"] = amb
     return OpticsFit(per_image=per, centre=centre, ranges=OpticsRanges.from_dict({k: list(v) for k, v in ranges.items()}),
@@ -543,6 +602,12 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     if note:
         say(note)
     say(format_optics_fit(fit))
+    bare = [p for p in fit.per_image if p.get("plane_from") == NO_PLANE]
+    if bare:
+        say(f"no plane in view in {len(bare)} of {len(fit.per_image)} image(s) ({min(p['unlit_share'] for p in bare):.0%}"
+            f" or more of the image without fringes): albedo_plane 0, so generate renders the objects on a black "
+            f"background; the gain from the objects' brightest fifth with albedo_object kept at {_centre(OpticsRanges().albedo_object):g}"
+            " (only their product is visible)")
     guessed = [p["name"] for p in fit.per_image if p.get("plane_from") == "brightness"]
     if guessed:
         say(f"plane pixels of {len(guessed)} of {len(fit.per_image)} image(s) taken by brightness (the darker "

@@ -17,15 +17,12 @@ What a set of fringe images (or phase-shifting scans) of an unknown rig can and 
   sign of the objects' phase relief against the fitted plane gives the side (phase maps only); the
   projector's shadows, whose far side is the plane, give it too (plain images as well);
 * NOT the depth scale: the whole scene, camera distance and baseline scaled together, gives the
-  same images. The distance (default 500 mm, the default rig's) and the baseline (default 0.66 x the
-  distance, the default rig's 330 mm at 500 mm: its triangulation angle) come from the user
-  (``distance``, ``baseline``) or from height labels (``fit-rig --params ...,distance`` with a base).
-  What the user does not give is chosen for the synthetic scenes the rig will render
-  (:func:`scene_scale`, phase-shifting scans only): the distance so that the largest object is as wide
-  as the scenes' objects (:class:`fppsim.rendering.scene.SceneRanges` ``footprint``), the baseline (the
-  triangulation angle, at most 45 deg) so that the objects' phase relief is no higher than theirs
-  (``max_relief``). Relief and shadow widths go as height x the angle's tangent, so a rig with a steeper
-  angle and lower objects gives the same images; the network then trains on scenes shaped like the frames.
+  same images, and so does a steeper angle with lower objects. The distance (default 500 mm, the default
+  rig's) and the baseline (default 0.66 x the distance, the default rig's 330 mm at 500 mm: its
+  triangulation angle) come from the user (``distance``, ``baseline``) or from height labels
+  (``fit-rig --params ...,distance`` with a base). Whatever the scale, the synthetic scenes follow the
+  frames: the largest object's extent (px) and the objects' phase relief (rad) measured here become the
+  rig file's ``scenes`` (:mod:`fppsim.fitting.frame_scenes`), which ``fppsim generate`` renders.
 
 The start rig (:func:`start_rig`): a camera looking straight down at the plane from ``distance``, a
 projector of 912 x 1140 pixels (the default rig's DMD) at the camera's height, ``baseline`` mm beside
@@ -44,7 +41,6 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -53,8 +49,10 @@ from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.samples import pick_evenly
 from fppsim.errors import RigError, UsageError, InputError
 from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
+from fppsim.geometry.rig_files import save_rig
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
+from fppsim.fitting.frame_scenes import frame_scenes, scenes_line
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
 from fppsim.fitting.start_result import StartRigResult, first_lines, plane_fits_poorly, start_lines
 from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, find_plane,
@@ -63,11 +61,8 @@ from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, fin
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase.fringe_axis import rig_phase_gradient
 
-if TYPE_CHECKING:
-    from fppsim.rendering.scene import SceneRanges
-
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
-           "start_rig", "phase_maps_of", "scene_scale", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
+           "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
            "StartFitResult", "fit_rig_from_images"]
 
 # the default rig's camera: fx = 1230 px across 640 px
@@ -76,8 +71,6 @@ DEFAULT_DISTANCE = 500.0  # mm, camera above the plane (the default rig's)
 BASELINE_RATIO = 330.0 / 500.0  # baseline / distance of the default rig (its triangulation angle, 33.4 deg)
 PROJECTOR_SIZE = (912, 1140)  # DMD columns x rows (the default rig's)
 _COVER = 1.4  # the projector's image spans this many times the camera's view of the plane
-# a chosen baseline is at most the distance (45 deg): steeper rigs are rare, their shadows hide most of a tall object
-MAX_BASELINE_RATIO = 1.0
 # the camera's radial distortion is fitted (phase-shifting scans) when the pinhole's plane residual exceeds this
 # (rad; the real frames here fit to 0.03-0.12 without it, and k1 gains them under 10 %) and kept when it takes at
 # least LENS_GAIN of it away
@@ -203,13 +196,14 @@ def _where(rig: Rig) -> str:
     return f"{abs(d[1]):.0f} mm {'above' if d[1] > 0 else 'below'} the camera"
 
 
-def _object_extent(planes, maps, min_share: float = 0.005) -> float:
+def _object_extent(planes, maps, min_share: float = 0.005) -> tuple[float, bool]:
     """The largest object's extent (px, the longer side of its bounding box, median over the maps): the
     biggest connected region of pixels that are neither plane nor shadow-free of a phase, at least
-    ``min_share`` of the image; 0 when there is none."""
+    ``min_share`` of the image; 0 when there is none. Also whether it reaches the image border in any map
+    (then it is at least that big)."""
     from scipy import ndimage as ndi  # SciPy: only here
 
-    sizes = []
+    sizes, border = [], False
     for plane, m in zip(planes, maps):
         lab, n = ndi.label(ndi.binary_opening(m.valid & ~plane, iterations=2))
         if n == 0:
@@ -220,7 +214,10 @@ def _object_extent(planes, maps, min_share: float = 0.005) -> float:
             continue
         rows, cols = np.nonzero(lab == k)
         sizes.append(max(rows.max() - rows.min(), cols.max() - cols.min()) + 1)
-    return float(np.median(sizes)) if sizes else 0.0
+        H, W = plane.shape
+        m = 2  # the opening pulls a region this far off the border
+        border |= bool(rows.min() <= m or cols.min() <= m or rows.max() >= H - 1 - m or cols.max() >= W - 1 - m)
+    return (float(np.median(sizes)), border) if sizes else (0.0, False)
 
 
 def _object_relief(fit, maps) -> float:
@@ -229,57 +226,6 @@ def _object_relief(fit, maps) -> float:
     off = np.concatenate([np.abs(r[m.valid & ~p & np.isfinite(r)]) for r, p, m in zip(fit.residuals, fit.planes, maps)])
     off = off[off > 1.0]
     return float(np.percentile(off, 99)) if off.size > 50 else 0.0
-
-
-def _scenes() -> SceneRanges:
-    """The synthetic scenes' default ranges, imported when asked for (the scene module brings trimesh, 0.6 s,
-    into fit-rig's start otherwise)."""
-    from fppsim.rendering.scene import SceneRanges  # heavy (trimesh, scipy): only when the scenes' ranges are asked
-
-    return SceneRanges()
-
-
-def scene_scale(extent_px: float, relief_rad: float, focal_px: float, distance: float, baseline: float,
-                sensitivity, free_distance: bool = True, free_baseline: bool = True,
-                scenes: SceneRanges | None = None) -> tuple[float, float, dict]:
-    """The depth scale that puts the frames' objects inside the synthetic scenes' ranges (module docstring).
-
-    ``extent_px``: the largest object's width (camera px, 0: none); ``relief_rad``: the objects' phase
-    relief (rad, 0: none); ``focal_px``: the camera's focal length; ``distance``, ``baseline``: the
-    current ones (mm); ``sensitivity(distance, baseline)``: |rad per mm| of the rig fitted at that scale
-    (a raised surface's phase shift grows with the baseline). Only ``free_*`` ones change: the distance
-    so that the object is ``footprint[0]``-``footprint[1]`` mm across (rounded to 10 mm), then the
-    baseline so that the relief is at most ``max_relief[1]`` mm high, never above
-    :data:`MAX_BASELINE_RATIO` x the distance (rounded to 10 mm). Returns ``(distance, baseline, why)``,
-    ``why`` holding ``{"distance": text, "baseline": text}`` for what changed."""
-    sc = scenes or _scenes()
-    D, B, why = float(distance), float(baseline), {}
-    lo, hi = sc.footprint
-    if free_distance and extent_px > 0:
-        across = extent_px * D / focal_px
-        if not lo <= across <= hi:
-            want = min(max(across, lo), hi)
-            D_new = max(10.0, round(D * want / across / 10.0) * 10.0)
-            if free_baseline:
-                B *= D_new / D
-            why["distance"] = (f"chosen for the synthetic scenes: the largest object, {extent_px:.0f} px across, is then "
-                               f"{extent_px * D_new / focal_px:.0f} mm across, theirs {lo:.0f}-{hi:.0f} mm; {across:.0f} mm "
-                               f"at {D:.0f} mm")
-            D = D_new
-    top = sc.max_relief[1]
-    if free_baseline and relief_rad > 0:
-        high = relief_rad / abs(sensitivity(D, B))
-        if high > top:
-            B_new = min(MAX_BASELINE_RATIO * D, round(B * high / top / 10.0) * 10.0)
-            if B_new > B:
-                now = relief_rad / abs(sensitivity(D, B_new))
-                why["baseline"] = (f"chosen for the synthetic scenes: the objects' phase relief, {relief_rad:.1f} rad, is "
-                                   f"then {now:.0f} mm high, theirs up to {top:.0f} mm; {high:.0f} mm at {B:.0f} mm"
-                                   + (f"; at most {MAX_BASELINE_RATIO:g} x the distance, "
-                                      f"{math.degrees(math.atan(MAX_BASELINE_RATIO)):.0f} deg"
-                                      if B_new >= MAX_BASELINE_RATIO * D else ""))
-                B = B_new
-    return D, B, why
 
 
 def _maps_and_size(path, max_maps, convention, negate_sin):
@@ -370,25 +316,10 @@ def _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal):
     return PLANE_PARAMS, fit, lens
 
 
-def _depth_scale(fit, maps, params, W, H, gradient, side, D, baseline, fov, focal, assumed):
-    """The distance and baseline :func:`scene_scale` chooses where the user gave none: ``(fit, why)``, the
-    plane refitted at that scale (``assumed`` updated)."""
-    B = BASELINE_RATIO * D if baseline is None else float(baseline)
-    fits = {(D, B): fit}
-
-    def refit(d, b):
-        if (d, b) not in fits:
-            fits[d, b] = fit_plane_phase(start_rig(W, H, gradient, side, d, b, fov, focal), maps, params=params,
-                                         seeds=fit.planes)
-        return fits[d, b]
-
-    D, B, why = scene_scale(_object_extent(fit.planes, maps), _object_relief(fit, maps), fit.rig.camera.K[0, 0],
-                            D, B, lambda d, b: refit(d, b).rig.sensitivity(), "distance_mm" in assumed,
-                            "baseline_mm" in assumed)
-    for key, value in (("distance_mm", D), ("baseline_mm", B)):
-        if key in assumed:
-            assumed[key] = value
-    return refit(D, B), why
+def scenes_of(start: StartRigResult, rig: Rig) -> dict | None:
+    """The synthetic scenes for the frames ``start`` measured, through ``rig``
+    (:func:`fppsim.fitting.frame_scenes.frame_scenes`)."""
+    return frame_scenes(start.extent_px, start.relief_rad, rig, start.at_border)
 
 
 def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
@@ -400,8 +331,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     plane pixels found by :func:`find_plane`); the projector side from the objects' phase relief
     (phase-shifting scans), else from the shadows (:func:`shadow_side`), else ``projector_side``
     (``left`` / ``right`` / ``above`` / ``below``; when given it wins), else assumed; ``distance``
-    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given, or, from phase-shifting scans,
-    as :func:`scene_scale` chooses them for the synthetic scenes; ``convention`` / ``negate_sin`` as
+    (default 500 mm) and ``baseline`` (default 0.66 x distance) as given or assumed; the synthetic scenes
+    that follow the frames at that scale (``result.scenes``, :func:`scenes_of`); ``convention`` / ``negate_sin`` as
     :func:`phase_maps_of`. ``say`` receives each report line (:func:`fppsim.fitting.start_result.start_lines`).
 
     Scans whose plane model fits poorly (:func:`plane_fits_poorly`: no reference plane in view, e.g. busts on
@@ -427,7 +358,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     side, source = _projector_side(fit, maps, kind, gradient, axis, projector_side, assumed)
     if side != first:
         fit = fit_plane_phase(start_rig(W, H, gradient, side, D, baseline, fov, focal), maps, seeds=fit.planes)
-    params, lens, why = PLANE_PARAMS, None, {}
+    params, lens = PLANE_PARAMS, None
     if kind == "phase":  # before the plane is judged: a lens bends it
         params, fit, lens = _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal)
     no_plane = kind == "phase" and plane_fits_poorly(fit)
@@ -442,23 +373,19 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                            "projector pose is assumed")
         rig = start_rig(W, H, gradient, side, D, baseline, fov, focal)
     else:
-        if kind == "phase" and ("distance_mm" in assumed or "baseline_mm" in assumed):
-            fit, why = _depth_scale(fit, maps, params, W, H, gradient, side, D, baseline, fov, focal, assumed)
         rig = fit.rig
     where = _where(rig)
-    relief = _object_relief(fit, maps) if kind == "phase" else 0.0
-    scenes = _scenes() if relief else None  # only the report's line on the objects' relief names their ranges
+    relief = _object_relief(fit, maps) if kind == "phase" and not no_plane else 0.0
+    extent, at_border = _object_extent(fit.planes, maps)
     depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
     rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "
                 + ("projector pose assumed: no plane in view" if no_plane else "plane phase fitted")
                 + f", depth scale {depth})")
     result = StartRigResult(rig=rig, fit=fit, kind=kind, n_maps=len(maps), gradient=gradient, axis=axis, side=side,
                             side_source=source, where=where, sensitivity=float(rig.sensitivity()), assumed=assumed,
-                            lines=lines, images=images, scale_chosen=why, params=params, lens=lens,
-                            relief_rad=relief,
-                            extent_px=_object_extent(fit.planes, maps), no_plane=no_plane, absolute=kind == "phase",
-                            scene_footprint=tuple(scenes.footprint) if scenes else (0.0, 0.0),
-                            scene_max_relief=float(scenes.max_relief[1]) if scenes else 0.0)
+                            lines=lines, images=images, params=params, lens=lens, relief_rad=relief,
+                            extent_px=extent, at_border=at_border, no_plane=no_plane, absolute=kind == "phase")
+    result.scenes = scenes_of(result, rig)
     for line in start_lines(result):
         lines.append(line)
         say(line)
@@ -476,7 +403,7 @@ class StartRigConfig:
         :func:`fppsim.dataio.readers.load_fringe_images` reads. out : the rig file (refused if it exists
         unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
         (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
-        distance, or what :func:`scene_scale` chooses (images cannot tell them). projector_side :
+        distance (images cannot tell them; the rig file's ``scenes`` follow the frames at that scale). projector_side :
         ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed.
         convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`). params,
@@ -529,10 +456,11 @@ class StartFitResult:
     fit: object = None
     baseline: object = None
     depth: object = None
+    scenes: dict | None = None  # the rig file's scenes (fppsim.fitting.frame_scenes), through the rig written
 
     def to_dict(self) -> dict:
-        """The JSON document of ``--json``: ``start`` (the rig from the images) and the label fits."""
-        doc = {"start": self.start.to_dict()}
+        """The JSON document of ``--json``: ``start`` (the rig from the images), the label fits and ``scenes``."""
+        doc = {"start": self.start.to_dict(), "scenes": self.scenes}
         if self.fit is not None:
             doc.update(self.fit.to_dict())
         if self.baseline is not None:
@@ -596,9 +524,15 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
                 say("")
                 say(format_fit(fit))
                 rig = fit.rig
-    rig.save(out)
+    scenes = scenes_of(start, rig)
+    if rig is not start.rig and scenes != start.scenes:
+        say(f"scenes     after the label fits: {scenes_line(scenes)}")
+    doc = rig.to_dict()
+    if scenes is not None:  # what fppsim generate --scenes auto renders through this rig
+        doc["scenes"] = scenes
+    save_rig(doc, out)
     say(f"rig: {out}")
-    result = StartFitResult(start, rig, out, list(lines), fit, bfit, dfit)
+    result = StartFitResult(start, rig, out, list(lines), fit, bfit, dfit, scenes)
     if config.json:
         atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
     return result

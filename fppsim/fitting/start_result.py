@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from fppsim.fitting.frame_scenes import scenes_line
 from fppsim.fitting.plane_phase import PlanePhaseFit
 from fppsim.geometry.rig import Rig
 from fppsim.phase.fringe_axis import rig_phase_gradient
@@ -27,8 +28,9 @@ class StartRigResult:
     """What :func:`fppsim.fitting.rig_start.rig_from_images` found: the fitted ``rig``, the plane-phase ``fit``,
     the maps' ``kind`` (``"phase"`` or ``"fringe images"``), how many, the measured plane ``gradient`` (rad/px), the fringe
     ``axis``, the projector ``side`` (+1: raised surfaces lower the phase) and where it came from, the
-    assumptions made (``assumed``: name -> value), the report ``lines`` and why the depth scale was
-    chosen as it was (``scale_chosen``: ``distance`` / ``baseline`` -> text, :func:`fppsim.fitting.rig_start.scene_scale`)."""
+    assumptions made (``assumed``: name -> value), the report ``lines``, what the frames show of their objects
+    (``extent_px``, ``at_border``, ``relief_rad``) and the synthetic ``scenes`` that follow them
+    (:func:`fppsim.fitting.frame_scenes.frame_scenes`, through this ``rig``)."""
 
     rig: Rig
     fit: PlanePhaseFit
@@ -43,15 +45,14 @@ class StartRigResult:
     assumed: dict
     lines: list
     images: list = field(default_factory=list, repr=False)
-    scale_chosen: dict = field(default_factory=dict)
     params: tuple = ()  # the plane fit's parameters (PLANE_PARAMS, + LENS_PARAMS when a lens was fitted)
     lens: tuple | None = None  # (pinhole rad, with k1 rad, k1) when a lens was tried
     relief_rad: float = 0.0  # the objects' phase relief (scans)
     extent_px: float = 0.0  # the largest object's extent
+    at_border: bool = False  # it reaches the image border (at least that big)
     no_plane: bool = False  # no plane in view: the projector's pose is assumed (given distance, baseline, side)
     absolute: bool = True  # the maps are measured absolute phase (scans), not single-shot phase
-    scene_footprint: tuple = (0.0, 0.0)  # the synthetic scenes' object sizes (mm), which the report compares with
-    scene_max_relief: float = 0.0  # and their highest relief (mm)
+    scenes: dict | None = None  # the rig file's scenes (fppsim.fitting.frame_scenes)
 
     def to_dict(self) -> dict:
         cam = self.rig.camera
@@ -59,7 +60,8 @@ class StartRigResult:
                 "camera_focal_px": float(cam.K[0, 0]), "gradient_rad_per_px": list(self.gradient),
                 "fringes": self.axis, "projector": self.where, "projector_side_from": self.side_source,
                 "centre_sensitivity_rad_per_mm": self.sensitivity, "assumed": self.assumed,
-                "depth_scale_chosen": self.scale_chosen, "no_plane": self.no_plane,
+                "objects": {"largest_px": self.extent_px, "at_border": self.at_border, "relief_rad": self.relief_rad},
+                "scenes": self.scenes, "no_plane": self.no_plane,
                 "plane_fit": self.fit.to_dict()}
 
 
@@ -102,25 +104,18 @@ def _camera_and_fringes(r: StartRigResult) -> list[str]:
 
 
 def _depth(r: StartRigResult) -> list[str]:
-    cam, s, why, assumed = r.rig.camera, r.sensitivity, r.scale_chosen, r.assumed
+    cam, s, assumed = r.rig.camera, r.sensitivity, r.assumed
     base_mm = float(np.linalg.norm(r.rig.projector.center[:2] - cam.center[:2]))
-    d_txt = ("assumed, " + why["distance"] if "distance" in why else "assumed: the default rig's") \
-        if "distance_mm" in assumed else "given"
-    b_txt = ("assumed, " + why["baseline"] if "baseline" in why else "assumed: 0.66 x the distance, the default "
-             "rig's angle") if "baseline_mm" in assumed else "given"
+    d_txt = "assumed: the default rig's" if "distance_mm" in assumed else "given"
+    b_txt = "assumed: 0.66 x the distance, the default rig's angle" if "baseline_mm" in assumed else "given"
     lines = [f"depth      distance {cam.center[2]:.0f} mm ({d_txt}), baseline {base_mm:.0f} mm ({b_txt})"]
     if "distance_mm" in assumed or "baseline_mm" in assumed:
         lines.append("           NOT identifiable from images without height labels (the scene scaled as a whole "
-                     "looks the same): give --distance and --baseline if you know them")
+                     "looks the same): give --distance and --baseline if you know them; the scenes follow the "
+                     "frames at any scale")
     lines.append(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
                  f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
-    if r.relief_rad:  # what that makes of the objects: a check of the scale for whoever knows them
-        across = r.extent_px * cam.center[2] / cam.K[0, 0]
-        (lo, hi), top = r.scene_footprint, r.scene_max_relief
-        lines.append(f"           the objects' phase relief reaches {r.relief_rad:.1f} rad: about "
-                     f"{r.relief_rad / abs(s):.0f} mm high" + (f", the largest {across:.0f} mm across" if across > 0 else "")
-                     + f" at this scale (synthetic scenes: {lo:.0f}-{hi:.0f} mm across, up to about {top:.0f} mm of "
-                     "relief)")
+    lines.append(f"scenes     {scenes_line(r.scenes)}: the rig file's scenes, which fppsim generate renders")
     return lines
 
 

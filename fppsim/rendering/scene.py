@@ -162,6 +162,10 @@ class SceneRanges:
     pedestal_shrink: tuple[float, float] = (0.7, 1.0)    # pedestal outline / object's convex outline
 
     def __post_init__(self):
+        for name in ("footprint", "max_relief"):
+            lo, hi = getattr(self, name)
+            if not (0.0 < lo <= hi and np.isfinite(hi)):
+                raise InputError(f"{name} must satisfy 0 < lo <= hi (mm), got {getattr(self, name)}")
         lo, hi = self.objects
         if not (1 <= lo <= hi):
             raise InputError(f"objects range must satisfy 1 <= lo <= hi, got {self.objects}")

@@ -257,3 +257,49 @@ def test_a_real_bright_plane_under_a_dark_object(tmp_path, capsys):
     out = tmp_path / "optics.yaml"
     assert main(["fit-optics", str(src), "--rig", str(tmp_path / "rig.json"), "--out", str(out), "--compare", "1"]) == 0
     assert out.is_file() and "--compare skipped: the images carry no height labels" in capsys.readouterr().out
+
+
+def test_frames_with_no_plane_in_view(tmp_path, capsys):
+    """Busts on a black background (issue 50): rendered with albedo_plane 0, phase-shifting scans in the public
+    layout. fit-optics says there is no plane in view and fits the optics from the objects: albedo_plane 0
+    (so generate renders a black background too), gain x albedo_object within 10 % of the rendering's (the
+    brightest fifth faces the projector: their shading about 1), blur within 0.25 px; a frame WITH a plane is
+    not taken for one without (its image without fringes: shadows, 3-11 % on the real frames)."""
+    import json
+
+    from fppsim.cli import main
+    from fppsim.dataio.writers import export_psp_folders
+    from fppsim.generation import generate_dataset as generate
+    from fppsim.rendering.synth import SynthConfig
+
+    rig = Rig.default()
+    black = Optics(**{**vars(TRUTH), "albedo_plane": 0.0})
+    generate([str(ASSETS)], tmp_path / "native", 3, seed=3, config=SynthConfig(
+        rig=rig, optics=OpticsRanges.fixed(black), psp_freqs=(1, 8, 80)), progress=False)
+    export_psp_folders(tmp_path / "native", tmp_path / "scans")
+    images, _ = readers.load_fringe_images(tmp_path / "scans")
+    fit = fo.fit_optics(images, rig)
+    assert [p["plane_from"] for p in fit.per_image] == [fo.NO_PLANE] * 3
+    assert fit.ranges.albedo_plane == (0.0, 0.0) and "albedo_object" in fit.fixed and "albedo_plane" not in fit.fixed
+    c = fit.centre
+    assert c["gain"] * c["albedo_object"] == pytest.approx(black.gain * black.albedo_object, rel=0.1)
+    assert _eff_blur(rig, 11.6, c["projector_blur"], c["camera_blur"]) == pytest.approx(
+        _eff_blur(rig, 11.6, black.projector_blur, black.camera_blur), abs=0.25)
+    # the same scenes on a plane: the plane is found, not the black background's estimator
+    generate([str(ASSETS)], tmp_path / "plane", 3, seed=3, config=SynthConfig(
+        rig=rig, optics=OpticsRanges.fixed(TRUTH), psp_freqs=(1, 8, 80)), progress=False)
+    export_psp_folders(tmp_path / "plane", tmp_path / "plane_scans")
+    lit = fo.fit_optics(readers.load_fringe_images(tmp_path / "plane_scans")[0], rig)
+    assert all(p["plane_from"] != fo.NO_PLANE and p["unlit_share"] < 0.25 for p in lit.per_image)
+    # the command says so, and its ranges render the black background again
+    out = tmp_path / "optics.yaml"
+    assert main(["fit-optics", str(tmp_path / "scans"), "--out", str(out), "--compare", "0"]) == 0
+    assert "no plane in view in 3 of 3 image(s)" in capsys.readouterr().out
+    assert main(["generate", "--meshes", str(ASSETS), "--out", str(tmp_path / "gen"), "--count", "1", "--no-psp",
+                 "--optics-file", str(out), "--no-preview", "-q"]) == 0
+    sample = next(p for p in (tmp_path / "gen").iterdir() if (p / "meta.json").is_file())
+    assert json.loads((sample / "meta.json").read_text())["optics"]["albedo_plane"] == 0.0
+    arrays = np.load(sample / "arrays.npz")
+    fringe = cv2.imread(str(sample / "fringe.png"), cv2.IMREAD_UNCHANGED)
+    on_plane = (arrays["height"] < 0.01) & (arrays["mask"] > 0)
+    assert np.percentile(fringe[on_plane], 99) <= 8  # noise alone

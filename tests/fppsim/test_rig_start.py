@@ -245,7 +245,7 @@ def test_fit_rig_without_base_on_phase_shifting_scans(tmp_path, capsys):
     assert np.sign(rig.sensitivity()) == np.sign(truth.sensitivity())
     assert rig.projector.center[1] < rig.camera.center[1]  # below
     for words in ("horizontal", "below the camera", "NOT identifiable from images: assumed (the default rig's field",
-                  "NOT identifiable from images without height labels"):
+                  "NOT identifiable from images without height labels", "scenes     objects"):
         assert words in text, words
     doc = json.loads(rep.read_text())["start"]
     assert doc["fringes"] == "horizontal" and doc["plane_fit"]["plane_median_residual_rad"] < 0.01
@@ -258,6 +258,12 @@ def test_fit_rig_without_base_on_phase_shifting_scans(tmp_path, capsys):
     rig2 = Rig.load(out2)
     assert rig2.camera.center[2] == pytest.approx(420.0)
     assert rig2.sensitivity() == pytest.approx(truth.sensitivity(), rel=0.03)
+    # at the true scale the rig file's scenes measure the true objects: the larger dome is 2 x 0.25 x 110 px
+    # across, 40 mm high (its phase relief's 99th percentile a little under the peak)
+    scenes = json.loads(out2.read_text())["scenes"]
+    across = 2 * 0.25 * min(H, W) * 420.0 / rig2.camera.K[0, 0]
+    assert scenes["footprint"][1] / 1.3 == pytest.approx(across, rel=0.1)
+    assert 36.0 < scenes["max_relief"][1] / 1.8 <= 40.5
 
 
 def test_a_projector_that_leaves_a_strip_of_the_view_dark_is_still_fitted(tmp_path, capsys):
@@ -476,55 +482,41 @@ def test_real_frames_of_other_rigs(frame, sid, axis, where):
     assert res.axis == axis and where in res.where
     assert res.fit.median_rad < (0.2 if frame == "FP672" else 0.05)
     assert "NOT identifiable" in "\n".join(res.lines)
-    # the depth scale chosen for the synthetic scenes: FP672's figurine (87 rad of relief, 90 mm at the
-    # default angle) gets the steepest angle allowed; FP147's face fills the view, so the camera comes closer
+    # the depth scale is the physics' default (500 mm, 0.66 x it), not bent to fit the scenes: the scenes follow
+    # the frames instead. FP672's figurine (87 rad of relief) is about 90 mm high at this angle, so its scenes
+    # reach relief caps past the default 55 mm; FP147's face fills the view (260 mm at 500 mm), so its objects
+    # are larger than the default 70-140 mm
     cam, proj = res.rig.camera, res.rig.projector
     base = float(np.linalg.norm(proj.center[:2] - cam.center[:2]))
+    assert (cam.center[2], round(base)) == (500.0, 330)
+    sc = res.scenes
     if frame == "FP672":
-        assert (cam.center[2], round(base)) == (500.0, 500) and set(res.scale_chosen) == {"baseline"}
+        assert 70 < sc["max_relief"][1] / 1.8 < 90 and sc["max_relief"][1] > 120
         # a given steeper angle: the plane is still found (a start on the wrong side once lost it: 8 % share)
         steep = rs.rig_from_images(root, baseline=660.0)
         assert "right of" in steep.where and steep.fit.median_rad < 0.2 and np.mean(steep.fit.plane_share) > 0.8
+        # the same frames at a steeper angle: lower objects in mm, the same relief in rad
+        assert steep.scenes["max_relief"][1] < 0.7 * sc["max_relief"][1]
     else:
-        assert (cam.center[2], round(base)) == (270.0, 178) and set(res.scale_chosen) == {"distance"}
+        assert res.at_border and sc["footprint"][1] == pytest.approx(1.3 * 640 * 500 / 1230, abs=0.2)
+        assert "at least" in sc["measured"]
 
 
-def test_the_default_rigs_frame_keeps_the_default_scale():
-    """FP1523 (the figshare rig: a bust 107 mm across, 28 rad of relief) lies inside the scenes' ranges:
-    the start keeps the default rig's distance and baseline."""
+def test_the_default_rigs_frame_gives_the_default_scenes():
+    """FP1523 (the figshare rig, the frame the proportions of fppsim.fitting.frame_scenes were set on: a bust
+    107 mm across, 28 rad of relief): the start keeps the default distance and baseline, and its scenes are the
+    default SceneRanges to a millimetre."""
+    from fppsim.rendering.scene import SceneRanges
+
     root = REAL_PHASE / "FP1523"
     if not root.is_dir():
         pytest.skip("../shared/real-phase absent")
     res = rs.rig_from_images(root)
     base = float(np.linalg.norm(res.rig.projector.center[:2] - res.rig.camera.center[:2]))
-    assert res.scale_chosen == {} and res.rig.camera.center[2] == 500.0 and base == pytest.approx(330.0)
-
-
-def _pinhole_sensitivity(d, b, c=0.97 * 500.0 ** 2 / 330.0):
-    """|rad/mm| of a pinhole rig with a fixed fringe period in camera px: baseline / distance over the
-    period on the plane (which grows with the distance): ``c b / d^2`` (0.97 at 500 / 330 mm)."""
-    return c * b / d ** 2
-
-
-@pytest.mark.parametrize("extent,relief,free,want", [
-    (263.0, 87.4, (True, True), (500.0, 500.0, {"baseline"})),     # tall: steepest angle allowed (45 deg)
-    (263.0, 60.0, (True, True), (500.0, 370.0, {"baseline"})),     # a little too tall: 61.9 mm -> 55.2 mm
-    (640.0, 21.5, (True, True), (270.0, 178.2, {"distance"})),     # fills the view: closer, same angle
-    (100.0, 10.0, (True, True), (860.0, 567.6, {"distance"})),     # small: farther, same angle
-    (263.0, 28.0, (True, True), (500.0, 330.0, set())),            # inside the ranges: unchanged
-    (640.0, 87.4, (False, True), (500.0, 500.0, {"baseline"})),    # a given distance stays
-    (640.0, 87.4, (True, False), (270.0, 330.0, {"distance"})),    # a given baseline stays
-    (0.0, 0.0, (True, True), (500.0, 330.0, set())),               # no object: nothing to match
-])
-def test_scene_scale_puts_the_objects_inside_the_scenes_ranges(extent, relief, free, want):
-    D, B, why = rs.scene_scale(extent, relief, 1230.0, 500.0, 330.0, _pinhole_sensitivity, *free)
-    assert (D, B) == pytest.approx(want[:2]) and set(why) == want[2]
-    across = extent * D / 1230.0
-    if free[0] and extent:
-        assert 70.0 - 5 <= across <= 140.0 + 5
-    if "baseline" in why:  # at most 55 mm high (to the 10 mm the baseline is rounded to), or capped at 45 deg
-        assert B <= D
-        assert relief / _pinhole_sensitivity(D, B) <= 56.0 or (B == D and "45 deg" in why["baseline"])
+    assert res.rig.camera.center[2] == 500.0 and base == pytest.approx(330.0)
+    d = SceneRanges()
+    for key in ("footprint", "max_relief", "pedestal_height"):
+        assert res.scenes[key] == pytest.approx(list(getattr(d, key)), abs=1.0), key
 
 
 def test_any_size_networks_train_on_odd_sizes():
@@ -583,3 +575,10 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     rig = Rig.load(out)
     assert "no plane in view" in rig.name
     assert rig.sensitivity() == pytest.approx(truth.sensitivity(), rel=0.05)
+    # the scenes follow the objects' size (the two domes touch: one object from the left border to the right one,
+    # at least 200 px across); with no plane to measure the relief from, the relief cap keeps the default scenes'
+    # proportion to the size
+    scenes = json.loads(out.read_text())["scenes"]
+    assert scenes["footprint"][1] / 1.3 == pytest.approx(W * 420.0 / rig.camera.K[0, 0], rel=0.05)  # opened: -4 px
+    assert "at least" in scenes["measured"] and "relief not measured" in scenes["measured"]
+    assert "scenes     objects" in text

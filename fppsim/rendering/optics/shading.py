@@ -36,6 +36,7 @@ SHADING = Effect("Lambertian shading", "irradiance", (
     Param("gain", 150.0, (190.0, 270.0), "(0, inf)",
           doc="gray levels for albedo 1 under the full-white pattern at the world origin."),
     Param("ambient", 0.05, (0.005, 0.04), "[0, inf)", doc="ambient light relative to the projector's full white."),
-    Param("albedo_plane", 0.5, (0.25, 0.36), "(0, 1]", doc="diffuse reflectance of the reference plane."),
+    Param("albedo_plane", 0.5, (0.25, 0.36), "[0, 1]",
+          doc="diffuse reflectance of the reference plane (0: no plane in view, objects on a black background)."),
     Param("albedo_object", 0.8, (0.80, 1.00), "(0, 1]", doc="diffuse reflectance of the objects."),
 ), _shade)
