@@ -69,6 +69,19 @@ def test_optics_file_with_null_and_label_offset_inf(tmp_path, mesh, capsys):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("text, culprit", [('{"footprint": [5, 1]}', "footprint"), ('{"max_relief": [1, NaN]}', "max_relief"),
+                                           ('{"footprint": "big"}', "footprint"), ('[1, 2]', "mapping"),
+                                           ('{"tilt": 1}', "no scene ranges")])
+def test_bad_scenes_file_names_it(tmp_path, mesh, capsys, text, culprit):
+    f = tmp_path / "scenes.json"
+    f.write_text(text)
+    assert _gen(mesh, tmp_path / "o", "--scenes", f) == 1
+    _one_error_line(capsys, "scenes.json", culprit)
+    assert _gen(mesh, tmp_path / "o", "--scenes", tmp_path / "missing.json") == 1
+    _one_error_line(capsys, "--scenes", "missing.json")
+    assert not (tmp_path / "o").exists()
+
+
 def test_optics_dataclasses_validate():
     from fppsim.rendering.optics import Optics, OpticsRanges
 
