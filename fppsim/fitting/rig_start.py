@@ -59,7 +59,6 @@ from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, fin
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
-from fppsim.phase.fringe_axis import rig_phase_gradient
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
            "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
@@ -215,8 +214,9 @@ def _object_extent(planes, maps, min_share: float = 0.005) -> tuple[float, bool]
         rows, cols = np.nonzero(lab == k)
         sizes.append(max(rows.max() - rows.min(), cols.max() - cols.min()) + 1)
         H, W = plane.shape
-        m = 2  # the opening pulls a region this far off the border
-        border |= bool(rows.min() <= m or cols.min() <= m or rows.max() >= H - 1 - m or cols.max() >= W - 1 - m)
+        edge = 2  # the opening pulls a region this far off the border
+        border |= bool(rows.min() <= edge or cols.min() <= edge or rows.max() >= H - 1 - edge
+                       or cols.max() >= W - 1 - edge)
     return (float(np.median(sizes)), border) if sizes else (0.0, False)
 
 
