@@ -272,37 +272,35 @@ def resolve_scenes(scenes, rig_path=None) -> tuple[dict, str]:
             return {}, f"the default scenes ({rig_path} has no scenes)"
         return _scene_mapping(doc["scenes"], f"{rig_path}: scenes"), f"the rig file's scenes ({rig_path})"
     p = Path(scenes)
-    if not p.is_file():
-        raise ConfigError(f"--scenes: file not found: {p} (or 'auto' / 'default')")
-    import yaml
-
-    try:
-        doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
-    except Exception as exc:
-        raise ConfigError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
-    if not isinstance(doc, dict):
-        raise ConfigError(f"{p}: expected a mapping of {', '.join(SCENE_FIELDS)} -> [lo, hi] mm (or a rig with scenes)")
+    doc = _mapping_file(p, f"--scenes: file not found: {p} (or 'auto' / 'default')",
+                        f"a mapping of {', '.join(SCENE_FIELDS)} -> [lo, hi] mm (or a rig with scenes)")
     inner = doc.get("scenes", doc)
     if not isinstance(inner, dict):
         raise ConfigError(f"{p}: scenes must be a mapping, got {type(inner).__name__}")
     return _scene_mapping(inner, str(p)), f"{p}"
 
 
-def read_optics_file(path: str | os.PathLike) -> dict:
-    """Optics range overrides from a JSON/YAML mapping ``{name: value or [lo, hi]}``, checked
-    (:class:`ConfigError` naming the file)."""
+def _mapping_file(p: Path, not_found: str, expected: str) -> dict:
+    """The mapping a JSON / YAML (by extension) file ``p`` holds; :class:`ConfigError` with ``not_found`` when
+    it is missing, naming the file when it does not parse or is not ``expected`` (a mapping)."""
     import yaml
 
-
-    p = Path(path)
     if not p.is_file():
-        raise ConfigError(f"file not found: {p}")
+        raise ConfigError(not_found)
     try:
         doc = yaml.safe_load(p.read_text()) if p.suffix.lower() in (".yaml", ".yml") else json.loads(p.read_text())
     except Exception as exc:
         raise ConfigError(f"{p}: not valid JSON/YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(doc, dict):
-        raise ConfigError(f"{p}: expected a mapping of name -> value or [lo, hi]")
+        raise ConfigError(f"{p}: expected {expected}")
+    return doc
+
+
+def read_optics_file(path: str | os.PathLike) -> dict:
+    """Optics range overrides from a JSON/YAML mapping ``{name: value or [lo, hi]}``, checked
+    (:class:`ConfigError` naming the file)."""
+    p = Path(path)
+    doc = _mapping_file(p, f"file not found: {p}", "a mapping of name -> value or [lo, hi]")
     try:
         OpticsRanges.from_dict(doc)
     except ValueError as exc:

@@ -85,6 +85,7 @@ def frame_scenes(extent_px: float, relief_rad: float, rig, at_border: bool = Fal
 def scenes_line(scenes: dict | None) -> str:
     """The report's line on the scenes (fit-rig's and generate's words for the same section)."""
     if scenes is None:
-        return "no object measured: the default scenes (70-140 mm across, relief capped at 35-55 mm)"
+        return (f"no object measured: the default scenes ({DEFAULT_FOOTPRINT[0]:.0f}-{DEFAULT_FOOTPRINT[1]:.0f} mm "
+                f"across, relief capped at {DEFAULT_MAX_RELIEF[0]:.0f}-{DEFAULT_MAX_RELIEF[1]:.0f} mm)")
     (a, b), (c, d) = scenes["footprint"], scenes["max_relief"]
     return f"objects {a:.0f}-{b:.0f} mm across, relief capped at {c:.0f}-{d:.0f} mm ({scenes['measured']})"

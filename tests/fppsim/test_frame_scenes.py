@@ -43,6 +43,16 @@ def test_frame_scenes_are_the_measures_in_mm_times_the_proportions():
     assert far["max_relief"][1] == pytest.approx(2 * sc["max_relief"][1], rel=0.03)
 
 
+def test_the_default_ranges_are_the_scene_samplers():
+    """frame_scenes keeps its own copy of the defaults (the scene module brings trimesh into fit-rig's start):
+    they must be SceneRanges' own."""
+    from fppsim.fitting.frame_scenes import DEFAULT_FOOTPRINT, DEFAULT_MAX_RELIEF, DEFAULT_PEDESTAL, scenes_line
+
+    d = SceneRanges()
+    assert (DEFAULT_FOOTPRINT, DEFAULT_MAX_RELIEF, DEFAULT_PEDESTAL) == (d.footprint, d.max_relief, d.pedestal_height)
+    assert "70-140 mm across, relief capped at 35-55 mm" in scenes_line(None)
+
+
 def test_frame_scenes_without_relief_or_object():
     rig = _looking_down(400.0, 260.0)
     # no relief (plain fringe images): the default scenes' relief / footprint proportion
