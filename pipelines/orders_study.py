@@ -42,7 +42,7 @@ from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: 
 from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
-from uhrnet.inference.prediction import fringe_phase, predict_labels  # noqa: E402
+from uhrnet.inference.prediction import fringe_phase, path_estimate, predict_labels  # noqa: E402
 from uhrnet.physics.orders import choose_orders  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
@@ -61,8 +61,12 @@ def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndar
     return h
 
 
-def path(h: np.ndarray, fringe: np.ndarray, rig):
-    """The order choice as ``uhrnet predict --refine phase --refine-method orders`` makes it."""
+def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None):
+    """The order choice as ``uhrnet predict --refine phase --refine-method orders`` makes it: from the network's
+    mean over the image and its mirror along the fringes (``path_estimate``) when ``model`` is given, else
+    from ``h`` (the network's single pass, as before 2026-11-28)."""
+    if model is not None:
+        h = path_estimate(model, transform, fringe, None, rig, h)
     ssp = fringe_phase(fringe, rig)
     return choose_orders(h, ssp.wrapped, ssp.reliability, layer_for(rig, h.shape), valid=np.isfinite(h) & ssp.valid,
                          shadow=~ssp.valid)
@@ -108,6 +112,9 @@ def main(argv=None) -> int:
     ap.add_argument("--phase", nargs="*", default=[str(SHARED / "real-phase" / f) for f in ("FP1523", "FP672", "FP147")],
                     metavar="DIR", help="phase-shifting folders; one named FP1523 is the pair's rig [../shared/real-phase/*]")
     ap.add_argument("--depth-rig", default=str(ROOT / "assets" / "figshare_depth_rig.json"), metavar="FILE")
+    ap.add_argument("--single-pass", action="store_true",
+                    help="the path starts from the network's single pass, not its mean with the image mirrored "
+                         "along the fringes (uhrnet predict's estimate)")
     args = ap.parse_args(argv)
     torch.set_num_threads(2)
     out = Path(args.out)
@@ -127,11 +134,13 @@ def main(argv=None) -> int:
         ck = load_checkpoint(run)
         model, transform = model_from_checkpoint(ck, "cpu")
         seed = ck.get("args", {}).get("seed", k)
-        row = {"run": str(run), "seed": seed, "pair": {}, "frames": {}}
+        row = {"run": str(run), "seed": seed, "estimate": "single pass" if args.single_pass else "mirror mean",
+               "pair": {}, "frames": {}}
+        mirror = () if args.single_pass else (model, transform)
         h = network(model, transform, fringe, mask_invalid=True)
         for name, rig in rigs.items():
             layer = layer_for(rig, h.shape)
-            choice = path(h, fringe, rig)
+            choice = path(h, fringe, rig, *mirror)
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
                                  "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
             if name == "depth":
@@ -143,7 +152,7 @@ def main(argv=None) -> int:
         for fname, s, rig in frames:
             img = s.image.astype(np.float32) / 127.5 - 1.0
             hn = network(model, transform, img, mask_invalid=False)  # as evaluate-phase scores it
-            choice = path(hn, img, rig)
+            choice = path(hn, img, rig, *mirror)
             scored = s.valid & (s.image > 0)
             net_res = fit_phase(s.phase, hn, scored).rmse_rad
             path_res = fit_phase(s.phase, choice.height.astype(np.float64), scored).rmse_rad

@@ -10,8 +10,9 @@ import torch
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.inference.prediction import read_inputs
+from uhrnet.inference.prediction import fringe_mirror_axis, path_estimate, predict_labels, read_inputs
 from uhrnet.physics.refine import refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 
@@ -73,13 +74,20 @@ def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp
                  "--rig", str(tmp_path / "rig.json"), "--no-progress", "--no-ply"]) == 0
     doc = json.loads((out / "refine.json").read_text())
     assert sorted(doc) == ["real_0000", "real_0001"]
+    model, transform = model_from_checkpoint(load_checkpoint(run), "cpu")
     for name, stats in doc.items():
         assert 0.0 <= stats["moved_fraction"] <= 1.0 and stats["method"] == method
         net = np.load(out / f"{name}_height_network.npy")
         refined = np.load(out / f"{name}_height.npy")
         assert net.shape == refined.shape == (32, 64)
         np.testing.assert_array_equal(np.isnan(net), np.isnan(refined))  # invalid stays invalid
-        changed = np.isfinite(net) & (net != refined)  # (a moved pixel may land where it was)
+        # the path starts from the mean of the network's passes on the image and on it mirrored along the fringes
+        k = int(name.split("_")[1])
+        x = torch.from_numpy(fr[k].astype(np.float32) / 127.5 - 1)
+        flip = (lambda a: torch.flip(a, [-2])) if fringe_mirror_axis(rig) == -2 else (lambda a: torch.flip(a, [-1]))  # noqa: E731
+        labels = 0.5 * (predict_labels(model, x[None, None]) + flip(predict_labels(model, flip(x)[None, None])))
+        estimate = np.where(np.isfinite(net), transform.height_mm(labels[0, 0].numpy().astype(np.float64)), np.nan)
+        changed = np.isfinite(net) & ~np.isclose(estimate, refined, atol=1e-4)  # (a moved pixel may land where it was)
         # orders also carries the moved pixels' level correction to the pixels left out beside them
         touched = stats["moved_fraction"] + stats.get("carried_fraction", 0.0)
         assert changed.sum() <= touched * np.isfinite(net).sum() + 0.5
@@ -91,10 +99,13 @@ def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp
                  "--no-progress", "--no-ply"] + (["--refine-method", method] if method != "orders" else [])) == 0
     for name in doc:
         np.testing.assert_array_equal(np.load(tmp_path / "auto" / f"{name}_height.npy"), np.load(out / f"{name}_height.npy"))
-    # without --refine and --rig: no refine.json, no network copy
+    # without --refine and --rig: no refine.json, no network copy; the copy is this single pass of the network
     assert main(["predict", str(run), str(real), "--out", str(tmp_path / "plain"), "--no-progress", "--no-ply"]) == 0
     assert not (tmp_path / "plain" / "refine.json").exists()
     assert not list((tmp_path / "plain").glob("*_height_network.npy"))
+    for name in doc:
+        np.testing.assert_array_equal(np.load(out / f"{name}_height_network.npy"),
+                                      np.load(tmp_path / "plain" / f"{name}_height.npy"))
     # a rig that does not see the image's size is refused in one line
     capsys.readouterr()
     assert main(["predict", str(run), str(real), "--out", str(tmp_path / "x"), "--refine", "phase", "--no-progress",
@@ -184,3 +195,59 @@ def test_the_default_path_keeps_the_network_heights_of_an_image_without_fringes(
     assert main(["predict", str(run), str(tmp_path / "flat.npy"), "--out", str(tmp_path / "p"), "--rig",
                  str(tmp_path / "rig.json"), "--refine", "phase", "--no-progress", "--no-ply"]) == 1
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def _conv_model():
+    """A fixed, direction-sensitive 3x3 convolution: its answer on a mirrored image is not the mirror of its answer."""
+    m = torch.nn.Conv2d(1, 1, 3, padding=1, bias=False)
+    with torch.no_grad():
+        m.weight.copy_(torch.arange(9, dtype=torch.float32).reshape(1, 1, 3, 3) / 10.0 - 0.3)
+    return m
+
+
+@pytest.mark.parametrize("axis", [-2, -1])
+def test_predict_labels_mirror_axis_is_the_mean_with_the_mirrored_image(axis):
+    x = torch.from_numpy(np.random.default_rng(3).uniform(-1, 1, (1, 1, 32, 48)).astype(np.float32))
+    m = _conv_model()
+    w = m.weight.detach()
+    plain = torch.nn.functional.conv2d(x, w, padding=1)
+    mirrored = torch.flip(torch.nn.functional.conv2d(torch.flip(x, [axis]), w, padding=1), [axis])
+    got = predict_labels(m, x, mirror_axis=axis)
+    np.testing.assert_allclose(got.numpy(), (0.5 * (plain + mirrored)).numpy(), atol=1e-6)
+    assert not np.allclose(got.numpy(), plain.numpy(), atol=1e-3)  # the mirror does change the answer
+    np.testing.assert_allclose(predict_labels(m, x).numpy(), plain.numpy(), atol=1e-6)
+    with pytest.raises(ValueError, match="mirror_axis"):
+        predict_labels(m, x, mirror_axis=0)
+
+
+@pytest.mark.parametrize("axis,side", [("vertical", 1), ("vertical", -1), ("horizontal", 1), ("horizontal", -1)])
+def test_fringe_mirror_axis_runs_along_the_fringes(axis, side):
+    from fppsim.fitting import rig_start as rs
+
+    g = (0.0, -2 * np.pi / 12.0) if axis == "horizontal" else (2 * np.pi / 12.0, 0.0)
+    rig = rs.start_rig(150, 110, g, side, distance=420.0, baseline=260.0, fov=34.0)
+    phase = rig.phase_at_height(np.zeros((110, 150)))
+    # the truth from the plane's phase itself: the image axis along which it hardly changes
+    along = -2 if np.nanmean(np.abs(np.diff(phase, axis=0))) < np.nanmean(np.abs(np.diff(phase, axis=1))) else -1
+    assert fringe_mirror_axis(rig) == along == (-2 if axis == "vertical" else -1)
+    assert fringe_mirror_axis(rig.to_dict()) == along
+
+
+def test_path_estimate_is_the_mean_of_both_passes_masked_like_the_network():
+    rig = tiny_rig()
+    x = np.random.default_rng(5).uniform(-1, 1, (32, 64)).astype(np.float32)
+
+    class Transform:  # heights = 2 x labels + 1
+        @staticmethod
+        def height_mm(label):
+            return 2.0 * label + 1.0
+
+    m = _conv_model()
+    one = lambda a: predict_labels(m, torch.from_numpy(np.ascontiguousarray(a))[None, None])[0, 0].numpy()  # noqa: E731
+    flip = (lambda a: a[::-1]) if fringe_mirror_axis(rig) == -2 else (lambda a: a[:, ::-1])  # noqa: E731
+    network = 2.0 * one(x) + 1.0
+    network[:3] = np.nan
+    got = path_estimate(m, Transform, x, None, rig, network)
+    want = 2.0 * 0.5 * (one(x) + flip(one(flip(x)))) + 1.0
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(network))
+    np.testing.assert_allclose(got[3:], want[3:], atol=1e-5)

@@ -58,7 +58,7 @@ from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
 from uhrnet.scoring.evaluation import model_names
-from uhrnet.inference.prediction import predict_labels, refine_rig_for, refine_with_phase
+from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
            "markdown", "plot_phase_residuals", "PhaseValidation"]
@@ -476,7 +476,9 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                 ok &= pred_valid
             scored.append((name, h, ok, pred_valid))
             if rig is not None:  # the same pixels, the heights after the image's own phase
-                refined, _ = refine_with_phase(h, img.astype(np.float32) / 127.5 - 1.0, rig, args.refine_method)
+                fringe = img.astype(np.float32) / 127.5 - 1.0
+                refined, _ = refine_with_phase(path_estimate(model, transform, fringe, size, rig, h), fringe, rig,
+                                               args.refine_method)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
         record["plane_pixel_fraction"] = float(plane.mean())

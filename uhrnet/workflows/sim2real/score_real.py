@@ -32,7 +32,7 @@ from uhrnet.data.datasets import load_sources, open_dataset, parse_size
 from fppsim.errors import PSPMatError
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.device import select_device
-from uhrnet.inference.prediction import predict_labels, refine_rig_for, refine_with_phase
+from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase
 from uhrnet.physics.refine import REFINE_METHODS
 from uhrnet.workflows.sim2real.real_metrics import error_split, level_response, object_mask, real_metrics, twin_metrics
 from uhrnet.workflows.sim2real.report import plot_real
@@ -92,16 +92,21 @@ def _refine_rig(ck: dict, refine: str | None, rig: str | Path | None):
         raise Sim2RealError(f"rig: {exc}") from None
 
 
-def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method: str, rig_name: str = "the rig"):
+def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method: str, rig_name: str = "the rig",
+                  model=None, size=None):
     """``(labels, stats)``: predicted labels (H, W) after ``--refine phase --refine-method method`` on the
     image ``fringe`` (dataset encoding) through ``rig``; pixels the prediction marks invalid (or a black input)
-    keep their label."""
+    keep their label. With ``model`` (and its ``size``) the path starts where ``uhrnet predict``'s does, from
+    the network's mean over the image and its mirror along the fringes
+    (:func:`uhrnet.inference.prediction.path_estimate`); without it, from ``label``."""
 
     check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
                      error=Sim2RealError)
     lab = np.asarray(label, np.float64)
     valid = np.asarray(transform.valid(lab)) & (np.asarray(fringe) > -1 + 1e-6)
     h = np.where(valid, transform.height_mm(lab), np.nan)
+    if model is not None:
+        h = path_estimate(model, transform, fringe, size, rig, h)
     refined, stats = refine_with_phase(h, np.asarray(fringe, np.float32), rig, method)
     out = np.where(np.isfinite(refined), refined * transform.units_per_mm + transform.plane_offset, lab)
     return out.astype(np.float32), stats
@@ -135,7 +140,7 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
             pred = predict_labels(model, s["fringe"][None], size)[0, 0].cpu().numpy()
             extra = {}
             if refine_rig is not None:
-                pred, stats = refine_labels(pred, fringe, transform, refine_rig, refine, rig_name)
+                pred, stats = refine_labels(pred, fringe, transform, refine_rig, refine, rig_name, model, size)
                 extra = {"refine_moved_fraction": float(stats["moved_fraction"])}
             label = s["height"][0].numpy()
             valid = s["mask"][0].numpy() > 0.5
@@ -186,7 +191,7 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
         label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
         row = {"folder": folder, "id": sid}
         if refine_rig is not None:
-            label, stats = refine_labels(label, fringe, transform, refine_rig, refine, rig_name)
+            label, stats = refine_labels(label, fringe, transform, refine_rig, refine, rig_name, model, size)
             row["refine_moved_fraction"] = float(stats["moved_fraction"])
         h = transform.height_mm(label.astype(np.float64))
         ok = s.valid & (s.image > 0)
