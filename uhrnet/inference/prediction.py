@@ -436,7 +436,7 @@ def fringe_mirror_axis(rig) -> int:
     horizontal ones. An image mirrored along it keeps every fringe's phase and the direction the phase grows
     in, i.e. it is the image of a mirrored scene through the same kind of rig, so the network may be asked
     about it too. Averaging both answers (``predict_labels(..., mirror_axis=)``) is the estimate the phase path
-    starts from: on the labelled pair 4.24 -> 4.07 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's
+    starts from: on the labelled pair 4.17 -> 3.99 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's
     residual (3 seeds, every seed lower; docs/experiments/orders.md)."""
     return -2 if _rig_fringes(rig)[0] == "vertical" else -1
 
