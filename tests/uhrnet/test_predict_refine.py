@@ -205,19 +205,27 @@ def _conv_model():
     return m
 
 
-@pytest.mark.parametrize("axis", [-2, -1])
-def test_predict_labels_mirror_axis_is_the_mean_with_the_mirrored_image(axis):
+@pytest.mark.parametrize("axis", ["vertical", "horizontal"])
+def test_path_estimate_mirrors_along_the_fringes_of_either_direction(axis):
+    from fppsim.fitting import rig_start as rs
+
+    g = (0.0, -2 * np.pi / 12.0) if axis == "horizontal" else (2 * np.pi / 12.0, 0.0)
+    rig = rs.start_rig(150, 110, g, 1, distance=420.0, baseline=260.0, fov=34.0)
+    dim = 2 if axis == "vertical" else 3  # vertical fringes run down the rows: mirror the rows
     x = torch.from_numpy(np.random.default_rng(3).uniform(-1, 1, (1, 1, 32, 48)).astype(np.float32))
     m = _conv_model()
     w = m.weight.detach()
     plain = torch.nn.functional.conv2d(x, w, padding=1)
-    mirrored = torch.flip(torch.nn.functional.conv2d(torch.flip(x, [axis]), w, padding=1), [axis])
-    got = predict_labels(m, x, mirror_axis=axis)
-    np.testing.assert_allclose(got.numpy(), (0.5 * (plain + mirrored)).numpy(), atol=1e-6)
-    assert not np.allclose(got.numpy(), plain.numpy(), atol=1e-3)  # the mirror does change the answer
-    np.testing.assert_allclose(predict_labels(m, x).numpy(), plain.numpy(), atol=1e-6)
-    with pytest.raises(ValueError, match="mirror_axis"):
-        predict_labels(m, x, mirror_axis=0)
+    mirrored = torch.flip(torch.nn.functional.conv2d(torch.flip(x, [dim]), w, padding=1), [dim])
+
+    class Transform:  # heights = labels
+        @staticmethod
+        def height_mm(label):
+            return label
+
+    got = path_estimate(m, Transform, x[0, 0].numpy(), None, rig, plain[0, 0].numpy())
+    np.testing.assert_allclose(got, (0.5 * (plain + mirrored))[0, 0].numpy(), atol=1e-6)
+    assert not np.allclose(got, plain[0, 0].numpy(), atol=1e-3)  # the mirror does change the answer
 
 
 @pytest.mark.parametrize("axis,side", [("vertical", 1), ("vertical", -1), ("horizontal", 1), ("horizontal", -1)])

@@ -87,20 +87,12 @@ def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, 
 
 @torch.no_grad()
 def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
-                   amp: bool = False, mirror_axis: int | None = None) -> torch.Tensor:
+                   amp: bool = False) -> torch.Tensor:
     """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size
     (:func:`labels_at_input_size`); ``model`` (a model in label units,
-    :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode. ``mirror_axis`` (-2 or -1): the mean
-    of the labels of the input and of the input mirrored along that image axis (mirrored back); the phase
-    path uses it along the fringes (:func:`fringe_mirror_axis`)."""
+    :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
     model.eval()
-    out = labels_at_input_size(model, fringe, size, amp)
-    if mirror_axis is None:
-        return out
-    if mirror_axis not in (-2, -1):
-        raise ValueError(f"mirror_axis must be -2 (rows) or -1 (columns), got {mirror_axis!r}")
-    mirrored = labels_at_input_size(model, torch.flip(fringe, [mirror_axis]), size, amp)
-    return 0.5 * (out + torch.flip(mirrored, [mirror_axis]))
+    return labels_at_input_size(model, fringe, size, amp)
 
 
 def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
@@ -435,20 +427,21 @@ def fringe_mirror_axis(rig) -> int:
     """The image axis that runs along the rig's fringes: -2 (rows are mirrored) for vertical fringes, -1 for
     horizontal ones. An image mirrored along it keeps every fringe's phase and the direction the phase grows
     in, i.e. it is the image of a mirrored scene through the same kind of rig, so the network may be asked
-    about it too. Averaging both answers (``predict_labels(..., mirror_axis=)``) is the estimate the phase path
-    starts from: on the labelled pair 4.17 -> 3.99 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's
+    about it too. Averaging both answers (:func:`path_estimate`) is the estimate the phase path starts from: on the labelled pair 4.17 -> 3.99 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's
     residual (3 seeds, every seed lower; docs/experiments/orders.md)."""
     return -2 if _rig_fringes(rig)[0] == "vertical" else -1
 
 
 def path_estimate(model: torch.nn.Module, transform, fringe: np.ndarray, size, rig, network_mm: np.ndarray,
                   amp: bool = False) -> np.ndarray:
-    """Heights (mm, float64 (H, W)) the phase path starts from: the network on ``fringe`` (dataset encoding) and
-    on it mirrored along the rig's fringes (:func:`fringe_mirror_axis`), averaged; NaN where ``network_mm``
-    (the network's own map) is."""
-    x = torch.from_numpy(np.ascontiguousarray(fringe, np.float32))[None, None]
-    label = predict_labels(model, x, size, amp, mirror_axis=fringe_mirror_axis(rig))[0, 0].cpu().numpy()
-    return np.where(np.isfinite(network_mm), transform.height_mm(label.astype(np.float64)), np.nan)
+    """Heights (mm, float64 (H, W)) the phase path starts from: the mean of ``network_mm``, the network's own
+    map of ``fringe`` (dataset encoding; one pass at ``size``, NaN where invalid), and the network's heights on
+    ``fringe`` mirrored along the rig's fringes (:func:`fringe_mirror_axis`), mirrored back. The caller's pass
+    is reused, so this costs one more pass; NaN where ``network_mm`` is."""
+    axis = fringe_mirror_axis(rig)
+    x = torch.flip(torch.from_numpy(np.ascontiguousarray(fringe, np.float32))[None, None], [axis])
+    label = torch.flip(predict_labels(model, x, size, amp), [axis])[0, 0].cpu().numpy()
+    return 0.5 * (np.asarray(network_mm, np.float64) + transform.height_mm(label.astype(np.float64)))
 
 
 def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
