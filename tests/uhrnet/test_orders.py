@@ -132,3 +132,43 @@ def test_choose_orders_refuses_mismatched_shapes():
     layer = RigLayer(make_default_rig())
     with pytest.raises(ValueError, match="same"):
         choose_orders(np.zeros((352, 640)), np.zeros((10, 10)), None, layer)
+
+
+def test_a_seam_across_a_cliff_of_whole_periods_is_refused_by_the_network_levels():
+    """A block on the plane whose right part stands exactly 3 fringe periods of height higher, the cliff inside a
+    5 px band of unreliable phase: the phase looks continuous across (a seam would tie the parts 3 orders
+    wrong), while the estimate (a ramp over the cliff, so no wall; the right part 0.3 period high) says the
+    parts differ by 3 periods. The link is refused and each part takes its own order; taken, it puts the
+    larger left part a whole order off and leaves the right part unmoved."""
+    rig = make_default_rig()
+    cam = rig.camera
+    layer = RigLayer(rig)
+    yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
+    period = float(2 * np.pi / np.abs(layer.sensitivity(torch.full((cam.height, cam.width), 30.0)).numpy()).mean())
+    block = (xx >= 180) & (xx < 560) & (yy >= 90) & (yy < 270)
+    right = block & (xx >= 400)
+    base = np.where(block, 30.0, 0.0)
+    p0 = surface_phase(rig, base)
+    up = np.sign(np.mean((surface_phase(rig, base + 1.0) - p0)[block]))  # the way a raised surface moves the phase
+    h = base.copy()
+    for _ in range(8):  # Newton on fppsim's forward model: exactly 3 periods of phase at every pixel of the right part
+        ph = surface_phase(rig, h)
+        slope = surface_phase(rig, h + 0.01) - ph
+        h = np.where(right, h + 0.01 * (p0 + up * 3 * 2 * np.pi - ph) / slope, h)
+    phase = surface_phase(rig, h)
+    assert np.allclose((phase - p0)[right], up * 3 * 2 * np.pi, atol=1e-3)
+    w = wrap_phase(phase + 72.0)
+    rel = np.where(block & (xx >= 398) & (xx < 403), 0.0, 1.0)
+    ramp = np.clip((xx - 370) / 60.0, 0.0, 1.0)  # the network's smooth cliff: no wall
+    estimate = np.where(block, 30.0 + ramp * (h[right].mean() - 30.0 + 0.3 * period), 0.0)
+    core = right & (xx > 440) & (xx < 545) & (yy > 100) & (yy < 260)  # away from the wall at the block's edge
+    left = block & (xx > 195) & (xx < 360) & (yy > 100) & (yy < 260)
+    loose = choose_orders(estimate, w, rel, layer, max_link_misfit=np.inf)
+    assert loose.stats["refused_links"] == 0 and loose.stats["links"]["seam"] == 1
+    # one shift for both parts: the larger left part lands a whole order off, the right part cannot move
+    assert np.median(_errors(loose.height, h, left)) == pytest.approx(period, rel=0.05)
+    assert not loose.moved[core].any()
+    got = choose_orders(estimate, w, rel, layer)
+    assert got.stats["refused_links"] == 1 and got.stats["links"]["seam"] == 0
+    for part in (left, core):
+        assert np.percentile(_errors(got.height, h, part), 99) < 0.05

@@ -19,7 +19,10 @@ together without the network:
   the phase continues across, so extrapolating each side's phase over the gap gives their order difference.
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
-region's order relative to its component's root and skips a link that contradicts the ones taken).
+region's order relative to its component's root and skips a link that contradicts the ones taken, or one
+that would join two components whose priors disagree with it by more than ``max_link_misfit`` periods: a
+seam across a cliff of whole periods, which the network's smooth heights do not show as a wall, looks
+continuous to the phase but not to the network's levels).
 Each component then gets ONE shift, the integer that best fits all its regions' priors together
 (weighted by area), so a component's level is voted by every pixel it holds; its posterior under a
 Gaussian prior of ``sigma`` periods on the network's level error is the region's *confidence*. A
@@ -177,11 +180,20 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     return out
 
 
-def _components(n: int, links: list[Link]) -> tuple[np.ndarray, np.ndarray, list[Link], int]:
+def _components(n: int, links: list[Link], prior: np.ndarray | None = None, sizes: np.ndarray | None = None,
+                max_misfit: float = float("inf")) -> tuple[np.ndarray, np.ndarray, list[Link], int, int]:
     """Union-find over regions 1..n with order offsets: (root (n+1,), relative order to the root (n+1,),
-    links taken, conflicts skipped). Strongest links first; a link contradicting the taken ones is skipped."""
+    links taken, conflicts skipped, links refused by the network). Strongest links first; a link contradicting
+    the taken ones is skipped, and so is one that would join two components whose area-weighted priors
+    (``prior``, ``sizes``: 0-based per region) differ from the link's order difference by more than
+    ``max_misfit`` periods."""
     parent = np.arange(n + 1)
     rel = np.zeros(n + 1, np.int64)  # order of i minus order of parent[i]
+    w = np.zeros(n + 1)
+    wv = np.zeros(n + 1)  # per root: sum of weight x (prior - order relative to the root)
+    if prior is not None and n:
+        w[1:] = sizes
+        wv[1:] = sizes * prior
 
     def find(i):  # (root, order of i minus the root's); a few dozen regions: no path compression needed
         off = 0
@@ -190,19 +202,25 @@ def _components(n: int, links: list[Link]) -> tuple[np.ndarray, np.ndarray, list
             i = parent[i]
         return i, off
 
-    taken, conflicts = [], 0
+    taken, conflicts, refused = [], 0, 0
     for lk in sorted(links, key=lambda x: -x.strength):
         (ra, oa), (rb, ob) = find(lk.a), find(lk.b)
         if ra == rb:
             conflicts += int(ob - oa != lk.delta)
             continue
         # k_b = k_a + delta; k_a = k_ra + oa, k_b = k_rb + ob  =>  k_rb = k_ra + oa + delta - ob
-        parent[rb], rel[rb] = ra, oa + lk.delta - ob
+        step = oa + lk.delta - ob
+        if prior is not None and abs(step - (wv[rb] / w[rb] - wv[ra] / w[ra])) > max_misfit:
+            refused += 1
+            continue
+        parent[rb], rel[rb] = ra, step
+        wv[ra] += wv[rb] - w[rb] * step
+        w[ra] += w[rb]
         taken.append(lk)
     found = [find(i) for i in range(n + 1)]
     roots = np.array([r for r, _ in found])
     offs = np.array([o for _, o in found], np.int64)
-    return roots, offs, taken, conflicts
+    return roots, offs, taken, conflicts, refused
 
 
 def _origin(layer, wrapped: np.ndarray, phi: np.ndarray, h: np.ndarray, usable: np.ndarray, flat_mm: float) -> float:
@@ -264,7 +282,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   min_region: int = 50, grow=(0.4, 0.3, 0.2), fill=(0.1, 0.0), seams: bool = True,
                   bridges: bool = True, bridge_offset: float = 0.35, sigma: float = 0.3,
                   min_confidence: float = 0.6, flat_mm: float = 1.0, spread_px: float = 10.0,
-                  max_move_fraction: float = 2.0) -> OrderChoice:
+                  max_move_fraction: float = 2.0, max_link_misfit: float = 2.0) -> OrderChoice:
     """Heights whose every phase region sits at one whole fringe order (module docstring).
 
     Steps: (1) regions of reliable, continuous phase (reliability >= ``min_reliability``; boundaries where the
@@ -294,6 +312,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         when they are at least a tenth of the usable pixels; else on all, to the estimate's phase.
     spread_px : Gaussian sigma (px) of the level correction carried to the pixels left out (0: none).
     max_move_fraction : a pixel moves at most this many fringe periods of height (else the network's stays).
+    max_link_misfit : a link is refused when the two components it would join have area-weighted priors whose
+        difference is further than this many periods from the link's order difference: then the link, not the
+        network, is the likelier culprit (a seam or shadow across a height step of whole periods).
 
     Measured (docs/experiments/orders.md): the defaults were chosen on the labelled pair and FP1523/1201 with
     three checkpoints of one training seed; on the pair through the depth-fitted rig the recipe's network went
@@ -323,7 +344,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   for b in shadow_bridges(regions, unlit, about="median", max_offset=bridge_offset)]
     if n and seams:
         links += seam_links(regions, w, usable, blocked=unlit | walls | ~finite)
-    roots, offs, taken, conflicts = _components(n, links)
+    roots, offs, taken, conflicts, refused = _components(n, links, prior, core_sizes, max_link_misfit)
     order, conf = _component_orders(n, roots, offs, prior, core_sizes, sigma)
     decided = conf >= min_confidence
     if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
@@ -340,6 +361,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                          int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
     stats = _choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, carried, move,
                           offset)
+    stats["refused_links"] = refused
     return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats)
 
 
