@@ -128,10 +128,15 @@ def test_no_calibration_images_to_rig_to_network(tmp_path, one_thread, capsys):
 
     # 5. the score without labels on the held-out scans
     ev = tmp_path / "ev"
-    _uhrnet("evaluate-phase", run, "--phase-root", scans, "--ids", *HELDOUT, "--out", ev, "--device", "cpu")
-    (model,) = json.loads((ev / "phase_results.json").read_text())["models"]
+    _uhrnet("evaluate-phase", run, "--phase-root", scans, "--ids", *HELDOUT, "--out", ev, "--device", "cpu",
+            "--refine", "phase", "--rig", rig_file)
+    model, path = json.loads((ev / "phase_results.json").read_text())["models"]
     ratio = model["rmse_rad"] / model["flat_rmse_rad"]
-    assert ratio < 0.65, model  # measured 0.48 (0.53 before fit-optics and the chosen depth scale joined the path)
+    assert ratio < 0.65, model  # measured 0.56 on 2026-11-28 (0.48 when fit-optics joined the path, 0.53 before)
+    # the heights predict --rig returns, on the same pixels: measured 0.72 here, WORSE than the network: half of
+    # this 144 x 108 rig's pixels have unreliable phase and the regions grow through them (real frames: 18-27 %)
+    assert path["name"].endswith("+orders") and path["pixel_fraction"] == model["pixel_fraction"]
+    assert path["rmse_rad"] / path["flat_rmse_rad"] < 0.9, path
 
     # 6. the rest of the path takes the same rig
     _uhrnet("predict", run / "best.pt", scans, "--out", tmp_path / "pred", "--rig", rig_file, "--refine", "phase")
