@@ -427,8 +427,9 @@ def fringe_mirror_axis(rig) -> int:
     """The image axis that runs along the rig's fringes: -2 (rows are mirrored) for vertical fringes, -1 for
     horizontal ones. An image mirrored along it keeps every fringe's phase and the direction the phase grows
     in, i.e. it is the image of a mirrored scene through the same kind of rig, so the network may be asked
-    about it too. Averaging both answers (:func:`path_estimate`) is the estimate the phase path starts from: on the labelled pair 4.17 -> 3.99 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's
-    residual (3 seeds, every seed lower; docs/experiments/orders.md)."""
+    about it too. Averaging both answers (:func:`path_estimate`) is the estimate the phase path starts from:
+    on the labelled pair 4.17 -> 3.99 mm object RMSE and on FP1523/1201 0.86 -> 0.83 of the network's residual
+    (3 seeds, every seed lower; docs/experiments/orders.md)."""
     return -2 if _rig_fringes(rig)[0] == "vertical" else -1
 
 

@@ -180,8 +180,8 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     return out
 
 
-def _components(n: int, links: list[Link], prior: np.ndarray | None = None, sizes: np.ndarray | None = None,
-                max_misfit: float = float("inf")) -> tuple[np.ndarray, np.ndarray, list[Link], int, int]:
+def _components(n: int, links: list[Link], prior: np.ndarray, sizes: np.ndarray,
+                max_misfit: float) -> tuple[np.ndarray, np.ndarray, list[Link], int, int]:
     """Union-find over regions 1..n with order offsets: (root (n+1,), relative order to the root (n+1,),
     links taken, conflicts skipped, links refused by the network). Strongest links first; a link contradicting
     the taken ones is skipped, and so is one that would join two components whose area-weighted priors
@@ -189,11 +189,8 @@ def _components(n: int, links: list[Link], prior: np.ndarray | None = None, size
     ``max_misfit`` periods."""
     parent = np.arange(n + 1)
     rel = np.zeros(n + 1, np.int64)  # order of i minus order of parent[i]
-    w = np.zeros(n + 1)
-    wv = np.zeros(n + 1)  # per root: sum of weight x (prior - order relative to the root)
-    if prior is not None and n:
-        w[1:] = sizes
-        wv[1:] = sizes * prior
+    w = np.concatenate([[0.0], sizes])  # per root: its regions' area ...
+    wv = np.concatenate([[0.0], sizes * prior])  # ... and sum of area x (prior - order relative to the root)
 
     def find(i):  # (root, order of i minus the root's); a few dozen regions: no path compression needed
         off = 0
@@ -210,7 +207,7 @@ def _components(n: int, links: list[Link], prior: np.ndarray | None = None, size
             continue
         # k_b = k_a + delta; k_a = k_ra + oa, k_b = k_rb + ob  =>  k_rb = k_ra + oa + delta - ob
         step = oa + lk.delta - ob
-        if prior is not None and abs(step - (wv[rb] / w[rb] - wv[ra] / w[ra])) > max_misfit:
+        if abs(step - (wv[rb] / w[rb] - wv[ra] / w[ra])) > max_misfit:
             refused += 1
             continue
         parent[rb], rel[rb] = ra, step
@@ -360,9 +357,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                  if n else np.zeros(0))
     table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
                          int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
-    stats = _choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, carried, move,
-                          offset)
-    stats["refused_links"] = refused
+    stats = _choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, refused,
+                          carried, move, offset)
     return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats)
 
 
@@ -421,7 +417,7 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
     return refined, moved, move, carried
 
 
-def _choice_stats(finite, moved, core, usable, roots, n, decided, sizes, taken, conflicts, carried, move,
+def _choice_stats(finite, moved, core, usable, roots, n, decided, sizes, taken, conflicts, refused, carried, move,
                   offset) -> dict:
     npx = int(finite.sum())
     return {
@@ -436,6 +432,7 @@ def _choice_stats(finite, moved, core, usable, roots, n, decided, sizes, taken, 
         "undecided_fraction": float(sizes[~decided].sum() / npx) if npx else 0.0,
         "links": {"bridge": sum(lk.via == "bridge" for lk in taken), "seam": sum(lk.via == "seam" for lk in taken)},
         "conflicts": conflicts,
+        "refused_links": refused,
         "carried_fraction": float(carried.sum() / npx) if npx else 0.0,
         "mean_abs_move_mm": float(np.abs(move[moved]).mean()) if moved.any() else 0.0,
         "offset_rad": float(offset),
