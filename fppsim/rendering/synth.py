@@ -13,7 +13,7 @@ import numpy as np
 
 from fppsim import __version__
 from fppsim.errors import SampleError
-from fppsim.rendering.optics import OpticsRanges, form_images, noise_source
+from fppsim.rendering.optics import OpticsRanges, form_images, fringe_pixels, noise_source
 from fppsim.rendering.render import DepthRenderer, scene_geometry
 from fppsim.geometry.jitter import RigJitter, jitter_rig
 from fppsim.geometry.rig import Rig
@@ -93,8 +93,8 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
 
     images : {"fringe.png": uint8 (H, W), "psp/f{f}_s{n}.png": ...}
     arrays : float32 height (mm, world z; 0 where nothing is seen), depth (mm camera z-depth; 0 where
-        nothing is seen), phase_true (rad, projector phase of the single-shot frequency), mask (1 = seen
-        and lit), and with PSP phase_psp, height_psp, mask_psp.
+        nothing is seen), phase_true (rad, projector phase of the single-shot frequency), mask (1 = seen,
+        lit and not black: :func:`~fppsim.rendering.optics.fringe_pixels`), and with PSP phase_psp, height_psp, mask_psp.
     meta : everything needed to reproduce the sample.
     """
     k = config.supersample
@@ -137,7 +137,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     images = {name: np.ascontiguousarray(img[crop]) for name, img in zip(names, imgs)}
 
     seen = geom.seen
-    mask = geom.lit
+    mask = fringe_pixels(geom, optics)  # lit, and not black: a black plane has no phase, hence no label
     arrays = {
         "height": np.where(seen, geom.points[..., 2], 0.0).astype(np.float32),
         "depth": np.where(seen, geom.depth, 0.0).astype(np.float32),

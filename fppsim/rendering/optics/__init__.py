@@ -38,13 +38,14 @@ from fppsim.rendering.optics import camera, dirt, noise, projector, shading, spe
 from fppsim.rendering.optics.model import Context, Effect, OpticsModel, Param, SITES
 from fppsim.rendering.optics.noise import PrefetchedNormals, noise_source
 from fppsim.rendering.optics.projector import OVERSAMPLE
+from fppsim.rendering.optics.shading import fringe_pixels
 from fppsim.rendering.optics.stage import (form_image, form_images, optical_image, pattern_profile, projector_radiance,
                     sensor_image, surface_irradiance)
 
 __all__ = ["Optics", "OpticsRanges", "OPTICS_LIMITS", "OPTICS_UNITS", "EFFECTS", "MODEL", "OVERSAMPLE",
            "Effect", "Param", "Context", "OpticsModel", "SITES", "pattern_profile", "projector_radiance",
            "surface_irradiance", "form_images", "form_image", "optical_image", "sensor_image",
-           "noise_source", "PrefetchedNormals"]
+           "noise_source", "PrefetchedNormals", "fringe_pixels"]
 
 # The effects in the order their parameters become fields of Optics, which is also the order of the
 # per-sample random draws (OpticsRanges.sample): a new effect goes at the end.

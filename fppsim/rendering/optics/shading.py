@@ -16,7 +16,7 @@ import numpy as np
 
 from fppsim.rendering.optics.model import Effect, Param
 
-__all__ = ["SHADING", "irradiance_parts"]
+__all__ = ["SHADING", "irradiance_parts", "fringe_pixels"]
 
 
 def irradiance_parts(geom, optics) -> tuple[np.ndarray, np.ndarray]:
@@ -26,6 +26,17 @@ def irradiance_parts(geom, optics) -> tuple[np.ndarray, np.ndarray]:
     base = np.where(seen, optics.gain * albedo * optics.ambient, 0.0)
     modulated = np.where(geom.lit, optics.gain * albedo * geom.cos_incidence * geom.falloff, 0.0)
     return base, modulated
+
+
+def fringe_pixels(geom, optics) -> np.ndarray:
+    """(H, W) bool: the pixels that return the pattern, lit and of a surface that reflects (albedo above 0).
+
+    Only these have a phase, so only these carry a label. A black plane (``albedo_plane`` 0: objects on a
+    black background, as fit-optics measures frames with no plane in view) is left out like a shadow: real
+    frames mark it invalid too, and a network asked for the unseen plane's height there learns to ramp every
+    rim down to it (docs/own_rig.md)."""
+    albedo = np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
+    return geom.lit & (albedo > 0)
 
 
 def _shade(parts, optics, ctx):

@@ -1,0 +1,183 @@
+#!/usr/bin/env python
+"""Heights in mm on real phase-shifting frames through a rig: the network alone and ``uhrnet predict --rig``'s path.
+
+``uhrnet evaluate-phase`` scores a prediction without a calibration: it regresses the frame's phase on a cubic
+plane plus ``a h + b h^2``, which absorbs any error of the heights' level and scale. On a frame with no plane in
+view (objects on black) that hides what a user sees in mm. Here each frame's own phase-shifting phase is taken
+through the SAME rig the network works in (``--rig``, e.g. the assumed-pose rig of docs/own_rig.md), so it gives
+the heights that rig makes of the true phase; a frame with no plane fixes their level only up to whole fringe
+periods, so the truth is shifted by the whole periods nearest each prediction, and the error is reported
+without its mean (level-free) as well as with it.
+
+For each run (one seed each) and frame id: the network's map as ``uhrnet predict --refine none`` writes it (at
+the run's ``--resize``, NaN where the input is black) and the path's (``predict --rig``: the mean with the image
+mirrored along the fringes, every phase region at one order); on the pixels with phase-shifting phase and a lit
+input: the error's RMS, standard deviation (level-free), the standard deviation within 3 px of the unscored
+pixels (the rims) and further in, the share within half a fringe period of height of the truth (after the
+mean), and evaluate-phase's residual / flat for comparison.
+
+With ``--pair`` (a labelled figshare pair: fringe_pattern.npy + height_map.npy) also a frame no choice was made
+on: the pair with every pixel off its objects (valid, more than 1 mm above the plane) blacked out, as a frame of
+objects on black would show them. Its labels are heights in another rig's frame, so each prediction is mapped to
+them by the least-squares ``alpha h + beta`` over the object pixels (two numbers, the depth scale and level an
+assumed-pose rig cannot know), and scored after it: RMSE, within 1 mm, and the rims' RMSE.
+
+Writes OUT/noplane_heights.json (every number), OUT/noplane_heights.md (the tables; mean ± sd over runs) and, with
+``--pair``, OUT/pair_first_run.png (the first run's maps and errors on the pair).
+
+    python pipelines/noplane_heights.py --runs RUN0 RUN1 RUN2 --frames FOLDER --rig RIG --out OUT [--pair DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy import ndimage as ndi
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
+from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.geometry.rig import load_rig  # noqa: E402
+from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
+from uhrnet.data.datasets import parse_size  # noqa: E402
+from uhrnet.inference.prediction import fringe_phase, path_estimate, predict_labels  # noqa: E402
+from uhrnet.physics.orders import choose_orders  # noqa: E402
+from uhrnet.physics.refine import layer_for  # noqa: E402
+from uhrnet.plots import plot_comparison  # noqa: E402
+from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
+from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
+
+RIM_PX = 3.0
+KEYS = ("rmse_mm", "sd_mm", "rim_sd_mm", "inner_sd_mm", "within_half_period", "phase_ratio")
+PAIR_KEYS = ("rmse_mm", "rim_rmse_mm", "inner_rmse_mm", "within_1mm", "alpha")
+
+
+def heights(run: str, fringe: np.ndarray, rig) -> tuple[np.ndarray, np.ndarray]:
+    """(network, path) heights in mm of a dataset-encoded fringe, as ``uhrnet predict`` makes them."""
+    ck = load_checkpoint(run)
+    model, transform = model_from_checkpoint(ck, "cpu")
+    size = parse_size(ck.get("args", {}).get("resize"))
+    label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].numpy().astype(np.float64)
+    net = np.where(transform.valid(label) & (fringe > -1 + 1e-6), transform.height_mm(label), np.nan)
+    est = path_estimate(model, transform, fringe, size, rig, net)
+    ssp = fringe_phase(fringe, rig)
+    layer = layer_for(rig, net.shape)
+    choice = choose_orders(est, ssp.wrapped, ssp.reliability, layer, valid=np.isfinite(est) & ssp.valid,
+                           shadow=~ssp.valid)
+    return net, np.where(np.isfinite(net), choice.height, np.nan)
+
+
+def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim: np.ndarray) -> dict:
+    """The error of ``h`` against the rig's heights of the phase-shifting phase, shifted by whole periods to it."""
+    m = scored & np.isfinite(h)
+    t = lambda a: torch.as_tensor(np.nan_to_num(a), dtype=torch.float64)  # noqa: E731
+    with torch.no_grad():
+        orders = np.round(np.median(((psp_phase - layer.phase_from_height(t(h)).numpy()) / (2 * np.pi))[m]))
+        truth = layer.height_from_phase(t(psp_phase - 2 * np.pi * orders)).numpy()
+        half = np.pi / np.abs(layer.sensitivity(t(truth)).numpy())
+    e = h - truth
+    c = e - e[m].mean()
+    flat = fit_phase(psp_phase, np.zeros_like(h), scored).rmse_rad
+    return {"rmse_mm": float(np.sqrt(np.mean(e[m] ** 2))), "sd_mm": float(c[m].std()),
+            "rim_sd_mm": float(c[m & rim].std()), "inner_sd_mm": float(c[m & ~rim].std()),
+            "within_half_period": float(np.mean(np.abs(c[m]) < half[m])),
+            "phase_ratio": float(fit_phase(psp_phase, np.nan_to_num(h), scored).rmse_rad / flat),
+            "pixels": int(m.sum())}
+
+
+def pair_frame(folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fringe with everything off the objects black, object mask, label heights in mm above the plane)."""
+    fringe = np.load(folder / "fringe_pattern.npy").astype(np.float32)
+    label = np.load(folder / "height_map.npy").astype(np.float64)
+    obj, plane = object_mask(label, label > -100)
+    return np.where(obj, fringe, np.float32(-1.0)), obj, (label - plane) / 6.0
+
+
+def affine(h: np.ndarray, truth: np.ndarray, obj: np.ndarray) -> np.ndarray:
+    """``alpha h + beta`` fitted to ``truth`` over the object pixels (least squares)."""
+    m = obj & np.isfinite(h)
+    alpha, beta = np.polyfit(h[m], truth[m], 1)
+    return alpha * h + beta
+
+
+def pair_scores(h: np.ndarray, truth: np.ndarray, obj: np.ndarray, rim: np.ndarray) -> dict:
+    m = obj & np.isfinite(h)
+    mapped = affine(h, truth, obj)
+    alpha, beta = np.polyfit(h[m], mapped[m], 1)
+    e = mapped - truth
+    r = lambda k: float(np.sqrt(np.mean(e[k] ** 2)))  # noqa: E731
+    return {"rmse_mm": r(m), "rim_rmse_mm": r(m & rim), "inner_rmse_mm": r(m & ~rim),
+            "within_1mm": float(np.mean(np.abs(e[m]) <= 1.0)), "alpha": float(alpha), "beta": float(beta),
+            "coverage": float(m.sum() / obj.sum())}
+
+
+def table(rows: list[dict], keys, head) -> str:
+    out = ["| " + " | ".join(["estimate", "runs"] + head) + " |", "|" + "---|" * (len(head) + 2)]
+    fmt = lambda a: f"{a.mean():.3g} ± {a.std(ddof=1) if len(a) > 1 else 0:.2g}"  # noqa: E731
+    for kind in ("network", "path"):
+        out.append(f"| {kind} | {len(rows)} | " + " | ".join(fmt(np.array([r[kind][k] for r in rows])) for k in keys)
+                   + " |")
+    return "\n".join(out)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--runs", nargs="+", required=True, metavar="RUN", help="checkpoints or run folders (their best epoch), one per seed")
+    ap.add_argument("--frames", required=True, metavar="DIR", help="phase-shifting frames (PSin/ PCos/ Fringe/ iPattern/)")
+    ap.add_argument("--rig", required=True, metavar="FILE", help="the rig the networks were trained for")
+    ap.add_argument("--out", required=True, metavar="DIR")
+    ap.add_argument("--pair", metavar="DIR", help="a labelled figshare pair to score with its plane blacked out")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(2)
+    rig = load_rig(args.rig)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    frames = {sid: load_psp_folder_sample(args.frames, sid) for sid in list_psp_ids(args.frames)}
+    rows = []
+    for run in args.runs:
+        for sid, s in frames.items():
+            fringe = (s.image.astype(np.float32) / 127.5 - 1.0)
+            scored = s.valid & (s.image > 0)
+            rim = ndi.distance_transform_edt(scored) <= RIM_PX
+            layer = layer_for(rig, fringe.shape)
+            net, pth = heights(run, fringe, rig)
+            rows.append({"run": run, "id": sid, "network": scores(net, s.phase, scored, layer, rim),
+                         "path": scores(pth, s.phase, scored, layer, rim)})
+            print(f"{run} {sid}: network sd {rows[-1]['network']['sd_mm']:.2f} mm, path {rows[-1]['path']['sd_mm']:.2f} mm",
+                  flush=True)
+    pair_rows = []
+    if args.pair:
+        fringe, obj, truth = pair_frame(Path(args.pair))
+        rim = obj & (ndi.distance_transform_edt(obj) <= RIM_PX)
+        for run in args.runs:
+            net, pth = heights(run, fringe, rig)
+            pair_rows.append({"run": run, "network": pair_scores(net, truth, obj, rim),
+                              "path": pair_scores(pth, truth, obj, rim)})
+            if len(pair_rows) == 1:  # the first run's maps, each after its own alpha h + beta
+                plot_comparison(fringe, truth, obj, {"network": affine(net, truth, obj), "path": affine(pth, truth, obj)},
+                                out / "pair_first_run.png", title=f"{run}: the pair on black")
+            print(f"{run} pair: network {pair_rows[-1]['network']['rmse_mm']:.2f} mm, "
+                  f"path {pair_rows[-1]['path']['rmse_mm']:.2f} mm", flush=True)
+    atomic_write_text(out / "noplane_heights.json", json.dumps(
+        {"rig": args.rig, "frames": args.frames, "rows": rows, "pair": args.pair, "pair_rows": pair_rows}, indent=1))
+    md = (f"# Heights through {args.rig} on {args.frames}\n\n" + table(
+        rows, KEYS, ["RMSE (mm)", "level-free sd (mm)", f"rims <= {RIM_PX:g} px, sd", "inside, sd",
+                     "within half a period", "evaluate-phase ratio"]) + "\n")
+    if pair_rows:
+        md += (f"\n## {args.pair}, plane blacked out, after alpha h + beta\n\n" + table(
+            pair_rows, PAIR_KEYS, ["object RMSE (mm)", f"rims <= {RIM_PX:g} px", "inside", "within 1 mm", "alpha"])
+            + "\n")
+    atomic_write_text(out / "noplane_heights.md", md)
+    print(md)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
