@@ -173,7 +173,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         "stats": {
             "object_fraction": frac,
             "valid_fraction": float(mask.mean()),
-            "shadow_fraction": float((seen & ~mask).mean()),
+            "shadow_fraction": float((seen & ~geom.lit).mean()),
             "max_height_mm": float(arrays["height"].max()),
             "intensity_p50": float(p50),
             "intensity_p99": float(p99),
