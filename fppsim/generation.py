@@ -65,12 +65,15 @@ class RunSummary:
     figshare: str | None = None
     preview: str | None = None
     scenes: str | None = None
+    background: str | None = None
 
     def lines(self) -> list[str]:
         out = [f"samples: {self.written} written, {self.existing} already there, {len(self.failed)} failed "
                f"(of {self.requested} in this shard) in {self.seconds:.1f} s -> {self.out}"]
         if self.scenes:
             out.append(f"scenes: {self.scenes}")
+        if self.background:
+            out.append(f"background: {self.background}")
         for path, reason in self.skipped_meshes:
             out.append(f"skipped mesh: {reason}")
         for index, reason in self.failed[:10]:
@@ -319,6 +322,8 @@ def generate(config: GenerateConfig) -> RunSummary:
     summary.scenes = (f"objects {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, relief capped at "
                       f"{sc.max_relief[0]:.0f}-{sc.max_relief[1]:.0f} mm, pedestals {sc.pedestal_height[0]:.0f}-"
                       f"{sc.pedestal_height[1]:.0f} mm: {source}")
+    if OpticsRanges.from_dict(dict(config.optics)).albedo_plane[1] == 0:
+        summary.background = "black (albedo_plane 0, no plane in view): only the objects return fringes and carry labels"
     if config.preview:
         root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))

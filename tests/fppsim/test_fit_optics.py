@@ -298,6 +298,7 @@ def test_frames_with_no_plane_in_view(tmp_path, capsys):
     assert "no plane in view in 3 of 3 image(s)" in capsys.readouterr().out
     assert main(["generate", "--meshes", str(ASSETS), "--out", str(tmp_path / "gen"), "--count", "1", "--no-psp",
                  "--optics-file", str(out), "--no-preview", "-q"]) == 0
+    assert "background: black (albedo_plane 0, no plane in view)" in capsys.readouterr().out
     sample = next(p for p in (tmp_path / "gen").iterdir() if (p / "meta.json").is_file())
     assert json.loads((sample / "meta.json").read_text())["optics"]["albedo_plane"] == 0.0
     arrays = np.load(sample / "arrays.npz")
