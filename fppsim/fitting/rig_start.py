@@ -54,7 +54,8 @@ from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.frame_scenes import frame_scenes, scenes_line
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
-from fppsim.fitting.start_result import StartRigResult, first_lines, plane_fits_poorly, start_lines
+from fppsim.fitting.start_result import (StartRigResult, first_lines, plane_fits_poorly, plane_image_share,
+                                         start_lines)
 from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, find_plane,
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
@@ -367,7 +368,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                                                          ("projector_side", projector_side)) if v is None]
         if missing:
             raise RigError(f"{path}: the plane model fits the scans poorly ({fit.median_rad:.2f} rad on "
-                           f"{np.mean(fit.plane_share):.0%} of the valid pixels): no reference plane in view (or the "
+                           f"{np.mean(fit.plane_share):.0%} of the valid pixels, {plane_image_share(fit):.0%} of the "
+                           "image): no reference plane in view (or the "
                            "phase is written another way: --convention, --negate-sin), so the projector's pose cannot "
                            f"be fitted; give scans that show the plane, or {', '.join(missing)} for a rig whose "
                            "projector pose is assumed")

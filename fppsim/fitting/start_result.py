@@ -15,10 +15,14 @@ from fppsim.fitting.plane_phase import PlanePhaseFit
 from fppsim.geometry.rig import Rig
 from fppsim.phase.fringe_axis import rig_phase_gradient
 
-__all__ = ["StartRigResult", "POOR_PLANE_SHARE", "POOR_PLANE_RAD", "plane_fits_poorly", "first_lines", "start_lines"]
+__all__ = ["StartRigResult", "POOR_PLANE_SHARE", "POOR_PLANE_RAD", "plane_fits_poorly", "plane_image_share",
+           "first_lines", "start_lines"]
 
 # the plane model fits scans poorly (no plane in view, or a phase read the wrong way) on less than this share of
-# the valid pixels or beyond this median residual (rad): the real frames with a plane fit to 0.03-0.13 rad
+# the IMAGE or beyond this median residual (rad): the real frames with a plane fit to 0.03-0.13 rad on 19-74 % of
+# the image (FP147's face fills the view: 19 %); FP1523 and FP672 with their plane blacked out leave a plane model
+# 6 % (a figurine's smooth front fits it to 0.15 rad on 42 % of the valid pixels, which share of the valid
+# pixels alone would take for a plane)
 POOR_PLANE_SHARE = 0.1
 POOR_PLANE_RAD = 0.25
 
@@ -68,10 +72,19 @@ class StartRigResult:
 
 
 def plane_fits_poorly(fit: PlanePhaseFit) -> bool:
-    """The plane model explains the scans' phase poorly: on under :data:`POOR_PLANE_SHARE` of the valid
-    pixels, or with a median residual above :data:`POOR_PLANE_RAD`: no reference plane in view, or a phase
-    written another way than it was read."""
-    return float(np.mean(fit.plane_share)) < POOR_PLANE_SHARE or fit.median_rad > POOR_PLANE_RAD
+    """The plane model explains the scans' phase poorly: on under :data:`POOR_PLANE_SHARE` of the image
+    (:func:`plane_image_share`), or with a median residual above :data:`POOR_PLANE_RAD`: no reference plane in
+    view (a smooth object on black can follow the model on most of the few valid pixels), or a phase written
+    another way than it was read."""
+    return plane_image_share(fit) < POOR_PLANE_SHARE or fit.median_rad > POOR_PLANE_RAD
+
+
+def plane_image_share(fit: PlanePhaseFit) -> float:
+    """The plane pixels' share of the whole image, mean over the maps (of the valid pixels when the fit kept no
+    plane masks)."""
+    if not fit.planes:
+        return float(np.mean(fit.plane_share))
+    return float(np.mean([np.mean(p) for p in fit.planes]))
 
 
 
@@ -124,9 +137,9 @@ def _plane_and_lens(r: StartRigResult) -> list[str]:
     share = float(np.mean(fit.plane_share))
     if r.no_plane:
         return [f"plane fit  none: the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the valid "
-                "pixels), no reference plane in view; the projector's pose is ASSUMED (aimed at the view's centre "
-                f"from the given distance, baseline and side), {rig.periods:.2f} periods across it from the measured "
-                "fringe period",
+                f"pixels, {plane_image_share(fit):.0%} of the image), no reference plane in view; the projector's "
+                "pose is ASSUMED (aimed at the view's centre from the given distance, baseline and side), "
+                f"{rig.periods:.2f} periods across it from the measured fringe period",
                 "not fitted the projector's yaw, pitch and roll beyond the fringes' direction; lens distortion"]
     p = fit.params
     pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k not in ("periods", "k1"))
@@ -137,7 +150,8 @@ def _plane_and_lens(r: StartRigResult) -> list[str]:
         lines.append("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
     elif plane_fits_poorly(fit):
         lines.append(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the "
-                     "pixels): check that the scans show the reference plane and how their phase is written "
+                     f"pixels, {plane_image_share(fit):.0%} of the image): check that the scans show the reference "
+                     "plane and how their phase is written "
                      "(--convention, --negate-sin)")
     if "k1" in params:
         lines.append(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, for the focal "

@@ -545,6 +545,30 @@ def test_any_size_networks_train_on_odd_sizes():
         torch.testing.assert_close(net(x16), plain(x16))  # multiples of 16: nothing changes
 
 
+def test_a_smooth_object_on_black_is_not_taken_for_the_plane(tmp_path, capsys):
+    """A flat-topped object on black is all the scans show: its top follows the plane model on nearly every valid
+    pixel, so the share of the VALID pixels took it for the reference plane (FP672 with its plane blacked out: 0.15
+    rad on 42 % of them) and fitted the projector to the top. It covers 6 % of the image, so fit-rig refuses it as
+    a scan with no plane in view, in one line naming what it needs."""
+    from fppsim.cli import main
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+
+    truth = truth_rig("vertical", 1, size=(200, 150))
+    H, W = truth.camera.height, truth.camera.width
+    y, x = np.mgrid[0:H, 0:W]
+    height = np.where((x - 0.55 * W) ** 2 + (y - 0.5 * H) ** 2 < 25.0 ** 2, 30.0, 0.0)
+    phase, valid, image = analytic_scan(truth, height)
+    valid &= height > 0
+    assert 0.05 < valid.mean() < 0.1
+    save_psp_folder_sample(tmp_path / "scans", "a", *sums_from_phase(np.nan_to_num(phase), valid, 60.0),
+                           np.where(valid, image, 0).astype(np.uint8))
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out)]) == 1
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "no reference plane in view" in err[0] and "of the image" in err[0], err
+    assert not out.exists()
+
+
 def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     """Issue 50: busts on a black background (only the objects' phase is valid): the plane model cannot pin the
     projector's pose, so fit-rig refuses in one line naming what it needs; given the distance, baseline and side it
