@@ -363,6 +363,10 @@ def add_fit_rig(p: argparse.ArgumentParser) -> None:
     p.add_argument("--projector-side", choices=("left", "right", "above", "below"),
                    help="without --base: where the projector is seen from the camera (measured from phase-shifting "
                         "scans or shadows when not given)")
+    p.add_argument("--fringe-period", type=float, metavar="PX",
+                   help="without --base, for scans with no plane in view: the reference plane's fringe period at the "
+                        "image centre (px; e.g. from any frame that shows the plane), instead of the objects' own, "
+                        "which their surfaces widen or narrow [measured on the objects]")
     p.add_argument("--params", type=_params, default=None, metavar="P1,P2,...",
                    help="projector parameters to fit: yaw, pitch, roll (rad, about the projector centre; roll "
                         "sets the fringes' lean, which pitch also changes: fit one of the two), baseline (mm), "
@@ -394,7 +398,7 @@ def run_fit_rig(args) -> int:
     common = dict(real=args.real, out=args.out, max_images=args.max_images, json=args.json, **fitting,
                   force=args.force, convention=args.convention, negate_sin=args.negate_sin)
     start = {"fov": args.fov, "focal": args.focal, "distance": args.distance, "baseline": args.baseline,
-             "projector_side": args.projector_side}
+             "projector_side": args.projector_side, "fringe_period": args.fringe_period}
     if args.base is None:  # no calibration: the rig from the images themselves
         from fppsim.fitting.rig_start import StartRigConfig, fit_rig_from_images
 

@@ -325,7 +325,8 @@ def scenes_of(start: StartRigResult, rig: Rig) -> dict | None:
 
 def rig_from_images(path, *, fov: float | None = None, focal: float | None = None, distance: float | None = None,
                     baseline: float | None = None, projector_side: str | None = None, max_maps: int = 4,
-                    convention: str = "auto", negate_sin: bool = False, say=None) -> StartRigResult:
+                    convention: str = "auto", negate_sin: bool = False, fringe_period: float | None = None,
+                    say=None) -> StartRigResult:
     """A rig from a folder of fringe images or phase-shifting scans alone (``fppsim fit-rig`` without
     ``--base``; module docstring): camera from the image size and ``fov`` / ``focal``; the fringe
     direction, the phase slope and its perspective from the plane's phase (:func:`phase_maps_of`,
@@ -340,7 +341,12 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     a black background, or a phase read the wrong way) cannot pin the projector's pose: a RigError names what
     is needed, unless ``distance``, ``baseline`` and ``projector_side`` are all given; then the rig is the
     start rig at that geometry (projector aimed at the view's centre, the measured fringe period), its pose
-    assumed and said so (``StartRigResult.no_plane``). RigError / ValueError (one line) for unusable inputs."""
+    assumed and said so (``StartRigResult.no_plane``). Without a plane the fringes' period and lean are measured
+    on the objects, whose surfaces turned towards or away from the projector widen or narrow them (FP672 with its
+    plane blacked out: 18.5 px on the figurine, 10.5 px on the plane): ``fringe_period`` (px at the image centre,
+    the plane's, e.g. from any frame that shows it) then sets the period, along the measured axis with no lean;
+    with a plane in view it is not used (the plane's is measured) and said. RigError / ValueError (one line) for
+    unusable inputs."""
     if projector_side is not None and projector_side not in SIDES:
         raise RigError(f"projector side must be one of {', '.join(SIDES)}, got {projector_side!r}")
     if fov is not None and focal is not None:
@@ -372,9 +378,18 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                            "image): no reference plane in view (or the "
                            "phase is written another way: --convention, --negate-sin), so the projector's pose cannot "
                            f"be fitted; give scans that show the plane, or {', '.join(missing)} for a rig whose "
-                           "projector pose is assumed")
+                           "projector pose is assumed (and --fringe-period PX if you know the plane's fringe period: "
+                           "the objects' own is used otherwise)")
+        if fringe_period is not None:  # the plane's period, along the measured axis, no lean
+            g = 2.0 * np.pi / float(fringe_period)
+            gradient = ((math.copysign(g, gradient[0]), 0.0) if axis == "vertical"
+                        else (0.0, math.copysign(g, gradient[1])))
+        else:
+            assumed["fringe_period"] = "measured on the objects"
         rig = start_rig(W, H, gradient, side, D, baseline, fov, focal)
     else:
+        if fringe_period is not None:
+            say(f"--fringe-period {fringe_period:g} px not used: the plane is in view, and its period is measured")
         rig = fit.rig
     where = _where(rig)
     relief = _object_relief(fit, maps) if kind == "phase" and not no_plane else 0.0
@@ -406,7 +421,8 @@ class StartRigConfig:
         unless ``force``). fov / focal : the camera's field of view (deg across the width) or focal length
         (px); None: the default rig's field of view. distance / baseline : mm; None: 500 and 0.66 x the
         distance (images cannot tell them; the rig file's ``scenes`` follow the frames at that scale). projector_side :
-        ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed.
+        ``left`` / ``right`` / ``above`` / ``below``; None: measured (relief, shadows) or assumed. fringe_period :
+        px, the reference plane's fringe period for scans with no plane in view (:func:`rig_from_images`).
         convention / negate_sin : how the public layout's PSin / PCos / Order make the phase
         (:func:`fppsim.dataio.readers.load_psp_folder_sample`). params,
         sensitivity, col_bands, row_bands : the label-based fits that follow with height labels and
@@ -421,6 +437,7 @@ class StartRigConfig:
     distance: float | None = None
     baseline: float | None = None
     projector_side: str | None = None
+    fringe_period: float | None = None
     convention: str = "auto"
     negate_sin: bool = False
     params: tuple = ("yaw", "roll", "periods")
@@ -436,10 +453,11 @@ class StartRigConfig:
 
         if self.fov is not None and self.focal is not None:
             raise UsageError("give --fov or --focal, not both")
-        for key, lo, hi in (("fov", 1.0, 170.0), ("focal", 1.0, 1e6), ("distance", 1.0, 1e6), ("baseline", 1.0, 1e6)):
+        for key, lo, hi in (("fov", 1.0, 170.0), ("focal", 1.0, 1e6), ("distance", 1.0, 1e6), ("baseline", 1.0, 1e6),
+                            ("fringe_period", 2.0, 1e4)):
             v = getattr(self, key)
             if v is not None and not (np.isfinite(v) and lo <= v <= hi):
-                raise UsageError(f"--{key} must be a number in {lo:g}..{hi:g}, got {v}")
+                raise UsageError(f"--{key.replace('_', '-')} must be a number in {lo:g}..{hi:g}, got {v}")
         if self.projector_side is not None and self.projector_side not in SIDES:
             raise UsageError(f"--projector-side must be one of {', '.join(SIDES)}, got {self.projector_side!r}")
         check_fit_options(self)
@@ -491,7 +509,7 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     start = rig_from_images(config.real, fov=config.fov, focal=config.focal, distance=config.distance,
                             baseline=config.baseline, projector_side=config.projector_side,
                             max_maps=min(int(config.max_images), 4), convention=config.convention,
-                            negate_sin=config.negate_sin, say=say)
+                            negate_sin=config.negate_sin, fringe_period=config.fringe_period, say=say)
     rig, fit, bfit, dfit = start.rig, None, None, None
     labelled = any(im.height_mm is not None for im in start.images)
     if "distance" in config.params and not labelled:

@@ -98,6 +98,16 @@ def first_lines(path, maps, kind: str, images) -> list[str]:
     return lines + ([note] if note else [])
 
 
+def _fringes_source(r: StartRigResult) -> str:
+    """Where a rig without a plane in view got its fringe period (the fringes line's tail)."""
+    if not r.no_plane:
+        return ""
+    if "fringe_period" in r.assumed:
+        return ("; NOT identifiable without the plane: measured on the objects, whose surfaces widen or narrow the "
+                "fringes; give --fringe-period PX (the plane's, from any frame that shows it) if you know it")
+    return "; the period given (--fringe-period), no lean"
+
+
 def _camera_and_fringes(r: StartRigResult) -> list[str]:
     cam, (W, H) = r.rig.camera, (r.rig.camera.width, r.rig.camera.height)
     fov_now = math.degrees(2 * math.atan((W / 2.0) / cam.K[0, 0]))
@@ -112,7 +122,7 @@ def _camera_and_fringes(r: StartRigResult) -> list[str]:
             + ("given" if "fov_deg" not in r.assumed else "NOT identifiable from images: assumed (the default rig's "
                                                           "field of view; --fov DEG or --focal PX)"),
             f"fringes    {r.axis}: {period:.2f} px per period at the centre, the phase grows {grows} ({conv}), "
-            f"lines {lean:+.2f} deg off the image axis",
+            f"lines {lean:+.2f} deg off the image axis" + _fringes_source(r),
             f"projector  {r.where}: {r.side_source}"]
 
 
@@ -139,7 +149,8 @@ def _plane_and_lens(r: StartRigResult) -> list[str]:
         return [f"plane fit  none: the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the valid "
                 f"pixels, {plane_image_share(fit):.0%} of the image), no reference plane in view; the projector's "
                 "pose is ASSUMED (aimed at the view's centre from the given distance, baseline and side), "
-                f"{rig.periods:.2f} periods across it from the measured fringe period",
+                f"{rig.periods:.2f} periods across it from the "
+                + ("objects' fringe period" if "fringe_period" in r.assumed else "given fringe period"),
                 "not fitted the projector's yaw, pitch and roll beyond the fringes' direction; lens distortion"]
     p = fit.params
     pose = ", ".join(f"{k} {math.degrees(v):+.2f} deg" for k, v in p.items() if k not in ("periods", "k1"))

@@ -23,6 +23,7 @@ from fppsim.fitting import plane_phase as pp
 from fppsim.fitting import rig_start as rs
 from fppsim.fitting.fit_periods import adjust_rig
 from fppsim.geometry.rig import Rig
+from fppsim.phase.fringe_axis import rig_phase_gradient
 
 REAL_PHASE = SHARED / "real-phase"
 
@@ -82,8 +83,6 @@ def test_start_rig_puts_the_projector_where_the_fringes_say(gradient, side, wher
     rig = rs.start_rig(640, 448, gradient, side)
     assert (rig.camera.width, rig.camera.height) == (640, 448)
     assert rig.camera.K[0, 0] == pytest.approx(1230.0, rel=1e-9)  # the default rig's field of view
-    from fppsim.phase.fringe_axis import rig_phase_gradient
-
     gu, gv = rig_phase_gradient(rig)
     assert np.dot([gu, gv], gradient) / np.hypot(gu, gv) / np.hypot(*gradient) > 0.9999
     assert 2 * math.pi / np.hypot(gu, gv) == pytest.approx(2 * math.pi / np.hypot(*gradient), rel=0.02)
@@ -606,3 +605,10 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     assert scenes["footprint"][1] / 1.3 == pytest.approx(W * 420.0 / rig.camera.K[0, 0], rel=0.05)  # opened: -4 px
     assert "at least" in scenes["measured"] and "relief not measured" in scenes["measured"]
     assert "scenes     objects" in text
+    # the fringe period comes from the objects, which their slopes bend: the report says so; given, it is the rig's
+    assert "NOT identifiable without the plane: measured on the objects" in text
+    true_period = 2 * np.pi / np.hypot(*rig_phase_gradient(truth))
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out), "--distance", "420", "--baseline", "260",
+                 "--projector-side", "right", "--fov", "34", "--fringe-period", f"{true_period:.4f}", "--force"]) == 0
+    assert "the period given (--fringe-period), no lean" in capsys.readouterr().out
+    assert 2 * np.pi / np.hypot(*rig_phase_gradient(Rig.load(out))) == pytest.approx(true_period, rel=1e-3)
