@@ -380,6 +380,9 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                            f"be fitted; give scans that show the plane, or {', '.join(missing)} for a rig whose "
                            "projector pose is assumed (and --fringe-period PX if you know the plane's fringe period: "
                            "the objects' own is used otherwise)")
+        # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
+        # to the objects, so they measure nothing here
+        source = "given (--projector-side; without the plane the scans cannot measure it)"
         if fringe_period is not None:  # the plane's period, along the measured axis, no lean
             g = 2.0 * np.pi / float(fringe_period)
             gradient = ((math.copysign(g, gradient[0]), 0.0) if axis == "vertical"

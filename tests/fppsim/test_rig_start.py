@@ -607,6 +607,7 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     assert "scenes     objects" in text
     # the fringe period comes from the objects, which their slopes bend: the report says so; given, it is the rig's
     assert "NOT identifiable without the plane: measured on the objects" in text
+    assert "without the plane the scans cannot measure it" in text and "measure the other side" not in text
     true_period = 2 * np.pi / np.hypot(*rig_phase_gradient(truth))
     assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out), "--distance", "420", "--baseline", "260",
                  "--projector-side", "right", "--fov", "34", "--fringe-period", f"{true_period:.4f}", "--force"]) == 0
