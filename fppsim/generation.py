@@ -323,7 +323,8 @@ def generate(config: GenerateConfig) -> RunSummary:
                       f"{sc.max_relief[0]:.0f}-{sc.max_relief[1]:.0f} mm, pedestals {sc.pedestal_height[0]:.0f}-"
                       f"{sc.pedestal_height[1]:.0f} mm: {source}")
     if OpticsRanges.from_dict(dict(config.optics)).albedo_plane[1] == 0:
-        summary.background = "black (albedo_plane 0, no plane in view): only the objects return fringes and carry labels"
+        summary.background = ("black (albedo_plane 0, no plane in view): only the objects return fringes and carry "
+                              "labels")
     if config.preview:
         root = samples_folder(config.out, config.format)
         summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))

@@ -50,8 +50,7 @@ from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from uhrnet.data.datasets import parse_size  # noqa: E402
-from uhrnet.inference.prediction import fringe_phase, path_estimate, predict_labels  # noqa: E402
-from uhrnet.physics.orders import choose_orders  # noqa: E402
+from uhrnet.inference.prediction import path_estimate, predict_labels, refine_with_phase  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_comparison  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
@@ -78,10 +77,7 @@ class Network:
         label = predict_labels(self.model, x, self.size)[0, 0].numpy().astype(np.float64)
         net = np.where(self.transform.valid(label) & (fringe > -1 + 1e-6), self.transform.height_mm(label), np.nan)
         est = path_estimate(self.model, self.transform, fringe, self.size, rig, net)
-        ssp = fringe_phase(fringe, rig)
-        choice = choose_orders(est, ssp.wrapped, ssp.reliability, layer_for(rig, net.shape),
-                               valid=np.isfinite(est) & ssp.valid, shadow=~ssp.valid)
-        return net, np.where(np.isfinite(net), choice.height, np.nan)
+        return net, refine_with_phase(est, fringe, rig, "orders")[0].astype(np.float64)
 
 
 def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim: np.ndarray) -> dict:
@@ -101,7 +97,8 @@ def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim:
     e = h - truth
     c = e - e[m].mean()
     off = m & (np.abs(c) >= half)
-    ratio = lambda x: fit_phase(psp_phase, x, m).rmse_rad / fit_phase(psp_phase, np.zeros_like(x), m).rmse_rad  # noqa: E731
+    flat = fit_phase(psp_phase, np.zeros_like(h), m).rmse_rad
+    ratio = lambda x: fit_phase(psp_phase, x, m).rmse_rad / flat  # noqa: E731
     return {"rmse_mm": float(np.sqrt(np.mean(e[m] ** 2))), "sd_mm": float(c[m].std()),
             "rim_sd_mm": float(c[m & rim].std()), "inner_sd_mm": float(c[m & ~rim].std()),
             "within_half_period": float(1.0 - off.sum() / m.sum()),

@@ -80,10 +80,7 @@ def plane_fits_poorly(fit: PlanePhaseFit) -> bool:
 
 
 def plane_image_share(fit: PlanePhaseFit) -> float:
-    """The plane pixels' share of the whole image, mean over the maps (of the valid pixels when the fit kept no
-    plane masks)."""
-    if not fit.planes:
-        return float(np.mean(fit.plane_share))
+    """The plane pixels' share of the whole image, mean over the maps."""
     return float(np.mean([np.mean(p) for p in fit.planes]))
 
 

@@ -94,7 +94,8 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
     images : {"fringe.png": uint8 (H, W), "psp/f{f}_s{n}.png": ...}
     arrays : float32 height (mm, world z; 0 where nothing is seen), depth (mm camera z-depth; 0 where
         nothing is seen), phase_true (rad, projector phase of the single-shot frequency), mask (1 = seen,
-        lit and not black: :func:`~fppsim.rendering.optics.fringe_pixels`), and with PSP phase_psp, height_psp, mask_psp.
+        lit and not black: :func:`~fppsim.rendering.optics.fringe_pixels`), and with PSP phase_psp, height_psp,
+        mask_psp.
     meta : everything needed to reproduce the sample.
     """
     k = config.supersample

@@ -21,7 +21,7 @@ __all__ = ["SHADING", "irradiance_parts", "fringe_pixels"]
 
 def irradiance_parts(geom, optics) -> tuple[np.ndarray, np.ndarray]:
     """``(base, modulated)`` float64 (H, W) gray levels of :class:`fppsim.rendering.render.Geometry` ``geom``."""
-    albedo = np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
+    albedo = _albedo(geom, optics)
     seen = geom.seen
     base = np.where(seen, optics.gain * albedo * optics.ambient, 0.0)
     modulated = np.where(geom.lit, optics.gain * albedo * geom.cos_incidence * geom.falloff, 0.0)
@@ -35,8 +35,12 @@ def fringe_pixels(geom, optics) -> np.ndarray:
     black background, as fit-optics measures frames with no plane in view) is left out like a shadow: real
     frames mark it invalid too, and a network asked for the unseen plane's height there learns to ramp every
     rim down to it (docs/own_rig.md)."""
-    albedo = np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
-    return geom.lit & (albedo > 0)
+    return geom.lit & (_albedo(geom, optics) > 0)
+
+
+def _albedo(geom, optics) -> np.ndarray:
+    """(H, W) float: ``albedo_object`` on the objects, ``albedo_plane`` elsewhere."""
+    return np.where(geom.on_object, optics.albedo_object, optics.albedo_plane)
 
 
 def _shade(parts, optics, ctx):
