@@ -42,8 +42,7 @@ from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: 
 from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
-from uhrnet.inference.prediction import fringe_phase, path_estimate, predict_labels  # noqa: E402
-from uhrnet.physics.orders import choose_orders  # noqa: E402
+from uhrnet.inference.prediction import order_choice, path_estimate, predict_labels  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
@@ -67,9 +66,7 @@ def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None):
     from ``h`` (the network's single pass, as before 2026-11-28)."""
     if model is not None:
         h = path_estimate(model, transform, fringe, None, rig, h)
-    ssp = fringe_phase(fringe, rig)
-    return choose_orders(h, ssp.wrapped, ssp.reliability, layer_for(rig, h.shape), valid=np.isfinite(h) & ssp.valid,
-                         shadow=~ssp.valid)
+    return order_choice(h, fringe, rig)
 
 
 def pair_scores(pred: np.ndarray, truth: np.ndarray, obj: np.ndarray, layer) -> dict:

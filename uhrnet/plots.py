@@ -188,8 +188,10 @@ def plot_orders(fringe: np.ndarray, network_mm: np.ndarray, choice, path, error_
               (choice.height, "orders chosen: height (mm)", "viridis", lo, hi),
               (choice.confidence_map(), "regions: confidence (colour), order (text)", "RdYlGn", 0.0, 1.0)]
     source = np.where(choice.moved, 2.0, np.where(np.isfinite(network_mm) & (choice.height != network_mm), 1.0, 0.0))
+    if choice.rim is not None:
+        source = np.where(choice.rim, 3.0, source)
     panels.append((np.where(np.isfinite(choice.height), source, np.nan),
-                   "height from: 2 the phase, 1 network + nearby correction, 0 network", "cividis", 0.0, 2.0))
+                   "height from: 3 rim split, 2 the phase, 1 network + correction, 0 network", "cividis", 0.0, 3.0))
     if error_mm is not None:
         panels.append((error_mm, "error (mm)", "RdBu_r", -8.0, 8.0))
     fig, axes = plt.subplots(2, 3, figsize=(15, 6.4))

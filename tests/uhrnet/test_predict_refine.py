@@ -12,7 +12,7 @@ from fppsim.geometry.rig import make_default_rig
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.cli import main
-from uhrnet.inference.prediction import fringe_mirror_axis, path_estimate, predict_labels, read_inputs
+from uhrnet.inference.prediction import PATH_MARGIN_PX, fringe_mirror_axis, path_estimate, predict_labels, read_inputs
 from uhrnet.physics.refine import refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 
@@ -84,12 +84,16 @@ def test_predict_refine_phase_writes_refine_json_and_the_network_height(run, tmp
         # the path starts from the mean of the network's passes on the image and on it mirrored along the fringes
         k = int(name.split("_")[1])
         x = torch.from_numpy(fr[k].astype(np.float32) / 127.5 - 1)
-        flip = (lambda a: torch.flip(a, [-2])) if fringe_mirror_axis(rig) == -2 else (lambda a: torch.flip(a, [-1]))  # noqa: E731
-        labels = 0.5 * (predict_labels(model, x[None, None]) + flip(predict_labels(model, flip(x)[None, None])))
+        axis = fringe_mirror_axis(rig)
+        flip = lambda a: torch.flip(a, [axis])  # noqa: E731
+        margin = (PATH_MARGIN_PX, 0) if axis == -2 else (0, PATH_MARGIN_PX)  # mirrored past the borders it cuts
+        labels = 0.5 * (predict_labels(model, x[None, None], margin=margin)
+                        + flip(predict_labels(model, flip(x)[None, None], margin=margin)))
         estimate = np.where(np.isfinite(net), transform.height_mm(labels[0, 0].numpy().astype(np.float64)), np.nan)
         changed = np.isfinite(net) & ~np.isclose(estimate, refined, atol=1e-4)  # (a moved pixel may land where it was)
         # orders also carries the moved pixels' level correction to the pixels left out beside them
-        touched = stats["moved_fraction"] + stats.get("carried_fraction", 0.0)
+        # and splits the rims between raised regions and the plane
+        touched = stats["moved_fraction"] + stats.get("carried_fraction", 0.0) + stats.get("rim_fraction", 0.0)
         assert changed.sum() <= touched * np.isfinite(net).sum() + 0.5
         if method == "orders":
             assert len(stats["per_region"]) == stats["regions"]
@@ -215,17 +219,34 @@ def test_path_estimate_mirrors_along_the_fringes_of_either_direction(axis):
     x = torch.from_numpy(np.random.default_rng(3).uniform(-1, 1, (1, 1, 32, 48)).astype(np.float32))
     m = _conv_model()
     w = m.weight.detach()
-    plain = torch.nn.functional.conv2d(x, w, padding=1)
-    mirrored = torch.flip(torch.nn.functional.conv2d(torch.flip(x, [dim]), w, padding=1), [dim])
+    # each pass sees the image mirrored PATH_MARGIN_PX past the two borders its fringes run into
+    pad = (0, 0, PATH_MARGIN_PX, PATH_MARGIN_PX) if dim == 2 else (PATH_MARGIN_PX, PATH_MARGIN_PX, 0, 0)
+    crop = (slice(None), slice(None), slice(pad[2], 32 + pad[2]), slice(pad[0], 48 + pad[0]))
+
+    def conv(a):
+        return torch.nn.functional.conv2d(torch.nn.functional.pad(a, pad, mode="reflect"), w, padding=1)[crop]
+
+    plain = conv(x)
+    mirrored = torch.flip(conv(torch.flip(x, [dim])), [dim])
+    unpadded = torch.nn.functional.conv2d(x, w, padding=1)
 
     class Transform:  # heights = labels
         @staticmethod
         def height_mm(label):
             return label
 
-    got = path_estimate(m, Transform, x[0, 0].numpy(), None, rig, plain[0, 0].numpy())
+    got = path_estimate(m, Transform, x[0, 0].numpy(), None, rig, unpadded[0, 0].numpy())
     np.testing.assert_allclose(got, (0.5 * (plain + mirrored))[0, 0].numpy(), atol=1e-6)
     assert not np.allclose(got, plain[0, 0].numpy(), atol=1e-3)  # the mirror does change the answer
+    # the margin changes the borders the fringes run into, and nothing else
+    edge = np.zeros((32, 48), bool)
+    if dim == 2:
+        edge[[0, -1], :] = True
+    else:
+        edge[:, [0, -1]] = True
+    plain_unpadded = 0.5 * (unpadded + torch.flip(torch.nn.functional.conv2d(torch.flip(x, [dim]), w, padding=1), [dim]))
+    differs = ~np.isclose(got, plain_unpadded[0, 0].numpy(), atol=1e-6)
+    assert differs[edge].mean() > 0.5 and not differs[~edge].any()
 
 
 @pytest.mark.parametrize("axis,side", [("vertical", 1), ("vertical", -1), ("horizontal", 1), ("horizontal", -1)])
@@ -251,7 +272,8 @@ def test_path_estimate_is_the_mean_of_both_passes_masked_like_the_network():
             return 2.0 * label + 1.0
 
     m = _conv_model()
-    one = lambda a: predict_labels(m, torch.from_numpy(np.ascontiguousarray(a))[None, None])[0, 0].numpy()  # noqa: E731
+    margin = (PATH_MARGIN_PX, 0) if fringe_mirror_axis(rig) == -2 else (0, PATH_MARGIN_PX)
+    one = lambda a: predict_labels(m, torch.from_numpy(np.ascontiguousarray(a))[None, None], margin=margin)[0, 0].numpy()  # noqa: E731
     flip = (lambda a: a[::-1]) if fringe_mirror_axis(rig) == -2 else (lambda a: a[:, ::-1])  # noqa: E731
     network = 2.0 * one(x) + 1.0
     network[:3] = np.nan

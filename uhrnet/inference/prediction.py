@@ -18,12 +18,14 @@ the ``iPattern`` single-shot images, named ``<folder>_<id>``). For every image `
 With a rig (``rig``, ``--rig``) the heights are then made to agree with the image's own fringe phase
 (:func:`fppsim.phase.single_shot.single_shot_phase`) through it: ``refine="auto"`` (the default) does so when a rig
 is given, ``"phase"`` always (the rig: ``rig``, else the checkpoint's own, else fppsim's default), ``None`` never.
-``refine_method="orders"`` (default, :func:`uhrnet.physics.orders.choose_orders`): every phase region at one whole
-fringe order chosen for the image at once, its level and relief from the phase; a region whose order the path
-cannot decide keeps the network's heights (a warning says how many); ``"relief"``
+``refine_method="orders"`` (default, :func:`order_choice`): every phase region at one whole fringe order chosen
+for the image at once, its level and relief from the phase, and the rims between objects and the plane split by
+the plane's own fringe (:mod:`uhrnet.physics.rims`); a region whose order the path cannot decide keeps the
+network's heights (a warning says how many); ``"relief"``
 (:func:`uhrnet.physics.refine.refine_relief`): the relief from the phase, the level from the network.
 The path starts from the mean of the network's heights on the image and on the image mirrored along its fringes
-(:func:`path_estimate`; two passes of the network). ``NAME_height.*`` is then the refined map,
+(:func:`path_estimate`; two passes of the network, each with a mirrored margin past the image's borders).
+``NAME_height.*`` is then the refined map,
 ``NAME_height_network.npy`` the network's own (one pass), and
 ``refine.json`` lists per image the share of pixels moved and, for ``orders``, every region's order, confidence
 and whether it was decided (:attr:`PredictResult.refine`). Under ``auto`` an image without a readable fringe
@@ -61,17 +63,19 @@ from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
+from uhrnet.physics.rig_layer import RigLayer
 from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "fringe_mirror_axis",
-           "path_estimate", "points_from_rig", "points_from_grid",
+           "path_estimate", "order_choice", "points_from_rig", "points_from_grid",
            "write_ply"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
 PREDICT_TOOL = "uhrnet predict"
+PATH_MARGIN_PX = 16  # path_estimate's mirrored margin (network px); 8-32 score alike on the pair
 MIN_SIDE = 16  # 2**4: the networks' four 2x2 poolings need at least one pixel at the bottom level
 
 
@@ -87,31 +91,36 @@ def pad_to_multiple(x: torch.Tensor, multiple: int = 16) -> tuple[torch.Tensor, 
 
 @torch.no_grad()
 def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
-                   amp: bool = False) -> torch.Tensor:
+                   amp: bool = False, margin: tuple[int, int] = (0, 0)) -> torch.Tensor:
     """Labels ``(N, 1, H, W)`` float32 for fringes ``(N, 1, H, W)`` in [-1, 1], at the input's own size
     (:func:`labels_at_input_size`); ``model`` (a model in label units,
     :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
     model.eval()
-    return labels_at_input_size(model, fringe, size, amp)
+    return labels_at_input_size(model, fringe, size, amp, margin)
 
 
 def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
-                         amp: bool = False) -> torch.Tensor:
+                         amp: bool = False, margin: tuple[int, int] = (0, 0)) -> torch.Tensor:
     """THE image-size rule of every use of a model on whole images (predict, evaluate, adapt; differentiable):
     ``size``: run the network at this (H, W) (the ``--resize`` a model was trained with) and resample the
     prediction back; sides that are not multiples of 16 are padded (edge replication) and cropped back.
+    ``margin``: (rows, columns) px mirrored out from each border at the network's size before that, and
+    cropped back (:func:`path_estimate`: objects cut by the image's border continue past it).
     ``amp``: autocast (fp16 on CUDA, bf16 on CPU). Returns ``(N, 1, H, W)`` float32 at the input's size."""
     device = next(model.parameters()).device
     x = fringe.to(device, torch.float32)
     h, w = x.shape[-2:]
     if size is not None and tuple(size) != (h, w):
         x = F.interpolate(x, size=tuple(size), mode="area")
+    my, mx = (min(int(m), n - 1) for m, n in zip(margin, x.shape[-2:]))  # reflection needs margin < side
+    if my or mx:
+        x = F.pad(x, (mx, mx, my, my), mode="reflect")
     x, (hh, ww) = pad_to_multiple(x)
     ctx = torch.autocast(device.type, dtype=torch.float16 if device.type == "cuda" else torch.bfloat16) \
         if amp else torch.autocast(device.type, enabled=False)
     with ctx:
         out = model(x)
-    out = prediction_of(out).float()[..., :hh, :ww]
+    out = prediction_of(out).float()[..., my:hh - my, mx:ww - mx]
     if out.shape[-2:] != (h, w):
         out = F.interpolate(out, size=(h, w), mode="bilinear", align_corners=False)
     return out
@@ -435,27 +444,45 @@ def fringe_mirror_axis(rig) -> int:
 
 def path_estimate(model: torch.nn.Module, transform, fringe: np.ndarray, size, rig, network_mm: np.ndarray,
                   amp: bool = False) -> np.ndarray:
-    """Heights (mm, float64 (H, W)) the phase path starts from: the mean of ``network_mm``, the network's own
-    map of ``fringe`` (dataset encoding; one pass at ``size``, NaN where invalid), and the network's heights on
-    ``fringe`` mirrored along the rig's fringes (:func:`fringe_mirror_axis`), mirrored back. The caller's pass
-    is reused, so this costs one more pass; NaN where ``network_mm`` is."""
+    """Heights (mm, float64 (H, W)) the phase path starts from: the mean of the network's heights on ``fringe``
+    (dataset encoding, at ``size``) and on ``fringe`` mirrored along the rig's fringes
+    (:func:`fringe_mirror_axis`), mirrored back. Both passes see the image continued by
+    :data:`PATH_MARGIN_PX` mirrored pixels past the two borders the fringes run into (there the mirror image
+    continues every fringe), so that an object the border cuts is not read as ending there: on the labelled
+    pair, whose bust is cut by the bottom border, the network alone was up to 21 mm low in the last rows. A
+    model holding a rig layer (the phase head) sees its camera's grid only and gets no margin.
+    NaN where ``network_mm`` (the network's own map) is."""
     axis = fringe_mirror_axis(rig)
-    x = torch.flip(torch.from_numpy(np.ascontiguousarray(fringe, np.float32))[None, None], [axis])
-    label = torch.flip(predict_labels(model, x, size, amp), [axis])[0, 0].cpu().numpy()
-    return 0.5 * (np.asarray(network_mm, np.float64) + transform.height_mm(label.astype(np.float64)))
+    margin = (PATH_MARGIN_PX, 0) if axis == -2 else (0, PATH_MARGIN_PX)
+    if any(isinstance(m, RigLayer) for m in model.modules()):  # a head with a rig layer sees its camera's grid only
+        margin = (0, 0)
+    x = torch.from_numpy(np.ascontiguousarray(fringe, np.float32))[None, None]
+    passes = (predict_labels(model, x, size, amp, margin),
+              torch.flip(predict_labels(model, torch.flip(x, [axis]), size, amp, margin), [axis]))
+    h = sum(transform.height_mm(p[0, 0].cpu().numpy().astype(np.float64)) for p in passes) / 2.0
+    return np.where(np.isfinite(network_mm), h, np.nan)
+
+
+def order_choice(height_mm: np.ndarray, fringe: np.ndarray, rig):
+    """THE orders path on one image (:func:`uhrnet.physics.orders.choose_orders` with the rim split): every phase
+    region of ``fringe`` (dataset encoding) at one order, from the estimate ``height_mm`` (mm, NaN = none)
+    through ``rig``; returns the :class:`~uhrnet.physics.orders.OrderChoice`."""
+    ssp = fringe_phase(fringe, rig)
+    return choose_orders(height_mm, ssp.wrapped, ssp.reliability, layer_for(rig, np.shape(height_mm)),
+                         valid=np.isfinite(height_mm) & ssp.valid, shadow=~ssp.valid,
+                         fringe=(np.asarray(fringe, np.float64), ssp.background, ssp.modulation))
 
 
 def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
 
-    ssp = fringe_phase(fringe, rig)
-    valid = np.isfinite(height_mm) & ssp.valid
     if method == "orders":
-        choice = choose_orders(height_mm, ssp.wrapped, ssp.reliability, layer_for(rig, height_mm.shape), valid=valid,
-                               shadow=~ssp.valid)
+        choice = order_choice(height_mm, fringe, rig)
         refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
     else:
-        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig, valid=valid)
+        ssp = fringe_phase(fringe, rig)
+        refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig,
+                                          valid=np.isfinite(height_mm) & ssp.valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats
