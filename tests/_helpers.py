@@ -18,6 +18,18 @@ SHARED_MESHES = SHARED / "meshes"
 REAL_SAMPLE = SHARED / "real-sample"
 
 
+def disc_shadow(obj: np.ndarray, phase: np.ndarray, plane_phase: np.ndarray) -> np.ndarray:
+    """The projector shadow beside an object standing on the plane, from the phases alone (fppsim's rigs: the
+    phase grows along +columns): a plane pixel left of a row's first object pixel is dark when that edge carries a
+    smaller phase, since the ray that would light it hits the object first. (H, W) bool; ``obj``, ``phase``
+    (the scene's), ``plane_phase`` (the bare plane's) are (H, W)."""
+    shadow = np.zeros(obj.shape, bool)
+    for r in np.nonzero(obj.any(axis=1))[0]:
+        xe = int(np.argmax(obj[r]))
+        shadow[r, :xe] = plane_phase[r, :xe] > phase[r, xe]
+    return shadow
+
+
 def synthesize_stack(phase: np.ndarray, background=0.5, modulation=0.5, n_steps: int = 4,
                      shifts: np.ndarray | None = None) -> np.ndarray:
     """Analytic phase-shifting stack ``I_n = A + B cos(phase + delta_n)``, float64 of shape (N, *phase.shape)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from _helpers import disc_shadow
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from uhrnet.physics.orders import choose_orders, seam_links
@@ -32,10 +33,7 @@ def scene():
     h = np.where(disc, 30.0 + relief, 0.0)
     phase = surface_phase(rig, h)
     plane = surface_phase(rig, np.zeros_like(h))
-    shadow = np.zeros(h.shape, bool)
-    for r in np.nonzero(disc.any(axis=1))[0]:
-        xe = int(np.argmax(disc[r]))
-        shadow[r, :xe] = plane[r, :xe] > phase[r, xe]
+    shadow = disc_shadow(disc, phase, plane)
     wrapped = wrap_phase(phase + 72.0)
     wrapped[shadow] = np.nan
     layer = RigLayer(rig)

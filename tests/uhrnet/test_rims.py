@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
+from _helpers import disc_shadow
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from uhrnet.physics.orders import choose_orders
@@ -28,10 +29,7 @@ def scene():
     h = np.where(disc, 27.0 + 3.0 * np.cos(r / 25.0), 0.0)  # not a whole number of periods (30 mm is 4.0)
     phase = surface_phase(rig, h)
     plane_phase = surface_phase(rig, np.zeros_like(h))
-    shadow = np.zeros(h.shape, bool)
-    for row in np.nonzero(disc.any(axis=1))[0]:
-        xe = int(np.argmax(disc[row]))
-        shadow[row, :xe] = plane_phase[row, :xe] > phase[row, xe]
+    shadow = disc_shadow(disc, phase, plane_phase)
     # the rim turns away from the camera: darker fringes on the disc's outer 4 px
     mod = np.where(disc & (r > 66), 0.15, np.where(disc, 0.5, 0.7)) * (1.0 + 0.2 * xx / cam.width)
     bg = 0.1 + 0.05 * yy / cam.height

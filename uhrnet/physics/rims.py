@@ -33,6 +33,7 @@ import torch
 from scipy import ndimage as ndi
 
 from fppsim.phase import wrap
+from fppsim.phase.plane import poly_basis
 
 __all__ = ["split_rims"]
 
@@ -79,7 +80,9 @@ def split_rims(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, re
         phase = layer.phase_from_height(t(np.where(finite, h, 0.0))).cpu().numpy()
         plane_phase = layer.plane_phase().cpu().numpy().astype(np.float64)
     period = _period_px(plane_phase)
-    phi_p = plane_phase + _smooth_fit(phase - plane_phase, plane)
+    basis = poly_basis(*h.shape, 3)  # the plane's phase: a cubic through its moved pixels
+    coef = np.linalg.lstsq(basis[plane.ravel()], (phase - plane_phase)[plane], rcond=None)[0]
+    phi_p = plane_phase + (basis @ coef).reshape(h.shape)
     r2 = _plane_misfit(np.asarray(image, np.float64), background, modulation, phi_p + offset, plane, period / 2.0)
     r2 = np.minimum(np.nan_to_num(r2, nan=4.0, posinf=4.0), 4.0)  # a misfit of twice B is as bad as it gets
     w = np.asarray(wrapped, np.float64)
@@ -111,17 +114,6 @@ def _period_px(plane_phase: np.ndarray) -> float:
     g = np.hypot(gx, gy)
     g = g[np.isfinite(g) & (g > 0)]
     return float(2.0 * math.pi / np.median(g)) if g.size else 8.0
-
-
-def _smooth_fit(values: np.ndarray, where: np.ndarray, degree: int = 3) -> np.ndarray:
-    """Least-squares polynomial of ``degree`` in the normalised pixel coordinates through ``values[where]``,
-    evaluated everywhere."""
-    hgt, wid = values.shape
-    yy, xx = np.mgrid[:hgt, :wid]
-    yy, xx = yy / hgt, xx / wid
-    terms = [yy ** i * xx ** j for i in range(degree + 1) for j in range(degree + 1 - i)]
-    coef, *_ = np.linalg.lstsq(np.stack([q[where] for q in terms], 1), values[where], rcond=None)
-    return sum(c * q for c, q in zip(coef, terms))
 
 
 def _plane_misfit(image, background, modulation, plane_wrapped, plane, spread) -> np.ndarray:
