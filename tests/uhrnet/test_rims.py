@@ -19,14 +19,14 @@ pytestmark = pytest.mark.usefixtures("one_thread")
 ORIGIN = 72.0  # rad: the image's phase counted from another origin than the rig's
 
 
-@pytest.fixture(scope="module")
-def scene():
+def _scene(ledge_mm: float = 0.0):
     rig = make_default_rig()
     cam = rig.camera
     yy, xx = np.mgrid[0:cam.height, 0:cam.width].astype(float)
     r = np.hypot(xx - 360, yy - 176)
     disc = r < 70
     h = np.where(disc, 27.0 + 3.0 * np.cos(r / 25.0), 0.0)  # not a whole number of periods (30 mm is 4.0)
+    h = np.where(disc & (r >= 66), h - ledge_mm, h)  # the outer ring steps down
     phase = surface_phase(rig, h)
     plane_phase = surface_phase(rig, np.zeros_like(h))
     shadow = disc_shadow(disc, phase, plane_phase)
@@ -39,6 +39,11 @@ def scene():
     ramp = ndi.gaussian_filter(h, 4.0)  # a network's heights: a ramp where the truth is a cliff
     path = np.where(band, ramp, h)
     return rig, RigLayer(rig), h, disc, shadow, image, bg, mod, wrapped, band, path
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene()
 
 
 def test_each_rim_pixel_lands_on_its_side_of_the_cliff(scene):
@@ -110,3 +115,28 @@ def test_choose_orders_with_the_fringe_puts_the_rim_on_the_cliff(scene):
     assert (e0 < 1.0).mean() < 0.15 and (e1 < 1.0).mean() > 0.55
     away = ~ndi.binary_dilation(band, iterations=3)
     np.testing.assert_array_equal(with_rims.height[away], plain.height[away])
+
+
+def test_a_fall_read_as_a_rise_takes_one_order_lower():
+    """The disc's outer ring (66-70 px) is 5 mm lower than its top: across that one-pixel fall the phase changes by
+    more than pi (the default rig: 0.54 rad/px of carrier, -0.87 rad/mm; 4.9 rad leaving the disc rightwards, 3.8
+    leftwards), so the wrapped step reads as a rise of 1.6-2.8 mm and the continued phase lands one order (6.6 mm
+    at this height) high. Continued above its raised end, such a pixel is taken
+    one order lower, and lands on the truth; max_rise_mm=None keeps the continuation."""
+    rig, layer, h, disc, shadow, image, bg, mod, wrapped, band, path = _scene(ledge_mm=5.0)
+    moved = ~band & ~shadow
+    args = (path, moved, wrapped, np.ones(h.shape), ~shadow, image, bg, mod, layer, ORIGIN)
+    kept, placed0, s0 = split_rims(*args, max_rise_mm=None)
+    got, placed, s1 = split_rims(*args)
+    yy, xx = np.mgrid[0:h.shape[0], 0:h.shape[1]]
+    ring = disc & (np.hypot(xx - 360, yy - 176) >= 66.5) & placed & (got > 1.0) & (kept > 1.0)
+    assert ring.sum() > 100
+    e0, e1 = (kept - h)[ring], (got - h)[ring]
+    high = (e0 > 6.0) & (e0 < 7.5)  # a whole order at this height: 6.6 mm
+    assert high.mean() > 0.7  # the continuation: one order high
+    assert (np.abs(e1) < 0.05).mean() > 0.9
+    assert s0["rim_lowered"] == 0 and s1["rim_lowered"] >= high.sum()
+    # the pixels before the fall did not rise and keep their continuation
+    inner = placed & disc & (np.hypot(xx - 360, yy - 176) < 65.5)
+    assert inner.sum() > 50
+    np.testing.assert_array_equal(got[inner], kept[inner])
