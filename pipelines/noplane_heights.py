@@ -50,7 +50,7 @@ from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from uhrnet.data.datasets import parse_size  # noqa: E402
-from uhrnet.inference.prediction import path_estimate, predict_labels, refine_with_phase  # noqa: E402
+from uhrnet.inference.prediction import network_heights, path_estimate, refine_with_phase  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_comparison  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
@@ -73,9 +73,7 @@ class Network:
         self.size = parse_size(ck.get("args", {}).get("resize"))
 
     def heights(self, fringe: np.ndarray, rig) -> tuple[np.ndarray, np.ndarray]:
-        x = torch.from_numpy(fringe)[None, None]
-        label = predict_labels(self.model, x, self.size)[0, 0].numpy().astype(np.float64)
-        net = np.where(self.transform.valid(label) & (fringe > -1 + 1e-6), self.transform.height_mm(label), np.nan)
+        net = network_heights(self.model, self.transform, fringe, self.size)
         est = path_estimate(self.model, self.transform, fringe, self.size, rig, net)
         return net, refine_with_phase(est, fringe, rig, "orders")[0].astype(np.float64)
 

@@ -42,7 +42,7 @@ from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: 
 from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
-from uhrnet.inference.prediction import order_choice, path_estimate, predict_labels  # noqa: E402
+from uhrnet.inference.prediction import network_heights, order_choice, path_estimate  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
@@ -53,11 +53,7 @@ SHARED = ROOT.parent / "shared"
 
 def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndarray:
     """The network's height (mm) of a dataset-encoded fringe; NaN where predict marks it invalid (when asked)."""
-    label = predict_labels(model, torch.from_numpy(fringe.astype(np.float32))[None, None], None)[0, 0].numpy()
-    h = transform.height_mm(label.astype(np.float64))
-    if mask_invalid:
-        h = np.where(transform.valid(label) & (fringe > -1 + 1e-6), h, np.nan)
-    return h
+    return network_heights(model, transform, fringe, None, keep_all=not mask_invalid)
 
 
 def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None):

@@ -68,7 +68,7 @@ from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
 
-__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
            "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "fringe_mirror_axis",
            "path_estimate", "order_choice", "points_from_rig", "points_from_grid",
            "write_ply"]
@@ -97,6 +97,17 @@ def predict_labels(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int
     :func:`uhrnet.checkpoint.model_from_checkpoint`) is put in eval mode."""
     model.eval()
     return labels_at_input_size(model, fringe, size, amp, margin)
+
+
+def network_heights(model: torch.nn.Module, transform, fringe: np.ndarray, size: tuple[int, int] | None = None,
+                    keep_all: bool = False) -> np.ndarray:
+    """The network's single pass in mm, as ``uhrnet predict`` writes it: (H, W) float64 of a dataset-encoded
+    ``fringe`` (float, -1 = black), NaN where the label is invalid or the input black (``keep_all``: nowhere)."""
+    label = predict_labels(model, torch.from_numpy(np.asarray(fringe, np.float32))[None, None], size)[0, 0].cpu().numpy()
+    height = transform.height_mm(label.astype(np.float64))
+    if keep_all:
+        return height
+    return np.where(transform.valid(label) & (fringe > -1 + 1e-6), height, np.nan)
 
 
 def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,
@@ -357,11 +368,7 @@ def predict(config: PredictConfig) -> PredictResult:
     claim(out, PREDICT_TOOL, names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
     for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
-        label = predict_labels(model, torch.from_numpy(fringe)[None, None], size)[0, 0].cpu().numpy()
-        height = transform.height_mm(label.astype(np.float64)).astype(np.float32)
-        if not config.keep_all:
-            valid = transform.valid(label) & (fringe > -1 + 1e-6)
-            height = np.where(valid, height, np.float32(np.nan))
+        height = network_heights(model, transform, fringe, size, config.keep_all).astype(np.float32)
         if not np.isfinite(height).any():
             result.warnings.append(
                 f"{path} ({name}): no valid pixel in the prediction (every label at or below "
