@@ -119,9 +119,9 @@ def test_choose_orders_with_the_fringe_puts_the_rim_on_the_cliff(scene):
 
 def test_a_fall_read_as_a_rise_takes_one_order_lower():
     """The disc's outer ring (66-70 px) is 5 mm lower than its top: across that one-pixel fall the phase changes by
-    more than pi (the default rig: 0.54 rad/px of carrier, -0.87 rad/mm; 4.9 rad leaving the disc rightwards, 3.8
-    leftwards), so the wrapped step reads as a rise of 1.6-2.8 mm and the continued phase lands one order (6.6 mm
-    at this height) high. Continued above its raised end, such a pixel is taken
+    more than pi (the default rig: 0.54 rad/px of carrier, -0.93 to -0.97 rad/mm at 19-24 mm; 5.4 rad leaving the
+    disc rightwards, 4.3 leftwards), so the wrapped step reads as a rise of about 1.6 mm (one order, 6.6 mm at this
+    height, less the 5 mm fall) and the continued phase lands one order high. Continued above its raised end, such a pixel is taken
     one order lower, and lands on the truth; max_rise_mm=None keeps the continuation."""
     rig, layer, h, disc, shadow, image, bg, mod, wrapped, band, path = _scene(ledge_mm=5.0)
     moved = ~band & ~shadow
@@ -136,6 +136,8 @@ def test_a_fall_read_as_a_rise_takes_one_order_lower():
     assert high.mean() > 0.7  # the continuation: one order high
     assert (np.abs(e1) < 0.05).mean() > 0.9
     assert s0["rim_lowered"] == 0 and s1["rim_lowered"] >= high.sum()
+    # only the object side is lowered: the plane side and everything unplaced keep their heights
+    np.testing.assert_array_equal(got[kept <= 1.0], kept[kept <= 1.0])
     # the pixels before the fall did not rise and keep their continuation
     inner = placed & disc & (np.hypot(xx - 360, yy - 176) < 65.5)
     assert inner.sum() > 50

@@ -65,7 +65,9 @@ def split_rims(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, re
     redecide_below : moved pixels of lower reliability (reached by the last growth) may change side too.
     min_plane_share : below this share of the lit pixels at plane level nothing is split (no plane in view).
     max_rise_mm : an object-side pixel continued more than this above its raised end takes one order lower
-        (``None``: never). Not 0: a phase blended across the cliff can rise a little where no step aliased.
+        (``None``: never). It assumes the surface falls towards its silhouette: a rim that truly rises more than
+        this (a lip) is put one order low. Not 0: a phase blended across the cliff can rise a little where no
+        step aliased (in the end-to-end test 0.5 mm still lowers 247 such pixels, 1 mm 68, 0 mm 644).
 
     Returns
     -------
