@@ -121,8 +121,8 @@ def test_a_fall_read_as_a_rise_takes_one_order_lower():
     """The disc's outer ring (66-70 px) is 5 mm lower than its top: across that one-pixel fall the phase changes by
     more than pi (the default rig: 0.54 rad/px of carrier, -0.93 to -0.97 rad/mm at 19-24 mm; 5.4 rad leaving the
     disc rightwards, 4.3 leftwards), so the wrapped step reads as a rise of about 1.6 mm (one order, 6.6 mm at this
-    height, less the 5 mm fall) and the continued phase lands one order high. Continued above its raised end, such a pixel is taken
-    one order lower, and lands on the truth; max_rise_mm=None keeps the continuation."""
+    height, less the 5 mm fall) and the continued phase lands one order high. Continued above its raised end, such
+    a pixel is taken one order lower, and lands on the truth; max_rise_mm=None keeps the continuation."""
     rig, layer, h, disc, shadow, image, bg, mod, wrapped, band, path = _scene(ledge_mm=5.0)
     moved = ~band & ~shadow
     args = (path, moved, wrapped, np.ones(h.shape), ~shadow, image, bg, mod, layer, ORIGIN)

@@ -113,14 +113,14 @@ def split_rims(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, re
     out = h.copy()
     done = np.isfinite(target)
     lowered = np.zeros(h.shape, bool)
-    if done.any():
-        with torch.no_grad():
-            heights = [layer.height_from_phase(t(np.where(done, target + d, 0.0))).cpu().numpy()
-                       for d in (0.0, -2.0 * math.pi, 2.0 * math.pi)]
-        out[done] = heights[0][done]
+    height_at = lambda d: layer.height_from_phase(t(np.where(done, target + d, 0.0))).cpu().numpy()  # noqa: E731
+    with torch.no_grad():
+        if done.any():
+            out[done] = height_at(0.0)[done]
         if max_rise_mm is not None:
             lowered = done & (side > 0) & (out > anchor + max_rise_mm)
-            out[lowered] = np.minimum(heights[1], heights[2])[lowered]  # one order lower, whichever sign the rig's is
+        if lowered.any():  # one order lower, whichever sign the rig's is
+            out[lowered] = np.minimum(height_at(-2.0 * math.pi), height_at(2.0 * math.pi))[lowered]
     return out, done, {"rim_runs": int(runs), "rim_to_plane": int((done & (side < 0)).sum()),
                        "rim_to_object": int((done & (side > 0)).sum()), "rim_lowered": int(lowered.sum()),
                        "rim_fraction": float(done.sum() / max(finite.sum(), 1))}
