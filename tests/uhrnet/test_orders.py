@@ -170,3 +170,28 @@ def test_a_seam_across_a_cliff_of_whole_periods_is_refused_by_the_network_levels
     assert got.stats["refused_links"] == 1 and got.stats["links"]["seam"] == 0
     for part in (left, core):
         assert np.percentile(_errors(got.height, h, part), 99) < 0.05
+
+
+def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene):
+    """The disc's estimate right but for a patch where it is about two fringe periods high (1.6-2.2 periods of
+    height at the pixel, a ripple like the network's streaks on FP1523): the region's order is right, but 4 in
+    10 of the patch's pixels are beyond the 2-period margin. They move all the same, as their moved neighbours
+    do; without the local rule they keep the estimate plus the neighbours' average correction."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    w = wrap_phase(surface_phase(rig, h) + 72.0)
+    r = np.hypot(xx - 370, yy - 170)
+    window = np.clip((50.0 - r) / 20.0, 0.0, 1.0)  # the patch, ramping in over 20 px (no wall)
+    off = window * (1.75 + 0.25 * np.sin(2 * np.pi * xx / 24.0)) * period  # period: at 30 mm
+    estimate = h + np.where(disc, 0.2 + off, 0.0)
+    patch = disc & (r < 30)
+    old = choose_orders(estimate, w, None, layer, max_local_misfit=None)
+    beyond = patch & (np.abs(old.height - h) > 1.0)
+    assert beyond.sum() > 0.3 * patch.sum()  # the margin holds back the pixels beyond 2 periods
+    assert not old.moved[beyond].any()
+    got = choose_orders(estimate, w, None, layer)
+    assert got.moved[patch].all()
+    assert np.percentile(_errors(got.height, h, patch), 99) < 0.05
+    inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
+    assert np.percentile(_errors(got.height, h, inner), 99) < 0.05
+    plane = ~disc & (np.hypot(xx - 360, yy - 176) > 80)
+    assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
