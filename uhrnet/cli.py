@@ -303,6 +303,8 @@ def run_predict(args) -> int:
     for name, st in result.refine.items():
         regions = (f", {st['regions']} phase regions in {st['components']} linked groups, {st['undecided_regions']} undecided"
                    + (f", {st['refused_links']} links refused by the network's levels" if st["refused_links"] else "")
+                   + (f", {st['beyond_margin_moved']} px beyond the move margin moved with their neighbours"
+                      if st.get("beyond_margin_moved") else "")
                    + (f", rims: {st['rim_to_object']} px to the objects ({st.get('rim_lowered', 0)} a fall read as a"
                       f" rise, one order lower) and {st['rim_to_plane']} to the plane" if st.get("rim_runs") else "")
                    if st["method"] == "orders" else "")

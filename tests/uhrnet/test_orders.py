@@ -188,8 +188,10 @@ def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene
     beyond = patch & (np.abs(old.height - h) > 1.0)
     assert beyond.sum() > 0.3 * patch.sum()  # the margin holds back the pixels beyond 2 periods
     assert not old.moved[beyond].any()
+    assert old.stats["beyond_margin_moved"] == 0
     got = choose_orders(estimate, w, None, layer)
     assert got.moved[patch].all()
+    assert got.stats["beyond_margin_moved"] >= beyond.sum()
     assert np.percentile(_errors(got.height, h, patch), 99) < 0.05
     inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
     assert np.percentile(_errors(got.height, h, inner), 99) < 0.05

@@ -362,8 +362,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
         lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
         usable = usable | (lab > 0)
-    refined, moved, move, carried = _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit,
-                                                   max_move_fraction, spread_px, max_local_misfit)
+    refined, moved, move, carried, beyond = _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit,
+                                                           max_move_fraction, spread_px, max_local_misfit)
     rims, rim = {}, None
     if fringe is not None and n:
         refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
@@ -375,7 +375,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
                          int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
     stats = {**_choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, refused,
-                             carried, move, offset), **rims}
+                             carried, move, offset), "beyond_margin_moved": beyond, **rims}
     return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats, rim)
 
 
@@ -405,7 +405,7 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
     most ``max_move_fraction`` periods of height, or within ``max_local_misfit`` periods of the moves around
     it; the pixels left out (not the shadows, not undecided regions)
     take the level correction of the moved pixels around them (a normalised Gaussian of ``spread_px``):
-    ``(refined float64, moved, move, carried)``."""
+    ``(refined float64, moved, move, carried, beyond)``, ``beyond`` the count of pixels moved past the margin."""
     h, finite = e.h, e.finite
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     target = np.full(h.shape, np.nan)
@@ -421,6 +421,7 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
     can = usable & inside & np.isfinite(move)
     can[inside] &= decided[li]
     moved = can & (np.abs(move) <= max_move_fraction * period)
+    within = int(moved.sum())
     if max_local_misfit is not None and spread_px > 0 and moved.any():
         # where the network is off by more than the margin, its neighbours' moves say so: a pixel within
         # max_local_misfit periods of their level correction moves too
@@ -436,7 +437,7 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
         undecided[inside] = ~decided[li]
         carried = finite & ~moved & ~unlit & ~undecided & (wgt > 0.05)
         refined[carried] = h[carried] + corr[carried]
-    return refined, moved, move, carried
+    return refined, moved, move, carried, int(moved.sum()) - within
 
 
 def _level_correction(moved, move, spread_px):
