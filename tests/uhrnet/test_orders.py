@@ -191,7 +191,9 @@ def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene
     assert old.stats["beyond_margin_moved"] == 0
     got = choose_orders(estimate, w, None, layer)
     assert got.moved[patch].all()
-    assert got.stats["beyond_margin_moved"] >= beyond.sum()
+    assert got.stats["beyond_margin_moved"] == int((got.moved & ~old.moved).sum()) >= beyond.sum()
+    # the tolerance's upper side: test_a_seam_across_a_cliff_of_whole_periods_is_refused_by_the_network_levels
+    # fails when any pixel past the margin moves (its right part, 3 periods off, must not move)
     assert np.percentile(_errors(got.height, h, patch), 99) < 0.05
     inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
     assert np.percentile(_errors(got.height, h, inner), 99) < 0.05
