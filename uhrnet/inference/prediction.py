@@ -68,10 +68,10 @@ from fppsim.owned import claim, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
 
-__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "labels_at_input_size", "pad_to_multiple", "collect_inputs",
-           "load_inputs", "read_inputs", "refine_rig_for", "refine_with_phase", "fringe_phase", "fringe_mirror_axis",
-           "path_estimate", "order_choice", "points_from_rig", "points_from_grid",
-           "write_ply"]
+__all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "label_heights",
+           "labels_at_input_size", "pad_to_multiple", "collect_inputs", "load_inputs", "read_inputs", "refine_rig_for",
+           "refine_with_phase", "fringe_phase", "fringe_mirror_axis", "path_estimate", "order_choice", "points_from_rig",
+           "points_from_grid", "write_ply"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
 PREDICT_TOOL = "uhrnet predict"
@@ -103,11 +103,18 @@ def network_heights(model: torch.nn.Module, transform, fringe: np.ndarray, size:
                     keep_all: bool = False) -> np.ndarray:
     """The network's single pass in mm, as ``uhrnet predict`` writes it: (H, W) float64 of a dataset-encoded
     ``fringe`` (float, -1 = black), NaN where the label is invalid or the input black (``keep_all``: nowhere)."""
-    label = predict_labels(model, torch.from_numpy(np.asarray(fringe, np.float32))[None, None], size)[0, 0].cpu().numpy()
-    height = transform.height_mm(label.astype(np.float64))
+    x = torch.from_numpy(np.asarray(fringe, np.float32))[None, None]
+    return label_heights(predict_labels(model, x, size)[0, 0].cpu().numpy(), transform, fringe, keep_all)
+
+
+def label_heights(label: np.ndarray, transform, fringe: np.ndarray, keep_all: bool = False) -> np.ndarray:
+    """Predicted ``label`` (H, W) in mm, float64: NaN where the label is invalid (``transform.valid``) or the
+    dataset-encoded ``fringe`` black (-1) (``keep_all``: nowhere)."""
+    height = transform.height_mm(np.asarray(label, np.float64))
     if keep_all:
         return height
-    return np.where(transform.valid(label) & (fringe > -1 + 1e-6), height, np.nan)
+    # validity on the label as given (a float32 label compares with the threshold in float32, as predict always did)
+    return np.where(np.asarray(transform.valid(label)) & (np.asarray(fringe) > -1 + 1e-6), height, np.nan)
 
 
 def labels_at_input_size(model: torch.nn.Module, fringe: torch.Tensor, size: tuple[int, int] | None = None,

@@ -297,8 +297,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     pixel whose move exceeds ``max_move_fraction`` moves all the same when it agrees with its moved neighbours',
     ``max_local_misfit``); the pixels still left out (edges, walls, dark patches; not the shadows) take the
     network's height plus the level correction of the moved pixels around them (a Gaussian average over
-    ``spread_px``), where those are near; the rest keep the network's height; (7) with ``fringe``, the rims between raised regions and the
-    plane split by the plane's own fringe (:func:`uhrnet.physics.rims.split_rims`).
+    ``spread_px``), where those are near; the rest keep the network's height; (7) with ``fringe``, the rims
+    between raised regions and the plane split by the plane's own fringe (:func:`uhrnet.physics.rims.split_rims`).
 
     Parameters
     ----------

@@ -46,7 +46,8 @@ __all__ = ["split_rims"]
 def split_rims(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, reliability: np.ndarray,
                lit: np.ndarray, image: np.ndarray, background: np.ndarray, modulation: np.ndarray, layer,
                offset: float, *, flat_mm: float = 1.0, kappa: float = 0.2, max_run_periods: float = 4.0,
-               redecide_below: float = 0.2, min_plane_share: float = 0.05, max_rise_mm: float | None = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
+               redecide_below: float = 0.2, min_plane_share: float = 0.05,
+               max_rise_mm: float | None = 0.5) -> tuple[np.ndarray, np.ndarray, dict]:
     """Rim pixels between raised objects and the plane put on one side or the other (module docstring).
 
     Parameters

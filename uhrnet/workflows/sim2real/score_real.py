@@ -32,7 +32,8 @@ from uhrnet.data.datasets import load_sources, open_dataset, parse_size
 from fppsim.errors import PSPMatError
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.device import select_device
-from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase
+from uhrnet.inference.prediction import (label_heights, path_estimate, predict_labels, refine_rig_for,
+                                         refine_with_phase)
 from uhrnet.physics.refine import REFINE_METHODS
 from uhrnet.workflows.sim2real.real_metrics import error_split, level_response, object_mask, real_metrics, twin_metrics
 from uhrnet.workflows.sim2real.report import plot_real
@@ -103,8 +104,7 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
                      error=Sim2RealError)
     lab = np.asarray(label, np.float64)
-    valid = np.asarray(transform.valid(lab)) & (np.asarray(fringe) > -1 + 1e-6)
-    h = np.where(valid, transform.height_mm(lab), np.nan)
+    h = label_heights(lab, transform, fringe)
     if model is not None:
         h = path_estimate(model, transform, fringe, size, rig, h)
     refined, stats = refine_with_phase(h, np.asarray(fringe, np.float32), rig, method)
