@@ -9,7 +9,7 @@ import torch
 from _helpers import disc_shadow
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
-from uhrnet.physics.orders import choose_orders, seam_links
+from uhrnet.physics.orders import choose_orders, grow_regions, seam_links
 from uhrnet.physics.rig_layer import RigLayer
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -199,3 +199,28 @@ def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene
     assert np.percentile(_errors(got.height, h, inner), 99) < 0.05
     plane = ~disc & (np.hypot(xx - 360, yy - 176) > 80)
     assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
+
+
+def test_the_growth_takes_the_reliable_way_round_a_cliff_the_wrapped_phase_hides():
+    """A cliff of 1.3 fringe periods between columns 20 and 21 dies out towards the top rows (a ramp over rows 4-8,
+    2 rad per row). The column on its near side is less reliable (0.31) than the far side (0.38), as the phase is
+    beside a cliff. Grown at 0.4 / 0.3 / 0.2 (the levels until stop 60) both ways open at once and the short way
+    across the cliff wins: the far side lands a period off. At the default levels, a fortieth apart, the far side
+    is reached round the top first and every pixel is at its phase-shifting order."""
+    H, W = 24, 40
+    yy, xx = np.mgrid[0:H, 0:W].astype(float)
+    cliff = np.clip((yy - 4) / 4, 0, 1) * 1.3 * 2 * np.pi
+    truth = 0.5 * xx + np.where(xx >= 21, cliff, 0.0)
+    wrapped = wrap_phase(truth)
+    core = xx < 20
+    rel = np.where(core, 0.9, 0.38)
+    rel[(xx == 20) & (yy >= 4)] = 0.31
+    labels = core.astype(np.int32)
+    start = np.where(core, truth, np.nan)
+    far = xx >= 21
+    lab, U = grow_regions(labels, start, wrapped, rel, ~core, thresholds=(0.4, 0.3, 0.2), max_steps=200)
+    assert (lab[far] == 1).all()
+    assert np.mean(np.abs(U[far] - truth[far]) > 1.0) > 0.5  # the old levels: most of the far side a period off
+    lab, U = grow_regions(labels, start, wrapped, rel, ~core, max_steps=200)
+    assert (lab == 1).all()
+    np.testing.assert_allclose(U, truth, atol=1e-9)
