@@ -425,6 +425,8 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
     move = h_new - h
     with np.errstate(divide="ignore"):
         period = TWO_PI / np.abs(e.sens)
+        # the margin as before stop 59, bit for bit: max_move_fraction * period equals it at the default 2 but can
+        # differ by one ulp at fractions that are not powers of two
         margin = max_move_fraction * TWO_PI / np.abs(e.sens)
     can = usable & inside & np.isfinite(move)
     can[inside] &= decided[li]
