@@ -12,7 +12,7 @@ from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.rig_layer import RigLayer
-from uhrnet.physics.rims import split_rims
+from uhrnet.physics.rims import min_cut_sides, split_rims
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -142,3 +142,38 @@ def test_a_fall_read_as_a_rise_takes_one_order_lower():
     inner = placed & disc & (np.hypot(xx - 360, yy - 176) < 65.5)
     assert inner.sum() > 50
     np.testing.assert_array_equal(got[inner], kept[inner])
+
+
+def _energy(side, nodes, cost, object_end, plane_end, smooth):
+    """The labelling's energy, written out: plane-side costs plus ``smooth`` per 4-neighbour pair on different
+    sides (a node's neighbour in object_end / plane_end counts as object / plane)."""
+    fixed = np.where(object_end, 1, np.where(plane_end, 0, -1))
+    lab = np.where(nodes, side.astype(int), fixed)
+    e = cost[nodes & ~side].sum()
+    for a, b in ((lab[:, :-1], lab[:, 1:]), (lab[:-1], lab[1:])):
+        node_pair = (a >= 0) & (b >= 0)
+        e += smooth * (node_pair & (a != b)).sum()
+    return e
+
+
+def test_the_sides_are_the_exact_minimum_of_their_energy():
+    """min_cut_sides against every labelling of a few nodes (2^12 of them), on random costs and fixed ends."""
+    rng = np.random.default_rng(0)
+    for trial in range(20):
+        nodes = np.zeros((5, 6), bool)
+        cells = rng.choice(30, 12, replace=False)
+        nodes.flat[cells] = True
+        rest = ~nodes
+        object_end = rest & (rng.random((5, 6)) < 0.4)
+        plane_end = rest & ~object_end & (rng.random((5, 6)) < 0.6)
+        cost = np.round(rng.normal(0.0, 1.0, (5, 6)), 3)
+        smooth = [0.0, 0.1, 0.5, 1.5][trial % 4]
+        got = min_cut_sides(nodes, cost, object_end, plane_end, smooth)
+        assert not got[~nodes].any()
+        ys, xs = np.nonzero(nodes)
+        best = np.inf
+        for code in range(2 ** 12):
+            side = np.zeros(nodes.shape, bool)
+            side[ys, xs] = (code >> np.arange(12)) & 1 == 1
+            best = min(best, _energy(side, nodes, cost, object_end, plane_end, smooth))
+        assert _energy(got, nodes, cost, object_end, plane_end, smooth) == pytest.approx(best, abs=2e-3)
