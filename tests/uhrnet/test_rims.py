@@ -177,3 +177,22 @@ def test_the_sides_are_the_exact_minimum_of_their_energy():
             side[ys, xs] = (code >> np.arange(12)) & 1 == 1
             best = min(best, _energy(side, nodes, cost, object_end, plane_end, smooth))
         assert _energy(got, nodes, cost, object_end, plane_end, smooth) == pytest.approx(best, abs=2e-3)
+
+
+def test_the_sides_hold_for_a_pixel_fixed_both_ways_large_costs_and_say_what_is_not_finite():
+    nodes = np.zeros((3, 4), bool)
+    nodes[1, 1:3] = True
+    both = np.zeros_like(nodes)
+    both[1, 0] = True  # beside the left node, in both masks: the object's
+    # a little cheaper on the plane's side, but its only fixed neighbour is the object's
+    got = min_cut_sides(nodes, np.full(nodes.shape, -0.02), both, both, 0.1)
+    assert got[1, 1] and got[1, 2]
+    # capacities past int32 are scaled down, not wrapped round
+    assert min_cut_sides(nodes, np.full(nodes.shape, 3e6), np.zeros_like(nodes), np.zeros_like(nodes), 0.1)[nodes].all()
+    plane = ~nodes
+    assert not min_cut_sides(nodes, np.full(nodes.shape, -1.0), np.zeros_like(nodes), plane, 6e5)[nodes].any()
+    assert min_cut_sides(nodes, np.full(nodes.shape, -1.0), plane, np.zeros_like(nodes), 6e5)[nodes].all()
+    bad = np.zeros(nodes.shape)
+    bad[1, 2] = np.nan
+    with pytest.raises(ValueError, match="not finite"):
+        min_cut_sides(nodes, bad, both, both, 0.1)

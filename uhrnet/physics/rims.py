@@ -15,7 +15,7 @@ pixels of all crossings take their sides together, by the labelling that minimis
     sum over the plane side of (r^2 - kappa^2) + lambda x (4-neighbours on different sides),
     r = (I - A - B cos(Phi_p + o)) / B,
 
-the runs' raised ends counting as object and their plane ends as plane (:func:`min_cut_sides`, a minimum cut:
+the raised and plane pixels beside the runs fixed to their sides (:func:`min_cut_sides`, a minimum cut:
 exact): the plane side is where the plane's fringe explains the image to about ``kappa`` of its modulation, in
 few pieces. The plane side takes the plane's phase at the plane's order; the object side takes the raised end's
 phase, continued pixel by pixel along its run (the wrapped phase's steps; a column's where a row and a column
@@ -189,16 +189,24 @@ def _runs_axis(undecided, raised, plane_end, w, phase_height, outputs, max_run, 
 
 def min_cut_sides(nodes, cost, object_end, plane_end, smooth, scale: float = 1000.0) -> np.ndarray:
     """(H, W) bool, True on the ``nodes`` that take the object's side: the labelling that minimises
-    ``sum over plane-side nodes of cost + smooth x (4-neighbour pairs on different sides)``, the pixels of
-    ``object_end`` / ``plane_end`` next to the nodes counting as fixed sides. A minimum s-t cut (scipy's
-    maximum flow on integer capacities, ``scale`` per unit of cost), exact for this energy."""
+    ``sum over plane-side nodes of cost + smooth x (4-neighbour pairs on different sides)``, every pixel of
+    ``object_end`` / ``plane_end`` 4-adjacent to a node counting as a fixed side (object where it is in both).
+
+    A minimum s-t cut (scipy's maximum flow on integer capacities): exact for this energy with ``cost`` and
+    ``smooth`` rounded to ``1 / scale`` (``scale`` is lowered where a node's capacities would pass 2^30). A node
+    nothing pulls either way is on the plane's side. ``cost`` must be finite on the nodes (ValueError)."""
     H, W = nodes.shape
     ys, xs = np.nonzero(nodes)
     n = ys.size
     index = np.full(nodes.shape, -1, np.int64)
     index[ys, xs] = np.arange(n)
     src, sink = n, n + 1
-    c = np.round(np.asarray(cost, np.float64)[ys, xs] * scale).astype(np.int64)
+    cf = np.asarray(cost, np.float64)[ys, xs]
+    if not np.isfinite(cf).all():
+        raise ValueError("min_cut_sides: cost is not finite on every node")
+    top = (np.abs(cf).max() if n else 0.0) + 4.0 * abs(smooth)  # the most one node's summed edges can carry
+    scale = min(scale, 2.0 ** 30 / top) if top > 0 else scale
+    c = np.round(cf * scale).astype(np.int64)
     ids = np.arange(n)
     tails, heads, caps = [np.full(n, src), ids], [ids, np.full(n, sink)], [np.maximum(c, 0), np.maximum(-c, 0)]
     lam = int(round(smooth * scale))
