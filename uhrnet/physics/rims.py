@@ -118,8 +118,8 @@ def split_rims(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, re
     for axis in (1, 0):  # rows, then columns (a column's continuation replaces a row's where both reach a pixel)
         runs += _runs_axis(undecided, raised, plane_end, w, (phase, h), (continued, anchor, in_run), max_run, axis)
     # all crossings' sides at once: split one run at a time, a column's split replacing a row's, the pair was
-    # 1.94 mm and FP1523/1201 0.744 of the network (3 seeds), against 1.76 and 0.708 so
-    side = min_cut_sides(in_run, r2 - kappa ** 2, raised, plane_end, smooth) if runs else np.zeros(h.shape, bool)
+    # 1.94 mm and FP1523/1201 0.744 of the network (3 seeds), against 1.76 and 0.708 now
+    side = min_cut_sides(in_run, r2 - kappa ** 2, raised, plane_end, smooth)
     target = np.where(in_run, np.where(side, continued, on_plane), np.nan)
     out = h.copy()
     done = np.isfinite(target)
