@@ -43,6 +43,7 @@ from scipy import ndimage as ndi
 
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
+from uhrnet.physics.islands import continue_islands
 from uhrnet.physics.refine import estimate_phases
 from uhrnet.physics.rims import split_rims
 
@@ -288,7 +289,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   bridges: bool = True, bridge_offset: float = 0.35, sigma: float = 0.3,
                   min_confidence: float = 0.6, flat_mm: float = 1.0, spread_px: float = 10.0,
                   max_move_fraction: float = 2.0, max_local_misfit: float | None = 1.0, max_link_misfit: float = 2.0,
-                  fringe=None) -> OrderChoice:
+                  fringe=None, islands: bool = True) -> OrderChoice:
     """Heights whose every phase region sits at one whole fringe order (module docstring).
 
     Steps: (1) regions of reliable, continuous phase (reliability >= ``min_reliability``; boundaries where the
@@ -303,7 +304,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     ``max_local_misfit``); the pixels still left out (edges, walls, dark patches; not the shadows) take the
     network's height plus the level correction of the moved pixels around them (a Gaussian average over
     ``spread_px``), where those are near; the rest keep the network's height; (7) with ``fringe``, the rims
-    between raised regions and the plane split by the plane's own fringe (:func:`uhrnet.physics.rims.split_rims`).
+    between raised regions and the plane split by the plane's own fringe (:func:`uhrnet.physics.rims.split_rims`);
+    (8) with ``islands``, a moved patch one whole order off where the image's phase runs on across its border takes
+    the order that continues it (:func:`uhrnet.physics.islands.continue_islands`).
 
     Parameters
     ----------
@@ -332,6 +335,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         0.370 +- 0.031 of flat, one seed losing a right link (0.06); the pair and FP1523 do not move.
     fringe : ``(image, background, modulation)``, the fringe image and its single-shot ``A`` and ``B``
         (:class:`fppsim.phase.single_shot.SingleShotPhase`): step (7). None: no rim split.
+    islands : step (8) (False: off).
 
     Measured (docs/experiments/orders.md): the defaults were chosen on the labelled pair and FP1523/1201 with
     three checkpoints of one training seed; on the pair through the depth-fitted rig the recipe's network went
@@ -339,7 +343,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     0.86 +- 0.05 of the network's). Since stop 57, with the border margin of the estimate and the rim split (step 7):
     2.14 +- 0.29 mm, FP1523/1201 0.79 +- 0.04; since stop 59 (the fall read as a rise, a patch beyond the margin)
     2.03 +- 0.32 mm, 0.75 +- 0.04; since stop 60 (growth levels a fortieth apart) 1.94 +- 0.25 mm, 0.744 +- 0.038;
-    since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033.
+    since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033 (6 seeds: 1.70 +- 0.19 mm,
+    0.741 +- 0.048); since stop 62 (step 8) 1.63 +- 0.07 mm, 0.737 +- 0.047 (6 seeds).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
@@ -375,6 +380,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     rims, rim = {}, None
     if fringe is not None and n:
         refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
+    island_stats = {}
+    if islands and n:
+        refined, _, island_stats = continue_islands(refined, moved, w, layer)
     out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = refined.astype(out_dtype, copy=False)
     link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
@@ -383,7 +391,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
                          int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i])) for i in range(n)]
     stats = {**_choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, refused,
-                             carried, move, offset), "beyond_margin_moved": beyond, **rims}
+                             carried, move, offset), "beyond_margin_moved": beyond, **rims, **island_stats}
     return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats, rim)
 
 
