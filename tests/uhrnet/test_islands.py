@@ -8,7 +8,7 @@ import torch
 
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
-from uhrnet.physics.islands import continue_islands
+from uhrnet.physics.islands import continue_islands, continued_components
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.rig_layer import RigLayer
 
@@ -95,3 +95,20 @@ def test_choose_orders_reports_the_islands_and_can_leave_them(scene):
     off = choose_orders(est, wrapped, np.ones(h.shape), layer, islands=False)
     assert on.stats["island_pixels"] == 0 and "island_pixels" not in off.stats
     np.testing.assert_array_equal(on.height, off.height)
+
+
+def test_continued_components_split_where_the_path_or_the_fringes_break(scene):
+    rig, layer, h, wrapped, (xx, yy) = scene
+    t = torch.as_tensor(h, dtype=torch.float64)
+    with torch.no_grad():
+        phase = layer.phase_from_height(t).numpy()
+    mask = np.ones(h.shape, bool)
+    mask[:, 100] = False  # a column off the mask cuts the view in two
+    comp = continued_components(phase, wrapped, mask)
+    assert (comp[:, 100] == -1).all() and len(np.unique(comp[:, :100])) == 1 and len(np.unique(comp[:, 101:])) == 1
+    assert comp[0, 0] != comp[0, 101]
+    patch = (np.abs(xx - 300) < 20) & (np.abs(yy - 200) < 20)
+    comp = continued_components(phase + 2 * np.pi * patch, wrapped, np.ones(h.shape, bool))  # the path jumps there
+    assert len(np.unique(comp[patch])) == 1 and comp[patch][0] != comp[0, 0] and len(np.unique(comp)) == 2
+    with pytest.raises(ValueError, match="shapes differ"):
+        continued_components(phase, wrapped[:, :10], mask)

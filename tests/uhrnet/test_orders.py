@@ -164,11 +164,14 @@ def test_a_seam_across_a_cliff_of_whole_periods_is_refused_by_the_network_levels
     estimate = np.where(block, 30.0 + ramp * (h[right].mean() - 30.0 + 0.3 * period), 0.0)
     core = right & (xx > 440) & (xx < 545) & (yy > 100) & (yy < 260)  # away from the wall at the block's edge
     left = block & (xx > 195) & (xx < 360) & (yy > 100) & (yy < 260)
-    loose = choose_orders(estimate, w, rel, layer, max_link_misfit=np.inf)
+    loose = choose_orders(estimate, w, rel, layer, max_link_misfit=np.inf, join_min_moved=None)
     assert loose.stats["refused_links"] == 0 and loose.stats["links"]["seam"] == 1
     # one shift for both parts: the larger left part lands a whole order off, the right part cannot move
     assert np.median(_errors(loose.height, h, left)) == pytest.approx(period, rel=0.05)
     assert not loose.moved[core].any()
+    # ... unless the fringes run on to it: through the filled seam they do, and the wrong link's order spreads
+    spread = choose_orders(estimate, w, rel, layer, max_link_misfit=np.inf)
+    assert spread.moved[core].all() and np.median(_errors(spread.height, h, core)) > period
     got = choose_orders(estimate, w, rel, layer)
     assert got.stats["refused_links"] == 1 and got.stats["links"]["seam"] == 0
     for part in (left, core):
@@ -187,11 +190,16 @@ def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene
     off = window * (1.75 + 0.25 * np.sin(2 * np.pi * xx / 24.0)) * period  # period: at 30 mm
     estimate = h + np.where(disc, 0.2 + off, 0.0)
     patch = disc & (r < 30)
-    old = choose_orders(estimate, w, None, layer, max_local_misfit=None)
+    old = choose_orders(estimate, w, None, layer, max_local_misfit=None, join_min_moved=None)
     beyond = patch & (np.abs(old.height - h) > 1.0)
     assert beyond.sum() > 0.3 * patch.sum()  # the margin holds back the pixels beyond 2 periods
     assert not old.moved[beyond].any()
     assert old.stats["beyond_margin_moved"] == 0
+    # either rule alone moves them: the fringes run on undisturbed from the moved pixels into the patch
+    joined = choose_orders(estimate, w, None, layer, max_local_misfit=None)
+    assert joined.moved[patch].all() and np.percentile(_errors(joined.height, h, patch), 99) < 0.05
+    lowrel = np.where(patch, 0.3, 1.0)  # ... but not below the reliable grade (the local rule still does)
+    assert not choose_orders(estimate, w, lowrel, layer, max_local_misfit=None).moved[beyond].any()
     got = choose_orders(estimate, w, None, layer)
     assert got.moved[patch].all()
     assert got.stats["beyond_margin_moved"] == int((got.moved & ~old.moved).sum()) >= beyond.sum()

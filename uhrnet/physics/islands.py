@@ -21,6 +21,9 @@ Measured (docs/experiments/orders.md, "Islands", 6 seeds of the recipe, 2026-11-
 RMSE 1.70 +- 0.19 -> 1.63 +- 0.07 mm (every seed lower, seed 2 2.08 -> 1.74), FP1523/1201 0.741 -> 0.737 of the
 network (5 seeds lower, one 0.005 higher), FP147 through the recipe's networks 0.758 -> 0.739, FP672 and the own-rig
 networks unchanged (within 0.001). 33-1,094 pixels move on the pair, 148-624 on FP1523.
+
+:func:`continued_components` (the same steps, for any mask) also lets :func:`~uhrnet.physics.orders.choose_orders` move
+reliable pixels beyond its margin that such steps join to moved ones (``join_min_moved``).
 """
 
 from __future__ import annotations
@@ -35,7 +38,7 @@ from scipy.sparse.csgraph import connected_components
 
 from fppsim.phase import wrap
 
-__all__ = ["continue_islands"]
+__all__ = ["continue_islands", "continued_components"]
 
 TWO_PI = 2.0 * math.pi
 
@@ -75,30 +78,11 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     with torch.no_grad():
         phase = layer.phase_from_height(t(np.where(mv, h, 0.0))).cpu().numpy()
-    w0 = np.where(np.isfinite(w), w, 0.0)
+    comp, jumps = _continued_steps(phase, w, mv, max_dev, window)
     H, W = h.shape
-    index = np.arange(H * W).reshape(H, W)
-    joined, jumps = [], []
-    for axis in (0, 1):
-        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
-        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
-        step = wrap(np.diff(w0, axis=axis))
-        local = ndi.median_filter(step, window)
-        continuous = (np.abs(wrap(step - local)) < max_dev * TWO_PI) & mv[a] & mv[b]
-        k = np.round((np.diff(phase, axis=axis) - step) / TWO_PI).astype(np.int64)
-        same = continuous & (k == 0)
-        jump = continuous & (k != 0)
-        joined.append((index[a][same], index[b][same]))
-        jumps.append((index[a][jump], index[b][jump], k[jump]))
-    pa = np.concatenate([j[0] for j in joined])
-    pb = np.concatenate([j[1] for j in joined])
-    graph = sparse.csr_matrix((np.ones(pa.size, np.int8), (pa, pb)), shape=(H * W, H * W))
-    _, comp = connected_components(graph, directed=False)
-    comp = np.where(mv.ravel(), comp, -1)
+    comp = comp.ravel()
     sizes = np.bincount(comp[comp >= 0], minlength=int(comp.max()) + 1)
-    ja = np.concatenate([j[0] for j in jumps])
-    jb = np.concatenate([j[1] for j in jumps])
-    jk = np.concatenate([j[2] for j in jumps])
+    ja, jb, jk = jumps
     ca, cb = comp[ja], comp[jb]
     b_smaller = sizes[cb] < sizes[ca]
     small, large = np.where(b_smaller, cb, ca), np.where(b_smaller, ca, cb)
@@ -123,3 +107,43 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
         out[shifted] = moved_h[shifted]
         stats = {"island_pixels": int(shifted.sum()), "islands": int((shift != 0).sum())}
     return out, shifted, stats
+
+
+def continued_components(phase: np.ndarray, wrapped: np.ndarray, mask: np.ndarray, *, max_dev: float = 0.1,
+                         window: int = 7) -> np.ndarray:
+    """(H, W) int64: the ``mask`` pixels' components (0, 1, ...; -1 outside ``mask``) joined by 4-neighbour steps
+    that are continuous (the ``wrapped`` step within ``max_dev`` periods of the ``window`` x ``window`` median step
+    around it) and that ``phase`` (rad, absolute: the path's) continues exactly (module docstring)."""
+    phase, w = np.asarray(phase, np.float64), np.asarray(wrapped, np.float64)
+    if phase.shape != w.shape or phase.shape != np.shape(mask):
+        raise ValueError(f"continued_components: shapes differ: phase {phase.shape}, wrapped {w.shape}, "
+                         f"mask {np.shape(mask)}")
+    mask = np.asarray(mask, bool) & np.isfinite(phase) & np.isfinite(w)
+    return _continued_steps(phase, w, mask, max_dev, window)[0]
+
+
+def _continued_steps(phase, wrapped, mask, max_dev, window):
+    """``(components (H, W), jumps)``: the components of :func:`continued_components`, and the continuous steps the
+    phase does not continue as ``(index a, index b, whole periods k)`` (flat indices, ``b`` the next pixel)."""
+    w0 = np.where(np.isfinite(wrapped), wrapped, 0.0)
+    phase = np.where(mask, phase, 0.0)  # steps off the mask are never taken; no NaN in their arithmetic
+    H, W = mask.shape
+    index = np.arange(H * W).reshape(H, W)
+    joined, jumps = [], []
+    for axis in (0, 1):
+        a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
+        b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
+        step = wrap(np.diff(w0, axis=axis))
+        local = ndi.median_filter(step, window)
+        continuous = (np.abs(wrap(step - local)) < max_dev * TWO_PI) & mask[a] & mask[b]
+        k = np.round((np.diff(phase, axis=axis) - step) / TWO_PI).astype(np.int64)
+        same = continuous & (k == 0)
+        jump = continuous & (k != 0)
+        joined.append((index[a][same], index[b][same]))
+        jumps.append((index[a][jump], index[b][jump], k[jump]))
+    pa = np.concatenate([j[0] for j in joined])
+    pb = np.concatenate([j[1] for j in joined])
+    graph = sparse.csr_matrix((np.ones(pa.size, np.int8), (pa, pb)), shape=(H * W, H * W))
+    _, comp = connected_components(graph, directed=False)
+    comp = np.where(mask.ravel(), comp, -1).reshape(H, W)
+    return comp, tuple(np.concatenate([j[i] for j in jumps]) for i in range(3))

@@ -43,7 +43,7 @@ from scipy import ndimage as ndi
 
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
-from uhrnet.physics.islands import continue_islands
+from uhrnet.physics.islands import continue_islands, continued_components
 from uhrnet.physics.refine import estimate_phases
 from uhrnet.physics.rims import split_rims
 
@@ -289,7 +289,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   bridges: bool = True, bridge_offset: float = 0.35, sigma: float = 0.3,
                   min_confidence: float = 0.6, flat_mm: float = 1.0, spread_px: float = 10.0,
                   max_move_fraction: float = 2.0, max_local_misfit: float | None = 1.0, max_link_misfit: float = 2.0,
-                  fringe=None, islands: bool = True) -> OrderChoice:
+                  join_min_moved: int | None = 50, fringe=None, islands: bool = True) -> OrderChoice:
     """Heights whose every phase region sits at one whole fringe order (module docstring).
 
     Steps: (1) regions of reliable, continuous phase (reliability >= ``min_reliability``; boundaries where the
@@ -301,10 +301,11 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     (:func:`seam_links`); (4) components and one order each; (5) the regions grown further (``fill``: these
     pixels take their region's order, they tie nothing); (6) heights from the phase at the chosen orders (a
     pixel whose move exceeds ``max_move_fraction`` moves all the same when it agrees with its moved neighbours',
-    ``max_local_misfit``); the pixels still left out (edges, walls, dark patches; not the shadows) take the
-    network's height plus the level correction of the moved pixels around them (a Gaussian average over
-    ``spread_px``), where those are near; the rest keep the network's height; (7) with ``fringe``, the rims
-    between raised regions and the plane split by the plane's own fringe (:func:`uhrnet.physics.rims.split_rims`);
+    ``max_local_misfit``, or the fringes run on to them, ``join_min_moved``); the pixels still left out (edges,
+    walls, dark patches; not the shadows) take the network's height plus the level correction of the moved pixels
+    around them (a Gaussian average over ``spread_px``), where those are near; the rest keep the network's height;
+    (7) with ``fringe``, the rims between raised regions and the plane split by the plane's own fringe
+    (:func:`uhrnet.physics.rims.split_rims`);
     (8) with ``islands``, a moved patch one whole order off where the image's phase runs on across its border takes
     the order that continues it (:func:`uhrnet.physics.islands.continue_islands`).
 
@@ -329,6 +330,12 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         0.749 +- 0.039 of the network's residual, the pair 2.06 -> 2.03 mm (3 seeds, docs/experiments/orders.md).
         One pass: it reaches about 1.6 ``spread_px`` into a patch. At 1 period it also admits a few pixels whose
         phase was continued one order wrong (on the pair, seed 0: 75 pixels put right, 13 put one order off).
+    join_min_moved : a pixel of reliable phase (``min_reliability``) beyond the margin moves all the same when the
+        image's fringes run on undisturbed, and the path's phase continues them, from it to at least this many moved
+        pixels (:func:`uhrnet.physics.islands.continued_components`; None: never). 6 seeds (stop 62): the pair
+        1.628 -> 1.625 mm, FP1523/1201 0.737 -> 0.734 (every seed lower or equal), FP672 through the recipe's
+        networks 0.941 -> 0.631, FP147 0.739 -> 0.733; through their own rigs FP672 0.315 -> 0.305, FP147 0.332
+        (unchanged: its chin, reached across an occlusion its single-shot phase bridges, is under the reliable grade).
     max_link_misfit : a link is refused when the two components it would join have area-weighted priors whose
         difference is further than this many periods from the link's order difference (a seam or shadow across
         a height step of whole periods). A safeguard: on FP147 through its own rig (3 seeds) 0.443 +- 0.191 ->
@@ -344,7 +351,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     2.14 +- 0.29 mm, FP1523/1201 0.79 +- 0.04; since stop 59 (the fall read as a rise, a patch beyond the margin)
     2.03 +- 0.32 mm, 0.75 +- 0.04; since stop 60 (growth levels a fortieth apart) 1.94 +- 0.25 mm, 0.744 +- 0.038;
     since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033 (6 seeds: 1.70 +- 0.19 mm,
-    0.741 +- 0.048); since stop 62 (step 8) 1.63 +- 0.07 mm, 0.737 +- 0.047 (6 seeds).
+    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.63 +- 0.07 mm, 0.734 +- 0.046 (6 seeds).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
@@ -376,7 +383,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
         usable = usable | (lab > 0)
     refined, moved, move, carried, beyond = _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit,
-                                                           max_move_fraction, spread_px, max_local_misfit)
+                                                           max_move_fraction, spread_px, max_local_misfit,
+                                                           join_min_moved)
     rims, rim = {}, None
     if fringe is not None and n:
         refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
@@ -416,10 +424,12 @@ def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, 
 
 
 def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px,
-                   max_local_misfit):
+                   max_local_misfit, join_min_moved=None):
     """Heights from the phase at the chosen orders where a decided region holds the pixel and the move is at
     most ``max_move_fraction`` periods of height, or within ``max_local_misfit`` periods of the moves around
-    it; the pixels left out (not the shadows, not undecided regions)
+    it, or (a pixel of reliable phase) the path continues the image's undisturbed fringes from it to at least
+    ``join_min_moved`` such pixels (:func:`~uhrnet.physics.islands.continued_components`); the pixels left out
+    (not the shadows, not undecided regions)
     take the level correction of the moved pixels around them (a normalised Gaussian of ``spread_px``):
     ``(refined float64, moved, move, carried, beyond)``, ``beyond`` the count of pixels moved past the margin."""
     h, finite = e.h, e.finite
@@ -446,6 +456,13 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
         # max_local_misfit periods of their level correction moves too
         wgt, corr = _level_correction(moved, move, spread_px)
         moved |= can & (wgt > 0.05) & (np.abs(move - corr) <= max_local_misfit * period)
+    reach = can & ~moved & e.usable
+    if join_min_moved is not None and moved.any() and reach.any():
+        # where the fringes run on undisturbed from moved pixels into a patch of reliable phase, the network is
+        # off there, not the phase (below the reliable grade the image's phase also bridges occlusions: FP147's chin)
+        comp = continued_components(np.where(can, target, np.nan), e.w, can)
+        held = np.bincount(comp[moved], minlength=int(comp.max()) + 1)
+        moved |= reach & (comp >= 0) & (held[np.maximum(comp, 0)] >= join_min_moved)
     refined = np.where(moved, h_new, h).astype(np.float64)
     carried = np.zeros(h.shape, bool)
     if spread_px > 0 and moved.any():
