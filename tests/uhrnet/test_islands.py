@@ -112,3 +112,21 @@ def test_continued_components_split_where_the_path_or_the_fringes_break(scene):
     assert len(np.unique(comp[patch])) == 1 and comp[patch][0] != comp[0, 0] and len(np.unique(comp)) == 2
     with pytest.raises(ValueError, match="shapes differ"):
         continued_components(phase, wrapped[:, :10], mask)
+
+
+def test_an_island_follows_its_largest_neighbour_where_it_ends_up(scene):
+    rig, layer, h, wrapped, (xx, yy) = scene
+    r = np.hypot(xx - 300, yy - 200)
+    hole, ring = r < 15, (r >= 15) & (r < 40)
+    # a ring one order off around a hole two orders off: the hole continues the ring, the ring the view
+    path = _off_by(layer, _off_by(layer, h, ring | hole, 1), hole, 1)
+    got, shifted, stats = continue_islands(path, np.ones(h.shape, bool), wrapped, layer)
+    assert stats["islands"] == 2 and np.array_equal(shifted, ring | hole)
+    np.testing.assert_allclose(got, h, atol=1e-6)
+    # half a ring two orders off beside a disc one order off: the disc's votes are the view's (its largest
+    # neighbour), not the half ring's, whose border with it is as long
+    half = ring & (xx > 300)
+    path = _off_by(layer, _off_by(layer, h, half | hole, 1), half, 1)
+    got, shifted, stats = continue_islands(path, np.ones(h.shape, bool), wrapped, layer)
+    assert np.array_equal(shifted, half | hole)
+    np.testing.assert_allclose(got, h, atol=1e-6)

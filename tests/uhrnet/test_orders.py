@@ -198,6 +198,8 @@ def test_a_patch_the_network_has_two_periods_off_moves_with_its_neighbours(scene
     # either rule alone moves them: the fringes run on undisturbed from the moved pixels into the patch
     joined = choose_orders(estimate, w, None, layer, max_local_misfit=None)
     assert joined.moved[patch].all() and np.percentile(_errors(joined.height, h, patch), 99) < 0.05
+    assert not choose_orders(estimate, w, None, layer, max_local_misfit=None,
+                             join_min_moved=int(disc.sum())).moved[beyond].any()  # more moved pixels than there are
     lowrel = np.where(patch, 0.3, 1.0)  # ... but not below the reliable grade (the local rule still does)
     assert not choose_orders(estimate, w, lowrel, layer, max_local_misfit=None).moved[beyond].any()
     got = choose_orders(estimate, w, None, layer)

@@ -17,10 +17,11 @@ share) takes the order that continues them: its phase moves by those whole perio
 A real cliff whose height is a whole number of fringes to within ``max_dev`` all along the patch's border would be
 undone; a patch joined by one continued step to its neighbour is not a component of its own and stays.
 
-Measured (docs/experiments/orders.md, "Islands", 6 seeds of the recipe, 2026-11-29): the labelled pair's object
-RMSE 1.70 +- 0.19 -> 1.63 +- 0.07 mm (every seed lower, seed 2 2.08 -> 1.74), FP1523/1201 0.741 -> 0.737 of the
-network (5 seeds lower, one 0.005 higher), FP147 through the recipe's networks 0.758 -> 0.739, FP672 and the own-rig
-networks unchanged (within 0.001). 33-1,094 pixels move on the pair, 148-624 on FP1523.
+Measured (docs/experiments/orders.md, "Islands", 6 seeds of the recipe, 2026-11-29; run after the rim split only): the
+labelled pair's object RMSE 1.70 +- 0.19 -> 1.63 +- 0.07 mm (every seed lower, seed 2 2.08 -> 1.74), FP1523/1201
+0.741 -> 0.737 of the network (5 seeds lower, one 0.005 higher), FP147 through the recipe's networks 0.758 -> 0.739,
+FP672 and the own-rig networks unchanged (within 0.001). 33-1,094 pixels move on the pair, 148-624 on FP1523. Run
+also before the level correction (as ``choose_orders`` does): 1.625 -> 1.621 mm, 0.734 -> 0.728.
 
 :func:`continued_components` (the same steps, for any mask) also lets :func:`~uhrnet.physics.orders.choose_orders` move
 reliable pixels beyond its margin that such steps join to moved ones (``join_min_moved``).
@@ -90,7 +91,8 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
     by = np.where(b_smaller, -jk, jk)
     shift = np.zeros(sizes.size, np.int64)
     limit = max_fraction * mv.sum()
-    for c in np.unique(small):
+    candidates = np.unique(small)
+    for c in candidates[np.argsort(-sizes[candidates], kind="stable")]:  # largest first: a neighbour's shift is known
         if sizes[c] > limit:
             continue
         mine = small == c
@@ -98,7 +100,7 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
         votes = by[mine & (large == nbr)]
         values, counts = np.unique(votes, return_counts=True)
         if counts.max() >= min_votes and counts.max() >= agree * votes.size:
-            shift[c] = values[np.argmax(counts)]
+            shift[c] = values[np.argmax(counts)] + shift[nbr]  # continue the neighbour where it ends up
     per_pixel = np.where(comp >= 0, shift[np.maximum(comp, 0)], 0).reshape(H, W)
     shifted = per_pixel != 0
     if shifted.any():
@@ -111,9 +113,9 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
 
 def continued_components(phase: np.ndarray, wrapped: np.ndarray, mask: np.ndarray, *, max_dev: float = 0.1,
                          window: int = 7) -> np.ndarray:
-    """(H, W) int64: the ``mask`` pixels' components (0, 1, ...; -1 outside ``mask``) joined by 4-neighbour steps
-    that are continuous (the ``wrapped`` step within ``max_dev`` periods of the ``window`` x ``window`` median step
-    around it) and that ``phase`` (rad, absolute: the path's) continues exactly (module docstring)."""
+    """(H, W) int64: the ``mask`` pixels' component ids (not consecutive; -1 outside ``mask``), joined by 4-neighbour
+    steps that are continuous (the ``wrapped`` step within ``max_dev`` periods of the ``window`` x ``window`` median
+    step around it) and that ``phase`` (rad, absolute: the path's) continues exactly (module docstring)."""
     phase, w = np.asarray(phase, np.float64), np.asarray(wrapped, np.float64)
     if phase.shape != w.shape or phase.shape != np.shape(mask):
         raise ValueError(f"continued_components: shapes differ: phase {phase.shape}, wrapped {w.shape}, "
@@ -145,5 +147,5 @@ def _continued_steps(phase, wrapped, mask, max_dev, window):
     pb = np.concatenate([j[1] for j in joined])
     graph = sparse.csr_matrix((np.ones(pa.size, np.int8), (pa, pb)), shape=(H * W, H * W))
     _, comp = connected_components(graph, directed=False)
-    comp = np.where(mask.ravel(), comp, -1).reshape(H, W)
+    comp = np.where(mask.ravel(), comp, -1).astype(np.int64).reshape(H, W)
     return comp, tuple(np.concatenate([j[i] for j in jumps]) for i in range(3))

@@ -307,7 +307,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     (7) with ``fringe``, the rims between raised regions and the plane split by the plane's own fringe
     (:func:`uhrnet.physics.rims.split_rims`);
     (8) with ``islands``, a moved patch one whole order off where the image's phase runs on across its border takes
-    the order that continues it (:func:`uhrnet.physics.islands.continue_islands`).
+    the order that continues it (:func:`uhrnet.physics.islands.continue_islands`): before the level correction of
+    step 6 (which carries the patch's moves) and again after the rim split.
 
     Parameters
     ----------
@@ -351,7 +352,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     2.14 +- 0.29 mm, FP1523/1201 0.79 +- 0.04; since stop 59 (the fall read as a rise, a patch beyond the margin)
     2.03 +- 0.32 mm, 0.75 +- 0.04; since stop 60 (growth levels a fortieth apart) 1.94 +- 0.25 mm, 0.744 +- 0.038;
     since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033 (6 seeds: 1.70 +- 0.19 mm,
-    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.63 +- 0.07 mm, 0.734 +- 0.046 (6 seeds).
+    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.62 +- 0.07 mm, 0.728 +- 0.046 (6 seeds).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
@@ -382,15 +383,15 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
         lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
         usable = usable | (lab > 0)
-    refined, moved, move, carried, beyond = _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit,
-                                                           max_move_fraction, spread_px, max_local_misfit,
-                                                           join_min_moved)
+    refined, moved, move, carried, beyond, island_stats = _moved_heights(
+        e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px, max_local_misfit,
+        join_min_moved, islands and bool(n))
     rims, rim = {}, None
     if fringe is not None and n:
         refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
-    island_stats = {}
-    if islands and n:
-        refined, _, island_stats = continue_islands(refined, moved, w, layer)
+    if islands and n and island_stats:  # again after the rim split, which re-decided the least reliable moved pixels
+        refined, _, again = continue_islands(refined, moved, w, layer)
+        island_stats = {k: island_stats[k] + again[k] for k in island_stats}
     out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = refined.astype(out_dtype, copy=False)
     link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
@@ -424,14 +425,15 @@ def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, 
 
 
 def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px,
-                   max_local_misfit, join_min_moved=None):
+                   max_local_misfit, join_min_moved=None, islands=False):
     """Heights from the phase at the chosen orders where a decided region holds the pixel and the move is at
     most ``max_move_fraction`` periods of height, or within ``max_local_misfit`` periods of the moves around
     it, or (a pixel of reliable phase) the path continues the image's undisturbed fringes from it to at least
     ``join_min_moved`` such pixels (:func:`~uhrnet.physics.islands.continued_components`); the pixels left out
-    (not the shadows, not undecided regions)
-    take the level correction of the moved pixels around them (a normalised Gaussian of ``spread_px``):
-    ``(refined float64, moved, move, carried, beyond)``, ``beyond`` the count of pixels moved past the margin."""
+    (not the shadows, not undecided regions) take the level correction of the moved pixels around them (a
+    normalised Gaussian of ``spread_px``), after the moved pixels' islands took their order (``islands``,
+    :func:`~uhrnet.physics.islands.continue_islands`): ``(refined float64, moved, move, carried, beyond,
+    island_stats)``, ``beyond`` the count of pixels moved past the margin."""
     h, finite = e.h, e.finite
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     target = np.full(h.shape, np.nan)
@@ -464,6 +466,10 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
         held = np.bincount(comp[moved], minlength=int(comp.max()) + 1)
         moved |= reach & (comp >= 0) & (held[np.maximum(comp, 0)] >= join_min_moved)
     refined = np.where(moved, h_new, h).astype(np.float64)
+    island_stats = {}
+    if islands and moved.any():  # before the level correction below: it carries the islands' moves
+        refined, shifted, island_stats = continue_islands(refined, moved, e.w, layer)
+        move = np.where(shifted, refined - h, move)
     carried = np.zeros(h.shape, bool)
     if spread_px > 0 and moved.any():
         # the network's level error is smooth: pixels left out (edges, dark patches) take the level correction
@@ -473,7 +479,7 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
         undecided[inside] = ~decided[li]
         carried = finite & ~moved & ~unlit & ~undecided & (wgt > 0.05)
         refined[carried] = h[carried] + corr[carried]
-    return refined, moved, move, carried, int(moved.sum()) - within
+    return refined, moved, move, carried, int(moved.sum()) - within, island_stats
 
 
 def _level_correction(moved, move, spread_px):
