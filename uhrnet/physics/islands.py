@@ -39,14 +39,14 @@ from scipy.sparse.csgraph import connected_components
 
 from fppsim.phase import wrap
 
-__all__ = ["continue_islands", "continued_components"]
+__all__ = ["continue_islands", "continued_components", "wrapped_steps"]
 
 TWO_PI = 2.0 * math.pi
 
 
 def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarray, layer, *, max_dev: float = 0.1,
                      min_votes: int = 10, agree: float = 0.8, max_fraction: float = 0.05,
-                     window: int = 7) -> tuple[np.ndarray, np.ndarray, dict]:
+                     window: int = 7, steps=None) -> tuple[np.ndarray, np.ndarray, dict]:
     """Moved patches one whole order off where the image's phase runs on across their border (module docstring).
 
     Parameters
@@ -60,6 +60,7 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
         jump, and this share of them by the same whole order.
     max_fraction : components holding more of the moved pixels than this share never move.
     window : side (px) of the median that gives the local step.
+    steps : :func:`wrapped_steps` of ``wrapped`` (``window``), when the caller has them (None: computed here).
 
     Returns
     -------
@@ -79,7 +80,7 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     with torch.no_grad():
         phase = layer.phase_from_height(t(np.where(mv, h, 0.0))).cpu().numpy()
-    comp, jumps = _continued_steps(phase, w, mv, max_dev, window)
+    comp, jumps = _continued_steps(phase, wrapped_steps(w, window) if steps is None else steps, mv, max_dev)
     H, W = h.shape
     comp = comp.ravel()
     sizes = np.bincount(comp[comp >= 0], minlength=int(comp.max()) + 1)
@@ -112,22 +113,35 @@ def continue_islands(height_mm: np.ndarray, moved: np.ndarray, wrapped: np.ndarr
 
 
 def continued_components(phase: np.ndarray, wrapped: np.ndarray, mask: np.ndarray, *, max_dev: float = 0.1,
-                         window: int = 7) -> np.ndarray:
+                         window: int = 7, steps=None) -> np.ndarray:
     """(H, W) int64: the ``mask`` pixels' component ids (not consecutive; -1 outside ``mask``), joined by 4-neighbour
     steps that are continuous (the ``wrapped`` step within ``max_dev`` periods of the ``window`` x ``window`` median
-    step around it) and that ``phase`` (rad, absolute: the path's) continues exactly (module docstring)."""
+    step around it) and that ``phase`` (rad, absolute: the path's) continues exactly (module docstring); ``steps``:
+    :func:`wrapped_steps` of ``wrapped``, when the caller has them."""
     phase, w = np.asarray(phase, np.float64), np.asarray(wrapped, np.float64)
     if phase.shape != w.shape or phase.shape != np.shape(mask):
         raise ValueError(f"continued_components: shapes differ: phase {phase.shape}, wrapped {w.shape}, "
                          f"mask {np.shape(mask)}")
     mask = np.asarray(mask, bool) & np.isfinite(phase) & np.isfinite(w)
-    return _continued_steps(phase, w, mask, max_dev, window)[0]
+    return _continued_steps(phase, wrapped_steps(w, window) if steps is None else steps, mask, max_dev)[0]
 
 
-def _continued_steps(phase, wrapped, mask, max_dev, window):
+def wrapped_steps(wrapped: np.ndarray, window: int = 7) -> tuple:
+    """Per axis (rows' steps down the columns, then along the rows), ``(step, local)``: the wrapped phase's step
+    to the next pixel (rad, NaN read as 0) and its ``window`` x ``window`` median, the local step. They depend on
+    the image alone, so one image's path computes them once (the median is most of this module's time)."""
+    w0 = np.asarray(wrapped, np.float64)
+    w0 = np.where(np.isfinite(w0), w0, 0.0)
+    out = []
+    for axis in (0, 1):
+        step = wrap(np.diff(w0, axis=axis))
+        out.append((step, ndi.median_filter(step, window)))
+    return tuple(out)
+
+
+def _continued_steps(phase, steps, mask, max_dev):
     """``(components (H, W), jumps)``: the components of :func:`continued_components`, and the continuous steps the
     phase does not continue as ``(index a, index b, whole periods k)`` (flat indices, ``b`` the next pixel)."""
-    w0 = np.where(np.isfinite(wrapped), wrapped, 0.0)
     phase = np.where(mask, phase, 0.0)  # steps off the mask are never taken; no NaN in their arithmetic
     H, W = mask.shape
     index = np.arange(H * W).reshape(H, W)
@@ -135,8 +149,7 @@ def _continued_steps(phase, wrapped, mask, max_dev, window):
     for axis in (0, 1):
         a = (slice(None, -1), slice(None)) if axis == 0 else (slice(None), slice(None, -1))
         b = (slice(1, None), slice(None)) if axis == 0 else (slice(None), slice(1, None))
-        step = wrap(np.diff(w0, axis=axis))
-        local = ndi.median_filter(step, window)
+        step, local = steps[axis]
         continuous = (np.abs(wrap(step - local)) < max_dev * TWO_PI) & mask[a] & mask[b]
         k = np.round((np.diff(phase, axis=axis) - step) / TWO_PI).astype(np.int64)
         same = continuous & (k == 0)

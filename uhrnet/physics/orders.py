@@ -43,7 +43,7 @@ from scipy import ndimage as ndi
 
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
-from uhrnet.physics.islands import continue_islands, continued_components
+from uhrnet.physics.islands import continue_islands, continued_components, wrapped_steps
 from uhrnet.physics.refine import estimate_phases
 from uhrnet.physics.rims import split_rims
 
@@ -383,14 +383,15 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
         lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
         usable = usable | (lab > 0)
+    steps = wrapped_steps(w) if n and (islands or join_min_moved is not None) else None  # the image's, once
     refined, moved, move, carried, beyond, island_stats = _moved_heights(
         e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px, max_local_misfit,
-        join_min_moved, islands and bool(n))
+        join_min_moved, islands and bool(n), steps)
     rims, rim = {}, None
     if fringe is not None and n:
         refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
     if islands and n and island_stats:  # again after the rim split, which re-decided the least reliable moved pixels
-        refined, _, again = continue_islands(refined, moved, w, layer)
+        refined, _, again = continue_islands(refined, moved, w, layer, steps=steps)
         island_stats = {k: island_stats[k] + again[k] for k in island_stats}
     out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = refined.astype(out_dtype, copy=False)
@@ -425,15 +426,16 @@ def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, 
 
 
 def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px,
-                   max_local_misfit, join_min_moved=None, islands=False):
+                   max_local_misfit, join_min_moved=None, islands=False, steps=None):
     """Heights from the phase at the chosen orders where a decided region holds the pixel and the move is at
     most ``max_move_fraction`` periods of height, or within ``max_local_misfit`` periods of the moves around
     it, or (a pixel of reliable phase) the path continues the image's undisturbed fringes from it to at least
     ``join_min_moved`` such pixels (:func:`~uhrnet.physics.islands.continued_components`); the pixels left out
     (not the shadows, not undecided regions) take the level correction of the moved pixels around them (a
     normalised Gaussian of ``spread_px``), after the moved pixels' islands took their order (``islands``,
-    :func:`~uhrnet.physics.islands.continue_islands`): ``(refined float64, moved, move, carried, beyond,
-    island_stats)``, ``beyond`` the count of pixels moved past the margin."""
+    :func:`~uhrnet.physics.islands.continue_islands`; ``steps``: the image's
+    :func:`~uhrnet.physics.islands.wrapped_steps`): ``(refined float64, moved, move, carried, beyond, island_stats)``,
+    ``beyond`` the count of pixels moved past the margin."""
     h, finite = e.h, e.finite
     t = lambda a: torch.as_tensor(a, dtype=torch.float64, device=layer.A.device)  # noqa: E731
     target = np.full(h.shape, np.nan)
@@ -462,13 +464,13 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
     if join_min_moved is not None and moved.any() and reach.any():
         # where the fringes run on undisturbed from moved pixels into a patch of reliable phase, the network is
         # off there, not the phase (below the reliable grade the image's phase also bridges occlusions: FP147's chin)
-        comp = continued_components(np.where(can, target, np.nan), e.w, can)
+        comp = continued_components(np.where(can, target, np.nan), e.w, can, steps=steps)
         held = np.bincount(comp[moved], minlength=int(comp.max()) + 1)
         moved |= reach & (comp >= 0) & (held[np.maximum(comp, 0)] >= join_min_moved)
     refined = np.where(moved, h_new, h).astype(np.float64)
     island_stats = {}
     if islands and moved.any():  # before the level correction below: it carries the islands' moves
-        refined, shifted, island_stats = continue_islands(refined, moved, e.w, layer)
+        refined, shifted, island_stats = continue_islands(refined, moved, e.w, layer, steps=steps)
         move = np.where(shifted, refined - h, move)
     carried = np.zeros(h.shape, bool)
     if spread_px > 0 and moved.any():
