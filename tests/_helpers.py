@@ -18,6 +18,11 @@ SHARED_MESHES = SHARED / "meshes"
 REAL_SAMPLE = SHARED / "real-sample"
 
 
+def wrap_phase(x):
+    """Wrap rad into (-pi, pi] (independent of the code under test)."""
+    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
+
+
 def disc_shadow(obj: np.ndarray, phase: np.ndarray, plane_phase: np.ndarray) -> np.ndarray:
     """The projector shadow beside an object standing on the plane, from the phases alone (fppsim's rigs: the
     phase grows along +columns): a plane pixel left of a row's first object pixel is dark when that edge carries a

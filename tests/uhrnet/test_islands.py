@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from _helpers import wrap_phase
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from uhrnet.physics.islands import continue_islands, continued_components
@@ -13,11 +14,6 @@ from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.rig_layer import RigLayer
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def wrap_phase(x):
-    """Wrap rad into (-pi, pi] (independent of the code under test)."""
-    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
 
 
 @pytest.fixture(scope="module")

@@ -6,18 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from _helpers import disc_shadow
+from _helpers import disc_shadow, wrap_phase
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.geometry.rig import make_default_rig
 from uhrnet.physics.orders import choose_orders, grow_regions, seam_links
 from uhrnet.physics.rig_layer import RigLayer
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def wrap_phase(x):
-    """Wrap rad into (-pi, pi] (independent of the code under test)."""
-    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
 
 
 @pytest.fixture(scope="module")

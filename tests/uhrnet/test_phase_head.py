@@ -13,14 +13,9 @@ from uhrnet.cli import main
 from uhrnet.models import build_model, list_models, outputs_of
 from uhrnet.physics.rig_layer import RigLayer
 
-from _helpers import tiny_rig, write_figshare, write_native_rig
+from _helpers import tiny_rig, wrap_phase, write_figshare, write_native_rig
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def wrap_phase(x):
-    """Wrap rad into (-pi, pi] (independent of the code under test)."""
-    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
 
 
 @pytest.fixture(scope="module")

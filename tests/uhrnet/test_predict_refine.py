@@ -16,14 +16,9 @@ from uhrnet.inference.prediction import PATH_MARGIN_PX, fringe_mirror_axis, path
 from uhrnet.physics.refine import refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 
-from _helpers import rig_fringe, tiny_rig, train_tiny, write_figshare
+from _helpers import rig_fringe, tiny_rig, train_tiny, wrap_phase, write_figshare
 
 pytestmark = pytest.mark.usefixtures("one_thread")
-
-
-def wrap_phase(x):
-    """Wrap rad into (-pi, pi] (independent of the code under test)."""
-    return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
 
 
 def _bump(rig, peak, cx, cy=15.0, sigma=7.0):
