@@ -124,6 +124,21 @@ def test_a_region_the_path_cannot_decide_keeps_the_network_heights_and_says_so(s
     assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
 
 
+def test_lit_pixels_without_a_usable_phase_take_the_level_correction_of_their_moved_neighbours(scene):
+    """A dim patch inside the disc (its phase unusable, given as ``shadow`` as predict does for the single-shot
+    phase's invalid pixels, its estimate finite): the disc's moved pixels correct the network's level error of 0.35
+    period, and the patch takes the same correction instead of keeping the network's level."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    w = wrap_phase(surface_phase(rig, h) + 72.0)
+    dim = np.hypot(xx - 350, yy - 180) < 4
+    w[dim] = np.nan
+    estimate = h + np.where(disc, 0.35 * period, 0.0)
+    got = choose_orders(estimate, w, np.where(dim, 0.0, 1.0), layer, valid=~dim, shadow=dim)
+    assert not got.moved[dim].any()
+    assert np.abs(got.height - h)[dim].max() < 0.05 * period  # before: the network's 0.35 period off
+    assert np.isnan(choose_orders(np.where(dim, np.nan, estimate), w, None, layer).height[dim]).all()  # none: none
+
+
 def test_choose_orders_refuses_mismatched_shapes():
     layer = RigLayer(make_default_rig())
     with pytest.raises(ValueError, match="same"):

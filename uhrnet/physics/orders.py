@@ -302,8 +302,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     pixels take their region's order, they tie nothing); (6) heights from the phase at the chosen orders (a
     pixel whose move exceeds ``max_move_fraction`` moves all the same when it agrees with its moved neighbours',
     ``max_local_misfit``, or the fringes run on to them, ``join_min_moved``); the pixels still left out (edges,
-    walls, dark patches; not the shadows) take the network's height plus the level correction of the moved pixels
-    around them (a Gaussian average over ``spread_px``), where those are near; the rest keep the network's height;
+    walls, dark patches, lit pixels without a usable phase) take the network's height plus the level correction of
+    the moved pixels around them (a Gaussian average over ``spread_px``), where those are near; the rest keep the network's height;
     (7) with ``fringe``, the rims between raised regions and the plane split by the plane's own fringe
     (:func:`uhrnet.physics.rims.split_rims`);
     (8) with ``islands``, a moved patch one whole order off where the image's phase runs on across its border takes
@@ -385,7 +385,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         usable = usable | (lab > 0)
     steps = wrapped_steps(w) if n and (islands or join_min_moved is not None) else None  # the image's, once
     refined, moved, move, carried, beyond, island_stats = _moved_heights(
-        e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px, max_local_misfit,
+        e, layer, lab, U, offset, order, decided, usable, max_move_fraction, spread_px, max_local_misfit,
         join_min_moved, islands and bool(n), steps)
     rims, rim = {}, None
     if fringe is not None and n:
@@ -425,13 +425,13 @@ def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, 
     return order, conf
 
 
-def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_move_fraction, spread_px,
+def _moved_heights(e, layer, lab, U, offset, order, decided, usable, max_move_fraction, spread_px,
                    max_local_misfit, join_min_moved=None, islands=False, steps=None):
     """Heights from the phase at the chosen orders where a decided region holds the pixel and the move is at
     most ``max_move_fraction`` periods of height, or within ``max_local_misfit`` periods of the moves around
     it, or (a pixel of reliable phase) the path continues the image's undisturbed fringes from it to at least
     ``join_min_moved`` such pixels (:func:`~uhrnet.physics.islands.continued_components`); the pixels left out
-    (not the shadows, not undecided regions) take the level correction of the moved pixels around them (a
+    (not undecided regions) take the level correction of the moved pixels around them (a
     normalised Gaussian of ``spread_px``), after the moved pixels' islands took their order (``islands``,
     :func:`~uhrnet.physics.islands.continue_islands`; ``steps``: the image's
     :func:`~uhrnet.physics.islands.wrapped_steps`): ``(refined float64, moved, move, carried, beyond, island_stats)``,
@@ -474,12 +474,13 @@ def _moved_heights(e, layer, lab, U, offset, order, decided, usable, unlit, max_
         move = np.where(shifted, refined - h, move)
     carried = np.zeros(h.shape, bool)
     if spread_px > 0 and moved.any():
-        # the network's level error is smooth: pixels left out (edges, dark patches) take the level correction
-        # of the moved pixels around them, a normalised Gaussian average of their moves
+        # the network's level error is smooth: pixels left out (edges, dark patches, dim pixels whose phase is not
+        # usable) take the level correction of the moved pixels around them, a normalised Gaussian average of
+        # their moves (a black pixel has no estimate: not finite)
         wgt, corr = _level_correction(moved, move, spread_px)
         undecided = np.zeros(h.shape, bool)
         undecided[inside] = ~decided[li]
-        carried = finite & ~moved & ~unlit & ~undecided & (wgt > 0.05)
+        carried = finite & ~moved & ~undecided & (wgt > 0.05)
         refined[carried] = h[carried] + corr[carried]
     return refined, moved, move, carried, int(moved.sum()) - within, island_stats
 
