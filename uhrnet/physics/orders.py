@@ -352,7 +352,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     2.14 +- 0.29 mm, FP1523/1201 0.79 +- 0.04; since stop 59 (the fall read as a rise, a patch beyond the margin)
     2.03 +- 0.32 mm, 0.75 +- 0.04; since stop 60 (growth levels a fortieth apart) 1.94 +- 0.25 mm, 0.744 +- 0.038;
     since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033 (6 seeds: 1.70 +- 0.19 mm,
-    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.62 +- 0.07 mm, 0.728 +- 0.046 (6 seeds).
+    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.62 +- 0.07 mm, 0.728 +- 0.046; since stop 63 (the
+    level correction also on dim pixels) 1.59 +- 0.06 mm, 0.727 +- 0.045 (6 seeds).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
