@@ -68,8 +68,14 @@ def decode_fringe(fringe: np.ndarray) -> np.ndarray:
 def as_image_stack(arr: np.ndarray, name: str | os.PathLike = "array") -> np.ndarray:
     """View an image array as (N, H, W): accepts (N, H, W, 1), (N, H, W), (H, W, 1) and (H, W).
 
-    (H, W, 1) and (H, W) are one image. Raises :class:`DatasetError` naming ``name`` otherwise.
+    (H, W, 1) and (H, W) are one image. Raises :class:`DatasetError` naming ``name`` otherwise, and for an
+    empty array or a channel-last colour array (H, W, 3): not N images 3 px wide.
     """
+    if arr.size == 0:
+        raise DatasetError(f"{name}: empty array (shape {arr.shape})")
+    if arr.ndim == 3 and arr.shape[-1] in (2, 3, 4) and min(arr.shape[:2]) >= 16:
+        raise DatasetError(f"{name}: shape {arr.shape} looks like a colour (H, W, {arr.shape[-1]}) array; give grey "
+                           "images, (H, W) or (N, H, W)")
     if arr.ndim == 2:
         return arr[None]
     if arr.ndim == 3 and arr.shape[-1] == 1:
@@ -115,7 +121,8 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     """A grey image file as a 2-D uint8 or uint16 array (a grey scene saved in colour is converted,
     other colour images are refused: :func:`colour_to_grey`).
 
-    Raises :class:`DatasetError` naming the file when it is missing, unreadable or of another depth.
+    Raises :class:`DatasetError` naming the file when it is missing, unreadable or of another depth, or a
+    16-bit image holds no value of 4096 or more (10- or 12-bit data: read as 16-bit it would be all but black).
     OpenCV's own log line is silenced: the one-line error replaces it.
     """
     import cv2
@@ -135,6 +142,9 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
         img = colour_to_grey(img, path)
     if img.dtype not in (np.uint8, np.uint16):
         raise DatasetError(f"{path}: {img.dtype} image, expected 8-bit (or 16-bit) grey")
+    if img.dtype == np.uint16 and 0 < int(img.max()) < 4096:  # read as /257 it would be all but black
+        raise DatasetError(f"{path}: a 16-bit image whose brightest pixel is {int(img.max())} of 65535 (10- or 12-bit "
+                           "data in a 16-bit file?): scale it to the full range, or save it as 8-bit")
     return img
 
 

@@ -44,6 +44,7 @@ def data_path(*parts: str) -> Path:
 
 
 MAX_PIXELS = 1 << 16  # per side: anything larger is a typo, not a sensor
+RIG_FORMAT = "fppsim-rig/1"  # the rig document's "format": what Rig.to_dict writes and Rig.from_dict reads
 
 
 @dataclass
@@ -390,7 +391,7 @@ class Rig:
     # -------------------------------------------------------------- io
     def to_dict(self) -> dict:
         return {
-            "format": "fppsim-rig/1",
+            "format": RIG_FORMAT,
             "name": self.name,
             "units": "mm",
             "convention": "OpenCV pinholes, X_dev = R X_world + t; reference plane z = 0, +z towards camera",
@@ -407,6 +408,11 @@ class Rig:
         for key in ("camera", "projector"):
             if not isinstance(d.get(key), dict):
                 raise RigError(f"rig document has no '{key}' section")
+        if d.get("format", RIG_FORMAT) != RIG_FORMAT:
+            raise RigError(f"format {d['format']!r} is not {RIG_FORMAT!r}, the only rig format this version reads")
+        if d.get("units", "mm") != "mm":
+            raise RigError(f"units {d['units']!r}: a rig is read in mm only (K in px; t, the plane and every "
+                           "length in mm); convert it and set \"units\": \"mm\"")
         plane = d.get("reference_plane")
         if plane is not None and not isinstance(plane, dict):
             raise RigError("reference_plane must be a mapping {point: [0,0,0], normal: [0,0,1]}, "
@@ -427,11 +433,14 @@ class Rig:
         return rig
 
     def check(self) -> None:
-        """Raise RigError unless both devices sit above the plane and look at it."""
+        """Raise RigError unless both devices sit above the plane (at least 1 mm: a rig in metres is refused) and
+        look at it."""
         for name, dev in (("camera", self.camera), ("projector", self.projector)):
             c = dev.center
             if c[2] <= 0:
                 raise RigError(f"{name} centre is at z = {c[2]:.1f} mm: it must be above the reference plane (z > 0)")
+            if c[2] < 1.0:
+                raise RigError(f"{name} centre is {c[2]:.3g} mm above the reference plane: t must be in mm (metres?)")
             axis = dev.R[2]  # optical axis in world coordinates
             if axis[2] >= 0:
                 raise RigError(f"{name} looks away from the reference plane (optical axis z = {axis[2]:+.3f})")

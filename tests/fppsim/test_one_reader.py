@@ -197,6 +197,10 @@ def test_one_image_reader_one_colour_and_depth_policy(tmp_path):
     images, _ = readers.load_fringe_images(tmp_path / "deep")
     assert images[0].gray.dtype == np.uint8 and np.array_equal(images[0].gray, g8)
     assert np.array_equal(to_8bit(g8.astype(np.uint16) * 257), g8)
+    # 12-bit data in a 16-bit file would read all but black: refused, naming the file and the brightest value
+    cv2.imwrite(str(tmp_path / "deep" / "b.png"), g8.astype(np.uint16) * 16)
+    with pytest.raises(ValueError, match=r"b\.png: a 16-bit image whose brightest pixel is 4032 of 65535"):
+        read_gray_image(tmp_path / "deep" / "b.png")
 
 
 def test_the_fppsim_commands_read_a_registered_layout(tmp_path, toy, capsys):

@@ -189,6 +189,22 @@ def test_bad_rig_geometry(tmp_path, rig):
         Rig.load(tmp_path / "missing.json")
 
 
+def test_a_rig_in_other_units_or_another_format_is_refused(tmp_path, rig):
+    """A rig document is read in mm: one in metres (its "units" said so, or its t put the camera 0.5 mm above
+    the plane) once gave heights of -88,000 mm without a word; an unknown format is not guessed at."""
+    for key, value, words in (("units", "m", "read in mm only"), ("format", "fppsim-rig/9", "only rig format")):
+        d = rig.to_dict()
+        d[key] = value
+        with pytest.raises(RigError, match=words):
+            Rig.from_dict(d)
+    d = rig.to_dict()
+    for dev in ("camera", "projector"):
+        d[dev]["t"] = (np.asarray(d[dev]["t"]) / 1000.0).tolist()
+    with pytest.raises(RigError, match="t must be in mm"):
+        Rig.from_dict(d)
+    assert Rig.from_dict({k: v for k, v in rig.to_dict().items() if k not in ("units", "format")}).periods == rig.periods
+
+
 def test_opencv_import_errors(tmp_path, rig):
     p = tmp_path / "broken.yml"
     p.write_text("%YAML:1.0\nfoo: [1,2\n")

@@ -120,6 +120,10 @@ def test_a_region_the_path_cannot_decide_keeps_the_network_heights_and_says_so(s
     assert all(0.3 < r.confidence < 0.7 for r in undecided)
     assert np.array_equal(got.height[inner], estimate[inner])
     assert not got.moved[inner].any()
+    # predict hands the network's own map as ``keep``: what the path leaves alone is exactly that map
+    other = choose_orders(estimate, w, None, layer, keep=estimate + 0.25)
+    assert np.array_equal(other.height[inner], estimate[inner] + 0.25)
+    assert np.array_equal(other.height[other.moved], got.height[got.moved])
     plane = ~disc & (np.hypot(xx - 360, yy - 176) > 80)
     assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
 

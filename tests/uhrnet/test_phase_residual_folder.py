@@ -232,3 +232,37 @@ def test_val_phase_holds_out_every_second_frame_and_says_when_it_cannot(setup, t
     pv = PhaseValidation([one], max_frames=8)
     assert [f["held_out"] for f in pv.frames] == [False]
     assert len(pv.notes) == 1 and "chosen on the frame it is scored on" in pv.notes[0]
+
+
+def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path, capsys):
+    """evaluate-phase never replaces a file it did not write (it once overwrote a user's phase_results.md), and
+    re-runs into its own report; a frame with nothing to fit (black) is skipped with a warning while the others
+    are scored (a frame the reader cannot read stays an error); a rig of another camera size is refused in one line naming the frame and the rig."""
+    import shutil
+
+    from _helpers import tiny_rig
+
+    tmp, run, root, truth = setup
+    out = tmp_path / "mine"
+    out.mkdir()
+    (out / "phase_results.md").write_text("mine")
+    args = [str(run), "--figures", "1", "--device", "cpu"]
+    assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "phase_results.md exists and was not written by uhrnet evaluate-phase" in err[0]
+    assert (out / "phase_results.md").read_text() == "mine"
+    both = tmp_path / "both"
+    shutil.copytree(root, both)
+    phase, height, valid = truth["0"]  # its phase, but a black image: no pixel is lit
+    save_psp_folder_sample(both, "9", *sums_from_phase(phase, valid, 30.0), np.zeros((32, 64), np.uint8))
+    report = tmp_path / "report"
+    for _ in range(2):  # the second time into its own report
+        assert main(["evaluate-phase", *args, "--phase-root", str(both), "--out", str(report)]) == 0
+        assert "9: warning:" in capsys.readouterr().out
+        doc = json.loads((report / "phase_results.json").read_text())
+        assert [r["id"] for r in doc["per_image"]] == ["0", "1", "2"] and doc["skipped"] == ["9"]
+    tiny_rig(width=48).save(tmp_path / "rig48.json")
+    assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(tmp_path / "r48"), "--refine",
+                 "phase", "--rig", str(tmp_path / "rig48.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "0.mat: image is 64x32 but the rig used by --refine" in err[0] and "rig48.json" in err[0]

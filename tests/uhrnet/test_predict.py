@@ -109,6 +109,14 @@ def test_predict_errors(ckpt, tmp_path, capsys):
     np.save(tmp_path / "ok.npy", np.zeros((32, 64), np.float32))
     assert main(["predict", str(ckpt), str(tmp_path / "ok.npy"), "--out", out, "--rig", str(tmp_path / "no.json")]) == 1
     assert "no.json" in capsys.readouterr().err
+    # an empty array (once a traceback, or "0 height maps" from one file) and a colour one (once "H images of W x 3")
+    for name, arr, words in (("e2", np.zeros((0, 64), np.float32), "e2.npy: empty array"),
+                             ("e3", np.zeros((0, 32, 64), np.float32), "e3.npy: empty array"),
+                             ("rgb", np.zeros((32, 64, 3), np.float32), "rgb.npy: shape (32, 64, 3) looks like a colour")):
+        np.save(tmp_path / f"{name}.npy", arr)
+        assert main(["predict", str(ckpt), str(tmp_path / f"{name}.npy"), "--out", out]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and words in err[0]
 
 
 def test_predict_user_errors_are_one_line(ckpt, tmp_path, capfd):

@@ -276,3 +276,44 @@ def test_path_estimate_is_the_mean_of_both_passes_masked_like_the_network():
     want = 2.0 * 0.5 * (one(x) + flip(one(flip(x)))) + 1.0
     np.testing.assert_array_equal(np.isnan(got), np.isnan(network))
     np.testing.assert_allclose(got[3:], want[3:], atol=1e-5)
+
+
+def test_fringes_that_are_not_the_rigs_keep_the_network_heights_and_what_was_done_is_described(run, tmp_path, capsys):
+    """An image whose fringes run across the rig's, or at twice its period: the default path keeps the network's
+    heights with a warning naming it (they once gave heights thousands of mm off, silently); --refine phase refuses
+    it naming the file, after the image before it was written whole and described in refine.json, which a later call
+    into the same folder extends."""
+    from uhrnet.errors import DataError
+    from uhrnet.inference.prediction import fringe_phase
+
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    yy, xx = np.mgrid[0:32, 0:64].astype(float)
+    good = (rig_fringe(rig, _bump(rig, 5.0, 30.0)).astype(np.float32) / 127.5 - 1)
+    across = (0.6 * np.cos(2 * np.pi * yy / 11.6)).astype(np.float32)
+    wide = (0.6 * np.cos(2 * np.pi * xx / 23.2)).astype(np.float32)
+    fringe_phase(good, rig)  # the rig's own image passes
+    for img in (across, wide):
+        with pytest.raises(DataError, match="not an image of this rig"):
+            fringe_phase(img, rig, "x")
+    for name, img in (("a_good", good), ("b_across", across), ("c_wide", wide), ("d_good", good)):
+        np.save(tmp_path / f"{name}.npy", img)
+    rig_args = ["--rig", str(tmp_path / "rig.json"), "--no-progress", "--no-ply"]
+    capsys.readouterr()
+    assert main(["predict", str(run), str(tmp_path / "b_across.npy"), str(tmp_path / "c_wide.npy"), "--out",
+                 str(tmp_path / "auto")] + rig_args) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and all("not an image of this rig" in e for e in err)
+    for name in ("b_across", "c_wide"):
+        np.testing.assert_array_equal(np.load(tmp_path / "auto" / f"{name}_height.npy"),
+                                      np.load(tmp_path / "auto" / f"{name}_height_network.npy"))
+    out = tmp_path / "strict"
+    assert main(["predict", str(run), str(tmp_path / "a_good.npy"), str(tmp_path / "b_across.npy"), "--out", str(out),
+                 "--refine", "phase"] + rig_args) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "b_across.npy" in err[0] and "not an image of this rig" in err[0]
+    assert sorted(p.name for p in out.glob("*.npy")) == ["a_good_height.npy", "a_good_height_network.npy"]
+    assert sorted(json.loads((out / "refine.json").read_text())) == ["a_good"]
+    assert main(["predict", str(run), str(tmp_path / "d_good.npy"), "--out", str(out), "--refine", "phase"]
+                + rig_args) == 0
+    assert sorted(json.loads((out / "refine.json").read_text())) == ["a_good", "d_good"]

@@ -21,15 +21,17 @@ is given, ``"phase"`` always (the rig: ``rig``, else the checkpoint's own, else 
 ``refine_method="orders"`` (default, :func:`order_choice`): every phase region at one whole fringe order chosen
 for the image at once, its level and relief from the phase, and the rims between objects and the plane split by
 the plane's own fringe (:mod:`uhrnet.physics.rims`); a region whose order the path cannot decide keeps the
-network's heights (a warning says how many); ``"relief"``
+network's own heights, as every pixel the path leaves alone does (a warning says how many); ``"relief"``
 (:func:`uhrnet.physics.refine.refine_relief`): the relief from the phase, the level from the network.
 The path starts from the mean of the network's heights on the image and on the image mirrored along its fringes
 (:func:`path_estimate`; two passes of the network, each with a mirrored margin past the image's borders).
 ``NAME_height.*`` is then the refined map,
 ``NAME_height_network.npy`` the network's own (one pass), and
 ``refine.json`` lists per image the share of pixels moved and, for ``orders``, every region's order, confidence
-and whether it was decided (:attr:`PredictResult.refine`). Under ``auto`` an image without a readable fringe
-phase keeps the network's heights with a warning; under ``"phase"`` it is an error.
+and whether it was decided (:attr:`PredictResult.refine`; an earlier call's images into the same folder keep
+their entries). Under ``auto`` an image without a readable fringe phase, or whose fringes are not the rig's
+(:func:`fringe_phase`), keeps the network's heights with a warning; under ``"phase"`` it is an error naming it,
+after the images before it were written whole.
 
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
 input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
@@ -374,44 +376,70 @@ def predict(config: PredictConfig) -> PredictResult:
              + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
     claim(out, PREDICT_TOOL, names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
-    for name, fringe, path in tqdm(inputs, desc="predict", unit="image", disable=not config.progress or len(inputs) < 2):
-        height = network_heights(model, transform, fringe, size, config.keep_all).astype(np.float32)
-        if not np.isfinite(height).any():
-            result.warnings.append(
-                f"{path} ({name}): no valid pixel in the prediction (every label at or below "
-                f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
-        if refine_rig is not None:
-            with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
-                np.save(fh, height)
-            try:
-                estimate = path_estimate(model, transform, fringe, size, refine_rig, height)
-                height, stats = refine_with_phase(estimate, fringe, refine_rig, config.refine_method)
-            except DataError as exc:
-                if not auto:
-                    raise
-                # the default path: an image whose phase cannot be read keeps the network's heights, and says so
-                stats = {"method": "none", "moved_fraction": 0.0, "mean_abs_move_mm": 0.0, "offset_rad": 0.0,
-                         "undecided_regions": 0, "error": str(exc)}
-                result.warnings.append(f"{path} ({name}): no fringe phase to refine with ({exc}): the network's heights")
-            undecided = stats.get("undecided_regions", 0)
-            if undecided:
-                result.warnings.append(
-                    f"{path} ({name}): {undecided} phase region(s), {stats['undecided_fraction']:.1%} of the pixels, "
-                    "have no fringe order the path can decide: the network's heights stay there")
-            result.refine[name] = {**stats, "rig": rig_name}
-        with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
-            np.save(fh, height)
-        write_tiff(out / f"{name}_height.tif", height)
-        write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
-        if config.ply:
-            pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
-            grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
-            write_ply(out / f"{name}.ply", pts, grey)
-        result.names.append(name)
-    if result.refine:
-
-        atomic_write_text(out / "refine.json", json.dumps(result.refine, indent=2, default=json_default))
+    try:
+        for name, fringe, path in tqdm(inputs, desc="predict", unit="image",
+                                       disable=not config.progress or len(inputs) < 2):
+            _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name, fringe, path)
+    finally:  # what was done is described, also when a later image fails
+        if result.refine:
+            _write_refine_json(out / "refine.json", result.refine)
     return result
+
+
+def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name, fringe, path):
+    """One image of :func:`predict`: its heights, refined through ``refine_rig`` (if any), and its files; every file
+    of the image is written after its refinement succeeded (an error leaves none of them)."""
+    height = network_heights(model, transform, fringe, size, config.keep_all).astype(np.float32)
+    if not np.isfinite(height).any():
+        result.warnings.append(
+            f"{path} ({name}): no valid pixel in the prediction (every label at or below "
+            f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
+    network = height
+    if refine_rig is not None:
+        try:
+            estimate = path_estimate(model, transform, fringe, size, refine_rig, height)
+            height, stats = refine_with_phase(estimate, fringe, refine_rig, config.refine_method, network_mm=height,
+                                              name=str(path))
+        except DataError as exc:
+            if not auto:
+                raise
+            # the default path: an image whose phase cannot be read keeps the network's heights, and says so
+            reason = str(exc).removeprefix(f"{path}: ")
+            stats = {"method": "none", "moved_fraction": 0.0, "mean_abs_move_mm": 0.0, "offset_rad": 0.0,
+                     "undecided_regions": 0, "error": reason}
+            result.warnings.append(f"{path} ({name}): no fringe phase to refine with ({reason}): the network's heights")
+        if stats.get("regions", 1) == 0:
+            result.warnings.append(f"{path} ({name}): no phase region of reliable fringes: the network's heights")
+        undecided = stats.get("undecided_regions", 0)
+        if undecided:
+            result.warnings.append(
+                f"{path} ({name}): {undecided} phase region(s), {stats['undecided_fraction']:.1%} of the pixels, "
+                "have no fringe order the path can decide: the network's heights stay there")
+        with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
+            np.save(fh, network)
+        result.refine[name] = {**stats, "rig": rig_name}
+    with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
+        np.save(fh, height)
+    write_tiff(out / f"{name}_height.tif", height)
+    write_preview(out / f"{name}_height.png", height, config.colormap, config.range)
+    if config.ply:
+        pts = points_from_rig(rig, height) if rig is not None else points_from_grid(height, config.pixel_size)
+        grey = np.clip((fringe + 1) * 127.5, 0, 255).round()
+        write_ply(out / f"{name}.ply", pts, grey)
+    result.names.append(name)
+
+
+def _write_refine_json(path: Path, refine: dict) -> None:
+    """``refine`` merged into ``path`` (predict's own: :func:`predict` claimed it): the images of an earlier call
+    into the same folder keep their entries, an image predicted again gets its new one."""
+    old = {}
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+        except (OSError, ValueError):
+            old = {}
+    merged = {**(old if isinstance(old, dict) else {}), **refine}
+    atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
 
 
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
@@ -428,20 +456,51 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     """The single-shot phase of ``fringe`` (dataset encoding) in the rig's direction: the phase must grow
     along the camera rows (vertical fringes) or down the columns (horizontal fringes: a projector above or
     below the camera) as the rig's reference-plane phase does (:func:`fppsim.phase.single_shot.single_shot_phase`
-    cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes."""
+    cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes, or
+    whose fringes are not the rig's (period or direction at the image centre: :data:`CARRIER_PERIOD_RATIO`,
+    :data:`CARRIER_ANGLE_DEG`)."""
 
     orientation, direction = _rig_fringes(rig)
     try:
-        return oriented_single_shot_phase(fringe, orientation, direction=direction)
+        ssp = oriented_single_shot_phase(fringe, orientation, direction=direction)
     except ValueError as exc:
         raise DataError(f"{name}: {exc}") from None
+    _check_carrier(ssp, _rig_gradient(rig), name)
+    return ssp
+
+
+#: The image's fringes must match the rig's at the image centre: period within this ratio either way, direction
+#: within this angle. The rigs here match their frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672,
+#: FP147, FP1523 without its plane, rendered samples); an image of another rig, rotated or rescaled, gave heights
+#: thousands of mm off without a word.
+CARRIER_PERIOD_RATIO = 1.5
+CARRIER_ANGLE_DEG = 20.0
+
+
+def _check_carrier(ssp, gradient: tuple[float, float], name: str) -> None:
+    """:class:`DataError` naming both when the fringes the image shows (``ssp.period``, ``ssp.carrier``) are not
+    the rig's (``gradient``: its reference-plane phase gradient at the image centre, rad/px)."""
+    gu, gv = gradient
+    g = float(np.hypot(gu, gv))
+    fx, fy = ssp.carrier
+    f = float(np.hypot(fx, fy))
+    period = 2 * np.pi / g
+    angle = float(np.degrees(np.arccos(min(1.0, abs(fx * gu + fy * gv) / (f * g)))))
+    ratio = ssp.period / period
+    if angle > CARRIER_ANGLE_DEG or not 1 / CARRIER_PERIOD_RATIO <= ratio <= CARRIER_PERIOD_RATIO:
+        raise DataError(f"{name}: its fringes run every {ssp.period:.1f} px at {ssp.tilt:+.0f} deg, the rig's every "
+                        f"{period:.1f} px {fringe_axis((gu, gv))} ({angle:.0f} deg apart): not an image of this rig "
+                        "(another rig, a rotated or rescaled image, or no fringes)")
+
+
+def _rig_gradient(rig) -> tuple[float, float]:
+    return rig_phase_gradient(rig if isinstance(rig, Rig) else Rig.from_dict(rig))
 
 
 def _rig_fringes(rig) -> tuple[str, int]:
     """(``"vertical"`` or ``"horizontal"``, +1 / -1: the phase grows along +columns / +rows or against them)
     from the plane phase's gradient at the image centre: a few points of the forward model, no layer."""
-    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
-    gu, gv = rig_phase_gradient(r)
+    gu, gv = _rig_gradient(rig)
     orientation = fringe_axis((gu, gv))
     return orientation, 1 if (gu if orientation == "vertical" else gv) >= 0 else -1
 
@@ -477,25 +536,29 @@ def path_estimate(model: torch.nn.Module, transform, fringe: np.ndarray, size, r
     return np.where(np.isfinite(network_mm), h, np.nan)
 
 
-def order_choice(height_mm: np.ndarray, fringe: np.ndarray, rig):
+def order_choice(height_mm: np.ndarray, fringe: np.ndarray, rig, network_mm: np.ndarray | None = None,
+                 name: str = "image"):
     """THE orders path on one image (:func:`uhrnet.physics.orders.choose_orders` with the rim split): every phase
     region of ``fringe`` (dataset encoding) at one order, from the estimate ``height_mm`` (mm, NaN = none)
-    through ``rig``; returns the :class:`~uhrnet.physics.orders.OrderChoice`."""
-    ssp = fringe_phase(fringe, rig)
+    through ``rig``; the pixels it leaves alone keep ``network_mm`` (the network's own map; default the
+    estimate). Returns the :class:`~uhrnet.physics.orders.OrderChoice`."""
+    ssp = fringe_phase(fringe, rig, name)
     return choose_orders(height_mm, ssp.wrapped, ssp.reliability, layer_for(rig, np.shape(height_mm)),
                          valid=np.isfinite(height_mm) & ssp.valid, shadow=~ssp.valid,
-                         fringe=(np.asarray(fringe, np.float64), ssp.background, ssp.modulation))
+                         fringe=(np.asarray(fringe, np.float64), ssp.background, ssp.modulation), keep=network_mm)
 
 
-def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief") -> tuple[np.ndarray, dict]:
+def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: str = "relief",
+                      network_mm: np.ndarray | None = None, name: str = "image") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
-    through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics."""
+    through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics. With ``orders``
+    the pixels the path leaves alone keep ``network_mm`` (default ``height_mm``); ``name`` heads its errors."""
 
     if method == "orders":
-        choice = order_choice(height_mm, fringe, rig)
+        choice = order_choice(height_mm, fringe, rig, network_mm, name)
         refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
     else:
-        ssp = fringe_phase(fringe, rig)
+        ssp = fringe_phase(fringe, rig, name)
         refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig,
                                           valid=np.isfinite(height_mm) & ssp.valid)
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)

@@ -44,6 +44,7 @@ from scipy import ndimage as ndi
 from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
 from uhrnet.physics.islands import continue_islands, continued_components, wrapped_steps
+from uhrnet.errors import InputError
 from uhrnet.physics.refine import estimate_phases
 from uhrnet.physics.rims import split_rims
 
@@ -289,7 +290,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   bridges: bool = True, bridge_offset: float = 0.35, sigma: float = 0.3,
                   min_confidence: float = 0.6, flat_mm: float = 1.0, spread_px: float = 10.0,
                   max_move_fraction: float = 2.0, max_local_misfit: float | None = 1.0, max_link_misfit: float = 2.0,
-                  join_min_moved: int | None = 50, fringe=None, islands: bool = True) -> OrderChoice:
+                  join_min_moved: int | None = 50, fringe=None, islands: bool = True,
+                  keep: np.ndarray | None = None) -> OrderChoice:
     """Heights whose every phase region sits at one whole fringe order (module docstring).
 
     Steps: (1) regions of reliable, continuous phase (reliability >= ``min_reliability``; boundaries where the
@@ -344,6 +346,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     fringe : ``(image, background, modulation)``, the fringe image and its single-shot ``A`` and ``B``
         (:class:`fppsim.phase.single_shot.SingleShotPhase`): step (7). None: no rim split.
     islands : step (8) (False: off).
+    keep : (H, W) mm, the heights the pixels the path leaves alone keep (undecided regions, pixels no moved pixel
+        reaches); default ``height_mm``. ``uhrnet predict`` passes the network's own map there, while
+        ``height_mm`` is the estimate the orders are chosen from (:func:`uhrnet.inference.prediction.path_estimate`).
 
     Measured (docs/experiments/orders.md): the defaults were chosen on the labelled pair and FP1523/1201 with
     three checkpoints of one training seed; on the pair through the depth-fitted rig the recipe's network went
@@ -394,6 +399,12 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     if islands and n and island_stats:  # again after the rim split, which re-decided the least reliable moved pixels
         refined, _, again = continue_islands(refined, moved, w, layer, steps=steps)
         island_stats = {k: island_stats[k] + again[k] for k in island_stats}
+    if keep is not None:
+        keep = np.asarray(keep, np.float64)
+        if keep.shape != h.shape:
+            raise InputError(f"keep {keep.shape} and height {h.shape} must be the same (H, W)")
+        left = finite & ~moved & ~carried & (np.zeros_like(moved) if rim is None else ~rim)
+        refined = np.where(left, keep, refined)
     out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = refined.astype(out_dtype, copy=False)
     link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)

@@ -49,8 +49,10 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.files import atomic_write_text
+from fppsim.geometry.rig import check_image_size
+from fppsim.owned import claim
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
-from uhrnet.errors import ConfigError, InputError
+from uhrnet.errors import ConfigError, DataError, InputError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
@@ -59,6 +61,9 @@ from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
 from uhrnet.scoring.evaluation import model_names
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase
+
+#: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
+EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
            "markdown", "plot_phase_residuals", "PhaseValidation"]
@@ -385,6 +390,19 @@ class PhaseValidation:
                 "val_phase_heldout_ratio": _mean(ratios[True]), "val_phase_heldout_rad": _mean(rads[True])}
 
 
+def _own_report(out: Path) -> list[str]:
+    """The report files of an ``--out`` written before evaluate-phase recorded its files: its
+    ``phase_results.json`` (with this module's keys), the markdown beside it and the figures."""
+    try:
+        doc = json.loads((out / "phase_results.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not (isinstance(doc, dict) and {"phase_root", "models", "per_image"} <= doc.keys()):
+        return []
+    figs = [f"figures/{p.name}" for p in (out / "figures").glob("*.png")] if (out / "figures").is_dir() else []
+    return ["phase_results.json", "phase_results.md", *figs]
+
+
 def _phase_models(ckpts, args: PhaseEvalConfig) -> list:
     """``(model, transform, size, rig)`` per checkpoint; ``rig``: what ``--refine phase`` refines through, else None."""
     device = select_device(args.device)
@@ -447,10 +465,14 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     names = model_names(ckpts, args.names)
     models = _phase_models(ckpts, args)
     out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file, not a folder")
     out.mkdir(parents=True, exist_ok=True)
+    claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
+          + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
-    per_image, figures = [], []
+    per_image, figures, skipped = [], [], []
     for k, sid in enumerate(ids):
         try:
             s = src.scan(sid, convention=args.convention, negate_sin=args.negate_sin)
@@ -460,6 +482,16 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         if note:
             echo(f"{sid}: {note}")
         img = s.image
+        unknowns = len(poly_terms(args.degree)) + 2
+        if int(_scored_pixels(s).sum()) <= unknowns:  # nothing to fit (a black or invalid frame): the others still count
+            echo(f"{sid}: warning: {s.path}: {int(_scored_pixels(s).sum())} pixels with a valid phase and light, "
+                 f"{unknowns} unknowns to fit: skipped")
+            skipped.append(sid)
+            continue
+        for *_, rig in models:
+            if rig is not None:
+                check_image_size(rig, img.shape, str(s.path), who=f"the rig used by --refine ({args.rig}) sees",
+                                 error=ConfigError)
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:
@@ -477,8 +509,12 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
             scored.append((name, h, ok, pred_valid))
             if rig is not None:  # the same pixels, the heights after the image's own phase
                 fringe = img.astype(np.float32) / 127.5 - 1.0
-                refined, _ = refine_with_phase(path_estimate(model, transform, fringe, size, rig, h), fringe, rig,
-                                               args.refine_method)
+                try:
+                    refined, _ = refine_with_phase(path_estimate(model, transform, fringe, size, rig, h), fringe, rig,
+                                                   args.refine_method, network_mm=h, name=str(s.path))
+                except DataError as exc:  # as predict's default: an image whose phase cannot be read keeps them
+                    echo(f"{sid}: warning: no fringe phase to refine with ({exc}): {name}'s heights")
+                    refined = h
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
         record["plane_pixel_fraction"] = float(plane.mean())
@@ -501,11 +537,16 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                                      + (f"; plane-pixel plane {r['plane']['prediction']['rmse_rad']:.3f} "
                                         f"(flat {r['plane']['flat']['rmse_rad']:.3f})" if r["plane"] else "")
                                      for n, r in record["models"].items()))
+    if not per_image:
+        raise ConfigError(f"{args.phase_root}: no frame has pixels to fit (skipped {', '.join(skipped[:10])})")
     summary = _phase_summary(ckpts, names, per_image, args)
-    md = markdown(summary, len(ids), args.phase_root, args.degree, args.robust)
+    md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust)
+    if skipped:
+        md += f"\nSkipped (no pixel with a valid phase and light to fit): {', '.join(skipped)}.\n"
     atomic_write_text(out / "phase_results.md", md)
     atomic_write_text(out / "phase_results.json", json.dumps(
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
-         "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image},
+         "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image,
+         "skipped": skipped},
         indent=1, allow_nan=True))
     return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}
