@@ -59,9 +59,10 @@ def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndar
 def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None):
     """The order choice as ``uhrnet predict --refine phase --refine-method orders`` makes it: from the network's
     mean over the image and its mirror along the fringes (``path_estimate``) when ``model`` is given, else
-    from ``h`` (the network's single pass, as before 2026-11-28)."""
+    from ``h`` (the network's single pass, as before 2026-11-28); the pixels it leaves alone keep ``h``, as
+    predict's keep the network's own map (since stop 63)."""
     if model is not None:
-        h = path_estimate(model, transform, fringe, None, rig, h)
+        return order_choice(path_estimate(model, transform, fringe, None, rig, h), fringe, rig, network_mm=h)
     return order_choice(h, fringe, rig)
 
 

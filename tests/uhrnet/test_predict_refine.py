@@ -286,13 +286,14 @@ def test_fringes_that_are_not_the_rigs_keep_the_network_heights_and_what_was_don
     from uhrnet.errors import DataError
     from uhrnet.inference.prediction import fringe_phase
 
-    rig = tiny_rig()
+    rig = tiny_rig(width=256, height=192)  # the check needs 16 periods both ways: a smaller spectrum is too coarse
     rig.save(tmp_path / "rig.json")
-    yy, xx = np.mgrid[0:32, 0:64].astype(float)
-    good = (rig_fringe(rig, _bump(rig, 5.0, 30.0)).astype(np.float32) / 127.5 - 1)
+    yy, xx = np.mgrid[0:192, 0:256].astype(float)
+    good = (rig_fringe(rig, _bump(rig, 5.0, 100.0, 90.0, 20.0)).astype(np.float32) / 127.5 - 1)
     across = (0.6 * np.cos(2 * np.pi * yy / 11.6)).astype(np.float32)
     wide = (0.6 * np.cos(2 * np.pi * xx / 23.2)).astype(np.float32)
     fringe_phase(good, rig)  # the rig's own image passes
+    fringe_phase(wide[:32, :64], tiny_rig())  # too small to tell
     for img in (across, wide):
         with pytest.raises(DataError, match="not an image of this rig"):
             fringe_phase(img, rig, "x")

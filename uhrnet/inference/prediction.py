@@ -458,7 +458,7 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     below the camera) as the rig's reference-plane phase does (:func:`fppsim.phase.single_shot.single_shot_phase`
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes, or
     whose fringes are not the rig's (period or direction at the image centre: :data:`CARRIER_PERIOD_RATIO`,
-    :data:`CARRIER_ANGLE_DEG`)."""
+    :data:`CARRIER_ANGLE_DEG`, in an image of at least :data:`CARRIER_MIN_PERIODS` periods both ways)."""
 
     orientation, direction = _rig_fringes(rig)
     try:
@@ -470,11 +470,13 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 
 
 #: The image's fringes must match the rig's at the image centre: period within this ratio either way, direction
-#: within this angle. The rigs here match their frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672,
-#: FP147, FP1523 without its plane, rendered samples); an image of another rig, rotated or rescaled, gave heights
-#: thousands of mm off without a word.
+#: within this angle, checked where the image spans at least :data:`CARRIER_MIN_PERIODS` of the rig's periods both
+#: ways (a smaller one's spectrum is too coarse, and its relief can move the peak). The rigs here match their
+#: frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672, FP147, FP1523 without its plane, rendered
+#: samples); an image of another rig, rotated or rescaled, gave heights thousands of mm off without a word.
 CARRIER_PERIOD_RATIO = 1.5
 CARRIER_ANGLE_DEG = 20.0
+CARRIER_MIN_PERIODS = 16
 
 
 def _check_carrier(ssp, gradient: tuple[float, float], name: str) -> None:
@@ -485,6 +487,8 @@ def _check_carrier(ssp, gradient: tuple[float, float], name: str) -> None:
     fx, fy = ssp.carrier
     f = float(np.hypot(fx, fy))
     period = 2 * np.pi / g
+    if min(ssp.wrapped.shape) < CARRIER_MIN_PERIODS * period:
+        return
     angle = float(np.degrees(np.arccos(min(1.0, abs(fx * gu + fy * gv) / (f * g)))))
     ratio = ssp.period / period
     if angle > CARRIER_ANGLE_DEG or not 1 / CARRIER_PERIOD_RATIO <= ratio <= CARRIER_PERIOD_RATIO:
