@@ -75,7 +75,7 @@ class Network:
     def heights(self, fringe: np.ndarray, rig) -> tuple[np.ndarray, np.ndarray]:
         net = network_heights(self.model, self.transform, fringe, self.size)
         est = path_estimate(self.model, self.transform, fringe, self.size, rig, net)
-        return net, refine_with_phase(est, fringe, rig, "orders")[0].astype(np.float64)
+        return net, refine_with_phase(est, fringe, rig, "orders", network_mm=net)[0].astype(np.float64)
 
 
 def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim: np.ndarray) -> dict:

@@ -413,8 +413,9 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
         model = {k: (v.T if isinstance(v, np.ndarray) else v) for k, v in model.items()}
     per, tables = [], {}
     for im in images:
-        check_image_size(rig, im.gray.shape, im.name, error=ValueError, sep=" x ",
-                         template="{what}: image is {got} px but {who} {camera}")
+        check_image_size(rig, im.gray.shape, im.name, error=InputError, sep=" x ",
+                         template="{what}: image is {got} px but {who} {camera}{hint}",
+                         hint=": give the frames' own rig (--rig, e.g. from fppsim fit-rig)")
         plane, obj, source = plane_masks(im, rig)
         if plane is not None:
             im = dc_replace(im, plane=plane, obj=obj)
@@ -428,7 +429,9 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
         if key not in tables:
             tables[key] = contrast_table(rig, key, model=model)
         unlit = unlit_share(im.gray, period)
-        if unlit >= NO_PLANE_SHARE:  # before the phase's plane: its constant offset finds one on any flat top
+        # before the phase's plane: its constant offset finds one on any flat top; a rig fitted without a plane in
+        # view says so itself (a bust filling 62 % of the view leaves less than NO_PLANE_SHARE without fringes)
+        if unlit >= NO_PLANE_SHARE or not rig.plane_in_view:
             per.append({"name": im.name, "plane_from": NO_PLANE, "unlit_share": unlit}
                        | object_estimates(im, rig, tables[key], period, amb, ao))
             continue
@@ -596,7 +599,10 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     rig = config.rig if isinstance(config.rig, Rig) else load_rig(config.rig)
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)
-    fit = fit_optics(images, rig)
+    try:
+        fit = fit_optics(images, rig)
+    except InputError as exc:
+        raise InputError(f"{config.real}: {exc}") from None
     say(f"{config.real}: {len(images)} image(s), layout {layout}")
     note = next((im.read_as for im in images if im.read_as), None)  # the first scan read another way stands for the folder
     if note:
@@ -604,8 +610,9 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     say(format_optics_fit(fit))
     bare = [p for p in fit.per_image if p.get("plane_from") == NO_PLANE]
     if bare:
-        say(f"no plane in view in {len(bare)} of {len(fit.per_image)} image(s) ({min(p['unlit_share'] for p in bare):.0%}"
-            f" or more of the image without fringes): albedo_plane 0, so generate renders the objects on a black "
+        why = ("the rig was fitted without one" if not rig.plane_in_view else
+               f"{min(p['unlit_share'] for p in bare):.0%} or more of the image without fringes")
+        say(f"no plane in view in {len(bare)} of {len(fit.per_image)} image(s) ({why}): albedo_plane 0, so generate renders the objects on a black "
             f"background; the gain from the objects' brightest fifth with albedo_object kept at {_centre(OpticsRanges().albedo_object):g}"
             " (only their product is visible)")
     guessed = [p["name"] for p in fit.per_image if p.get("plane_from") == "brightness"]

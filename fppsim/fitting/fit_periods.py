@@ -199,7 +199,7 @@ def adjust_rig(rig: Rig, recentre: bool = True, **values) -> Rig:
     if "focal" in values:
         K[0, 0] = K[1, 1] = float(values["focal"])
     proj = Device(K=K, R=R, t=-R @ c, width=p.width, height=p.height, dist=p.dist)
-    out = Rig(camera=cam, projector=proj, periods=float(values.get("periods", rig.periods)), name=rig.name)
+    out = dataclasses.replace(rig, camera=cam, projector=proj, periods=float(values.get("periods", rig.periods)))
     if recentre:
         out.projector = _recentre(out, proj)
     return out

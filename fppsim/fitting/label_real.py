@@ -530,6 +530,11 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     ids = _scan_ids(cfg, layout)
     rig, rig_source = _config_rig(cfg, layout)
     policy = cfg.phase_offset if cfg.phase_offset is not None else ("auto" if layout == PUBLIC else "none")
+    if policy == "auto" and rig is not None and not rig.plane_in_view:
+        named = cfg.rig if isinstance(cfg.rig, (str, os.PathLike)) else rig.name
+        raise ConfigError(f"--phase-offset auto (the public layout's default) fits the offset on the reference plane, "
+                          f"and the rig ({named}) was "
+                          "fitted to frames with no plane in view: give --phase-offset RAD (or none)")
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out} is a file, not a folder")

@@ -60,6 +60,8 @@ from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, fin
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
+from fppsim.phase import wrap
+from fppsim.phase.fringe_axis import oriented_single_shot_phase
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
            "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
@@ -123,6 +125,9 @@ def start_rig(width: int, height: int, gradient, side: int = 1, distance: float 
     B = BASELINE_RATIO * D if baseline is None else float(baseline)
     if not (np.isfinite(B) and B > 0):
         raise RigError(f"the baseline must be > 0 mm, got {B:g}")
+    if not 0.01 <= B / D <= 10.0:  # (a camera 1 mm up and a projector 1 km away gave NaN and the wrong reason)
+        raise RigError(f"a baseline of {B:g} mm at a distance of {D:g} mm ({B / D:.3g} x the distance): a fringe "
+                       "projection rig's is 0.01-10 x (the default rig's 0.66 x); check --baseline and --distance")
     # world direction of the phase gradient (camera looking down: world x = +u, world y = -v)
     gw = np.array([gu, -gv]) / g
     axis = np.array([1.0, 0.0]) * np.sign(gw[0]) if abs(gw[0]) >= abs(gw[1]) else np.array([0.0, 1.0]) * np.sign(gw[1])
@@ -229,6 +234,25 @@ def _object_relief(fit, maps) -> float:
     return float(np.percentile(off, 99)) if off.size > 50 else 0.0
 
 
+def _local_gradient(images, axis: str) -> tuple[float, float]:
+    """The fringes' phase gradient (rad/px, growing along +columns / +rows as a single image's phase does by
+    convention): the median wrapped step between reliable 4-neighbours of each image's single-shot phase, the median
+    over the images. On objects on black it is the objects' own (FP1523 on black: 11.65 px, the plane's 11.7), where
+    the plane fit of their phase, unwrapped object by object, gave 45.9 px."""
+    steps = []
+    for im in images:
+        ssp = oriented_single_shot_phase(np.asarray(im.gray, np.float64), axis, mask=im.valid)
+        ok = ssp.valid & (ssp.reliability >= 0.3)
+        w = ssp.wrapped.astype(np.float64)
+        du, dv = wrap(np.diff(w, axis=1)), wrap(np.diff(w, axis=0))
+        pu, pv = ok[:, 1:] & ok[:, :-1], ok[1:] & ok[:-1]
+        if pu.sum() < 200 or pv.sum() < 200:
+            raise RigError(f"{im.name}: too few pixels with a reliable fringe phase")
+        steps.append((float(np.median(du[pu])), float(np.median(dv[pv]))))
+    gu, gv = np.median(np.asarray(steps), axis=0)
+    return float(gu), float(gv)
+
+
 def _maps_and_size(path, max_maps, convention, negate_sin):
     maps, kind, images = phase_maps_of(path, max_maps, convention, negate_sin)
     if not maps:
@@ -236,7 +260,8 @@ def _maps_and_size(path, max_maps, convention, negate_sin):
     H, W = maps[0].phase.shape
     for m in maps[1:]:
         if m.phase.shape != (H, W):
-            raise InputError(f"{m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first is {W} x {H}")
+            raise InputError(f"{path}: {m.name}: image is {m.phase.shape[1]} x {m.phase.shape[0]} px, the first "
+                             f"({maps[0].name}) is {W} x {H}: one rig, one image size")
     return maps, kind, images, W, H
 
 
@@ -368,7 +393,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     params, lens = PLANE_PARAMS, None
     if kind == "phase":  # before the plane is judged: a lens bends it
         params, fit, lens = _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal)
-    no_plane = kind == "phase" and plane_fits_poorly(fit)
+    no_plane = plane_fits_poorly(fit)  # single images too: a bust filling 62 % of FP147's view, on black, was taken for the plane
     if no_plane:
         missing = [f"--{k.replace('_', '-')}" for k, v in (("distance", distance), ("baseline", baseline),
                                                          ("projector_side", projector_side)) if v is None]
@@ -383,7 +408,13 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
         source = "given (--projector-side; without the plane the scans cannot measure it)"
+        if kind != "phase":  # a single image's phase is unwrapped object by object: its plane gradient means nothing
+            gradient = _local_gradient(images[:max_maps], axis)
         if fringe_period is not None:  # the plane's period, along the measured axis, no lean
+            measured = 2.0 * np.pi / math.hypot(*gradient)
+            if not 1 / 3 <= float(fringe_period) / measured <= 3:  # objects widen or narrow it, not threefold
+                raise RigError(f"--fringe-period {fringe_period:g} px is {float(fringe_period) / measured:.3g} x the "
+                               f"period the frames show ({measured:.1f} px): give the plane's period in camera pixels")
             g = 2.0 * np.pi / float(fringe_period)
             gradient = ((math.copysign(g, gradient[0]), 0.0) if axis == "vertical"
                         else (0.0, math.copysign(g, gradient[1])))
@@ -398,6 +429,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     relief = _object_relief(fit, maps) if kind == "phase" and not no_plane else 0.0
     extent, at_border = _object_extent(fit.planes, maps)
     depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
+    rig.plane_in_view = not no_plane
     rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "
                 + ("projector pose assumed: no plane in view" if no_plane else "plane phase fitted")
                 + f", depth scale {depth})")

@@ -13,7 +13,7 @@ changes the height sensitivity without a visible cue.
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace as dc_replace
 
 import numpy as np
 
@@ -67,4 +67,4 @@ def jitter_rig(rig: Rig, rng: np.random.Generator, jitter: RigJitter) -> Rig:
     K[0, 2] = origin_px[0] - K[0, 0] * x[0] - K[0, 1] * x[1]
     K[1, 2] = origin_px[1] - K[1, 1] * x[1]
     proj = Device(K=K, R=R, t=t, width=p.width, height=p.height, dist=p.dist)
-    return Rig(camera=rig.camera, projector=proj, periods=rig.periods, name=rig.name)
+    return dc_replace(rig, projector=proj)

@@ -339,12 +339,17 @@ class Rig:
     camera, projector : :class:`Device`.
     periods : number of fringe periods across the projector width (the single-shot frequency, 80).
     name : free text.
+    plane_in_view : False for a rig fitted to frames that show no reference plane (objects on black: ``fppsim
+        fit-rig`` with ``--distance``, ``--baseline``, ``--projector-side``); its pose is assumed, and the commands
+        that measure the plane in the frames (``fit-optics``, ``label-real``) do not look for one. Written to the
+        document only when False (``"plane_in_view": false``).
     """
 
     camera: Device
     projector: Device
     periods: float = 80.0
     name: str = "rig"
+    plane_in_view: bool = True
 
     # -------------------------------------------------------------- phase <-> projector column
     def phase_of_column(self, u_p: np.ndarray, periods: float | None = None) -> np.ndarray:
@@ -399,7 +404,7 @@ class Rig:
             "periods": float(self.periods),
             "camera": self.camera.to_dict(),
             "projector": self.projector.to_dict(),
-        }
+        } | ({} if self.plane_in_view else {"plane_in_view": False})
 
     @classmethod
     def from_dict(cls, d: dict) -> "Rig":
@@ -426,9 +431,12 @@ class Rig:
             raise RigError(f"periods must be a number, got {d.get('periods')!r}") from None
         if not (periods > 0 and np.isfinite(periods)):
             raise RigError(f"periods must be > 0, got {periods}")
+        plane_in_view = d.get("plane_in_view", True)
+        if not isinstance(plane_in_view, bool):
+            raise RigError(f"plane_in_view must be true or false, got {plane_in_view!r}")
         rig = cls(camera=Device.from_dict(d["camera"], "camera"),
                   projector=Device.from_dict(d["projector"], "projector"),
-                  periods=periods, name=str(d.get("name", "rig")))
+                  periods=periods, name=str(d.get("name", "rig")), plane_in_view=plane_in_view)
         rig.check()
         return rig
 

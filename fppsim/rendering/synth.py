@@ -7,7 +7,7 @@ index and the inputs: worker count, sharding and resumption do not change it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace as dc_replace
 
 import numpy as np
 
@@ -110,7 +110,7 @@ def synthesize(index: int, seed: int, assets: list[MeshAsset], config: SynthConf
         # children keep their index: a child added at the end leaves the earlier draws as they were
         scene_ss, optics_ss, noise_ss, rig_ss, look_ss, pedestal_ss = ss.spawn(6)
         rig = jitter_rig(config.rig, np.random.default_rng(rig_ss), config.rig_jitter)
-        render_rig = Rig(camera=cam.expanded(m), projector=rig.projector, periods=rig.periods, name=rig.name)
+        render_rig = dc_replace(rig, camera=cam.expanded(m))
         scene = sample_scene(assets, rig, np.random.default_rng(scene_ss), config.scene,
                              pedestal_rng=np.random.default_rng(pedestal_ss))
         geom_ss = scene_geometry(render_rig, [o.instance() for o in scene.objects], renderer, scale=k)

@@ -292,6 +292,11 @@ def test_frames_with_no_plane_in_view(tmp_path, capsys):
     export_psp_folders(tmp_path / "plane", tmp_path / "plane_scans")
     lit = fo.fit_optics(readers.load_fringe_images(tmp_path / "plane_scans")[0], rig)
     assert all(p["plane_from"] != fo.NO_PLANE and p["unlit_share"] < 0.25 for p in lit.per_image)
+    # ... unless the rig itself was fitted with no plane in view (fit-rig's flag): then no plane is looked for,
+    # whatever share of the image the objects fill (a bust filling 62 % of FP147's view was taken for the plane)
+    flagged = Rig.from_dict({**rig.to_dict(), "plane_in_view": False})
+    told = fo.fit_optics(readers.load_fringe_images(tmp_path / "plane_scans")[0], flagged)
+    assert [p["plane_from"] for p in told.per_image] == [fo.NO_PLANE] * 3 and told.ranges.albedo_plane == (0.0, 0.0)
     # the command says so, and its ranges render the black background again
     out = tmp_path / "optics.yaml"
     assert main(["fit-optics", str(tmp_path / "scans"), "--out", str(out), "--compare", "0"]) == 0
@@ -308,3 +313,17 @@ def test_frames_with_no_plane_in_view(tmp_path, capsys):
     assert on_plane.mean() > 0.3 and np.percentile(fringe[on_plane], 99) <= 8  # noise alone
     # the black plane has no phase, so no label: valid pixels are the objects' (a pedestal's foot may touch 0)
     assert valid.any() and (arrays["height"][valid] < 0.01).mean() < 0.005
+
+
+def test_frames_of_another_size_than_the_rig_are_one_line(tmp_path, capsys):
+    """fit-optics with the packaged rig (no --rig) on frames of another camera: one line naming the folder and
+    the remedy (it was a traceback)."""
+    from fppsim.cli import main
+
+    (tmp_path / "frames").mkdir()
+    xx = np.arange(300)[None, :] * np.ones((200, 1))
+    cv2.imwrite(str(tmp_path / "frames" / "a.png"), (127 + 100 * np.cos(2 * np.pi * xx / 11.6)).astype(np.uint8))
+    assert main(["fit-optics", str(tmp_path / "frames"), "--out", str(tmp_path / "o.yaml"), "--compare", "0"]) == 1
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "frames: a: image is 300 x 200 px" in err[0] and "--rig" in err[0], err
+    assert not (tmp_path / "o.yaml").exists()

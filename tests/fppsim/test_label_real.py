@@ -22,7 +22,7 @@ from fppsim.dataio.readers import load_native_sample
 from fppsim.fitting.label_real import (LabelRealConfig, fit_phase_offset, label_real, plane_flatness,
                                reference_plane_phase)
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
-from fppsim.geometry.rig import load_rig
+from fppsim.geometry.rig import Rig, load_rig
 
 PARALLEL = REPO / "assets" / "parallel_rig.json"
 REAL_PHASE = SHARED / "real-phase" / "FP1523"
@@ -117,6 +117,11 @@ def test_public_layout_recovers_a_known_phase_offset(public, rendered, tmp_path)
     assert all(not r["fits"] and abs(r["plane"]["level_mm"]) > 5 for r in rep.scans)
     assert len(rep.warnings) == 1 and "the rig does not fit these scans" in rep.warnings[0]
     assert "--phase-offset auto" in rep.warnings[0]
+    # a rig fitted with no plane in view has no plane to fit the offset on: refused in one line, nothing written
+    flagged = Rig.from_dict({**Rig.load(PARALLEL).to_dict(), "plane_in_view": False})
+    with pytest.raises(ConfigError, match="no plane in view: give --phase-offset"):
+        label_real(LabelRealConfig(root=public, out=tmp_path / "np", rig=flagged))
+    assert not (tmp_path / "np").exists()
 
 
 def test_public_layout_other_convention_and_sine_sign(rendered, tmp_path, capsys):

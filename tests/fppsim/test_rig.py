@@ -205,6 +205,22 @@ def test_a_rig_in_other_units_or_another_format_is_refused(tmp_path, rig):
     assert Rig.from_dict({k: v for k, v in rig.to_dict().items() if k not in ("units", "format")}).periods == rig.periods
 
 
+def test_a_rig_without_a_plane_in_view_keeps_saying_so():
+    """fit-rig's flag for a rig fitted with no plane in view survives the file and every rig built from it (the
+    depth and baseline fits once rebuilt the rig field by field and dropped it)."""
+    from fppsim.fitting.fit_periods import adjust_rig
+    from fppsim.geometry.jitter import RigJitter, jitter_rig
+
+    flagged = Rig.from_dict({**Rig.default().to_dict(), "plane_in_view": False})
+    assert flagged.plane_in_view is False and flagged.to_dict()["plane_in_view"] is False
+    assert "plane_in_view" not in Rig.default().to_dict()  # the default: files as before
+    assert Rig.from_dict(flagged.to_dict()).plane_in_view is False
+    assert adjust_rig(flagged, baseline=100.0).plane_in_view is False
+    assert jitter_rig(flagged, np.random.default_rng(0), RigJitter()).plane_in_view is False
+    with pytest.raises(RigError, match="plane_in_view must be true or false"):
+        Rig.from_dict({**Rig.default().to_dict(), "plane_in_view": "no"})
+
+
 def test_opencv_import_errors(tmp_path, rig):
     p = tmp_path / "broken.yml"
     p.write_text("%YAML:1.0\nfoo: [1,2\n")

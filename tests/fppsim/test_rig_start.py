@@ -597,6 +597,7 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     assert "the projector's pose is ASSUMED" in text
     rig = Rig.load(out)
     assert "no plane in view" in rig.name
+    assert rig.plane_in_view is False and json.loads(out.read_text())["plane_in_view"] is False  # fit-optics reads it
     assert rig.sensitivity() == pytest.approx(truth.sensitivity(), rel=0.05)
     # the scenes follow the objects' size (the two domes touch: one object from the left border to the right one,
     # at least 200 px across); with no plane to measure the relief from, the relief cap keeps the default scenes'
@@ -613,3 +614,27 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
                  "--projector-side", "right", "--fov", "34", "--fringe-period", f"{true_period:.4f}", "--force"]) == 0
     assert "the period given (--fringe-period), no lean" in capsys.readouterr().out
     assert 2 * np.pi / np.hypot(*rig_phase_gradient(Rig.load(out))) == pytest.approx(true_period, rel=1e-3)
+    # a period in other units (projector px, mm) and a geometry no rig has are refused in one line, nothing written
+    for extra, words in ((["--fringe-period", "5000"], "x the period the frames show"),
+                         (["--distance", "1", "--baseline", "100000"], "check --baseline and --distance")):
+        args = ["fit-rig", str(tmp_path / "scans"), "--out", str(tmp_path / "r2.json"), "--distance", "420",
+                "--baseline", "260", "--projector-side", "right"]
+        assert main(args + extra) == 1
+        err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+        assert len(err) == 1 and words in err[0], err
+        assert not (tmp_path / "r2.json").exists()
+    # the same objects as single fringe images (no phase-shifting scans): refused the same way (they were once
+    # fitted as the plane, the projector's yaw at its bound)
+    import cv2
+    (tmp_path / "images").mkdir()
+    cv2.imwrite(str(tmp_path / "images" / "a.png"), np.where(valid, image, 0).astype(np.uint8))
+    assert main(["fit-rig", str(tmp_path / "images"), "--out", str(tmp_path / "r3.json")]) == 1
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "no reference plane in view" in err[0], err
+    # with the geometry given, the fringes come from the image's own local steps, not from a plane fitted to its
+    # phase unwrapped object by object (which put 45.9 px on FP1523 on black, whose fringes run every 11.7 px)
+    assert main(["fit-rig", str(tmp_path / "images"), "--out", str(tmp_path / "r3.json"), "--distance", "420",
+                 "--baseline", "260", "--projector-side", "right", "--fov", "34"]) == 0
+    capsys.readouterr()
+    period = 2 * np.pi / np.hypot(*rig_phase_gradient(Rig.load(tmp_path / "r3.json")))
+    assert period == pytest.approx(true_period, rel=0.1) and Rig.load(tmp_path / "r3.json").plane_in_view is False

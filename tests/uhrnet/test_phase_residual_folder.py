@@ -210,6 +210,15 @@ def test_refine_adds_a_row_on_the_same_pixels(setup, tmp_path, capsys):
         net, ref = rec["models"]["tiny"], rec["models"]["tiny +orders"]
         assert ref["pixel_fraction"] == net["pixel_fraction"]
         assert ref["flat"]["rmse_rad"] == net["flat"]["rmse_rad"]
+    # through a rig fitted with no plane in view there is no plane-pixel score (its "plane" would be the objects)
+    from fppsim.geometry.rig import Rig
+
+    Rig.from_dict({**tiny_rig().to_dict(), "plane_in_view": False}).save(tmp_path / "np.json")
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "np"), "--figures",
+                 "0", "--device", "cpu", "--refine", "phase", "--rig", str(tmp_path / "np.json")]) == 0
+    doc = json.loads((tmp_path / "np" / "phase_results.json").read_text())
+    assert all(r["plane_pixel_fraction"] == 0 and r["models"]["unet +orders"]["plane"] is None
+               for r in doc["per_image"]), doc["per_image"][0]
     capsys.readouterr()
     assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "x"),
                  "--rig", str(tmp_path / "rig.json")]) == 2
@@ -266,3 +275,9 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
                  "phase", "--rig", str(tmp_path / "rig48.json")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "0.mat: image is 64x32 but the rig used by --refine" in err[0] and "rig48.json" in err[0]
+    # the failed run leaves no claim behind (nor the folder it made): a user's report put there later is refused
+    assert not (tmp_path / "r48" / "phase_results.md").exists()
+    (tmp_path / "r48").mkdir(exist_ok=True)
+    (tmp_path / "r48" / "phase_results.md").write_text("mine")
+    assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(tmp_path / "r48")]) == 1
+    assert (tmp_path / "r48" / "phase_results.md").read_text() == "mine"

@@ -142,3 +142,15 @@ def test_predict_user_errors_are_one_line(ckpt, tmp_path, capfd):
     err = capfd.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "img.png: image is 48x32 but the rig camera" in err[0]
     assert not (out / "img_height.npy").exists()  # refused before writing anything for it
+
+
+def test_an_image_not_shaped_like_the_training_images_is_said():
+    """A network trained on 320 x 240 px images (after --resize) reads a 640 x 480 frame as its own, and warns of a
+    portrait or a 640 x 352 one: it would read them squashed (another rig's, a rotated or a cropped image)."""
+    from uhrnet.inference.prediction import shape_note
+
+    ck = {"image_shape": [240, 320], "args": {"resize": "240x320"}}
+    assert shape_note(ck, (480, 640)) is None and shape_note(ck, (250, 320)) is None
+    assert "trained on 320x240 px images (after its --resize)" in shape_note(ck, (640, 480))
+    assert "aspect 1.82" in shape_note(ck, (352, 640))
+    assert shape_note({}, (352, 640)) is None  # an old checkpoint without the record: nothing to say

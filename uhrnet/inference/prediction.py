@@ -46,6 +46,7 @@ images are refused (see :func:`fppsim.dataio.encoding.colour_to_grey`).
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -66,14 +67,14 @@ from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
-from fppsim.owned import claim, owners
+from fppsim.owned import claim, output_folder, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "label_heights",
            "labels_at_input_size", "pad_to_multiple", "collect_inputs", "load_inputs", "read_inputs", "refine_rig_for",
            "refine_with_phase", "fringe_phase", "fringe_mirror_axis", "path_estimate", "order_choice", "points_from_rig",
-           "points_from_grid", "write_ply"]
+           "points_from_grid", "write_ply", "shape_note"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
 PREDICT_TOOL = "uhrnet predict"
@@ -369,21 +370,41 @@ def predict(config: PredictConfig) -> PredictResult:
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-
     names = [f"{name}{suffix}" for name, _, _ in inputs for suffix in
              ("_height.npy", "_height.tif", "_height.png")
              + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
-    claim(out, PREDICT_TOOL, names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
-    try:
-        for name, fringe, path in tqdm(inputs, desc="predict", unit="image",
-                                       disable=not config.progress or len(inputs) < 2):
-            _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name, fringe, path)
-    finally:  # what was done is described, also when a later image fails
-        if result.refine:
-            _write_refine_json(out / "refine.json", result.refine)
+    for name, fringe, path in inputs:
+        note = shape_note(ckpt, fringe.shape)
+        if note:
+            result.warnings.append(f"{path} ({name}): {note}")
+    # locked for the run; a failed run drops its claims on what it never wrote, and a folder it made and left empty
+    with output_folder(out, PREDICT_TOOL, error=ConfigError):
+        claim(out, PREDICT_TOOL, names + (["refine.json"] if refine_rig is not None else []))  # never a foreign file
+        try:
+            for name, fringe, path in tqdm(inputs, desc="predict", unit="image",
+                                           disable=not config.progress or len(inputs) < 2):
+                _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name,
+                             fringe, path)
+        finally:  # what was done is described, also when a later image fails
+            if result.refine:
+                _write_refine_json(out / "refine.json", result.refine)
     return result
+
+
+def shape_note(ckpt: dict, shape) -> str | None:
+    """A warning when an image of ``shape`` (H, W) is not shaped like the images ``ckpt`` was trained on (aspect
+    ratio more than 15 % off: another rig's, a rotated or a cropped image, which the network would read squashed),
+    else None (also for an adapted network: its record is its source's)."""
+    trained = ckpt.get("image_shape")
+    if ckpt.get("adapt") or not trained or len(trained) != 2 or min(trained) <= 0 or min(shape) <= 0:
+        return None
+    a0, a = trained[1] / trained[0], shape[1] / shape[0]
+    if abs(math.log(a / a0)) <= math.log(1.15):
+        return None
+    how = " (after its --resize)" if ckpt.get("args", {}).get("resize") else ""
+    return (f"{shape[1]}x{shape[0]} px (aspect {a:.2f}) but the network was trained on {trained[1]}x{trained[0]} px "
+            f"images{how} (aspect {a0:.2f}): another rig's, a rotated or a cropped image? its heights may mean little")
 
 
 def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name, fringe, path):
@@ -458,20 +479,25 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     below the camera) as the rig's reference-plane phase does (:func:`fppsim.phase.single_shot.single_shot_phase`
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes, or
     whose fringes are not the rig's (period or direction at the image centre: :data:`CARRIER_PERIOD_RATIO`,
-    :data:`CARRIER_ANGLE_DEG`, in an image of at least :data:`CARRIER_MIN_PERIODS` periods both ways)."""
+    :data:`CARRIER_ANGLE_DEG`, in an image of at least :data:`CARRIER_MIN_PERIODS` periods both ways, half of it
+    with fringes, through a rig with the plane in view)."""
 
     orientation, direction = _rig_fringes(rig)
     try:
         ssp = oriented_single_shot_phase(fringe, orientation, direction=direction)
     except ValueError as exc:
         raise DataError(f"{name}: {exc}") from None
-    _check_carrier(ssp, _rig_gradient(rig), name)
+    if (rig.plane_in_view if isinstance(rig, Rig) else rig.get("plane_in_view", True)) and ssp.valid.mean() >= 0.5:
+        # objects on black: their fringes' spectrum is not the plane's (FP672 on black: 40 px against 10.5)
+        _check_carrier(ssp, _rig_gradient(rig), name)
     return ssp
 
 
 #: The image's fringes must match the rig's at the image centre: period within this ratio either way, direction
 #: within this angle, checked where the image spans at least :data:`CARRIER_MIN_PERIODS` of the rig's periods both
-#: ways (a smaller one's spectrum is too coarse, and its relief can move the peak). The rigs here match their
+#: ways (a smaller one's spectrum is too coarse, and its relief can move the peak) and at least half of it carries
+#: fringes, through a rig with a plane in view (objects on black move the peak: FP672 on black, 40 px against the
+#: plane's 10.5). The rigs here match their
 #: frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672, FP147, FP1523 without its plane, rendered
 #: samples); an image of another rig, rotated or rescaled, gave heights thousands of mm off without a word.
 CARRIER_PERIOD_RATIO = 1.5

@@ -50,7 +50,7 @@ import numpy as np
 
 from fppsim.files import atomic_write_text
 from fppsim.geometry.rig import check_image_size
-from fppsim.owned import claim
+from fppsim.owned import claim, output_folder
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
 from uhrnet.errors import ConfigError, DataError, InputError
 from uhrnet.plots import pyplot, save_figure
@@ -60,7 +60,7 @@ from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
 from uhrnet.scoring.evaluation import model_names
-from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase
+from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
 EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
@@ -467,9 +467,15 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
-    out.mkdir(parents=True, exist_ok=True)
-    claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
-          + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
+    # locked for the run; a failed run drops its claims on what it never wrote, and a folder it made and left empty
+    with output_folder(out, EVALUATE_PHASE_TOOL, error=ConfigError):
+        claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
+              + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
+        return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo)
+
+
+def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo) -> dict:
+    """The body of :func:`evaluate_phase_folder` once ``out`` is open: every frame scored, the report written."""
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
     per_image, figures, skipped = [], [], []
@@ -488,9 +494,14 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                  f"{unknowns} unknowns to fit: skipped")
             skipped.append(sid)
             continue
+        for ck, name in zip(ckpts, names):
+            note = shape_note(ck, img.shape)
+            if note:
+                echo(f"{sid}: warning: {name}: {s.path}: {note}")
         for *_, rig in models:
             if rig is not None:
-                check_image_size(rig, img.shape, str(s.path), who=f"the rig used by --refine ({args.rig}) sees",
+                check_image_size(rig, img.shape, str(s.path), who="the rig used by --refine "
+                                 f"({args.rig or 'the checkpoint or default rig'}) sees",
                                  error=ConfigError)
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
@@ -517,6 +528,8 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
                     refined = h
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
+        if any(rig is not None and not getattr(rig, "plane_in_view", True) for *_, rig in models):
+            plane = np.zeros_like(plane)  # the rig was fitted with no plane in view: no plane-pixel score
         record["plane_pixel_fraction"] = float(plane.mean())
         for name, h, ok, pred_valid in scored:
             try:

@@ -316,7 +316,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
                 sums[name] += v / len(images)
             if bar is not None:
                 bar.update(1)
-                bar.set_postfix(loss=f"{float(loss):.4g}", refresh=False)
+                bar.set_postfix(loss=f"{float(loss.detach()):.4g}", refresh=False)
         row = {"epoch": epoch + 1, **sums, "lr": cfg.lr, "seconds": time.perf_counter() - t0}
         history.append(row)
         if tb.enabled:  # the first image's height and its change from the source model's, flushed before last.pt

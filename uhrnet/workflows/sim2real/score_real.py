@@ -104,10 +104,10 @@ def refine_labels(label: np.ndarray, fringe: np.ndarray, transform, rig, method:
     check_image_size(rig, fringe.shape, "refine", who=f"{rig_name} sees", hint=" (give the real data's rig: --rig FILE)",
                      error=Sim2RealError)
     lab = np.asarray(label, np.float64)
-    h = label_heights(lab, transform, fringe)
+    h = network = label_heights(lab, transform, fringe)
     if model is not None:
         h = path_estimate(model, transform, fringe, size, rig, h)
-    refined, stats = refine_with_phase(h, np.asarray(fringe, np.float32), rig, method)
+    refined, stats = refine_with_phase(h, np.asarray(fringe, np.float32), rig, method, network_mm=network)
     out = np.where(np.isfinite(refined), refined * transform.units_per_mm + transform.plane_offset, lab)
     return out.astype(np.float32), stats
 
