@@ -270,6 +270,16 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
         assert "9: warning:" in capsys.readouterr().out
         doc = json.loads((report / "phase_results.json").read_text())
         assert [r["id"] for r in doc["per_image"]] == ["0", "1", "2"] and doc["skipped"] == ["9"]
+    # under --refine phase, a lit frame without readable fringes keeps the network's heights in the +orders row, and
+    # the JSON says so
+    save_psp_folder_sample(both, "8", *sums_from_phase(phase, valid, 30.0), np.full((32, 64), 128, np.uint8))
+    tiny_rig().save(tmp_path / "rig.json")
+    assert main(["evaluate-phase", *args, "--phase-root", str(both), "--out", str(tmp_path / "grey"), "--refine",
+                 "phase", "--rig", str(tmp_path / "rig.json")]) == 0
+    assert "8: warning: no fringe phase to refine with" in capsys.readouterr().out
+    rec = {r["id"]: r for r in json.loads((tmp_path / "grey" / "phase_results.json").read_text())["per_image"]}
+    assert list(rec["8"]["not_refined"]) == ["unet"] and "not_refined" not in rec["0"]
+    assert rec["8"]["models"]["unet +orders"]["prediction"] == rec["8"]["models"]["unet"]["prediction"]
     tiny_rig(width=48).save(tmp_path / "rig48.json")
     assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(tmp_path / "r48"), "--refine",
                  "phase", "--rig", str(tmp_path / "rig48.json")]) == 1

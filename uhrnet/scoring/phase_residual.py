@@ -526,6 +526,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
                 except DataError as exc:  # as predict's default: an image whose phase cannot be read keeps them
                     echo(f"{sid}: warning: no fringe phase to refine with ({exc}): {name}'s heights")
                     refined = h
+                    record.setdefault("not_refined", {})[name] = str(exc)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
         if any(rig is not None and not getattr(rig, "plane_in_view", True) for *_, rig in models):
