@@ -482,14 +482,16 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     :data:`CARRIER_ANGLE_DEG`, in an image of at least :data:`CARRIER_MIN_PERIODS` periods both ways, half of it
     with fringes, through a rig with the plane in view)."""
 
-    orientation, direction = _rig_fringes(rig)
+    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
+    gradient = rig_phase_gradient(r)
+    orientation, direction = _fringes_along(gradient)
     try:
         ssp = oriented_single_shot_phase(fringe, orientation, direction=direction)
     except ValueError as exc:
         raise DataError(f"{name}: {exc}") from None
-    if (rig.plane_in_view if isinstance(rig, Rig) else rig.get("plane_in_view", True)) and ssp.valid.mean() >= 0.5:
+    if r.plane_in_view and ssp.valid.mean() >= 0.5:
         # objects on black: their fringes' spectrum is not the plane's (FP672 on black: 40 px against 10.5)
-        _check_carrier(ssp, _rig_gradient(rig), name)
+        _check_carrier(ssp, gradient, name)
     return ssp
 
 
@@ -497,9 +499,9 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 #: within this angle, checked where the image spans at least :data:`CARRIER_MIN_PERIODS` of the rig's periods both
 #: ways (a smaller one's spectrum is too coarse, and its relief can move the peak) and at least half of it carries
 #: fringes, through a rig with a plane in view (objects on black move the peak: FP672 on black, 40 px against the
-#: plane's 10.5). The rigs here match their
-#: frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672, FP147, FP1523 without its plane, rendered
-#: samples); an image of another rig, rotated or rescaled, gave heights thousands of mm off without a word.
+#: plane's 10.5). The rigs here match their frames within 0.97-1.08 and 0.3 deg (the pair, FP1523, FP672, FP147,
+#: FP1523 without its plane, rendered samples); an image of another rig, rotated or rescaled, gave heights
+#: thousands of mm off without a word.
 CARRIER_PERIOD_RATIO = 1.5
 CARRIER_ANGLE_DEG = 20.0
 CARRIER_MIN_PERIODS = 16
@@ -523,14 +525,15 @@ def _check_carrier(ssp, gradient: tuple[float, float], name: str) -> None:
                         "(another rig, a rotated or rescaled image, or no fringes)")
 
 
-def _rig_gradient(rig) -> tuple[float, float]:
-    return rig_phase_gradient(rig if isinstance(rig, Rig) else Rig.from_dict(rig))
-
-
 def _rig_fringes(rig) -> tuple[str, int]:
     """(``"vertical"`` or ``"horizontal"``, +1 / -1: the phase grows along +columns / +rows or against them)
     from the plane phase's gradient at the image centre: a few points of the forward model, no layer."""
-    gu, gv = _rig_gradient(rig)
+    return _fringes_along(rig_phase_gradient(rig if isinstance(rig, Rig) else Rig.from_dict(rig)))
+
+
+def _fringes_along(gradient) -> tuple[str, int]:
+    """:func:`_rig_fringes` of the plane phase's gradient ``(g_u, g_v)`` (rad/px)."""
+    gu, gv = gradient
     orientation = fringe_axis((gu, gv))
     return orientation, 1 if (gu if orientation == "vertical" else gv) >= 0 else -1
 

@@ -403,7 +403,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         keep = np.asarray(keep, np.float64)
         if keep.shape != h.shape:
             raise InputError(f"keep {keep.shape} and height {h.shape} must be the same (H, W)")
-        left = finite & ~moved & ~carried & ~(np.zeros_like(moved) if rim is None else rim)
+        left = finite & ~moved & ~carried
+        if rim is not None:
+            left &= ~rim
         refined = np.where(left, keep, refined)
     out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
     refined = refined.astype(out_dtype, copy=False)
