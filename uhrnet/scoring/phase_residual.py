@@ -479,6 +479,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
     per_image, figures, skipped = [], [], []
+    no_plane = any(rig is not None and not rig.plane_in_view for *_, rig in models)
     for k, sid in enumerate(ids):
         try:
             s = src.scan(sid, convention=args.convention, negate_sin=args.negate_sin)
@@ -488,9 +489,9 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
         if note:
             echo(f"{sid}: {note}")
         img = s.image
-        unknowns = len(poly_terms(args.degree)) + 2
-        if int(_scored_pixels(s).sum()) <= unknowns:  # nothing to fit (a black or invalid frame): the others still count
-            echo(f"{sid}: warning: {s.path}: {int(_scored_pixels(s).sum())} pixels with a valid phase and light, "
+        unknowns, lit = len(poly_terms(args.degree)) + 2, int(_scored_pixels(s).sum())
+        if lit <= unknowns:  # nothing to fit (a black or invalid frame): the others still count
+            echo(f"{sid}: warning: {s.path}: {lit} pixels with a valid phase and light, "
                  f"{unknowns} unknowns to fit: skipped")
             skipped.append(sid)
             continue
@@ -528,9 +529,9 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
                     refined = h
                     record.setdefault("not_refined", {})[name] = str(exc)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
-        plane = phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0]
-        if any(rig is not None and not getattr(rig, "plane_in_view", True) for *_, rig in models):
-            plane = np.zeros_like(plane)  # the rig was fitted with no plane in view: no plane-pixel score
+        # a rig fitted with no plane in view: no plane-pixel score (its "plane" would be the objects)
+        plane = (np.zeros(img.shape, bool) if no_plane else
+                 phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0])
         record["plane_pixel_fraction"] = float(plane.mean())
         for name, h, ok, pred_valid in scored:
             try:
