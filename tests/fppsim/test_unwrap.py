@@ -76,6 +76,80 @@ def test_shadow_bridge_needs_agreeing_votes():
     assert shadow_bridges(reg, shadow) == []
 
 
+def _box_scene(rig, box=(-25.0, 25.0, -20.0, 20.0, 30.0)):
+    """A box standing on the reference plane, seen through ``rig`` at the camera's pixel centres, by ray
+    casting written here: each pixel's absolute projector phase (rad) and whether projector light reaches it."""
+    x0, x1, y0, y1, h = box
+    lo, hi = np.array([x0, y0, 0.0]), np.array([x1, y1, h])
+
+    def slab(o, d):  # entry / exit parameters of rays o + t d through the box
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t1, t2 = (lo - o) / d, (hi - o) / d
+        tn = np.nanmax(np.minimum(t1, t2), axis=-1)
+        tx = np.nanmin(np.maximum(t1, t2), axis=-1)
+        return tn, tx
+
+    cam = rig.camera
+    origin, d = cam.pixel_rays(cam.pixel_grid())
+    t_plane = -origin[2] / d[..., 2]
+    tn, tx = slab(origin, d)
+    t = np.where((tn <= tx) & (tn > 0) & (tn < t_plane), tn, t_plane)
+    X = origin + t[..., None] * d
+    to_proj = rig.projector.center - X
+    tn, tx = slab(X + 1e-6 * to_proj, to_proj)
+    lit = ~((tn <= tx) & (tx > 0) & (tn < 1))
+    uv_p, _ = rig.projector.project(X)
+    return rig.phase_of_column(uv_p[..., 0]), lit
+
+
+def test_shadow_bridge_across_a_box_shadow_finds_the_true_order():
+    """The shadow a box casts on the plane links the plane to the box's top at their true order difference
+    (ray-cast geometry through the default rig, exact phases at the pixel centres)."""
+    from fppsim.geometry.rig import Rig
+
+    phase, lit = _box_scene(Rig.default())
+    shadow = ~lit
+    assert 2000 < shadow.sum() < 20000
+    reg = phase_regions(wrap(phase), lit)
+    offsets = np.round((phase - reg.unwrapped) / (2 * np.pi))  # each region's true order
+    bridges = shadow_bridges(reg, shadow)
+    assert bridges, "no bridge across the box's shadow"
+    for b in bridges:
+        ka = offsets[reg.labels == b.a][0]
+        kb = offsets[reg.labels == b.b][0]
+        assert kb - ka == b.periods and b.agreement >= 0.9
+    # the plane (largest region) is linked to the box top
+    assert any(1 in (b.a, b.b) and b.votes >= 20 for b in bridges)
+
+
+def test_shadow_bridge_removes_the_images_common_vote_offset():
+    """Votes a common fraction of a period off their orders (the single-shot phase beside a shadow is biased):
+    ``about="image"`` removes that offset and finds both orders; read against the rounded order, or their median within 0.35 of it, they fail."""
+    H, W = 60, 300
+    x = np.arange(W, dtype=float)
+    phi = np.tile(0.6 * x, (H, 1)) + 0.01 * np.arange(H)[:, None]
+    shadow = np.zeros((H, W), bool)
+    built = {}
+    for start, stop, end, k in ((60, 90, 180, 2), (180, 210, W, -3)):
+        shadow[:, start:stop] = True
+        # read one pixel inside each side (step -1): there the far side's phase is the near side's minus
+        # k + 0.45 periods (rendered scenes: up to half a period at the last lit pixels)
+        ref = phi[:, start - 2] - 2 * np.pi * (k + 0.45)
+        phi[:, stop:end] = ref[:, None] + 0.5 * (x[stop:end] - (stop + 1))
+        built[start] = k
+    reg = phase_regions(wrap(phi), ~shadow)
+    assert reg.count == 3
+    m = np.round((phi - reg.unwrapped) / (2 * np.pi))  # each region's own multiple of 2 pi
+    found = shadow_bridges(reg, shadow, about="image")
+    assert len(found) == 2
+    for b in found:
+        start = 60 if (reg.labels[:, 30] == b.a).all() else 180
+        ka, kb = m[reg.labels == b.a][0], m[reg.labels == b.b][0]
+        assert b.periods == built[start] + kb - ka and b.agreement == 1.0
+    assert shadow_bridges(reg, shadow, about="order") == []
+    assert shadow_bridges(reg, shadow, about="median", max_offset=0.35) == []
+
+
 def test_shadow_runs_finds_every_crossing_as_a_plain_row_walk_does():
     """shadow_runs against a per-pixel walk written here: every run of shadow with a lit pixel on both sides."""
     from fppsim.phase.unwrap import shadow_runs

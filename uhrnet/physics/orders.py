@@ -299,7 +299,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     wall; fewer than ``min_region`` pixels dropped), each with its prior voted on these cores; (2) the regions
     grown into less reliable pixels (thresholds ``grow``, :func:`grow_regions`), which brings them close
     enough to shadows and to each other to link; (3) links: shadow bridges (votes agreeing within a quarter
-    period of their median, the median within ``bridge_offset`` periods of a whole order) and seams
+    period of their median once the image's common vote offset is removed, the median within ``bridge_offset``
+    periods of a whole order: :func:`fppsim.phase.unwrap.shadow_bridges`) and seams
     (:func:`seam_links`); (4) components and one order each; (5) the regions grown further (``fill``: these
     pixels take their region's order, they tie nothing); (6) heights from the phase at the chosen orders (a
     pixel whose move exceeds ``max_move_fraction`` moves all the same when it agrees with its moved neighbours',
@@ -380,7 +381,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     links: list[Link] = []
     if n and bridges:
         links += [Link(b.a, b.b, -b.periods, b.votes, b.agreement, "bridge")
-                  for b in shadow_bridges(regions, unlit, about="median", max_offset=bridge_offset)]
+                  for b in shadow_bridges(regions, unlit, max_offset=bridge_offset)]
     if n and seams:
         links += seam_links(regions, w, usable, blocked=unlit | walls | ~finite)
     roots, offs, taken, conflicts, refused = _components(n, links, prior, core_sizes, max_link_misfit)
