@@ -35,16 +35,33 @@ sys.path.insert(0, str(ROOT / "pipelines"))
 
 from fppsim.dataio.encoding import encode_fringe  # noqa: E402
 from fppsim.dataio.readers.samples import load_native_sample  # noqa: E402
+from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from orders_study import network, pair_scores, path  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
+from uhrnet.errors import UhrnetError  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 KEYS = ("net_rmse_mm", "path_rmse_mm", "path_median_mm", "net_right_order", "path_right_order", "ratio_psp",
         "ratio_exact")
+
+
+class BenchError(Exception):
+    """Bad input, said in one line."""
+
+
+def check_rig(folder: Path, rig) -> None:
+    """The scenes must have been rendered through ``rig`` (their meta.json records it)."""
+    meta = load_native_sample(folder, keys=(), meta=True)["meta"].get("rig")
+    if meta is None:
+        return
+    same = all(np.allclose(np.asarray(meta[d][k], float), np.asarray(getattr(getattr(rig, d), k), float), atol=1e-6)
+               for d in ("camera", "projector") for k in ("K", "R", "t"))
+    if not same or abs(float(meta.get("periods", rig.periods)) - rig.periods) > 1e-9:
+        raise BenchError(f"{folder}: rendered through another rig than --rig ({meta.get('name', '?')})")
 
 
 def render(out: Path, count: int, seed: int, objects: str, rig: str, meshes: list[str]) -> Path:
@@ -61,7 +78,7 @@ def scene_scores(model, transform, folder: Path, rig, layer) -> dict:
     s = load_native_sample(folder, keys=("height", "mask", "phase_psp", "mask_psp", "phase_true"), meta=False)
     missing = {"height", "mask", "phase_psp", "mask_psp", "phase_true"} - set(s)
     if missing:
-        raise SystemExit(f"orders_rendered: {folder / 'arrays.npz'} lacks {', '.join(sorted(missing))} "
+        raise BenchError(f"{folder / 'arrays.npz'} lacks {', '.join(sorted(missing))} "
                          "(render with the phase-shifting images: fppsim generate without --no-psp)")
     fringe = encode_fringe(s["fringe"])
     truth = s["height"].astype(np.float64)
@@ -117,30 +134,39 @@ def main(argv=None) -> int:
     ap.add_argument("--rig", default=str(ROOT / "assets" / "figshare_depth_rig.json"), metavar="FILE",
                     help="rig of the scenes and of the path [assets/figshare_depth_rig.json]")
     args = ap.parse_args(argv)
+    try:
+        return run(args)
+    except (BenchError, FppsimError, UhrnetError, OSError, subprocess.CalledProcessError) as exc:
+        print(f"orders_rendered: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(args) -> int:
     torch.set_num_threads(2)
+    rig = load_rig(args.rig)
+    models = {r: model_from_checkpoint(load_checkpoint(r), "cpu") for r in args.runs}  # every one checked first
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     scenes = Path(args.scenes) if args.scenes else render(out, args.count, args.seed, args.objects, args.rig, args.meshes)
+    if not scenes.is_dir():
+        raise BenchError(f"--scenes {scenes}: no such folder")
     folders = sorted(p for p in scenes.iterdir() if (p / "arrays.npz").exists())
     if not folders:
-        print(f"orders_rendered: no rendered scene (arrays.npz) in {scenes}", file=sys.stderr)
-        return 2
-    rig = load_rig(args.rig)
+        raise BenchError(f"no rendered scene (arrays.npz) in {scenes}")
+    check_rig(folders[0], rig)
     layer = layer_for(rig, (rig.camera.height, rig.camera.width))
     result = {"scenes": str(scenes), "scenes_count": len(folders), "rig": args.rig, "runs": {}}
-    for run in args.runs:
-        model, transform = model_from_checkpoint(load_checkpoint(run), "cpu")
+    for run_name, (model, transform) in models.items():
         rows = []
         for f in folders:
             rows.append({"scene": f.name, **scene_scores(model, transform, f, rig, layer)})
-            print(f"{run} {f.name}: right order {rows[-1]['net_right_order']:.3f} -> {rows[-1]['path_right_order']:.3f}",
-                  flush=True)
-        result["runs"][run] = {"scenes": rows, "summary": summary(rows)}
+            print(f"{run_name} {f.name}: right order {rows[-1]['net_right_order']:.3f} -> "
+                  f"{rows[-1]['path_right_order']:.3f}", flush=True)
+        result["runs"][run_name] = {"scenes": rows, "summary": summary(rows)}
     atomic_write_text(out / "rendered.json", json.dumps(result, indent=1))
     atomic_write_text(out / "rendered.md", report(result))
     print(report(result))
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from fppsim.errors import InputError
 from fppsim.phase import wrap
 
 __all__ = ["PhaseRegions", "phase_regions", "phase_quality", "step_conflicts", "Bridge", "shadow_runs", "shadow_bridges"]
@@ -129,7 +130,8 @@ class Bridge:
 
     ``periods``: the trusted order difference ``k`` such that the absolute phase of ``b`` is its
     unwrapped phase plus ``2 pi k`` more than ``a``'s offset (:func:`shadow_bridges`); ``votes``: rows
-    that crossed; ``agreement``: share of them within ``tolerance`` periods of ``periods``.
+    that crossed; ``agreement``: share of them within ``tolerance`` periods of ``periods`` (``about="order"``) or of
+    their median (``"median"``, ``"image"``: after the image's offset).
     """
 
     a: int
@@ -170,12 +172,15 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
         pixel may start (the phase right at an edge is rarely trusted). step : where each side's phase is
         read, in px past its last lit pixel towards the shadow, extrapolated with the local phase slope from the
         region's nearest pixel: -1 reads the pixel beside the last lit one, whose light the shadow does not
-        share (the last lit pixel's own phase is pulled by the dark run beside it).
+        share (the last lit pixel's own phase is pulled by the dark run beside it). Reading there shifts every
+        vote by minus the two sides' phase steps per pixel (periods), a part of the offset ``about="image"``
+        removes.
     tolerance, min_votes, min_agreement : a bridge is returned when at least ``min_votes`` rows
         crossed it and ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median
         (``about="order"``), of the median itself (``about="median"``), or of the median once the image's
-        common offset is removed (``about="image"``: the circular mean of every crossing's vote in the image,
-        all bridges together, where their resultant length is at least 0.3 and the offset within ``max_offset``).
+        common offset is removed (``about="image"``: the circular mean of the votes of every region pair that
+        would make a bridge on its own, where their resultant length is at least 0.3 and the offset within
+        ``max_offset``).
         The single-shot phase beside a shadow is biased, so votes cluster a fraction of a period off the whole
         order, the same for the image's shadows: read at the last lit pixels (``step=0``) +0.12 on the labelled
         pair, +0.16 on FP1523/1201 and +0.2 to +0.4 on rendered scenes; one pixel further in (``step=-1``)
@@ -194,7 +199,7 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
     networks) every bridge and score stayed the same.
     """
     if about not in ("order", "median", "image"):
-        raise ValueError(f"about must be 'order', 'median' or 'image', got {about!r}")
+        raise InputError(f"about must be 'order', 'median' or 'image', got {about!r}")
     lab, U = regions.labels, regions.unwrapped
     sh = np.asarray(shadow, bool)
     H, W = lab.shape
@@ -213,20 +218,31 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
             continue
         ua = U[r, xa] + (U[r, xa] - U[r, xa - 1]) * (x0 - xa + step)
         ub = U[r, xb] - (U[r, xb + 1] - U[r, xb]) * (xb - x1 + step)
-        votes.setdefault((a, b), []).append((ua - ub) / (2 * np.pi))
-    bias = 0.0
-    if about == "image" and votes:
-        every = np.exp(2j * np.pi * np.concatenate([np.asarray(v) for v in votes.values()]))
-        z = every.mean()
-        # an offset the votes hardly share (resultant under 0.3), or larger than a bridge may be off, is no bias
-        if abs(z) >= 0.3 and abs(np.angle(z)) / (2 * np.pi) <= max_offset:
-            bias = float(np.angle(z) / (2 * np.pi))
+        vote = (ua - ub) / (2 * np.pi)
+        if np.isfinite(vote):
+            votes.setdefault((a, b), []).append(vote)
+    votes = {ab: np.asarray(v) for ab, v in votes.items()}
+    bias = _common_offset(votes, tolerance, min_votes, min_agreement, max_offset) if about == "image" else 0.0
     out = []
     for (a, b), v in votes.items():
-        v = np.asarray(v) - bias
+        v = v - bias
         med = float(np.median(v))
         k = int(np.round(med))
         agree = float(np.mean(np.abs(v - (k if about == "order" else med)) <= tolerance))
         if len(v) >= min_votes and agree >= min_agreement and abs(med - k) <= max_offset:
             out.append(Bridge(a, b, k, int(len(v)), agree))
     return out
+
+
+def _common_offset(votes: dict, tolerance: float, min_votes: int, min_agreement: float, max_offset: float) -> float:
+    """The image's common vote offset (periods): the circular mean of the votes of the region pairs that would make
+    a bridge on their own (``min_votes`` rows, ``min_agreement`` of them within ``tolerance`` of their median), so
+    that short dark runs and pairs whose rows disagree do not pull it; 0 where those votes hardly share one
+    (resultant length under 0.3) or it exceeds ``max_offset``."""
+    kept = [v for v in votes.values()
+            if len(v) >= min_votes and np.mean(np.abs(v - np.median(v)) <= tolerance) >= min_agreement]
+    if not kept:
+        return 0.0
+    z = np.mean(np.exp(2j * np.pi * np.concatenate(kept)))
+    offset = float(np.angle(z) / (2 * np.pi))
+    return offset if abs(z) >= 0.3 and abs(offset) <= max_offset else 0.0
