@@ -35,8 +35,10 @@ sys.path.insert(0, str(ROOT / "pipelines"))
 
 from fppsim.dataio.encoding import encode_fringe  # noqa: E402
 from fppsim.dataio.readers.samples import load_native_sample  # noqa: E402
+from fppsim.dataio.rig_choice import dataset_rig  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.owned import claim, output_folder, same_folder  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from orders_study import network, pair_scores, path  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
@@ -45,6 +47,8 @@ from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
+ARRAYS = ("height", "mask", "phase_psp", "mask_psp", "phase_true")  # a rendered scene's, with its PSP images
+TOOL = "orders_rendered"  # its files' owner in the --out folder's ownership record (fppsim.owned)
 KEYS = ("net_rmse_mm", "path_rmse_mm", "path_median_mm", "net_right_order", "path_right_order", "ratio_psp",
         "ratio_exact")
 
@@ -53,15 +57,15 @@ class BenchError(Exception):
     """Bad input, said in one line."""
 
 
-def check_rig(folder: Path, rig) -> None:
-    """The scenes must have been rendered through ``rig`` (their meta.json records it)."""
-    meta = load_native_sample(folder, keys=(), meta=True)["meta"].get("rig")
-    if meta is None:
+def check_rig(scenes: Path, rig) -> None:
+    """The scenes must have been rendered through ``rig`` (the rig their dataset records)."""
+    recorded, _ = dataset_rig(scenes)
+    if recorded is None:
         return
-    same = all(np.allclose(np.asarray(meta[d][k], float), np.asarray(getattr(getattr(rig, d), k), float), atol=1e-6)
+    same = all(np.allclose(getattr(getattr(recorded, d), k), getattr(getattr(rig, d), k), atol=1e-6)
                for d in ("camera", "projector") for k in ("K", "R", "t"))
-    if not same or abs(float(meta.get("periods", rig.periods)) - rig.periods) > 1e-9:
-        raise BenchError(f"{folder}: rendered through another rig than --rig ({meta.get('name', '?')})")
+    if not same or recorded.periods != rig.periods:
+        raise BenchError(f"{scenes}: rendered through another rig than --rig ({recorded.name})")
 
 
 def render(out: Path, count: int, seed: int, objects: str, rig: str, meshes: list[str]) -> Path:
@@ -75,22 +79,22 @@ def render(out: Path, count: int, seed: int, objects: str, rig: str, meshes: lis
 
 def scene_scores(model, transform, folder: Path, rig, layer) -> dict:
     """One rendered scene through one network: the numbers of :data:`KEYS`."""
-    s = load_native_sample(folder, keys=("height", "mask", "phase_psp", "mask_psp", "phase_true"), meta=False)
-    missing = {"height", "mask", "phase_psp", "mask_psp", "phase_true"} - set(s)
+    s = load_native_sample(folder, keys=ARRAYS, meta=False)
+    missing = set(ARRAYS) - set(s)
     if missing:
         raise BenchError(f"{folder / 'arrays.npz'} lacks {', '.join(sorted(missing))} "
                          "(render with the phase-shifting images: fppsim generate without --no-psp)")
     fringe = encode_fringe(s["fringe"])
     truth = s["height"].astype(np.float64)
     h = network(model, transform, fringe, False)
-    choice = path(h, fringe, rig, model, transform)
+    hp = path(h, fringe, rig, model, transform).height.astype(np.float64)
     obj = (s["mask"] > 0) & (truth > 1.0)
-    net, pth = pair_scores(h, truth, obj, layer), pair_scores(choice.height.astype(np.float64), truth, obj, layer)
+    net, pth = pair_scores(h, truth, obj, layer), pair_scores(hp, truth, obj, layer)
     lit = (s["mask_psp"] > 0) & (s["fringe"] > 0)
     ratio = {}
     for name, phase, m in (("psp", s["phase_psp"], lit), ("exact", s["phase_true"], lit & (s["mask"] > 0))):
         phase = phase.astype(np.float64)
-        ratio[name] = fit_phase(phase, choice.height.astype(np.float64), m).rmse_rad / fit_phase(phase, h, m).rmse_rad
+        ratio[name] = fit_phase(phase, hp, m).rmse_rad / fit_phase(phase, h, m).rmse_rad
     return {"net_rmse_mm": net["object_rmse_mm"], "path_rmse_mm": pth["object_rmse_mm"],
             "path_median_mm": pth["median_abs_mm"], "net_right_order": net["right_order"],
             "path_right_order": pth["right_order"], "ratio_psp": ratio["psp"], "ratio_exact": ratio["exact"],
@@ -146,27 +150,32 @@ def run(args) -> int:
     rig = load_rig(args.rig)
     models = {r: model_from_checkpoint(load_checkpoint(r), "cpu") for r in args.runs}  # every one checked first
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    scenes = Path(args.scenes) if args.scenes else render(out, args.count, args.seed, args.objects, args.rig, args.meshes)
-    if not scenes.is_dir():
-        raise BenchError(f"--scenes {scenes}: no such folder")
-    folders = sorted(p for p in scenes.iterdir() if (p / "arrays.npz").exists())
-    if not folders:
-        raise BenchError(f"no rendered scene (arrays.npz) in {scenes}")
-    check_rig(folders[0], rig)
-    layer = layer_for(rig, (rig.camera.height, rig.camera.width))
-    result = {"scenes": str(scenes), "scenes_count": len(folders), "rig": args.rig, "runs": {}}
-    for run_name, (model, transform) in models.items():
-        rows = []
-        for f in folders:
-            rows.append({"scene": f.name, **scene_scores(model, transform, f, rig, layer)})
-            print(f"{run_name} {f.name}: right order {rows[-1]['net_right_order']:.3f} -> "
-                  f"{rows[-1]['path_right_order']:.3f}", flush=True)
-        result["runs"][run_name] = {"scenes": rows, "summary": summary(rows)}
-    atomic_write_text(out / "rendered.json", json.dumps(result, indent=1))
-    atomic_write_text(out / "rendered.md", report(result))
-    print(report(result))
-    return 0
+    if args.scenes and same_folder(out, args.scenes):
+        raise BenchError(f"--out {out} is the --scenes folder: choose another --out")
+    with output_folder(out, TOOL, error=BenchError):
+        claim(out, TOOL, ["rendered.json", "rendered.md"])
+        scenes = (Path(args.scenes) if args.scenes
+                  else render(out, args.count, args.seed, args.objects, args.rig, args.meshes))
+        if not scenes.is_dir():
+            raise BenchError(f"--scenes {scenes}: no such folder")
+        folders = sorted(p for p in scenes.iterdir() if (p / "arrays.npz").exists())
+        if not folders:
+            raise BenchError(f"no rendered scene (arrays.npz) in {scenes}")
+        check_rig(scenes, rig)
+        layer = layer_for(rig, (rig.camera.height, rig.camera.width))
+        result = {"scenes": str(scenes), "scenes_count": len(folders), "rig": args.rig, "runs": {}}
+        for run_name, (model, transform) in models.items():
+            rows = []
+            for f in folders:
+                rows.append({"scene": f.name, **scene_scores(model, transform, f, rig, layer)})
+                print(f"{run_name} {f.name}: right order {rows[-1]['net_right_order']:.3f} -> "
+                      f"{rows[-1]['path_right_order']:.3f}", flush=True)
+            result["runs"][run_name] = {"scenes": rows, "summary": summary(rows)}
+        atomic_write_text(out / "rendered.json", json.dumps(result, indent=1))
+        atomic_write_text(out / "rendered.md", report(result))
+        print(report(result))
+        return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

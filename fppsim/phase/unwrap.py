@@ -222,27 +222,26 @@ def shadow_bridges(regions: PhaseRegions, shadow: np.ndarray, max_gap: int = 80,
         if np.isfinite(vote):
             votes.setdefault((a, b), []).append(vote)
     votes = {ab: np.asarray(v) for ab, v in votes.items()}
-    bias = _common_offset(votes, tolerance, min_votes, min_agreement, max_offset) if about == "image" else 0.0
+    median = {ab: float(np.median(v)) for ab, v in votes.items()}
+    # rows agreeing about their pair's median (an offset common to the votes does not change it)
+    around = {ab: float(np.mean(np.abs(v - median[ab]) <= tolerance)) for ab, v in votes.items()}
+    steady = [ab for ab, v in votes.items() if len(v) >= min_votes and around[ab] >= min_agreement]
+    bias = _common_offset([votes[ab] for ab in steady], max_offset) if about == "image" else 0.0
     out = []
-    for (a, b), v in votes.items():
-        v = v - bias
-        med = float(np.median(v))
-        k = int(np.round(med))
-        agree = float(np.mean(np.abs(v - (k if about == "order" else med)) <= tolerance))
-        if len(v) >= min_votes and agree >= min_agreement and abs(med - k) <= max_offset:
-            out.append(Bridge(a, b, k, int(len(v)), agree))
+    for ab, v in votes.items():
+        k = int(np.round(median[ab] - bias))
+        agree = float(np.mean(np.abs(v - k) <= tolerance)) if about == "order" else around[ab]
+        if len(v) >= min_votes and agree >= min_agreement and abs(median[ab] - bias - k) <= max_offset:
+            out.append(Bridge(*ab, k, int(len(v)), agree))
     return out
 
 
-def _common_offset(votes: dict, tolerance: float, min_votes: int, min_agreement: float, max_offset: float) -> float:
+def _common_offset(steady: list[np.ndarray], max_offset: float) -> float:
     """The image's common vote offset (periods): the circular mean of the votes of the region pairs that would make
-    a bridge on their own (``min_votes`` rows, ``min_agreement`` of them within ``tolerance`` of their median), so
-    that short dark runs and pairs whose rows disagree do not pull it; 0 where those votes hardly share one
-    (resultant length under 0.3) or it exceeds ``max_offset``."""
-    kept = [v for v in votes.values()
-            if len(v) >= min_votes and np.mean(np.abs(v - np.median(v)) <= tolerance) >= min_agreement]
-    if not kept:
+    a bridge on their own (``steady``), so that short dark runs and pairs whose rows disagree do not pull it; 0 where
+    those votes hardly share one (resultant length under 0.3) or it exceeds ``max_offset``."""
+    if not steady:
         return 0.0
-    z = np.mean(np.exp(2j * np.pi * np.concatenate(kept)))
+    z = np.mean(np.exp(2j * np.pi * np.concatenate(steady)))
     offset = float(np.angle(z) / (2 * np.pi))
     return offset if abs(z) >= 0.3 and abs(offset) <= max_offset else 0.0
