@@ -19,7 +19,9 @@ For each training run given (one seed each) and on real frames only:
 
 Writes OUT/orders.json (every number, per run and frame), OUT/orders.md (the tables) and OUT/figures/ (per run:
 the pair and each frame, regions coloured by confidence with their chosen order, and the error where known).
-Re-running recomputes (a run takes about a minute on 2 cores).
+Re-running recomputes (a run takes about a minute on 2 cores). OUT keeps an ownership record (``fppsim.owned``): a
+file there the study did not write (an orders.json, a figure, a rig) is refused in one line (exit 2), not replaced;
+so are a bad checkpoint and a pair folder without its two arrays, before any work.
 
     python pipelines/orders_study.py --runs runs/s2r0/default/run runs/seed1 runs/seed2 --out docs/experiments/orders
 """
@@ -39,9 +41,12 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
+from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.owned import claim, output_folder  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
+from uhrnet.errors import UhrnetError  # noqa: E402
 from uhrnet.inference.prediction import network_heights, order_choice, path_estimate  # noqa: E402
 from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
@@ -49,6 +54,11 @@ from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
+TOOL = "orders_study"  # its files' owner in the --out folder's ownership record (fppsim.owned)
+
+
+class StudyError(Exception):
+    """A bad argument or input of the study (one line, exit 2)."""
 
 
 def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndarray:
@@ -89,7 +99,12 @@ def order_share(choice, layer, psp_phase: np.ndarray, scored: np.ndarray, flat_m
     return float(np.mean(np.abs(r[m] - np.median(r[plane])) < 0.5))
 
 
-def fitted_rig(folder: Path, out: Path):
+def fitted_rig(folder: Path, out: Path, owner: Path | None = None):
+    """The rig ``fppsim fit-rig`` builds from ``folder``'s frames, written to ``out`` once and read back after; with
+    ``owner`` (the study's --out folder) ``out`` is claimed there first, so that a file the study did not write
+    is neither replaced nor taken for its own."""
+    if owner is not None:
+        claim(owner, TOOL, [out.relative_to(owner).as_posix()])
     out.parent.mkdir(parents=True, exist_ok=True)
     if not out.exists():
         subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out)], check=True,
@@ -110,8 +125,31 @@ def main(argv=None) -> int:
                     help="the path starts from the network's single pass, not its mean with the image mirrored "
                          "along the fringes (uhrnet predict's estimate)")
     args = ap.parse_args(argv)
+    try:
+        return run(args)
+    except (StudyError, FppsimError, UhrnetError, OSError, subprocess.CalledProcessError) as exc:
+        print(f"orders_study: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(args) -> int:
     torch.set_num_threads(2)
+    checkpoints = {r: load_checkpoint(r) for r in args.runs}
+    models = {r: (ck, *model_from_checkpoint(ck, "cpu")) for r, ck in checkpoints.items()}  # every one checked first
+    pair = Path(args.pair)
+    for name in ("fringe_pattern.npy", "height_map.npy"):
+        if not (pair / name).is_file():
+            raise StudyError(f"--pair {pair}: no {name}")
+    for folder in map(Path, args.phase):
+        if not folder.is_dir():
+            raise StudyError(f"--phase {folder}: no such folder")
     out = Path(args.out)
+    with output_folder(out, TOOL, error=StudyError):
+        claim(out, TOOL, ["orders.json", "orders.md"])
+        return _study(args, models, out)
+
+
+def _study(args, models: dict, out: Path) -> int:
     (out / "figures").mkdir(parents=True, exist_ok=True)
     fringe = np.load(Path(args.pair) / "fringe_pattern.npy").astype(np.float32)
     label = np.load(Path(args.pair) / "height_map.npy").astype(np.float64)
@@ -120,13 +158,11 @@ def main(argv=None) -> int:
     rigs = {"depth": load_rig(args.depth_rig), "default": make_default_rig()}
     frames = []
     for folder in map(Path, args.phase):
-        rig = rigs["depth"] if folder.name == "FP1523" else fitted_rig(folder, out / "rigs" / f"{folder.name}.json")
+        rig = rigs["depth"] if folder.name == "FP1523" else fitted_rig(folder, out / "rigs" / f"{folder.name}.json", out)
         for sid in list_psp_ids(folder):
             frames.append((f"{folder.name}/{sid}", load_psp_folder_sample(folder, sid), rig))
     results = []
-    for k, run in enumerate(args.runs):
-        ck = load_checkpoint(run)
-        model, transform = model_from_checkpoint(ck, "cpu")
+    for k, (run, (ck, model, transform)) in enumerate(models.items()):
         seed = ck.get("args", {}).get("seed", k)
         row = {"run": str(run), "seed": seed, "estimate": "single pass" if args.single_pass else "mirror mean",
                "pair": {}, "frames": {}}
@@ -138,7 +174,7 @@ def main(argv=None) -> int:
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
                                  "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
             if name == "depth":
-                plot_orders(fringe, h, choice, out / "figures" / f"pair_seed{seed}.png",
+                plot_orders(fringe, h, choice, _figure(out, f"pair_seed{seed}.png"),
                             error_mm=np.where(obj, choice.height - truth, np.nan),
                             title=f"real pair, seed {seed}, depth-fitted rig: object RMSE "
                                   f"{row['pair'][name]['orders']['object_rmse_mm']:.2f} mm (network "
@@ -155,7 +191,7 @@ def main(argv=None) -> int:
             row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
                                     "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
                                     "stats": choice.stats}
-            plot_orders(img, hn, choice, out / "figures" / f"{fname.replace('/', '_')}_seed{seed}.png",
+            plot_orders(img, hn, choice, _figure(out, f"{fname.replace('/', '_')}_seed{seed}.png"),
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
         results.append(row)
         print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
@@ -164,6 +200,12 @@ def main(argv=None) -> int:
     atomic_write_text(out / "orders.md", markdown(results))
     print(markdown(results))
     return 0
+
+
+def _figure(out: Path, name: str) -> Path:
+    """OUT/figures/NAME, claimed for the study before it is drawn."""
+    claim(out, TOOL, [f"figures/{name}"])
+    return out / "figures" / name
 
 
 def _ms(values) -> str:
