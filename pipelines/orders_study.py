@@ -19,9 +19,13 @@ For each training run given (one seed each) and on real frames only:
 
 Writes OUT/orders.json (every number, per run and frame), OUT/orders.md (the tables) and OUT/figures/ (per run:
 the pair and each frame, regions coloured by confidence with their chosen order, and the error where known).
-Re-running recomputes (a run takes about a minute on 2 cores). OUT keeps an ownership record (``fppsim.owned``): a
-file there the study did not write (an orders.json, a figure, a rig) is refused in one line (exit 2), not replaced;
-so are a bad checkpoint and a pair folder without its two arrays, before any work.
+Re-running recomputes (a run takes about a minute on 2 cores). OUT keeps an ownership record (``fppsim.owned``):
+every file the run will write is claimed before any work, and one there the study did not write, or changed since
+it wrote it (an orders.json, a figure, a rig), is refused in one line (exit 2), not replaced; a folder the study
+wrote before it kept the record is recognised by its orders.json. Refused as well, before any work: a bad
+checkpoint, a pair that is not two numeric arrays of the depth rig's size, a --phase folder without frames or
+sharing its name with another (rigs and results are filed by name), and an --out that is one of the inputs.
+Figures are named by seed (``seed<k>_run<i>`` where two runs share one).
 
     python pipelines/orders_study.py --runs runs/s2r0/default/run runs/seed1 runs/seed2 --out docs/experiments/orders
 """
@@ -43,7 +47,7 @@ sys.path.insert(0, str(ROOT))
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text  # noqa: E402
-from fppsim.owned import claim, output_folder  # noqa: E402
+from fppsim.owned import claim, output_folder, same_folder, stamp  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from uhrnet.errors import UhrnetError  # noqa: E402
@@ -101,14 +105,17 @@ def order_share(choice, layer, psp_phase: np.ndarray, scored: np.ndarray, flat_m
 
 def fitted_rig(folder: Path, out: Path, owner: Path | None = None):
     """The rig ``fppsim fit-rig`` builds from ``folder``'s frames, written to ``out`` once and read back after; with
-    ``owner`` (the study's --out folder) ``out`` is claimed there first, so that a file the study did not write
-    is neither replaced nor taken for its own."""
-    if owner is not None:
-        claim(owner, TOOL, [out.relative_to(owner).as_posix()])
+    ``owner`` (the study's --out folder, which has claimed ``out``) a failed fit is a :class:`StudyError` naming
+    the folder and fit-rig's own reason."""
     out.parent.mkdir(parents=True, exist_ok=True)
     if not out.exists():
-        subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out)], check=True,
-                       stdout=subprocess.DEVNULL)
+        done = subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        if done.returncode != 0:
+            if owner is None:
+                raise subprocess.CalledProcessError(done.returncode, done.args, stderr=done.stderr)
+            why = (done.stderr.strip().splitlines() or ["no message"])[-1]
+            raise StudyError(f"fppsim fit-rig {folder} failed: {why}")
     return load_rig(out)
 
 
@@ -127,43 +134,112 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     try:
         return run(args)
-    except (StudyError, FppsimError, UhrnetError, OSError, subprocess.CalledProcessError) as exc:
+    except (StudyError, FppsimError, UhrnetError, OSError) as exc:
         print(f"orders_study: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("orders_study: interrupted; the files of this run not yet written are not there", file=sys.stderr)
+        return 130
 
 
 def run(args) -> int:
     torch.set_num_threads(2)
+    out = Path(args.out)
     checkpoints = {r: load_checkpoint(r) for r in args.runs}
     models = {r: (ck, *model_from_checkpoint(ck, "cpu")) for r, ck in checkpoints.items()}  # every one checked first
-    pair = Path(args.pair)
+    depth_rig = load_rig(args.depth_rig)
+    pair = _read_pair(Path(args.pair), depth_rig)
+    folders = [Path(f) for f in args.phase]
+    ids = _phase_ids(folders)
+    for given, flag in [(args.pair, "--pair"), *((f, "--phase") for f in folders), *((r, "--runs") for r in args.runs)]:
+        if same_folder(out, given):
+            raise StudyError(f"--out {out} is the {flag} folder {given}: choose another --out")
+    tags = _run_tags(models)
+    figures = [f"figures/pair_{t}.png" for t in tags] + [
+        f"figures/{f.name}_{sid}_{t}.png" for t in tags for f in folders for sid in ids[f]]
+    written = ["orders.json", "orders.md", *figures, *(f"rigs/{f.name}.json" for f in folders if f.name != "FP1523")]
+    with output_folder(out, TOOL, error=StudyError):
+        claim(out, TOOL, written, legacy=lambda: _legacy_files(out))
+        try:
+            return _study(args, models, tags, pair, depth_rig, ids, out)
+        finally:  # a file edited after the study wrote it is no longer the study's (claim refuses it next time)
+            stamp(out, [n for n in written if (out / n).exists()])
+
+
+def _read_pair(folder: Path, rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The labelled pair: (fringe, height above the plane in mm, object mask), checked against the depth rig."""
+    arrays = []
     for name in ("fringe_pattern.npy", "height_map.npy"):
-        if not (pair / name).is_file():
-            raise StudyError(f"--pair {pair}: no {name}")
-    for folder in map(Path, args.phase):
+        try:
+            a = np.load(folder / name, allow_pickle=False)
+        except FileNotFoundError:
+            raise StudyError(f"--pair {folder}: no {name}") from None
+        except (OSError, ValueError) as exc:
+            raise StudyError(f"--pair {folder / name}: not a numpy array ({exc})") from None
+        a = np.squeeze(a)
+        if a.shape != (rig.camera.height, rig.camera.width) or not np.issubdtype(a.dtype, np.number):
+            raise StudyError(f"--pair {folder / name}: {a.dtype} array of shape {a.shape}, expected numbers "
+                             f"{rig.camera.height} x {rig.camera.width} (the depth rig's camera)")
+        arrays.append(a)
+    fringe, label = arrays[0].astype(np.float32), arrays[1].astype(np.float64)
+    obj, plane = object_mask(label, label > -100)
+    return fringe, (label - plane) / 6.0, obj
+
+
+def _phase_ids(folders: list[Path]) -> dict:
+    """Each --phase folder's frame ids; a folder that is missing, holds no frame or shares its name with another
+    (its rig and results are filed under the name) is refused."""
+    ids, seen = {}, {}
+    for folder in folders:
+        if folder.name in seen:
+            raise StudyError(f"--phase {folder} and {seen[folder.name]} share the name {folder.name!r}: "
+                             "their rigs and results would be filed together")
+        seen[folder.name] = folder
         if not folder.is_dir():
             raise StudyError(f"--phase {folder}: no such folder")
-    out = Path(args.out)
-    with output_folder(out, TOOL, error=StudyError):
-        claim(out, TOOL, ["orders.json", "orders.md"])
-        return _study(args, models, out)
+        ids[folder] = list_psp_ids(folder)
+        if not ids[folder]:
+            raise StudyError(f"--phase {folder}: no phase-shifting frame (iPattern/, PSin/, PCos/, Fringe/)")
+    return ids
 
 
-def _study(args, models: dict, out: Path) -> int:
+def _run_tags(models: dict) -> list[str]:
+    """Each run's name in the figures: ``seed<k>``, or ``seed<k>_run<i>`` where two runs share a seed."""
+    seeds = [ck.get("args", {}).get("seed", i) for i, (ck, _, _) in enumerate(models.values())]
+    return [f"seed{s}" if seeds.count(s) == 1 else f"seed{s}_run{i}" for i, s in enumerate(seeds)]
+
+
+def _legacy_files(out: Path) -> set[str]:
+    """A folder the study wrote before it kept an ownership record: the files its orders.json names, else none."""
+    try:
+        rows = json.loads((out / "orders.json").read_text())
+        if not isinstance(rows, list) or not rows or not all(
+                isinstance(r, dict) and {"run", "seed", "pair", "frames"} <= r.keys() for r in rows):
+            return set()
+        own = {"orders.json", "orders.md"}
+        for r in rows:
+            own.add(f"figures/pair_seed{r['seed']}.png")
+            for frame in r["frames"]:
+                own.add(f"figures/{frame.replace('/', '_')}_seed{r['seed']}.png")
+                if not frame.startswith("FP1523/"):
+                    own.add(f"rigs/{frame.split('/')[0]}.json")
+        return own
+    except (OSError, ValueError, TypeError, AttributeError):
+        return set()
+
+
+def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out: Path) -> int:
     (out / "figures").mkdir(parents=True, exist_ok=True)
-    fringe = np.load(Path(args.pair) / "fringe_pattern.npy").astype(np.float32)
-    label = np.load(Path(args.pair) / "height_map.npy").astype(np.float64)
-    obj, plane = object_mask(label, label > -100)
-    truth = (label - plane) / 6.0
-    rigs = {"depth": load_rig(args.depth_rig), "default": make_default_rig()}
+    fringe, truth, obj = pair
+    rigs = {"depth": depth_rig, "default": make_default_rig()}
     frames = []
-    for folder in map(Path, args.phase):
+    for folder, frame_ids in ids.items():
         rig = rigs["depth"] if folder.name == "FP1523" else fitted_rig(folder, out / "rigs" / f"{folder.name}.json", out)
-        for sid in list_psp_ids(folder):
+        for sid in frame_ids:
             frames.append((f"{folder.name}/{sid}", load_psp_folder_sample(folder, sid), rig))
     results = []
     for k, (run, (ck, model, transform)) in enumerate(models.items()):
-        seed = ck.get("args", {}).get("seed", k)
+        seed, tag = ck.get("args", {}).get("seed", k), tags[k]
         row = {"run": str(run), "seed": seed, "estimate": "single pass" if args.single_pass else "mirror mean",
                "pair": {}, "frames": {}}
         mirror = () if args.single_pass else (model, transform)
@@ -174,7 +250,7 @@ def _study(args, models: dict, out: Path) -> int:
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
                                  "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
             if name == "depth":
-                plot_orders(fringe, h, choice, _figure(out, f"pair_seed{seed}.png"),
+                plot_orders(fringe, h, choice, out / "figures" / f"pair_{tag}.png",
                             error_mm=np.where(obj, choice.height - truth, np.nan),
                             title=f"real pair, seed {seed}, depth-fitted rig: object RMSE "
                                   f"{row['pair'][name]['orders']['object_rmse_mm']:.2f} mm (network "
@@ -191,7 +267,7 @@ def _study(args, models: dict, out: Path) -> int:
             row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
                                     "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
                                     "stats": choice.stats}
-            plot_orders(img, hn, choice, _figure(out, f"{fname.replace('/', '_')}_seed{seed}.png"),
+            plot_orders(img, hn, choice, out / "figures" / f"{fname.replace('/', '_')}_{tag}.png",
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
         results.append(row)
         print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
@@ -200,12 +276,6 @@ def _study(args, models: dict, out: Path) -> int:
     atomic_write_text(out / "orders.md", markdown(results))
     print(markdown(results))
     return 0
-
-
-def _figure(out: Path, name: str) -> Path:
-    """OUT/figures/NAME, claimed for the study before it is drawn."""
-    claim(out, TOOL, [f"figures/{name}"])
-    return out / "figures" / name
 
 
 def _ms(values) -> str:
