@@ -38,7 +38,7 @@ from fppsim.dataio.readers.samples import load_native_sample  # noqa: E402
 from fppsim.dataio.rig_choice import dataset_rig  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text  # noqa: E402
-from fppsim.owned import claim, output_folder, same_folder  # noqa: E402
+from fppsim.owned import claim, output_folder, same_folder, stamp  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from orders_study import network, pair_scores, path  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
@@ -143,6 +143,9 @@ def main(argv=None) -> int:
     except (BenchError, FppsimError, UhrnetError, OSError, subprocess.CalledProcessError) as exc:
         print(f"orders_rendered: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print("orders_rendered: interrupted; rendered.json / rendered.md not written", file=sys.stderr)
+        return 130
 
 
 def run(args) -> int:
@@ -173,6 +176,7 @@ def run(args) -> int:
             result["runs"][run_name] = {"scenes": rows, "summary": summary(rows)}
         atomic_write_text(out / "rendered.json", json.dumps(result, indent=1))
         atomic_write_text(out / "rendered.md", report(result))
+        stamp(out, ["rendered.json", "rendered.md"])  # edited later, they are no longer this tool's to replace
         print(report(result))
         return 0
 
