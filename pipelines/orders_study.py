@@ -58,6 +58,7 @@ from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
+MD_HEADER = "| seed | rig | prediction | object RMSE (mm) | median (mm) | within 1 mm | right order |"  # orders.md's first line
 TOOL = "orders_study"  # its files' owner in the --out folder's ownership record (fppsim.owned)
 
 
@@ -70,14 +71,14 @@ def network(model, transform, fringe: np.ndarray, mask_invalid: bool) -> np.ndar
     return network_heights(model, transform, fringe, None, keep_all=not mask_invalid)
 
 
-def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None):
+def path(h: np.ndarray, fringe: np.ndarray, rig, model=None, transform=None, name: str = "image"):
     """The order choice as ``uhrnet predict --refine phase --refine-method orders`` makes it: from the network's
     mean over the image and its mirror along the fringes (``path_estimate``) when ``model`` is given, else
     from ``h`` (the network's single pass, as before 2026-11-28); the pixels it leaves alone keep ``h``, as
-    predict's keep the network's own map (since stop 63)."""
+    predict's keep the network's own map (since stop 63). ``name`` heads the errors of a frame without fringes."""
     if model is not None:
-        return order_choice(path_estimate(model, transform, fringe, None, rig, h), fringe, rig, network_mm=h)
-    return order_choice(h, fringe, rig)
+        return order_choice(path_estimate(model, transform, fringe, None, rig, h), fringe, rig, network_mm=h, name=name)
+    return order_choice(h, fringe, rig, name=name)
 
 
 def pair_scores(pred: np.ndarray, truth: np.ndarray, obj: np.ndarray, layer) -> dict:
@@ -104,12 +105,15 @@ def order_share(choice, layer, psp_phase: np.ndarray, scored: np.ndarray, flat_m
 
 
 def fitted_rig(folder: Path, out: Path, owner: Path | None = None):
-    """The rig ``fppsim fit-rig`` builds from ``folder``'s frames, written to ``out`` once and read back after; with
-    ``owner`` (the study's --out folder, which has claimed ``out``) a failed fit is a :class:`StudyError` naming
-    the folder and fit-rig's own reason."""
+    """The rig ``fppsim fit-rig`` builds from ``folder``'s frames, written to ``out`` and read back. Without
+    ``owner`` a rig already at ``out`` is reused (harnesses); with ``owner`` (the study's --out folder, which has
+    claimed ``out``) it is fitted again on every run, since another folder of the same name, or the same folder
+    with other frames, would need another rig (a fit takes a few seconds), and a failed fit is a
+    :class:`StudyError` naming the folder and fit-rig's own reason."""
     out.parent.mkdir(parents=True, exist_ok=True)
-    if not out.exists():
-        done = subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out)],
+    if owner is not None or not out.exists():
+        done = subprocess.run([sys.executable, "-m", "fppsim", "fit-rig", str(folder), "--out", str(out),
+                               *(["--force"] if out.exists() else [])],
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
         if done.returncode != 0:
             if owner is None:
@@ -138,7 +142,7 @@ def main(argv=None) -> int:
         print(f"orders_study: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("orders_study: interrupted; the files of this run not yet written are not there", file=sys.stderr)
+        print("orders_study: interrupted; files it had not rewritten yet keep their earlier versions", file=sys.stderr)
         return 130
 
 
@@ -151,7 +155,8 @@ def run(args) -> int:
     pair = _read_pair(Path(args.pair), depth_rig)
     folders = [Path(f) for f in args.phase]
     ids = _phase_ids(folders)
-    for given, flag in [(args.pair, "--pair"), *((f, "--phase") for f in folders), *((r, "--runs") for r in args.runs)]:
+    run_folders = [Path(r) if Path(r).is_dir() else Path(r).parent for r in args.runs]
+    for given, flag in [(args.pair, "--pair"), *((f, "--phase") for f in folders), *((r, "--runs") for r in run_folders)]:
         if same_folder(out, given):
             raise StudyError(f"--out {out} is the {flag} folder {given}: choose another --out")
     tags = _run_tags(models)
@@ -160,10 +165,11 @@ def run(args) -> int:
     written = ["orders.json", "orders.md", *figures, *(f"rigs/{f.name}.json" for f in folders if f.name != "FP1523")]
     with output_folder(out, TOOL, error=StudyError):
         claim(out, TOOL, written, legacy=lambda: _legacy_files(out))
+        done: list[str] = []  # what this run has written, in order
         try:
-            return _study(args, models, tags, pair, depth_rig, ids, out)
+            return _study(args, models, tags, pair, depth_rig, ids, out, done)
         finally:  # a file edited after the study wrote it is no longer the study's (claim refuses it next time)
-            stamp(out, [n for n in written if (out / n).exists()])
+            stamp(out, done)
 
 
 def _read_pair(folder: Path, rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -216,7 +222,10 @@ def _legacy_files(out: Path) -> set[str]:
         if not isinstance(rows, list) or not rows or not all(
                 isinstance(r, dict) and {"run", "seed", "pair", "frames"} <= r.keys() for r in rows):
             return set()
-        own = {"orders.json", "orders.md"}
+        own = {"orders.json"}
+        md = out / "orders.md"
+        if not md.exists() or md.read_text(errors="replace").startswith(MD_HEADER):
+            own.add("orders.md")
         for r in rows:
             own.add(f"figures/pair_seed{r['seed']}.png")
             for frame in r["frames"]:
@@ -228,13 +237,17 @@ def _legacy_files(out: Path) -> set[str]:
         return set()
 
 
-def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out: Path) -> int:
+def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out: Path, done: list[str]) -> int:
     (out / "figures").mkdir(parents=True, exist_ok=True)
     fringe, truth, obj = pair
     rigs = {"depth": depth_rig, "default": make_default_rig()}
     frames = []
     for folder, frame_ids in ids.items():
-        rig = rigs["depth"] if folder.name == "FP1523" else fitted_rig(folder, out / "rigs" / f"{folder.name}.json", out)
+        if folder.name == "FP1523":
+            rig = rigs["depth"]
+        else:
+            rig = fitted_rig(folder, out / "rigs" / f"{folder.name}.json", out)
+            done.append(f"rigs/{folder.name}.json")
         for sid in frame_ids:
             frames.append((f"{folder.name}/{sid}", load_psp_folder_sample(folder, sid), rig))
     results = []
@@ -246,10 +259,11 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
         h = network(model, transform, fringe, mask_invalid=True)
         for name, rig in rigs.items():
             layer = layer_for(rig, h.shape)
-            choice = path(h, fringe, rig, *mirror)
+            choice = path(h, fringe, rig, *mirror, name=f"the pair ({args.pair})")
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
                                  "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
             if name == "depth":
+                done.append(f"figures/pair_{tag}.png")
                 plot_orders(fringe, h, choice, out / "figures" / f"pair_{tag}.png",
                             error_mm=np.where(obj, choice.height - truth, np.nan),
                             title=f"real pair, seed {seed}, depth-fitted rig: object RMSE "
@@ -258,7 +272,7 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
         for fname, s, rig in frames:
             img = s.image.astype(np.float32) / 127.5 - 1.0
             hn = network(model, transform, img, mask_invalid=False)  # as evaluate-phase scores it
-            choice = path(hn, img, rig, *mirror)
+            choice = path(hn, img, rig, *mirror, name=f"{fname} ({s.path})")
             scored = s.valid & (s.image > 0)
             net_res = fit_phase(s.phase, hn, scored).rmse_rad
             path_res = fit_phase(s.phase, choice.height.astype(np.float64), scored).rmse_rad
@@ -267,6 +281,7 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
                                     "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
                                     "stats": choice.stats}
+            done.append(f"figures/{fname.replace('/', '_')}_{tag}.png")
             plot_orders(img, hn, choice, out / "figures" / f"{fname.replace('/', '_')}_{tag}.png",
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
         results.append(row)
@@ -274,6 +289,7 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
                           "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}}), flush=True)
     atomic_write_text(out / "orders.json", json.dumps(results, indent=1, default=float))
     atomic_write_text(out / "orders.md", markdown(results))
+    done += ["orders.json", "orders.md"]
     print(markdown(results))
     return 0
 
@@ -284,7 +300,7 @@ def _ms(values) -> str:
 
 
 def markdown(results: list[dict]) -> str:
-    lines = ["| seed | rig | prediction | object RMSE (mm) | median (mm) | within 1 mm | right order |",
+    lines = [MD_HEADER,
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in results:
         for rig, d in r["pair"].items():

@@ -103,6 +103,9 @@ def test_orders_study_refuses_inputs_as_output_and_two_phase_folders_of_one_name
     assert study.main(["--runs", str(run_dir), "--out", str(pair), "--pair", str(pair), "--phase"]) == 2
     _one_line(capsys, "--out", "--pair")
     assert sorted(p.name for p in pair.iterdir()) == ["fringe_pattern.npy", "height_map.npy"]
+    assert study.main(["--runs", str(run_dir / "best.pt"), "--out", str(run_dir), "--pair", str(pair), "--phase"]) == 2
+    _one_line(capsys, "--out", "--runs")
+    assert not (run_dir / "orders.json").exists()
     assert study.main(["--runs", str(run_dir), "--out", str(tmp_path / "o"), "--pair", str(pair),
                        "--phase", str(a), str(b)]) == 2
     _one_line(capsys, "share the name")
@@ -124,6 +127,22 @@ def test_orders_study_reruns_into_its_own_folder_but_refuses_a_file_edited_since
     assert study.main(args) == 2
     _one_line(capsys, "orders.md", "changed since")
     assert (out / "orders.md").read_text() == "my notes\n"
+    # edited while a run is under way that is then interrupted: the edit is not taken for the study's
+    (out / "orders.md").unlink()
+    assert study.main(args) == 0
+    real = study._study
+
+    def interrupted(*a, **k):
+        (out / "orders.md").write_text("edited meanwhile\n")
+        raise KeyboardInterrupt
+
+    study._study = interrupted
+    assert study.main(args) == 130
+    study._study = real
+    capsys.readouterr()
+    assert study.main(args) == 2
+    _one_line(capsys, "orders.md", "changed since")
+    assert (out / "orders.md").read_text() == "edited meanwhile\n"
 
 
 def test_orders_rendered_refuses_a_file_it_did_not_write(run_dir, tmp_path, capsys):
@@ -145,5 +164,7 @@ def test_orders_study_takes_the_files_of_a_folder_it_wrote_before_keeping_a_reco
     assert study._legacy_files(tmp_path) == {"orders.json", "orders.md", "figures/pair_seed3.png",
                                              "figures/FP1523_1201_seed3.png", "figures/FP672_541_seed3.png",
                                              "rigs/FP672.json"}
+    (tmp_path / "orders.md").write_text("my notes\n")  # not the study's table: not taken
+    assert "orders.md" not in study._legacy_files(tmp_path)
     (tmp_path / "orders.json").write_text('{"someone": "else"}')
     assert study._legacy_files(tmp_path) == set()
