@@ -18,6 +18,15 @@ SHARED_MESHES = SHARED / "meshes"
 REAL_SAMPLE = SHARED / "real-sample"
 
 
+def one_line(capsys, *parts) -> str:
+    """The captured stderr: one line, no traceback, naming every one of ``parts``."""
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and len(err.splitlines()) == 1, err
+    for p in parts:
+        assert p in err, err
+    return err
+
+
 def wrap_phase(x):
     """Wrap rad into (-pi, pi] (independent of the code under test)."""
     return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))

@@ -11,15 +11,7 @@ from pathlib import Path
 import pytest
 
 from fppsim.cli import main as fppsim_main
-from _helpers import write_figshare
-
-
-def _one_line(capsys, *parts):
-    err = capsys.readouterr().err.strip()
-    assert "Traceback" not in err and len(err.splitlines()) == 1, err
-    for p in parts:
-        assert p in err, err
-    return err
+from _helpers import one_line, write_figshare
 
 
 @pytest.fixture
@@ -35,21 +27,21 @@ def test_an_output_that_is_another_output_or_an_input_is_refused_before_any_work
     same = tmp_path / "same.json"
     if cmd == "fit-optics":
         assert fppsim_main([cmd, str(frames), "--out", str(tmp_path / out), "--json", str(tmp_path / out)]) == 2
-        _one_line(capsys, "--json", "must end in .json")
+        one_line(capsys, "--json", "must end in .json")
     else:
         assert fppsim_main([cmd, str(frames), "--out", str(same), "--json", str(same)]) == 2
-        _one_line(capsys, f"--json {same}", "is also --out")
+        one_line(capsys, f"--json {same}", "is also --out")
     assert not same.exists() and not (tmp_path / out).exists()
     # a file of the input folder, even with --force and the right extension
     theirs = frames / out
     theirs.write_text("the user's")
     assert fppsim_main([cmd, str(frames), "--out", str(theirs), "--force"]) == 2
-    _one_line(capsys, "is a file of the input folder")
+    one_line(capsys, "is a file of the input folder")
     assert theirs.read_text() == "the user's"
     # an extension that does not fit what is written
     bad = tmp_path / "rig.mat"
     assert fppsim_main([cmd, str(frames), "--out", str(bad)]) == 2
-    _one_line(capsys, f"--out {bad}", "must end in")
+    one_line(capsys, f"--out {bad}", "must end in")
     assert not bad.exists()
 
 
@@ -57,7 +49,7 @@ def test_fit_optics_refuses_its_rig_as_output(frames, tmp_path, capsys):
     rig = tmp_path / "rig.yaml"
     rig.write_text("not read\n")
     assert fppsim_main(["fit-optics", str(frames), "--rig", str(rig), "--out", str(rig), "--force"]) == 2
-    _one_line(capsys, "is an input of this command")
+    one_line(capsys, "is an input of this command")
     assert rig.read_text() == "not read\n"
 
 
@@ -77,7 +69,7 @@ def test_an_unwritable_output_folder_is_refused_before_any_work(cmd, frames, tmp
     monkeypatch.setattr(files, "tmp_path", tmp)
     out = tmp_path / ("o.yaml" if cmd == "fit-optics" else "r.json")
     assert fppsim_main([cmd, str(frames), "--out", str(out), "--json", str(ro / "report.json")]) == 1
-    _one_line(capsys, f"--json {ro / 'report.json'}", "cannot write in")
+    one_line(capsys, f"--json {ro / 'report.json'}", "cannot write in")
     assert not out.exists()
 
 
@@ -85,9 +77,9 @@ def test_compare_real_json_is_checked_up_front(frames, tmp_path, capsys):
     mine = tmp_path / "notes.json"
     mine.write_text("mine")
     assert fppsim_main(["compare-real", str(frames), str(frames), "--json", str(mine)]) == 1
-    _one_line(capsys, f"--json {mine}", "exists; pass --force")
+    one_line(capsys, f"--json {mine}", "exists; pass --force")
     assert fppsim_main(["compare-real", str(frames), str(frames), "--json", str(frames / "Z.npy"), "--force"]) == 2
-    _one_line(capsys, "must end in .json")
+    one_line(capsys, "must end in .json")
     assert mine.read_text() == "mine"
 
 
@@ -131,7 +123,7 @@ def test_merge_refuses_an_arm_of_another_definition_under_the_same_name(study, c
     other.write_text(json.dumps(_record(count=50, epochs=2, lr=1e-2, seeds=((2, 40.0),))))
     before = ledger.read_text()
     assert merge(other) == 2
-    _one_line(capsys, "n400 [cuda]", "count 50 vs 400", "epochs 2 vs 10", "lr 0.01 vs 0.0005")
+    one_line(capsys, "n400 [cuda]", "count 50 vs 400", "epochs 2 vs 10", "lr 0.01 vs 0.0005")
     assert ledger.read_text() == before and not (tmp_path / "study_table.md").exists()
 
 
@@ -141,16 +133,16 @@ def test_merge_refuses_non_finite_numbers_and_names_the_merge_input(study, capsy
     nan = tmp_path / "nan.json"
     nan.write_text('{"arms": [{"name": "elsewhere", "seeds": [{"seed": 0, "pair_object_rmse_mm": NaN}]}]}')
     assert merge(nan) == 2
-    _one_line(capsys, f"--merge {nan}", "non-finite")
+    one_line(capsys, f"--merge {nan}", "non-finite")
     cut = tmp_path / "cut.json"
     cut.write_text(before[: len(before) // 2])
     assert merge(cut) == 2
-    err = _one_line(capsys, f"--merge {cut}", "not a readable scaling.json")
+    err = one_line(capsys, f"--merge {cut}", "not a readable scaling.json")
     assert "--ledger" not in err
     foreign = tmp_path / "foreign.json"
     foreign.write_text('{"mine": 1}')
     assert merge(foreign) == 2
-    err = _one_line(capsys, f"--merge {foreign}", "not a scaling study record")
+    err = one_line(capsys, f"--merge {foreign}", "not a scaling study record")
     assert "name another --ledger" not in err
     assert ledger.read_text() == before
 
@@ -177,7 +169,7 @@ def test_merge_counts_what_it_added_and_keeps_figures_it_did_not_write(study, ca
     scaling = load_pipeline("scaling")
     assert scaling.main(["--arms-file", str(tmp_path / "arms.yaml"), "--ledger", str(other / "study.json"),
                          "--merge", str(new)]) == 2
-    _one_line(capsys, "study_samples.png", "not written by pipelines/scaling.py")
+    one_line(capsys, "study_samples.png", "not written by pipelines/scaling.py")
     assert (other / "study_samples.png").read_bytes() == b"the user's figure"
     assert json.loads((other / "study.json").read_text()) == _record()
 
@@ -232,7 +224,7 @@ def test_an_incomplete_scan_folder_is_named_not_read_as_plain_images(tmp_path, c
     shutil.rmtree(tmp_path / "F" / "PCos")
     out = tmp_path / ("o.yaml" if cmd == "fit-optics" else "lab" if cmd == "label-real" else "r.json")
     assert fppsim_main([cmd, str(tmp_path / "F"), "--out", str(out)]) == 1
-    _one_line(capsys, "PCos")
+    one_line(capsys, "PCos")
     assert not out.exists()
 
 
@@ -245,11 +237,11 @@ def test_threads_and_workers_beyond_the_cores_are_refused(tmp_path, capsys, monk
     write_figshare(tmp_path / "real", n=4, h=32, w=64, seed=1)
     assert uhrnet_main(["train", "--real", str(tmp_path / "real"), "--out", str(tmp_path / "run"), "--model", "unet",
                         "--base-channels", "4", "--device", "cpu", "--threads", "1000"]) == 2
-    _one_line(capsys, "--threads 1000", "2 CPU core(s)")
+    one_line(capsys, "--threads 1000", "2 CPU core(s)")
     assert not (tmp_path / "run").exists()
     assert fppsim_main(["generate", "--count", "2", "--meshes", "assets/meshes", "--workers", "64",
                         "--out", str(tmp_path / "g")]) == 2
-    _one_line(capsys, "--workers 64", "2 CPU core(s)")
+    one_line(capsys, "--workers 64", "2 CPU core(s)")
     assert not (tmp_path / "g").exists()
 
 
@@ -283,7 +275,7 @@ def test_fit_rig_without_base_refuses_label_fit_options_it_would_not_use(tmp_pat
     _scan_folder(tmp_path / "F")
     out = tmp_path / "r.json"
     assert fppsim_main(["fit-rig", str(tmp_path / "F"), "--out", str(out), *extra]) == 2
-    _one_line(capsys, extra[0], "needs height labels")
+    one_line(capsys, extra[0], "needs height labels")
     assert not out.exists() and capsys.readouterr().out == ""
 
 
@@ -302,7 +294,7 @@ def test_generate_makes_psp_data_for_a_rig_with_fitted_periods(tmp_path, capsys,
             "--rig", str(tmp_path / "rig.json"), "--psp-freqs", ladder, "--out", str(tmp_path / "g")]
     if not ok:
         assert fppsim_main(argv) != 0
-        _one_line(capsys, "12.37", "got 80", "--psp-freqs 1,")
+        one_line(capsys, "12.37", "got 80", "--psp-freqs 1,")
         return
     assert fppsim_main(argv) == 0, capsys.readouterr().err
     sample = next(p for p in (tmp_path / "g").iterdir() if p.is_dir() and p.name.isdigit())

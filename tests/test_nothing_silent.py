@@ -8,16 +8,8 @@ import pytest
 import torch
 
 from fppsim.cli import main as fppsim_main
-from tests._helpers import write_figshare
+from tests._helpers import one_line, write_figshare
 from uhrnet.cli import main
-
-
-def _one_line(capsys, *parts):
-    err = capsys.readouterr().err.strip()
-    assert "Traceback" not in err and len(err.splitlines()) == 1, err
-    for p in parts:
-        assert p in err, err
-    return err
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +29,7 @@ def test_export_refuses_a_file_changed_since_it_wrote_it(run, tmp_path, capsys):
     out.write_text("the user's own file now")
     capsys.readouterr()
     assert main(args) == 1
-    _one_line(capsys, "was changed since uhrnet export wrote it")
+    one_line(capsys, "was changed since uhrnet export wrote it")
     assert out.read_text() == "the user's own file now"
 
 
@@ -46,19 +38,19 @@ def test_export_refuses_a_file_changed_since_it_wrote_it(run, tmp_path, capsys):
 def test_huge_sizes_are_usage_errors(run, tmp_path, capsys, cmd):
     cmd = [str(run / "run") if c == "RUN" else str(tmp_path / c) if c.endswith(".onnx") else c for c in cmd]
     assert main(cmd) == 2
-    _one_line(capsys, "--height and --width must be multiples of 16 from 16 to 4096")
+    one_line(capsys, "--height and --width must be multiples of 16 from 16 to 4096")
 
 
 def test_huge_counts_epochs_and_rates_are_usage_errors(run, tmp_path, capsys):
     assert fppsim_main(["generate", "--count", "100000000000000000000", "--meshes", "assets/meshes",
                         "--out", str(tmp_path / "g")]) == 2
-    _one_line(capsys, "--count must be from 1 to 10,000,000")
+    one_line(capsys, "--count must be from 1 to 10,000,000")
     assert not (tmp_path / "g").exists()
     base = ["train", "--real", str(run / "real"), "--model", "unet", "--base-channels", "4", "--device", "cpu"]
     assert main(base + ["--lr", "1e300", "--out", str(tmp_path / "t")]) == 2
-    _one_line(capsys, "--lr must be a finite rate up to 10")
+    one_line(capsys, "--lr must be a finite rate up to 10")
     assert main(base + ["--epochs", "1" + "0" * 30, "--out", str(tmp_path / "t")]) == 2
-    _one_line(capsys, "--epochs must be at most 1,000,000")
+    one_line(capsys, "--epochs must be at most 1,000,000")
     assert not (tmp_path / "t").exists()
 
 
@@ -70,7 +62,7 @@ def test_import_weights_refuses_nan_weights(tmp_path, capsys):
     state[key] = state[key].clone().fill_(float("nan"))
     path = save_reference(tmp_path / "w.pth", state)
     assert main(["import-weights", str(path), "--out", str(tmp_path / "o")]) == 1
-    _one_line(capsys, "holds NaN or inf values")
+    one_line(capsys, "holds NaN or inf values")
     assert not (tmp_path / "o" / "best.pt").exists()
 
 
@@ -92,7 +84,7 @@ def test_predict_into_its_input_folder_twice_and_duplicate_inputs(run, tmp_path,
     capsys.readouterr()
     assert main(["predict", str(run / "run"), str(folder / "img.png"), "--out", str(tmp_path / "afile"),
                  "--no-ply", "--device", "cpu", "--no-progress"]) == 1
-    _one_line(capsys, "is a file, not a folder")
+    one_line(capsys, "is a file, not a folder")
 
 
 def test_tensorboard_path_that_is_a_file(run, tmp_path, capsys):
@@ -102,5 +94,5 @@ def test_tensorboard_path_that_is_a_file(run, tmp_path, capsys):
     (out / "tensorboard").write_text("not a folder")
     assert main(["train", "--real", str(run / "real"), "--out", str(out), "--model", "unet", "--base-channels", "4",
                  "--epochs", "1", "--device", "cpu", "--no-progress", "--tensorboard"]) == 1
-    _one_line(capsys, "exists and is not a folder")
+    one_line(capsys, "exists and is not a folder")
     assert sorted(p.name for p in out.iterdir()) == ["tensorboard"]

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from _helpers import load_pipeline, train_tiny, write_figshare
+from _helpers import load_pipeline, one_line, train_tiny, write_figshare
 
 
 @pytest.fixture(scope="module")
@@ -17,14 +17,6 @@ def run_dir(tmp_path_factory):
     root = tmp_path_factory.mktemp("orders_scripts")
     write_figshare(root / "data", n=8, h=32, w=64, seed=3)
     return train_tiny(root / "run", "--real", root / "data")
-
-
-def _one_line(capsys, *parts):
-    err = capsys.readouterr().err.strip()
-    assert "Traceback" not in err and len(err.splitlines()) == 1, err
-    for p in parts:
-        assert p in err, err
-    return err
 
 
 def _pair(folder, real: bool = False):
@@ -62,7 +54,7 @@ def test_orders_study_refuses_a_file_it_did_not_write(run_dir, tmp_path, capsys,
     study = load_pipeline("orders_study")
     rc = study.main(["--runs", str(run_dir), "--out", str(out), "--pair", str(_pair(tmp_path / "pair")), "--phase"])
     assert rc == 2
-    _one_line(capsys, name, "not written by orders_study")
+    one_line(capsys, name, "not written by orders_study")
     assert (out / name).read_text() == "someone's notes\n"
     assert not (out / "figures").exists()
 
@@ -72,12 +64,12 @@ def test_orders_study_names_a_bad_checkpoint_and_a_missing_pair_file(run_dir, tm
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"")
     assert study.main(["--runs", str(bad), "--out", str(tmp_path / "o1"), "--phase"]) == 2
-    _one_line(capsys, "bad.pt")
+    one_line(capsys, "bad.pt")
     assert not (tmp_path / "o1").exists()
     pair = _pair(tmp_path / "pair")
     (pair / "height_map.npy").unlink()
     assert study.main(["--runs", str(run_dir), "--out", str(tmp_path / "o2"), "--pair", str(pair), "--phase"]) == 2
-    _one_line(capsys, "height_map.npy")
+    one_line(capsys, "height_map.npy")
     assert not (tmp_path / "o2").exists()
 
 
@@ -91,7 +83,7 @@ def test_orders_study_refuses_a_rig_or_figure_it_did_not_write_before_any_work(r
         (out / name).write_text("mine")
         rc = study.main(["--runs", str(run_dir), "--out", str(out), "--pair", str(pair), "--phase", str(phase)])
         assert rc == 2
-        _one_line(capsys, name, "not written by orders_study")
+        one_line(capsys, name, "not written by orders_study")
         assert (out / name).read_text() == "mine"
         assert sorted(p.name for p in out.iterdir()) == [name.split("/")[0]]  # nothing fitted or drawn
 
@@ -101,17 +93,17 @@ def test_orders_study_refuses_inputs_as_output_and_two_phase_folders_of_one_name
     pair = _pair(tmp_path / "pair")
     a, b = _phase_folder(tmp_path / "a" / "FPX"), _phase_folder(tmp_path / "b" / "FPX")
     assert study.main(["--runs", str(run_dir), "--out", str(pair), "--pair", str(pair), "--phase"]) == 2
-    _one_line(capsys, "--out", "--pair")
+    one_line(capsys, "--out", "--pair")
     assert sorted(p.name for p in pair.iterdir()) == ["fringe_pattern.npy", "height_map.npy"]
     assert study.main(["--runs", str(run_dir / "best.pt"), "--out", str(run_dir), "--pair", str(pair), "--phase"]) == 2
-    _one_line(capsys, "--out", "--runs")
+    one_line(capsys, "--out", "--runs")
     assert not (run_dir / "orders.json").exists()
     assert study.main(["--runs", str(run_dir), "--out", str(tmp_path / "o"), "--pair", str(pair),
                        "--phase", str(a), str(b)]) == 2
-    _one_line(capsys, "share the name")
+    one_line(capsys, "share the name")
     (pair / "height_map.npy").write_bytes(b"not numpy")
     assert study.main(["--runs", str(run_dir), "--out", str(tmp_path / "o"), "--pair", str(pair), "--phase"]) == 2
-    _one_line(capsys, "height_map.npy", "not a numpy array")
+    one_line(capsys, "height_map.npy", "not a numpy array")
     assert not (tmp_path / "o").exists()
 
 
@@ -125,7 +117,7 @@ def test_orders_study_reruns_into_its_own_folder_but_refuses_a_file_edited_since
     capsys.readouterr()
     (out / "orders.md").write_text("my notes\n")
     assert study.main(args) == 2
-    _one_line(capsys, "orders.md", "changed since")
+    one_line(capsys, "orders.md", "changed since")
     assert (out / "orders.md").read_text() == "my notes\n"
     # edited while a run is under way that is then interrupted: the edit is not taken for the study's
     (out / "orders.md").unlink()
@@ -141,7 +133,7 @@ def test_orders_study_reruns_into_its_own_folder_but_refuses_a_file_edited_since
     study._study = real
     capsys.readouterr()
     assert study.main(args) == 2
-    _one_line(capsys, "orders.md", "changed since")
+    one_line(capsys, "orders.md", "changed since")
     assert (out / "orders.md").read_text() == "edited meanwhile\n"
 
 
@@ -151,7 +143,7 @@ def test_orders_rendered_refuses_a_file_it_did_not_write(run_dir, tmp_path, caps
     (out / "rendered.json").write_text("[]")
     rendered = load_pipeline("orders_rendered")
     assert rendered.main(["--runs", str(run_dir), "--out", str(out), "--scenes", str(tmp_path)]) == 2
-    _one_line(capsys, "rendered.json")
+    one_line(capsys, "rendered.json")
     assert (out / "rendered.json").read_text() == "[]"
 
 
