@@ -160,8 +160,8 @@ def run(args) -> int:
         if same_folder(out, given):
             raise StudyError(f"--out {out} is the {flag} folder {given}: choose another --out")
     tags = _run_tags(models)
-    figures = [f"figures/pair_{t}.png" for t in tags] + [
-        f"figures/{f.name}_{sid}_{t}.png" for t in tags for f in folders for sid in ids[f]]
+    figures = [figure_name("pair", t) for t in tags] + [
+        figure_name(f"{f.name}/{sid}", t) for t in tags for f in folders for sid in ids[f]]
     written = ["orders.json", "orders.md", *figures, *(f"rigs/{f.name}.json" for f in folders if f.name != "FP1523")]
     with output_folder(out, TOOL, error=StudyError):
         claim(out, TOOL, written, legacy=lambda: _legacy_files(out))
@@ -209,6 +209,12 @@ def _phase_ids(folders: list[Path]) -> dict:
     return ids
 
 
+def figure_name(what: str, tag: str) -> str:
+    """A figure's path in OUT: ``figures/pair_<tag>.png`` or ``figures/<folder>_<id>_<tag>.png`` for the frame
+    ``<folder>/<id>``."""
+    return f"figures/{what.replace('/', '_')}_{tag}.png"
+
+
 def _run_tags(models: dict) -> list[str]:
     """Each run's name in the figures: ``seed<k>``, or ``seed<k>_run<i>`` where two runs share a seed."""
     seeds = [ck.get("args", {}).get("seed", i) for i, (ck, _, _) in enumerate(models.values())]
@@ -227,9 +233,9 @@ def _legacy_files(out: Path) -> set[str]:
         if not md.exists() or md.read_text(errors="replace").startswith(MD_HEADER):
             own.add("orders.md")
         for r in rows:
-            own.add(f"figures/pair_seed{r['seed']}.png")
+            own.add(figure_name("pair", f"seed{r['seed']}"))
             for frame in r["frames"]:
-                own.add(f"figures/{frame.replace('/', '_')}_seed{r['seed']}.png")
+                own.add(figure_name(frame, f"seed{r['seed']}"))
                 if not frame.startswith("FP1523/"):
                     own.add(f"rigs/{frame.split('/')[0]}.json")
         return own
@@ -263,12 +269,13 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
                                  "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
             if name == "depth":
-                done.append(f"figures/pair_{tag}.png")
-                plot_orders(fringe, h, choice, out / "figures" / f"pair_{tag}.png",
+                figure = figure_name("pair", tag)
+                plot_orders(fringe, h, choice, out / figure,
                             error_mm=np.where(obj, choice.height - truth, np.nan),
                             title=f"real pair, seed {seed}, depth-fitted rig: object RMSE "
                                   f"{row['pair'][name]['orders']['object_rmse_mm']:.2f} mm (network "
                                   f"{row['pair'][name]['network']['object_rmse_mm']:.2f})")
+                done.append(figure)
         for fname, s, rig in frames:
             img = s.image.astype(np.float32) / 127.5 - 1.0
             hn = network(model, transform, img, mask_invalid=False)  # as evaluate-phase scores it
@@ -281,9 +288,10 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
                                     "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
                                     "stats": choice.stats}
-            done.append(f"figures/{fname.replace('/', '_')}_{tag}.png")
-            plot_orders(img, hn, choice, out / "figures" / f"{fname.replace('/', '_')}_{tag}.png",
+            figure = figure_name(fname, tag)
+            plot_orders(img, hn, choice, out / figure,
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
+            done.append(figure)
         results.append(row)
         print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
                           "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}}), flush=True)
