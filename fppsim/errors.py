@@ -61,6 +61,11 @@ class PSPMatError(FppsimError, ValueError):
     """A .mat phase-shifting file (or folder of them) that does not hold what the reader expects."""
 
 
+class NoPhaseError(PSPMatError):
+    """A phase-shifting frame read right whose every pixel is invalid (PSin = PCos = 0, or NaN): a frame with
+    nothing to score, which a tool scoring several frames skips, not a broken file."""
+
+
 class BackendError(FppsimError, RuntimeError):
     """The requested off-screen GL backend cannot be used (one line saying what to install or set)."""
 

@@ -264,12 +264,17 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
     shutil.copytree(root, both)
     phase, height, valid = truth["0"]  # its phase, but a black image: no pixel is lit
     save_psp_folder_sample(both, "9", *sums_from_phase(phase, valid, 30.0), np.zeros((32, 64), np.uint8))
+    # a lit frame whose every pixel carries the invalid marker (PSin = PCos = 0): nothing to fit either; it once
+    # stopped the run after the frames before it were scored, with no report
+    save_psp_folder_sample(both, "3", *sums_from_phase(phase, np.zeros_like(valid), 30.0),
+                           np.full((32, 64), 120, np.uint8))
     report = tmp_path / "report"
     for _ in range(2):  # the second time into its own report
         assert main(["evaluate-phase", *args, "--phase-root", str(both), "--out", str(report)]) == 0
-        assert "9: warning:" in capsys.readouterr().out
+        printed = capsys.readouterr().out
+        assert "9: warning:" in printed and "3: warning:" in printed and "no pixel has a phase" in printed
         doc = json.loads((report / "phase_results.json").read_text())
-        assert [r["id"] for r in doc["per_image"]] == ["0", "1", "2"] and doc["skipped"] == ["9"]
+        assert [r["id"] for r in doc["per_image"]] == ["0", "1", "2"] and doc["skipped"] == ["3", "9"]
     # under --refine phase, a lit frame without readable fringes keeps the network's heights in the +orders row, and
     # the JSON says so
     save_psp_folder_sample(both, "8", *sums_from_phase(phase, valid, 30.0), np.full((32, 64), 128, np.uint8))

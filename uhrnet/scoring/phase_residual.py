@@ -54,7 +54,7 @@ from fppsim.owned import claim, output_folder
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
 from uhrnet.errors import ConfigError, DataError, InputError
 from uhrnet.plots import pyplot, save_figure
-from fppsim.errors import PSPMatError, RigError
+from fppsim.errors import NoPhaseError, PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
@@ -483,6 +483,10 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
     for k, sid in enumerate(ids):
         try:
             s = src.scan(sid, convention=args.convention, negate_sin=args.negate_sin)
+        except NoPhaseError as exc:  # read right, nothing to fit: the others still count, as a black frame
+            echo(f"{sid}: warning: {exc}: skipped")
+            skipped.append(sid)
+            continue
         except PSPMatError as exc:
             raise ConfigError(str(exc)) from None
         note = reading_note(s.meta)

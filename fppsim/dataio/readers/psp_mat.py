@@ -31,11 +31,11 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import PSPMatError, UsageError
+from fppsim.errors import NoPhaseError, PSPMatError, UsageError
 from fppsim.phase.psp import phase_from_sums
 
-__all__ = ["PSPMatError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "FOLDERS", "CONVENTIONS",
-           "check_convention", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable",
+__all__ = ["PSPMatError", "NoPhaseError", "PspMat", "SIN_KEYS", "COS_KEYS", "ORDER_KEYS", "load_psp_mat", "FOLDERS",
+           "CONVENTIONS", "check_convention", "wrapped_from_sums", "is_psp_folder", "list_psp_ids", "read_mat_variable",
            "load_ipattern", "load_psp_folder_sample", "iter_psp_folder", "AUTO", "READINGS", "phase_jump_share",
            "reading_check", "reading_words", "reading_note", "READ_CONVENTIONS", "check_read_convention"]
 
@@ -337,9 +337,9 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
     if not valid.any():  # name the file that leaves no pixel a phase
         for r, a in (("sin", psin), ("cos", pcos), ("order", of)):
             if not np.isfinite(a).any():
-                raise PSPMatError(f"{paths[r]}: {FOLDERS[r][1]} holds no finite value (all NaN or inf): no pixel "
+                raise NoPhaseError(f"{paths[r]}: {FOLDERS[r][1]} holds no finite value (all NaN or inf): no pixel "
                                   "has a phase")
-        raise PSPMatError(f"{paths['sin']}: no pixel has a phase (PSin and PCos are 0, the invalid marker, or NaN "
+        raise NoPhaseError(f"{paths['sin']}: no pixel has a phase (PSin and PCos are 0, the invalid marker, or NaN "
                           f"wherever {paths['order'].parent.name}/ and {paths['cos'].parent.name}/ are finite)")
     of = np.where(np.isfinite(of), of, 0.0)
     ok = np.rint(of)
