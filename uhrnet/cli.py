@@ -302,6 +302,8 @@ def run_predict(args) -> int:
         print(f"uhrnet predict: warning: {line}", file=sys.stderr)
     for name, st in result.refine.items():
         regions = (f", {st['regions']} phase regions in {st['components']} linked groups, {st['undecided_regions']} undecided"
+                   + (f", {st['floating_regions']} floating (tied to no piece of the plane: the network's level alone,"
+                      f" {st['floating_fraction']:.2%} of the pixels)" if st.get("floating_regions") else "")
                    + (f", {st['refused_links']} links refused by the network's levels" if st["refused_links"] else "")
                    + (f", {st['beyond_margin_moved']} px beyond the move margin moved with their neighbours"
                       if st.get("beyond_margin_moved") else "")

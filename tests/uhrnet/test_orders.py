@@ -128,6 +128,48 @@ def test_a_region_the_path_cannot_decide_keeps_the_network_heights_and_says_so(s
     assert np.percentile(_errors(got.height, h, plane), 99) < 0.05
 
 
+def test_an_object_nothing_ties_to_the_plane_reports_the_networks_confidence_not_the_planes(scene):
+    """The disc with no link (no bridges, no seams) and its estimate 0.2 period high: it still moves to its
+    nearest order (right here), but that order is the network's level alone, so its confidence is the posterior
+    under ``sigma_network`` (a Gaussian of 1 period: at most 0.40 for 7 candidates), while the plane, on which
+    the phase origin is fitted, keeps the posterior under ``sigma``. The heights do not depend on it."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    estimate = h + np.where(disc, 0.2 * period, 0.0)
+    rel = np.where(shadow, 0.0, 1.0)
+    kw = dict(valid=~shadow, shadow=shadow, bridges=False, seams=False)
+    got = choose_orders(estimate, wrapped, rel, layer, **kw)
+    inner = disc & (np.hypot(xx - 360, yy - 176) < 60)
+    on_disc = {int(v) for v in np.unique(got.labels[inner]) if v}
+    assert on_disc and all(got.regions[v - 1].decided and not got.regions[v - 1].anchored for v in on_disc)
+    assert all(0.3 < got.regions[v - 1].confidence < 0.41 for v in on_disc)
+    assert np.percentile(_errors(got.height, h, inner), 99) < 0.05  # moved all the same
+    plane = ~disc & ~shadow & (np.hypot(xx - 360, yy - 176) > 80)
+    on_plane = {int(v) for v in np.unique(got.labels[plane]) if v}
+    assert all(got.regions[v - 1].anchored and got.regions[v - 1].confidence > 0.95 for v in on_plane)
+    assert got.stats["floating_regions"] == len([r for r in got.regions if r.decided and not r.anchored]) >= 1
+    assert 0 < got.stats["floating_fraction"] < 0.5
+    same = choose_orders(estimate, wrapped, rel, layer, sigma_network=0.3, **kw)
+    assert np.array_equal(same.height, got.height, equal_nan=True)
+    assert [r.confidence for r in same.regions] == pytest.approx(
+        [r.confidence if r.anchored else same.regions[r.label - 1].confidence for r in got.regions])
+    assert all(s.confidence > 0.9 for s in same.regions if s.label in on_disc)
+    # with the shadow bridge the disc is tied to the plane: anchored, and the plane's confidence again
+    tied = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow)
+    assert all(tied.regions[v - 1].anchored for v in {int(v) for v in np.unique(tied.labels[inner]) if v})
+
+
+def test_a_frame_without_a_plane_has_every_region_floating(scene):
+    """Nothing at the plane's level (the disc's scene lifted 30 mm everywhere): no origin on the plane, so no
+    region is anchored and every decided region counts as floating."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    lifted = h + 30.0
+    w = wrap_phase(surface_phase(rig, lifted) + 72.0)
+    got = choose_orders(lifted + 0.1 * period, w, None, layer)
+    assert got.regions and not any(r.anchored for r in got.regions)
+    assert got.stats["floating_regions"] == sum(r.decided for r in got.regions)
+    assert all(r.confidence < 0.41 for r in got.regions)
+
+
 def test_lit_pixels_without_a_usable_phase_take_the_level_correction_of_their_moved_neighbours(scene):
     """A dim patch inside the disc (its phase unusable, given as ``shadow`` as predict does for the single-shot
     phase's invalid pixels, its estimate finite): the disc's moved pixels correct the network's level error of 0.35
