@@ -199,3 +199,25 @@ def test_real_frame_against_its_psp_phase():
     assert np.median(e[v]) < 0.04 and np.percentile(e[v], 90) < 0.25  # measured 0.028 / 0.18
     hi = v & (r.reliability > 0.5)
     assert hi.sum() > 0.6 * v.sum() and np.median(e[hi]) < np.median(e[v]) and np.percentile(e[hi], 90) < 0.1
+
+
+@pytest.mark.parametrize("period, angle_deg", [(11.7, 0.0), (22.0, 90.0), (9.0, -35.0), (15.0, 60.0)])
+def test_local_carrier_reads_period_and_axis_from_the_wrapped_steps_with_objects_on_black(period, angle_deg):
+    """A carrier of known period and direction, half the frame black (no phase) and a bump on the lit half: the
+    period and the gradient's axis (sign-free) come back from the wrapped phase's steps; too few reliable pixels
+    give NaN and 0 votes."""
+    from fppsim.phase.fringe_axis import local_carrier
+
+    yy, xx = np.mgrid[0:200, 0:300].astype(float)
+    a = np.radians(angle_deg)
+    phase = 2 * np.pi * (xx * np.cos(a) + yy * np.sin(a)) / period
+    phase += 3.0 * np.exp(-((xx - 220) ** 2 + (yy - 100) ** 2) / (2 * 25.0 ** 2))  # an object's relief
+    wrapped = np.angle(np.exp(1j * phase))
+    rel = np.where(xx > 150, 1.0, 0.0)
+    wrapped[xx <= 150] = np.nan
+    got_period, got_axis, votes = local_carrier(wrapped, rel)
+    assert votes > 0.4 * wrapped.size
+    assert got_period == pytest.approx(period, rel=0.05)
+    assert abs((np.degrees(got_axis) - angle_deg + 90) % 180 - 90) < 2.0  # the same axis either sign
+    assert local_carrier(wrapped, np.zeros_like(rel))[2] == 0
+    assert np.isnan(local_carrier(wrapped, np.zeros_like(rel))[0])

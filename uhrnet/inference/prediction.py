@@ -69,7 +69,7 @@ from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 from fppsim.owned import claim, output_folder, owners
 from fppsim.dataio.rig_choice import resolve_rig
-from fppsim.phase.fringe_axis import fringe_axis, oriented_single_shot_phase, rig_phase_gradient
+from fppsim.phase.fringe_axis import fringe_axis, local_carrier, oriented_single_shot_phase, rig_phase_gradient
 
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "label_heights",
            "labels_at_input_size", "pad_to_multiple", "collect_inputs", "load_inputs", "read_inputs", "refine_rig_for",
@@ -278,6 +278,11 @@ def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
         arr = encode_fringe(arr)
     elif not np.issubdtype(arr.dtype, np.floating):
         raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
+    else:  # fringes swing both ways about the mean: in the encoding their dark half is below 0
+        lo, hi = float(np.nanmin(arr)), float(np.nanmax(arr))
+        if 0.0 <= lo < hi <= 1.0:
+            raise DataError(f"{path}: values span [{lo:g}, {hi:g}], none below 0: an image scaled to [0, 1]? "
+                            "expected the dataset encoding intensity / 127.5 - 1 in [-1, 1] (2 x - 1 from [0, 1])")
     return [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
             for k in range(arr.shape[0])]
 
@@ -490,8 +495,9 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     except ValueError as exc:
         raise DataError(f"{name}: {exc}") from None
     if r.plane_in_view and ssp.valid.mean() >= 0.5:
-        # objects on black: their fringes' spectrum is not the plane's (FP672 on black: 40 px against 10.5)
         _check_carrier(ssp, gradient, name)
+    else:  # objects on black, or mostly dark: the spectrum's peak is the envelope's, the phase's own steps are not
+        _check_carrier(ssp, gradient, name, local=True)
     return ssp
 
 
@@ -505,22 +511,36 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 CARRIER_PERIOD_RATIO = 1.5
 CARRIER_ANGLE_DEG = 20.0
 CARRIER_MIN_PERIODS = 16
+#: Through a rig without a plane in view, or in an image less than half lit, the period and direction are the
+#: wrapped phase's own steps (:func:`~fppsim.phase.fringe_axis.local_carrier`) where at least this share of the
+#: pixels votes (reliable, with their four neighbours): the frames without a plane here (11-41 % voting) 0.91-1.02
+#: of their rigs' period and within 3 deg; another rig's image (90 deg off), or one zoomed 2x, once gave heights
+#: hundreds of mm off there without a word. FP672 on black has no reliable pixel: nothing is checked.
+CARRIER_MIN_VOTES = 0.01
 
 
-def _check_carrier(ssp, gradient: tuple[float, float], name: str) -> None:
-    """:class:`DataError` naming both when the fringes the image shows (``ssp.period``, ``ssp.carrier``) are not
-    the rig's (``gradient``: its reference-plane phase gradient at the image centre, rad/px)."""
+def _check_carrier(ssp, gradient: tuple[float, float], name: str, local: bool = False) -> None:
+    """:class:`DataError` naming both when the fringes the image shows (``ssp.period``, ``ssp.carrier``; with
+    ``local``, :func:`~fppsim.phase.fringe_axis.local_carrier` of its reliable phase, skipped below a share
+    :data:`CARRIER_MIN_VOTES` of the pixels) are not the rig's (``gradient``: its reference-plane phase gradient
+    at the image centre, rad/px)."""
     gu, gv = gradient
     g = float(np.hypot(gu, gv))
     fx, fy = ssp.carrier
+    shown, tilt = ssp.period, ssp.tilt
+    if local:
+        shown, axis, votes = local_carrier(ssp.wrapped, ssp.reliability)
+        if votes < CARRIER_MIN_VOTES * ssp.wrapped.size:
+            return
+        fx, fy, tilt = math.cos(axis), math.sin(axis), -math.degrees(axis)  # tilt: the lines from vertical
     f = float(np.hypot(fx, fy))
     period = 2 * np.pi / g
     if min(ssp.wrapped.shape) < CARRIER_MIN_PERIODS * period:
         return
     angle = float(np.degrees(np.arccos(min(1.0, abs(fx * gu + fy * gv) / (f * g)))))
-    ratio = ssp.period / period
+    ratio = shown / period
     if angle > CARRIER_ANGLE_DEG or not 1 / CARRIER_PERIOD_RATIO <= ratio <= CARRIER_PERIOD_RATIO:
-        raise DataError(f"{name}: its fringes run every {ssp.period:.1f} px at {ssp.tilt:+.0f} deg, the rig's every "
+        raise DataError(f"{name}: its fringes run every {shown:.1f} px at {tilt:+.0f} deg, the rig's every "
                         f"{period:.1f} px {fringe_axis((gu, gv))} ({angle:.0f} deg apart): not an image of this rig "
                         "(another rig, a rotated or rescaled image, or no fringes)")
 
