@@ -259,6 +259,10 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
     assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(out)]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "phase_results.md exists and was not written by uhrnet evaluate-phase" in err[0]
+    for bad, said in ((["--degree", "-1"], "--degree"), (["--limit", "0"], "--limit"), (["--figures", "-1"], "--figures"),
+                      (["--names", "a", "b"], "--names")):  # option values wrong on their own: exit 2, nothing read
+        assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(tmp_path / "u"), *bad]) == 2
+        assert said in capsys.readouterr().err and not (tmp_path / "u").exists()
     assert (out / "phase_results.md").read_text() == "mine"
     both = tmp_path / "both"
     shutil.copytree(root, both)

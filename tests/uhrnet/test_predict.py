@@ -135,8 +135,9 @@ def test_predict_user_errors_are_one_line(ckpt, tmp_path, capfd):
     assert len(err) == 1 and "corrupt.png: cannot read as an image" in err[0]  # no OpenCV log line
     f8, _, _ = scene(np.random.default_rng(2), 32, 48)
     cv2.imwrite(str(tmp_path / "img.png"), f8)
-    assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), "--range", "5", "1"]) == 1
-    assert "--range" in capfd.readouterr().err
+    for bad in (["--range", "5", "1"], ["--range", "nan", "1"], ["--colormap", "nope"]):  # usage errors: exit 2
+        assert main(["predict", str(ckpt), str(tmp_path / "img.png"), "--out", str(out), *bad]) == 2
+        assert bad[0] in capfd.readouterr().err
     rig_mod = pytest.importorskip("fppsim.geometry.rig")
     try:
         rig = rig_mod.Rig.default()

@@ -179,9 +179,9 @@ class PredictConfig:
         if not (self.pixel_size > 0 and np.isfinite(self.pixel_size)):
             raise UsageError(f"--pixel-size must be a finite spacing > 0 mm, got {self.pixel_size:g}")
         if self.range is not None and not (np.isfinite(self.range).all() and self.range[0] < self.range[1]):
-            raise ConfigError(f"--range: expected LO < HI (mm), got {self.range[0]:g} {self.range[1]:g}")
+            raise UsageError(f"--range: expected LO < HI (mm), got {self.range[0]:g} {self.range[1]:g}")
         if self.colormap not in __import__("matplotlib").colormaps:
-            raise ConfigError(f"--colormap: unknown matplotlib colour map {self.colormap!r}")
+            raise UsageError(f"--colormap: unknown matplotlib colour map {self.colormap!r}")
 
 
 @dataclass

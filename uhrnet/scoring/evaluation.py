@@ -99,7 +99,7 @@ class Report:
 def model_names(ckpts: list[dict], given: list[str] | None) -> list[str]:
     if given:
         if len(given) != len(ckpts):
-            raise ConfigError(f"--names: {len(given)} names for {len(ckpts)} checkpoints")
+            raise UsageError(f"--names: {len(given)} names for {len(ckpts)} checkpoints")
         return list(given)
     base = [c["model"]["name"] for c in ckpts]
     names = []

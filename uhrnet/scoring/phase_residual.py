@@ -52,7 +52,7 @@ from fppsim.files import atomic_write_text
 from fppsim.geometry.rig import check_image_size
 from fppsim.owned import claim, output_folder
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
-from uhrnet.errors import ConfigError, DataError, InputError
+from uhrnet.errors import ConfigError, DataError, InputError, UsageError
 from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import NoPhaseError, PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
@@ -239,9 +239,15 @@ class PhaseEvalConfig:
     refine_method: str = "orders"
     rig: str | Path | None = None  # the rig --refine works through (default: the checkpoint's, else fppsim's)
 
-    def __post_init__(self):
+    def __post_init__(self):  # an option value wrong on its own: a usage error (exit 2), before anything is read
         if self.degree < 0:
-            raise ConfigError(f"--degree must be >= 0, got {self.degree}")
+            raise UsageError(f"--degree must be >= 0, got {self.degree}")
+        if self.limit is not None and self.limit < 1:
+            raise UsageError(f"--limit must be >= 1, got {self.limit}")
+        if self.figures < 0:
+            raise UsageError(f"--figures must be >= 0, got {self.figures}")
+        if self.names and len(self.names) != len(self.checkpoints):
+            raise UsageError(f"--names: {len(self.names)} names for {len(self.checkpoints)} checkpoints")
 
 
 def _mean(values) -> float:
