@@ -45,7 +45,10 @@ def test_predict_png_npy_and_folder(ckpt, tmp_path, capsys):
     rc = main(["predict", str(ckpt), str(tmp_path / "in"), str(tmp_path / "stack.npy"), str(tmp_path / "x" / "a.png"),
                "--out", str(out), "--no-progress"])
     assert rc == 0
-    assert "5 height map(s) from 4 input file(s)" in capsys.readouterr().out
+    printed = capsys.readouterr()
+    assert "5 height map(s) from 4 input file(s)" in printed.out
+    # the second a.png was written under another name: the user is told which input that is
+    assert f"{tmp_path / 'x' / 'a.png'}: written as x_a_* (another input is also named a)" in printed.err
     for name in ("a", "b", "stack_0000", "stack_0001", "x_a"):
         for suffix in ("_height.npy", "_height.tif", "_height.png", ".ply"):
             assert (out / f"{name}{suffix}").exists(), name + suffix

@@ -219,11 +219,12 @@ def collect_inputs(items: list[str]) -> list[Path]:
     return files
 
 
-def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[tuple]:
+def read_inputs(items: Sequence[str | Path], with_paths: bool = False, renamed: dict | None = None) -> list[tuple]:
     """Every fringe image of ``items`` as ``[(name, fringe float32 (H, W) in [-1, 1]), ...]``: image and
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
-    repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``."""
+    repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``;
+    ``renamed`` (a dict) gets ``{new name: (name it had, path)}`` for each of those."""
 
     out: list[tuple[str, np.ndarray]] = []
     seen: set[Path] = set()
@@ -243,6 +244,7 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
     names: set[str] = set()
     unique = []
     for name, fringe, path in out:
+        given = name
         if name in names:  # same stem in two folders (e.g. <id>/fringe.png of a native dataset)
             name = f"{path.parent.name}_{name}"
         base, k = name, 1
@@ -250,6 +252,8 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False) -> list[t
             k += 1
             name = f"{base}_{k}"
         names.add(name)
+        if renamed is not None and name != given:
+            renamed[name] = (given, path)
         unique.append((name, fringe, path) if with_paths else (name, fringe))
     return unique
 
@@ -346,7 +350,8 @@ def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
-    inputs = read_inputs(config.inputs, with_paths=True)
+    renamed: dict = {}
+    inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed)
     ckpt = load_checkpoint(config.checkpoint)
     device = select_device(config.device)
     model, transform = model_from_checkpoint(ckpt, device)
@@ -379,6 +384,8 @@ def predict(config: PredictConfig) -> PredictResult:
              ("_height.npy", "_height.tif", "_height.png")
              + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
+    result.warnings += [f"{path}: written as {name}_* (another input is also named {given})"
+                        for name, (given, path) in renamed.items()]
     for name, fringe, path in inputs:
         note = shape_note(ckpt, fringe.shape)
         if note:
