@@ -89,35 +89,33 @@ def oriented_single_shot_phase(image: np.ndarray, orientation: str | None = None
 
 def local_carrier(wrapped: np.ndarray, reliability: np.ndarray, min_reliability: float = 0.5
                   ) -> tuple[float, float, int]:
-    """The fringes' period and direction from the wrapped phase's own steps, where a spectrum cannot say: objects
-    on black (the spectrum's peak moves to the objects' envelope: FP672 on black 40 px against its plane's 10.5),
-    or a frame mostly dark.
+    """The fringes' period and direction from a wrapped phase's own steps.
 
     Parameters
     ----------
     wrapped : (H, W) float, a single-shot wrapped phase (rad; NaN = none).
-    reliability : (H, W) float in [0, 1]; a pixel counts where it and its four neighbours reach ``min_reliability``.
+    reliability : (H, W) float in [0, 1]; a pixel counts where it and its right and lower neighbours reach
+        ``min_reliability``.
 
     Returns
     -------
-    ``(period_px, angle_rad, count)``: 2 pi over the median magnitude of the phase gradient (central differences
-    of the wrapped steps, rad/px), the gradient's axis (``atan2(g_v, g_u)`` in (-pi/2, pi/2], sign-free: the
-    gradient-weighted mean of the doubled angle, halved), and how many pixels voted (0: NaN, NaN).
-    On the frames here, with and without their plane, the period is 0.91-1.02 of the rig's and the axis within
-    3 deg of it (docs/experiments/orders.md, stop 66)."""
+    ``(period_px, angle_rad, count)``: 2 pi over the median magnitude of the phase gradient (one-pixel forward
+    steps, wrapped: right for periods over 2 px), the gradient's axis (``atan2(g_v, g_u)`` in (-pi/2, pi/2],
+    sign-free: the gradient-weighted mean of the doubled angle, halved), and how many pixels voted (none, or no
+    step: NaN, NaN and the count). The phase is only as good as its demodulation: where the spectrum's peak is
+    not the fringes' (objects on black), the period read here is the peak's too (FP672 on black: 35-37 px against
+    its rig's 10.5), while the axis stays within 12 deg; on the other frames here, with and without their plane,
+    the period is 0.91-1.02 of the rig's and the axis within 3 deg (docs/experiments/orders.md, stop 66)."""
     w = np.asarray(wrapped, np.float64)
     ok = np.nan_to_num(np.asarray(reliability, np.float64), nan=0.0) >= min_reliability
-    if min(w.shape) < 3:
+    if min(w.shape) < 2:
         return float("nan"), float("nan"), 0
-    gu = np.angle(np.exp(1j * (w[1:-1, 2:] - w[1:-1, :-2]))) / 2
-    gv = np.angle(np.exp(1j * (w[2:, 1:-1] - w[:-2, 1:-1]))) / 2
-    ok = ok[1:-1, 1:-1] & ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
-    ok &= np.isfinite(gu) & np.isfinite(gv)
-    if not ok.any():
-        return float("nan"), float("nan"), 0
+    gu = np.angle(np.exp(1j * (w[:-1, 1:] - w[:-1, :-1])))
+    gv = np.angle(np.exp(1j * (w[1:, :-1] - w[:-1, :-1])))
+    ok = ok[:-1, :-1] & ok[:-1, 1:] & ok[1:, :-1] & np.isfinite(gu) & np.isfinite(gv)
     gu, gv = gu[ok], gv[ok]
     m = np.hypot(gu, gv)
-    if not (m > 0).any():
-        return float("nan"), float("nan"), 0
+    if not m.size or not np.median(m) > 0:
+        return float("nan"), float("nan"), int(m.size)
     z = np.sum(m * np.exp(2j * np.arctan2(gv, gu)))
-    return float(2 * np.pi / np.median(m)), float(np.angle(z) / 2), int(ok.sum())
+    return float(2 * np.pi / np.median(m)), float(np.angle(z) / 2), int(m.size)

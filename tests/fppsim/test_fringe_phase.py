@@ -201,7 +201,7 @@ def test_real_frame_against_its_psp_phase():
     assert hi.sum() > 0.6 * v.sum() and np.median(e[hi]) < np.median(e[v]) and np.percentile(e[hi], 90) < 0.1
 
 
-@pytest.mark.parametrize("period, angle_deg", [(11.7, 0.0), (22.0, 90.0), (9.0, -35.0), (15.0, 60.0)])
+@pytest.mark.parametrize("period, angle_deg", [(11.7, 0.0), (22.0, 90.0), (9.0, -35.0), (15.0, 60.0), (2.6, 0.0), (3.0, 90.0)])
 def test_local_carrier_reads_period_and_axis_from_the_wrapped_steps_with_objects_on_black(period, angle_deg):
     """A carrier of known period and direction, half the frame black (no phase) and a bump on the lit half: the
     period and the gradient's axis (sign-free) come back from the wrapped phase's steps; too few reliable pixels

@@ -219,12 +219,14 @@ def collect_inputs(items: list[str]) -> list[Path]:
     return files
 
 
-def read_inputs(items: Sequence[str | Path], with_paths: bool = False, renamed: dict | None = None) -> list[tuple]:
+def read_inputs(items: Sequence[str | Path], with_paths: bool = False, renamed: dict | None = None,
+                notes: list | None = None) -> list[tuple]:
     """Every fringe image of ``items`` as ``[(name, fringe float32 (H, W) in [-1, 1]), ...]``: image and
     ``.npy`` files, folders of them, figshare folders (fringes only: labels are never read) and
     phase-shifting folders (their ``iPattern`` images); see the module docstring. Names are unique (a
     repeated name gets its folder's name in front, then a number). ``with_paths``: ``(name, fringe, path)``;
-    ``renamed`` (a dict) gets ``{new name: (name it had, path)}`` for each of those."""
+    ``renamed`` (a dict) gets ``{new name: (name it had, path)}`` for each of those; ``notes`` (a list), the
+    lines of :func:`load_inputs`."""
 
     out: list[tuple[str, np.ndarray]] = []
     seen: set[Path] = set()
@@ -234,7 +236,7 @@ def read_inputs(items: Sequence[str | Path], with_paths: bool = False, renamed: 
             for path in collect_inputs([str(item)]):
                 if path.resolve() not in seen:  # a file named twice is read once
                     seen.add(path.resolve())
-                    out += [(name, fringe, path) for name, fringe in load_inputs(path)]
+                    out += [(name, fringe, path) for name, fringe in load_inputs(path, notes)]
             continue
         try:
             for k, (name, fringe, path) in enumerate(src.inputs()):
@@ -269,8 +271,9 @@ def _checked(img, path: Path, k: int) -> np.ndarray:
     return img
 
 
-def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
-    """``[(name, fringe float32 (H, W) in [-1, 1]), ...]`` for one input file."""
+def load_inputs(path: Path, notes: list | None = None) -> list[tuple[str, np.ndarray]]:
+    """``[(name, fringe float32 (H, W) in [-1, 1]), ...]`` for one input file; ``notes`` (a list) gets a line for
+    each float frame of a ``.npy`` with no value below 0 (likely scaled to [0, 1], not the encoding)."""
     if path.suffix.lower() != ".npy":
         return [(path.stem, read_fringe_image(path))]
     try:
@@ -282,13 +285,15 @@ def load_inputs(path: Path) -> list[tuple[str, np.ndarray]]:
         arr = encode_fringe(arr)
     elif not np.issubdtype(arr.dtype, np.floating):
         raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
-    else:  # fringes swing both ways about the mean: in the encoding their dark half is below 0
-        lo, hi = float(np.nanmin(arr)), float(np.nanmax(arr))
-        if 0.0 <= lo < hi <= 1.0:
-            raise DataError(f"{path}: values span [{lo:g}, {hi:g}], none below 0: an image scaled to [0, 1]? "
-                            "expected the dataset encoding intensity / 127.5 - 1 in [-1, 1] (2 x - 1 from [0, 1])")
-    return [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
-            for k in range(arr.shape[0])]
+    frames = [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
+              for k in range(arr.shape[0])]
+    if notes is not None and arr.dtype != np.uint8:  # fringes swing both ways: in the encoding their dark half is < 0
+        for name, f in frames:
+            lo, hi = float(f.min()), float(f.max())
+            if 0.0 <= lo < hi <= 1.0:
+                notes.append(f"{path} ({name}): values span [{lo:.3g}, {hi:.3g}], none below 0: if it was scaled to "
+                             "[0, 1], it is read wrong (the encoding is intensity / 127.5 - 1 in [-1, 1]: 2 x - 1)")
+    return frames
 
 
 def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
@@ -350,8 +355,8 @@ def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
-    renamed: dict = {}
-    inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed)
+    renamed, notes = {}, []
+    inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed, notes=notes)
     ckpt = load_checkpoint(config.checkpoint)
     device = select_device(config.device)
     model, transform = model_from_checkpoint(ckpt, device)
@@ -384,8 +389,8 @@ def predict(config: PredictConfig) -> PredictResult:
              ("_height.npy", "_height.tif", "_height.png")
              + ((".ply",) if config.ply else ()) + (("_height_network.npy",) if refine_rig is not None else ())]
     result = PredictResult(files=sorted({p for _, _, p in inputs}))
-    result.warnings += [f"{path}: written as {name}_* (another input is also named {given})"
-                        for name, (given, path) in renamed.items()]
+    result.warnings += notes + [f"{path}: written as {name}_* (another input is also named {given})"
+                                for name, (given, path) in renamed.items()]
     for name, fringe, path in inputs:
         note = shape_note(ckpt, fringe.shape)
         if note:
@@ -492,7 +497,8 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
     cannot tell the two directions apart from one image). :class:`DataError` for a frame without fringes, or
     whose fringes are not the rig's (period or direction at the image centre: :data:`CARRIER_PERIOD_RATIO`,
     :data:`CARRIER_ANGLE_DEG`, in an image of at least :data:`CARRIER_MIN_PERIODS` periods both ways, half of it
-    with fringes, through a rig with the plane in view)."""
+    with fringes, through a rig with the plane in view; otherwise the direction alone, from the phase's own steps:
+    :data:`CARRIER_MIN_VOTES`)."""
 
     r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
     gradient = rig_phase_gradient(r)
@@ -518,11 +524,12 @@ def fringe_phase(fringe: np.ndarray, rig, name: str = "image"):
 CARRIER_PERIOD_RATIO = 1.5
 CARRIER_ANGLE_DEG = 20.0
 CARRIER_MIN_PERIODS = 16
-#: Through a rig without a plane in view, or in an image less than half lit, the period and direction are the
-#: wrapped phase's own steps (:func:`~fppsim.phase.fringe_axis.local_carrier`) where at least this share of the
-#: pixels votes (reliable, with their four neighbours): the frames without a plane here (11-41 % voting) 0.91-1.02
-#: of their rigs' period and within 3 deg; another rig's image (90 deg off), or one zoomed 2x, once gave heights
-#: hundreds of mm off there without a word. FP672 on black has no reliable pixel: nothing is checked.
+#: Through a rig without a plane in view, or in an image less than half lit, the DIRECTION alone is checked, from the
+#: wrapped phase's own steps (:func:`~fppsim.phase.fringe_axis.local_carrier`), where at least this share of the
+#: pixels votes. The period is not: the phase is demodulated around the spectrum's peak, and where that is the
+#: objects' envelope the steps read its period too (FP672 on black 35-37 px against 10.5, its axis 8-12 deg off).
+#: The frames without a plane here (11-41 % voting) read within 3 deg of their rigs; an image with fringes across
+#: the rig's (79-90 deg off) once gave heights hundreds of mm off there without a word. One zoomed 2x is not caught.
 CARRIER_MIN_VOTES = 0.01
 
 
@@ -537,15 +544,15 @@ def _check_carrier(ssp, gradient: tuple[float, float], name: str, local: bool = 
     shown, tilt = ssp.period, ssp.tilt
     if local:
         shown, axis, votes = local_carrier(ssp.wrapped, ssp.reliability)
-        if votes < CARRIER_MIN_VOTES * ssp.wrapped.size:
+        if votes < CARRIER_MIN_VOTES * ssp.wrapped.size or not np.isfinite(axis):
             return
-        fx, fy, tilt = math.cos(axis), math.sin(axis), -math.degrees(axis)  # tilt: the lines from vertical
+        fx, fy, tilt = math.cos(axis), math.sin(axis), 0.0 - math.degrees(axis)  # tilt: the lines from vertical
     f = float(np.hypot(fx, fy))
     period = 2 * np.pi / g
     if min(ssp.wrapped.shape) < CARRIER_MIN_PERIODS * period:
         return
     angle = float(np.degrees(np.arccos(min(1.0, abs(fx * gu + fy * gv) / (f * g)))))
-    ratio = shown / period
+    ratio = 1.0 if local else shown / period  # (the local period is the demodulation's: not checked)
     if angle > CARRIER_ANGLE_DEG or not 1 / CARRIER_PERIOD_RATIO <= ratio <= CARRIER_PERIOD_RATIO:
         raise DataError(f"{name}: its fringes run every {shown:.1f} px at {tilt:+.0f} deg, the rig's every "
                         f"{period:.1f} px {fringe_axis((gu, gv))} ({angle:.0f} deg apart): not an image of this rig "

@@ -28,8 +28,10 @@ Each component then gets ONE shift, the integer that best fits all its regions' 
 Gaussian prior of ``sigma`` periods on the network's level error decides: a component whose chosen order has a
 posterior below ``min_confidence`` (its level nearly halfway between two orders) is undecided, its pixels keep
 the network's heights, and the result says so. The region's *confidence* is the probability that its order is
-right. A component holding a piece of the plane is *anchored*: the phase origin is fitted on the plane, so its
-order rests on the plane's, and its confidence is that posterior. A component with no piece of the plane (an
+right. A component holding a region the estimate puts on the plane (most of its reliable pixels within
+``flat_mm`` of 0, where the phase origin was fitted on the plane) is *anchored*: its order rests on the plane's, and
+its confidence is that posterior. (A raised object the network puts on the plane is anchored too, and at the plane's
+order: the confidence cannot see that error.) A component with no piece of the plane (an
 object no shadow or seam ties to it, or every region of a frame without a plane) is *floating*: its order is the
 network's level alone, and its confidence is the posterior under ``sigma_network`` periods, the network's measured
 level error (the order chosen is the same). On rendered scenes with exact truth (3 networks, 32 scenes) floating
@@ -102,7 +104,7 @@ class RegionOrder:
     component: int
     links: int
     moved_mm: float
-    anchored: bool = True
+    anchored: bool = False
 
 
 @dataclass
@@ -448,7 +450,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     stats = {**_choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, refused,
                              carried, move, offset), "beyond_margin_moved": beyond,
              "floating_regions": int(floating.sum()),
-             "floating_fraction": float(core_sizes[floating].sum() / max(int(finite.sum()), 1)) if n else 0.0,
+             "floating_fraction": float(regions.sizes[floating].sum() / max(int(finite.sum()), 1)) if n else 0.0,
              **rims, **island_stats}
     return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats, rim)
 
