@@ -132,3 +132,19 @@ def test_adapt_loss_is_zero_where_the_height_explains_the_image_and_its_gradient
     z = (h + err).clone().requires_grad_(True)
     loss, terms = adapt_loss(z, h, wrapped, torch.zeros_like(rel) + 1e-3, layer, w_grad=0.0)
     assert terms["drift"] == pytest.approx(float(err.abs().mean()) / 10.0, rel=1e-6)
+
+
+def test_adapt_says_when_a_float_frame_looks_scaled_to_0_1(setup, tmp_path):
+    """A float .npy with no value below 0 is read as the encoding (a [0, 1] image reads about 21 mm off): adapt
+    says so for that frame, as predict does (it once read it without a word)."""
+    tmp, run, rig = setup
+    (tmp_path / "unit").mkdir()
+    fr = rig_fringe(rig, _bump(rig, 6.0)).astype(np.float32) / 255.0
+    np.save(tmp_path / "unit" / "f.npy", fr)
+    lines = []
+    try:
+        adapt(_cfg(tmp, run, tmp_path / "out", images=[tmp_path / "unit"], epochs=1), log=lines.append)
+    except ConfigError:  # the image misread may leave nothing to adapt to: the warning came first
+        pass
+    said = [line for line in lines if "values span" in line]
+    assert len(said) == 1 and said[0].startswith("adapt: warning: ") and "f.npy (f)" in said[0]

@@ -78,6 +78,8 @@ def test_evaluate_options_and_errors(runs, capsys):
     assert "nope.pt: checkpoint not found" in capsys.readouterr().err
     assert main(["evaluate", str(a), "--out", str(out), "--names", "x", "y"]) == 2  # a usage error
     assert "--names: 2 names for 1 checkpoints" in capsys.readouterr().err
+    assert main(["evaluate", str(tmp / "nope.pt"), "--out", str(out), "--names", "x", "y"]) == 2  # before reading
+    assert "--names: 2 names for 1 checkpoints" in capsys.readouterr().err
     assert main(["evaluate", str(a), "--out", str(out), "--samples", "zzz", "--no-progress"]) == 1
     assert "--samples" in capsys.readouterr().err
     assert main(["evaluate", str(a), "--out", str(tmp / "report3"), "--row", "100000", "--no-progress"]) == 1

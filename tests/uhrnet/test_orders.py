@@ -148,6 +148,8 @@ def test_an_object_nothing_ties_to_the_plane_reports_the_networks_confidence_not
     assert all(got.regions[v - 1].anchored and got.regions[v - 1].confidence > 0.95 for v in on_plane)
     assert got.stats["floating_regions"] == len([r for r in got.regions if r.decided and not r.anchored]) >= 1
     assert 0 < got.stats["floating_fraction"] < 0.5
+    floating_px = sum(r.pixels for r in got.regions if r.decided and not r.anchored)  # per_region's own count
+    assert got.stats["floating_fraction"] == pytest.approx(floating_px / np.isfinite(estimate).sum())
     same = choose_orders(estimate, wrapped, rel, layer, sigma_network=0.3, **kw)
     assert np.array_equal(same.height, got.height, equal_nan=True)
     assert [r.confidence for r in same.regions] == pytest.approx(
@@ -156,6 +158,12 @@ def test_an_object_nothing_ties_to_the_plane_reports_the_networks_confidence_not
     # with the shadow bridge the disc is tied to the plane: anchored, and the plane's confidence again
     tied = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow)
     assert all(tied.regions[v - 1].anchored for v in {int(v) for v in np.unique(tied.labels[inner]) if v})
+
+
+def test_a_region_order_is_not_anchored_unless_the_path_says_so():
+    from uhrnet.physics.orders import RegionOrder
+
+    assert RegionOrder(1, 100, 0.0, 0, 0.9, True, 1, 0, 0.0).anchored is False
 
 
 def test_a_frame_without_a_plane_has_every_region_floating(scene):

@@ -281,13 +281,14 @@ def load_inputs(path: Path, notes: list | None = None) -> list[tuple[str, np.nda
     except (ValueError, OSError, EOFError) as exc:
         raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
     arr = as_image_stack(arr, path)
-    if arr.dtype == np.uint8:
+    floats = arr.dtype != np.uint8  # (a uint8 file cannot be a [0, 1] image)
+    if not floats:
         arr = encode_fringe(arr)
     elif not np.issubdtype(arr.dtype, np.floating):
         raise DataError(f"{path}: dtype {arr.dtype}; expected float (intensity / 127.5 - 1) or uint8")
     frames = [(path.stem if arr.shape[0] == 1 else f"{path.stem}_{k:04d}", _checked(arr[k], path, k))
               for k in range(arr.shape[0])]
-    if notes is not None and arr.dtype != np.uint8:  # fringes swing both ways: in the encoding their dark half is < 0
+    if notes is not None and floats:  # fringes swing both ways: in the encoding their dark half is below 0
         for name, f in frames:
             lo, hi = float(f.min()), float(f.max())
             if 0.0 <= lo < hi <= 1.0:
@@ -529,7 +530,8 @@ CARRIER_MIN_PERIODS = 16
 #: pixels votes. The period is not: the phase is demodulated around the spectrum's peak, and where that is the
 #: objects' envelope the steps read its period too (FP672 on black 35-37 px against 10.5, its axis 8-12 deg off).
 #: The frames without a plane here (11-41 % voting) read within 3 deg of their rigs; an image with fringes across
-#: the rig's (79-90 deg off) once gave heights hundreds of mm off there without a word. One zoomed 2x is not caught.
+#: the rig's (79-90 deg off) once gave heights hundreds of mm off there without a word. One zoomed 2x is not caught,
+#: nor one where fewer vote (FP672 on black under most masks: 0.2-1 %); the :data:`CARRIER_MIN_PERIODS` gate holds.
 CARRIER_MIN_VOTES = 0.01
 
 

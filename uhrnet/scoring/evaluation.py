@@ -160,6 +160,8 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
                                 ("--timing-repeats", timing_repeats, 0)):
         if value is not None and value < lowest:
             raise UsageError(f"{flag} must be >= {lowest}, got {value}")
+    if names and len(names) != len(checkpoints):  # before any checkpoint is read
+        raise UsageError(f"--names: {len(names)} names for {len(checkpoints)} checkpoints")
     ckpts = [load_checkpoint(p) for p in checkpoints]
     names = model_names(ckpts, names)
     transform = _shared_transform(ckpts)

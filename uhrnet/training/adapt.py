@@ -258,7 +258,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     device = select_device(cfg.device)
     if device.type == "cpu":
         keep_freed_memory()  # large maps re-used, not page-faulted in every step (same numbers)
-    images = _read_images(cfg, rig, rig_name)
+    images = _read_images(cfg, rig, rig_name, log)
     names = [LAST_PT, HISTORY_CSV, CONFIG_JSON, IMAGES_JSON]
     names += [f"figures/{im.name}_adapt.png" for im in images] if cfg.figures else []
     claim_run_folder(out, ADAPT_TOOL, names, checkpoint_kind, kind="adapt")  # never replaces a file it did not write
@@ -341,11 +341,16 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     return result
 
 
-def _read_images(cfg: AdaptConfig, rig, rig_name: str) -> list[ImagePhase]:
+def _read_images(cfg: AdaptConfig, rig, rig_name: str, log: Callable[[str], None]) -> list[ImagePhase]:
     """The images and their single-shot phases, each checked against the rig's camera size; refused when no
-    pixel is reliable enough to adapt to (before the run folder is claimed)."""
-    images = []
-    for name, fr, path in read_inputs([str(p) for p in cfg.images], with_paths=True):
+    pixel is reliable enough to adapt to (before the run folder is claimed). What reading them noticed (a float
+    frame with no value below 0, an input renamed) goes to ``log`` as a warning."""
+    images, renamed, notes = [], {}, []
+    inputs = read_inputs([str(p) for p in cfg.images], with_paths=True, renamed=renamed, notes=notes)
+    for line in notes + [f"{path}: named {name} (another input is also named {given})"
+                         for name, (given, path) in renamed.items()]:
+        log(f"adapt: warning: {line}")
+    for name, fr, path in inputs:
         check_image_size(rig, fr.shape, f"{path}: image {name}", who=f"the rig's camera ({rig_name}) is",
                          error=ConfigError, template="{what} is {got} but {who} {camera}{hint}")
         images.append(image_phase(name, fr, rig))
