@@ -114,6 +114,10 @@ def test_predict_errors(ckpt, tmp_path, capsys):
     assert main(["predict", str(ckpt), str(tmp_path / "unit.npy"), "--out", out, "--no-progress", "--no-ply"]) == 0
     err = [e for e in capsys.readouterr().err.strip().splitlines() if "values span" in e]
     assert len(err) == 1 and "unit.npy (unit_0001): values span [0.05, 0.95], none below 0" in err[0]
+    np.save(tmp_path / "black.npy", np.full((32, 64), -1.0, np.float32))  # --keep-all keeps heights nothing informs
+    assert main(["predict", str(ckpt), str(tmp_path / "black.npy"), "--out", out, "--keep-all", "--no-progress",
+                 "--no-ply"]) == 0
+    assert "black.npy (black): the input is black everywhere; --keep-all kept" in capsys.readouterr().err
     np.save(tmp_path / "bright.npy", (192 + 60 * np.cos(2 * np.pi * xx / 8.0)).astype(np.uint8))  # uint8: unambiguous
     assert main(["predict", str(ckpt), str(tmp_path / "bright.npy"), "--out", out, "--no-progress", "--no-ply"]) == 0
     assert "values span" not in capsys.readouterr().err

@@ -433,6 +433,9 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
         result.warnings.append(
             f"{path} ({name}): no valid pixel in the prediction (every label at or below "
             f"{transform.invalid_threshold:g}, or a black input); is this a fringe image like the training data?")
+    elif config.keep_all and not (np.asarray(fringe) > -1.0).any():  # kept, but nothing in it was seen
+        result.warnings.append(f"{path} ({name}): the input is black everywhere; --keep-all kept the network's "
+                               "heights, which no fringe informs")
     network = height
     if refine_rig is not None:
         try:
