@@ -248,15 +248,14 @@ def _plane_pixels(h: np.ndarray, usable: np.ndarray, flat_mm: float) -> np.ndarr
     return flat if flat.any() and flat.sum() >= 0.1 * usable.sum() else None
 
 
-def _origin(layer, wrapped: np.ndarray, phi: np.ndarray, h: np.ndarray, usable: np.ndarray, flat_mm: float) -> float:
+def _origin(layer, wrapped: np.ndarray, phi: np.ndarray, flat: np.ndarray | None, usable: np.ndarray) -> float:
     """The image's phase origin ``o`` (rad): measured = rig phase + o, mod 2 pi. Where the estimate says
-    'plane' (within ``flat_mm`` of 0, at least a tenth of the usable pixels) the plane's own phase is the truth
-    (height 0 by definition), so a network whose plane sits a little off does not lift every region by that
-    much; otherwise the estimate's phase ``phi`` over every usable pixel."""
-    flat = _plane_pixels(h, usable, flat_mm)
+    'plane' (``flat``: :func:`_plane_pixels`) the plane's own phase is the truth (height 0 by definition), so a
+    network whose plane sits a little off does not lift every region by that much; otherwise (None) the
+    estimate's phase ``phi`` over every usable pixel."""
     if flat is not None:
         with torch.no_grad():
-            phi0 = layer.phase_from_height(torch.zeros(h.shape, dtype=torch.float64, device=layer.A.device))
+            phi0 = layer.phase_from_height(torch.zeros(flat.shape, dtype=torch.float64, device=layer.A.device))
         return circular_median(wrap(wrapped - phi0.cpu().numpy())[flat])
     return circular_median(wrap(wrapped - phi)[usable]) if usable.any() else 0.0
 
@@ -388,7 +387,8 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
     h, finite, ok, rel, w, usable, phi = e.h, e.finite, e.ok, e.rel, e.w, e.usable, e.phi
-    offset = _origin(layer, w, phi, h, usable, flat_mm)
+    plane_px = _plane_pixels(h, usable, flat_mm)  # the origin is fitted there, and a region on it anchors its group
+    offset = _origin(layer, w, phi, plane_px, usable)
     walls = step_conflicts(w, e.expected, max_step)
     regions = phase_regions(w, usable, cut=walls, min_size=min_region)
     n = regions.count
@@ -397,7 +397,6 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     prior = (np.asarray(ndi.median(np.nan_to_num(regions.unwrapped - phi - offset), regions.labels,
                                    index=np.arange(1, n + 1))) / TWO_PI if n else np.zeros(0))  # the reliable cores
     core_sizes = regions.sizes.astype(np.float64)
-    plane_px = _plane_pixels(h, usable, flat_mm)  # a region mostly on the plane anchors its component's order
     anchors = ((np.asarray(ndi.mean(plane_px, regions.labels, index=np.arange(1, n + 1))) > 0.5)
                if n and plane_px is not None else np.zeros(n, bool))
     lab, U = regions.labels, regions.unwrapped
