@@ -34,7 +34,7 @@ from uhrnet.scoring.metrics import image_metrics
 from uhrnet.scoring.timing import inference_seconds
 from uhrnet.plots import plot_comparison
 
-__all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "SPLITS"]
+__all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "check_name_count", "SPLITS"]
 
 SPLITS = ("test", "val", "train", "all")
 
@@ -96,10 +96,15 @@ class Report:
              "models": self.models}, indent=2, default=json_default, allow_nan=True))
 
 
+def check_name_count(given: Sequence[str] | None, count: int) -> None:
+    """:class:`UsageError` unless ``--names`` (``given``, None or empty: none) names each of ``count`` checkpoints."""
+    if given and len(given) != count:
+        raise UsageError(f"--names: {len(given)} names for {count} checkpoints")
+
+
 def model_names(ckpts: list[dict], given: list[str] | None) -> list[str]:
     if given:
-        if len(given) != len(ckpts):
-            raise UsageError(f"--names: {len(given)} names for {len(ckpts)} checkpoints")
+        check_name_count(given, len(ckpts))
         return list(given)
     base = [c["model"]["name"] for c in ckpts]
     names = []
@@ -160,8 +165,7 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
                                 ("--timing-repeats", timing_repeats, 0)):
         if value is not None and value < lowest:
             raise UsageError(f"{flag} must be >= {lowest}, got {value}")
-    if names and len(names) != len(checkpoints):  # before any checkpoint is read
-        raise UsageError(f"--names: {len(names)} names for {len(checkpoints)} checkpoints")
+    check_name_count(names, len(checkpoints))  # before any checkpoint is read
     ckpts = [load_checkpoint(p) for p in checkpoints]
     names = model_names(ckpts, names)
     transform = _shared_transform(ckpts)

@@ -59,7 +59,7 @@ from fppsim.dataio.readers import open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
-from uhrnet.scoring.evaluation import model_names
+from uhrnet.scoring.evaluation import check_name_count, model_names
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
@@ -246,8 +246,7 @@ class PhaseEvalConfig:
             raise UsageError(f"--limit must be >= 1, got {self.limit}")
         if self.figures < 0:
             raise UsageError(f"--figures must be >= 0, got {self.figures}")
-        if self.names and len(self.names) != len(self.checkpoints):
-            raise UsageError(f"--names: {len(self.names)} names for {len(self.checkpoints)} checkpoints")
+        check_name_count(self.names, len(self.checkpoints))
 
 
 def _mean(values) -> float:
