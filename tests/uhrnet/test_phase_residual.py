@@ -123,3 +123,14 @@ def test_plane_pixel_score_is_not_bent_by_an_object_covering_most_of_the_view():
     res = evaluate_phase(phase, height, valid, plane_pixels=plane, degree=2)
     assert res["plane"]["flat"]["rmse_rad"] == pytest.approx(flat.rmse_rad)
     assert evaluate_phase(phase, height, valid, plane_pixels=np.zeros_like(valid), degree=2)["plane"] is None
+
+
+def test_folder_mm_equivalent_is_not_dominated_by_an_image_without_a_height_term():
+    from uhrnet.scoring.phase_residual import _mm_equiv
+
+    rows = [{"prediction": {"rmse_rad": 0.4, "a_rad_per_mm": -0.8}},
+            {"prediction": {"rmse_rad": 0.6, "a_rad_per_mm": 1e-9}},  # a fit that found no height term
+            {"prediction": {"rmse_rad": float("nan"), "a_rad_per_mm": -0.8}}]
+    # mean residual 0.5 rad over mean |a| 0.4 rad/mm; the per-image mean would be 3e8 mm
+    assert _mm_equiv(rows) == pytest.approx(0.5 / 0.4)
+    assert np.isnan(_mm_equiv([{"prediction": {"rmse_rad": 0.5, "a_rad_per_mm": 0.0}}]))

@@ -17,7 +17,8 @@ by least squares over the valid pixels, ``x, y`` being the pixel column / row sc
 * ``explained``: fraction of the relief phase explained, ``1 - SS_res / SS_relief`` (1 = perfect, 0 = no
   better than a flat predictor, negative impossible for least squares);
 * ``a_rad_per_mm, b_rad_per_mm2`` and the plane coefficients; ``rmse_mm_equiv = rmse_rad / |a|``, the
-  residual expressed in mm at the fitted phase-per-mm scale (rough: ignores the h^2 term).
+  residual expressed in mm at the fitted phase-per-mm scale (rough: ignores the h^2 term); over a folder,
+  the images' mean residual over their mean ``|a|``.
 
 A second score fits the plane polynomial on the reference plane's own pixels alone (``plane_pixels``; the
 folder evaluation finds them in the real phase, :func:`fppsim.phase.plane.phase_plane_masks`), then ``a, b``
@@ -263,7 +264,8 @@ def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) 
              "Flat = the same fit with h = 0 on the same pixels (explains 0 by construction); ratio = residual / flat "
              "(the default score). Plane-pixel columns: the same with the plane polynomial fitted on the reference "
              "plane's own pixels only (found in the phase, fppsim.phase.plane.phase_plane_masks), so an object "
-             "covering much of the view cannot bend it. Means over images.", "",
+             "covering much of the view cannot bend it. Means over images; Residual (mm equiv.) = mean residual / "
+             "mean |a|.", "",
              "| Model | Residual RMSE (rad) | Flat RMSE (rad) | Ratio | Explained | Plane-pixel plane: residual "
              "| flat | ratio | a (rad/mm) | b (rad/mm^2) | Residual (mm equiv.) | Pixels used |",
              "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
@@ -424,6 +426,15 @@ def _phase_models(ckpts, args: PhaseEvalConfig) -> list:
     return models
 
 
+def _mm_equiv(rows) -> float:
+    """The images' residual in mm: mean residual (rad) over mean ``|a|`` (rad/mm). The mean of each image's
+    ``rmse_rad / |a|`` would let one image whose fit finds no height term (``a`` near 0) dominate it."""
+    pairs = [(r["prediction"]["rmse_rad"], abs(r["prediction"]["a_rad_per_mm"])) for r in rows]
+    pairs = [(e, a) for e, a in pairs if np.isfinite(e) and np.isfinite(a)]
+    scale = float(np.mean([a for _, a in pairs])) if pairs else 0.0
+    return float(np.mean([e for e, _ in pairs]) / scale) if scale > 0 else float("nan")
+
+
 def _phase_summary(ckpts, names, per_image: list, args: PhaseEvalConfig) -> list[dict]:
     """One row per model (and per refined model): the per-image numbers averaged over the images."""
     summary = []
@@ -433,7 +444,8 @@ def _phase_summary(ckpts, names, per_image: list, args: PhaseEvalConfig) -> list
         summary.append({
             "name": name, "checkpoint": ck["path"], "images": len(rows),
             **{key: _mean(r["prediction"][key] for r in rows)
-               for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "rmse_mm_equiv", "relief_rms_rad")},
+               for key in ("rmse_rad", "explained", "a_rad_per_mm", "b_rad_per_mm2", "relief_rms_rad")},
+            "rmse_mm_equiv": _mm_equiv(rows),
             "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
             "ratio": _mean(r["prediction"]["rmse_rad"] / r["flat"]["rmse_rad"] for r in rows if r["flat"]["rmse_rad"] > 0),
             "plane_rmse_rad": _mean(r["plane"]["prediction"]["rmse_rad"] for r in rows if r["plane"]),
