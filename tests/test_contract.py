@@ -92,6 +92,26 @@ def test_old_field_names_still_load(tmp_path):
         FppsimDataset(tmp_path / "fig")
 
 
+def test_the_readers_train_and_evaluate_open_refuse_an_export_in_other_label_units(tmp_path):
+    """`uhrnet train` / `evaluate` open a figshare export through open_dataset / load_sources, which memory-map its
+    arrays directly: they read a Z.npy labelled at 10 units per mm as if it were 6 (QA: 17.24 mm for 3.77 mm)."""
+    from uhrnet.data.datasets import load_sources, open_dataset
+
+    theirs = LabelTransform(name="custom", units_per_mm=10.0, plane_offset=-50.0)
+    hs, ms = _heights(n=6)
+    _native(tmp_path / "nat", hs, ms, theirs)
+    export_figshare(tmp_path / "nat", tmp_path / "fig", theirs)
+    (tmp_path / "fig" / "native").mkdir()
+    (tmp_path / "fig" / "native" / "dataset.json").write_text(json.dumps({"label": theirs.to_dict()}))
+    for read in (lambda: open_dataset(tmp_path / "fig"), lambda: load_sources(synthetic=[tmp_path / "fig"]),
+                 lambda: load_sources(real=[tmp_path / "fig"])):
+        with pytest.raises(DataError, match="labelled with units_per_mm=10, plane_offset=-50 .* native/ folder"):
+            read()
+    # read with the units it records it opens, and so does its native/ folder through any transform
+    assert len(open_dataset(tmp_path / "fig", transform=theirs)) == 6
+    assert len(load_sources(synthetic=[tmp_path / "nat"]).train) > 0
+
+
 def test_old_checkpoint_label_transform_loads(tmp_path):
     from uhrnet.checkpoint import FORMAT, atomic_save, load_checkpoint, model_from_checkpoint
     from uhrnet.models import build_model

@@ -30,8 +30,8 @@ import torch.nn.functional as F
 from torch.utils.data import Dataset, Sampler
 
 from fppsim.dataio.formats import PRESETS, LabelTransform, figshare_pair_paths
-from fppsim.dataio.readers import (LABEL_SOURCES, check_figshare_arrays, open_figshare_pair, open_source,
-                                   read_fringe_image)
+from fppsim.dataio.readers import (LABEL_SOURCES, check_export_labels, check_figshare_arrays, open_figshare_pair,
+                                   open_source, read_fringe_image)
 from uhrnet.errors import DataError, InputError
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT, SPLIT_MODES, reference_split, split_indices
 from uhrnet.data.augment import augment_sample
@@ -189,6 +189,7 @@ def open_dataset(folder: str | os.PathLike, transform=None, source: str = "synth
     """Whatever labelled layout ``folder`` holds (:func:`fppsim.dataio.readers.open_source` tells): stacks
     stored as arrays memory-mapped (:class:`FigshareArrays`), any other through its reader."""
     if open_source(folder).array_files is not None and not kw.get("phase"):
+        check_export_labels(Path(folder), LabelTransform.resolve(transform))  # an export's recorded label units
         return FigshareArrays(folder, transform=transform, source=source, check=kw.get("check", True))
     return FppsimDataset(folder, transform=transform, source=source, **kw)
 

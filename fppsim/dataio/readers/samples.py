@@ -252,8 +252,8 @@ def check_export_labels(root: Path, transform: LabelTransform) -> None:
                                                                       "invalid_threshold")
                              if getattr(theirs, k) != getattr(transform, k))
             raise DatasetError(
-                f"{meta}: these arrays were labelled with {diff} but the label transform differs "
-                f"(set --label-transform {diff.replace(', ', ' ')})"
+                f"{meta}: these arrays were labelled with {diff} but are read with another label transform: give "
+                f"its native/ folder (heights in mm), or train with --label-transform {diff.replace(', ', ' ')}"
             )
         return
 
