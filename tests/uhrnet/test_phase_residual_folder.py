@@ -241,6 +241,17 @@ def test_val_phase_holds_out_every_second_frame_and_says_when_it_cannot(setup, t
     pv = PhaseValidation([one], max_frames=8)
     assert [f["held_out"] for f in pv.frames] == [False]
     assert len(pv.notes) == 1 and "chosen on the frame it is scored on" in pv.notes[0]
+    # QA: the same folder given twice (or a copy of it) held out the frame that chose best.pt
+    import shutil
+
+    shutil.copytree(one, tmp_path / "copy")
+    for roots in ([one, one], [one, tmp_path / "copy"], [one, tmp_path / "one" / ".." / "one"]):
+        pv = PhaseValidation(roots, max_frames=8)
+        assert [f["held_out"] for f in pv.frames] == [False], roots
+        assert "chosen on the frame it is scored on" in pv.notes[0]
+    pv = PhaseValidation([root, tmp_path / "copy", root], max_frames=8)
+    assert [f["held_out"] for f in pv.frames] == [False, True, False, True]
+    assert not any("chosen on the frame" in n for n in pv.notes)
 
 
 def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path, capsys):

@@ -43,6 +43,8 @@ imported only there.
 
 from __future__ import annotations
 
+import hashlib
+
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -347,16 +349,15 @@ class PhaseValidation:
                 frames += [(root, sid) for sid in open_source(root).scan_ids()]
             except PSPMatError as exc:
                 raise ConfigError(f"{what}: {exc}") from None
+        # a folder given twice (or through a link) is one frame: its copy must not be "held out"
+        frames = list({(str(Path(r).resolve()), sid): (r, sid) for r, sid in frames}.values())
         if not frames:
             raise ConfigError(f"{what}: no frames given")
         if len(frames) > max_frames:
             frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
         self.degree = degree
-        self.frames, self.notes = [], []  # notes: how frames read by --convention auto another way were read
-        if len(frames) == 1:
-            self.notes.append(f"one frame ({frames[0][1]}): best.pt is chosen on the frame it is scored on; give two or "
-                              "more frames (not those the rig was fitted to) for a held-out score")
-        for k, (root, sid) in enumerate(frames):
+        self.frames, self.notes, seen = [], [], {}  # notes: how frames read by --convention auto another way were read
+        for root, sid in frames:
             try:
                 s = open_source(root).scan(sid, convention=convention, negate_sin=negate_sin)
             except PSPMatError as exc:
@@ -367,13 +368,23 @@ class PhaseValidation:
             if shape is not None and tuple(s.image.shape) != tuple(shape):
                 raise ConfigError(f"{what}: {s.path}: the frame is {s.image.shape[1]} x {s.image.shape[0]} px but the "
                                   f"training images are {shape[1]} x {shape[0]}: give frames of the rig the data is of")
+            digest = hashlib.sha1(np.ascontiguousarray(s.image).tobytes()
+                                  + np.ascontiguousarray(s.phase).tobytes()).hexdigest()
+            if digest in seen:  # a copy of a frame already read (another folder holding the same scan)
+                self.notes.append(f"{s.path} is the same frame as {seen[digest]}: read once")
+                continue
+            seen[digest] = s.path
             ok = _scored_pixels(s)
             try:
                 flat = fit_phase(s.phase, np.zeros(s.phase.shape), ok, degree=degree).rmse_rad
             except ValueError as exc:
                 raise ConfigError(f"{what}: {s.path}: {exc}") from None
-            self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat,
-                                "held_out": len(frames) > 1 and k % 2 == 1})
+            self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat})
+        for k, f in enumerate(self.frames):  # every second frame held out, once the frames are known distinct
+            f["held_out"] = len(self.frames) > 1 and k % 2 == 1
+        if len(self.frames) == 1:
+            self.notes.insert(0, f"one frame ({frames[0][1]}): best.pt is chosen on the frame it is scored on; give two "
+                                 "or more frames (not those the rig was fitted to) for a held-out score")
 
     def score(self, model, transform, size=None) -> dict:
         """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
