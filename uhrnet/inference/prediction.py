@@ -67,6 +67,7 @@ from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
+from uhrnet.run_folder import refuse_own_source
 from fppsim.owned import claim, output_folder, owners
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, local_carrier, oriented_single_shot_phase, rig_phase_gradient
@@ -356,6 +357,8 @@ def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
+    # a run folder holds the run's files and record, not predictions (adapt refuses its source's folder too)
+    refuse_own_source(Path(config.out), config.checkpoint, "CKPT", "predict's files would mix with the run's")
     renamed, notes = {}, []
     inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed, notes=notes)
     ckpt = load_checkpoint(config.checkpoint)
