@@ -146,3 +146,17 @@ def test_evaluate_writes_only_its_own_files(runs, tmp_path, capsys):
     one_line(capsys, f"{tmp_path / 'ef1' / 'figures'}: a file where evaluate writes its figures folder")
     assert sorted(p.name for p in (tmp_path / "ef1").iterdir()) == ["figures"]
     assert main([*args, "--out", str(tmp_path / "ef1"), "--figures", "0"]) == 0  # no figure: no figures folder needed
+
+
+@pytest.mark.parametrize("command", ["evaluate", "evaluate-phase", "predict"])
+def test_every_option_says_what_it_does_and_its_default(command):
+    """evaluate's --batch-size, --device and --crop and predict's --device once showed no description or default in
+    --help; every option now has one, and one with a default names it in [brackets], as the other options do."""
+    import argparse
+
+    from uhrnet.cli import build_parser
+
+    sub = next(a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction))
+    options = [a for a in sub.choices[command]._actions if a.option_strings and a.dest != "help"]
+    assert [a.dest for a in options if not a.help] == []
+    assert [a.dest for a in options if a.default not in (None, False) and "[" not in a.help] == []
