@@ -10,7 +10,8 @@ file) when a path to be written already exists and
 * another tool recorded it (``uhrnet adapt --out`` a training run would replace the run's ``last.pt``).
 
 Folders written before the record existed are recognised by the tool itself (``legacy``: the names
-it can prove are its own, e.g. a loadable checkpoint of its kind) and adopted into the record.
+it can prove are its own, e.g. a loadable checkpoint of its kind) and adopted into the record. A tool
+deletes a file only through :func:`remove_own`: one the record says it wrote.
 
 :func:`output_folder` is the one way such a command opens its folder: created if needed (and proved
 writable), locked (:func:`fppsim.files.folder_lock`), stale temp files of a killed run removed, and on a
@@ -29,7 +30,8 @@ from typing import Callable, Iterable, Iterator
 from fppsim.errors import ForeignFiles
 from fppsim.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
 
-__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "stamp", "record_created", "forget", "output_folder", "same_folder"]
+__all__ = ["RECORD", "ForeignFiles", "owners", "claim", "stamp", "record_created", "forget", "remove_own", "output_folder",
+           "same_folder"]
 
 RECORD = ".fppsim-owned.json"
 
@@ -138,6 +140,22 @@ def forget(folder: str | os.PathLike, names: Iterable[str]) -> None:
     kept = {n: t for n, t in record.items() if n not in set(names)}
     if kept != record:
         _write(folder, kept)
+
+
+def remove_own(folder: str | os.PathLike, tool: str, names: Iterable[str]) -> list[str]:
+    """Delete those of ``names`` that ``folder``'s record gives to ``tool`` (files it wrote earlier and that are
+    now stale) and forget them; a name the record gives to no one or to another tool, or a file changed since
+    :func:`stamp` recorded it, is left alone. Returns the names deleted."""
+    folder = Path(folder)
+    record, stamps = owners(folder) or {}, _stamps(folder)
+    mine = [n for n in dict.fromkeys(map(str, names)) if record.get(n) == tool
+            and not ((folder / n).exists() and n in stamps and _stamp_of(folder / n) != stamps[n])]
+    there = [n for n in mine if (folder / n).exists() or (folder / n).is_symlink()]
+    for name in there:
+        unlink_quietly(folder / name)
+    left = {n for n in there if (folder / n).exists() or (folder / n).is_symlink()}  # (a read-only folder)
+    forget(folder, [n for n in mine if n not in left])
+    return [n for n in there if n not in left]
 
 
 def _drop_unwritten(folder: Path) -> None:

@@ -221,16 +221,17 @@ def add_evaluate(p: argparse.ArgumentParser) -> None:
     p.add_argument("--synthetic-split", choices=SPLIT_MODES, help="how synthetic folders are split [the checkpoint's]")
     p.add_argument("--synthetic-label", choices=LABEL_SOURCES, help="ground truth of native folders [the checkpoint's]")
     p.add_argument("--names", nargs="+", metavar="NAME", help="model names in the table (one per checkpoint)")
-    p.add_argument("--crop", metavar="HxW", help="evaluate a centre crop of every image")
+    p.add_argument("--crop", metavar="HxW", help="evaluate the centre HxW pixels of every image [the whole image]")
     p.add_argument("--limit", type=int, metavar="N", help="evaluate only the first N images of the split")
     p.add_argument("--figures", type=int, default=3, metavar="N", help="comparison figures for N evenly spaced images [3]")
     p.add_argument("--samples", nargs="+", metavar="ID", help="figures for these sample ids (or split positions #K)")
     p.add_argument("--row", type=int, help="cross-section row [the row crossing most object pixels]")
-    p.add_argument("--batch-size", type=int, default=1)
-    p.add_argument("--device", choices=DEVICES, default="auto")
+    p.add_argument("--batch-size", type=int, default=1, metavar="N",
+                   help="images per forward pass while scoring (the timing is at batch 1 whatever this is) [1]")
+    p.add_argument("--device", choices=DEVICES, default="auto", help="where the models run [auto: cuda when available]")
     p.add_argument("--timing-repeats", type=int, default=5, metavar="N",
                    help="timed forward passes per model at batch 1 (0: skip timing) [5]")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run_evaluate(args) -> int:
@@ -283,8 +284,8 @@ def add_predict(p: argparse.ArgumentParser) -> None:
                    help="colour range of the PNG in mm [1st-99th percentile]")
     p.add_argument("--colormap", default="viridis", help="matplotlib colour map of the PNG [viridis]")
     p.add_argument("--no-ply", action="store_true", help="skip the point clouds")
-    p.add_argument("--device", choices=DEVICES, default="auto")
-    p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--device", choices=DEVICES, default="auto", help="where the model runs [auto: cuda when available]")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
 def run_predict(args) -> int:
@@ -397,7 +398,7 @@ def add_evaluate_phase(p: argparse.ArgumentParser) -> None:
                    help="how --refine sets each phase region's level (as uhrnet predict) [orders]")
     p.add_argument("--rig", metavar="FILE",
                    help="rig calibration --refine works through [the checkpoint's rig, else fppsim's default rig]")
-    p.add_argument("--device", choices=DEVICES, default="auto")
+    p.add_argument("--device", choices=DEVICES, default="auto", help="where the models run [auto: cuda when available]")
 
 
 def run_evaluate_phase(args) -> int:

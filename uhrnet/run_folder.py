@@ -13,8 +13,8 @@ every command, workflow and pipeline reads it back.
 - **Ownership**: the names a run writes are claimed in the folder's ownership record first
   (:mod:`fppsim.owned`, :func:`claim_run_folder`: a file another tool or a person put there is never replaced,
   ``--overwrite`` or not), a folder holding a run is never replaced without ``--overwrite``
-  (:func:`check_run_folder`), and a run never writes into the folder of the checkpoint it starts from
-  (:func:`refuse_own_source`).
+  (:func:`check_run_folder`), and a run never writes into the folder of the checkpoint it starts from, nor
+  ``uhrnet predict`` into the folder of the checkpoint it reads (:func:`refuse_own_source`).
 - **Inputs of a workflow**: :func:`default_meshes`.
 
 No torch here: pipelines read a run's history without it.
@@ -179,14 +179,14 @@ def claim_run_folder(out: Path, tool: str, names, kind_of: Callable[[Path], str 
     claim(out, tool, names, legacy=legacy)
 
 
-def refuse_own_source(out: Path, source, flag: str) -> None:
+def refuse_own_source(out: Path, source, flag: str,
+                      why: str = "writing there would replace the weights this run starts from") -> None:
     """:class:`ConfigError` when the checkpoint ``source`` (a file or a run folder) lies in ``out``: the
-    run would replace the weights it starts from."""
+    run would replace the weights it starts from (``why``: what else writing there would do)."""
     src = Path(source)
     folder = src if src.is_dir() else src.parent
     if same_folder(folder, out):
-        raise ConfigError(f"--out {out} is the folder of {flag} {source}: writing there would replace the weights "
-                          "this run starts from; choose another --out")
+        raise ConfigError(f"--out {out} is the folder of {flag} {source}: {why}; choose another --out")
 
 
 def package_version() -> str:

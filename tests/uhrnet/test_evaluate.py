@@ -2,6 +2,7 @@
 
 import csv
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ from uhrnet.cli import main
 from uhrnet.data.datasets import load_sources
 from uhrnet.inference.prediction import predict_labels
 
-from _helpers import REAL_SAMPLE, train_tiny, write_figshare, write_native
+from _helpers import REAL_SAMPLE, one_line, train_tiny, write_figshare, write_native
 
 
 @pytest.fixture(scope="module")
@@ -101,3 +102,61 @@ def test_evaluate_on_the_real_sample(runs):
     assert summary["images"] == 1 and summary["models"][0]["timing_shape"] == [352, 640]
     assert np.isfinite(summary["models"][0]["rmse_mm"])
     assert (out / "figures" / "real_000000.png").exists()
+
+
+def test_evaluate_writes_only_its_own_files(runs, tmp_path, capsys):
+    """evaluate once replaced a user's results.md, per_sample.csv and figures in --out without a word, and wrote
+    results.* before failing on a figures/ that is a file: now its names are claimed (.fppsim-owned.json) before
+    anything is scored or written, a foreign one refused in one line; its own report, recorded or from before the
+    record, is replaced on a re-run."""
+    from fppsim.owned import RECORD, owners
+
+    tmp, a, _ = runs
+    args = ["evaluate", str(a), "--timing-repeats", "0", "--no-progress", "--figures", "1"]
+    own = tmp_path / "own"
+    for _ in range(2):  # the second time into its own report
+        assert main([*args, "--out", str(own)]) == 0
+    capsys.readouterr()
+    figure = next((own / "figures").iterdir()).name
+    assert owners(own) == {n: "uhrnet evaluate" for n in
+                           ["results.md", "results.csv", "results.json", "per_sample.csv", f"figures/{figure}"]}
+    (own / RECORD).unlink()  # a report written before evaluate recorded its files is adopted
+    assert main([*args, "--out", str(own)]) == 0 and owners(own)["results.md"] == "uhrnet evaluate"
+    capsys.readouterr()
+
+    for mine in ("results.md", "per_sample.csv", f"figures/{figure}"):
+        user = tmp_path / mine.replace("/", "_")
+        (user / "figures").mkdir(parents=True)
+        (user / mine).write_text("mine")
+        before = sorted(user.rglob("*"))
+        assert main([*args, "--out", str(user)]) == 1
+        one_line(capsys, f"{user / mine} exists and was not written by uhrnet evaluate")
+        assert (user / mine).read_text() == "mine" and sorted(user.rglob("*")) == before  # nothing written
+    legacy = tmp_path / "legacy"  # a folder without a record: a results.md that is not evaluate's is not adopted
+    shutil.copytree(own, legacy)
+    (legacy / RECORD).unlink()
+    (legacy / "results.md").write_text("mine")
+    assert main([*args, "--out", str(legacy)]) == 1
+    one_line(capsys, "results.md exists and was not written by uhrnet evaluate")
+    assert (legacy / "results.md").read_text() == "mine" and not (legacy / RECORD).exists()
+
+    (tmp_path / "ef1").mkdir()
+    (tmp_path / "ef1" / "figures").write_text("a file")
+    assert main([*args, "--out", str(tmp_path / "ef1")]) == 1
+    one_line(capsys, f"{tmp_path / 'ef1' / 'figures'}: a file where evaluate writes its figures folder")
+    assert sorted(p.name for p in (tmp_path / "ef1").iterdir()) == ["figures"]
+    assert main([*args, "--out", str(tmp_path / "ef1"), "--figures", "0"]) == 0  # no figure: no figures folder needed
+
+
+@pytest.mark.parametrize("command", ["evaluate", "evaluate-phase", "predict"])
+def test_every_option_says_what_it_does_and_its_default(command):
+    """evaluate's --batch-size, --device and --crop and predict's --device once showed no description or default in
+    --help; every option now has one, and one with a default names it in [brackets], as the other options do."""
+    import argparse
+
+    from uhrnet.cli import build_parser
+
+    sub = next(a for a in build_parser(command)._actions if isinstance(a, argparse._SubParsersAction))
+    options = [a for a in sub.choices[command]._actions if a.option_strings and a.dest != "help"]
+    assert [a.dest for a in options if not a.help] == []
+    assert [a.dest for a in options if a.default not in (None, False) and "[" not in a.help] == []

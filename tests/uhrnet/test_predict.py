@@ -173,3 +173,20 @@ def test_an_image_not_shaped_like_the_training_images_is_said():
     assert "trained on 320x240 px images (after its --resize)" in shape_note(ck, (640, 480))
     assert "aspect 1.82" in shape_note(ck, (352, 640))
     assert shape_note({}, (352, 640)) is None  # an old checkpoint without the record: nothing to say
+
+
+def test_predict_refuses_the_checkpoints_run_folder_as_out(ckpt, tmp_path, capsys):
+    """predict once wrote its maps into the training run it read (and into the run's ownership record) when --out
+    named that folder; it is refused as adapt refuses it: one line, exit 1, nothing written."""
+    import cv2
+
+    from _helpers import one_line
+
+    run = ckpt.parent
+    f8, _, _ = scene(np.random.default_rng(3), 32, 64)
+    cv2.imwrite(str(tmp_path / "img.png"), f8)
+    before = {p: p.stat().st_mtime_ns for p in run.rglob("*")}
+    for given, out in ((run, run), (ckpt, run / "." / ".." / run.name)):  # the folder however it is spelled
+        assert main(["predict", str(given), str(tmp_path / "img.png"), "--out", str(out), "--no-progress"]) == 1
+        one_line(capsys, f"--out {out} is the folder of CKPT {given}", "choose another --out")
+    assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before

@@ -327,3 +327,36 @@ def test_fringes_that_are_not_the_rigs_keep_the_network_heights_and_what_was_don
     assert main(["predict", str(run), str(tmp_path / "d_good.npy"), "--out", str(out), "--refine", "phase"]
                 + rig_args) == 0
     assert sorted(json.loads((out / "refine.json").read_text())) == ["a_good", "d_good"]
+
+
+def test_an_image_predicted_again_without_refinement_loses_its_refine_entry_and_network_copy(run, tmp_path):
+    """After --refine phase and then --refine none into the same --out, a_height.npy was the network's map while
+    refine.json still described a's refinement and the old a_height_network.npy stayed; now both go (the copy only
+    because predict's record says predict wrote it), and a user's files of those names are never touched."""
+    from fppsim.owned import owners
+
+    rig = tiny_rig()
+    rig.save(tmp_path / "rig.json")
+    for name, peak in (("a", 5.0), ("b", 3.0)):
+        np.save(tmp_path / f"{name}.npy", rig_fringe(rig, _bump(rig, peak, 30.0)).astype(np.float32) / 127.5 - 1)
+    out = tmp_path / "out"
+    common = ["--out", str(out), "--no-progress", "--no-ply"]
+    assert main(["predict", str(run), str(tmp_path / "a.npy"), str(tmp_path / "b.npy"), *common, "--rig",
+                 str(tmp_path / "rig.json")]) == 0
+    assert sorted(json.loads((out / "refine.json").read_text())) == ["a", "b"]
+    network = np.load(out / "a_height_network.npy")
+    assert main(["predict", str(run), str(tmp_path / "a.npy"), *common, "--refine", "none"]) == 0
+    np.testing.assert_array_equal(np.load(out / "a_height.npy"), network)
+    assert sorted(json.loads((out / "refine.json").read_text())) == ["b"]
+    assert not (out / "a_height_network.npy").exists() and (out / "b_height_network.npy").exists()
+    assert "a_height_network.npy" not in owners(out)
+    assert main(["predict", str(run), str(tmp_path / "b.npy"), *common, "--refine", "none"]) == 0
+    assert not (out / "refine.json").exists() and not list(out.glob("*_height_network.npy"))  # as a plain folder
+    assert "refine.json" not in owners(out)
+
+    mine = tmp_path / "mine"  # files of those names predict did not write
+    mine.mkdir()
+    (mine / "refine.json").write_text('{"a": "mine"}')
+    (mine / "a_height_network.npy").write_text("mine")
+    assert main(["predict", str(run), str(tmp_path / "a.npy"), "--out", str(mine), "--no-progress", "--no-ply"]) == 0
+    assert (mine / "refine.json").read_text() == '{"a": "mine"}' and (mine / "a_height_network.npy").read_text() == "mine"

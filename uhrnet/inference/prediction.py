@@ -25,11 +25,10 @@ network's own heights, as every pixel the path leaves alone does (a warning says
 (:func:`uhrnet.physics.refine.refine_relief`): the relief from the phase, the level from the network.
 The path starts from the mean of the network's heights on the image and on the image mirrored along its fringes
 (:func:`path_estimate`; two passes of the network, each with a mirrored margin past the image's borders).
-``NAME_height.*`` is then the refined map,
-``NAME_height_network.npy`` the network's own (one pass), and
+``NAME_height.*`` is then the refined map, ``NAME_height_network.npy`` the network's own (one pass), and
 ``refine.json`` lists per image the share of pixels moved and, for ``orders``, every region's order, confidence
 and whether it was decided (:attr:`PredictResult.refine`; an earlier call's images into the same folder keep
-their entries). Under ``auto`` an image without a readable fringe phase, or whose fringes are not the rig's
+their entries, an image predicted again without refinement loses its entry and network copy). Under ``auto`` an image without a readable fringe phase, or whose fringes are not the rig's
 (:func:`fringe_phase`), keeps the network's heights with a warning; under ``"phase"`` it is an error naming it,
 after the images before it were written whole.
 
@@ -67,7 +66,8 @@ from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
-from fppsim.owned import claim, output_folder, owners
+from uhrnet.run_folder import refuse_own_source
+from fppsim.owned import claim, output_folder, owners, remove_own
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, local_carrier, oriented_single_shot_phase, rig_phase_gradient
 
@@ -356,6 +356,8 @@ def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
 
+    # a run folder holds the run's files and record, not predictions (adapt refuses its source's folder too)
+    refuse_own_source(Path(config.out), config.checkpoint, "CKPT", "predict's files would mix with the run's")
     renamed, notes = {}, []
     inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed, notes=notes)
     ckpt = load_checkpoint(config.checkpoint)
@@ -405,8 +407,7 @@ def predict(config: PredictConfig) -> PredictResult:
                 _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto, out, result, name,
                              fringe, path)
         finally:  # what was done is described, also when a later image fails
-            if result.refine:
-                _write_refine_json(out / "refine.json", result.refine)
+            _write_refine_json(out, result.refine, [] if refine_rig is not None else result.names)
     return result
 
 
@@ -471,17 +472,25 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
     result.names.append(name)
 
 
-def _write_refine_json(path: Path, refine: dict) -> None:
-    """``refine`` merged into ``path`` (predict's own: :func:`predict` claimed it): the images of an earlier call
-    into the same folder keep their entries, an image predicted again gets its new one."""
-    old = {}
-    if path.exists():
-        try:
-            old = json.loads(path.read_text())
-        except (OSError, ValueError):
-            old = {}
-    merged = {**(old if isinstance(old, dict) else {}), **refine}
-    atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
+def _write_refine_json(out: Path, refine: dict, unrefined: list[str]) -> None:
+    """``refine`` merged into ``out/refine.json`` (predict claims it when it refines): the images of an earlier call
+    into the same folder keep their entries, an image predicted again gets its new one, or none when it was
+    predicted again without refinement (``unrefined``: its entry and its ``NAME_height_network.npy`` of then
+    described a map no longer there; that file goes only if predict wrote it)."""
+    remove_own(out, PREDICT_TOOL, [f"{name}_height_network.npy" for name in unrefined])
+    path = out / "refine.json"
+    if (owners(out) or {}).get("refine.json") != PREDICT_TOOL:
+        return  # none, or someone else's: left alone
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        old = {}
+    old = old if isinstance(old, dict) else {}
+    merged = {k: v for k, v in {**old, **refine}.items() if k not in unrefined}
+    if not merged:
+        remove_own(out, PREDICT_TOOL, ["refine.json"])  # as a folder predicted without refinement: no refine.json
+    elif refine or len(merged) < len(old):
+        atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
 
 
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):

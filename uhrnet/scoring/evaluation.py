@@ -4,6 +4,8 @@ the test split -> the paper's Table 3 and Figs. 7-9; ``uhrnet evaluate`` calls i
 Writes to ``out``: ``results.md``, ``results.csv``, ``results.json`` (per model: RMSE in mm, SSIM,
 parameters, seconds per image), ``per_sample.csv`` (every model x image), and ``figures/*.png``
 (fringe, ground truth, each model's prediction and height-error map, and a cross-section along a row).
+Those names are claimed in ``out``'s ownership record (:mod:`fppsim.owned`) before anything is scored or
+written: a file of them that evaluate did not write is refused in one line, its own report is replaced.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from torch.utils.data import DataLoader
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import LabelTransform
+from fppsim.owned import claim, output_folder
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import Prepared, load_sources, parse_size
 from uhrnet.device import select_device
@@ -34,9 +37,13 @@ from uhrnet.scoring.metrics import image_metrics
 from uhrnet.scoring.timing import inference_seconds
 from uhrnet.plots import plot_comparison
 
-__all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "check_name_count", "SPLITS"]
+__all__ = ["EvalData", "Report", "evaluate", "markdown_table", "model_names", "check_name_count", "SPLITS",
+           "EVALUATE_TOOL", "REPORT_FILES"]
 
 SPLITS = ("test", "val", "train", "all")
+#: the name evaluate's files carry in their folder's ownership record (:mod:`fppsim.owned`)
+EVALUATE_TOOL = "uhrnet evaluate"
+REPORT_FILES = ("results.md", "results.csv", "results.json", "per_sample.csv")  # what Report.write writes
 
 
 @dataclass
@@ -82,9 +89,11 @@ class Report:
     figures: list = field(default_factory=list)
 
     def write(self, out: str | Path) -> None:
-        """results.md, results.csv, results.json and per_sample.csv in ``out``."""
+        """results.md, results.csv, results.json and per_sample.csv in ``out``, claimed first (never a file
+        evaluate did not write: :class:`fppsim.errors.ForeignFiles`)."""
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
+        claim(out, EVALUATE_TOOL, REPORT_FILES, legacy=lambda: _own_report(out))  # (evaluate claimed them already)
         atomic_write_text(out / "results.md", self.header + self.table)
         _write_csv(out / "results.csv", self.models,
                    ["name", "rmse_mm", "rmse_mm_std", "ssim", "ssim_std", "parameters", "seconds_per_image", "images",
@@ -170,16 +179,37 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     names = model_names(ckpts, names)
     transform = _shared_transform(ckpts)
     sources, subset, ds, n = _open_split(data, ckpts, transform)
-    split = data.split
     figure_idx = _figure_indices(subset.ids, n, samples, figures) if out is not None else []
     device = select_device(device)
     image_shape = tuple(ds[0]["fringe"].shape[-2:])
     if row is not None and not 0 <= row < image_shape[0]:
         raise ConfigError(f"--row {row}: the evaluated images have {image_shape[0]} rows (0..{image_shape[0] - 1})")
-    if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
+    scoring = dict(ckpts=ckpts, names=names, transform=transform, sources=sources, ds=ds, n=n, split=data.split,
+                   figure_idx=figure_idx, device=device, image_shape=image_shape, timing_repeats=timing_repeats,
+                   progress=progress, batch_size=batch_size)
+    if out is None:
+        return _scored_report(**scoring)[0]
+    out = Path(out)
+    figure_names = [f"figures/{_figure_name(ds[i])}" for i in figure_idx]
+    figures_dir = out / "figures"
+    if figure_names and (figures_dir.exists() or figures_dir.is_symlink()) and not figures_dir.is_dir():
+        raise ConfigError(f"{figures_dir}: a file where evaluate writes its figures folder; move it away or "
+                          "choose another --out")
+    # locked for the run; every name claimed before anything is scored or written (a user's results.md once was
+    # replaced); a failed run drops its claims on what it never wrote, and a folder it made and left empty
+    with output_folder(out, EVALUATE_TOOL, error=ConfigError):
+        claim(out, EVALUATE_TOOL, [*REPORT_FILES, *figure_names], legacy=lambda: _own_report(out))
+        report, preds = _scored_report(**scoring)
+        report.write(out)
+        if preds:
+            _write_figures(report, ds, figure_idx, preds, transform, row, out)
+    return report
 
+
+def _scored_report(ckpts, names, transform, sources, ds, n, split, figure_idx, device, image_shape, timing_repeats,
+                   progress, batch_size) -> tuple[Report, dict]:
+    """Every checkpoint scored on the first ``n`` images of ``ds``: the :class:`Report` and the heights of the
+    figure images (``{index: {model name: mm}}``)."""
     per_sample: list[dict] = []
     summary: list[dict] = []
     preds: dict[int, dict[str, np.ndarray]] = {i: {} for i in figure_idx}
@@ -194,12 +224,34 @@ def evaluate(checkpoints: Sequence, data: EvalData | None = None, *, out: str | 
     report = Report(split=split, images=n, data=sources.description, label_transform=transform.to_dict(),
                     models=summary, per_sample=per_sample, table=markdown_table(summary, per_source),
                     header=_report_header(split, n, per_sample, transform, device))
-    if out is None:
-        return report
-    report.write(out)
-    if preds:
-        _write_figures(report, ds, figure_idx, preds, transform, row, out)
-    return report
+    return report, preds
+
+
+def _own_report(out: Path) -> list[str]:
+    """The files of an ``--out`` evaluate wrote before it recorded its files: its ``results.json`` (with the keys
+    :meth:`Report.write` gives it) and, beside it, the report files that begin as evaluate writes them and the
+    PNG figures named as it names them (everything else stays someone else's)."""
+    try:
+        doc = json.loads((out / "results.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not (isinstance(doc, dict) and {"split", "images", "data", "label_transform", "models"} <= doc.keys()):
+        return []
+    starts = {"results.md": (b"# Evaluation:",), "results.csv": (b"name,rmse_mm,",),
+              "per_sample.csv": (b"model,id,source,rmse_mm,ssim",)}
+    mine = ["results.json"] + [name for name, heads in starts.items() if _begins(out / name, heads)]
+    if (out / "figures").is_dir():
+        mine += [f"figures/{p.name}" for p in sorted((out / "figures").glob("*.png"))
+                 if p.name.startswith(("real_", "synthetic_")) and _begins(p, (b"\x89PNG",))]
+    return mine
+
+
+def _begins(path: Path, heads: tuple[bytes, ...]) -> bool:
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(64).startswith(heads)
+    except OSError:
+        return False
 
 
 def _shared_transform(ckpts: list[dict]) -> LabelTransform:
@@ -302,9 +354,13 @@ def _write_figures(report: Report, ds, figure_idx: list[int], preds: dict, trans
         valid = sample["mask"][0].numpy() > 0.5
         truth = transform.height_mm(label)
         r = row if row is not None else _cross_row(truth, valid)
-        path = out / "figures" / f"{sample['source']}_{sample['id']}.png"
+        path = out / "figures" / _figure_name(sample)
         report.figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=r,
                                               title=f"{sample['source']} sample {sample['id']} ({report.split} split)"))
+
+def _figure_name(sample: dict) -> str:
+    return f"{sample['source']}_{sample['id']}.png"
+
 
 def _mult16(shape) -> tuple[int, int]:
     h, w = shape
