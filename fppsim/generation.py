@@ -32,7 +32,7 @@ from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, f
 from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
                       reconcile, sample_id)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
-from fppsim.rendering.synth import SynthConfig, synthesize
+from fppsim.rendering.synth import SynthConfig, check_seed, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
                                    write_sample_folder)
 from fppsim.dataio.readers import open_source
@@ -148,6 +148,10 @@ class GenerateConfig:
             raise UsageError("no meshes given (--meshes)")
         if not 1 <= int(self.count) <= MAX_COUNT:
             raise UsageError(f"--count must be from 1 to {MAX_COUNT:,} samples, got {self.count}")
+        try:
+            check_seed(self.seed)
+        except InputError as exc:
+            raise UsageError(str(exc)) from None
         if self.format not in FORMATS:
             raise UsageError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
         if self.supersample not in SUPERSAMPLE:
@@ -437,7 +441,7 @@ def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthCo
         raise GenerateError(f"--count must be >= 1, got {count}")
     if fmt not in FORMATS:
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
-
+    check_seed(seed)  # numpy refused a negative seed only inside the first sample, after dataset.json was written
     backend = select_backend(backend)  # before the workers spawn: they inherit the platform
     config = config or SynthConfig(rig=Rig.default())
     label = label or LabelTransform()

@@ -26,6 +26,33 @@ def _tree(folder: Path) -> dict:
     return {p.relative_to(folder).as_posix(): (p.read_bytes() if p.is_file() else None) for p in folder.rglob("*")}
 
 
+# ------------------------------------------------------------------------------------ 4: the seed
+def test_a_negative_seed_is_a_usage_error_before_anything_is_written(tmp_path, capsys):
+    for cmd in (["generate", "--meshes", str(MESH), "--count", "2"], ["validate-psp", "--meshes", str(MESH), "--count", "1"]):
+        with pytest.raises(SystemExit) as e:
+            main([*cmd, "--out", str(tmp_path / "gs"), "--seed", "-1"])
+        assert e.value.code == 2
+        assert "--seed: expected an integer >= 0, got -1" in capsys.readouterr().err
+    assert not (tmp_path / "gs").exists()
+    from fppsim.generation import GenerateConfig, generate_dataset
+
+    with pytest.raises(UsageError, match="--seed must be an integer >= 0"):
+        GenerateConfig(meshes=[str(MESH)], out=tmp_path / "gs", count=1, seed=-1)
+    with pytest.raises(ValueError, match="--seed must be an integer >= 0"):
+        generate_dataset([str(MESH)], tmp_path / "gs", 1, seed=-1)
+    assert not (tmp_path / "gs").exists()
+    # numpy's SeedSequence takes any integer >= 0, however large
+    assert GenerateConfig(meshes=[str(MESH)], out=tmp_path / "gs", count=1, seed=10 ** 20).seed == 10 ** 20
+
+
+# ------------------------------------------------------------------------------------ 5: help
+def test_help_states_the_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["generate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "pixel centres; default 1)" in text and "(default -100, the reference code's)" in text
+
+
 # ------------------------------------------------------------------------------------ 6: the manifest's counts
 def test_manifest_counts_objects_and_pedestals_apart(tmp_path):
     meta = {"index": 0, "seed": 0, "stats": {"valid_fraction": 0.5},
