@@ -44,7 +44,7 @@ from fppsim.files import atomic_write_text, clean_stale_tmp
 
 __all__ = [
     "psp_freq", "psp_image_name", "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",
-    "SAMPLE_ID_RE", "sample_id", "is_own_sample", "foreign_sample_folders", "PEDESTAL_PREFIX",
+    "SAMPLE_ID_RE", "sample_id", "is_own_sample", "foreign_sample_folders", "finished_indices", "PEDESTAL_PREFIX",
     "manifest_record", "reconcile",
     "read_manifest", "manifest_ids", "append_manifest",
     "FIGSHARE_PAIRS", "find_figshare_pair",
@@ -229,6 +229,11 @@ def _complete_samples(root: Path) -> dict[int, Path]:
             if p.is_dir() and SAMPLE_ID_RE.match(p.name) and is_own_sample(p):
                 out[int(p.name)] = p
     return out
+
+
+def finished_indices(root: str | os.PathLike) -> set[int]:
+    """Indices of the finished fppsim samples in ``root`` (read only: nothing is written)."""
+    return set(_complete_samples(Path(root)))
 
 
 PEDESTAL_PREFIX = "pedestal:"  # meta.json's "mesh" of a pedestal prism (fppsim.rendering.scene), not an object
