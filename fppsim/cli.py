@@ -79,6 +79,7 @@ def _min_int(lowest: int):
 
 
 _positive_int = _min_int(1)
+_seed = _min_int(0)  # numpy's generators (SeedSequence) take any integer >= 0; a negative one failed mid-run
 
 
 def _optics_override(text: str) -> tuple[str, list[float]]:
@@ -105,14 +106,16 @@ def _add_scene_flags(p: argparse.ArgumentParser, suffix: str = "") -> None:
     """Flags shared by `generate` and `validate-psp --meshes` (same names, same parsing)."""
     from fppsim.generation import SUPERSAMPLE
 
-    p.add_argument("--seed", type=int, default=0, help="global seed; sample i depends only on (seed, i) (default 0)")
+    p.add_argument("--seed", type=_seed, default=0,
+                   help="global seed, an integer >= 0; sample i depends only on (seed, i) (default 0)")
     p.add_argument("--rig", help="rig calibration (fppsim JSON/YAML or OpenCV stereo FileStorage YAML); "
                                  "default: the packaged default rig, assets/default_rig.json" + suffix)
     p.add_argument("--objects", type=_range_int, default=(1, 3), metavar="LO-HI",
                    help="objects per scene, e.g. 1-3 (default) or 2" + suffix)
     p.add_argument("--workers", type=_positive_int, default=1, help="worker processes (default 1; same samples for any K)")
     p.add_argument("--supersample", type=int, default=1, choices=SUPERSAMPLE,
-                   help="render intensities at KxK sub-pixels and average (ground truth stays at pixel centres)" + suffix)
+                   help="render intensities at KxK sub-pixels and average (ground truth stays at pixel centres; "
+                        "default 1)" + suffix)
     p.add_argument("--optics", action="append", type=_optics_override, default=[], metavar="NAME=LO[,HI]",
                    help="override an optics range, e.g. noise_sigma=0 or gain=120,200 (repeatable); names: "
                         + _optics_names() + suffix)
@@ -144,7 +147,7 @@ def add_generate(p: argparse.ArgumentParser) -> None:
                    help="figshare label of the reference plane (default -97, like the real data)")
     p.add_argument("--label-invalid", type=float, default=-105.0, help="figshare label of invalid pixels (default -105)")
     p.add_argument("--label-threshold", type=float, default=-100.0,
-                   help="labels <= this count as invalid when read back (reference code: -100)")
+                   help="labels <= this count as invalid when read back (default -100, the reference code's)")
     add_realism_arguments(p)
     p.add_argument("--preview", action=argparse.BooleanOptionalAction, default=True,
                    help="write preview.png (fringe | height | mask) of the first samples (default on)")
@@ -424,7 +427,7 @@ def add_fit_optics(p: argparse.ArgumentParser) -> None:
                         "before/after (0: skip) [4]")
     add_phase_convention(p)
     p.add_argument("--meshes", nargs="+", metavar="PATH", help="meshes for --compare [assets/meshes]")
-    p.add_argument("--seed", type=int, default=0, help="seed of the --compare renders [0]")
+    p.add_argument("--seed", type=_seed, default=0, help="seed of the --compare renders, an integer >= 0 [0]")
     p.add_argument("--json", metavar="FILE", help="also write the per-image estimates as JSON")
     p.add_argument("--force", action="store_true", help="replace an existing --out file")
 

@@ -7,7 +7,10 @@ same run over an already-built :class:`fppsim.rendering.synth.SynthConfig`.
 A run owns an output folder. ``dataset.json`` records the settings; re-running the same command on
 the same folder first reconciles it (temporary folders removed, manifest rebuilt from the complete
 sample folders) and then produces only the missing samples, so an interrupted run completes without
-duplicates. Samples are independent of the worker count (see :mod:`fppsim.rendering.synth`).
+duplicates. Samples are independent of the worker count (see :mod:`fppsim.rendering.synth`). The folder's
+fixed files are claimed in its ownership record before anything is written (:mod:`fppsim.dataio.dataset_folder`):
+a file of those names that fppsim did not write, a dataset of the other format, or (figshare) samples beyond
+``count`` are refused, and a run that fails before its first sample leaves nothing behind.
 """
 
 from __future__ import annotations
@@ -27,12 +30,14 @@ from typing import Sequence
 from fppsim import __version__
 from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError
 from fppsim.threads import check_cores
-from fppsim.files import (atomic_write_text, clean_stale_tmp, die_with_parent, folder_lock, ignore_sigint, signals_raise,
-                    tmp_path)
-from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, foreign_sample_folders, manifest_record, read_settings,
-                      reconcile, sample_id)
+from fppsim.files import atomic_write_text, die_with_parent, ignore_sigint, signals_raise, tmp_path
+from fppsim.owned import claim, output_folder
+from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, finished_indices,
+                                   foreign_sample_folders, manifest_record, read_settings, reconcile, sample_id)
+from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, dataset_files, discard_empty_dataset,
+                                          legacy_files)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
-from fppsim.rendering.synth import SynthConfig, synthesize
+from fppsim.rendering.synth import SynthConfig, check_seed, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
                                    write_sample_folder)
 from fppsim.dataio.readers import open_source
@@ -148,6 +153,10 @@ class GenerateConfig:
             raise UsageError("no meshes given (--meshes)")
         if not 1 <= int(self.count) <= MAX_COUNT:
             raise UsageError(f"--count must be from 1 to {MAX_COUNT:,} samples, got {self.count}")
+        try:
+            check_seed(self.seed)
+        except InputError as exc:
+            raise UsageError(str(exc)) from None
         if self.format not in FORMATS:
             raise UsageError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
         if self.supersample not in SUPERSAMPLE:
@@ -316,7 +325,7 @@ def generate(config: GenerateConfig) -> RunSummary:
     summary = generate_dataset(config.mesh_paths, config.out, config.count, seed=config.seed,
                                config=config.synth_config(), workers=config.workers, fmt=config.format,
                                shard=config.shard, label=config.label, noise_free=config.noise_free,
-                               progress=config.progress, backend=config.backend)
+                               progress=config.progress, backend=config.backend, preview=config.preview)
     fields, source = config.scene_fields()
     sc = SceneRanges(**fields)
     summary.scenes = (f"objects {sc.footprint[0]:.0f}-{sc.footprint[1]:.0f} mm across, relief capped at "
@@ -325,9 +334,6 @@ def generate(config: GenerateConfig) -> RunSummary:
     if OpticsRanges.from_dict(dict(config.optics)).albedo_plane[1] == 0:
         summary.background = ("black (albedo_plane 0, no plane in view): only the objects return fringes and carry "
                               "labels")
-    if config.preview:
-        root = samples_folder(config.out, config.format)
-        summary.preview = str(write_preview(root, Path(config.out) / "preview.png"))
     return summary
 
 
@@ -405,24 +411,54 @@ def _settings(config: SynthConfig, seed: int, mesh_paths: list[str], fmt: str, l
     }
 
 
-def _check_settings(path: Path, settings: dict) -> None:
-    if not path.is_file():
-        atomic_write_text(path, json.dumps(settings, indent=1))
-        return
+def _settings_diff(folder: Path, settings: dict) -> list[str]:
+    """The settings in which ``folder``'s ``dataset.json`` differs from ``settings`` (the version aside); []
+    when it has none."""
+    if not (folder / SETTINGS_FILE).is_file():
+        return []
     try:
-        old = read_settings(path.parent)
+        old = read_settings(folder)
     except DatasetError:
-        raise GenerateError(f"{path} is corrupt: remove it or use a new --out") from None
-    diff = [k for k in settings if k != "version" and old.get(k) != json.loads(json.dumps(settings[k]))]
-    if diff:
-        raise GenerateError(f"{path.parent} holds a dataset made with different {', '.join(diff)}: "
+        raise GenerateError(f"{folder / SETTINGS_FILE} is corrupt: remove it or use a new --out") from None
+    return [k for k in settings if k != "version" and old.get(k) != json.loads(json.dumps(settings[k]))]
+
+
+def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, preview: bool) -> tuple[list[int], set[int], bool]:
+    """Check ``out`` for this run, then claim its fixed files and write its settings: ``(wanted indices,
+    finished ones, whether this run wrote dataset.json)``. Every refusal comes before anything is written."""
+    check_format(out, fmt)
+    native = samples_folder(out, fmt)
+    wanted = shard_indices(count, shard)
+    done = finished_indices(native)
+    foreign = foreign_sample_folders(native, set(wanted) - done)
+    if foreign:  # fppsim never replaces (nor counts) a folder it did not write
+        raise GenerateError(f"{foreign[0]} exists but is not a finished fppsim sample"
+                            + (f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else "")
+                            + ": move it away, or use another --out")
+    extra = sorted(done - set(wanted))
+    if fmt == "figshare" and extra:  # the arrays would hold fewer samples than native/ beside them
+        raise GenerateError(f"{native} holds {len(done)} samples, {len(extra)} of them outside --count {count}"
+                            + (f" --shard {shard[0]}/{shard[1]}" if shard else "")
+                            + f" (sample {sample_id(extra[0])}), so f1_80.npy and Z.npy would leave them out: "
+                            f"give --count {max(done) + 1} or more, or use another --out")
+    claim(out, DATASET_TOOL, dataset_files(fmt, preview), legacy=lambda: legacy_files(out),
+          hint="move it away, or use another --out")
+    diff = _settings_diff(native, settings)
+    if diff and done:
+        raise GenerateError(f"{native} holds a dataset made with different {', '.join(diff)}: "
                             "use a new --out (or the same options) to resume")
+    # new, or settings beside no finished sample (a run that failed before its first): ours to (re)write
+    created = bool(diff) or not (native / SETTINGS_FILE).is_file()
+    if created:
+        native.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(native / SETTINGS_FILE, json.dumps(settings, indent=1))
+    return wanted, done, created
 
 
 def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthConfig | None = None,
                      workers: int = 1, fmt: str = "native", shard: tuple[int, int] | None = None,
                      label: LabelTransform | None = None, noise_free: bool = False, progress: bool = True,
-                     backend: str | None = None) -> RunSummary:
+                     backend: str | None = None, preview: bool = False) -> RunSummary:
     """Generate (or complete) a dataset from an already-built :class:`SynthConfig` (what
     :func:`generate` calls). See the module docstring; returns a :class:`RunSummary`.
 
@@ -430,62 +466,56 @@ def generate_dataset(mesh_paths, out, count: int, seed: int = 0, config: SynthCo
     not change the samples beyond rasteriser rounding (depth within about 1e-3 mm).
 
     ``fmt="figshare"`` keeps the native samples in ``out/native`` and writes ``out/f1_80.npy`` and
-    ``out/Z.npy`` at the end.
+    ``out/Z.npy`` at the end. ``preview``: also write ``out/preview.png``.
+
+    Every check (meshes, seed, the folder's format, settings and files) comes before anything is written;
+    the fixed files are claimed in ``out``'s ownership record (:mod:`fppsim.dataio.dataset_folder`), so a
+    file someone else put there is refused, never replaced. A run that fails before its first sample
+    leaves nothing behind.
     """
     t0 = time.perf_counter()
     if count < 1:
         raise GenerateError(f"--count must be >= 1, got {count}")
     if fmt not in FORMATS:
         raise GenerateError(f"unknown format '{fmt}' (native or figshare)")
-
+    check_seed(seed)  # numpy refused a negative seed only inside the first sample, after dataset.json was written
     backend = select_backend(backend)  # before the workers spawn: they inherit the platform
     config = config or SynthConfig(rig=Rig.default())
     label = label or LabelTransform()
     label.check()
     config.rig.check_usable()  # before any sample is written
-    with signals_raise():  # SIGTERM (e.g. a Slurm timeout) stops like Ctrl-C: pool terminated, exit 143
-        out_path = Path(out)
-        try:
-            out_path.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
-        with folder_lock(out_path, "fppsim generate"):
-            return _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free,
-                             progress, t0, backend)
-
-
-def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, noise_free, progress, t0, backend):
-    from tqdm import tqdm
-
+    # the meshes are read before --out is touched: a bad --meshes leaves no folder behind
     assets, skipped = load_assets(mesh_paths) if mesh_paths else ([], [])
-    summary = RunSummary(out=str(out), requested=0, skipped_meshes=skipped)
     if not assets and not (config.scene.procedural_share >= 1.0 and not skipped):
         reasons = "; ".join(r for _, r in skipped) or "no mesh files found"
         raise GenerateError(f"no usable mesh ({reasons})")
-    out = Path(out)
+    settings = _settings(config, seed, [a.path for a in assets], fmt, label, noise_free)
+    with signals_raise():  # SIGTERM (e.g. a Slurm timeout) stops like Ctrl-C: pool terminated, exit 143
+        with output_folder(out, "fppsim generate", error=GenerateError) as out_path:
+            native = samples_folder(out_path, fmt)
+            native_made = not native.exists()
+            wanted, done, created = _open_dataset(out_path, fmt, count, shard, settings, preview)
+            summary = RunSummary(out=str(out), requested=len(wanted), existing=len(set(wanted) & done),
+                                 skipped_meshes=skipped)
+            try:
+                _generate(summary, assets, out_path, wanted, seed, config, workers, fmt, label, noise_free,
+                          progress, backend)
+            except BaseException:
+                if created and not finished_indices(native):  # this run's settings, and no sample beside them
+                    discard_empty_dataset(native, folder_too=native_made and native != out_path)
+                raise
+            if preview:
+                summary.preview = str(write_preview(native, out_path / PREVIEW_NAME))
+            summary.seconds = time.perf_counter() - t0
+            return summary
+
+
+def _generate(summary, assets, out, wanted, seed, config, workers, fmt, label, noise_free, progress, backend):
+    from tqdm import tqdm
+
     native = samples_folder(out, fmt)
-    try:
-        native.mkdir(parents=True, exist_ok=True)
-        probe = tmp_path(native / "write-test")
-        probe.write_text("ok")
-        probe.unlink()
-    except OSError as exc:
-        raise GenerateError(f"cannot write to output folder {out}: {exc.strerror or exc}") from None
-
-    _check_settings(native / SETTINGS_FILE, _settings(config, seed, [a.path for a in assets], fmt, label, noise_free))
-
-    wanted = shard_indices(count, shard)
-    summary.requested = len(wanted)
-    clean_stale_tmp(out)
     done = {r["index"] for r in reconcile(native)}
     todo = [i for i in wanted if i not in done]
-    summary.existing = len(wanted) - len(todo)
-    foreign = foreign_sample_folders(native, set(todo))
-    if foreign:  # fppsim never replaces (nor counts) a folder it did not write
-        raise GenerateError(f"{foreign[0]} exists but is not a finished fppsim sample"
-                            + (f" (and {len(foreign) - 1} more)" if len(foreign) > 1 else "")
-                            + ": move it away, or use another --out")
-
     # figshare rows come back with the samples when this run produces all of them (else: read back)
     rows = None
     if fmt == "figshare" and todo and not summary.existing:
@@ -527,10 +557,11 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
     finally:
         bar.close()
     reconcile(native)  # manifest sorted by index
-    summary.seconds = time.perf_counter() - t0
     if summary.written + summary.existing == 0:
+        if rows is not None:  # its temp arrays too: a failed run leaves nothing
+            rows.discard()
         raise GenerateError("nothing could be generated: " + (summary.failed[0][1] if summary.failed else "no samples"))
-    if fmt == "figshare":  # exactly this run's samples, in index order (a folder may hold more)
+    if fmt == "figshare":  # this run's samples, in index order: native/ holds no others (checked up front)
         if rows is not None and rows.complete:
             n = rows.commit()
         else:
@@ -539,7 +570,6 @@ def _generate(mesh_paths, out, count, seed, config, workers, fmt, shard, label, 
             folders = [native / sample_id(i) for i in wanted if (native / sample_id(i) / "meta.json").is_file()]
             n = export_figshare(native, out, label, folders=folders)
         summary.figshare = f"{out / FIGSHARE_PAIRS[0][0]} + {out / FIGSHARE_PAIRS[0][1]} ({n} samples)"
-    return summary
 
 
 def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int]]:
@@ -547,7 +577,8 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
 
     Shards must come from the same settings (``dataset.json``, ignoring nothing but the version).
     Figshare-format shards (a ``native`` subfolder) also get one ``f1_80.npy``/``Z.npy`` pair.
-    Returns (samples in out, figshare path or None, missing indices below the largest one).
+    ``out``'s fixed files are claimed as :func:`generate_dataset` claims them (a merged folder resumes with
+    ``generate``). Returns (samples in out, figshare path or None, missing indices below the largest one).
     """
     out = Path(out)
     natives, settings, fmt = [], None, None
@@ -565,14 +596,22 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         natives.append(nd)
     if not natives:
         raise DatasetError("no shard folders given")
-    target = samples_folder(out, fmt)
-    target.mkdir(parents=True, exist_ok=True)
-    with folder_lock(out, "fppsim merge"):
+    with output_folder(out, "fppsim merge", error=DatasetError):
+        check_format(out, fmt)
+        claim(out, DATASET_TOOL, dataset_files(fmt), legacy=lambda: legacy_files(out),
+              hint="move it away, or use another output folder")
+        target = samples_folder(out, fmt)
+        diff = _settings_diff(target, settings)
+        if diff:
+            raise DatasetError(f"{target} holds a dataset made with different {', '.join(diff)}: cannot merge "
+                               "these shards into it")
+        target.mkdir(parents=True, exist_ok=True)
+        if not (target / SETTINGS_FILE).is_file():
+            atomic_write_text(target / SETTINGS_FILE, json.dumps({**settings, "version": __version__}, indent=1))
         return _merge(out, target, natives, settings, fmt, link)
 
 
 def _merge(out, target, natives, settings, fmt, link):
-    _check_settings(target / SETTINGS_FILE, {**settings, "version": __version__})
     reconcile(target)
     for nd in natives:
         for rec in reconcile(nd):

@@ -1,7 +1,8 @@
 """Which files in an output folder a tool wrote: the ownership record both packages keep.
 
 "Tools never delete or replace what they did not write." Every command that writes a fixed set of file
-names into a folder the user names (``uhrnet train``, ``uhrnet adapt``, ``fppsim label-real``) claims
+names into a folder the user names (``uhrnet train``, ``uhrnet adapt``, ``fppsim label-real``, ``fppsim generate``
+and ``merge``: :mod:`fppsim.dataio.dataset_folder`) claims
 those names here BEFORE it writes them: the folder's ``.fppsim-owned.json`` maps each relative path to
 the tool that wrote it. A claim is refused (:class:`fppsim.errors.ForeignFiles`, one line naming the
 file) when a path to be written already exists and

@@ -44,7 +44,8 @@ from fppsim.files import atomic_write_text, clean_stale_tmp
 
 __all__ = [
     "psp_freq", "psp_image_name", "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",
-    "SAMPLE_ID_RE", "sample_id", "is_own_sample", "foreign_sample_folders", "manifest_record", "reconcile",
+    "SAMPLE_ID_RE", "sample_id", "is_own_sample", "foreign_sample_folders", "finished_indices", "PEDESTAL_PREFIX",
+    "manifest_record", "reconcile",
     "read_manifest", "manifest_ids", "append_manifest",
     "FIGSHARE_PAIRS", "find_figshare_pair",
     "read_settings", "normalise_settings",
@@ -230,9 +231,20 @@ def _complete_samples(root: Path) -> dict[int, Path]:
     return out
 
 
+def finished_indices(root: str | os.PathLike) -> set[int]:
+    """Indices of the finished fppsim samples in ``root`` (read only: nothing is written)."""
+    return set(_complete_samples(Path(root)))
+
+
+PEDESTAL_PREFIX = "pedestal:"  # meta.json's "mesh" of a pedestal prism (fppsim.rendering.scene), not an object
+
+
 def manifest_record(sid: str, meta: dict) -> dict:
-    return {"id": sid, "index": meta["index"], "seed": meta["seed"], "objects": len(meta["objects"]),
-            "valid_fraction": meta.get("stats", {}).get("valid_fraction")}
+    """One manifest line: ``objects`` counts the scene's objects, ``pedestals`` the prisms they stand on
+    (meta.json lists both under ``objects``)."""
+    pedestals = sum(str(o.get("mesh", "")).startswith(PEDESTAL_PREFIX) for o in meta["objects"])
+    return {"id": sid, "index": meta["index"], "seed": meta["seed"], "objects": len(meta["objects"]) - pedestals,
+            "pedestals": pedestals, "valid_fraction": meta.get("stats", {}).get("valid_fraction")}
 
 
 def reconcile(root: str | os.PathLike) -> list[dict]:
@@ -251,7 +263,7 @@ def reconcile(root: str | os.PathLike) -> list[dict]:
     records = []
     for index, folder in sorted(_complete_samples(root).items()):
         rec = old.get(folder.name)
-        if rec is None:
+        if rec is None or "pedestals" not in rec:  # older records counted pedestals as objects: rebuilt
             try:
                 rec = manifest_record(folder.name, json.loads((folder / "meta.json").read_text()))
             except (ValueError, KeyError, TypeError):

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import MeshError, InputError
+from fppsim.dataio.formats import PEDESTAL_PREFIX
 from fppsim.geometry.rig import RigError, rotation
 from fppsim.rendering.meshio import PlyError, ply_has_tristrips, read_ply_tristrips
 from fppsim.rendering.render import Instance
@@ -224,7 +225,7 @@ class Scene:
 
 
 PROCEDURAL_PREFIX = "procedural:"
-PEDESTAL_PREFIX = "pedestal:"
+# PEDESTAL_PREFIX (imported above): a pedestal's "mesh" name, defined by the contract so the manifest counts it apart
 
 
 def pedestal_prism(outline_xy: np.ndarray, height: float) -> tuple[np.ndarray, np.ndarray]:

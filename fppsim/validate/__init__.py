@@ -58,7 +58,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ConfigError, ValidateError
+from fppsim.errors import ConfigError, InputError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.validate.report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
@@ -66,6 +66,7 @@ from fppsim.validate.report import (format_sweep_table, format_table, read_datas
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
 from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
 from fppsim.generation import GenerateConfig, generate_dataset
+from fppsim.rendering.synth import check_seed
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "resolve_dataset", "evaluate_sample",
@@ -115,6 +116,10 @@ class ValidateConfig:
             raise ValidateError("--count/--optics/--noise-free only apply with --meshes")
         if self.psp_steps < 3:
             raise ValidateError(f"--psp-steps must be >= 3, got {self.psp_steps}")
+        try:
+            check_seed(self.seed)
+        except InputError as exc:
+            raise ValidateError(str(exc)) from None
 
     def grid(self) -> list[tuple[str, list]] | None:
         return parse_sweep(self.sweep) if self.sweep is not None else None

@@ -1,0 +1,148 @@
+"""The fixed files of a generated dataset folder, and the checks that keep ``generate`` / ``merge`` off anyone else's.
+
+``fppsim generate`` and ``fppsim merge`` write fixed names into ``--out``: ``dataset.json`` and ``manifest.jsonl``
+beside the samples (``--out`` itself, or ``--out/native`` for the figshare format), ``f1_80.npy`` + ``Z.npy``
+(figshare format) and ``preview.png``. They claim those names in ``--out``'s ownership record
+(:mod:`fppsim.owned`) before writing anything, under ONE tool name (:data:`DATASET_TOOL`): a merged folder
+then resumes with ``generate``, and shards merge into a folder ``generate`` wrote. A folder generated before
+the record existed is adopted when its ``dataset.json`` is fppsim's (:func:`legacy_files`: only the names it
+can show are fppsim's). Sample folders are not recorded: each proves itself (``meta.json``,
+:func:`fppsim.dataio.formats.is_own_sample`), and a foreign one is refused up front by the run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+from fppsim.errors import GenerateError
+from fppsim.files import unlink_quietly
+from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, read_settings
+from fppsim.dataio.writers import samples_folder
+
+__all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
+           "discard_empty_dataset"]
+
+DATASET_TOOL = "fppsim generate"  # the record's name for a dataset's files, whether generate or merge wrote them
+MANIFEST = "manifest.jsonl"
+PREVIEW_NAME = "preview.png"
+
+
+def _samples_rel(fmt: str) -> str:
+    """Where format ``fmt`` keeps its samples, relative to ``--out``, as a name prefix ("" or "native/")."""
+    sub = samples_folder(Path(), fmt)
+    return "" if sub == Path() else f"{sub.as_posix()}/"
+
+
+def dataset_files(fmt: str, preview: bool = False) -> list[str]:
+    """The fixed names (relative to ``--out``) a run writing format ``fmt`` writes."""
+    sub = _samples_rel(fmt)
+    names = [f"{sub}{SETTINGS_FILE}", f"{sub}{MANIFEST}"]
+    if fmt == "figshare":
+        names += list(FIGSHARE_PAIRS[0])
+    return names + ([PREVIEW_NAME] if preview else [])
+
+
+def _fppsim_settings(folder: Path) -> dict | None:
+    """``folder``'s ``dataset.json`` when fppsim wrote it (``"generator": "fppsim"``), else None."""
+    try:
+        settings = read_settings(folder)
+    except (OSError, ValueError):
+        return None
+    return settings if isinstance(settings, dict) and settings.get("generator") == "fppsim" else None
+
+
+def _is_manifest(path: Path) -> bool:
+    """Every line a manifest record (a JSON object with an ``id``); a torn last line after a good one is
+    allowed (a run killed while appending); an empty file is one (a run stopped before its first sample)."""
+    try:
+        lines = [ln for ln in path.read_text().splitlines() if ln.strip()]
+    except (OSError, UnicodeDecodeError):
+        return False
+    good = 0
+    for k, line in enumerate(lines):
+        try:
+            rec = json.loads(line)
+            ok = isinstance(rec, dict) and "id" in rec
+        except ValueError:
+            ok = False
+        if not ok and not (k == len(lines) - 1 and good):
+            return False
+        good += ok
+    return True
+
+
+def _is_figshare_array(path: Path, camera: dict) -> bool:
+    """A float32 (N, H, W, 1) ``.npy`` of the dataset's camera size: what ``generate`` writes."""
+    try:
+        a = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError):
+        return False
+    size = (camera.get("height"), camera.get("width")) if isinstance(camera, dict) else None
+    return a.dtype == np.float32 and a.ndim == 4 and a.shape[3] == 1 and tuple(a.shape[1:3]) == size
+
+
+def _is_preview(path: Path) -> bool:
+    """A PNG of the size ``fppsim.rendering.preview.write_preview`` makes (1200 px wide, 240 px a row, 1-3 rows)."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(24)
+    except OSError:
+        return False
+    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n":
+        return False
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return width == 1200 and height in (240, 480, 720)
+
+
+def legacy_files(out: str | os.PathLike) -> list[str]:
+    """For a folder without an ownership record: the fixed names a run of fppsim before the record wrote there,
+    told by its ``dataset.json`` (``"generator": "fppsim"``) and each file's own form; [] when it holds none."""
+    out = Path(out)
+    for fmt in ("native", "figshare"):
+        sub = _samples_rel(fmt)
+        settings = _fppsim_settings(out / sub)
+        if settings is None or settings.get("format", "native") != fmt:
+            continue
+        own = [f"{sub}{SETTINGS_FILE}"]
+        if _is_manifest(out / sub / MANIFEST):
+            own.append(f"{sub}{MANIFEST}")
+        if fmt == "figshare":
+            camera = (settings.get("rig") or {}).get("camera") if isinstance(settings.get("rig"), dict) else None
+            own += [name for name in FIGSHARE_PAIRS[0] if _is_figshare_array(out / name, camera)]
+        if _is_preview(out / PREVIEW_NAME):
+            own.append(PREVIEW_NAME)
+        return own
+    return []
+
+
+def check_format(out: str | os.PathLike, fmt: str) -> None:
+    """Refuse (:class:`GenerateError`, one line) to write format ``fmt`` into ``out`` when ``out`` holds a
+    dataset of the other format: the run would build a second dataset beside it (a native one next to
+    ``native/``), or render every sample again into ``native/`` instead of resuming."""
+    out = Path(out)
+    for other in ("native", "figshare"):
+        if other == fmt:
+            continue
+        settings = _fppsim_settings(out / _samples_rel(other))
+        if settings is not None and settings.get("format", "native") == other:
+            raise GenerateError(f"{out} holds a dataset generated with --format {other} "
+                                f"({out / _samples_rel(other) / SETTINGS_FILE}): re-run with --format {other} to "
+                                f"resume it, or use another --out for --format {fmt}")
+
+
+def discard_empty_dataset(folder: str | os.PathLike, folder_too: bool = False) -> None:
+    """Remove the ``dataset.json`` and ``manifest.jsonl`` a failed run started in ``folder`` beside no finished
+    sample (and ``folder`` itself when ``folder_too`` and it is left empty): the corrected re-run then starts
+    afresh instead of being refused for the failed run's settings. Only call it for files that run wrote."""
+    folder = Path(folder)
+    for name in (SETTINGS_FILE, MANIFEST):
+        unlink_quietly(folder / name)
+    if folder_too:
+        try:
+            folder.rmdir()
+        except OSError:  # not empty: someone else's files stay
+            pass
