@@ -34,7 +34,8 @@ from uhrnet.training.distributed import DistInfo
 from uhrnet.training.ema import WeightEMA
 from uhrnet.training.speed import Speed
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, LossContext, build_head_loss, build_loss
-from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize, parse_kv
+from uhrnet.training.train_config import (LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize,
+                                          model_options_from)
 from fppsim.dataio.rig_choice import dataset_rig, resolve_rig
 from fppsim.phase.fringe_axis import rig_phase_gradient
 
@@ -202,7 +203,7 @@ def build_network(cfg: RunConfig, head, shape: tuple, needs_rig: bool):
     """``(net, rig)``: the run's network, its weights drawn from the global generator seeded with ``--seed``
     (a resume overwrites them), and the rig (a dictionary) of a head or loss that needs one, else None."""
     torch.manual_seed(cfg.seed)
-    options = parse_kv(cfg.model_option, "--model-option")
+    options = model_options_from(cfg)
     if cfg.base_channels is not None:
         options["base_channels"] = cfg.base_channels
     rig = head_rig(cfg.rig, cfg.synthetic) if needs_rig else None
