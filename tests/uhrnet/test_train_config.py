@@ -120,3 +120,23 @@ def test_seed_range_and_model_options_in_the_library():
     # a resume is checked against the checkpoint's model and head, not the defaults (no --model given here)
     TrainConfig(out="r", resume="auto", model_option=["min_confidence=0.5"])
 
+
+def test_folders_of_different_image_sizes_are_refused_before_training(tmp_path, capsys):
+    """Stacking a batch failed in the first epoch (torch.stack: 'expects each tensor to be equal size'); now one
+    line naming both folders and sizes, and --resize (or --crop) trains on them together."""
+    from _helpers import write_figshare
+    from uhrnet.cli import main
+
+    write_figshare(tmp_path / "small", n=8, h=32, w=64)
+    write_figshare(tmp_path / "large", n=8, h=48, w=96, seed=1)
+    base = ["train", "--model", "unet", "--base-channels", "4", "--epochs", "1", "--batch-size", "2", "--threads", "1",
+            "--no-progress", "--synthetic", str(tmp_path / "small"), "--real", str(tmp_path / "large"), "--real-split",
+            "train"]
+    assert main(base + ["--out", str(tmp_path / "r1")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for part in ("32x64", "48x96", str(tmp_path / "small"), str(tmp_path / "large"), "--resize"):
+        assert part in err, err
+    assert not (tmp_path / "r1").exists()
+    assert main(base + ["--out", str(tmp_path / "r2"), "--resize", "32x64"]) == 0
+    assert main(base + ["--out", str(tmp_path / "r3"), "--crop", "32x32"]) == 0
