@@ -90,6 +90,20 @@ def test_load_variants_yaml(tmp_path):
 
 
 
+@pytest.mark.parametrize("entry, key", [("{name: a, generate: 5}", "generate"), ("{name: a, train: {lr: 1}}", "train"),
+                                        ("{name: a, adapt: 0}", "adapt"), ("{name: a, refine: 3}", "refine"),
+                                        ("{name: a, train: [[--lr, 1]]}", "train")])
+def test_an_ablation_value_of_the_wrong_type_is_refused_not_ignored(tmp_path, entry, key):
+    """``generate: 5`` ran the default generate flags: a value that is not flags was read as none."""
+    p = tmp_path / "abl.yaml"
+    p.write_text(f"- {entry}\n")
+    with pytest.raises(Sim2RealError, match=f"item 0 \\(a\\): {key} must be a string of"):
+        load_variants(p)
+    p.write_text("- {name: a, generate: [--seed, 3], adapt: true, refine: true}\n- {name: b, adapt: false, refine: null}\n")
+    a, b = load_variants(p)
+    assert a == VariantFlags("a", ["--seed", "3"], [], [], ("relief",)) and b == VariantFlags("b", [], [], None, ())
+
+
 @pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"]])
 def test_recipe_training_numbers_are_usage_errors_before_anything_runs(tmp_path, capsys, flags):
     """They were checked when the training config was built (Sim2RealError, exit 1), or, for --base-channels,
