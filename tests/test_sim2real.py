@@ -89,6 +89,62 @@ def test_load_variants_yaml(tmp_path):
         load_variants(tmp_path / "nope.yaml")
 
 
+
+@pytest.mark.parametrize("entry, key", [("{name: a, generate: 5}", "generate"), ("{name: a, train: {lr: 1}}", "train"),
+                                        ("{name: a, adapt: 0}", "adapt"), ("{name: a, refine: 3}", "refine"),
+                                        ("{name: a, train: [[--lr, 1]]}", "train")])
+def test_an_ablation_value_of_the_wrong_type_is_refused_not_ignored(tmp_path, entry, key):
+    """``generate: 5`` ran the default generate flags: a value that is not flags was read as none."""
+    p = tmp_path / "abl.yaml"
+    p.write_text(f"- {entry}\n")
+    with pytest.raises(Sim2RealError, match=f"item 0 \\(a\\): {key} must be a string of"):
+        load_variants(p)
+    p.write_text("- {name: a, generate: [--seed, 3], adapt: true, refine: true}\n- {name: b, adapt: false, refine: null}\n")
+    a, b = load_variants(p)
+    assert a == VariantFlags("a", ["--seed", "3"], [], [], ("relief",)) and b == VariantFlags("b", [], [], None, ())
+
+
+@pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"]])
+def test_recipe_training_numbers_are_usage_errors_before_anything_runs(tmp_path, capsys, flags):
+    """They were checked when the training config was built (Sim2RealError, exit 1), or, for --base-channels,
+    only when the model was built, after the dataset had been generated."""
+    from uhrnet.cli import main
+
+    out = tmp_path / "o"
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6", *flags]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and flags[0] in err and "variant" not in err, err
+    assert not out.exists()
+
+
+def test_devices_and_training_inputs_are_checked_before_generating(tmp_path, monkeypatch):
+    """No CUDA for --device cuda / --scale gpu, a variant's missing --init-from checkpoint, --val-phase folder or
+    --rig file: refused before the first stage (they failed in the train stage, after generating the data)."""
+    import torch
+
+    from uhrnet.workflows.sim2real import run_sim2real
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    out = tmp_path / "o"
+
+    def cfg(**kw):
+        return Sim2RealConfig(out=str(out), real=[str(tmp_path / "real")], count=6, epochs=1, base_channels=4, **kw)
+
+    for kw, match in (({"device": "cuda"}, "--device cuda: no CUDA device"),
+                      ({"scale": "gpu"}, "--scale gpu recipe's device"),
+                      ({"variants": [Variant("x", train={"device": "cuda"})]}, "variant 'x': train: --device cuda"),
+                      ({"variants": [Variant("x", train={"init_from": str(tmp_path / "none")})]},
+                       "variant 'x': train: .*none: checkpoint not found"),
+                      ({"variants": [Variant("x", train={"val_phase": [str(tmp_path / "none")]})]},
+                       "variant 'x': train: --val-phase: .*none"),
+                      ({"variants": [Variant("x", train={"head": "phase", "rig": str(tmp_path / "none.json")})]},
+                       "variant 'x': train: .*none.json")):
+        with pytest.raises(Sim2RealError, match=match):
+            run_sim2real(cfg(**kw), log=None)
+        assert not out.exists()
+
+
 def test_config_scales_and_stage_configs(tmp_path):
     cfg = Sim2RealConfig(out=str(tmp_path), real=["r"], meshes=["../shared/meshes", "assets/meshes"])
     assert (cfg.count, cfg.seed, cfg.epochs, cfg.model, cfg.base_channels) == (400, 100, 10, "unet", 16)

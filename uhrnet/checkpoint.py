@@ -82,6 +82,17 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
     return path
 
 
+def find_checkpoint(path: str | os.PathLike) -> Path:
+    """The checkpoint file ``path`` names (:func:`checkpoint_file`), refused (:class:`CheckpointError`) when it
+    is missing or empty; nothing is loaded (:func:`load_checkpoint` reads it)."""
+    path = checkpoint_file(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: checkpoint not found")
+    if path.stat().st_size == 0:
+        raise CheckpointError(f"{path}: empty file (0 bytes), not a checkpoint")
+    return path
+
+
 def load_checkpoint(path: str | os.PathLike, map_location="cpu", *, digest: bool = False) -> dict:
     """Load and validate a uhrnet checkpoint (``weights_only=True``: no code runs while loading).
 
@@ -89,11 +100,7 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", *, digest: bool
     file read. ``digest``: also put the SHA-256 of the file's bytes in ``"sha256"`` (hashed from the same
     open file that is loaded, so a checkpoint replaced meanwhile cannot mismatch its hash).
     """
-    path = checkpoint_file(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: checkpoint not found")
-    if path.stat().st_size == 0:
-        raise CheckpointError(f"{path}: empty file (0 bytes), not a checkpoint")
+    path = find_checkpoint(path)
     sha256 = None
     try:
         with open(path, "rb") as f:

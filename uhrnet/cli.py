@@ -85,7 +85,7 @@ def _add_train_data(d) -> None:
                         f"synthetic data's fringes are at least {HALVE_FROM_PERIOD_PX:g} px apart (its rig's period at the "
                         f"image centre) and their shorter side is at least {HALVE_FROM_SIDE_PX} px, else full size; the "
                         "size chosen is printed and recorded [full size]")
-    d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch [all training samples]")
+    d.add_argument("--samples-per-epoch", type=int, metavar="N", help="draws per epoch, at least 1 [all training samples]")
     d.add_argument("--workers", type=int, metavar="N", help="data-loader processes [0 on CPU, 4 on GPU]")
     d.add_argument("--threads", type=int, metavar="N",
                    help="CPU threads torch computes with; a seeded run repeats bit for bit only at the same count "
@@ -170,7 +170,7 @@ def _add_train_model(m) -> None:
     m.add_argument("--raw-output", action="store_const", const=True,
                    help="the network outputs raw labels (as the reference code) instead of height/10 mm "
                         "above the plane")
-    m.add_argument("--seed", type=int, help="seed of weights, data order, crops and dropout [0]")
+    m.add_argument("--seed", type=int, help="seed of weights, data order, crops and dropout, 0 to 2^32 - 1 [0]")
 
 
 def _add_train_run(r) -> None:
@@ -180,7 +180,7 @@ def _add_train_run(r) -> None:
                    help="continue from RUN_DIR/last.pt (or CKPT) with the same settings")
     r.add_argument("--overwrite", action="store_true",
                    help="start afresh in a RUN_DIR that already holds a run (its best.pt, last.pt, history and "
-                        "config are replaced); without it such a folder is refused")
+                        "config are replaced); without it such a folder is refused; not with --resume")
     r.add_argument("--device", choices=DEVICES, help="[auto: cuda when available]")
     r.add_argument("--no-progress", action="store_true", help="no progress bar")
     r.add_argument("--tensorboard", action="store_true",

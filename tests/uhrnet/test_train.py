@@ -132,7 +132,7 @@ def test_cli_errors(tmp_path, capsys):
     write_figshare(tmp_path / "tiny", n=8, h=12, w=40)
     assert main(base + ["--real", str(tmp_path / "tiny"), "--out", str(tmp_path / "r2b")]) == 1
     assert "at least 16 x 16 pixels" in capsys.readouterr().err
-    assert main(base + ["--real", str(tmp_path / "real"), "--crop", "16", "--out", str(tmp_path / "r3")]) == 1
+    assert main(base + ["--real", str(tmp_path / "real"), "--crop", "16", "--out", str(tmp_path / "r3")]) == 2  # usage
     assert "--crop" in capsys.readouterr().err
     assert main(base + ["--real", str(tmp_path / "real"), "--out", str(tmp_path / "ok")]) == 0
     capsys.readouterr()

@@ -64,3 +64,79 @@ def test_the_trainer_stays_short():
             if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and size > 100 and path.name != "adapt.py":
                 long.append(f"{path.name} {node.name} {size}")
     assert not long, long
+
+
+# ---------------------------------------------------------------------------- s67: option values wrong on their own
+BAD_VALUES = [
+    (["--seed", "-1"], "--seed"), (["--seed", "99999999999999999999"], "--seed"), (["--seed", str(2**32)], "--seed"),
+    (["--samples-per-epoch", "-3"], "--samples-per-epoch"), (["--samples-per-epoch", "0"], "--samples-per-epoch"),
+    (["--workers", "-1"], "--workers"), (["--resize", "0x0"], "--resize"), (["--resize", "abc"], "--resize"),
+    (["--crop", "0x8"], "--crop"), (["--epochs", "0"], "--epochs"), (["--batch-size", "0"], "--batch-size"),
+    (["--lr", "nan"], "--lr"), (["--lr", "-1"], "--lr"), (["--synthetic-ratio", "1.5"], "--synthetic-ratio"),
+    (["--base-channels", "0"], "--base-channels"), (["--model-option", "foo=1"], "--model-option"),
+    (["--model-option", "foo"], "--model-option"), (["--model-option", "min_confidence=0.5"], "--model-option"),
+    (["--label-transform", "plane_offset=-90", "invalid_threshold=-80"], "the plane would count as invalid"),
+    (["--resume", "--overwrite"], "--overwrite"),
+]
+
+
+@pytest.mark.parametrize("flags, culprit", BAD_VALUES, ids=lambda v: " ".join(v) if isinstance(v, list) else None)
+def test_option_values_wrong_on_their_own_are_usage_errors_before_anything_is_written(tmp_path, capsys, flags, culprit):
+    """Exit 2, one line naming the flag, no run folder: checked by the config, before any data is read (the
+    --synthetic folder does not even exist) or training starts; they were numpy / DataLoader / torch tracebacks
+    in the first epoch, exit 1, or (--samples-per-epoch 0, --resume --overwrite, a plane below the invalid
+    threshold) accepted."""
+    from uhrnet.cli import main
+
+    out = tmp_path / "run"
+    rc = main(["train", "--synthetic", str(tmp_path / "nothing"), "--model", "unet", "--epochs", "1", "--no-progress",
+               "--out", str(out), *flags])
+    err = capsys.readouterr().err.strip()
+    assert rc == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err and culprit in err, err
+    assert not out.exists()
+
+
+def test_seed_range_and_model_options_in_the_library():
+    from uhrnet.errors import UsageError
+    from uhrnet.models import check_model_options
+    from uhrnet.training.train_config import MAX_SEED
+
+    assert TrainConfig(out="r", synthetic=["s"], seed=MAX_SEED).seed == 2**32 - 1
+    for bad in (-1, MAX_SEED + 1, 1.5, True):
+        with pytest.raises(UsageError, match="--seed"):
+            TrainConfig(out="r", synthetic=["s"], seed=bad)
+    with pytest.raises(UsageError, match="--samples-per-epoch"):
+        TrainConfig(out="r", synthetic=["s"], samples_per_epoch=0)
+    assert TrainConfig(out="r", synthetic=["s"], workers=0, samples_per_epoch=None).workers == 0
+    check_model_options("uhrnet", {"fusion": False})  # nothing is built
+    check_model_options("unet", {"min_confidence": 0.5}, head="phase")
+    for name, options, head, match in (("unet", {"fusion": True}, "height", "does not take"),
+                                       ("model_b", {"fusion": True}, "height", "model_b is uhrnet with fusion"),
+                                       ("unet", {"min_confidence": 0.5}, "height", "phase head"),
+                                       ("nope", {}, "height", "unknown model"), ("unet", {}, "nope", "unknown head")):
+        with pytest.raises(ValueError, match=match):
+            check_model_options(name, options, head=head)
+    # a resume is checked against the checkpoint's model and head, not the defaults (no --model given here)
+    TrainConfig(out="r", resume="auto", model_option=["min_confidence=0.5"])
+
+
+def test_folders_of_different_image_sizes_are_refused_before_training(tmp_path, capsys):
+    """Stacking a batch failed in the first epoch (torch.stack: 'expects each tensor to be equal size'); now one
+    line naming both folders and sizes, and --resize (or --crop) trains on them together."""
+    from _helpers import write_figshare
+    from uhrnet.cli import main
+
+    write_figshare(tmp_path / "small", n=8, h=32, w=64)
+    write_figshare(tmp_path / "large", n=8, h=48, w=96, seed=1)
+    base = ["train", "--model", "unet", "--base-channels", "4", "--epochs", "1", "--batch-size", "2", "--threads", "1",
+            "--no-progress", "--synthetic", str(tmp_path / "small"), "--real", str(tmp_path / "large"), "--real-split",
+            "train"]
+    assert main(base + ["--out", str(tmp_path / "r1")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for part in ("32x64", "48x96", str(tmp_path / "small"), str(tmp_path / "large"), "--resize"):
+        assert part in err, err
+    assert not (tmp_path / "r1").exists()
+    assert main(base + ["--out", str(tmp_path / "r2"), "--resize", "32x64"]) == 0
+    assert main(base + ["--out", str(tmp_path / "r3"), "--crop", "32x32"]) == 0

@@ -36,7 +36,7 @@ from uhrnet.models.unet import UNet
 from uhrnet.models.uhrnet import UHRNet
 from uhrnet.errors import InputError
 
-__all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "count_parameters", "list_models", "outputs_of",
+__all__ = ["ARCHITECTURES", "ALIASES", "HEADS", "Head", "HNet", "UHRNet", "UNet", "build_model", "check_model_options", "count_parameters", "list_models", "outputs_of",
            "prediction_of"]
 
 ARCHITECTURES: dict[str, type[nn.Module]] = {"uhrnet": UHRNet, "unet": UNet, "hnet": HNet}
@@ -74,6 +74,28 @@ def build_model(name: str, head: str = DEFAULT_HEAD, rig: dict | None = None, **
     a head without one), an unknown option, or an option that contradicts what an alias fixes
     (``build_model("model_b", fusion=True)``; an alias's ``base_channels`` is only a default).
     """
+    spec, given, options = _head_options(head, options, rig)
+    if spec.wrap is None:
+        return _architecture(name, options)
+    if spec.needs_rig and rig is None:
+        raise InputError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
+    if spec.backbone_channels is not None:
+        options = {**options, "out_channels": spec.backbone_channels}
+    given.pop("rig", None)
+    return spec.wrap(_architecture(name, options), rig, **given)
+
+
+def check_model_options(name: str, options: dict, head: str = DEFAULT_HEAD) -> None:
+    """Refuse (``ValueError``) what :func:`build_model` would refuse of the model ``name`` with ``head`` and
+    constructor ``options`` (an unknown name or head, an option the architecture does not take, another head's
+    option, one that contradicts what an alias fixes), without building anything; the values are the
+    constructor's to check, and the rig is not needed here."""
+    _resolved(name, _head_options(head, dict(options), None)[2])
+
+
+def _head_options(head: str, options: dict, rig: dict | None) -> tuple[Head, dict, dict]:
+    """``(spec, given, options)``: the head ``head``, the options of ``options`` that belong to heads (``rig``
+    added when given) and the rest (the architecture's); refuses an unknown head and another head's option."""
     if head not in HEADS:
         raise InputError(f"unknown head {head!r}; known heads: {', '.join(HEADS)}")
     spec = HEADS[head]
@@ -90,18 +112,11 @@ def build_model(name: str, head: str = DEFAULT_HEAD, rig: dict | None = None, **
         heads = sorted({n for k in foreign for n in owners[k]})
         raise InputError(f"{' and '.join(k + '=' for k in foreign)} belong to the {' / '.join(heads)} head "
                          f"(head={heads[0]!r}), not the {head} head")
-    if spec.wrap is None:
-        return _architecture(name, options)
-    if spec.needs_rig and rig is None:
-        raise InputError(f"the {head} head needs the rig (fppsim rig dictionary) that turns its outputs into height")
-    if spec.backbone_channels is not None:
-        options = {**options, "out_channels": spec.backbone_channels}
-    given.pop("rig", None)
-    return spec.wrap(_architecture(name, options), rig, **given)
+    return spec, given, options
 
 
-def _architecture(name: str, options: dict) -> nn.Module:
-    """The registry's architecture (or alias) ``name`` built with ``options`` (no head)."""
+def _resolved(name: str, options: dict) -> tuple[str, type[nn.Module], dict]:
+    """``(key, class, options)`` of the registry's architecture (or alias) ``name`` with ``options``, checked."""
     key = name.lower()
     if key in ALIASES:
         arch, fixed = ALIASES[key]
@@ -118,6 +133,12 @@ def _architecture(name: str, options: dict) -> nn.Module:
     unknown = sorted(set(options) - set(accepted))
     if unknown:
         raise InputError(f"{key} does not take option(s) {', '.join(unknown)}; it takes {', '.join(accepted)}")
+    return key, cls, options
+
+
+def _architecture(name: str, options: dict) -> nn.Module:
+    """The registry's architecture (or alias) ``name`` built with ``options`` (no head)."""
+    key, cls, options = _resolved(name, options)
     model = cls(**options)
     model.config = {**model.config, "name": key}
     return model

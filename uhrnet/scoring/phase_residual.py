@@ -69,7 +69,7 @@ from uhrnet.inference.prediction import path_estimate, predict_labels, refine_ri
 EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
-           "markdown", "plot_phase_residuals", "PhaseValidation"]
+           "markdown", "plot_phase_residuals", "phase_frames", "PhaseValidation"]
 
 
 @dataclass
@@ -322,6 +322,23 @@ def _scored_pixels(sample) -> np.ndarray:
     return sample.valid & (sample.image > 0)
 
 
+def phase_frames(roots, what: str = "--val-phase") -> list[tuple]:
+    """``(root, frame id)`` of every frame in the phase-shifting folders ``roots`` (their files are not read);
+    :class:`ConfigError` naming ``what`` (the flag) for a folder that holds none or cannot be listed, as
+    :class:`PhaseValidation` refuses it (and a check before a run that will build one)."""
+    frames = []
+    for root in roots:
+        try:
+            frames += [(root, sid) for sid in open_source(root).scan_ids()]
+        except PSPMatError as exc:
+            raise ConfigError(f"{what}: {exc}") from None
+    # a folder given twice (or through a link) is one frame: its copy must not be "held out"
+    frames = list({(str(Path(r).resolve()), sid): (r, sid) for r, sid in frames}.values())
+    if not frames:
+        raise ConfigError(f"{what}: no frames given")
+    return frames
+
+
 class PhaseValidation:
     """Real phase-shifting frames as an UNLABELLED validation set of a training run (``uhrnet train
     --val-phase``): :meth:`score` predicts every frame's height and returns the calibration-free phase
@@ -343,16 +360,7 @@ class PhaseValidation:
 
     def __init__(self, roots, max_frames: int, degree: int = 3, what: str = "--val-phase", shape=None,
                  convention: str = "auto", negate_sin: bool = False):
-        frames = []
-        for root in roots:
-            try:
-                frames += [(root, sid) for sid in open_source(root).scan_ids()]
-            except PSPMatError as exc:
-                raise ConfigError(f"{what}: {exc}") from None
-        # a folder given twice (or through a link) is one frame: its copy must not be "held out"
-        frames = list({(str(Path(r).resolve()), sid): (r, sid) for r, sid in frames}.values())
-        if not frames:
-            raise ConfigError(f"{what}: no frames given")
+        frames = phase_frames(roots, what)
         if len(frames) > max_frames:
             frames = [frames[int(i)] for i in np.linspace(0, len(frames) - 1, max_frames).round()]
         self.degree = degree

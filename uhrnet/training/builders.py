@@ -27,19 +27,20 @@ from uhrnet.data.datasets import MixedSampler, Prepared, load_sources, parse_siz
 from uhrnet.data.device_data import DeviceLoader, DeviceSet, device_bytes
 from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.errors import CheckpointError, ConfigError
-from uhrnet.models import build_model
+from uhrnet.models import HEADS, build_model
 from uhrnet.models.init import init_weights
 from uhrnet.run_folder import LAST_PT, check_run_folder, package_version
 from uhrnet.training.distributed import DistInfo
 from uhrnet.training.ema import WeightEMA
 from uhrnet.training.speed import Speed
 from uhrnet.training.losses import HEAD_LOSSES, LOSSES, LossContext, build_head_loss, build_loss
-from uhrnet.training.train_config import LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize, parse_kv
+from uhrnet.training.train_config import (LR_FLOOR, RESIZE_AUTO, VAL_PHASE_FRAMES, RunConfig, auto_resize,
+                                          model_options_from)
 from fppsim.dataio.rig_choice import dataset_rig, resolve_rig
 from fppsim.phase.fringe_axis import rig_phase_gradient
 
 __all__ = ["TrainingData", "Network", "open_run", "training_device", "loss_entry", "build_data", "auto_resize_of",
-           "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
+           "check_one_size", "head_rig", "build_network", "wrap_network", "build_loss_fn", "build_optimizer", "build_val_phase",
            "restore", "lr_at", "autocast", "first_best", "update_best", "gather_rng", "use_device_data", "match_layout",
            "checkpoint_payload"]
 
@@ -122,6 +123,8 @@ def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: t
     if len(train_set) == 0:
         raise ConfigError("no training samples: every sample is in the val/test split "
                           "(check --real-split/--synthetic-split)")
+    if size is None and crop is None:  # batches stack their samples: one size, or a traceback in the first epoch
+        check_one_size([*sources.train.parts, *sources.val.parts], cfg.head if HEADS[cfg.head].whole_images else None)
     shape = tuple(train_set[0]["fringe"].shape[-2:])
     if min(shape) < 16:  # sides not multiples of 16 are padded inside the model (uhrnet.models.any_size)
         raise ConfigError(f"training images are {shape[0]}x{shape[1]}; the models need at least 16 x 16 pixels")
@@ -139,6 +142,27 @@ def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: t
     val_loader = DataLoader(val_set, batch_size=cfg.batch_size, sampler=val_idx, num_workers=workers,
                             pin_memory=pin)
     return TrainingData(sources, train_set, val_set, sampler, loader, val_loader, shape, native, resize)
+
+
+def check_one_size(parts, whole_head: str | None = None) -> None:
+    """Refuse (:class:`ConfigError`) training on folders whose images differ in size without ``--resize`` or
+    ``--crop``: ``parts`` are the folders' subsets (:class:`~uhrnet.data.datasets.DatasetSubset`); the first
+    sample of each folder is read, and the message names two folders of different sizes and suggests
+    ``--resize`` (unless ``whole_head`` names the run's head, one that needs whole camera images)."""
+    seen = {}
+    for part in parts:
+        if id(part.dataset) in seen or not len(part):
+            continue
+        ds = part.dataset
+        folder = getattr(ds, "root", None) or ds.fringe_path.parent
+        seen[id(part.dataset)] = (folder, tuple(int(v) for v in part[0]["fringe"].shape[-2:]))
+    sizes = list(seen.values())
+    other = next(((f, s) for f, s in sizes[1:] if s != sizes[0][1]), None)
+    if other is not None:
+        (a, (ha, wa)), (b, (hb, wb)) = sizes[0], other
+        fix = (f"--head {whole_head} needs whole images of one rig's camera: train on folders of one size" if whole_head
+               else f"give --resize HxW (e.g. --resize {min(ha, hb)}x{min(wa, wb)}) to train on them together")
+        raise ConfigError(f"training images differ in size: {a} holds {ha}x{wa} px, {b} {hb}x{wb} px; {fix}")
 
 
 def use_device_data(choice: str, device: torch.device, train_set: Prepared, val_set: Prepared, phase: bool) -> bool:
@@ -202,7 +226,7 @@ def build_network(cfg: RunConfig, head, shape: tuple, needs_rig: bool):
     """``(net, rig)``: the run's network, its weights drawn from the global generator seeded with ``--seed``
     (a resume overwrites them), and the rig (a dictionary) of a head or loss that needs one, else None."""
     torch.manual_seed(cfg.seed)
-    options = parse_kv(cfg.model_option, "--model-option")
+    options = model_options_from(cfg)
     if cfg.base_channels is not None:
         options["base_channels"] = cfg.base_channels
     rig = head_rig(cfg.rig, cfg.synthetic) if needs_rig else None

@@ -9,6 +9,7 @@ behaviour once.
 from __future__ import annotations
 
 import math
+import numbers
 import os
 from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
@@ -19,7 +20,7 @@ from uhrnet.errors import CheckpointError, ConfigError, DataError, UsageError
 from fppsim.dataio.readers import LABEL_SOURCES, check_read_convention
 from uhrnet.data.splits import SPLIT_MODES
 from uhrnet.training.losses import LOSSES
-from uhrnet.models import list_models
+from uhrnet.models import check_model_options, list_models
 from uhrnet.training.tb_log import require_tensorboard
 from fppsim.threads import check_cores
 from uhrnet.models.init import INITS
@@ -30,10 +31,12 @@ from uhrnet.data.augment import augment_config, augment_kind
 
 __all__ = ["TrainConfig", "RunConfig", "option", "DEFAULTS", "LOCKED", "LEGACY", "LEGACY_LOCKED", "LR_SCHEDULES",
            "LR_FLOOR", "RESIZE_AUTO", "AMP_DTYPES", "SWITCHES", "HOST_SYNCS", "HALVE_FROM_PERIOD_PX", "HALVE_FROM_SIDE_PX", "VAL_PHASE_FRAMES",
-           "check_options", "resolve_config", "auto_resize", "label_transform_from", "parse_kv"]
+           "check_options", "resolve_config", "auto_resize", "label_transform_from", "model_options_from", "parse_kv",
+           "MAX_SEED"]
 
 LR_SCHEDULES = ("cosine", "constant")  # flat-cosine removed 2026-11-26: no gain (docs/experiments/sim2real.md)
 MAX_EPOCHS = 1_000_000
+MAX_SEED = 2**32 - 1  # --seed: numpy's legacy generators take no more; torch's per-epoch seeds (seed * 100_003 + epoch) fit
 MAX_LR = 10.0  # a learning rate above this is a typo (and above float32's range, a traceback)
 LR_FLOOR = 0.05  # the cosine schedules end at this fraction of --lr
 RESIZE_AUTO = "auto"  # --resize auto: the training size from the synthetic data's fringe period (auto_resize)
@@ -141,9 +144,9 @@ class TrainConfig:
 
     Field names are the ``uhrnet train`` flags (``--batch-size`` -> ``batch_size``); ``resume`` is
     ``"auto"`` (``out/last.pt``) or a checkpoint path; ``overwrite`` starts afresh in a folder that
-    already holds a run (refused otherwise). ``augment``: augmentation of synthetic samples, a name of
-    :data:`uhrnet.data.augment.AUGMENTS` (``shading``, ``photometric``, ``off``; True/False from older runs);
-    ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
+    already holds a run (refused otherwise; with ``resume``, a usage error). ``augment``: augmentation of
+    synthetic samples, a name of :data:`uhrnet.data.augment.AUGMENTS` (``shading``, ``photometric``, ``off``;
+    True/False from older runs); ``augment_probability``: the chance that a synthetic training sample is augmented (the rest are shown
     as rendered).
     ``init``: weight initialisation of a fresh run, a name of :data:`uhrnet.models.init.INITS` (``auto``:
     ``he`` for models without batch norm, ``torch`` otherwise; ``he``: N(0, 2/fan_in) as the U-Net paper;
@@ -255,10 +258,14 @@ class TrainConfig:
             value = getattr(self, key)
             if isinstance(value, (str, os.PathLike)):
                 setattr(self, key, [value])
+        if self.resume and self.overwrite:
+            raise UsageError("--resume continues the run in --out and --overwrite replaces it: give one of them")
         given = {k: v for k, v in asdict(self).items() if k in DEFAULTS and v is not None}
         check_options(given)
-        if not self.resume:  # a fresh run's label transform must be usable before anything is written
-            label_transform_from(RunConfig(**{**DEFAULTS, **given}))
+        if not self.resume:  # a fresh run's label transform and model options must be usable before anything is written
+            fresh = RunConfig(**{**DEFAULTS, **given})
+            label_transform_from(fresh)
+            model_options_from(fresh)
 
 
 def check_options(cfg: dict) -> None:
@@ -278,20 +285,14 @@ def check_options(cfg: dict) -> None:
         try:
             parse_size(cfg.get(key))
         except ValueError as exc:
-            raise ConfigError(f"--{key}: {exc}") from None
+            raise UsageError(f"--{key}: {exc}") from None
+    _check_counts(cfg)
     if cfg.get("synthetic_ratio") is not None and not 0 <= cfg["synthetic_ratio"] <= 1:
-        raise ConfigError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
-    if cfg.get("threads") is not None and not (isinstance(cfg["threads"], int) and 1 <= cfg["threads"] <= 1024):
-        raise UsageError(f"--threads must be a number of CPU threads from 1 to 1024, got {cfg['threads']!r}")
+        raise UsageError(f"--synthetic-ratio must be in [0, 1], got {cfg['synthetic_ratio']}")
     if cfg.get("threads") is not None:
         check_cores(cfg["threads"], "--threads", "threads", UsageError)
-    for key in ("epochs", "batch_size"):
-        if key in cfg and cfg[key] < 1:
-            raise ConfigError(f"--{key.replace('_', '-')} must be >= 1, got {cfg[key]}")
-    if cfg.get("epochs") is not None and cfg["epochs"] > MAX_EPOCHS:
-        raise UsageError(f"--epochs must be at most {MAX_EPOCHS:,}, got {cfg['epochs']}")
     if "lr" in cfg and not cfg["lr"] > 0:
-        raise ConfigError(f"--lr must be positive, got {cfg['lr']}")
+        raise UsageError(f"--lr must be positive, got {cfg['lr']}")
     if "lr" in cfg and not (math.isfinite(cfg["lr"]) and cfg["lr"] <= MAX_LR):
         raise UsageError(f"--lr must be a finite rate up to {MAX_LR:g}, got {cfg['lr']}")
     if cfg.get("grad_clip") is not None and not (cfg["grad_clip"] > 0 and math.isfinite(cfg["grad_clip"])):
@@ -340,6 +341,27 @@ def check_options(cfg: dict) -> None:
         raise UsageError(f"--weight-decay must be finite and >= 0, got {cfg['weight_decay']}")
 
 
+def _whole(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _check_counts(cfg: dict) -> None:
+    """The whole-number options, each wrong on its own (:class:`UsageError`) outside its range; None is
+    "not given" (workers, threads, width and draws per epoch have no default)."""
+    ranges = {"epochs": (1, None, ""), "batch_size": (1, None, ""),
+              "threads": (1, 1024, "a number of CPU threads "), "workers": (0, None, "a number of loader processes "),
+              "base_channels": (1, None, "a number of channels "),
+              "samples_per_epoch": (1, None, "a number of draws (leave it out for all training samples) "),
+              "seed": (0, MAX_SEED, "a whole number ")}
+    for key, (low, high, what) in ranges.items():
+        value = cfg.get(key)
+        if value is not None and not (_whole(value) and value >= low and (high is None or value <= high)):
+            bound = f"from {low} to {high}" if high is not None else f">= {low}"
+            raise UsageError(f"--{key.replace('_', '-')} must be {what}{bound}, got {value!r}")
+    if cfg.get("epochs") is not None and cfg["epochs"] > MAX_EPOCHS:
+        raise UsageError(f"--epochs must be at most {MAX_EPOCHS:,}, got {cfg['epochs']}")
+
+
 def parse_kv(items, what: str) -> dict:
     out = {}
     if not items:
@@ -348,7 +370,7 @@ def parse_kv(items, what: str) -> dict:
 
     for item in items:
         if "=" not in item:
-            raise ConfigError(f"{what}: expected KEY=VALUE, got {item!r}")
+            raise UsageError(f"{what}: expected KEY=VALUE, got {item!r}")
         k, v = item.split("=", 1)
         out[k.strip().replace("-", "_")] = yaml.safe_load(v)
     return out
@@ -440,8 +462,23 @@ def auto_resize(shape: tuple[int, int], period_px: float) -> tuple[tuple[int, in
 
 
 def label_transform_from(cfg: RunConfig) -> LabelTransform:
+    """The run's label transform: ``--preset`` with the ``--label-transform`` overrides, checked as a writer of
+    labels checks it (:meth:`fppsim.dataio.formats.LabelTransform.check`, what ``fppsim generate`` refuses): the
+    reference plane must count as valid, or every plane pixel would be masked out of the loss."""
     overrides = parse_kv(cfg.label_transform, "--label-transform")
     try:
-        return LabelTransform.from_dict({"preset": cfg.preset, "name": cfg.preset, **overrides})
+        return LabelTransform.from_dict({"preset": cfg.preset, "name": cfg.preset, **overrides}).check()
     except DataError as exc:
         raise UsageError(f"--label-transform: {exc}") from None
+
+
+def model_options_from(cfg: RunConfig) -> dict:
+    """``--model-option`` as constructor options of ``--model``; :class:`UsageError` for an item that is not
+    KEY=VALUE or names an option that neither the model nor ``--head`` takes
+    (:func:`uhrnet.models.check_model_options`; the values are the constructor's to check)."""
+    options = parse_kv(cfg.model_option, "--model-option")
+    try:
+        check_model_options(cfg.model, options, cfg.head)
+    except ValueError as exc:
+        raise UsageError(f"--model-option: {exc}") from None
+    return options

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, fields
 from fppsim.dataio.encoding import json_default
 from uhrnet.errors import Sim2RealError, UsageError
 from uhrnet.training.adapt import AdaptConfig
-from uhrnet.training.train_config import MAX_EPOCHS, TrainConfig
+from uhrnet.training.train_config import MAX_EPOCHS, TrainConfig, check_options
 
 MAX_COUNT = 10_000_000  # synthetic samples (fppsim.generation's bound)
 from fppsim.geometry.rig import RigError, data_path, load_rig
@@ -173,6 +173,8 @@ class Sim2RealConfig:
                 raise UsageError(f"--{key} must be from 1 to {most:,}, got {getattr(self, key)}")
         if self.workers < 0:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
+        # the recipe's training numbers, wrong on their own as uhrnet train refuses them (exit 2, before generating)
+        check_options({k: getattr(self, k) for k in ("batch_size", "lr", "base_channels") if getattr(self, k) is not None})
         if not self.object_mm > 0:
             raise UsageError(f"--object-mm must be > 0 mm, got {self.object_mm}")
 

@@ -35,7 +35,11 @@ from typing import Callable, Sequence
 from fppsim.errors import FppsimError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
-from uhrnet.errors import Sim2RealError, UhrnetError
+from fppsim.geometry.rig import load_rig
+from uhrnet.checkpoint import find_checkpoint
+from uhrnet.device import select_device
+from uhrnet.errors import ConfigError, Sim2RealError, UhrnetError
+from uhrnet.scoring.phase_residual import phase_frames
 from uhrnet.run_folder import CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.stages import dataset_count, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers
@@ -167,6 +171,22 @@ def _finished_run(cfg: Sim2RealConfig, var: Variant, run: Path, tr, gen) -> list
     return [str(f) for f in json.loads((run / CONFIG_JSON).read_text()).get("synthetic") or []]
 
 
+def _check_training_inputs(var: Variant, tr) -> None:
+    """What the training run ``tr`` of ``var`` reads besides its dataset (its device, ``--init-from``
+    checkpoint, ``--val-phase`` folders, ``--rig``), refused in one line before the first stage runs, not
+    after its dataset is generated."""
+    try:
+        select_device(tr.device or "auto")
+        if tr.init_from:
+            find_checkpoint(tr.init_from)
+        if tr.val_phase:
+            phase_frames(tr.val_phase)
+        if tr.rig:
+            load_rig(tr.rig)
+    except (UhrnetError, FppsimError) as exc:
+        raise Sim2RealError(f"variant {var.name!r}: train: {exc}") from None
+
+
 def _adapt_done(acfg, source: Path) -> bool:
     out = Path(acfg.out)
     if not all((out / name).is_file() for name in (LAST_PT, IMAGES_JSON, HISTORY_CSV)):
@@ -245,6 +265,12 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
     out = Path(cfg.out)
     find_real_pairs(cfg.real)  # fail early on bad real folders, before anything is written
     find_phase_frames(cfg.real_phase)
+    try:  # training and evaluation run there
+        select_device(cfg.device)
+    except ConfigError:
+        raise Sim2RealError(f"--device {cfg.device}: no CUDA device is available" + (
+            f" (the --scale {cfg.scale} recipe's device; --device cpu runs it here)"
+            if SCALES[cfg.scale]["device"] == cfg.device else "")) from None
     plans = []
     for var in cfg.variants:  # every variant's configs are checked before the first stage runs
         data = out / "data" / data_key(var.generate)
@@ -252,7 +278,10 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         gen, tr = generate_config(cfg, var, data), train_config(cfg, var, data, run)
         if var.adapt is not None:
             adapt_config(cfg, var, run / LAST_PT, out / var.name / "adapt")
-        plans.append((var, data, run, gen, tr, _finished_run(cfg, var, run, tr, gen)))
+        trained_on = _finished_run(cfg, var, run, tr, gen)
+        if trained_on is None:
+            _check_training_inputs(var, tr)
+        plans.append((var, data, run, gen, tr, trained_on))
     out.mkdir(parents=True, exist_ok=True)
 
     # the experiment's own files (its stages claim theirs): never one it did not write

@@ -104,16 +104,32 @@ def load_variants(path: str | Path) -> list[VariantFlags]:
         unknown = set(item) - {"name", "generate", "train", "adapt", "refine"}
         if unknown:
             raise Sim2RealError(f"{p}: item {i} has unknown keys {sorted(unknown)}")
-        args = {}
-        for k in ("generate", "train", "adapt", "refine"):
-            v = item.get(k) if isinstance(item.get(k), (str, list)) else []  # adapt/refine: true = the defaults
-            args[k] = shlex.split(v.replace(",", " ") if k == "refine" else v) if isinstance(v, str) \
-                else [str(a) for a in v]
+        where = f"{p}: item {i} ({item['name']})"
+        args = {k: _flags(item.get(k), k, where) for k in ("generate", "train", "adapt", "refine")}
         adapt = None if item.get("adapt") in (None, False) else ([] if item["adapt"] is True else args["adapt"])
         refine = tuple(args["refine"] or (["relief"] if item.get("refine") is True else []))
         Variant(str(item["name"]), refine=list(refine))
         out.append(VariantFlags(str(item["name"]), args["generate"], args["train"], adapt, refine))
     return out
+
+
+def _flags(value, key: str, where: str) -> list[str]:
+    """An ablation item's ``key`` as a list of words: a string of flags (shell-quoted; ``refine``: methods,
+    commas allowed) or a list of them; ``adapt`` / ``refine`` may also be true (the defaults) or false; absent
+    or null: none. Any other value is refused, never taken for the defaults."""
+    switch = key in ("adapt", "refine")
+    if value is None or (switch and isinstance(value, bool)):
+        return []
+    if isinstance(value, str):
+        try:
+            return shlex.split(value.replace(",", " ") if key == "refine" else value)
+        except ValueError as exc:
+            raise Sim2RealError(f"{where}: {key}: {exc}") from None
+    if isinstance(value, list) and all(isinstance(a, (str, int, float)) and not isinstance(a, bool) for a in value):
+        return [str(a) for a in value]
+    what = "a string of method names (or a list of them, or true)" if key == "refine" else \
+        "a string of flags (or a list of them" + (", or true)" if switch else ")")
+    raise Sim2RealError(f"{where}: {key} must be {what}, got {value!r}")
 
 
 def generate_flags(cfg, data) -> list[str]:
