@@ -441,12 +441,13 @@ def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, previe
                             + (f" --shard {shard[0]}/{shard[1]}" if shard else "")
                             + f" (sample {sample_id(extra[0])}), so f1_80.npy and Z.npy would leave them out: "
                             f"give --count {max(done) + 1} or more, or use another --out")
-    claim(out, DATASET_TOOL, dataset_files(fmt, preview), legacy=lambda: legacy_files(out),
-          hint="move it away, or use another --out")
-    diff = _settings_diff(native, settings)
-    if diff and done:
+    diff = _settings_diff(native, settings) if done else []  # beside finished samples it is fppsim's
+    if diff:  # refused before the claim: a refusal writes nothing, not even the record
         raise GenerateError(f"{native} holds a dataset made with different {', '.join(diff)}: "
                             "use a new --out (or the same options) to resume")
+    claim(out, DATASET_TOOL, dataset_files(fmt, preview), legacy=lambda: legacy_files(out),
+          hint="move it away, or use another --out")
+    diff = _settings_diff(native, settings)  # claimed: ours, or none
     # new, or settings beside no finished sample (a run that failed before its first): ours to (re)write
     created = bool(diff) or not (native / SETTINGS_FILE).is_file()
     if created:
@@ -598,10 +599,13 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         raise DatasetError("no shard folders given")
     with output_folder(out, "fppsim merge", error=DatasetError):
         check_format(out, fmt)
-        claim(out, DATASET_TOOL, dataset_files(fmt), legacy=lambda: legacy_files(out),
-              hint="move it away, or use another output folder")
         target = samples_folder(out, fmt)
-        diff = _settings_diff(target, settings)
+        # a refusal writes nothing, not even the record: checked before the claim where fppsim's samples are
+        diff = _settings_diff(target, settings) if finished_indices(target) else []
+        if not diff:
+            claim(out, DATASET_TOOL, dataset_files(fmt), legacy=lambda: legacy_files(out),
+                  hint="move it away, or use another output folder")
+            diff = _settings_diff(target, settings)
         if diff:
             raise DatasetError(f"{target} holds a dataset made with different {', '.join(diff)}: cannot merge "
                                "these shards into it")

@@ -80,6 +80,23 @@ def test_a_dataset_written_before_the_record_is_adopted(tmp_path, fmt):
     assert "preview.png" in json.loads((out / RECORD).read_text())["files"]
 
 
+def test_a_refused_resume_writes_not_even_the_record(tmp_path, capsys):
+    """Review: a dataset from before the record, resumed with another seed, was refused after its files were
+    claimed, leaving a new ownership record behind; the same for merge."""
+    out = tmp_path / "g"
+    assert _gen(out, count=1) == 0
+    _as_before_the_record(out)
+    before = _tree(out)
+    assert _gen(out, "--seed", "5", count=2) == 1
+    one_line(capsys, "holds a dataset made with different seed")
+    assert _tree(out) == before
+    other = tmp_path / "o"
+    assert _gen(other, "--seed", "5", count=1) == 0
+    assert main(["merge", str(out), str(other)]) == 1
+    one_line(capsys, "cannot merge these shards into it")
+    assert _tree(out) == before
+
+
 def test_a_legacy_folder_adopts_only_what_it_can_show_is_fppsims(tmp_path, capsys):
     import cv2
 
