@@ -95,20 +95,27 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
     """Record ``names`` (paths relative to ``folder``) as ``tool``'s before ``tool`` writes them.
 
     Raises :class:`ForeignFiles` naming the first path that exists and is not ``tool``'s (``hint`` ends the
-    message). ``legacy``: for a folder without a record, the names ``tool`` recognises as its own.
+    message). ``legacy``: the names ``tool`` recognises as its own, written before it kept a record: asked for a
+    folder without a record, and for a name that the folder's record (another tool's files) does not list.
     """
     folder = Path(folder)
     names = list(dict.fromkeys(str(n) for n in names))
     record = owners(folder)
     before = None if record is None else dict(record)
+    own = None  # legacy's names, asked once: also where another tool's record lists none of this tool's files
     if record is None:
-        record = {n: tool for n in (legacy() if legacy is not None else ()) if (folder / n).exists()}
+        own = set(legacy()) if legacy is not None else set()
+        record = {n: tool for n in own if (folder / n).exists()}
     stamps = _stamps(folder)
     for name in names:
         path = folder / name
         owner = record.get(name)
         if not (path.exists() or path.is_symlink()):
             continue
+        if owner is None and legacy is not None:
+            own = set(legacy()) if own is None else own
+            if name in own:  # written before this tool kept a record, in a folder another tool records
+                owner = record[name] = tool
         if owner == tool:
             if name in stamps and _stamp_of(path) != stamps[name]:
                 raise ForeignFiles(f"{path} was changed since {tool} wrote it: {hint}")

@@ -425,7 +425,9 @@ def _own_report(out: Path) -> list[str]:
         return []
     if not (isinstance(doc, dict) and {"phase_root", "models", "per_image"} <= doc.keys()):
         return []
-    figs = [f"figures/{p.name}" for p in (out / "figures").glob("*.png")] if (out / "figures").is_dir() else []
+    rows = doc["per_image"] if isinstance(doc["per_image"], list) else []
+    ids = {str(r.get("id")) for r in rows if isinstance(r, dict)}
+    figs = [f"figures/{sid}.png" for sid in sorted(ids) if (out / "figures" / f"{sid}.png").is_file()]  # its frames'
     return ["phase_results.json", "phase_results.md", *figs]
 
 
