@@ -360,3 +360,12 @@ def test_an_image_predicted_again_without_refinement_loses_its_refine_entry_and_
     (mine / "a_height_network.npy").write_text("mine")
     assert main(["predict", str(run), str(tmp_path / "a.npy"), "--out", str(mine), "--no-progress", "--no-ply"]) == 0
     assert (mine / "refine.json").read_text() == '{"a": "mine"}' and (mine / "a_height_network.npy").read_text() == "mine"
+
+    # review: a network copy predict wrote and the user then replaced is the user's: never deleted
+    again = tmp_path / "again"
+    assert main(["predict", str(run), str(tmp_path / "a.npy"), "--out", str(again), "--no-progress", "--no-ply",
+                 "--rig", str(tmp_path / "rig.json")]) == 0
+    np.save(again / "a_height_network.npy", np.zeros((3, 3)))
+    assert main(["predict", str(run), str(tmp_path / "a.npy"), "--out", str(again), "--no-progress", "--no-ply",
+                 "--refine", "none"]) == 0
+    np.testing.assert_array_equal(np.load(again / "a_height_network.npy"), np.zeros((3, 3)))

@@ -67,7 +67,7 @@ from uhrnet.physics.orders import choose_orders
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 from uhrnet.run_folder import refuse_own_source
-from fppsim.owned import claim, output_folder, owners, remove_own
+from fppsim.owned import claim, output_folder, owners, remove_own, stamp
 from fppsim.dataio.rig_choice import resolve_rig
 from fppsim.phase.fringe_axis import fringe_axis, local_carrier, oriented_single_shot_phase, rig_phase_gradient
 
@@ -460,6 +460,7 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
                 "have no fringe order the path can decide: the network's heights stay there")
         with atomic_path(out / f"{name}_height_network.npy") as tmp, open(tmp, "wb") as fh:
             np.save(fh, network)
+        stamp(out, [f"{name}_height_network.npy"])  # remove_own spares it once someone else replaces it
         result.refine[name] = {**stats, "rig": rig_name}
     with atomic_path(out / f"{name}_height.npy") as tmp, open(tmp, "wb") as fh:
         np.save(fh, height)
@@ -491,6 +492,7 @@ def _write_refine_json(out: Path, refine: dict, unrefined: list[str]) -> None:
         remove_own(out, PREDICT_TOOL, ["refine.json"])  # as a folder predicted without refinement: no refine.json
     elif refine or len(merged) < len(old):
         atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
+        stamp(out, ["refine.json"])
 
 
 def refine_rig_for(ckpt: dict, rig=None, rig_path=None):
