@@ -104,7 +104,8 @@ def test_an_ablation_value_of_the_wrong_type_is_refused_not_ignored(tmp_path, en
     assert a == VariantFlags("a", ["--seed", "3"], [], [], ("relief",)) and b == VariantFlags("b", [], [], None, ())
 
 
-@pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"]])
+@pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"],
+                                   ["--seed", "-1"]])
 def test_recipe_training_numbers_are_usage_errors_before_anything_runs(tmp_path, capsys, flags):
     """They were checked when the training config was built (Sim2RealError, exit 1), or, for --base-channels,
     only when the model was built, after the dataset had been generated."""

@@ -34,7 +34,7 @@ from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from uhrnet.plots import plot_history  # matplotlib itself loads only when a history is drawn (plots.pyplot)
 from fppsim.geometry.rig import data_path
-from fppsim.owned import claim, same_folder
+from fppsim.owned import ForeignFiles, claim, owners, same_folder
 from uhrnet import __version__
 from uhrnet.errors import ConfigError
 
@@ -180,13 +180,24 @@ def claim_run_folder(out: Path, tool: str, names, kind_of: Callable[[Path], str 
 
 
 def refuse_own_source(out: Path, source, flag: str,
-                      why: str = "writing there would replace the weights this run starts from") -> None:
+                      why: str = "writing there would replace the weights this run starts from",
+                      runs_only: bool = False) -> None:
     """:class:`ConfigError` when the checkpoint ``source`` (a file or a run folder) lies in ``out``: the
-    run would replace the weights it starts from (``why``: what else writing there would do)."""
+    run would replace the weights it starts from (``why``: what else writing there would do). ``runs_only``:
+    only when that folder is a run's (``source`` a folder, or a file its ownership record lists), not for a
+    loose checkpoint file in a folder of the user's."""
     src = Path(source)
     folder = src if src.is_dir() else src.parent
-    if same_folder(folder, out):
-        raise ConfigError(f"--out {out} is the folder of {flag} {source}: {why}; choose another --out")
+    if not same_folder(folder, out):
+        return
+    if runs_only and not src.is_dir():
+        try:
+            recorded = src.name in (owners(folder) or {})
+        except ForeignFiles:  # an unreadable record: a run's folder all the same
+            recorded = True
+        if not recorded:
+            return
+    raise ConfigError(f"--out {out} is the folder of {flag} {source}: {why}; choose another --out")
 
 
 def package_version() -> str:

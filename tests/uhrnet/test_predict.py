@@ -190,3 +190,12 @@ def test_predict_refuses_the_checkpoints_run_folder_as_out(ckpt, tmp_path, capsy
         assert main(["predict", str(given), str(tmp_path / "img.png"), "--out", str(out), "--no-progress"]) == 1
         one_line(capsys, f"--out {out} is the folder of CKPT {given}", "choose another --out")
     assert {p: p.stat().st_mtime_ns for p in run.rglob("*")} == before
+    # review: a loose checkpoint file in a folder of the user's is no run folder: --out there is fine
+    import shutil
+
+    loose = tmp_path / "mine"
+    loose.mkdir()
+    shutil.copy(ckpt, loose / "model.pt")
+    assert main(["predict", str(loose / "model.pt"), str(tmp_path / "img.png"), "--out", str(loose), "--no-progress",
+                 "--no-ply"]) == 0
+    assert (loose / "img_height.npy").is_file()

@@ -119,6 +119,12 @@ def test_seed_range_and_model_options_in_the_library():
             check_model_options(name, options, head=head)
     # a resume is checked against the checkpoint's model and head, not the defaults (no --model given here)
     TrainConfig(out="r", resume="auto", model_option=["min_confidence=0.5"])
+    # review: a run recorded with --samples-per-epoch 0 (all samples, before stop 67) still resumes
+    from uhrnet.training.train_config import resolve_config
+
+    previous = resolve_config(TrainConfig(out="r", synthetic=["s"]))
+    assert resolve_config(TrainConfig(out="r", resume="auto"), {**previous, "samples_per_epoch": 0})[
+        "samples_per_epoch"] is None
 
 
 def test_folders_of_different_image_sizes_are_refused_before_training(tmp_path, capsys):
@@ -140,3 +146,7 @@ def test_folders_of_different_image_sizes_are_refused_before_training(tmp_path, 
     assert not (tmp_path / "r1").exists()
     assert main(base + ["--out", str(tmp_path / "r2"), "--resize", "32x64"]) == 0
     assert main(base + ["--out", str(tmp_path / "r3"), "--crop", "32x32"]) == 0
+    # review: one image per batch on a CPU trained before (and such a run must still resume)
+    one = [a if a != "2" else "1" for a in base]
+    assert main(one + ["--out", str(tmp_path / "r4")]) == 0
+    assert main(one + ["--out", str(tmp_path / "r4"), "--resume", "--epochs", "2"]) == 0

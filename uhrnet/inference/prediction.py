@@ -357,7 +357,7 @@ def predict(config: PredictConfig) -> PredictResult:
     from tqdm import tqdm
 
     # a run folder holds the run's files and record, not predictions (adapt refuses its source's folder too)
-    refuse_own_source(Path(config.out), config.checkpoint, "CKPT", "predict's files would mix with the run's")
+    refuse_own_source(Path(config.out), config.checkpoint, "CKPT", "predict's files would mix with the run's", True)
     renamed, notes = {}, []
     inputs = read_inputs(config.inputs, with_paths=True, renamed=renamed, notes=notes)
     ckpt = load_checkpoint(config.checkpoint)

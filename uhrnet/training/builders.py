@@ -123,7 +123,9 @@ def build_data(cfg: RunConfig, transform, phase: bool, info: DistInfo, device: t
     if len(train_set) == 0:
         raise ConfigError("no training samples: every sample is in the val/test split "
                           "(check --real-split/--synthetic-split)")
-    if size is None and crop is None:  # batches stack their samples: one size, or a traceback in the first epoch
+    # batches (and sets held on a GPU) stack their samples: one size, or a traceback in the first epoch; one
+    # image per batch on a CPU trains as it always did (and such a run resumes)
+    if size is None and crop is None and (cfg.batch_size > 1 or device.type == "cuda"):
         check_one_size([*sources.train.parts, *sources.val.parts], cfg.head if HEADS[cfg.head].whole_images else None)
     shape = tuple(train_set[0]["fringe"].shape[-2:])
     if min(shape) < 16:  # sides not multiples of 16 are padded inside the model (uhrnet.models.any_size)

@@ -412,6 +412,8 @@ def resolve_config(args: TrainConfig, previous: dict | None = None) -> dict:
     On resume ``init_from_checkpoint`` (what a run started with ``--init-from`` recorded) is carried over.
     """
     cfg = {}
+    if previous is not None and previous.get("samples_per_epoch") == 0:  # runs before stop 67 recorded 0 for all
+        previous = {**previous, "samples_per_epoch": None}
     for key, default in DEFAULTS.items():
         given = getattr(args, key, None)
         if key == "resize" and given == RESIZE_AUTO and previous is not None:

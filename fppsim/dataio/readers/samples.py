@@ -253,7 +253,8 @@ def check_export_labels(root: Path, transform: LabelTransform) -> None:
                              if getattr(theirs, k) != getattr(transform, k))
             raise DatasetError(
                 f"{meta}: these arrays were labelled with {diff} but are read with another label transform: give "
-                f"its native/ folder (heights in mm), or train with --label-transform {diff.replace(', ', ' ')}"
+                f"its native/ folder instead (heights in mm, read in any label units); train can also read these "
+                f"arrays with --label-transform {diff.replace(', ', ' ')}"
             )
         return
 

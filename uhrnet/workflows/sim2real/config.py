@@ -173,6 +173,8 @@ class Sim2RealConfig:
                 raise UsageError(f"--{key} must be from 1 to {most:,}, got {getattr(self, key)}")
         if self.workers < 0:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:  # the generator's seed
+            raise UsageError(f"--seed must be an integer >= 0, got {self.seed!r}")
         # the recipe's training numbers, wrong on their own as uhrnet train refuses them (exit 2, before generating)
         check_options({k: getattr(self, k) for k in ("batch_size", "lr", "base_channels") if getattr(self, k) is not None})
         if not self.object_mm > 0:
