@@ -287,7 +287,7 @@ def add_validate(p: argparse.ArgumentParser) -> None:
                    help="generated dataset folder (native layout, or a figshare output with native/)")
     p.add_argument("--out", required=True, help="output folder for report.json, maps/ (and samples/, sweep/)")
     p.add_argument("--meshes", nargs="+", metavar="PATH", help="render a fresh set from these meshes instead")
-    p.add_argument("--count", type=_positive_int, help="samples to render with --meshes")
+    p.add_argument("--count", type=_positive_int, help="samples to render with --meshes (required with --meshes)")
     _add_scene_flags(p, suffix=" (with --meshes)")
     p.add_argument("--tmp-samples", action="store_true",
                    help="render into a temporary folder that is deleted afterwards (not resumable)")
@@ -295,10 +295,11 @@ def add_validate(p: argparse.ArgumentParser) -> None:
                    help="optics sweep, full grid of all given values; alone: " + " ".join(DEFAULT_SWEEP) +
                         ". Names: noise (noise_sigma, gray levels; shot_noise 0 unless given), gamma "
                         "(projector_gamma), blur (projector_blur, projector px), or any optics range name")
-    p.add_argument("--edge-px", type=int, default=3,
-                   help="width of the edge region (px) for the edge/interior RMSE split (0: off)")
+    p.add_argument("--edge-px", type=_min_int(0), default=3,
+                   help="width of the edge region (px) for the edge/interior RMSE split (default 3; 0: off)")
     p.add_argument("--no-maps", action="store_true", help="skip the per-sample error-map PNGs")
-    p.add_argument("--max-rows", type=int, default=20, help="per-sample rows printed (all are in report.json)")
+    p.add_argument("--max-rows", type=_min_int(0), default=20,
+                   help="per-sample rows printed (default 20; all are in report.json)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
 
 

@@ -8,7 +8,7 @@ own errors, and every other :class:`FppsimError` to exit status 1. No library mo
 from __future__ import annotations
 
 __all__ = ["FppsimError", "InputError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
-           "ValidateError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy",
+           "ValidateError", "ValidateUsageError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy",
            "ForeignFiles"]
 
 
@@ -55,6 +55,11 @@ class SampleError(FppsimError, RuntimeError):
 
 class ValidateError(FppsimError, ValueError):
     """Input that cannot be validated (one-line reason)."""
+
+
+class ValidateUsageError(UsageError, ValidateError):
+    """A ``validate-psp`` option value wrong on its own, or flags that contradict each other (exit 2); still a
+    :class:`ValidateError` for callers that catch those."""
 
 
 class PSPMatError(FppsimError, ValueError):

@@ -58,18 +58,20 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ConfigError, InputError, ValidateError
+from fppsim.errors import ConfigError, InputError, ValidateError, ValidateUsageError
+from fppsim.dataio.formats import sample_id
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
-from fppsim.validate.report import (format_sweep_table, format_table, read_dataset_settings, read_records, resolve_dataset,
-                     validate_dataset, write_error_map)
+from fppsim.owned import claim, forget, output_folder
+from fppsim.validate.report import (VALIDATE_TOOL, format_sweep_table, format_table, own_report_files, read_dataset_settings,
+                                    read_records, report_files, resolve_dataset, validate_dataset, write_error_map)
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
 from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
 from fppsim.generation import GenerateConfig, generate_dataset
 from fppsim.rendering.synth import check_seed
 
 __all__ = [
-    "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "resolve_dataset", "evaluate_sample",
+    "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "ValidateUsageError", "VALIDATE_TOOL", "resolve_dataset", "evaluate_sample",
     "validate_dataset", "parse_sweep", "sweep_settings", "format_table", "format_sweep_table", "write_error_map",
     "ValidateConfig", "validate_psp",
 ]
@@ -105,21 +107,26 @@ class ValidateConfig:
     maps: bool = True
     progress: bool = True
 
-    def __post_init__(self):
+    def __post_init__(self):  # flags wrong on their own or together: usage errors (exit 2) before anything is read
         if self.dataset and self.meshes:
-            raise ValidateError("give either a DATASET folder or --meshes, not both")
+            raise ValidateUsageError("give either a DATASET folder or --meshes, not both")
         if not self.dataset and not self.meshes:
-            raise ValidateError("nothing to validate: give a DATASET folder or --meshes PATH... --count N")
+            raise ValidateUsageError("nothing to validate: give a DATASET folder or --meshes PATH... --count N")
         if self.meshes and not self.count:
-            raise ValidateError("--meshes needs --count N")
+            raise ValidateUsageError("--meshes needs --count N")
         if self.dataset and (self.count or self.optics or self.noise_free):
-            raise ValidateError("--count/--optics/--noise-free only apply with --meshes")
+            raise ValidateUsageError("--count/--optics/--noise-free only apply with --meshes")
         if self.psp_steps < 3:
-            raise ValidateError(f"--psp-steps must be >= 3, got {self.psp_steps}")
+            raise ValidateUsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
+        if self.edge_px < 0:
+            raise ValidateUsageError(f"--edge-px must be >= 0 (0: no edge split), got {self.edge_px}")
         try:
             check_seed(self.seed)
         except InputError as exc:
-            raise ValidateError(str(exc)) from None
+            raise ValidateUsageError(str(exc)) from None
+        grid = self.grid()  # a bad --sweep value is refused here
+        if grid is not None and self.noise_free and any(n in ("noise_sigma", "shot_noise") for n, _ in grid):
+            raise ValidateUsageError("a noise sweep needs noise: --noise-free renders every setting alike")
 
     def grid(self) -> list[tuple[str, list]] | None:
         return parse_sweep(self.sweep) if self.sweep is not None else None
@@ -143,13 +150,12 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
     echo = echo or (lambda line: None)
     grid = config.grid()
     out = Path(config.out)
-    kw = dict(maps=config.maps, progress=config.progress, edge_px=config.edge_px)
     if config.dataset:
         root = resolve_dataset(config.dataset)
         read_records(root)  # fail early on an empty dataset
         settings = read_dataset_settings(root)
         if grid is None:
-            return validate_dataset(root, out, **kw)
+            return validate_dataset(root, out, maps=config.maps, progress=config.progress, edge_px=config.edge_px)
         if settings is None:
             raise ValidateError(f"{root}: no dataset.json, so its scenes cannot be re-rendered for --sweep")
         synth, meshes, seed, noise_free = config_from_settings(settings)
@@ -174,16 +180,30 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
     if grid is not None and noise_free and any(n in ("noise_sigma", "shot_noise") for n, _ in grid):
         raise ValidateError("a noise sweep needs noise: the dataset/run is noise-free (--noise-free), so every "
                             "setting would render the same images")
-    out.mkdir(parents=True, exist_ok=True)
+    settings = sweep_settings(grid, base) if grid is not None else None
+    ids = [sample_id(i) for i in range(count)]  # every sample the run can render (a failed one is skipped)
+    names = report_files(ids, config.maps) if settings is None else ["report.json", *[
+        n for name, _ in settings for n in report_files(ids, config.maps, prefix=f"sweep/{name}/")]]
+    # locked, and every report and map name claimed before anything is rendered or written: never a user's file
+    with output_folder(out, VALIDATE_TOOL, error=ValidateError):
+        claim(out, VALIDATE_TOOL, names, legacy=lambda: own_report_files(out))
+        try:
+            return _render_and_validate(config, out, settings, synth, meshes, seed, noise_free, count, echo)
+        finally:  # claims of samples that were never rendered go again
+            forget(out, [n for n in names if not (out / n).exists()])
+
+
+def _render_and_validate(config: ValidateConfig, out: Path, settings, synth, meshes, seed, noise_free, count,
+                         echo) -> dict:
+    kw = dict(maps=config.maps, progress=config.progress, edge_px=config.edge_px, claimed=True)
     tmp = Path(tempfile.mkdtemp(prefix="fppsim-validate-")) if config.tmp_samples else None
     render = dict(workers=config.workers, progress=config.progress, echo=echo)
     try:
-        if grid is None:
+        if settings is None:
             samples = (tmp or out) / "samples"
             _render(meshes, samples, count, seed, synth, noise_free, **render)
             return validate_dataset(samples, out, extra={"samples_folder": None if tmp else str(samples)}, **kw)
         rows = []
-        settings = sweep_settings(grid, base)
         for i, (name, fixed) in enumerate(settings, 1):
             if config.progress:
                 echo(f"sweep {i}/{len(settings)}: {name}")
@@ -193,6 +213,7 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
             _render(meshes, samples, count, seed, cfg, noise_free, **render)
             rep = validate_dataset(samples, sub, extra={"sweep_setting": fixed}, **kw)
             rows.append({"name": name, "setting": fixed, "folder": f"sweep/{name}", "aggregate": rep["aggregate"]})
+        grid = config.grid()
         sweep_report = {
             "tool": "fppsim validate-psp --sweep",
             "grid": {n: v for n, v in grid},

@@ -3,6 +3,11 @@
 :func:`validate_dataset` runs :func:`fppsim.validate.sample.evaluate_sample` over every sample of a
 native dataset, pools the pixels (:class:`Pool`), writes ``report.json`` and the per-sample error maps;
 :func:`format_table` / :func:`format_sweep_table` print what the command line shows.
+
+The report and map names are claimed in ``out``'s ownership record (:mod:`fppsim.owned`) before anything
+is written: a ``report.json`` or ``maps/<id>.png`` of the user's is refused, never replaced. Folders
+written before the record existed are adopted by :func:`own_report_files`: a ``report.json`` of this tool
+and the PNG maps it lists.
 """
 
 from __future__ import annotations
@@ -17,14 +22,17 @@ from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
+from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import read_manifest, read_settings
 from fppsim.dataio.readers import load_native_sample, open_source, read_native_psp
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 from fppsim.plots import save_figure
 
-__all__ = ["resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
+__all__ = ["VALIDATE_TOOL", "report_files", "own_report_files", "resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
            "validate_dataset", "format_table", "format_sweep_table"]
 
+VALIDATE_TOOL = "fppsim validate-psp"
+_PNG = b"\x89PNG\r\n\x1a\n"
 _HIST_EDGES = np.concatenate([[0.0], np.logspace(-6, 4, 4001)])  # |error| in mm, 0.58 % per bin
 
 
@@ -209,21 +217,72 @@ def write_error_map(path, error_mm: np.ndarray, valid: np.ndarray, accepted: np.
     return save_figure(fig, path)
 
 
+# ====================================================================== which files are validate-psp's
+def report_files(ids, maps: bool = True, prefix: str = "") -> list[str]:
+    """The names a validation of samples ``ids`` writes under ``out`` (``prefix``: their subfolder of it)."""
+    return [prefix + "report.json"] + ([f"{prefix}maps/{sid}.png" for sid in ids] if maps else [])
+
+
+def _own_report(folder: Path, prefix: str) -> list[str]:
+    try:
+        doc = json.loads((folder / "report.json").read_text())
+    except (OSError, ValueError):
+        return []
+    if not (isinstance(doc, dict) and str(doc.get("tool", "")).startswith(VALIDATE_TOOL)
+            and ({"samples", "aggregate"} <= doc.keys() or {"grid", "rows"} <= doc.keys())):
+        return []
+    rows = doc.get("samples") if isinstance(doc.get("samples"), list) else []
+    maps = []
+    for row in rows:
+        name = row.get("error_map") if isinstance(row, dict) else None
+        if not (isinstance(name, str) and name.startswith("maps/") and name.count("/") == 1 and name.endswith(".png")):
+            continue
+        try:
+            with open(folder / name, "rb") as f:
+                if f.read(len(_PNG)) == _PNG:
+                    maps.append(prefix + name)
+        except OSError:
+            pass
+    return [prefix + "report.json", *maps]
+
+
+def own_report_files(out) -> list[str]:
+    """The files of ``out`` that validate-psp wrote before it kept an ownership record: its ``report.json``
+    (the tool and keys it writes) and the PNG maps that report lists, also in each ``sweep/<setting>/``."""
+    out = Path(out)
+    names = _own_report(out, "")
+    if (out / "sweep").is_dir():
+        for sub in sorted(p for p in (out / "sweep").iterdir() if p.is_dir()):
+            names += _own_report(sub, f"sweep/{sub.name}/")
+    return names
+
+
 # ====================================================================== dataset validation
 def validate_dataset(dataset, out, maps: bool = True, progress: bool = True, edge_px: int = 3,
-                     min_modulation: float | None = None, extra: dict | None = None) -> dict:
+                     min_modulation: float | None = None, extra: dict | None = None, claimed: bool = False) -> dict:
     """Validate every sample of a native dataset; write ``<out>/report.json`` (and ``<out>/maps/<id>.png``).
 
-    Returns the report: ``{"dataset", "settings", "analysis", "samples": [...], "aggregate": {...}}``.
+    Returns the report: ``{"dataset", "settings", "analysis", "samples": [...], "aggregate": {...}}``. The
+    names are claimed in ``out``'s ownership record first (a file of the user's: :class:`ForeignFiles`, nothing
+    written); ``claimed``: the caller holds ``out`` (or a folder above it) and has claimed them already.
     """
-    from tqdm import tqdm
-
     root = resolve_dataset(dataset)
     records = read_records(root)
     settings = read_dataset_settings(root)
     if settings is not None and not (settings.get("config") or {}).get("psp_freqs", [1]):
         raise ValidateError(f"{root}: no PSP data (generated with --no-psp): re-generate without --no-psp")
     out = Path(out)
+    if claimed:
+        return _validate_records(root, records, settings, out, maps, progress, edge_px, min_modulation, extra)
+    with output_folder(out, VALIDATE_TOOL, error=ValidateError):  # never a report or map of the user's
+        claim(out, VALIDATE_TOOL, report_files([str(r["id"]) for r in records], maps),
+              legacy=lambda: own_report_files(out))
+        return _validate_records(root, records, settings, out, maps, progress, edge_px, min_modulation, extra)
+
+
+def _validate_records(root: Path, records, settings, out: Path, maps, progress, edge_px, min_modulation, extra) -> dict:
+    from tqdm import tqdm
+
     out.mkdir(parents=True, exist_ok=True)
     if maps:
         (out / "maps").mkdir(exist_ok=True)
@@ -298,7 +357,7 @@ def _table(header0: str, rows: list[tuple[str, dict]]) -> str:
 
 def format_table(report: dict, max_rows: int = 20) -> str:
     """Per-sample rows (the first ``max_rows``) and the pooled row of a :func:`validate_dataset` report."""
-    samples = report["samples"]
+    samples, max_rows = report["samples"], max(0, max_rows)
     rows = [(s["id"], s) for s in samples[:max_rows]]
     rows.append((f"all ({len(samples)}, pooled)", report["aggregate"]))
     text = _table("sample", rows)

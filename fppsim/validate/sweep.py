@@ -8,7 +8,7 @@ import itertools
 import math
 from dataclasses import fields
 
-from fppsim.errors import ValidateError
+from fppsim.errors import ValidateUsageError
 from fppsim.rendering.optics import OpticsRanges
 from fppsim.rendering.synth import SynthConfig
 
@@ -27,7 +27,7 @@ def _optics_fields() -> dict:
 def parse_sweep(items) -> list[tuple[str, list]]:
     """``["noise=0,0.5", "gamma=1,2.2"]`` -> ``[("noise_sigma", [0.0, 0.5]), ("projector_gamma", [1.0, 2.2])]``.
 
-    An empty list means :data:`DEFAULT_SWEEP`. Raises :class:`ValidateError` on unknown names, bad
+    An empty list means :data:`DEFAULT_SWEEP`. Raises :class:`ValidateUsageError` (a :class:`ValidateError`, exit 2) on unknown names, bad
     values or a name given twice.
     """
     items = list(items) or list(DEFAULT_SWEEP)
@@ -38,21 +38,21 @@ def parse_sweep(items) -> list[tuple[str, list]]:
         key = key.strip()
         name = SWEEP_ALIASES.get(key, key)
         if not sep or not vals.strip():
-            raise ValidateError(f"--sweep expects NAME=V1,V2,..., got '{item}'")
+            raise ValidateUsageError(f"--sweep expects NAME=V1,V2,..., got '{item}'")
         if name not in known:
-            raise ValidateError(f"--sweep: unknown optics parameter '{key}' (use noise, gamma, blur or one of: "
+            raise ValidateUsageError(f"--sweep: unknown optics parameter '{key}' (use noise, gamma, blur or one of: "
                                 f"{', '.join(known)})")
         if name in seen:
-            raise ValidateError(f"--sweep: '{key}' given twice")
+            raise ValidateUsageError(f"--sweep: '{key}' given twice")
         seen.add(name)
         values = []
         for v in vals.split(","):
             try:
                 x = float(v)
             except ValueError:
-                raise ValidateError(f"--sweep {key}: '{v}' is not a number") from None
+                raise ValidateUsageError(f"--sweep {key}: '{v}' is not a number") from None
             if not math.isfinite(x) or x < 0 or (name.endswith("gamma") and x <= 0):
-                raise ValidateError(f"--sweep {key}: {v} is out of range (>= 0; gammas > 0)")
+                raise ValidateUsageError(f"--sweep {key}: {v} is out of range (>= 0; gammas > 0)")
             default = known[name]
             if isinstance(default, bool):
                 x = bool(x)
@@ -100,6 +100,6 @@ def config_from_settings(settings: dict):
         config = SynthConfig.from_settings(settings)
         return config, list(settings["meshes"]), int(settings["seed"]), bool(settings.get("noise_free", False))
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValidateError(f"dataset.json cannot be turned back into generation settings ({exc})") from None
+        raise ValidateUsageError(f"dataset.json cannot be turned back into generation settings ({exc})") from None
 
 

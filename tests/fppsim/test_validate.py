@@ -20,7 +20,7 @@ import pytest
 import trimesh
 
 from fppsim.cli import main
-from fppsim.validate import (DEFAULT_SWEEP, ValidateError, evaluate_sample, parse_sweep, resolve_dataset,
+from fppsim.validate import (DEFAULT_SWEEP, ValidateConfig, ValidateError, evaluate_sample, parse_sweep, resolve_dataset,
                              sweep_settings)
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -220,13 +220,68 @@ def test_cli_errors(tmp_path, sphere, capsys):
     capsys.readouterr()
     assert "no PSP data" in _error([nopsp, "--out", out], capsys)
     assert "no PSP data" in _error([nopsp, "--out", out, "--sweep"], capsys)
-    assert "nothing to validate" in _error(["--out", out], capsys)
-    assert "--count" in _error(["--meshes", sphere, "--out", out], capsys)
-    assert "not both" in _error([nopsp, "--meshes", sphere, "--out", out], capsys)
-    assert "unknown optics parameter 'colour'" in _error(["--meshes", sphere, "--count", 1, "--out", out,
-                                                          "--sweep", "colour=1,2"], capsys)
-    assert "noise-free" in _error(["--meshes", sphere, "--count", 1, "--out", out, "--noise-free", "--sweep"], capsys)
-    assert not (out / "report.json").exists()
+    assert not out.exists()
+
+
+def test_cli_usage_errors_exit_2_before_writing(tmp_path, sphere, capsys):
+    """Flags wrong on their own or together are usage errors: one line naming the flag, exit 2, nothing written
+    (QA: they exited 1; --max-rows -1 printed 2 of 3 rows, --edge-px -3 turned the edge split off silently)."""
+    out, ds = tmp_path / "out", tmp_path / "ds"
+    ds.mkdir()
+    for args, msg in (([], "nothing to validate"), (["--meshes", sphere], "--count"),
+                      ([ds, "--meshes", sphere], "not both"), ([ds, "--optics", "gain=1"], "--optics"),
+                      ([ds, "--count", 1], "--count"),
+                      (["--meshes", sphere, "--count", 1, "--sweep", "colour=1,2"], "unknown optics parameter 'colour'"),
+                      (["--meshes", sphere, "--count", 1, "--sweep", "noise=abc"], "--sweep noise: 'abc' is not a number"),
+                      (["--meshes", sphere, "--count", 1, "--sweep", "noise=-1"], "--sweep noise: -1 is out of range"),
+                      (["--meshes", sphere, "--count", 1, "--noise-free", "--sweep"], "noise-free"),
+                      ([ds, "--edge-px", -3], "--edge-px"), ([ds, "--max-rows", -1], "--max-rows")):
+        try:
+            rc = main(["validate-psp", "-q", *map(str, args), "--out", str(out)])
+        except SystemExit as exc:  # argparse's own refusals
+            rc = exc.code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert rc == 2 and msg in err[-1], (args, err)
+        assert not out.exists()
+    with pytest.raises(ValidateError, match="--edge-px"):
+        ValidateConfig(out=out, dataset=ds, edge_px=-1)
+    with pytest.raises(SystemExit):
+        main(["validate-psp", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "(default 3; 0: off)" in help_text and "(default 20;" in help_text
+
+
+def test_never_replaces_a_users_report_or_map(tmp_path, sphere, capsys):
+    """QA H2: validate-psp --out replaced the user's report.json and maps/<id>.png (exit 0) and kept no record."""
+    ds = tmp_path / "ds"
+    assert main(["generate", "-q", "--no-preview", "--meshes", str(sphere), "--out", str(ds), "--count", "1"]) == 0
+    user = tmp_path / "user"
+    (user / "maps").mkdir(parents=True)
+    (user / "report.json").write_text("my notes")
+    assert "report.json exists and was not written by fppsim validate-psp" in _error([ds, "--out", user], capsys)
+    assert (user / "report.json").read_text() == "my notes" and not (user / ".fppsim-owned.json").exists()
+    assert sorted(p.name for p in user.rglob("*")) == ["maps", "report.json"]
+    (user / "report.json").unlink()
+    (user / "maps" / "000000.png").write_text("my image")
+    assert "000000.png exists and was not written" in _error([ds, "--out", user], capsys)
+    assert (user / "maps" / "000000.png").read_text() == "my image" and not (user / "report.json").exists()
+    # its own folder: re-runs work, and the record names what it wrote
+    out = tmp_path / "v"
+    for _ in range(2):
+        rc, io = _validate([ds, "--out", out], capsys)
+        assert rc == 0, io.err
+    assert set(json.loads((out / ".fppsim-owned.json").read_text())["files"]) == {"report.json", "maps/000000.png"}
+    # a folder written before the record existed is adopted (its report lists its maps) ...
+    (out / ".fppsim-owned.json").unlink()
+    rc, io = _validate([ds, "--out", out], capsys)
+    assert rc == 0, io.err
+    # ... but not a user's PNG its old report does not prove its own
+    (out / ".fppsim-owned.json").unlink()
+    (out / "maps" / "000000.png").write_text("my image")
+    assert "000000.png exists and was not written" in _error([ds, "--out", out], capsys)
+    # --meshes: refused before anything is rendered into OUT/samples
+    rc = main(["validate-psp", "-q", "--meshes", str(sphere), "--count", "1", "--out", str(user)])
+    assert rc == 1 and not (user / "samples").exists()
 
 
 # ---------------------------------------------------------------------------------------------- units
