@@ -34,8 +34,8 @@ from fppsim.files import atomic_write_text, die_with_parent, ignore_sigint, sign
 from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, finished_indices,
                                    foreign_sample_folders, manifest_record, read_settings, reconcile, sample_id)
-from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, dataset_files, discard_empty_dataset,
-                                          legacy_files)
+from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_shards, dataset_files,
+                                          discard_empty_dataset, legacy_files)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
 from fppsim.rendering.synth import SynthConfig, check_seed, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
@@ -597,6 +597,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
         natives.append(nd)
     if not natives:
         raise DatasetError("no shard folders given")
+    check_shards(out, shard_dirs, natives)  # OUT none of them, no damaged sample: before anything is written
     with output_folder(out, "fppsim merge", error=DatasetError):
         check_format(out, fmt)
         target = samples_folder(out, fmt)

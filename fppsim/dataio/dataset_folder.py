@@ -18,13 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.errors import GenerateError
+from fppsim.errors import DatasetError, GenerateError, UsageError
 from fppsim.files import unlink_quietly
-from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, read_settings
+from fppsim.owned import same_folder
+from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, finished_indices, read_settings, sample_id
 from fppsim.dataio.writers import samples_folder
 
 __all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
-           "discard_empty_dataset"]
+           "check_shards", "discard_empty_dataset"]
 
 DATASET_TOOL = "fppsim generate"  # the record's name for a dataset's files, whether generate or merge wrote them
 MANIFEST = "manifest.jsonl"
@@ -146,3 +147,18 @@ def discard_empty_dataset(folder: str | os.PathLike, folder_too: bool = False) -
             folder.rmdir()
         except OSError:  # not empty: someone else's files stay
             pass
+
+
+def check_shards(out: str | os.PathLike, shard_dirs, natives) -> None:
+    """``fppsim merge``'s checks before anything is written: OUT is none of the shards (:class:`UsageError`: the
+    shard would become the merged set), and every finished sample of a shard (``natives``: their sample folders)
+    holds its ``arrays.npz`` (a damaged sample, merged, broke every reader of the merged set later)."""
+    out = Path(out)
+    for d, nd in zip(map(Path, shard_dirs), natives):
+        if same_folder(out, d) or same_folder(out, nd) or same_folder(out / "native", nd):
+            raise UsageError(f"OUT {out} is the shard {d}: merge into another folder")
+    for nd in map(Path, natives):
+        for index in sorted(finished_indices(nd)):
+            if not (nd / sample_id(index) / "arrays.npz").is_file():
+                raise DatasetError(f"{nd / sample_id(index)}: damaged sample (no arrays.npz): remove the folder and "
+                                   "generate its shard again before merging")

@@ -224,3 +224,18 @@ def test_generated_manifest_objects_follow_objects_flag(tmp_path):
     rec = read_manifest(out)[0]
     meta = json.loads((out / "000000" / "meta.json").read_text())
     assert rec["objects"] == 2 and rec["objects"] + rec["pedestals"] == len(meta["objects"])
+
+
+def test_merge_refuses_a_shard_as_out_and_a_damaged_sample(tmp_path, capsys):
+    """QA L5: `merge S0 S0 S1` turned the shard into the merged set; a sample without arrays.npz was merged."""
+    s0, s1 = tmp_path / "s0", tmp_path / "s1"
+    assert _gen(s0, "--shard", "0/2", "--no-preview") == 0 and _gen(s1, "--shard", "1/2", "--no-preview") == 0
+    before = _tree(s0)
+    assert main(["merge", str(s0), str(s0), str(s1)]) == 2
+    one_line(capsys, f"OUT {s0} is the shard {s0}")
+    assert _tree(s0) == before
+    (s1 / "000001" / "arrays.npz").unlink()
+    out = tmp_path / "m"
+    assert main(["merge", str(out), str(s0), str(s1)]) == 1
+    one_line(capsys, "000001: damaged sample (no arrays.npz)")
+    assert not out.exists()
