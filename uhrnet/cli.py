@@ -449,16 +449,20 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
     parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx",
                         help="onnx, torchscript, or reference (the reference code's weights file) (default: onnx)")
-    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt / .pth)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output file: onnx x.onnx, torchscript x.pt / .ts, reference x.pth (a suffix of another "
+                             "format is refused)")
     parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
     parser.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime",
                         help="what runs the ONNX file for --check: onnxruntime (default) or openvino (its CPU "
-                             "plugin in float32, the fastest CPU form measured here; pip install openvino)")
+                             "plugin in float32, the fastest CPU form measured here; pip install openvino); "
+                             "only with --format onnx")
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET,
                         help=f"ONNX opset, {OPSET_RANGE[0]}-{OPSET_RANGE[1]} (default {DEFAULT_OPSET})")
     parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
     parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
-    parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
+    parser.add_argument("--dynamic", action="store_true",
+                        help="ONNX: free batch, height and width axes (only with --format onnx)")
     parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (batch norms not folded)")
 
 
