@@ -326,8 +326,10 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--models", nargs="+", default=list(DEFAULT_MODELS), metavar="NAME",
                         help=f"models to measure (any name of uhrnet.models.list_models(); default: "
                              f"{' '.join(DEFAULT_MODELS)})")
-    parser.add_argument("--height", type=int, default=352, help="input height, a multiple of 16 (default 352)")
-    parser.add_argument("--width", type=int, default=640, help="input width, a multiple of 16 (default 640)")
+    parser.add_argument("--height", type=int, default=352,
+                        help="input height in pixels, a multiple of 16 from 16 to 4096 (default 352)")
+    parser.add_argument("--width", type=int, default=640,
+                        help="input width in pixels, a multiple of 16 from 16 to 4096 (default 640)")
     parser.add_argument("--batch-size", type=int, default=1, help="batch size (default 1, as in the paper)")
     parser.add_argument("--device", default="auto", choices=DEVICES, help="default: cuda if available")
     parser.add_argument("--repeats", type=int, default=10, help="timed repetitions; the median is reported (default 10)")
@@ -347,22 +349,28 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
                              "give the eager model's output within 1e-4 x its range) and report the fastest torch "
                              "form as forward ms; the UHRNet / U-Net ratio (JSON uhrnet_unet_forward_ratio) is then "
                              "that of each model in its fastest form of all, re-timed in --repeats alternating pairs")
-    parser.add_argument("--variants", nargs="+", default=list(OPT_VARIANTS), choices=list(OPT_VARIANTS), metavar="V",
-                        help="forms tried by --optimize: fold (batch norms folded, "
+    parser.add_argument("--variants", nargs="+", default=None, choices=list(OPT_VARIANTS), metavar="V",
+                        help="forms tried by --optimize (only with --optimize): fold (batch norms folded, "
                              "inference_mode), fold_cl (+ channels_last), compile (fold_cl + torch.compile), onnxruntime and "
                              "openvino (the ONNX export of fold under each runtime, float32; columns of their own) "
                              f"(default: {' '.join(OPT_VARIANTS)})")
-    parser.add_argument("--json", type=Path, default=None, metavar="OUT", help="also write the results as JSON")
+    parser.add_argument("--json", type=Path, default=None, metavar="OUT",
+                        help="also write the results as JSON to OUT (an existing OUT is replaced only when it is a "
+                             "report bench wrote)")
 
 
 def run_bench(args) -> int:
-    from uhrnet.scoring.bench import BenchConfig, bench
+    from uhrnet.errors import UsageError
+    from uhrnet.scoring.bench import OPT_VARIANTS, BenchConfig, bench
+
+    if args.variants is not None and not args.optimize:
+        raise UsageError("--variants chooses the forms --optimize times: give --optimize too, or leave --variants out")
 
     config = BenchConfig(models=list(args.models), height=args.height, width=args.width, batch_size=args.batch_size,
                          device=args.device, repeats=args.repeats, warmup=args.warmup,
                          amp=args.amp, channels_last=args.channels_last, compile=args.compile,
                          base_channels=args.base_channels, train=not args.no_train, optimize=args.optimize,
-                         variants=list(args.variants), json=args.json)
+                         variants=list(args.variants or OPT_VARIANTS), json=args.json)
     bench(config, echo=lambda line: print(line, flush=True))
     return 0
 
@@ -441,16 +449,20 @@ def add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("checkpoint", type=Path, help="checkpoint file or run folder (best.pt, else last.pt)")
     parser.add_argument("--format", choices=EXPORT_FORMATS, default="onnx",
                         help="onnx, torchscript, or reference (the reference code's weights file) (default: onnx)")
-    parser.add_argument("--out", type=Path, required=True, help="output file (.onnx / .pt / .pth)")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="output file: onnx x.onnx, torchscript x.pt / .ts, reference x.pth (a suffix of another "
+                             "format is refused)")
     parser.add_argument("--check", action="store_true", help="verify the export against the checkpoint (see above)")
     parser.add_argument("--runtime", choices=RUNTIMES, default="onnxruntime",
                         help="what runs the ONNX file for --check: onnxruntime (default) or openvino (its CPU "
-                             "plugin in float32, the fastest CPU form measured here; pip install openvino)")
+                             "plugin in float32, the fastest CPU form measured here; pip install openvino); "
+                             "only with --format onnx")
     parser.add_argument("--opset", type=int, default=DEFAULT_OPSET,
                         help=f"ONNX opset, {OPSET_RANGE[0]}-{OPSET_RANGE[1]} (default {DEFAULT_OPSET})")
     parser.add_argument("--height", type=int, default=352, help="export/check input height, multiple of 16 (default 352)")
     parser.add_argument("--width", type=int, default=640, help="export/check input width, multiple of 16 (default 640)")
-    parser.add_argument("--dynamic", action="store_true", help="ONNX: free batch, height and width axes")
+    parser.add_argument("--dynamic", action="store_true",
+                        help="ONNX: free batch, height and width axes (only with --format onnx)")
     parser.add_argument("--no-optimize", action="store_true", help="export the model as trained (batch norms not folded)")
 
 

@@ -39,7 +39,7 @@ def test_bench_channels_last_without_training(capsys):
 
 
 def test_bench_user_errors(capsys):
-    assert main(["bench", "--models", "resnet"]) == 1
+    assert main(["bench", "--models", "resnet"]) == 2
     assert main(["bench", "--height", "40"]) == 2
     if not torch.cuda.is_available():
         assert main(["bench", "--device", "cuda"]) == 1
@@ -55,6 +55,62 @@ def test_bench_json_destination_is_checked_before_timing(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "is a folder" in err[0] and "is a file, not a folder" in err[1] and str(blocker) in err[1]
     assert blocker.read_text() == "x"
+
+
+TINY = ["bench", "--models", "unet", "--height", "16", "--width", "16", "--base-channels", "4", "--repeats", "1",
+        "--warmup", "0", "--no-train", "--device", "cpu"]
+
+
+@pytest.mark.parametrize("flags, flag", [(["--repeats", "0"], "--repeats"), (["--warmup", "-1"], "--warmup"),
+                                         (["--batch-size", "0"], "--batch-size"), (["--models", "bogus"], "--models"),
+                                         (["--base-channels", "0"], "--base-channels"),
+                                         (["--base-channels", "-4"], "--base-channels"),
+                                         (["--variants", "fold"], "--variants")])
+def test_bench_bad_values_are_usage_errors(tmp_path, capsys, flags, flag):
+    """A value wrong on its own (or --variants without --optimize, which it only steers): one line naming the
+    flag, exit 2, nothing timed or written (--base-channels 0 measured a width-1 model until stop 67)."""
+    out = tmp_path / "b.json"
+    assert main([*TINY, *flags, "--json", str(out)]) == 2
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and flag in err[0] and not captured.out and not out.exists()
+
+
+def test_bench_json_replaces_only_its_own_report(tmp_path, capsys):
+    """--json never replaces a file bench did not write (a checkpoint, notes, another tool's JSON): one line
+    naming it, exit 1, the file as it was; a report of an earlier bench is replaced."""
+    ckpt = tmp_path / "best.pt"
+    torch.save({"state_dict": {"w": torch.zeros(3)}}, ckpt)
+    notes = tmp_path / "mine.json"
+    notes.write_text('{"device": "mine", "results": "not a list"}')
+    for path in (ckpt, notes):
+        before = path.read_bytes()
+        assert main([*TINY, "--json", str(path)]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and str(path) in err[0] and "not a report uhrnet bench wrote" in err[0]
+        assert path.read_bytes() == before
+    out = tmp_path / "bench.json"
+    assert main([*TINY, "--json", str(out)]) == 0
+    first = out.read_text()
+    assert main([*TINY, "--repeats", "2", "--json", str(out)]) == 0  # its own report: replaced
+    assert json.loads(out.read_text())["repeats"] == 2 and json.loads(first)["repeats"] == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bench.json", "best.pt", "mine.json"]  # no temp file left
+
+
+def test_bench_json_refuses_a_file_that_appears_during_timing(tmp_path, monkeypatch):
+    """The check is made again just before writing: a file put there while bench timed is kept."""
+    import uhrnet.scoring.bench as bench_module
+
+    out = tmp_path / "late.json"
+    real = bench_module._measure_models
+
+    def measure_then_drop_a_file(*a):
+        out.write_text("written meanwhile")
+        return real(*a)
+
+    monkeypatch.setattr(bench_module, "_measure_models", measure_then_drop_a_file)
+    assert main([*TINY, "--json", str(out)]) == 1
+    assert out.read_text() == "written meanwhile"
 
 
 def test_bench_optimize_json_keys(tmp_path, capsys):

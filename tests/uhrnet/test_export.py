@@ -166,7 +166,7 @@ def test_export_cli_check_failure_exit_code(tmp_path, capsys, monkeypatch):
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     real = export.run_exported
     monkeypatch.setattr(export, "run_exported", lambda *a: real(*a) + 1.0)  # a broken runtime
-    assert main(["export", str(ckpt), "--out", str(tmp_path / "u.onnx"), "--check", "--height", "16",
+    assert main(["export", str(ckpt), "--out", str(tmp_path / "u.ts"), "--check", "--height", "16",
                  "--width", "16", "--format", "torchscript"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "check failed" in err[0]
@@ -224,6 +224,32 @@ def test_export_refuses_to_overwrite_a_checkpoint(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 2 and "is the checkpoint being exported" in err[0] and "is a uhrnet checkpoint" in err[1]
     assert (ckpt.read_bytes(), other.read_bytes()) == before
+
+
+@pytest.mark.parametrize("fmt, name, flags, says", [
+    ("torchscript", "x.onnx", [], "a .onnx name for --format torchscript"),
+    ("onnx", "x.pt", [], "a .pt name for --format onnx"),
+    ("onnx", "x.ts", [], "a .ts name for --format onnx"),
+    ("reference", "x.onnx", [], "a .onnx name for --format reference"),
+    ("torchscript", "x.ts", ["--dynamic"], "--dynamic frees the batch, height and width axes of an ONNX file"),
+    ("reference", "x.pth", ["--dynamic"], "it has no effect on --format reference"),
+])
+def test_export_contradictory_flags_are_usage_errors(tmp_path, capsys, fmt, name, flags, says):
+    """A suffix of another format (TorchScript under x.onnx, ONNX under x.pt) or --dynamic where it means nothing:
+    one line naming the flag, exit 2, nothing read or written (until stop 67 both were written without a word)."""
+    out = tmp_path / name
+    assert main(["export", str(tmp_path / "not-read.pt"), "--format", fmt, "--out", str(out), *flags]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and says in err[0] and not out.exists()
+
+
+def test_export_free_suffixes_are_the_users_choice(tmp_path, capsys):
+    """A name of no format's suffix (m.bin) is written as asked."""
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    for name, fmt in (("m.bin", "onnx"), ("t.bin", "torchscript")):
+        assert main(["export", str(ckpt), "--format", fmt, "--out", str(tmp_path / name), "--height", "16",
+                     "--width", "16"]) == 0
+        assert (tmp_path / name).stat().st_size > 1000
 
 
 def test_onnx_runner_errors_name_the_cause(tmp_path):
@@ -289,7 +315,7 @@ def test_export_runtime_user_errors(tmp_path, capsys):
     ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
     out = tmp_path / "m.ts"
     assert main(["export", str(ckpt), "--out", str(out), "--format", "torchscript", "--runtime", "openvino",
-                 "--check"]) == 1
+                 "--check"]) == 2  # contradictory flags: a usage error (exit 1 until stop 67)
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--runtime openvino" in err[0] and not out.exists()
     with pytest.raises(SystemExit) as exit_info:

@@ -425,12 +425,14 @@ def test_export_never_replaces_a_file_it_did_not_write(tmp_path, reference_file,
     run = tmp_path / "runs" / "uhrnet-ref"
     assert main(["import-weights", str(authors), "--out", str(run)]) == 0
     capsys.readouterr()
-    for fmt in ("reference", "torchscript", "onnx"):
+    for fmt in ("reference", "torchscript"):  # (onnx under a .pth name is a usage error before any file is read)
         assert main(["export", str(run), "--format", fmt, "--out", str(authors),
                      "--height", "32", "--width", "32"]) == 1, fmt
         err = capsys.readouterr().err
         assert f"{authors} exists and was not written by uhrnet export" in err and len(err.strip().splitlines()) == 1
         assert _sha(authors) == sha
+    assert main(["export", str(run), "--format", "onnx", "--out", str(authors)]) == 2  # ONNX under a .pth name
+    assert "a .pth name for --format onnx" in capsys.readouterr().err and _sha(authors) == sha
     notes = tmp_path / "notes.txt"
     notes.write_text("mine")
     assert main(["export", str(run), "--format", "reference", "--out", str(notes)]) == 1

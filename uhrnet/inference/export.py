@@ -50,6 +50,9 @@ DEFAULT_OPSET = 17
 # runtimes for every model here (torch 2.13). Below 7 it writes files onnxruntime rejects.
 OPSET_RANGE = (7, 20)
 SUFFIXES = {"onnx": ".onnx", "torchscript": ".pt"}
+# the file suffixes each --format writes under; a suffix of another format only (x.onnx with torchscript, x.pt
+# with onnx) is refused, any other name (m.bin, a name without suffix) is the user's choice
+FORMAT_SUFFIXES = {"onnx": (".onnx",), "torchscript": (".pt", ".pth", ".ts", ".zip"), "reference": (".pth", ".pt")}
 EXPORT_TOOL = "uhrnet export"
 MAX_SIDE = 4096  # px: a check input larger than a camera is a typo (and memory a machine lacks)
 
@@ -79,7 +82,15 @@ class ExportConfig:
         if self.runtime not in RUNTIMES:
             raise ExportError(f"unknown runtime {self.runtime!r}; choose from {', '.join(RUNTIMES)}")
         if self.runtime != "onnxruntime" and self.format != "onnx":
-            raise ExportError(f"--runtime {self.runtime} runs ONNX files; it does not apply to --format {self.format}")
+            raise UsageError(f"--runtime {self.runtime} runs ONNX files; it does not apply to --format {self.format}")
+        if self.dynamic and self.format != "onnx":
+            raise UsageError(f"--dynamic frees the batch, height and width axes of an ONNX file; it has no effect on "
+                             f"--format {self.format}: leave it out")
+        suffix = Path(self.out).suffix.lower()
+        others = {s for f, ss in FORMAT_SUFFIXES.items() if f != self.format for s in ss}
+        if suffix in others and suffix not in FORMAT_SUFFIXES[self.format]:
+            raise UsageError(f"--out {self.out}: a {suffix} name for --format {self.format}; name it "
+                             f"{' or '.join(FORMAT_SUFFIXES[self.format])} (or give the --format that writes {suffix})")
 
 
 def deployable(model: nn.Module) -> nn.Module:

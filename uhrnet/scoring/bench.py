@@ -49,7 +49,8 @@ class BenchConfig:
     after ``warmup`` calls, autocast dtype (``amp``), memory format, torch.compile, a width override
     (``base_channels``), whether to time a training step, whether to also time the deployable forms
     ``variants`` (``optimize``; see :func:`optimize_variants`), and an optional JSON output path.
-    Checks itself (:class:`ConfigError`)."""
+    Checks itself: :class:`UsageError` for a value wrong on its own, :class:`ConfigError` for a ``json``
+    path it may not write (a folder, or an existing file that is not a report bench wrote)."""
 
     models: list = field(default_factory=lambda: list(DEFAULT_MODELS))
     height: int = 352
@@ -70,21 +71,24 @@ class BenchConfig:
     def __post_init__(self):
         unknown = [m for m in self.models if m.lower() not in list_models()]
         if unknown:
-            raise ConfigError(f"unknown model(s) {', '.join(unknown)}; known: {', '.join(list_models())}")
+            raise UsageError(f"--models {' '.join(unknown)}: unknown; known: {', '.join(list_models())}")
         if self.height % 16 or self.width % 16 or not (16 <= self.height <= 4096 and 16 <= self.width <= 4096):
             raise UsageError(f"--height and --width must be multiples of 16 from 16 to 4096, got "
                              f"{self.height}x{self.width}")
-        if self.repeats < 1 or self.warmup < 0 or self.batch_size < 1:
-            raise ConfigError("--repeats and --batch-size must be >= 1 and --warmup >= 0")
+        for flag, value, low in (("--repeats", self.repeats, 1), ("--warmup", self.warmup, 0),
+                                 ("--batch-size", self.batch_size, 1)):
+            if value < low:
+                raise UsageError(f"{flag} must be >= {low}, got {value}")
+        if self.base_channels is not None and self.base_channels < 1:
+            raise UsageError(f"--base-channels must be >= 1, got {self.base_channels}")
         if self.amp not in AMP:
-            raise ConfigError(f"--amp {self.amp!r}: choose from {', '.join(AMP)}")
+            raise UsageError(f"--amp {self.amp!r}: choose from {', '.join(AMP)}")
         bad = [v for v in self.variants if v not in OPT_VARIANTS]
         if bad:
-            raise ConfigError(f"--variants {' '.join(bad)}: choose from {', '.join(OPT_VARIANTS)}")
+            raise UsageError(f"--variants {' '.join(bad)}: choose from {', '.join(OPT_VARIANTS)}")
         if self.compile:
             self.warmup = max(self.warmup, 2)
         if self.json is not None:  # fail now, not after minutes of timing
-
             path = Path(self.json)
             if path.is_dir():
                 raise ConfigError(f"--json {path}: is a folder; give a file name")
@@ -92,6 +96,37 @@ class BenchConfig:
                 check_writable_dir(path.parent, "--json")
             except ValueError as exc:
                 raise ConfigError(str(exc)) from None
+            check_replaceable(path)
+
+
+REPORT_KEYS = ("device", "input_shape", "results", "uhrnet_unet_forward_ratio")  # in every report bench wrote
+MAX_REPORT_BYTES = 64 * 2**20  # a bench report is kilobytes; a larger file is someone else's
+
+
+def is_bench_report(path: str | Path) -> bool:
+    """Is the file ``path`` a report ``uhrnet bench --json`` wrote (a JSON object with :data:`REPORT_KEYS`,
+    ``results`` a list)? Reads a file that does not start with ``{`` no further (a checkpoint, say)."""
+    path = Path(path)
+    try:
+        if path.stat().st_size > MAX_REPORT_BYTES:
+            return False
+        with open(path, "rb") as fh:
+            if fh.read(64).lstrip()[:1] != b"{":
+                return False
+            fh.seek(0)
+            data = json.loads(fh.read().decode("utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and all(k in data for k in REPORT_KEYS) and isinstance(data["results"], list)
+
+
+def check_replaceable(path: str | Path) -> None:
+    """Raise :class:`ConfigError` when ``path`` exists and is anything but a report bench wrote: ``--json``
+    never replaces a checkpoint, a notes file or another tool's JSON."""
+    path = Path(path)
+    if (path.exists() or path.is_symlink()) and not (path.is_file() and is_bench_report(path)):
+        raise ConfigError(f"--json {path}: exists and is not a report uhrnet bench wrote; move it away or "
+                          f"choose another name (bench replaces only its own reports)")
 
 
 def build_scaled(name: str, base_channels: int | None):
@@ -350,6 +385,7 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
     if args.json is not None:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
+        check_replaceable(path)  # again: the file may have appeared during the timing
         atomic_write_text(path, json.dumps(report, indent=2) + "\n")
         echo(f"wrote {path}")
     return report
