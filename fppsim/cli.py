@@ -457,7 +457,9 @@ def add_label_real(p: argparse.ArgumentParser) -> None:
         "(public frames count fringe orders from the first fringe the camera sees); 'auto' fits one constant "
         "per scan so the reference plane (the dominant flat mode) lies at 0 mm, 'none' adds nothing, a number "
         "adds that many radians. The reference plane must come out flat at 0 mm: a scan whose plane is not "
-        "(RMS or tilt over the limits) is reported and the run warns that the rig does not fit these scans. "
+        "(RMS or tilt over the limits), or whose phase is read in a convention its files are not written in, fails the "
+        "run (exit 1, nothing written) unless --keep-unfit, which writes it, reports it and warns that the rig does "
+        "not fit these scans. "
         "Files in DIR that label-real did not write are never replaced.")
     p.add_argument("root", metavar="ROOT", help="scans: public layout folder or native fppsim dataset (with PSP images)")
     p.add_argument("--out", required=True, metavar="DIR", help="output folder (created; a re-run replaces its own files)")
@@ -482,6 +484,10 @@ def add_label_real(p: argparse.ArgumentParser) -> None:
     p.add_argument("--min-modulation", type=float, default=3.0, metavar="B",
                    help="fppsim datasets: PSP modulation threshold in gray levels (default 3, as generated)")
     p.add_argument("--no-preview", action="store_true", help="skip the previews/<id>.png figures")
+    p.add_argument("--keep-unfit", action="store_true",
+                   help="write the labels also when a scan does not fit (its plane not flat at 0 mm, or its phase read "
+                        "in a convention its files are not written in); without it such a run fails (exit 1) naming "
+                        "the scan, and writes nothing")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
@@ -492,7 +498,8 @@ def run_label_real(args) -> int:
         root=args.root, out=args.out, rig=args.rig, phase_offset=args.phase_offset, periods=args.periods,
         convention=args.convention, negate_sin=args.negate_sin, ids=args.ids, plane_window_mm=args.plane_window,
         max_plane_rms_mm=args.max_plane_rms, max_plane_tilt_mm=args.max_plane_tilt,
-        min_modulation=args.min_modulation, previews=not args.no_preview, progress=not args.quiet)
+        min_modulation=args.min_modulation, previews=not args.no_preview, progress=not args.quiet,
+        keep_unfit=args.keep_unfit)
     report = label_real(config)
     for line in report.lines():
         print(line)

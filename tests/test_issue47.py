@@ -209,8 +209,13 @@ def test_label_real_counts_a_misread_scan_as_not_fitting(tmp_path, capsys):
 
     rig = _scan_folder(tmp_path / "F")
     rig.save(tmp_path / "rig.json")
-    assert fppsim_main(["label-real", str(tmp_path / "F"), "--rig", str(tmp_path / "rig.json"), "--convention",
-                        "fppsim", "--out", str(tmp_path / "lab"), "--quiet", "--no-preview"]) == 0
+    args = ["label-real", str(tmp_path / "F"), "--rig", str(tmp_path / "rig.json"), "--convention", "fppsim", "--out",
+            str(tmp_path / "lab"), "--quiet", "--no-preview"]
+    assert fppsim_main(args) == 1  # labels it knows are wrong: refused, nothing written (QA M4)
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "1201" in err[0] and "convention" in err[0] and "--keep-unfit" in err[0]
+    assert not (tmp_path / "lab" / "Z.npy").exists()
+    assert fppsim_main(args + ["--keep-unfit"]) == 0
     assert "the phase read is WRONG" in capsys.readouterr().err
     report = json.loads((tmp_path / "lab" / "label_real.json").read_text())
     assert report["summary"]["scans_not_fitting"] == 1

@@ -23,8 +23,9 @@ turns such scans into training samples in the figshare layout (``f1_80.npy`` + `
    reference plane z = 0;
 4. measure the reference plane (:func:`fppsim.fitting.reference_plane.plane_flatness`): its level (median height
    of the plane pixels, which must come out at 0 mm), its flatness about 0 and about a fitted tilted
-   plane, and its tilt. A wrong rig shows there first: a scan whose plane is not flat is reported (and the run
-   warns "the rig does not fit these scans");
+   plane, and its tilt. A wrong rig shows there first: a scan whose plane is not flat (or whose phase is read in a
+   convention its files are not written in) does not fit, and the run is refused naming it, nothing written
+   (``keep_unfit``: written, reported, and the run warns "the rig does not fit these scans");
 5. write ``f1_80.npy`` (float32 (N, H, W, 1), ``I/127.5 - 1``, -1 where invalid), ``Z.npy`` (float32
    (N, H, W, 1), ``label = mm * units_per_mm + plane_offset`` of the label preset, the invalid marker
    where the phase or the triangulation is missing), ``label_real.json`` (the report) and
@@ -147,14 +148,16 @@ class LabelRealConfig:
     neighbour_check: bool = True
     previews: bool = True
     progress: bool = False
+    keep_unfit: bool = False  # write the labels also when a scan does not fit (else refused, nothing written)
 
     def __post_init__(self):
         self.phase_offset = _parse_offset(self.phase_offset)
         check_read_convention(self.convention)
-        for name in ("plane_window_mm", "max_plane_rms_mm", "max_plane_tilt_mm"):
+        for name, flag in (("plane_window_mm", "--plane-window"), ("max_plane_rms_mm", "--max-plane-rms"),
+                           ("max_plane_tilt_mm", "--max-plane-tilt")):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise UsageError(f"{name} must be a positive number of mm, got {v!r}")
+                raise UsageError(f"{flag} must be a positive number of mm, got {v!r}")
         if self.periods is not None and not (math.isfinite(self.periods) and self.periods > 0):
             raise UsageError(f"--periods must be > 0, got {self.periods!r}")
         if not (math.isfinite(self.min_modulation) and self.min_modulation >= 0):
@@ -513,6 +516,28 @@ def _rig_warning(report: LabelRealReport, cfg: LabelRealConfig) -> str | None:
             f"the rig does not fit these scans{hint}")
 
 
+def _refuse_unfit(report: LabelRealReport, cfg: LabelRealConfig) -> None:
+    """:class:`fppsim.errors.DatasetError` (one line naming the first scan that does not fit and why) when a scan's
+    reference plane is not flat at 0 mm or its phase was read in a convention its files are not written in: its
+    labels are wrong by the run's own check, and a pipeline would train on them. ``cfg.keep_unfit`` writes them."""
+    bad = [s for s in report.scans if not s["fits"]]
+    if not bad or cfg.keep_unfit:
+        return
+    first = bad[0]
+    more = f" (and {len(bad) - 1} more of the {len(report.scans)} scans)" if len(bad) > 1 else ""
+    problems = [p for p in first["problems"] if p != MISREAD]
+    what = "; ".join(problems) + (f"; limits RMS {cfg.max_plane_rms_mm:g} mm, tilt {cfg.max_plane_tilt_mm:g} mm"
+                                  if problems else "")
+    hints = []
+    if MISREAD in first["problems"]:
+        what = "phase read in a convention its files are not written in" + (f"; {what}" if what else "")
+        hints.append("try --convention auto")
+    if report.policy != "auto" and any(p.startswith("plane at") for p in problems):
+        hints.append("try --phase-offset auto")
+    raise DatasetError(f"{first['source']}: scan {first['id']} does not fit ({what}){more}: its labels would be "
+                       f"wrong, nothing written{''.join('; ' + h for h in hints)} (--keep-unfit writes them anyway)")
+
+
 # ============================================================================================ main
 def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     """Label the scans of ``cfg.root`` (see the module docstring); returns the report.
@@ -584,6 +609,7 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                         _preview(staging / Path(previews[k]).name, scan, height, plane, rec)
                     report.scans.append(_finite(rec))
                     bar.update(1)
+            _refuse_unfit(report, cfg)
             for s in streams:
                 s.close()
             for s in streams:

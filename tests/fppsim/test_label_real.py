@@ -112,8 +112,13 @@ def test_public_layout_recovers_a_known_phase_offset(public, rendered, tmp_path)
     label_real(LabelRealConfig(root=public, out=tmp_path / "g", rig=PARALLEL, phase_offset=f"{OFFSET}",
                                previews=False))
     np.testing.assert_allclose(np.load(tmp_path / "g" / "Z.npy"), np.load(tmp_path / "o" / "Z.npy"), atol=0.05)
+    # ... and is refused (one line naming the scan, nothing written) unless --keep-unfit keeps the labels
+    with pytest.raises(DatasetError, match=r"does not fit \(plane at .* nothing written; try --phase-offset auto") as exc:
+        label_real(LabelRealConfig(root=public, out=tmp_path / "n", rig=PARALLEL, phase_offset="none",
+                                   previews=False))
+    assert "\n" not in str(exc.value) and not (tmp_path / "n" / "Z.npy").exists()
     rep = label_real(LabelRealConfig(root=public, out=tmp_path / "n", rig=PARALLEL, phase_offset="none",
-                                     previews=False))
+                                     previews=False, keep_unfit=True))
     assert all(not r["fits"] and abs(r["plane"]["level_mm"]) > 5 for r in rep.scans)
     assert len(rep.warnings) == 1 and "the rig does not fit these scans" in rep.warnings[0]
     assert "--phase-offset auto" in rep.warnings[0]
@@ -134,9 +139,15 @@ def test_public_layout_other_convention_and_sine_sign(rendered, tmp_path, capsys
                  "--convention", "fppsim", "--negate-sin", "-q", "--no-preview"]) == 0
     doc = json.loads((tmp_path / "o" / "label_real.json").read_text())
     assert doc["scans"][0]["phase_offset_rad"] == pytest.approx(OFFSET, abs=0.01) and doc["scans"][0]["fits"]
-    # read with the wrong sine sign, the phase is garbage and the plane shows it
+    # read with the wrong sine sign, the phase is garbage and the plane shows it: refused, nothing written
+    capsys.readouterr()
     assert main(["label-real", str(tmp_path / "pub"), "--out", str(tmp_path / "w"), "--rig", str(PARALLEL),
-                 "--convention", "fppsim", "-q", "--no-preview"]) == 0
+                 "--convention", "fppsim", "-q", "--no-preview"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "does not fit" in err and "--keep-unfit" in err
+    assert not (tmp_path / "w" / "Z.npy").exists() and not (tmp_path / "w" / "f1_80.npy").exists()
+    assert main(["label-real", str(tmp_path / "pub"), "--out", str(tmp_path / "w"), "--rig", str(PARALLEL),
+                 "--convention", "fppsim", "-q", "--no-preview", "--keep-unfit"]) == 0
     assert "the rig does not fit these scans" in capsys.readouterr().err
 
 
@@ -179,9 +190,21 @@ def test_cli_native_and_rig_that_does_not_fit(rendered, tmp_path, capsys):
     capsys.readouterr()
     # the default rig is not the renders' rig: the plane tilts and the run says so on one stderr line
     assert main(["label-real", str(rendered), "--out", str(tmp_path / "d"), "--rig",
-                 str(REPO / "assets" / "default_rig.json"), "-q", "--no-preview", "--phase-offset", "auto"]) == 0
+                 str(REPO / "assets" / "default_rig.json"), "-q", "--no-preview", "--phase-offset", "auto",
+                 "--keep-unfit"]) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and "the rig does not fit these scans" in err[0]
+    # without --keep-unfit: exit 1, one line naming the scan and what is wrong; the earlier labels stay as they were
+    before = (tmp_path / "d" / "Z.npy").read_bytes()
+    assert main(["label-real", str(rendered), "--out", str(tmp_path / "d"), "--rig",
+                 str(REPO / "assets" / "default_rig.json"), "-q", "--no-preview", "--phase-offset", "auto"]) == 1
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and "does not fit (plane" in err[0] and "scan 0000" in err[0]
+    assert (tmp_path / "d" / "Z.npy").read_bytes() == before
+    # a bad threshold names its flag
+    assert main(["label-real", str(rendered), "--out", str(tmp_path / "e"), "--plane-window", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--plane-window must be" in err and "plane_window_mm" not in err
 
 
 # ------------------------------------------------------------------------------------------ bad inputs

@@ -148,3 +148,49 @@ def test_adapt_says_when_a_float_frame_looks_scaled_to_0_1(setup, tmp_path):
         pass
     said = [line for line in lines if "values span" in line]
     assert len(said) == 1 and said[0].startswith("adapt: warning: ") and "f.npy (f)" in said[0]
+
+
+def test_adapt_resumed_equals_uninterrupted_bit_for_bit(setup, tmp_path):
+    """The image order of an epoch depends on the seed and the epoch only: 1 epoch then a resume to 2 gives the
+    weights of a straight 2-epoch run (the shuffle once restarted on every invocation, QA M1)."""
+    tmp, run, rig = setup
+    g = torch.Generator().manual_seed(0)
+    assert torch.randperm(2, generator=g).tolist() != torch.randperm(2, generator=g).tolist()  # orders differ
+    straight, resumed = tmp_path / "straight", tmp_path / "resumed"
+    adapt(_cfg(tmp, run, straight, epochs=2, figures=False, seed=0), log=lambda line: None)
+    adapt(_cfg(tmp, run, resumed, epochs=1, figures=False, seed=0), log=lambda line: None)
+    lines = []
+    adapt(_cfg(tmp, run, resumed, epochs=2, figures=False, seed=0), log=lines.append)
+    assert any("resuming" in line for line in lines)
+    a = torch.load(straight / "last.pt", weights_only=True)["state_dict"]
+    b = torch.load(resumed / "last.pt", weights_only=True)["state_dict"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    assert _history(straight)[1]["loss"] == _history(resumed)[1]["loss"]
+    # a smaller --epochs has nothing to do and says only that
+    lines = []
+    adapt(_cfg(tmp, run, resumed, epochs=1, figures=False, seed=0), log=lines.append)
+    assert not any("resuming" in line for line in lines) and any("nothing to do" in line for line in lines)
+    # other options: the message says which value resumes (RUN is required, it cannot be dropped)
+    with pytest.raises(ConfigError, match=r"give --lr 0.0003 to resume"):
+        adapt(_cfg(tmp, run, resumed, epochs=2, figures=False, lr=1e-3), log=lambda line: None)
+
+
+def test_adapt_refuses_an_out_holding_a_best_pt_it_did_not_write(setup, tmp_path, capsys):
+    """A RUN folder stands for its best.pt first: adapt (which writes only last.pt) beside another model's best.pt
+    made predict of that folder silently use the other, un-adapted model (QA H3). Refused, nothing written."""
+    tmp, run, rig = setup
+    out = tmp_path / "someone"
+    out.mkdir()
+    (out / "best.pt").write_bytes((run / "best.pt").read_bytes())
+    rc = main(["adapt", str(run), "--images", str(tmp / "real"), "--out", str(out), "--rig", str(tmp / "rig.json"),
+               "--epochs", "1", "--no-progress", "--no-figures"])
+    err = capsys.readouterr().err.strip()
+    assert rc == 1 and "best.pt" in err and "\n" not in err
+    assert sorted(p.name for p in out.iterdir()) == ["best.pt"]
+
+
+def test_adapt_refuses_a_negative_seed(setup, tmp_path, capsys):
+    tmp, run, rig = setup
+    assert main(["adapt", str(run), "--images", str(tmp / "real"), "--out", str(tmp_path / "o"), "--seed", "-1"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--seed" in err and "\n" not in err and not (tmp_path / "o").exists()

@@ -28,7 +28,9 @@ wrapped residual before and after, rad), ``config.json`` and ``figures/<image>_a
 after / difference and the phase residuals). Re-running the same command resumes (refused, naming the
 option, when an option differs or the source checkpoint changed since); a folder holding another
 adaptation is replaced only with ``overwrite``; files this command did not write (a training run's, a
-person's) are never replaced (:mod:`uhrnet.run_folder`), and ``out`` may not be the source's folder.
+person's) are never replaced (:mod:`uhrnet.run_folder`), ``out`` may not be the source's folder, nor hold a
+``best.pt`` (an adaptation writes none, and a RUN folder stands for its ``best.pt`` first). Each epoch's image
+order depends on ``seed`` and the epoch only, so a resumed run ends with the weights of an uninterrupted one.
 The model sees each image as ``predict`` does (:func:`uhrnet.inference.prediction.labels_at_input_size`: the
 source's ``--resize``, padding to multiples of 16).
 With ``tensorboard`` the loss terms per step and epoch and the first image's height per epoch go to
@@ -53,8 +55,8 @@ from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import ConfigError, UsageError
 from uhrnet.training.train_config import MAX_LR
 from uhrnet.physics.rig_layer import RigLayer, wrap as wrap_t
-from uhrnet.run_folder import (CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, claim_run_folder, refuse_own_source,
-                               write_history, write_run_config)
+from uhrnet.run_folder import (BEST_PT, CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, claim_run_folder,
+                               refuse_own_source, write_history, write_run_config)
 from uhrnet.inference.prediction import fringe_phase, labels_at_input_size, read_inputs, refine_rig_for
 from fppsim.owned import output_folder
 from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
@@ -126,6 +128,8 @@ class AdaptConfig:
         if not self.min_reliability < 1:
             raise UsageError(f"--min-reliability must be in [0, 1) (reliabilities lie in [0, 1]), got "
                              f"{self.min_reliability!r}")
+        if int(self.seed) != self.seed or self.seed < 0:
+            raise UsageError(f"--seed must be an integer >= 0, got {self.seed!r}")
         if self.device not in ("auto", "cpu", "cuda"):
             raise UsageError(f"--device must be auto, cpu or cuda, got {self.device!r}")
         if self.w_grad == 0:
@@ -218,8 +222,18 @@ def adapt(cfg: AdaptConfig, log: Callable[[str], None] = print) -> AdaptResult:
     run folder ``cfg.out`` (locked while it runs) and returns what happened."""
 
     refuse_own_source(Path(cfg.out), cfg.checkpoint, "RUN")
+    _refuse_foreign_best(Path(cfg.out))
     with output_folder(cfg.out, ADAPT_TOOL, error=ConfigError):
         return _adapt(cfg, log)
+
+
+def _refuse_foreign_best(out: Path) -> None:
+    """:class:`ConfigError` when ``out`` holds a ``best.pt``: an adaptation writes only ``last.pt``, and a RUN
+    folder stands for its ``best.pt`` first (:data:`uhrnet.run_folder.CHECKPOINTS`), so predict, evaluate and
+    export of ``out`` would silently read that other model instead of the adaptation."""
+    if (out / BEST_PT).exists() or (out / BEST_PT).is_symlink():
+        raise ConfigError(f"--out {out} holds a {BEST_PT} that adapt did not write: predict and evaluate of that folder "
+                          f"would read it, not the adaptation; choose another --out")
 
 
 def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
@@ -241,7 +255,8 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
         flag = "RUN" if key == "checkpoint" else "--" + key.replace("_", "-")
         shown = lambda v: " ".join(map(str, v)) if isinstance(v, list) else v  # noqa: E731
         raise ConfigError(f"{out} already holds an adaptation with other options: {flag} {shown(value)} differs from "
-                          f"its {shown(recorded[key])}; drop {flag} to resume, or choose another --out (or --overwrite)")
+                          f"its {shown(recorded[key])}; give {flag} {shown(recorded[key])} to resume, or choose another "
+                          "--out (or --overwrite)")
     was = prev["adapt"].get("source_sha256")
     if was is not None and was != source["sha256"]:
         raise ConfigError(f"{source['path']} changed since the adaptation in {out} started from it (sha256 "
@@ -283,12 +298,16 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
         sources = [heights(batch(im)[0]) for im in images]
     params = [p for p in model.parameters() if p.requires_grad]
     optim = torch.optim.Adam(params, lr=cfg.lr)
-    history, start = _resume_into(model, optim, resume_from, out, log)
-    if start > cfg.epochs:
+    history, start = _resume_into(model, optim, resume_from)
+    if start >= cfg.epochs and resume_from is not None:
         log(f"adapt: {out} already holds {start} epochs (--epochs {cfg.epochs}); nothing to do")
+    elif start:
+        log(f"adapt: resuming {out} at epoch {start + 1}")
     record = {**cfg.record(), "epochs": max(int(cfg.epochs), start)}  # what the weights in last.pt hold
     write_run_config(out, {**record, "rig_used": rig_name, "source": source["path"], "source_sha256": source["sha256"]})
     gen = torch.Generator().manual_seed(int(cfg.seed))
+    for _ in range(min(start, int(cfg.epochs))):  # the image order of the epochs done: a resumed run shuffles as
+        torch.randperm(len(images), generator=gen)  # an uninterrupted one (each epoch's order: seed and epoch only)
     before = [median_wrapped_residual(s[0, 0].cpu().numpy(), im, layer.cpu()) for s, im in zip(sources, images)]
     layer.to(device)
     bar = _progress_bar(cfg, start, len(images))
@@ -360,7 +379,7 @@ def _read_images(cfg: AdaptConfig, rig, rig_name: str, log: Callable[[str], None
     return images
 
 
-def _resume_into(model, optim, resume_from: dict | None, out: Path, log: Callable[[str], None]) -> tuple[list, int]:
+def _resume_into(model, optim, resume_from: dict | None) -> tuple[list, int]:
     """Load a resumed adaptation's weights and optimizer state; its history and the epochs done (a fresh
     one: none)."""
     if resume_from is None:
@@ -369,7 +388,6 @@ def _resume_into(model, optim, resume_from: dict | None, out: Path, log: Callabl
     optim.load_state_dict(resume_from["adapt"]["optimizer"])
     history = list(resume_from["adapt"]["history"])
     start = int(resume_from["adapt"]["epoch"])
-    log(f"adapt: resuming {out} at epoch {start + 1}")
     return history, start
 
 
