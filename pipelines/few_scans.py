@@ -271,7 +271,8 @@ def label_heldout(args, out: Path, rig: str | None, name: str) -> tuple[Path, di
         if doc.get("status") == "done" and doc.get("root") == str(args.phase_root) and \
                 doc.get("rig", {}).get("source") == (str(rig) if rig else "default (assets/default_rig.json)"):
             return dest, doc
-    stage(out, f"label-real-{name}", lambda: label_real(LabelRealConfig(root=args.phase_root, out=dest, rig=rig)))
+    cfg = LabelRealConfig(root=args.phase_root, out=dest, rig=rig, keep_unfit=True)  # an unfit rig: DOES NOT FIT
+    stage(out, f"label-real-{name}", lambda: label_real(cfg))
     return dest, json.loads(report.read_text())
 
 

@@ -158,7 +158,7 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
             return validate_dataset(root, out, maps=config.maps, progress=config.progress, edge_px=config.edge_px)
         if settings is None:
             raise ValidateError(f"{root}: no dataset.json, so its scenes cannot be re-rendered for --sweep")
-        synth, meshes, seed, noise_free = config_from_settings(settings)
+        synth, meshes, seed, noise_free = config_from_settings(settings, root / "dataset.json")
         if not synth.psp_freqs:
             raise ValidateError(f"{root}: no PSP data (generated with --no-psp): re-generate without --no-psp")
         missing = [m for m in meshes if not Path(m).exists()]

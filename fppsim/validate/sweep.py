@@ -8,7 +8,7 @@ import itertools
 import math
 from dataclasses import fields
 
-from fppsim.errors import ValidateUsageError
+from fppsim.errors import ValidateError, ValidateUsageError
 from fppsim.rendering.optics import OpticsRanges
 from fppsim.rendering.synth import SynthConfig
 
@@ -94,12 +94,13 @@ def ranges_with(ranges, fixed: dict):
 
 
 # ====================================================================== sources
-def config_from_settings(settings: dict):
-    """SynthConfig, meshes, seed, noise_free of a dataset's ``dataset.json`` (to re-render its scenes)."""
+def config_from_settings(settings: dict, where="dataset.json"):
+    """SynthConfig, meshes, seed, noise_free of a dataset's ``dataset.json`` (to re-render its scenes);
+    :class:`ValidateError` naming ``where`` when it cannot be read back (a data problem, not a usage error)."""
     try:
         config = SynthConfig.from_settings(settings)
         return config, list(settings["meshes"]), int(settings["seed"]), bool(settings.get("noise_free", False))
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValidateUsageError(f"dataset.json cannot be turned back into generation settings ({exc})") from None
+        raise ValidateError(f"{where} cannot be turned back into generation settings ({exc})") from None
 
 

@@ -260,6 +260,13 @@ def test_never_replaces_a_users_report_or_map(tmp_path, sphere, capsys):
     (user / "report.json").write_text("my notes")
     assert "report.json exists and was not written by fppsim validate-psp" in _error([ds, "--out", user], capsys)
     assert (user / "report.json").read_text() == "my notes" and not (user / ".fppsim-owned.json").exists()
+    # review: a dataset.json that cannot be read back is the data's problem (exit 1, named), not a usage error
+    settings = json.loads((ds / "dataset.json").read_text())
+    settings.pop("seed")
+    (ds / "dataset.json").write_text(json.dumps(settings))
+    rc = main(["validate-psp", "-q", str(ds), "--out", str(tmp_path / "v"), "--sweep", "noise=0,1"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 1 and f"{ds / 'dataset.json'} cannot be turned back into generation settings" in err[-1], err
     assert sorted(p.name for p in user.rglob("*")) == ["maps", "report.json"]
     (user / "report.json").unlink()
     (user / "maps" / "000000.png").write_text("my image")

@@ -173,6 +173,12 @@ def test_adapt_resumed_equals_uninterrupted_bit_for_bit(setup, tmp_path):
     # other options: the message says which value resumes (RUN is required, it cannot be dropped)
     with pytest.raises(ConfigError, match=r"give --lr 0.0003 to resume"):
         adapt(_cfg(tmp, run, resumed, epochs=2, figures=False, lr=1e-3), log=lambda line: None)
+    # review: an option the run was started without is left out to resume ("give --rig None" was no command)
+    ck = torch.load(resumed / "last.pt", weights_only=False)
+    ck["adapt"]["config"]["rig"] = None  # as a run started without --rig records it
+    torch.save(ck, resumed / "last.pt")
+    with pytest.raises(ConfigError, match=r"--rig \S+ differs from its None; leave --rig out to resume"):
+        adapt(_cfg(tmp, run, resumed, epochs=3, figures=False, seed=0), log=lambda line: None)
 
 
 def test_adapt_refuses_an_out_holding_a_best_pt_it_did_not_write(setup, tmp_path, capsys):

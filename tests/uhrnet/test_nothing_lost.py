@@ -170,8 +170,13 @@ def test_adapt_into_the_training_run_is_refused_even_with_overwrite(setup, tmp_p
     copy = tmp_path / "copy"  # another folder holding a training run (its ownership record says so)
     shutil.copytree(run, copy)
     assert _adapt(tmp, run, copy, "--overwrite") == 1
-    _one_error(capsys, "written by uhrnet train, not uhrnet adapt")
+    _one_error(capsys, str(copy), "best.pt", "choose another --out")  # a training run's best.pt: refused first
     assert _snapshot(run) == before and _snapshot(copy) == before
+    (copy / "best.pt").unlink()  # its other files are still the run's, by its ownership record
+    kept = {k: v for k, v in _snapshot(copy).items() if k.name != ".fppsim-owned.json"}
+    assert _adapt(tmp, run, copy, "--overwrite") == 1
+    _one_error(capsys, "written by uhrnet train, not uhrnet adapt")
+    assert {k: v for k, v in _snapshot(copy).items() if k.name != ".fppsim-owned.json"} == kept
 
 
 # ------------------------------------------------------------------------------------------- case 6

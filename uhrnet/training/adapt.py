@@ -254,9 +254,9 @@ def _resume_from(cfg: AdaptConfig, out: Path, source: dict) -> dict | None:
             continue
         flag = "RUN" if key == "checkpoint" else "--" + key.replace("_", "-")
         shown = lambda v: " ".join(map(str, v)) if isinstance(v, list) else v  # noqa: E731
+        again = f"leave {flag} out" if recorded[key] is None else f"give {flag} {shown(recorded[key])}"
         raise ConfigError(f"{out} already holds an adaptation with other options: {flag} {shown(value)} differs from "
-                          f"its {shown(recorded[key])}; give {flag} {shown(recorded[key])} to resume, or choose another "
-                          "--out (or --overwrite)")
+                          f"its {shown(recorded[key])}; {again} to resume, or choose another --out (or --overwrite)")
     was = prev["adapt"].get("source_sha256")
     if was is not None and was != source["sha256"]:
         raise ConfigError(f"{source['path']} changed since the adaptation in {out} started from it (sha256 "
