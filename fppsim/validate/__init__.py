@@ -59,7 +59,7 @@ from pathlib import Path
 from typing import Sequence
 
 from fppsim.errors import ConfigError, InputError, ValidateError, ValidateUsageError
-from fppsim.dataio.formats import sample_id
+from fppsim.dataio.formats import SETTINGS_FILE, sample_id
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.owned import claim, forget, output_folder
@@ -158,7 +158,7 @@ def validate_psp(config: ValidateConfig, echo=None) -> dict:
             return validate_dataset(root, out, maps=config.maps, progress=config.progress, edge_px=config.edge_px)
         if settings is None:
             raise ValidateError(f"{root}: no dataset.json, so its scenes cannot be re-rendered for --sweep")
-        synth, meshes, seed, noise_free = config_from_settings(settings, root / "dataset.json")
+        synth, meshes, seed, noise_free = config_from_settings(settings, root / SETTINGS_FILE)
         if not synth.psp_freqs:
             raise ValidateError(f"{root}: no PSP data (generated with --no-psp): re-generate without --no-psp")
         missing = [m for m in meshes if not Path(m).exists()]
