@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import DatasetError, GenerateError, UsageError
+from fppsim.dataio.encoding import png_size
 from fppsim.files import unlink_quietly
 from fppsim.owned import same_folder
 from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, finished_indices, read_settings, sample_id
@@ -88,15 +89,8 @@ def _is_figshare_array(path: Path, camera: dict) -> bool:
 
 def _is_preview(path: Path) -> bool:
     """A PNG of the size ``fppsim.rendering.preview.write_preview`` makes (1200 px wide, 240 px a row, 1-3 rows)."""
-    try:
-        with open(path, "rb") as fh:
-            head = fh.read(24)
-    except OSError:
-        return False
-    if len(head) < 24 or head[:8] != b"\x89PNG\r\n\x1a\n":
-        return False
-    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
-    return width == 1200 and height in (240, 480, 720)
+    size = png_size(path)
+    return size is not None and size[0] == 1200 and size[1] in (240, 480, 720)
 
 
 def legacy_files(out: str | os.PathLike) -> list[str]:

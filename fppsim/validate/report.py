@@ -20,7 +20,7 @@ import numpy as np
 
 from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
-from fppsim.dataio.encoding import json_default
+from fppsim.dataio.encoding import json_default, png_size
 from fppsim.files import atomic_write_text
 from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import read_manifest, read_settings
@@ -28,11 +28,10 @@ from fppsim.dataio.readers import load_native_sample, open_source, read_native_p
 from fppsim.validate.sample import BREAKDOWN, breakdown_fractions, evaluate_sample
 from fppsim.plots import save_figure
 
-__all__ = ["VALIDATE_TOOL", "report_files", "own_report_files", "resolve_dataset", "read_records", "read_dataset_settings", "load_sample", "Pool", "write_error_map",
-           "validate_dataset", "format_table", "format_sweep_table"]
+__all__ = ["VALIDATE_TOOL", "report_files", "own_report_files", "resolve_dataset", "read_records", "read_dataset_settings",
+           "load_sample", "Pool", "write_error_map", "validate_dataset", "format_table", "format_sweep_table"]
 
 VALIDATE_TOOL = "fppsim validate-psp"
-_PNG = b"\x89PNG\r\n\x1a\n"
 _HIST_EDGES = np.concatenate([[0.0], np.logspace(-6, 4, 4001)])  # |error| in mm, 0.58 % per bin
 
 
@@ -237,12 +236,8 @@ def _own_report(folder: Path, prefix: str) -> list[str]:
         name = row.get("error_map") if isinstance(row, dict) else None
         if not (isinstance(name, str) and name.startswith("maps/") and name.count("/") == 1 and name.endswith(".png")):
             continue
-        try:
-            with open(folder / name, "rb") as f:
-                if f.read(len(_PNG)) == _PNG:
-                    maps.append(prefix + name)
-        except OSError:
-            pass
+        if png_size(folder / name) is not None:
+            maps.append(prefix + name)
     return [prefix + "report.json", *maps]
 
 

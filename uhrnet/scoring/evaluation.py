@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
-from fppsim.dataio.encoding import json_default
+from fppsim.dataio.encoding import json_default, png_size
 from fppsim.files import atomic_write_text
 from fppsim.dataio.formats import LabelTransform
 from fppsim.owned import claim, output_folder
@@ -242,7 +242,7 @@ def _own_report(out: Path) -> list[str]:
     mine = ["results.json"] + [name for name, heads in starts.items() if _begins(out / name, heads)]
     if (out / "figures").is_dir():
         mine += [f"figures/{p.name}" for p in sorted((out / "figures").glob("*.png"))
-                 if p.name.startswith(("real_", "synthetic_")) and _begins(p, (b"\x89PNG",))]
+                 if p.name.startswith(("real_", "synthetic_")) and png_size(p) is not None]
     return mine
 
 
@@ -357,6 +357,7 @@ def _write_figures(report: Report, ds, figure_idx: list[int], preds: dict, trans
         path = out / "figures" / _figure_name(sample)
         report.figures.append(plot_comparison(fringe, truth, valid, preds[i], path, row=r,
                                               title=f"{sample['source']} sample {sample['id']} ({report.split} split)"))
+
 
 def _figure_name(sample: dict) -> str:
     return f"{sample['source']}_{sample['id']}.png"

@@ -44,7 +44,6 @@ imported only there.
 from __future__ import annotations
 
 import hashlib
-
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
