@@ -153,10 +153,7 @@ class GenerateConfig:
             raise UsageError("no meshes given (--meshes)")
         if not 1 <= int(self.count) <= MAX_COUNT:
             raise UsageError(f"--count must be from 1 to {MAX_COUNT:,} samples, got {self.count}")
-        try:
-            check_seed(self.seed)
-        except InputError as exc:
-            raise UsageError(str(exc)) from None
+        check_seed(self.seed, error=UsageError)
         if self.format not in FORMATS:
             raise UsageError(f"unknown format '{self.format}' ({' or '.join(FORMATS)})")
         if self.supersample not in SUPERSAMPLE:
@@ -423,6 +420,17 @@ def _settings_diff(folder: Path, settings: dict) -> list[str]:
     return [k for k in settings if k != "version" and old.get(k) != json.loads(json.dumps(settings[k]))]
 
 
+def _claim_dataset(out: Path, native: Path, has_samples: bool, settings: dict, names, what: str) -> list[str]:
+    """Claim a dataset's fixed ``names`` in ``out``'s record and return where ``native``'s ``dataset.json`` differs
+    from ``settings``. Beside fppsim's finished samples (``has_samples``) that file is fppsim's and is compared
+    first: a difference is returned unclaimed, so the refusal that follows writes nothing, not even the record."""
+    diff = _settings_diff(native, settings) if has_samples else []
+    if not diff:
+        claim(out, DATASET_TOOL, names, legacy=lambda: legacy_files(out), hint=f"move it away, or use another {what}")
+        diff = _settings_diff(native, settings)  # claimed: ours, or none
+    return diff
+
+
 def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, preview: bool) -> tuple[list[int], set[int], bool]:
     """Check ``out`` for this run, then claim its fixed files and write its settings: ``(wanted indices,
     finished ones, whether this run wrote dataset.json)``. Every refusal comes before anything is written."""
@@ -441,13 +449,10 @@ def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, previe
                             + (f" --shard {shard[0]}/{shard[1]}" if shard else "")
                             + f" (sample {sample_id(extra[0])}), so f1_80.npy and Z.npy would leave them out: "
                             f"give --count {max(done) + 1} or more, or use another --out")
-    diff = _settings_diff(native, settings) if done else []  # beside finished samples it is fppsim's
-    if diff:  # refused before the claim: a refusal writes nothing, not even the record
+    diff = _claim_dataset(out, native, bool(done), settings, dataset_files(fmt, preview), "--out")
+    if diff and done:
         raise GenerateError(f"{native} holds a dataset made with different {', '.join(diff)}: "
                             "use a new --out (or the same options) to resume")
-    claim(out, DATASET_TOOL, dataset_files(fmt, preview), legacy=lambda: legacy_files(out),
-          hint="move it away, or use another --out")
-    diff = _settings_diff(native, settings)  # claimed: ours, or none
     # new, or settings beside no finished sample (a run that failed before its first): ours to (re)write
     created = bool(diff) or not (native / SETTINGS_FILE).is_file()
     if created:
@@ -601,12 +606,8 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
     with output_folder(out, "fppsim merge", error=DatasetError):
         check_format(out, fmt)
         target = samples_folder(out, fmt)
-        # a refusal writes nothing, not even the record: checked before the claim where fppsim's samples are
-        diff = _settings_diff(target, settings) if finished_indices(target) else []
-        if not diff:
-            claim(out, DATASET_TOOL, dataset_files(fmt), legacy=lambda: legacy_files(out),
-                  hint="move it away, or use another output folder")
-            diff = _settings_diff(target, settings)
+        diff = _claim_dataset(out, target, bool(finished_indices(target)), settings, dataset_files(fmt),
+                              "output folder")
         if diff:
             raise DatasetError(f"{target} holds a dataset made with different {', '.join(diff)}: cannot merge "
                                "these shards into it")

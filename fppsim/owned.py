@@ -67,6 +67,11 @@ def _stamp_of(path: Path) -> list:
     return [st.st_size, st.st_mtime_ns]
 
 
+def _changed(folder: Path, name: str, stamps: dict[str, list]) -> bool:
+    """Was ``name`` (existing) changed or replaced since :func:`stamp` recorded it? False without a stamp."""
+    return name in stamps and _stamp_of(folder / name) != stamps[name]
+
+
 def _write(folder: Path, record: dict[str, str], stamps: dict[str, list] | None = None) -> None:
     if record:
         stamps = {k: v for k, v in (_stamps(folder) if stamps is None else stamps).items() if k in record}
@@ -117,7 +122,7 @@ def claim(folder: str | os.PathLike, tool: str, names: Iterable[str], legacy: Ca
             if name in own:  # written before this tool kept a record, in a folder another tool records
                 owner = record[name] = tool
         if owner == tool:
-            if name in stamps and _stamp_of(path) != stamps[name]:
+            if _changed(folder, name, stamps):
                 raise ForeignFiles(f"{path} was changed since {tool} wrote it: {hint}")
             continue
         if owner is None:
@@ -157,7 +162,7 @@ def remove_own(folder: str | os.PathLike, tool: str, names: Iterable[str]) -> li
     folder = Path(folder)
     record, stamps = owners(folder) or {}, _stamps(folder)
     mine = [n for n in dict.fromkeys(map(str, names)) if record.get(n) == tool
-            and not ((folder / n).exists() and n in stamps and _stamp_of(folder / n) != stamps[n])]
+            and not ((folder / n).exists() and _changed(folder, n, stamps))]
     there = [n for n in mine if (folder / n).exists() or (folder / n).is_symlink()]
     for name in there:
         unlink_quietly(folder / name)

@@ -24,11 +24,12 @@ from fppsim.dataio.formats import psp_freq, psp_image_name
 __all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode", "check_seed"]
 
 
-def check_seed(seed, what: str = "--seed") -> int:
-    """``seed`` as an int when numpy's generators take it, else :class:`InputError` (one line): numpy's
-    ``SeedSequence`` takes any integer >= 0 (no upper limit), and refuses a negative one deep inside a run."""
+def check_seed(seed, what: str = "--seed", error: type[Exception] = InputError) -> int:
+    """``seed`` as an int when numpy's generators take it, else ``error`` (one line; a command's config passes its
+    usage error): numpy's ``SeedSequence`` takes any integer >= 0 (no upper limit), and refuses a negative one
+    deep inside a run."""
     if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
-        raise InputError(f"{what} must be an integer >= 0, got {seed!r}")
+        raise error(f"{what} must be an integer >= 0, got {seed!r}")
     return int(seed)
 
 

@@ -58,7 +58,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ConfigError, InputError, ValidateError, ValidateUsageError
+from fppsim.errors import ConfigError, ValidateError, ValidateUsageError
 from fppsim.dataio.formats import SETTINGS_FILE, sample_id
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
@@ -120,10 +120,7 @@ class ValidateConfig:
             raise ValidateUsageError(f"--psp-steps must be >= 3, got {self.psp_steps}")
         if self.edge_px < 0:
             raise ValidateUsageError(f"--edge-px must be >= 0 (0: no edge split), got {self.edge_px}")
-        try:
-            check_seed(self.seed)
-        except InputError as exc:
-            raise ValidateUsageError(str(exc)) from None
+        check_seed(self.seed, error=ValidateUsageError)
         grid = self.grid()  # a bad --sweep value is refused here
         if grid is not None and self.noise_free and any(n in ("noise_sigma", "shot_noise") for n, _ in grid):
             raise ValidateUsageError("a noise sweep needs noise: --noise-free renders every setting alike")

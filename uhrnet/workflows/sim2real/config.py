@@ -25,6 +25,7 @@ from uhrnet.training.train_config import MAX_EPOCHS, TrainConfig, check_options
 
 MAX_COUNT = 10_000_000  # synthetic samples (fppsim.generation's bound)
 from fppsim.geometry.rig import RigError, data_path, load_rig
+from fppsim.rendering.synth import check_seed
 from uhrnet.physics.refine import REFINE_METHODS
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT
 
@@ -173,8 +174,7 @@ class Sim2RealConfig:
                 raise UsageError(f"--{key} must be from 1 to {most:,}, got {getattr(self, key)}")
         if self.workers < 0:
             raise UsageError(f"--workers must be >= 0 (0: all cores), got {self.workers}")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:  # the generator's seed
-            raise UsageError(f"--seed must be an integer >= 0, got {self.seed!r}")
+        check_seed(self.seed, error=UsageError)  # the generator's seed, as generate checks it
         # the recipe's training numbers, wrong on their own as uhrnet train refuses them (exit 2, before generating)
         check_options({k: getattr(self, k) for k in ("batch_size", "lr", "base_channels") if getattr(self, k) is not None})
         if not self.object_mm > 0:
