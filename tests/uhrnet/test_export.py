@@ -252,6 +252,25 @@ def test_export_free_suffixes_are_the_users_choice(tmp_path, capsys):
         assert (tmp_path / name).stat().st_size > 1000
 
 
+@pytest.mark.parametrize("check", [[], ["--check"]])
+def test_export_torchscript_to_a_name_without_suffix(tmp_path, capsys, check):
+    """A suffix-less --out (``model``) is written and loads to the checkpoint's outputs; torch once named the
+    archive after the temporary name up to its first dot and refused it."""
+    ckpt = write_checkpoint(tmp_path / "m.pt", "unet")
+    out = tmp_path / "model"
+    assert main(["export", str(ckpt), "--format", "torchscript", "--out", str(out), "--height", "16",
+                 "--width", "16", *check]) == 0, capsys.readouterr().err
+    from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
+    from uhrnet.models import prediction_of
+    net, _ = model_from_checkpoint(load_checkpoint(ckpt))
+    x = torch.rand(1, 1, 16, 16, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        want = prediction_of(net.eval()(x))
+        got = torch.jit.load(str(out))(x)
+    assert torch.allclose(prediction_of(got), want, atol=1e-4)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".fppsim")) == ["m.pt", "model"]
+
+
 def test_onnx_runner_errors_name_the_cause(tmp_path):
     from uhrnet.inference.export import export_model, onnx_runner
 

@@ -22,6 +22,7 @@ batch 1 at the export size); the export passes when ``max |exported - reference|
 from __future__ import annotations
 
 import ctypes
+import io
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -145,7 +146,11 @@ def export_model(
             else:
                 traced = torch.jit.trace(net, (x,), check_trace=False)
                 traced = torch.jit.freeze(traced)
-                traced.save(str(tmp))
+                # through memory: torch names the archive's records after the file name up to its last dot,
+                # which for the temporary name of a suffix-less --out (.fppsim-tmp-PID-model) is empty
+                buffer = io.BytesIO()
+                torch.jit.save(traced, buffer)
+                tmp.write_bytes(buffer.getvalue())
     except ExportError:
         raise
     except Exception as exc:
