@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from uhrnet.cli import variant_commands
+from uhrnet.errors import UsageError
 from uhrnet.workflows.sim2real.variants import (
     VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags,
 )
@@ -104,6 +105,27 @@ def test_an_ablation_value_of_the_wrong_type_is_refused_not_ignored(tmp_path, en
     assert a == VariantFlags("a", ["--seed", "3"], [], [], ("relief",)) and b == VariantFlags("b", [], [], None, ())
 
 
+@pytest.mark.parametrize("spec, code, says", [
+    ("a: --bogus 3", 2, "variant 'a': generate: unrecognized arguments: --bogus 3"),
+    ("a: --count -3", 2, "variant 'a': generate: argument --count"),
+    ("a: | --epochs -3", 2, "variant 'a': train: --epochs must be >= 1"),
+    ("a: | | adapt --bogus", 2, "variant 'a': adapt: unrecognized arguments: --bogus"),
+    ("a: --optics-file /nonexistent/o.yaml", 1, "variant 'a': generate: "),
+    ("a: | --init-from /nonexistent/run", 1, "variant 'a': train: "),
+])
+def test_variant_flag_errors_exit_as_their_commands_would(tmp_path, capsys, spec, code, says):
+    """A flag a variant's command does not take, or a value its parser or config refuses on its own, exits 2 as on
+    that command's own line (they exited 1); a missing file stays exit 1. One line, nothing written."""
+    from uhrnet.cli import main
+
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    out = tmp_path / "o"
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--variant", spec]) == code
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and says in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"],
                                    ["--seed", "-1"]])
 def test_recipe_training_numbers_are_usage_errors_before_anything_runs(tmp_path, capsys, flags):
@@ -188,9 +210,9 @@ def test_variant_flags_become_config_overrides_and_the_recipe_command_lines(tmp_
     assert variant_from_flags(cfg, parse_variant("rig: --rig assets/parallel_rig.json"), variant_commands()).generate == \
         {"rig": "assets/parallel_rig.json"}
     assert variant_from_flags(cfg, parse_variant("p: --no-psp --format figshare"), variant_commands()).generate == {}
-    with pytest.raises(Sim2RealError, match="variant 'bad': generate: unrecognized arguments: --bogus"):
+    with pytest.raises(UsageError, match="variant 'bad': generate: unrecognized arguments: --bogus"):
         variant_from_flags(cfg, parse_variant("bad: --bogus"), variant_commands())
-    with pytest.raises(Sim2RealError, match="variant 'bad': train: argument --lr"):
+    with pytest.raises(UsageError, match="variant 'bad': train: argument --lr"):
         variant_from_flags(cfg, parse_variant("bad: | --lr x"), variant_commands())
     r = recipe_commands(cfg, v, tmp_path / "syn", tmp_path / "run")
     g, t = r["generate"].split(), r["train"].split()

@@ -12,6 +12,7 @@ import pytest
 from fppsim.fitting.height_sensitivity import surface_phase
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from uhrnet.cli import main, variant_commands
+from uhrnet.errors import UsageError
 from uhrnet.workflows.sim2real.variants import (
     VariantFlags, load_variants, parse_variant, recipe_commands, variant_from_flags,
 )
@@ -45,7 +46,7 @@ def test_variant_steps_parse_into_adapt_and_refine(tmp_path):
     assert variant_from_flags(cfg, parse_variant("n: | --no-augment"), variant_commands()).adapt is None
     with pytest.raises(Sim2RealError, match="set by the experiment"):
         variant_from_flags(cfg, parse_variant("a: | | adapt --overwrite"), variant_commands())
-    with pytest.raises(Sim2RealError, match="variant 'a': adapt: argument --lr"):
+    with pytest.raises(UsageError, match="variant 'a': adapt: argument --lr"):
         variant_from_flags(cfg, parse_variant("a: | | adapt --lr x"), variant_commands())
     with pytest.raises(Sim2RealError, match="refine methods"):
         variant_from_flags(cfg, parse_variant("a: | | refine sharpen"), variant_commands())

@@ -33,12 +33,13 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 from fppsim.errors import FppsimError
+from fppsim.errors import UsageError as FppsimUsageError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
 from fppsim.geometry.rig import load_rig
 from uhrnet.checkpoint import find_checkpoint
 from uhrnet.device import select_device
-from uhrnet.errors import ConfigError, Sim2RealError, UhrnetError
+from uhrnet.errors import ConfigError, Sim2RealError, UhrnetError, UsageError
 from uhrnet.scoring.phase_residual import phase_frames
 from uhrnet.run_folder import CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.stages import dataset_count, run_stage
@@ -61,6 +62,13 @@ __all__ = ["generate_config", "train_config", "adapt_config", "run_differences",
 Recipe = Callable[[Sim2RealConfig, Variant, Path, Path], dict]
 
 
+def variant_error(exc: Exception, where: str) -> Exception:
+    """``exc`` of a variant's step as one error naming ``where``: a :class:`UsageError` where the step's own command
+    would exit 2 on it (a value wrong on its own), a :class:`Sim2RealError` otherwise."""
+    usage = isinstance(exc, (UsageError, FppsimUsageError))
+    return (UsageError if usage else Sim2RealError)(f"{where}: {exc}")
+
+
 def generate_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path):
     """The :class:`fppsim.generation.GenerateConfig` of ``variant``'s dataset in folder ``data``: the
     recipe (``cfg``'s meshes, count, seed and workers; figshare format with the figshare label
@@ -72,7 +80,7 @@ def generate_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path):
     try:
         return GenerateConfig(**{**base, **variant.generate})
     except (FppsimError, ValueError) as exc:
-        raise Sim2RealError(f"variant {variant.name!r}: generate: {exc}") from None
+        raise variant_error(exc, f"variant {variant.name!r}: generate") from None
 
 
 def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: str | Path, resume: bool = False):
@@ -87,7 +95,7 @@ def train_config(cfg: Sim2RealConfig, variant: Variant, data: str | Path, run: s
     try:
         return TrainConfig(**{**base, **variant.train, **({"resume": "auto"} if resume else {})})
     except (UhrnetError, ValueError) as exc:
-        raise Sim2RealError(f"variant {variant.name!r}: train: {exc}") from None
+        raise variant_error(exc, f"variant {variant.name!r}: train") from None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -115,7 +123,7 @@ def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, 
     try:
         return AdaptConfig(**{**base, **(variant.adapt or {})})
     except (UhrnetError, ValueError) as exc:
-        raise Sim2RealError(f"variant {variant.name!r}: adapt: {exc}") from None
+        raise variant_error(exc, f"variant {variant.name!r}: adapt") from None
 
 
 def _norm(value):

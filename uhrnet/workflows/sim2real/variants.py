@@ -24,10 +24,10 @@ import shlex
 from pathlib import Path
 from typing import Callable, Mapping, NamedTuple
 
-from uhrnet.errors import Sim2RealError
+from uhrnet.errors import Sim2RealError, UsageError
 from uhrnet.run_folder import LAST_PT
 from uhrnet.workflows.sim2real.config import SCALES, Variant, generate_workers
-from uhrnet.workflows.sim2real.run import adapt_config
+from uhrnet.workflows.sim2real.run import adapt_config, variant_error
 from uhrnet.workflows.stages import read_config_file
 
 __all__ = ["VariantFlags", "VARIANT_SYNTAX", "FlagReader", "parse_variant", "load_variants", "generate_flags",
@@ -152,14 +152,15 @@ def train_flags(cfg, data, run) -> list[str]:
 
 
 def _parse(parser: argparse.ArgumentParser, argv: list[str], where: str) -> argparse.Namespace:
-    """``parser.parse_args(argv)``, its error as a :class:`Sim2RealError` naming ``where``."""
+    """``parser.parse_args(argv)``, its error as a :class:`UsageError` naming ``where`` (a flag the command does
+    not take, or a value its parser refuses, is a usage error as on that command's own line: exit 2)."""
     err = io.StringIO()
     try:
         with contextlib.redirect_stderr(err):
             return parser.parse_args(argv)
     except SystemExit:
         lines = [line for line in err.getvalue().splitlines() if line.strip()]
-        raise Sim2RealError(f"{where}: {lines[-1].split(': error: ')[-1] if lines else 'bad flags'}") from None
+        raise UsageError(f"{where}: {lines[-1].split(': error: ')[-1] if lines else 'bad flags'}") from None
 
 
 def variant_from_flags(cfg, flags: VariantFlags, commands: Mapping[str, FlagReader]) -> Variant:
@@ -179,10 +180,10 @@ def variant_from_flags(cfg, flags: VariantFlags, commands: Mapping[str, FlagRead
         try:
             gen = changed(options(_parse(parser, head, f"{where}: generate")),
                           options(_parse(parser, head + flags.generate, f"{where}: generate")))
-        except Sim2RealError:
+        except (Sim2RealError, UsageError):
             raise
         except (OSError, ValueError) as exc:  # e.g. an unreadable --optics-file
-            raise Sim2RealError(f"{where}: generate: {exc}") from None
+            raise variant_error(exc, f"{where}: generate") from None
     if flags.train:
         head, parser, options = train_flags(cfg, "DATA", "RUN"), commands["train"].parser(), commands["train"].options
         tr = changed(options(_parse(parser, head, f"{where}: train")),
