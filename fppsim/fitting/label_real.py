@@ -563,6 +563,9 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out} is a file, not a folder")
+    if out.exists() and out.resolve() == Path(cfg.root).resolve():
+        # the labels beside the scans would make one folder of two layouts, each reader picking one
+        raise UsageError(f"--out {out} is the scans' own folder; give another (e.g. {out / 'labels'})")
     previews = [f"{PREVIEW_DIR}/{sid}.png" for sid in ids] if cfg.previews else []
     scans = iter_scans(cfg, layout, ids, rig)
     first = next(scans)  # read (and check) the first scan before anything is created

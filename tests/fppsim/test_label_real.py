@@ -151,6 +151,17 @@ def test_public_layout_other_convention_and_sine_sign(rendered, tmp_path, capsys
     assert "the rig does not fit these scans" in capsys.readouterr().err
 
 
+def test_out_is_not_the_scans_own_folder(public, capsys):
+    """Labels written beside PSin/ PCos/ ... would leave one folder of two layouts (each reader picking one):
+    refused as a usage error, nothing written there."""
+    before = sorted(p.name for p in public.iterdir())
+    assert main(["label-real", str(public), "--out", str(public / "." ), "--rig", str(PARALLEL), "-q",
+                 "--no-preview"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "the scans' own folder" in err
+    assert sorted(p.name for p in public.iterdir()) == before
+
+
 def test_offset_fit_and_flatness_on_a_synthetic_plane():
     rig = load_rig(PARALLEL)
     plane = reference_plane_phase(rig)
