@@ -25,7 +25,7 @@ from fppsim.rendering.shapes import procedural
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
     "sample_scene", "MESH_EXTENSIONS", "asset_from_arrays", "procedural_asset", "PROCEDURAL_PREFIX",
-    "PEDESTAL_PREFIX", "pedestal_prism",
+    "PEDESTAL_PREFIX", "pedestal_prism", "render_faces",
 ]
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
@@ -37,15 +37,20 @@ class MeshAsset:
 
     ``vertices`` (V, 3) float64 are centred (x, y at the bounding-box centre, min z = 0) and rotated so
     the principal axes are x (longest), y, z (shortest); ``faces`` (F, 3) int32. Units are the file's.
-    ``canonical`` is the 4x4 transform file coordinates -> these vertices.
+    ``canonical`` is the 4x4 transform file coordinates -> these vertices. ``render_faces``: the faces
+    the depth renders draw, which cull back faces: ``faces`` for a closed mesh wound outward (the
+    default), both windings of every face for anything else (see :func:`render_faces`).
     """
     path: str
     vertices: np.ndarray
     faces: np.ndarray
     canonical: np.ndarray
     hull: np.ndarray = field(default=None, repr=False)  # convex-hull vertices: cheap rotated extents
+    render_faces: np.ndarray = field(default=None, repr=False)
 
     def __post_init__(self):
+        if self.render_faces is None:
+            self.render_faces = self.faces
         if self.hull is None:
             from scipy.spatial import ConvexHull, QhullError
 
@@ -60,12 +65,15 @@ class MeshAsset:
 
 
 def find_meshes(paths) -> list[str]:
-    """Expand files and folders (recursively, by extension) into a sorted, de-duplicated list."""
+    """Expand files and folders (recursively, by extension) into a sorted, de-duplicated list.
+
+    Linked folders are followed (each real folder once, so a link loop ends); a broken link named like a
+    mesh is kept, so loading it reports it instead of dropping it without a word."""
     out = []
     for p in paths:
         p = Path(p)
         if p.is_dir():
-            out += [str(q) for q in sorted(p.rglob("*")) if q.suffix.lower() in MESH_EXTENSIONS and q.is_file()]
+            out += _mesh_files(p)
         elif p.is_file():
             out.append(str(p))
         else:
@@ -79,6 +87,20 @@ def find_meshes(paths) -> list[str]:
     return unique
 
 
+def _mesh_files(folder: Path) -> list[str]:
+    out, visited = [], set()
+    for root, dirs, files in os.walk(folder, followlinks=True):
+        real = os.path.realpath(root)
+        if real in visited:
+            dirs[:] = []
+            continue
+        visited.add(real)
+        dirs.sort()
+        named = [os.path.join(root, f) for f in files if Path(f).suffix.lower() in MESH_EXTENSIONS]
+        out += [q for q in named if os.path.isfile(q) or not os.path.exists(q)]  # files, and broken links
+    return sorted(out, key=lambda q: Path(q).parts)
+
+
 def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     """Load any mesh trimesh reads, validate it and bring it to canonical orientation.
 
@@ -89,6 +111,8 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
 
 
     path = str(path)
+    if not os.path.isfile(path):
+        raise MeshError(f"{path}: not a readable file (a broken link?)")
     try:
         if path.lower().endswith(".ply") and ply_has_tristrips(path):  # trimesh ignores triangle strips
             v, f = read_ply_tristrips(path)
@@ -113,11 +137,14 @@ def asset_from_arrays(vertices, faces, path: str, flat_ratio: float = 1e-3) -> M
     f = np.asarray(faces, dtype=np.int64)
     if len(f) == 0 or len(v) < 3:
         raise MeshError(f"{path}: empty mesh (no faces)")
-    if not np.all(np.isfinite(v)):
-        raise MeshError(f"{path}: vertices contain NaN or inf")
     if f.min() < 0 or f.max() >= len(v):
         raise MeshError(f"{path}: face indices out of range")
     used = np.unique(f)
+    if len(used) < len(v):  # vertices no face uses (a stray point, a scan's NaN grid) would count in the size
+        v, f = v[used], np.searchsorted(used, f)
+        used = np.arange(len(v))
+    if not np.all(np.isfinite(v)):
+        raise MeshError(f"{path}: vertices contain NaN or inf")
     pts = v[used]
     centre = pts.mean(0)
     cov = np.cov((pts - centre).T)
@@ -140,7 +167,29 @@ def asset_from_arrays(vertices, faces, path: str, flat_ratio: float = 1e-3) -> M
     T[:3, :3] = axes
     T[:3, 3] = -axes @ centre - shift
     verts = v @ T[:3, :3].T + T[:3, 3]
-    return MeshAsset(path=path, vertices=verts, faces=f.astype(np.int32), canonical=T)
+    f = f.astype(np.int32)
+    return MeshAsset(path=path, vertices=verts, faces=f, canonical=T, render_faces=render_faces(verts, f))
+
+
+def render_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """The faces to rasterise so the depth renders (which cull back faces) see the nearest surface.
+
+    ``faces`` itself when the mesh is closed and wound outward (every directed edge once, its reverse
+    once, positive volume); otherwise (inside out, open, inconsistently wound) every face in both
+    windings, so a flipped mesh or an open scan seen from behind is not rendered see-through.
+    """
+    f = np.asarray(faces, dtype=np.int64)
+    edges = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    n = int(f.max()) + 1
+    fwd = np.sort(edges[:, 0] * n + edges[:, 1])
+    rev = np.sort(edges[:, 1] * n + edges[:, 0])
+    if np.all(fwd[1:] != fwd[:-1]) and np.array_equal(fwd, rev):
+        p = np.asarray(vertices, dtype=np.float64)
+        p = p - p.mean(0)
+        volume = np.einsum("ij,ij->", p[f[:, 0]], np.cross(p[f[:, 1]], p[f[:, 2]]))
+        if volume > 0:
+            return faces
+    return np.concatenate([faces, faces[:, ::-1]])
 
 
 @dataclass
@@ -209,7 +258,7 @@ class PlacedObject:
     def instance(self):
         # procedural shapes are many and short-lived: do not keep them uploaded in the renderer
         key = None if self.asset.path.startswith((PROCEDURAL_PREFIX, PEDESTAL_PREFIX)) else self.asset.path
-        return Instance(self.asset.vertices, self.asset.faces, self.transform, key=key)
+        return Instance(self.asset.vertices, self.asset.render_faces, self.transform, key=key)
 
     def to_dict(self) -> dict:
         return {"mesh": self.mesh, "scale": float(self.scale), "pose": np.asarray(self.pose).tolist()}

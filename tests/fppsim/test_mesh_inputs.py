@@ -1,0 +1,108 @@
+"""Meshes as users have them (QA pass 68c): wound inside out, open scans, stray vertices, symlinked folders.
+
+The depth renders draw only front faces (pyrender culls back faces in DEPTH_ONLY mode whatever the flags),
+so a mesh wound inside out or an open surface seen from behind used to be rendered see-through: the
+"exact" height was the far side of the object, or the plane under it.
+"""
+
+import os
+
+import numpy as np
+import pytest
+import trimesh
+
+from fppsim.errors import MeshError
+from fppsim.geometry.rig import Rig
+from fppsim.rendering.render import DepthRenderer
+from fppsim.rendering.scene import PlacedObject, asset_from_arrays, find_meshes, load_mesh
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    r = DepthRenderer()
+    yield r
+    r.close()
+
+
+def _capsule():
+    return trimesh.creation.capsule(height=60.0, radius=18.0, count=[16, 16])
+
+
+def _depth(renderer, asset, lift=5.0, flip=False):
+    T = np.eye(4)
+    if flip:  # upside down (about x), the lowest point still at z = lift
+        T[:3, :3] = np.diag([1.0, -1.0, -1.0])
+        lift += asset.extents[2]
+    T[2, 3] = lift
+    obj = PlacedObject(mesh=asset.path, scale=1.0, pose=T, asset=asset, transform=T)
+    return renderer.depth(Rig.default().camera, [obj.instance()])  # as a scene draws it
+
+
+def test_a_mesh_wound_inside_out_renders_its_near_surface(renderer):
+    m = _capsule()
+    good = asset_from_arrays(m.vertices, m.faces, "good.obj")
+    inverted = asset_from_arrays(m.vertices, m.faces[:, ::-1], "inverted.obj")
+    a, b = _depth(renderer, good), _depth(renderer, inverted)
+    assert np.array_equal(np.isfinite(a), np.isfinite(b))
+    seen = np.isfinite(a)
+    assert np.abs(a[seen] - b[seen]).max() < 1e-3  # was 35.9 mm: the far side of the capsule
+
+
+def test_an_open_surface_seen_from_behind_is_not_see_through(renderer):
+    # a bowl (lower half of a sphere, normals outward) seen from above: the camera looks at its inside
+    s = trimesh.creation.icosphere(subdivisions=3, radius=30.0)
+    keep = s.triangles_center[:, 2] < 0
+    bowl = trimesh.Trimesh(s.vertices, s.faces[keep], process=False)
+    asset = asset_from_arrays(bowl.vertices, bowl.faces, "bowl.ply")
+    pole = asset.vertices[np.argmin(bowl.vertices[:, 2])]
+    # opening up, its bottom 10 mm above the plane (the canonical frame may have turned it over)
+    d = _depth(renderer, asset, lift=10.0, flip=pole[2] > 1.0)
+    cam = Rig.default().camera
+    centre = d[cam.height // 2 - 5: cam.height // 2 + 5, cam.width // 2 - 5: cam.width // 2 + 5]
+    assert np.isfinite(centre).all()  # was inf: seen through the bowl to the plane
+    assert np.allclose(centre, 490.0, atol=1.0)
+
+
+def test_a_closed_outward_mesh_keeps_its_faces():
+    m = _capsule()
+    asset = asset_from_arrays(m.vertices, m.faces, "good.obj")
+    assert np.array_equal(asset.render_faces, asset.faces)  # the renders of well-made meshes stay as they were
+
+
+def test_unreferenced_vertices_do_not_change_the_object(tmp_path):
+    m = _capsule()
+    stray = np.vstack([m.vertices, [[5000.0, 3000.0, 100.0]]])
+    trimesh.Trimesh(stray, m.faces, process=False).export(tmp_path / "stray.ply")
+    scan = np.vstack([m.vertices, np.full((10, 3), np.nan)])  # an organised scan: NaN where nothing was seen
+    trimesh.Trimesh(scan, m.faces, process=False).export(tmp_path / "scan.ply")
+    ref = load_mesh(_write(m, tmp_path / "ref.ply"))
+    for name in ("stray.ply", "scan.ply"):
+        a = load_mesh(tmp_path / name)  # stray: 5018 units across (the object drawn 50x too small); scan: refused
+        np.testing.assert_allclose(a.extents, ref.extents)
+        np.testing.assert_allclose(a.hull.max(0) - a.hull.min(0), ref.extents)
+    nan_used = m.vertices.copy()
+    nan_used[0] = np.nan
+    with pytest.raises(MeshError, match="NaN or inf"):
+        asset_from_arrays(nan_used, m.faces, "bad.ply")
+
+
+def _write(mesh, path):
+    mesh.export(path)
+    return path
+
+
+def test_symlinked_folders_are_followed_once_and_broken_links_named(tmp_path):
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    _write(_capsule(), scans / "a.obj")
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    _write(_capsule(), meshes / "b.obj")
+    os.symlink(scans, meshes / "linked")          # a folder of scans linked in: was ignored without a word
+    os.symlink(meshes, meshes / "loop")           # a link back up: must not recurse forever
+    os.symlink(tmp_path / "gone.obj", meshes / "gone.obj")  # a broken link: reported, not silently dropped
+    found = find_meshes([meshes])
+    assert sorted(os.path.basename(p) for p in found) == ["a.obj", "b.obj", "gone.obj"]
+    with pytest.raises(MeshError) as e:
+        load_mesh(next(p for p in found if p.endswith("gone.obj")))
+    assert "gone.obj" in str(e.value) and "\n" not in str(e.value)
