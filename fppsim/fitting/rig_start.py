@@ -181,7 +181,14 @@ def phase_maps_of(path, max_maps: int = 4, convention: str = "benchmark", negate
                 maps.append(PhaseMap(measured[0], measured[1], ids[int(i)]))
         if maps:
             return maps, "phase", images
-    return [image_phase_map(im.gray, im.valid, im.name) for im in images[:max_maps]], "fringe images", images
+    maps = []
+    for im in images[:max_maps]:
+        try:
+            maps.append(image_phase_map(im.gray, im.valid, im.name))
+        except (InputError, RigError) as exc:  # a blank or fringe-less image: name it and its folder
+            named = str(exc) if str(exc).startswith(f"{im.name}: ") else f"{im.name}: {exc}"
+            raise type(exc)(f"{path}: {named}") from None
+    return maps, "fringe images", images
 
 
 # ====================================================================== the whole start: a folder -> a rig
