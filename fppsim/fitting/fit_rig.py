@@ -44,6 +44,7 @@ from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
 from fppsim.dataio.readers import FringeImage, check_read_convention, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
+from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
 
 __all__ = ["BaselineFit", "fit_baseline", "format_baseline_fit", "check_fit_options", "FitRigConfig",
            "FitRigResult", "fit_rig_images"]
@@ -232,6 +233,10 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
                                     holds_keys("params", "measured"))],
                             inputs=[config.real, config.base], force=config.force)  # before any work
     base = load_rig(config.base)
+    if fringe_axis(rig_phase_gradient(base)) != "vertical":  # the band periods below are read across vertical fringes
+        raise RigError(f"--base {config.base}: its fringes are horizontal (the projector above or below the camera); "
+                       "fit-rig with --base fits vertical fringes only: leave --base out (the rig is then built "
+                       "from the images)")
     images, layout = load_fringe_images(config.real, config.max_images, convention=config.convention,
                                         negate_sin=config.negate_sin)
     if images:  # before measuring: another rig's images fail there with a less telling message

@@ -61,11 +61,11 @@ from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, fin
                                         relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase import wrap
-from fppsim.phase.fringe_axis import oriented_single_shot_phase
+from fppsim.phase.fringe_axis import fringe_orientation, oriented_single_shot_phase
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
            "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
-           "StartFitResult", "fit_rig_from_images"]
+           "StartFitResult", "fit_rig_from_images", "plain_image_gradient"]
 
 # the default rig's camera: fx = 1230 px across 640 px
 DEFAULT_FOV_DEG = math.degrees(2.0 * math.atan(320.0 / 1230.0))  # 29.17 deg across the image width
@@ -181,7 +181,14 @@ def phase_maps_of(path, max_maps: int = 4, convention: str = "benchmark", negate
                 maps.append(PhaseMap(measured[0], measured[1], ids[int(i)]))
         if maps:
             return maps, "phase", images
-    return [image_phase_map(im.gray, im.valid, im.name) for im in images[:max_maps]], "fringe images", images
+    maps = []
+    for im in images[:max_maps]:
+        try:
+            maps.append(image_phase_map(im.gray, im.valid, im.name))
+        except (InputError, RigError) as exc:  # a blank or fringe-less image: name it and its folder
+            named = str(exc) if str(exc).startswith(f"{im.name}: ") else f"{im.name}: {exc}"
+            raise type(exc)(f"{path}: {named}") from None
+    return maps, "fringe images", images
 
 
 # ====================================================================== the whole start: a folder -> a rig
@@ -251,6 +258,15 @@ def _local_gradient(images, axis: str) -> tuple[float, float]:
         steps.append((float(np.median(du[pu])), float(np.median(dv[pv]))))
     gu, gv = np.median(np.asarray(steps), axis=0)
     return float(gu), float(gv)
+
+
+def plain_image_gradient(images, gradient) -> tuple[tuple[float, float], str]:
+    """Plain fringe images: ``(gradient, axis)``, the fringes' direction from their spectrum (as their phase maps
+    were read). Where the maps' plane gradient points the other way (objects on black, their phase unwrapped piece
+    by piece: FP672's figurine on black read as horizontal fringes) the gradient is :func:`_local_gradient`'s."""
+    votes = [fringe_orientation(np.asarray(im.gray, np.float64), im.valid) for im in images]
+    axis = "vertical" if votes.count("vertical") >= votes.count("horizontal") else "horizontal"
+    return (gradient, axis) if fringe_axis(gradient) == axis else (_local_gradient(images, axis), axis)
 
 
 def _maps_and_size(path, max_maps, convention, negate_sin):
@@ -383,6 +399,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
                                        ("fov_deg", DEFAULT_FOV_DEG, fov if focal is None else focal)) if given is None}
     gradient = tuple(float(v) for v in np.median([plane_phase_gradient(m.phase, m.valid) for m in maps], axis=0))
     axis = fringe_axis(gradient)
+    if kind != "phase":
+        gradient, axis = plain_image_gradient(images[:max_maps], gradient)
     lines = first_lines(path, maps, kind, images)
     for line in lines:
         say(line)

@@ -104,6 +104,10 @@ def test_train_val_phase_picks_best_by_the_real_frames(setup, tmp_path, capsys):
                      "--figures", "0", "--device", "cpu"]) == 0
         doc = json.loads((out / "phase_results.json").read_text())
         per = [r["models"][doc["models"][0]["name"]] for r in doc["per_image"]]
+        # QA: scored on the frames that chose it, evaluate-phase says so (last.pt only when it is the best epoch)
+        chose = ckpt == "best.pt" or best["epoch"] == 3
+        assert list(doc["chosen_on"].values()) == ([["0", "2"]] if chose else [])
+        assert ("chosen (train --val-phase) on frame(s) 0, 2" in capsys.readouterr().out) == chose
         # frames 0 and 2 choose best.pt, frame 1 is held out (issue 50: no best.pt chosen on its own score)
         for keys, frames in ((("val_phase_ratio", "val_phase_rad"), [per[0], per[2]]),
                              (("val_phase_heldout_ratio", "val_phase_heldout_rad"), [per[1]])):
@@ -219,6 +223,8 @@ def test_refine_adds_a_row_on_the_same_pixels(setup, tmp_path, capsys):
     doc = json.loads((tmp_path / "np" / "phase_results.json").read_text())
     assert all(r["plane_pixel_fraction"] == 0 and r["models"]["unet +orders"]["plane"] is None
                for r in doc["per_image"]), doc["per_image"][0]
+    # QA: the report says why its plane-pixel columns are nan
+    assert "Plane-pixel columns nan: the --rig records no reference plane" in (tmp_path / "np" / "phase_results.md").read_text()
     capsys.readouterr()
     assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "x"),
                  "--rig", str(tmp_path / "rig.json")]) == 2

@@ -386,12 +386,18 @@ class PhaseValidation:
                 flat = fit_phase(s.phase, np.zeros(s.phase.shape), ok, degree=degree).rmse_rad
             except ValueError as exc:
                 raise ConfigError(f"{what}: {s.path}: {exc}") from None
-            self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat})
+            self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat,
+                                "root": str(Path(root).resolve()), "id": sid})
         for k, f in enumerate(self.frames):  # every second frame held out, once the frames are known distinct
             f["held_out"] = len(self.frames) > 1 and k % 2 == 1
         if len(self.frames) == 1:
             self.notes.insert(0, f"one frame ({frames[0][1]}): best.pt is chosen on the frame it is scored on; give two "
                                  "or more frames (not those the rig was fitted to) for a held-out score")
+
+    def record(self) -> list[dict]:
+        """``[{"root", "id", "held_out"}]`` of every frame scored: what a checkpoint keeps of them, so that
+        :func:`chosen_on` can tell evaluate-phase which frames chose ``best.pt``."""
+        return [{"root": f["root"], "id": f["id"], "held_out": bool(f["held_out"])} for f in self.frames]
 
     def score(self, model, transform, size=None) -> dict:
         """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
@@ -413,6 +419,23 @@ class PhaseValidation:
                 ratios[f["held_out"]].append(rad / f["flat_rad"] if f["flat_rad"] > 0 else float("nan"))
         return {"val_phase_ratio": _mean(ratios[False]), "val_phase_rad": _mean(rads[False]),
                 "val_phase_heldout_ratio": _mean(ratios[True]), "val_phase_heldout_rad": _mean(rads[True])}
+
+
+def chosen_on(ckpt: dict, root, ids) -> list[str]:
+    """The ids among ``ids`` of the phase-shifting folder ``root`` on which ``ckpt``, its run's best epoch by
+    ``--val-phase``, was chosen: its record of the frames (:meth:`PhaseValidation.record`; a checkpoint written
+    before it: every frame of its ``--val-phase`` folders). Empty for any other checkpoint."""
+    roots, best = (ckpt.get("args") or {}).get("val_phase") or [], ckpt.get("best") or {}
+    if not roots or best.get("metric") != "val_phase_ratio" or ckpt.get("epoch") != best.get("epoch"):
+        return []
+    record = ckpt.get("val_phase_frames")
+    if record is None:
+        try:
+            record = [{"root": str(Path(r).resolve()), "id": sid, "held_out": False} for r, sid in phase_frames(roots)]
+        except ConfigError:  # its folders moved or are gone: nothing to compare with
+            return []
+    here = str(Path(root).resolve())
+    return [f["id"] for f in record if not f["held_out"] and f["root"] == here and f["id"] in ids]
 
 
 def _own_report(out: Path) -> list[str]:
@@ -501,6 +524,10 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = model_names(ckpts, args.names)
     models = _phase_models(ckpts, args)
+    chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_on(ck, args.phase_root, ids))}
+    for name, on in chosen.items():
+        echo(f"warning: {name}: best.pt was chosen (train --val-phase) on frame(s) {', '.join(on)} of "
+             f"{args.phase_root}: their score is not held out; score frames its run never saw")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
@@ -508,10 +535,10 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     with output_folder(out, EVALUATE_PHASE_TOOL, error=ConfigError):
         claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
               + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
-        return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo)
+        return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo, chosen)
 
 
-def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo) -> dict:
+def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo, chosen) -> dict:
     """The body of :func:`evaluate_phase_folder` once ``out`` is open: every frame scored, the report written."""
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
@@ -599,10 +626,14 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
     md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust)
     if skipped:
         md += f"\nSkipped (no pixel with a valid phase and light to fit): {', '.join(skipped)}.\n"
+    if no_plane:
+        md += "\nPlane-pixel columns nan: the --rig records no reference plane in view (fit-rig found none).\n"
+    for name, on in chosen.items():
+        md += f"\nNot held out: {name} was chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
     atomic_write_text(out / "phase_results.md", md)
     atomic_write_text(out / "phase_results.json", json.dumps(
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
          "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image,
-         "skipped": skipped},
+         "skipped": skipped, "chosen_on": chosen},
         indent=1, allow_nan=True))
     return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}

@@ -426,6 +426,7 @@ def checkpoint_payload(t, epoch: int, rng: list) -> dict:
         "args": t.cfg.to_dict(),
         "data": t.data.sources.description,
         "image_shape": list(t.data.image_shape),
+        "val_phase_frames": t.val_phase.record() if t.val_phase is not None else None,
         "n_parameters": int(t.n_params),
         "world_size": t.info.world,
         "uhrnet_version": package_version(),
