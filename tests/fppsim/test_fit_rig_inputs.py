@@ -1,4 +1,4 @@
-"""Own-rig inputs an independent QA pass found mishandled (one line each, nothing written, the culprit named)."""
+"""fit-rig on the inputs users bring (horizontal fringes with --base, blank images, objects on black as plain images): one line each, nothing written, the culprit named."""
 
 from __future__ import annotations
 
