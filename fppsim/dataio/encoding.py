@@ -137,8 +137,9 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     """A grey image file as a 2-D uint8 or uint16 array (a grey scene saved in colour is converted,
     other colour images are refused: :func:`colour_to_grey`).
 
-    Raises :class:`DatasetError` naming the file when it is missing, unreadable or of another depth, or a
-    16-bit image holds no value of 4096 or more (10- or 12-bit data: read as 16-bit it would be all but black).
+    Raises :class:`DatasetError` naming the file when it is missing, unreadable, of another depth or a TIFF of
+    several pages (a stack: imread reads its first page), or a 16-bit image holds no value of 4096 or more (10- or
+    12-bit data: read as 16-bit it would be all but black).
     OpenCV's own log line is silenced: the one-line error replaces it.
     """
     import cv2
@@ -150,10 +151,14 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        pages = cv2.imcount(str(path)) if img is not None and path.suffix.lower() in (".tif", ".tiff") else 1
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise DatasetError(f"{path}: cannot read as an image")
+    if pages > 1:  # imread reads the first page alone: the other frames would be lost without a word
+        raise DatasetError(f"{path}: a TIFF of {pages} pages (a stack); save one image per file, or the stack as "
+                           "a .npy (N, H, W)")
     if img.ndim == 3:
         img = colour_to_grey(img, path)
     if img.dtype not in (np.uint8, np.uint16):
