@@ -228,3 +228,17 @@ def test_an_npy_that_is_not_one_array_is_one_line(tmp_path, capsys, layout, what
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{name}: " in err[0] and "Traceback" not in err[0], err
     assert not out.exists()
+
+
+def test_the_help_says_predicts_heights_are_millimetres(capsys):
+    """QA: ``uhrnet --help`` said heights are "in label units on disk" and ``predict --help`` named no unit for the
+    maps it writes (they are mm above the reference plane); both now say so."""
+    with pytest.raises(SystemExit):
+        main(["predict", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--out DIR output folder: per image NAME_height.npy/.tif (float32 height above the reference plane in mm" \
+        in text
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "label units on disk" not in text and "millimetres in reports and predict's maps" in text
