@@ -553,7 +553,7 @@ def _check_carrier(ssp, gradient: tuple[float, float], name: str, local: bool = 
     gu, gv = gradient
     g = float(np.hypot(gu, gv))
     fx, fy = ssp.carrier
-    shown, tilt = ssp.period, ssp.tilt
+    shown, tilt = ssp.period, math.degrees(math.atan(-fy / fx)) if fx else 90.0  # lines from the image's vertical
     if local:
         shown, axis, votes = local_carrier(ssp.wrapped, ssp.reliability)
         if votes < CARRIER_MIN_VOTES * ssp.wrapped.size or not np.isfinite(axis):
