@@ -259,7 +259,9 @@ def add_predict(p: argparse.ArgumentParser) -> None:
     p.add_argument("inputs", nargs="+", metavar="INPUT",
                    help="fringe images, .npy arrays, or folders of them; figshare folders (their fringes only) and "
                         "phase-shifting folders (PSin/ PCos/ Fringe/ iPattern/: their iPattern images)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    p.add_argument("--out", required=True, metavar="DIR",
+                   help="output folder: per image NAME_height.npy/.tif (float32 height above the reference plane in "
+                        "mm, NaN where invalid), NAME_height.png (colour preview) and NAME.ply (points in mm)")
     p.add_argument("--rig", metavar="FILE", help="rig calibration (fppsim JSON/YAML or OpenCV stereo YAML) for "
                                                  "metric x, y in the point cloud and, by default (--refine auto), "
                                                  "heights from the image's own fringe phase through it "
@@ -739,7 +741,8 @@ def build_parser(load: str | None = None) -> argparse.ArgumentParser:
     """The parser; with ``load`` only that command's flags are declared (the others: name and help)."""
     return build_command_parser(
         "uhrnet", "UHRNet and baselines for single-shot fringe projection profilometry. "
-        "Heights are in label units on disk and reported in millimetres.", COMMANDS, load=load)
+        "Heights are in label units in datasets and in millimetres in reports and predict's maps.", COMMANDS,
+        load=load)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import DatasetError, GenerateError, UsageError
-from fppsim.dataio.encoding import png_size
+from fppsim.dataio.encoding import load_npy, png_size
 from fppsim.files import unlink_quietly
 from fppsim.owned import same_folder
 from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, finished_indices, read_settings, sample_id
@@ -80,8 +80,8 @@ def _is_manifest(path: Path) -> bool:
 def _is_figshare_array(path: Path, camera: dict) -> bool:
     """A float32 (N, H, W, 1) ``.npy`` of the dataset's camera size: what ``generate`` writes."""
     try:
-        a = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError):
+        a = load_npy(path)
+    except DatasetError:  # damaged, empty, an .npz under its name: not what generate writes
         return False
     size = (camera.get("height"), camera.get("width")) if isinstance(camera, dict) else None
     return a.dtype == np.float32 and a.ndim == 4 and a.shape[3] == 1 and tuple(a.shape[1:3]) == size

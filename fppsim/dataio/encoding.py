@@ -28,7 +28,7 @@ try:  # the same deflate format as the stdlib zlib, written 2x (PNG) to 10x (npz
 except ImportError:  # a tree installed before zlib-ng became a dependency: the same files, slower
     _deflate = zlib
 
-__all__ = ["encode_fringe", "decode_fringe", "as_image_stack", "COLOUR_TOLERANCE", "colour_to_grey", "read_gray_image",
+__all__ = ["encode_fringe", "decode_fringe", "load_npy", "as_image_stack", "COLOUR_TOLERANCE", "colour_to_grey", "read_gray_image",
            "LEVELS_16_PER_8", "to_8bit", "json_default", "save_npz", "encode_png", "PNG_SIGNATURE", "png_size"]
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -65,6 +65,20 @@ def encode_fringe(image: np.ndarray, mask: np.ndarray | None = None) -> np.ndarr
 def decode_fringe(fringe: np.ndarray) -> np.ndarray:
     """float fringe in [-1, 1] -> uint8 grey levels (inverse of :func:`encode_fringe`)."""
     return np.clip(np.rint((np.asarray(fringe, dtype=np.float64) + 1.0) * 127.5), 0, 255).astype(np.uint8)
+
+
+def load_npy(path: str | os.PathLike) -> np.ndarray:
+    """THE reader of a user's ``.npy`` array file: memory-mapped, read-only, no pickles. Raises
+    :class:`DatasetError` naming the file when it is not one array (damaged or empty, a pickle, an ``.npz``
+    archive under a ``.npy`` name): numpy's own errors (or an ``NpzFile``) were tracebacks in the readers."""
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise DatasetError(f"{path}: cannot read as a .npy array ({exc})") from None
+    if not isinstance(arr, np.ndarray):  # np.load opens an .npz archive whatever its name
+        arr.close()
+        raise DatasetError(f"{path}: an .npz archive, not a .npy array (save one array with np.save)")
+    return arr
 
 
 def as_image_stack(arr: np.ndarray, name: str | os.PathLike = "array") -> np.ndarray:
@@ -123,8 +137,9 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     """A grey image file as a 2-D uint8 or uint16 array (a grey scene saved in colour is converted,
     other colour images are refused: :func:`colour_to_grey`).
 
-    Raises :class:`DatasetError` naming the file when it is missing, unreadable or of another depth, or a
-    16-bit image holds no value of 4096 or more (10- or 12-bit data: read as 16-bit it would be all but black).
+    Raises :class:`DatasetError` naming the file when it is missing, unreadable, of another depth or a TIFF of
+    several pages (a stack: imread reads its first page), or a 16-bit image holds no value of 4096 or more (10- or
+    12-bit data: read as 16-bit it would be all but black).
     OpenCV's own log line is silenced: the one-line error replaces it.
     """
     import cv2
@@ -136,10 +151,14 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        pages = cv2.imcount(str(path)) if img is not None and path.suffix.lower() in (".tif", ".tiff") else 1
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:
         raise DatasetError(f"{path}: cannot read as an image")
+    if pages > 1:  # imread reads the first page alone: the other frames would be lost without a word
+        raise DatasetError(f"{path}: a TIFF of {pages} pages (a stack); save one image per file, or the stack as "
+                           "a .npy (N, H, W)")
     if img.ndim == 3:
         img = colour_to_grey(img, path)
     if img.dtype not in (np.uint8, np.uint16):

@@ -203,6 +203,19 @@ def test_one_image_reader_one_colour_and_depth_policy(tmp_path):
         read_gray_image(tmp_path / "deep" / "b.png")
 
 
+def test_a_tiff_stack_is_refused_not_read_as_its_first_page(tmp_path):
+    """QA: a multi-page TIFF (a stack of fringe frames) was read as its first page without a word (predict wrote one
+    map for N frames); now one line naming the file and its page count. A one-page TIFF reads as before."""
+    from PIL import Image
+
+    g8 = np.tile(np.arange(0, 256, 4, dtype=np.uint8), (8, 1))
+    Image.fromarray(g8).save(tmp_path / "stack.tif", save_all=True, append_images=[Image.fromarray(g8[::-1].copy())])
+    with pytest.raises(DatasetError, match=r"stack\.tif: a TIFF of 2 pages"):
+        read_gray_image(tmp_path / "stack.tif")
+    Image.fromarray(g8).save(tmp_path / "one.tif")
+    assert np.array_equal(read_gray_image(tmp_path / "one.tif"), g8)
+
+
 def test_the_fppsim_commands_read_a_registered_layout(tmp_path, toy, capsys):
     """compare-real, fit-rig (its rig start on the scans' phase), fit-optics and label-real, through main(argv)."""
     import json

@@ -169,3 +169,17 @@ def test_export_native_dataset(tmp_path):
         np.testing.assert_array_equal(s.valid, valid)
         np.testing.assert_allclose(s.phase[valid], n["phase_true"][valid], atol=1e-5)
         np.testing.assert_array_equal(s.image, n["fringe"])
+
+
+def test_an_ipattern_that_is_not_a_2d_image_is_named(tmp_path):
+    """QA: an iPattern saved in colour, (H, W, 3), in a folder of single-shot images alone was read as an image
+    3 px wide: predict said "image is 64x32; the model needs at least 16x16 pixels". Now the file and its shape."""
+    from fppsim.dataio.readers import load_ipattern
+
+    (tmp_path / "iPattern").mkdir()
+    grey = np.full((32, 64), 100, np.uint8)
+    scipy.io.savemat(tmp_path / "iPattern" / "1.mat", {"iPattern": np.dstack([grey] * 3)})
+    with pytest.raises(PSPMatError, match=r"1\.mat: iPattern must be a 2-D grey image, got shape \(32, 64, 3\)"):
+        load_ipattern(tmp_path / "iPattern" / "1.mat")
+    scipy.io.savemat(tmp_path / "iPattern" / "1.mat", {"iPattern": grey[None]})  # a singleton axis is squeezed
+    assert load_ipattern(tmp_path / "iPattern" / "1.mat").shape == (32, 64)

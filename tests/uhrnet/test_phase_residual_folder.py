@@ -317,3 +317,31 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
     (tmp_path / "r48" / "phase_results.md").write_text("mine")
     assert main(["evaluate-phase", *args, "--phase-root", str(root), "--out", str(tmp_path / "r48")]) == 1
     assert (tmp_path / "r48" / "phase_results.md").read_text() == "mine"
+
+
+def test_refine_says_which_regions_it_could_not_decide(setup, tmp_path, capsys, monkeypatch):
+    """QA: under --refine phase a frame whose path left regions undecided (their pixels keep the network's heights)
+    was scored without a word, where predict warns; now a warning line per frame and model, and ``undecided`` in
+    the frame's JSON record."""
+    from _helpers import tiny_rig
+    import uhrnet.scoring.phase_residual as pr
+
+    tmp, run, root, truth = setup
+    tiny_rig().save(tmp_path / "rig.json")
+    real = pr.refine_with_phase
+
+    def undecided_in_frame_1(height, fringe, rig, method, network_mm=None, name="image"):
+        refined, stats = real(height, fringe, rig, method, network_mm=network_mm, name=name)
+        if "/1.mat" in name:
+            stats = {**stats, "undecided_regions": 2, "undecided_fraction": 0.25}
+        return refined, stats
+
+    monkeypatch.setattr(pr, "refine_with_phase", undecided_in_frame_1)
+    out = tmp_path / "und"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(out), "--figures", "0",
+                 "--names", "tiny", "--device", "cpu", "--refine", "phase", "--rig", str(tmp_path / "rig.json")]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if "no fringe order the path can decide" in line]
+    assert said == ["1: warning: tiny: 2 phase region(s), 25.0% of the pixels, have no fringe order the path can "
+                    "decide: the network's heights stay there"]
+    rec = {r["id"]: r for r in json.loads((out / "phase_results.json").read_text())["per_image"]}
+    assert rec["1"]["undecided"] == {"tiny": {"regions": 2, "fraction": 0.25}} and "undecided" not in rec["0"]

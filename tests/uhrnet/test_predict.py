@@ -199,3 +199,46 @@ def test_predict_refuses_the_checkpoints_run_folder_as_out(ckpt, tmp_path, capsy
     assert main(["predict", str(loose / "model.pt"), str(tmp_path / "img.png"), "--out", str(loose), "--no-progress",
                  "--no-ply"]) == 0
     assert (loose / "img_height.npy").is_file()
+
+
+@pytest.mark.parametrize("layout", ["file", "figshare", "pair"])
+@pytest.mark.parametrize("what", ["npz", "empty", "garbage", "pickle"])
+def test_an_npy_that_is_not_one_array_is_one_line(tmp_path, capsys, layout, what):
+    """QA: an .npz archive saved under a .npy name (np.savez to an open file), an empty or damaged file and a pickled
+    array once ended predict in a traceback (AttributeError: 'NpzFile' object has no attribute 'size', EOFError,
+    ValueError), as a file and in a figshare or real-sample folder; now one line naming the file, exit 1, nothing
+    written (the inputs are read before the checkpoint)."""
+    name = {"file": "x.npy", "figshare": "f1_80.npy", "pair": "fringe_pattern.npy"}[layout]
+    folder = tmp_path / "in"
+    folder.mkdir()
+    bad = folder / name
+    fringe = np.zeros((1, 32, 64, 1), np.float32)
+    if what == "npz":
+        with open(bad, "wb") as fh:
+            np.savez(fh, a=fringe)
+    elif what == "pickle":
+        np.save(bad, np.array([fringe, None], dtype=object), allow_pickle=True)
+    else:
+        bad.write_bytes(b"" if what == "empty" else b"\x93NUMPY garbage")
+    if layout != "file":
+        np.save(folder / ("Z.npy" if layout == "figshare" else "height_map.npy"), fringe)
+    out = tmp_path / "out"
+    assert main(["predict", str(tmp_path / "none.pt"), str(bad if layout == "file" else folder), "--out",
+                 str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{name}: " in err[0] and "Traceback" not in err[0], err
+    assert not out.exists()
+
+
+def test_the_help_says_predicts_heights_are_millimetres(capsys):
+    """QA: ``uhrnet --help`` said heights are "in label units on disk" and ``predict --help`` named no unit for the
+    maps it writes (they are mm above the reference plane); both now say so."""
+    with pytest.raises(SystemExit):
+        main(["predict", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--out DIR output folder: per image NAME_height.npy/.tif (float32 height above the reference plane in mm" \
+        in text
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "label units on disk" not in text and "millimetres in reports and predict's maps" in text

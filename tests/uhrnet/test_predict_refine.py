@@ -369,3 +369,24 @@ def test_an_image_predicted_again_without_refinement_loses_its_refine_entry_and_
     assert main(["predict", str(run), str(tmp_path / "a.npy"), "--out", str(again), "--no-progress", "--no-ply",
                  "--refine", "none"]) == 0
     np.testing.assert_array_equal(np.load(again / "a_height_network.npy"), np.zeros((3, 3)))
+
+
+def test_a_foreign_images_fringes_are_described_in_the_images_own_terms():
+    """QA: through a rig with horizontal fringes an image of vertical fringes was said to show fringes "at -90 deg"
+    (the angle of the transposed image the phase was read on), beside "the rig's ... horizontal (90 deg apart)";
+    the lines' angle is now from the image's vertical whatever the rig's direction, as through a vertical rig."""
+    import re
+
+    from fppsim.fitting import rig_start as rs
+    from uhrnet.errors import DataError
+    from uhrnet.inference.prediction import fringe_phase
+
+    yy, xx = np.mgrid[0:224, 0:256].astype(float)  # 16 periods both ways: the check needs them
+    upright = (0.6 * np.cos(2 * np.pi * xx / 12.0)).astype(np.float32)  # vertical lines
+    lying = (0.6 * np.cos(2 * np.pi * yy / 12.0)).astype(np.float32)  # horizontal lines
+    for g, img, said in (((0.0, -2 * np.pi / 12.0), upright, r"at [+-]0 deg, the rig's every 12\.0 px horizontal"),
+                         ((2 * np.pi / 12.0, 0.0), lying, r"at [+-]90 deg, the rig's every 12\.0 px vertical")):
+        rig = rs.start_rig(256, 224, g, 1, distance=420.0, baseline=260.0, fov=34.0)
+        with pytest.raises(DataError, match="not an image of this rig") as err:
+            fringe_phase(img, rig, "x")
+        assert re.search(said, str(err.value)) and "(90 deg apart)" in str(err.value), str(err.value)

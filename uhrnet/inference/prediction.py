@@ -54,7 +54,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from fppsim.dataio.encoding import as_image_stack, encode_fringe, json_default
+from fppsim.dataio.encoding import as_image_stack, encode_fringe, json_default, load_npy
 from fppsim.files import atomic_path, atomic_write_text
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
@@ -276,11 +276,7 @@ def load_inputs(path: Path, notes: list | None = None) -> list[tuple[str, np.nda
     each float frame of a ``.npy`` with no value below 0 (likely scaled to [0, 1], not the encoding)."""
     if path.suffix.lower() != ".npy":
         return [(path.stem, read_fringe_image(path))]
-    try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise DataError(f"{path}: cannot read as a .npy array ({exc})") from None
-    arr = as_image_stack(arr, path)
+    arr = as_image_stack(load_npy(path), path)
     floats = arr.dtype != np.uint8  # (a uint8 file cannot be a [0, 1] image)
     if not floats:
         arr = encode_fringe(arr)
@@ -557,7 +553,7 @@ def _check_carrier(ssp, gradient: tuple[float, float], name: str, local: bool = 
     gu, gv = gradient
     g = float(np.hypot(gu, gv))
     fx, fy = ssp.carrier
-    shown, tilt = ssp.period, ssp.tilt
+    shown, tilt = ssp.period, math.degrees(math.atan(-fy / fx)) if fx else 90.0  # lines from the image's vertical
     if local:
         shown, axis, votes = local_carrier(ssp.wrapped, ssp.reliability)
         if votes < CARRIER_MIN_VOTES * ssp.wrapped.size or not np.isfinite(axis):

@@ -283,7 +283,9 @@ def read_mat_variable(path: Path, name: str) -> np.ndarray:
 
 
 def _image_u8(a: np.ndarray, path: Path) -> np.ndarray:
-    """An iPattern array as uint8 grey levels (a [0, 1] float image is scaled by 255)."""
+    """An iPattern array as uint8 grey levels (a [0, 1] float image is scaled by 255); a 2-D image only."""
+    if a.ndim != 2:  # (H, W, 3) saved in colour would read as H images 3 px wide
+        raise PSPMatError(f"{path}: iPattern must be a 2-D grey image, got shape {a.shape}")
     if a.dtype == np.uint8:
         return a
     f = a.astype(np.float64)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.dataio.encoding import as_image_stack, encode_fringe, read_gray_image
+from fppsim.dataio.encoding import as_image_stack, encode_fringe, load_npy, read_gray_image
 from fppsim.errors import DatasetError, InputError
 from fppsim.dataio.formats import LabelTransform, psp_freq, psp_image_name, read_settings
 
@@ -182,12 +182,7 @@ def _load_npy(path: Path, what: str) -> np.ndarray:
         raise DatasetError(f"{path}: {what} file not found")
     if path.is_dir():
         raise DatasetError(f"{path}: is a folder, expected a .npy {what} file")
-    try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise DatasetError(f"{path}: cannot read as a .npy array ({exc})") from None
-    if not isinstance(arr, np.ndarray):
-        raise DatasetError(f"{path}: expected a single .npy array, got {type(arr).__name__}")
+    arr = load_npy(path)
     if not np.issubdtype(arr.dtype, np.floating):
         raise DatasetError(f"{path}: dtype {arr.dtype}, expected float32 ({what})")
     arr = as_image_stack(arr, path)

@@ -35,7 +35,7 @@ from typing import Iterator
 
 import numpy as np
 
-from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, read_gray_image
+from fppsim.dataio.encoding import as_image_stack, decode_fringe, encode_fringe, load_npy, read_gray_image
 from fppsim.dataio.formats import FIGSHARE_PAIRS, PRESETS, LabelTransform, find_figshare_pair, manifest_ids
 from fppsim.errors import DatasetError, PSPMatError, InputError
 from fppsim.dataio.readers.samples import (check_export_labels, check_psp_available, load_native_sample,
@@ -265,7 +265,7 @@ class NpyFile(_File):
         return path.is_file() and path.suffix.lower() == ".npy"
 
     def _stack(self) -> np.ndarray:
-        return as_image_stack(np.load(self.path, mmap_mode="r", allow_pickle=False), self.path)
+        return as_image_stack(load_npy(self.path), self.path)
 
     def ids(self) -> list[str]:
         return [f"{self.path.stem}_{k:04d}" for k in range(self._stack().shape[0])]
@@ -401,7 +401,7 @@ class _Pair(Source):
     def _fringes(self) -> np.ndarray:
         if not self.pair[0].is_file():
             raise DatasetError(f"{self.pair[0]}: file not found (figshare folder {self.path} without its fringes)")
-        return as_image_stack(np.load(self.pair[0], mmap_mode="r", allow_pickle=False), self.pair[0])
+        return as_image_stack(load_npy(self.pair[0]), self.pair[0])
 
     def ids(self) -> list[str]:
         return [str(i) for i in range(self._fringes().shape[0])]
@@ -431,7 +431,7 @@ class _Pair(Source):
     def height_labels(self) -> np.ndarray | None:
         if not self.labelled:
             return None
-        z = np.load(self.pair[1], mmap_mode="r", allow_pickle=False)
+        z = load_npy(self.pair[1])
         return z[..., 0] if z.ndim == 4 else z
 
     def check_samples(self, transform, label: str = "true") -> None:
