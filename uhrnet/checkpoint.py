@@ -111,7 +111,9 @@ def load_checkpoint(path: str | os.PathLike, map_location="cpu", *, digest: bool
                 sha256 = h.hexdigest()
                 f.seek(0)
             ckpt = torch.load(f, map_location=map_location, weights_only=True)
-    except pickle.UnpicklingError:  # torch's message advises weights_only=False: wrong for a garbage file
+    except (pickle.UnpicklingError, KeyError, EOFError):
+        # torch's message advises weights_only=False (wrong for a garbage file), or names a byte of it (a text
+        # file: "KeyError: 105"), or is empty (a 0-byte file)
         raise CheckpointError(
             f"{path}: cannot load checkpoint: not a PyTorch checkpoint (truncated or another format)"
         ) from None

@@ -91,6 +91,17 @@ def test_evaluate_options_and_errors(runs, capsys):
     assert "garbage.pt: cannot load checkpoint: not a PyTorch checkpoint" in err and "weights_only" not in err
 
 
+@pytest.mark.parametrize("content", [b"hello world\n", b"\x80\x02", b"garbage" * 10])
+def test_a_file_that_is_no_checkpoint_says_so(tmp_path, content):
+    """A text file or a truncated pickle named .pt: torch's own errors were 'KeyError: 104' or an empty EOFError."""
+    from uhrnet.checkpoint import load_checkpoint
+    from uhrnet.errors import CheckpointError
+
+    (tmp_path / "m.pt").write_bytes(content)
+    with pytest.raises(CheckpointError, match=r"m\.pt: cannot load checkpoint: not a PyTorch checkpoint"):
+        load_checkpoint(tmp_path / "m.pt")
+
+
 @pytest.mark.skipif(not (REAL_SAMPLE / "height_map.npy").exists(), reason="../shared/real-sample absent")
 def test_evaluate_on_the_real_sample(runs):
     tmp, a, _ = runs
