@@ -103,6 +103,11 @@ def test_predict_errors(ckpt, tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     assert main(["predict", str(ckpt), str(tmp_path / "empty"), "--out", out]) == 1
     assert "no images" in capsys.readouterr().err
+    (tmp_path / "pub" / "iPattern").mkdir(parents=True)  # the public layout's image folder, not its root
+    (tmp_path / "pub" / "iPattern" / "1.mat").write_bytes(b"x")
+    assert main(["predict", str(ckpt), str(tmp_path / "pub" / "iPattern"), "--out", out]) == 1
+    err = capsys.readouterr().err
+    assert "no images" in err and f"the folder holding iPattern/ ({tmp_path / 'pub'})" in err
     np.save(tmp_path / "raw.npy", np.full((32, 32), 200.0, np.float32))
     assert main(["predict", str(ckpt), str(tmp_path / "raw.npy"), "--out", out]) == 1
     assert "raw.npy: values span" in capsys.readouterr().err
