@@ -175,21 +175,38 @@ def render_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """The faces to rasterise so the depth renders (which cull back faces) see the nearest surface.
 
     ``faces`` itself when the mesh is closed and wound outward (every directed edge once, its reverse
-    once, positive volume); otherwise (inside out, open, inconsistently wound) every face in both
-    windings, so a flipped mesh or an open scan seen from behind is not rendered see-through.
+    once, each connected part of positive volume; vertices at one point, e.g. split at a texture seam or
+    an STL's triangle soup, count as one); otherwise (inside out, open, inconsistently wound, a part
+    inside out beside a larger outward one) every face in both windings, so a flipped mesh or an open
+    scan seen from behind is not rendered see-through.
     """
     f = np.asarray(faces, dtype=np.int64)
+    p = np.asarray(vertices, dtype=np.float64)
+    if _closed_outward(p, f):
+        return faces
+    points, at = np.unique(p, axis=0, return_inverse=True)  # one index per point: seams and soups are closed too
+    if len(points) < len(p) and _closed_outward(points, at.reshape(-1)[f]):
+        return faces
+    return np.concatenate([faces, faces[:, ::-1]])
+
+
+def _closed_outward(p: np.ndarray, f: np.ndarray) -> bool:
+    """Whether faces ``f`` (indices into points ``p``) are closed, wound consistently, and each connected
+    part encloses a positive volume (a sum over the parts would hide a small part wound inside out)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     edges = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     n = int(f.max()) + 1
     fwd = np.sort(edges[:, 0] * n + edges[:, 1])
     rev = np.sort(edges[:, 1] * n + edges[:, 0])
-    if np.all(fwd[1:] != fwd[:-1]) and np.array_equal(fwd, rev):
-        p = np.asarray(vertices, dtype=np.float64)
-        p = p - p.mean(0)
-        volume = np.einsum("ij,ij->", p[f[:, 0]], np.cross(p[f[:, 1]], p[f[:, 2]]))
-        if volume > 0:
-            return faces
-    return np.concatenate([faces, faces[:, ::-1]])
+    if not (np.all(fwd[1:] != fwd[:-1]) and np.array_equal(fwd, rev)):
+        return False
+    _, part = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                   directed=False)
+    q = p - p.mean(0)
+    volume = np.einsum("ij,ij->i", q[f[:, 0]], np.cross(q[f[:, 1]], q[f[:, 2]]))
+    return bool(np.all(np.bincount(part[f[:, 0]], weights=volume)[np.unique(part[f[:, 0]])] > 0))
 
 
 @dataclass
