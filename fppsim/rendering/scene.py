@@ -88,13 +88,17 @@ def find_meshes(paths) -> list[str]:
 
 
 def _mesh_files(folder: Path) -> list[str]:
-    out, visited = [], set()
+    """The mesh files under ``folder``: its own tree's under their own paths (their names and order as before
+    links were followed), and each linked folder's once, unless the tree holds it (a link loop ends)."""
+    own = {root for root, _, _ in os.walk(folder)}
+    out, visited = [], {os.path.realpath(root) for root in own}
     for root, dirs, files in os.walk(folder, followlinks=True):
-        real = os.path.realpath(root)
-        if real in visited:
-            dirs[:] = []
-            continue
-        visited.add(real)
+        if root not in own:  # reached through a link
+            real = os.path.realpath(root)
+            if real in visited:
+                dirs[:] = []
+                continue
+            visited.add(real)
         dirs.sort()
         named = [os.path.join(root, f) for f in files if Path(f).suffix.lower() in MESH_EXTENSIONS]
         out += [q for q in named if os.path.isfile(q) or not os.path.exists(q)]  # files, and broken links

@@ -133,3 +133,16 @@ def test_symlinked_folders_are_followed_once_and_broken_links_named(tmp_path):
     with pytest.raises(MeshError) as e:
         load_mesh(next(p for p in found if p.endswith("gone.obj")))
     assert "gone.obj" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_link_into_the_folders_own_tree_changes_no_name_nor_order(tmp_path):
+    """A linked folder the tree already holds is read under its own path: the meshes' names and their order (the
+    generator's draws follow it) are those of the tree without the link (it once renamed them after the link,
+    and sorted them there)."""
+    meshes = tmp_path / "meshes"
+    (meshes / "sub").mkdir(parents=True)
+    _write(_capsule(), meshes / "sub" / "x.obj")
+    _write(_capsule(), meshes / "b.obj")
+    before = find_meshes([meshes])
+    os.symlink(meshes / "sub", meshes / "0link")
+    assert find_meshes([meshes]) == before == [str(meshes / "b.obj"), str(meshes / "sub" / "x.obj")]
