@@ -152,6 +152,9 @@ def read_gray_image(path: str | os.PathLike) -> np.ndarray:
     try:
         img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         pages = cv2.imcount(str(path)) if img is not None and path.suffix.lower() in (".tif", ".tiff") else 1
+        if pages > 1:  # frames of the first page's size: a reduced-size page (a thumbnail) is no frame
+            ok, every = cv2.imreadmulti(str(path), flags=cv2.IMREAD_UNCHANGED)
+            pages = sum(p.shape == img.shape for p in every) if ok else pages
     finally:
         cv2.utils.logging.setLogLevel(level)
     if img is None:

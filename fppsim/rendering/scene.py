@@ -88,13 +88,17 @@ def find_meshes(paths) -> list[str]:
 
 
 def _mesh_files(folder: Path) -> list[str]:
-    out, visited = [], set()
+    """The mesh files under ``folder``: its own tree's under their own paths (their names and order as before
+    links were followed), and each linked folder's once, unless the tree holds it (a link loop ends)."""
+    own = {root for root, _, _ in os.walk(folder)}
+    out, visited = [], {os.path.realpath(root) for root in own}
     for root, dirs, files in os.walk(folder, followlinks=True):
-        real = os.path.realpath(root)
-        if real in visited:
-            dirs[:] = []
-            continue
-        visited.add(real)
+        if root not in own:  # reached through a link
+            real = os.path.realpath(root)
+            if real in visited:
+                dirs[:] = []
+                continue
+            visited.add(real)
         dirs.sort()
         named = [os.path.join(root, f) for f in files if Path(f).suffix.lower() in MESH_EXTENSIONS]
         out += [q for q in named if os.path.isfile(q) or not os.path.exists(q)]  # files, and broken links
@@ -175,21 +179,38 @@ def render_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """The faces to rasterise so the depth renders (which cull back faces) see the nearest surface.
 
     ``faces`` itself when the mesh is closed and wound outward (every directed edge once, its reverse
-    once, positive volume); otherwise (inside out, open, inconsistently wound) every face in both
-    windings, so a flipped mesh or an open scan seen from behind is not rendered see-through.
+    once, each connected part of positive volume; vertices at one point, e.g. split at a texture seam or
+    an STL's triangle soup, count as one); otherwise (inside out, open, inconsistently wound, a part
+    inside out beside a larger outward one) every face in both windings, so a flipped mesh or an open
+    scan seen from behind is not rendered see-through.
     """
     f = np.asarray(faces, dtype=np.int64)
+    p = np.asarray(vertices, dtype=np.float64)
+    if _closed_outward(p, f):
+        return faces
+    points, at = np.unique(p, axis=0, return_inverse=True)  # one index per point: seams and soups are closed too
+    if len(points) < len(p) and _closed_outward(points, at.reshape(-1)[f]):
+        return faces
+    return np.concatenate([faces, faces[:, ::-1]])
+
+
+def _closed_outward(p: np.ndarray, f: np.ndarray) -> bool:
+    """Whether faces ``f`` (indices into points ``p``) are closed, wound consistently, and each connected
+    part encloses a positive volume (a sum over the parts would hide a small part wound inside out)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
     edges = f[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
     n = int(f.max()) + 1
     fwd = np.sort(edges[:, 0] * n + edges[:, 1])
     rev = np.sort(edges[:, 1] * n + edges[:, 0])
-    if np.all(fwd[1:] != fwd[:-1]) and np.array_equal(fwd, rev):
-        p = np.asarray(vertices, dtype=np.float64)
-        p = p - p.mean(0)
-        volume = np.einsum("ij,ij->", p[f[:, 0]], np.cross(p[f[:, 1]], p[f[:, 2]]))
-        if volume > 0:
-            return faces
-    return np.concatenate([faces, faces[:, ::-1]])
+    if not (np.all(fwd[1:] != fwd[:-1]) and np.array_equal(fwd, rev)):
+        return False
+    _, part = connected_components(coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)),
+                                   directed=False)
+    q = p - p.mean(0)
+    volume = np.einsum("ij,ij->i", q[f[:, 0]], np.cross(q[f[:, 1]], q[f[:, 2]]))
+    return bool(np.all(np.bincount(part[f[:, 0]], weights=volume)[np.unique(part[f[:, 0]])] > 0))
 
 
 @dataclass

@@ -14,7 +14,7 @@ import trimesh
 from fppsim.errors import MeshError
 from fppsim.geometry.rig import Rig
 from fppsim.rendering.render import DepthRenderer
-from fppsim.rendering.scene import PlacedObject, asset_from_arrays, find_meshes, load_mesh
+from fppsim.rendering.scene import PlacedObject, asset_from_arrays, find_meshes, load_mesh, render_faces
 
 
 @pytest.fixture(scope="module")
@@ -69,6 +69,33 @@ def test_a_closed_outward_mesh_keeps_its_faces():
     assert np.array_equal(asset.render_faces, asset.faces)  # the renders of well-made meshes stay as they were
 
 
+
+def test_a_closed_mesh_split_at_seams_keeps_its_faces():
+    """Vertices split at one point (a texture seam of an OBJ read unprocessed, as spot.obj; an STL's triangle soup)
+    do not open the mesh: it is drawn as before, one winding (both windings moved a few silhouette pixels)."""
+    m = _capsule()
+    soup = m.vertices[m.faces].reshape(-1, 3)
+    faces = np.arange(len(soup), dtype=np.int32).reshape(-1, 3)
+    assert np.array_equal(render_faces(soup, faces), faces)
+    assert len(render_faces(soup, faces[:, ::-1])) == 2 * len(faces)  # inside out all the same
+
+
+def test_a_small_part_wound_inside_out_beside_a_larger_one_is_not_see_through(renderer):
+    """Closed parts are judged one by one: the volume summed over a box (outward) and a smaller ball (inside out)
+    is positive, and the ball was drawn culled, its far side as its height (29.7 mm off)."""
+    box = trimesh.creation.box(extents=[80.0, 60.0, 30.0])
+    box.apply_translation([-50.0, 0.0, 15.0])
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=15.0)
+    ball.apply_translation([40.0, 0.0, 15.0])
+    v, n = np.vstack([box.vertices, ball.vertices]), len(box.vertices)
+    good = asset_from_arrays(v, np.vstack([box.faces, ball.faces + n]), "parts_good.obj")
+    bad = asset_from_arrays(v, np.vstack([box.faces, ball.faces[:, ::-1] + n]), "parts_bad.obj")
+    assert len(bad.render_faces) == 2 * len(bad.faces) and np.array_equal(good.render_faces, good.faces)
+    a, b = _depth(renderer, good), _depth(renderer, bad)
+    assert np.array_equal(np.isfinite(a), np.isfinite(b))
+    seen = np.isfinite(a)
+    assert np.abs(a[seen] - b[seen]).max() < 1e-3
+
 def test_unreferenced_vertices_do_not_change_the_object(tmp_path):
     m = _capsule()
     stray = np.vstack([m.vertices, [[5000.0, 3000.0, 100.0]]])
@@ -106,3 +133,16 @@ def test_symlinked_folders_are_followed_once_and_broken_links_named(tmp_path):
     with pytest.raises(MeshError) as e:
         load_mesh(next(p for p in found if p.endswith("gone.obj")))
     assert "gone.obj" in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_link_into_the_folders_own_tree_changes_no_name_nor_order(tmp_path):
+    """A linked folder the tree already holds is read under its own path: the meshes' names and their order (the
+    generator's draws follow it) are those of the tree without the link (it once renamed them after the link,
+    and sorted them there)."""
+    meshes = tmp_path / "meshes"
+    (meshes / "sub").mkdir(parents=True)
+    _write(_capsule(), meshes / "sub" / "x.obj")
+    _write(_capsule(), meshes / "b.obj")
+    before = find_meshes([meshes])
+    os.symlink(meshes / "sub", meshes / "0link")
+    assert find_meshes([meshes]) == before == [str(meshes / "b.obj"), str(meshes / "sub" / "x.obj")]

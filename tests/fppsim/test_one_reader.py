@@ -214,6 +214,10 @@ def test_a_tiff_stack_is_refused_not_read_as_its_first_page(tmp_path):
         read_gray_image(tmp_path / "stack.tif")
     Image.fromarray(g8).save(tmp_path / "one.tif")
     assert np.array_equal(read_gray_image(tmp_path / "one.tif"), g8)
+    # an image with a reduced-size second page (a thumbnail, as some cameras save) is one frame: read as before
+    thumb = Image.fromarray(g8[::4, ::4].copy())
+    Image.fromarray(g8).save(tmp_path / "thumb.tif", save_all=True, append_images=[thumb])
+    assert np.array_equal(read_gray_image(tmp_path / "thumb.tif"), g8)
 
 
 def test_the_fppsim_commands_read_a_registered_layout(tmp_path, toy, capsys):

@@ -538,6 +538,24 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo, chosen)
 
 
+def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, h, record: dict, echo):
+    """``name``'s heights ``h`` after frame ``s``'s own phase, the network's where it cannot (said, in ``record``)."""
+    fringe = s.image.astype(np.float32) / 127.5 - 1.0
+    try:
+        refined, stats = refine_with_phase(path_estimate(net, transform, fringe, size, rig, h), fringe, rig,
+                                           args.refine_method, network_mm=h, name=str(s.path))
+    except DataError as exc:  # as predict's default: an image whose phase cannot be read keeps them
+        echo(f"{sid}: warning: no fringe phase to refine with ({exc}): {name}'s heights")
+        refined, stats = h, {}
+        record.setdefault("not_refined", {})[name] = str(exc)
+    if stats.get("undecided_regions"):  # said as predict says it: those pixels keep the network's heights
+        undecided = {"regions": stats["undecided_regions"], "fraction": stats["undecided_fraction"]}
+        record.setdefault("undecided", {})[name] = undecided
+        echo(f"{sid}: warning: {name}: {undecided['regions']} phase region(s), {undecided['fraction']:.1%} of the "
+             "pixels, have no fringe order the path can decide: the network's heights stay there")
+    return refined
+
+
 def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo, chosen) -> dict:
     """The body of :func:`evaluate_phase_folder` once ``out`` is open: every frame scored, the report written."""
     fit_kw = dict(degree=args.degree, robust=args.robust)
@@ -588,19 +606,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
                 ok &= pred_valid
             scored.append((name, h, ok, pred_valid))
             if rig is not None:  # the same pixels, the heights after the image's own phase
-                fringe = img.astype(np.float32) / 127.5 - 1.0
-                try:
-                    refined, stats = refine_with_phase(path_estimate(model, transform, fringe, size, rig, h), fringe,
-                                                       rig, args.refine_method, network_mm=h, name=str(s.path))
-                except DataError as exc:  # as predict's default: an image whose phase cannot be read keeps them
-                    echo(f"{sid}: warning: no fringe phase to refine with ({exc}): {name}'s heights")
-                    refined, stats = h, {}
-                    record.setdefault("not_refined", {})[name] = str(exc)
-                if stats.get("undecided_regions"):  # said as predict says it: those pixels keep the network's heights
-                    undecided = {"regions": stats["undecided_regions"], "fraction": stats["undecided_fraction"]}
-                    record.setdefault("undecided", {})[name] = undecided
-                    echo(f"{sid}: warning: {name}: {undecided['regions']} phase region(s), {undecided['fraction']:.1%} "
-                         "of the pixels, have no fringe order the path can decide: the network's heights stay there")
+                refined = _refined(args, s, sid, name, model, transform, size, rig, h, record, echo)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         # a rig fitted with no plane in view: no plane-pixel score (its "plane" would be the objects)
         plane = (np.zeros(img.shape, bool) if no_plane else
