@@ -428,3 +428,17 @@ def test_a_tiny_experiment_runs_its_stages_in_process_and_resumes(tmp_path, caps
     second = capsys.readouterr().out
     assert "generate ->" not in second and "train ->" not in second and "evaluate on" not in second
     assert json.loads((out / "report.json").read_text())["variants"][0]["real"] == v["real"]
+
+
+def test_dataset_count_of_a_damaged_label_file_is_zero(tmp_path):
+    """An .npz saved as Z.npy or an empty Z.npy was an AttributeError / EOFError traceback; now no dataset (0), so
+    generate writes the folder afresh or says why it cannot."""
+    from uhrnet.workflows.stages import dataset_count
+
+    with open(tmp_path / "Z.npy", "wb") as fh:  # an archive under the label file's name
+        np.savez(fh, a=np.zeros((2, 4, 4, 1), np.float32))
+    assert dataset_count(tmp_path) == 0
+    (tmp_path / "Z.npy").write_bytes(b"")
+    assert dataset_count(tmp_path) == 0
+    np.save(tmp_path / "Z.npy", np.zeros((3, 4, 4, 1), np.float32))
+    assert dataset_count(tmp_path) == 3

@@ -11,9 +11,8 @@ from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
-
-from fppsim.errors import FppsimError
+from fppsim.errors import DatasetError, FppsimError
+from fppsim.dataio.encoding import load_npy
 from fppsim.dataio.formats import FIGSHARE_PAIRS
 from uhrnet.errors import Sim2RealError, UhrnetError
 
@@ -27,9 +26,10 @@ def dataset_count(folder: str | Path) -> int:
     if not z.is_file():
         return 0
     try:
-        return int(np.load(z, mmap_mode="r").shape[0])
-    except (ValueError, OSError):
+        arr = load_npy(z)
+    except DatasetError:  # damaged, empty, an .npz under the name: no dataset here (generate then says why)
         return 0
+    return int(arr.shape[0]) if arr.ndim else 0
 
 
 def run_stage(name: str, fn: Callable[[], object], log: Path, header: str) -> float:
