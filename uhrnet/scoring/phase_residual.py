@@ -524,13 +524,13 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = model_names(ckpts, args.names)
     models = _phase_models(ckpts, args)
-    chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_on(ck, args.phase_root, ids))}
-    for name, on in chosen.items():
-        echo(f"warning: {name}: best.pt was chosen (train --val-phase) on frame(s) {', '.join(on)} of "
-             f"{args.phase_root}: their score is not held out; score frames its run never saw")
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
+    chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_on(ck, args.phase_root, ids))}
+    for name, on in chosen.items():
+        echo(f"warning: {name}: its weights were chosen (train --val-phase, best epoch) on frame(s) {', '.join(on)} "
+             f"of {args.phase_root}: their score is not held out; score frames its run never saw")
     # locked for the run; a failed run drops its claims on what it never wrote, and a folder it made and left empty
     with output_folder(out, EVALUATE_PHASE_TOOL, error=ConfigError):
         claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
