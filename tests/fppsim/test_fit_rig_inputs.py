@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -81,3 +83,26 @@ def test_fp672_on_black_as_a_plain_image_reads_vertical_fringes(tmp_path, capsys
     text = capsys.readouterr()
     assert rc == 0, text.err
     assert "fringes    vertical" in text.out
+    # the figurine's extent is the scans' (262 px with its plane, measured on the phase), not the pieces its
+    # reliable single-shot phase falls into (0 px before stop 68: no piece large enough)
+    measured = json.loads((tmp_path / "rig.json").read_text())["scenes"]["measured"]
+    extent = float(re.search(r"largest object (\d+) px across", measured).group(1))
+    assert 0.9 * 262 <= extent <= 1.1 * 262, measured
+
+
+def test_the_largest_object_of_a_plain_image_on_black_is_all_of_its_lit_pixels(tmp_path):
+    """An object on black whose middle carries steep, aliased fringes (lit, no reliable phase) and whose smooth
+    half fits a plane: its extent is the lit region's (261 px), not that of a reliable piece beside what the
+    plane fit took for plane (86 px before stop 68)."""
+    from fppsim.fitting.rig_start import rig_from_images
+
+    r, c = np.mgrid[0:240, 0:320]
+    body = ((c - 160) / 130.0) ** 2 + ((r - 120) / 50.0) ** 2 <= 1
+    phase = 2 * np.pi * c / 9.0 + 20.0 * np.exp(-((c - 160) / 70.0) ** 2 - ((r - 120) / 35.0) ** 2)
+    phase = np.where(np.abs(c - 160) < 10, 2 * np.pi * c / 2.3 + 3.0 * np.sin(r / 1.7), phase)
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), np.where(body, 120 + 90 * np.cos(phase), 0).astype(np.uint8))
+    res = rig_from_images(tmp_path / "imgs", distance=500, baseline=330, projector_side="right")
+    assert res.no_plane
+    cols = np.nonzero(body.any(0))[0]
+    assert abs(res.extent_px - (cols.max() - cols.min() + 1)) <= 4, res.extent_px
