@@ -14,8 +14,9 @@ held-out frame FP1523/1201, as fit-rig measures it (largest object 107 mm across
 relief capped at 35-55 mm). So the scenes follow the frames at whatever depth scale the rig has, from a
 figurine to a face that fills the view, instead of the depth scale being bent to fit fixed scenes.
 
-The measures: the largest object (a connected region of lit pixels off the plane, every lit pixel when no plane
-is in view, the longer side of its bounding box; one that reaches the image border is at least that big) and the objects' phase relief (99th percentile of
+The measures: the largest object (a connected region of lit pixels with fringes off the plane; with no plane in
+view, of pixels with a phase; the longer side of its bounding box; one that reaches the image border is at least
+that big) and the objects' phase relief (99th percentile of
 the phase off the plane, phase-shifting scans only). Without a relief (plain fringe images, or no plane
 to measure it from) the relief cap keeps the default scenes' proportion to the footprint.
 """

@@ -48,7 +48,8 @@ class PhaseMap:
     its sign is a convention); ``valid`` (H, W) bool; ``name`` for messages; ``reliable``: the pixels
     whose phase is trusted enough to seed a plane candidate (:func:`find_plane`; default ``valid``);
     ``shadow``: the projector's shadows (default: the pixels that are not ``valid``; one fringe image's
-    low-reliability edges are not shadows)."""
+    low-reliability edges are not shadows); ``fringed``: the lit pixels that carry fringes (default :attr:`lit`;
+    one fringe image's: a dark background's sensor noise or ambient light is not a dark run, yet has none)."""
 
     phase: np.ndarray
     valid: np.ndarray
@@ -56,6 +57,7 @@ class PhaseMap:
     absolute: bool = True
     reliable: np.ndarray | None = None  # (H, W) bool: where plane candidates may grow (default: valid)
     shadow: np.ndarray | None = None  # (H, W) bool: projector shadows (default: not valid)
+    fringed: np.ndarray | None = None  # (H, W) bool: lit pixels with fringes (default: lit)
 
     @property
     def lit(self) -> np.ndarray:
@@ -434,7 +436,9 @@ def image_phase_map(gray: np.ndarray, valid: np.ndarray | None = None, name: str
         raise RigError(f"{name}: too few pixels with a reliable fringe phase")
     un = np.asarray(unwrap_phase(np.ma.array(ssp.wrapped.astype(np.float64), mask=~ok)).filled(np.nan))
     # edges (objects, shadows) have a low reliability: cut there, plane candidates do not leak onto objects
+    # fringes: a modulation of at least 15 % of the reliable pixels' median (a noisy black is lit, but fringe-less)
+    fringed = ssp.valid & (ssp.modulation >= 0.15 * float(np.median(ssp.modulation[ok])))
     return PhaseMap(np.where(ok, un, np.nan), ok, name, absolute=False, reliable=ssp.reliability >= 0.5,
-                    shadow=~ssp.valid)
+                    shadow=~ssp.valid, fringed=fringed)
 
 

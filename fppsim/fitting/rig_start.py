@@ -208,17 +208,22 @@ def _where(rig: Rig) -> str:
     return f"{abs(d[1]):.0f} mm {'above' if d[1] > 0 else 'below'} the camera"
 
 
-def _object_extent(planes, maps, min_share: float = 0.005) -> tuple[float, bool]:
+def _object_extent(planes, maps, min_share: float = 0.005, lit: bool = True) -> tuple[float, bool]:
     """The largest object's extent (px, the longer side of its bounding box, median over the maps): the
-    biggest connected region of lit pixels (:attr:`PhaseMap.lit`) off the plane, at least ``min_share`` of the
-    image; 0 when there is none. Also whether it reaches the image border in any map (then it is at least that
-    big). Lit, not only those with a phase: a plain image's reliable single-shot phase breaks an object into
-    pieces (FP672/541 as a PNG: 61 px, on black 0, where its scans measure 262 px; lit: 333 and 255)."""
+    biggest connected region off the plane of ``lit`` pixels with fringes (:attr:`PhaseMap.fringed`; else those
+    with a phase), at least ``min_share`` of the image; 0 when there is none. Also whether it reaches the image
+    border in any map (then it is at least that big). Lit, not only those with a phase: a plain image's reliable
+    single-shot phase breaks an object into pieces (FP672/541 as a PNG: 61 px where its scans measure 262). With
+    fringes: a dark background's noise is lit, not object. Without the phase-less pixels within 4 px of the plane:
+    a shadow's rim joined the object (333 px; without it 265). Scans: fringed = lit = valid. Frames without a plane
+    keep the pixels with a phase (see rig_from_images)."""
     from scipy import ndimage as ndi  # SciPy: only here
 
     sizes, border = [], False
     for plane, m in zip(planes, maps):
-        lab, n = ndi.label(ndi.binary_opening(m.lit & ~plane, iterations=2))
+        keep = (m.lit if m.fringed is None else m.fringed) if lit else m.valid
+        rim = ndi.binary_dilation(plane, iterations=4) & ~m.valid  # a shadow's phase-less rim on the plane
+        lab, n = ndi.label(ndi.binary_opening(keep & ~plane & ~rim, iterations=2))
         if n == 0:
             continue
         counts = np.bincount(lab.ravel())[1:]
@@ -299,7 +304,7 @@ def _first_plane_fit(maps, W, H, gradient, D, baseline, fov, focal):
         if not m.absolute and one is not None:  # its plane pixels unwrapped onto one period of the plane fit
             maps[k] = PhaseMap(np.where(m.valid, one.rig.phase_at_height(0.0) - one.offsets[0] + one.residuals[0],
                                         np.nan), m.valid, m.name, absolute=False, reliable=m.reliable,
-                               shadow=m.shadow)
+                               shadow=m.shadow, fringed=m.fringed)
     first = 1 if wins >= 0 else -1
     return fit_plane_phase(starts[first], maps, seeds=seeds), first, maps
 
@@ -446,8 +451,11 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         rig = fit.rig
     where = _where(rig)
     relief = _object_relief(fit, maps) if kind == "phase" and not no_plane else 0.0
-    # without a plane in view what the fit called plane is a smooth part of an object: every lit pixel is object
-    extent, at_border = _object_extent([np.zeros_like(p) for p in fit.planes] if no_plane else fit.planes, maps)
+    # without a plane in view the lit pixels (and a 'plane' that is part of an object) would give bigger objects,
+    # and with no relief measured their relief caps grow with them: FP147's face on black went from 351 px (caps
+    # 46-73 mm) to 640 px (84-133 mm; the face has about 42 mm) and its network from 0.72-0.69 to 0.84-0.92 of
+    # flat at epochs 13-14 (one seed, stop 68): kept as it was until the relief is measured there
+    extent, at_border = _object_extent(fit.planes, maps, lit=not no_plane)
     depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
     rig.plane_in_view = not no_plane
     rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "

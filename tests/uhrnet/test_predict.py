@@ -108,6 +108,11 @@ def test_predict_errors(ckpt, tmp_path, capsys):
     assert main(["predict", str(ckpt), str(tmp_path / "pub" / "iPattern"), "--out", out]) == 1
     err = capsys.readouterr().err
     assert "no images" in err and f"the folder holding iPattern/ ({tmp_path / 'pub'})" in err
+    (tmp_path / "mats").mkdir()  # .mat files of another kind: their parent is no phase-shifting root to name
+    (tmp_path / "mats" / "1.mat").write_bytes(b"x")
+    assert main(["predict", str(ckpt), str(tmp_path / "mats"), "--out", out]) == 1
+    err = capsys.readouterr().err
+    assert "no images" in err and "iPattern" not in err
     np.save(tmp_path / "raw.npy", np.full((32, 32), 200.0, np.float32))
     assert main(["predict", str(ckpt), str(tmp_path / "raw.npy"), "--out", out]) == 1
     assert "raw.npy: values span" in capsys.readouterr().err

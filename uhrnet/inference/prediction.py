@@ -206,7 +206,7 @@ def collect_inputs(items: list[str]) -> list[Path]:
             found = sorted(q for q in p.iterdir() if q.is_file() and q.suffix.lower() in INPUT_EXTS
                            and q.name not in mine)
             if not found:
-                mat = any(q.suffix.lower() == ".mat" for q in p.iterdir())  # e.g. FP1523/iPattern given
+                mat = open_source(p.parent).is_psp and any(q.suffix.lower() == ".mat" for q in p.iterdir())
                 raise ConfigError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder" + (
                     f"; a phase-shifting folder is read from its root, the folder holding iPattern/ ({p.parent})"
                     if mat else ""))
