@@ -216,7 +216,10 @@ def _object_extent(planes, maps, min_share: float = 0.005, lit: bool = True) -> 
     single-shot phase breaks an object into pieces (FP672/541 as a PNG: 61 px where its scans measure 262). With
     fringes: a dark background's noise is lit, not object. Without the phase-less pixels within 4 px of the plane:
     a shadow's rim joined the object (333 px; without it 265). Scans: fringed = lit = valid. Frames without a plane
-    keep the pixels with a phase (see rig_from_images)."""
+    (``lit`` False) keep the pixels with a phase: the lit ones (and a 'plane' that is part of an object) give bigger
+    objects whose relief caps, with no relief measured, grow with them; FP147's face on black at 640 px instead of
+    351 (caps 84-133 mm for a face of about 42 mm) trained to 0.84-0.92 of flat at epochs 13-14 against 0.69-0.72
+    (one seed, stop 68)."""
     from scipy import ndimage as ndi  # SciPy: only here
 
     sizes, border = [], False
@@ -451,11 +454,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         rig = fit.rig
     where = _where(rig)
     relief = _object_relief(fit, maps) if kind == "phase" and not no_plane else 0.0
-    # without a plane in view the lit pixels (and a 'plane' that is part of an object) would give bigger objects,
-    # and with no relief measured their relief caps grow with them: FP147's face on black went from 351 px (caps
-    # 46-73 mm) to 640 px (84-133 mm; the face has about 42 mm) and its network from 0.72-0.69 to 0.84-0.92 of
-    # flat at epochs 13-14 (one seed, stop 68): kept as it was until the relief is measured there
-    extent, at_border = _object_extent(fit.planes, maps, lit=not no_plane)
+    extent, at_border = _object_extent(fit.planes, maps, lit=not no_plane)  # no plane: see _object_extent
     depth = "given" if "distance_mm" not in assumed and "baseline_mm" not in assumed else "assumed"
     rig.plane_in_view = not no_plane
     rig.name = (f"from its own images ({W} x {H} px, {axis} fringes, projector {where}; "

@@ -69,7 +69,6 @@ def test_a_closed_outward_mesh_keeps_its_faces():
     assert np.array_equal(asset.render_faces, asset.faces)  # the renders of well-made meshes stay as they were
 
 
-
 def test_a_closed_mesh_split_at_seams_keeps_its_faces():
     """Vertices split at one point (a texture seam of an OBJ read unprocessed, as spot.obj; an STL's triangle soup)
     do not open the mesh: it is drawn as before, one winding (both windings moved a few silhouette pixels)."""
