@@ -126,6 +126,21 @@ def test_variant_flag_errors_exit_as_their_commands_would(tmp_path, capsys, spec
     assert not out.exists()
 
 
+def test_an_ablation_files_flag_error_names_the_file(tmp_path, capsys):
+    """A flag an --ablation entry's command does not take is the file's error (exit 1, the file named), as its
+    other errors; the same flag on the command line is a usage error (exit 2)."""
+    from uhrnet.cli import main
+
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    (tmp_path / "abl.yaml").write_text("- {name: a, train: --bogus}\n")
+    out = tmp_path / "o"
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--ablation",
+                 str(tmp_path / "abl.yaml")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"{tmp_path / 'abl.yaml'}: variant 'a': train: unrecognized" in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize("flags", [["--lr", "-1"], ["--lr", "nan"], ["--batch-size", "0"], ["--base-channels", "-3"],
                                    ["--seed", "-1"]])
 def test_recipe_training_numbers_are_usage_errors_before_anything_runs(tmp_path, capsys, flags):

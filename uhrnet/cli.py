@@ -638,15 +638,29 @@ def parse_reuse(items: list[str]) -> dict[str, str]:
     return out
 
 
+def _variant_of(cfg, spec, commands, file):
+    """``variant_from_flags``; a flag error of an ``--ablation`` file's entry names the file, exit 1 as the file's other
+    errors (on the command line, exit 2)."""
+    from uhrnet.errors import Sim2RealError, UsageError
+    from uhrnet.workflows.sim2real.variants import variant_from_flags
+
+    try:
+        return variant_from_flags(cfg, spec, commands)
+    except (UsageError, Sim2RealError) as exc:
+        if file is None:
+            raise
+        raise Sim2RealError(f"{file}: {exc}") from None
+
+
 def run_sim2real(args) -> int:
     from dataclasses import replace
 
     from uhrnet.workflows.sim2real import Sim2RealConfig, markdown_report, run_sim2real
-    from uhrnet.workflows.sim2real.variants import load_variants, parse_variant, recipe_commands, variant_from_flags
+    from uhrnet.workflows.sim2real.variants import load_variants, parse_variant, recipe_commands
 
-    specs = [parse_variant(v) for v in args.variant]
+    specs = [(parse_variant(v), None) for v in args.variant]
     if args.ablation:
-        specs += load_variants(args.ablation)
+        specs += [(s, args.ablation) for s in load_variants(args.ablation)]
     cfg = Sim2RealConfig(
         out=args.out, real=args.real, **({"meshes": list(args.meshes)} if args.meshes else {}), scale=args.scale,
         count=args.count, seed=args.seed, workers=args.workers, model=args.model, base_channels=args.base_channels,
@@ -655,7 +669,8 @@ def run_sim2real(args) -> int:
         adapt_images=args.adapt_images)
     reuse = parse_reuse(args.reuse_run)  # names the variants: checked once they are known
     commands = variant_commands()
-    cfg = replace(cfg, variants=[variant_from_flags(cfg, s, commands) for s in specs] if specs else cfg.variants, reuse=reuse)
+    cfg = replace(cfg, variants=[_variant_of(cfg, s, commands, f) for s, f in specs] if specs else cfg.variants,
+                  reuse=reuse)
     report = run_sim2real(cfg, log=lambda line: print(line, flush=True), recipe=recipe_commands)
     print(markdown_report(report))
     print(f"report: {Path(args.out) / 'report.md'} and report.json")
