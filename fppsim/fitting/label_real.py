@@ -55,7 +55,7 @@ from fppsim.dataio.encoding import encode_fringe, json_default
 from fppsim.errors import ConfigError, DatasetError, UsageError
 from fppsim.files import atomic_write_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform
-from fppsim.owned import claim, output_folder, owners
+from fppsim.owned import claim, output_folder, owners, same_folder
 from fppsim.phase.psp import decode_stacks
 from fppsim.dataio.readers import check_read_convention, reading_note, open_source
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
@@ -563,7 +563,7 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
     out = Path(cfg.out)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out} is a file, not a folder")
-    if out.exists() and out.resolve() == Path(cfg.root).resolve():
+    if same_folder(out, cfg.root):
         # the labels beside the scans would make one folder of two layouts, each reader picking one
         raise UsageError(f"--out {out} is the scans' own folder; give another (e.g. {out / 'labels'})")
     previews = [f"{PREVIEW_DIR}/{sid}.png" for sid in ids] if cfg.previews else []

@@ -224,9 +224,10 @@ def _object_extent(planes, maps, min_share: float = 0.005, lit: bool = True) -> 
 
     sizes, border = [], False
     for plane, m in zip(planes, maps):
-        keep = (m.lit if m.fringed is None else m.fringed) if lit else m.valid
-        rim = ndi.binary_dilation(plane, iterations=4) & ~m.valid  # a shadow's phase-less rim on the plane
-        lab, n = ndi.label(ndi.binary_opening(keep & ~plane & ~rim, iterations=2))
+        keep = m.valid
+        if lit:  # less a shadow's phase-less rim on the plane
+            keep = (m.lit if m.fringed is None else m.fringed) & ~(ndi.binary_dilation(plane, iterations=4) & ~m.valid)
+        lab, n = ndi.label(ndi.binary_opening(keep & ~plane, iterations=2))
         if n == 0:
             continue
         counts = np.bincount(lab.ravel())[1:]

@@ -640,7 +640,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
     if no_plane:
         md += "\nPlane-pixel columns nan: the --rig records no reference plane in view (fit-rig found none).\n"
     for name, on in chosen.items():
-        md += f"\nNot held out: {name} was chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
+        md += f"\nNot held out: {name}'s weights were chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
     atomic_write_text(out / "phase_results.md", md)
     atomic_write_text(out / "phase_results.json", json.dumps(
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
