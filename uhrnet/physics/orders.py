@@ -372,36 +372,80 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         reaches); default ``height_mm``. ``uhrnet predict`` passes the network's own map there, while
         ``height_mm`` is the estimate the orders are chosen from (:func:`uhrnet.inference.prediction.path_estimate`).
 
-    Measured (docs/experiments/orders.md): the defaults were chosen on the labelled pair and FP1523/1201 with
-    three checkpoints of one training seed; on the pair through the depth-fitted rig the recipe's network went
-    from 7.08 +- 0.36 to 4.17 +- 0.08 mm object RMSE, median 4.02 to 0.14 mm (3 seeds; FP1523/1201 residual
-    0.86 +- 0.05 of the network's). Since stop 57, with the border margin of the estimate and the rim split (step 7):
-    2.14 +- 0.29 mm, FP1523/1201 0.79 +- 0.04; since stop 59 (the fall read as a rise, a patch beyond the margin)
-    2.03 +- 0.32 mm, 0.75 +- 0.04; since stop 60 (growth levels a fortieth apart) 1.94 +- 0.25 mm, 0.744 +- 0.038;
-    since stop 61 (the rims' sides by one minimum cut) 1.76 +- 0.28 mm, 0.708 +- 0.033 (6 seeds: 1.70 +- 0.19 mm,
-    0.741 +- 0.048); since stop 62 (step 8, ``join_min_moved``) 1.62 +- 0.07 mm, 0.728 +- 0.046; since stop 63 (the
-    level correction also on dim pixels) 1.59 +- 0.06 mm, 0.727 +- 0.045 (6 seeds). Stop 64's bridges (read one pixel
-    inside each lit side, the image's vote offset removed) change no real frame; on held-out rendered scenes of 1-3
-    objects (exact truth, 3 networks) the right-order share goes 0.28 -> 0.49 (``pipelines/orders_rendered.py``).
+    Measured (docs/experiments/orders.md, where each step's numbers are): the defaults were chosen on the labelled
+    pair and FP1523/1201; on the pair through the depth-fitted rig the recipe's network goes from 5.4-8.2 mm object
+    RMSE to 1.59 +- 0.06 mm, median 0.13-0.16 mm, and FP1523/1201's residual to 0.727 +- 0.045 of the network's
+    (6 seeds, stop 63).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
-    h, finite, ok, rel, w, usable, phi = e.h, e.finite, e.ok, e.rel, e.w, e.usable, e.phi
-    plane_px = _plane_pixels(h, usable, flat_mm)  # the origin is fitted there, and a region on it anchors its group
-    offset = _origin(layer, w, phi, plane_px, usable)
-    walls = step_conflicts(w, e.expected, max_step)
-    regions = phase_regions(w, usable, cut=walls, min_size=min_region)
+    g = _linked_regions(e, layer, shadow, max_step, min_region, flat_mm, grow, bridges, bridge_offset, seams,
+                        max_link_misfit)
+    n = g.n
+    order, post = _component_orders(n, g.roots, g.offs, g.prior, g.core_sizes, sigma)
+    decided = post >= min_confidence
+    anchored = _anchored(g.roots, g.anchors)
+    conf = np.where(anchored, post, _component_orders(n, g.roots, g.offs, g.prior, g.core_sizes, sigma_network)[1]
+                    if n else post)  # the same order: the argmax does not depend on the width
+    refined, lab, usable, moved, move, carried, beyond, rim, rims, island_stats = _placed_heights(
+        e, g, layer, order, decided, fill, max_move_fraction, spread_px, max_local_misfit, join_min_moved, islands,
+        fringe, flat_mm, keep)
+    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
+    refined = refined.astype(out_dtype, copy=False)
+    table = _region_table(g, lab, order, conf, decided, anchored, moved, move)
+    floating = decided & ~anchored
+    stats = {**_choice_stats(e.finite, moved, g.core, usable, g.roots, n, decided, g.core_sizes, g.taken, g.conflicts,
+                             g.refused, carried, move, g.offset), "beyond_margin_moved": beyond,
+             "floating_regions": int(floating.sum()),
+             "floating_fraction": float(g.sizes[floating].sum() / max(int(e.finite.sum()), 1)) if n else 0.0,
+             **rims, **island_stats}
+    return OrderChoice(refined, moved, lab, table, g.taken, g.conflicts, float(g.offset), stats, rim)
+
+
+@dataclass
+class _Linked:
+    """Steps (1)-(4) of :func:`choose_orders`: the regions (grown), their priors on the reliable cores, the links
+    taken and the components they make."""
+
+    n: int
+    offset: float
+    walls: np.ndarray
+    unlit: np.ndarray
+    core: np.ndarray
+    usable: np.ndarray
+    labels: np.ndarray
+    unwrapped: np.ndarray
+    sizes: np.ndarray
+    prior: np.ndarray
+    core_sizes: np.ndarray
+    anchors: np.ndarray
+    roots: np.ndarray
+    offs: np.ndarray
+    taken: list
+    conflicts: int
+    refused: int
+
+
+def _linked_regions(e, layer, shadow, max_step, min_region, flat_mm, grow, bridges, bridge_offset, seams,
+                    max_link_misfit) -> _Linked:
+    """Steps (1)-(4) of :func:`choose_orders` on the estimate's phases ``e``
+    (:func:`uhrnet.physics.refine.estimate_phases`)."""
+    plane_px = _plane_pixels(e.h, e.usable, flat_mm)  # the origin is fitted there, and a region on it anchors its group
+    offset = _origin(layer, e.w, e.phi, plane_px, e.usable)
+    walls = step_conflicts(e.w, e.expected, max_step)
+    regions = phase_regions(e.w, e.usable, cut=walls, min_size=min_region)
     n = regions.count
-    unlit = ~ok if shadow is None else np.asarray(shadow, bool)
-    core = usable.copy()
-    prior = (np.asarray(ndi.median(np.nan_to_num(regions.unwrapped - phi - offset), regions.labels,
+    unlit = ~e.ok if shadow is None else np.asarray(shadow, bool)
+    core = e.usable.copy()
+    prior = (np.asarray(ndi.median(np.nan_to_num(regions.unwrapped - e.phi - offset), regions.labels,
                                    index=np.arange(1, n + 1))) / TWO_PI if n else np.zeros(0))  # the reliable cores
     core_sizes = regions.sizes.astype(np.float64)
     anchors = ((np.asarray(ndi.mean(plane_px, regions.labels, index=np.arange(1, n + 1))) > 0.5)
                if n and plane_px is not None else np.zeros(n, bool))
-    lab, U = regions.labels, regions.unwrapped
+    usable = e.usable
     if grow and n:
-        lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~walls & ~unlit, thresholds=grow)
+        lab, U = grow_regions(regions.labels, regions.unwrapped, e.w, e.rel,
+                              e.ok & np.isfinite(e.w) & ~walls & ~unlit, thresholds=grow)
         usable = usable | (lab > 0)
         regions = PhaseRegions(lab, U, np.bincount(lab.ravel(), minlength=n + 1)[1:].astype(np.int64))
     links: list[Link] = []
@@ -409,49 +453,52 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         links += [Link(b.a, b.b, -b.periods, b.votes, b.agreement, "bridge")
                   for b in shadow_bridges(regions, unlit, max_offset=bridge_offset)]
     if n and seams:
-        links += seam_links(regions, w, usable, blocked=unlit | walls | ~finite)
+        links += seam_links(regions, e.w, usable, blocked=unlit | walls | ~e.finite)
     roots, offs, taken, conflicts, refused = _components(n, links, prior, core_sizes, max_link_misfit)
-    order, post = _component_orders(n, roots, offs, prior, core_sizes, sigma)
-    decided = post >= min_confidence
-    anchored = _anchored(roots, anchors)
-    conf = np.where(anchored, post, _component_orders(n, roots, offs, prior, core_sizes, sigma_network)[1]
-                    if n else post)  # the same order: the argmax does not depend on the width
+    return _Linked(n, offset, walls, unlit, core, usable, regions.labels, regions.unwrapped, regions.sizes, prior,
+                   core_sizes, anchors, roots, offs, taken, conflicts, refused)
+
+
+def _placed_heights(e, g: "_Linked", layer, order, decided, fill, max_move_fraction, spread_px, max_local_misfit,
+                    join_min_moved, islands, fringe, flat_mm, keep):
+    """Steps (5)-(8) of :func:`choose_orders` and the pixels left alone: ``(refined float64, labels, usable, moved,
+    move, carried, beyond, rim, rim statistics, island statistics)``."""
+    n = g.n
+    lab, U, usable = g.labels, g.unwrapped, g.usable
     if fill and n:  # after the links: pixels grown here only take their region's order, they tie nothing
-        lab, U = grow_regions(lab, U, w, rel, ok & np.isfinite(w) & ~unlit & ~walls, thresholds=fill)
+        lab, U = grow_regions(lab, U, e.w, e.rel, e.ok & np.isfinite(e.w) & ~g.unlit & ~g.walls, thresholds=fill)
         usable = usable | (lab > 0)
-    steps = wrapped_steps(w) if n and (islands or join_min_moved is not None) else None  # the image's, once
+    steps = wrapped_steps(e.w) if n and (islands or join_min_moved is not None) else None  # the image's, once
     refined, moved, move, carried, beyond, island_stats = _moved_heights(
-        e, layer, lab, U, offset, order, decided, usable, max_move_fraction, spread_px, max_local_misfit,
+        e, layer, lab, U, g.offset, order, decided, usable, max_move_fraction, spread_px, max_local_misfit,
         join_min_moved, islands and bool(n), steps)
     rims, rim = {}, None
     if fringe is not None and n:
-        refined, rim, rims = split_rims(refined, moved, w, rel, ok & ~unlit, *fringe, layer, offset, flat_mm=flat_mm)
+        refined, rim, rims = split_rims(refined, moved, e.w, e.rel, e.ok & ~g.unlit, *fringe, layer, g.offset,
+                                        flat_mm=flat_mm)
     if islands and n and island_stats:  # again after the rim split, which re-decided the least reliable moved pixels
-        refined, _, again = continue_islands(refined, moved, w, layer, steps=steps)
+        refined, _, again = continue_islands(refined, moved, e.w, layer, steps=steps)
         island_stats = {k: island_stats[k] + again[k] for k in island_stats}
     if keep is not None:
         keep = np.asarray(keep, np.float64)
-        if keep.shape != h.shape:
-            raise InputError(f"keep {keep.shape} and height {h.shape} must be the same (H, W)")
-        left = finite & ~moved & ~carried
+        if keep.shape != e.h.shape:
+            raise InputError(f"keep {keep.shape} and height {e.h.shape} must be the same (H, W)")
+        left = e.finite & ~moved & ~carried
         if rim is not None:
             left &= ~rim
         refined = np.where(left, keep, refined)
-    out_dtype = h_in.dtype if np.issubdtype(h_in.dtype, np.floating) else np.float64
-    refined = refined.astype(out_dtype, copy=False)
-    link_count = np.bincount([x for lk in taken for x in (lk.a, lk.b)], minlength=n + 1)
+    return refined, lab, usable, moved, move, carried, beyond, rim, rims, island_stats
+
+
+def _region_table(g: _Linked, lab, order, conf, decided, anchored, moved, move) -> list[RegionOrder]:
+    """One :class:`RegionOrder` per region of ``g``, in label order (``lab``: the labels after the fill)."""
+    n = g.n
+    link_count = np.bincount([x for lk in g.taken for x in (lk.a, lk.b)], minlength=n + 1)
     moved_med = (np.asarray(ndi.median(np.where(moved, move, 0.0), np.where(moved, lab, 0), index=np.arange(1, n + 1)))
                  if n else np.zeros(0))
-    table = [RegionOrder(i + 1, int(regions.sizes[i]), float(prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
-                         int(roots[i + 1]), int(link_count[i + 1]), float(moved_med[i]), bool(anchored[i]))
-             for i in range(n)]
-    floating = decided & ~anchored
-    stats = {**_choice_stats(finite, moved, core, usable, roots, n, decided, core_sizes, taken, conflicts, refused,
-                             carried, move, offset), "beyond_margin_moved": beyond,
-             "floating_regions": int(floating.sum()),
-             "floating_fraction": float(regions.sizes[floating].sum() / max(int(finite.sum()), 1)) if n else 0.0,
-             **rims, **island_stats}
-    return OrderChoice(refined, moved, lab, table, taken, conflicts, float(offset), stats, rim)
+    return [RegionOrder(i + 1, int(g.sizes[i]), float(g.prior[i]), int(order[i]), float(conf[i]), bool(decided[i]),
+                        int(g.roots[i + 1]), int(link_count[i + 1]), float(moved_med[i]), bool(anchored[i]))
+            for i in range(n)]
 
 
 def _component_orders(n, roots, offs, prior, sizes, sigma) -> tuple[np.ndarray, np.ndarray]:
