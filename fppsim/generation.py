@@ -28,7 +28,7 @@ from typing import Sequence
 
 
 from fppsim import __version__
-from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError
+from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError, check_seed
 from fppsim.threads import check_cores
 from fppsim.files import atomic_write_text, die_with_parent, ignore_sigint, signals_raise, tmp_path
 from fppsim.owned import claim, output_folder
@@ -37,7 +37,7 @@ from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, Labe
 from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_shards, dataset_files,
                                           discard_empty_dataset, legacy_files)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
-from fppsim.rendering.synth import SynthConfig, check_seed, synthesize
+from fppsim.rendering.synth import SynthConfig, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
                                    write_sample_folder)
 from fppsim.dataio.readers import open_source

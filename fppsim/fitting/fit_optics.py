@@ -48,7 +48,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.errors import InputError, RigError, UsageError
+from fppsim.errors import InputError, RigError, UsageError, check_seed
 from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
@@ -565,6 +565,7 @@ class FitOpticsConfig:
     def __post_init__(self):
         if self.max_images < 1 or self.compare < 0:
             raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
+        check_seed(self.seed, error=UsageError)  # else a bad seed failed only after the fit, in the compare renders
         check_read_convention(self.convention)
 
 

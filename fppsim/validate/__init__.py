@@ -58,7 +58,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ConfigError, ValidateError, ValidateUsageError
+from fppsim.errors import ConfigError, ValidateError, ValidateUsageError, check_seed
 from fppsim.dataio.formats import SETTINGS_FILE, sample_id
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text
@@ -68,7 +68,6 @@ from fppsim.validate.report import (VALIDATE_TOOL, format_sweep_table, format_ta
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
 from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
 from fppsim.generation import GenerateConfig, generate_dataset
-from fppsim.rendering.synth import check_seed
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "ValidateUsageError", "VALIDATE_TOOL", "resolve_dataset", "evaluate_sample",

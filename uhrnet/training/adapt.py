@@ -51,6 +51,7 @@ import numpy as np
 import torch
 
 from fppsim.phase import circular_mean, wrap
+from fppsim.errors import check_seed
 from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import ConfigError, UsageError
 from uhrnet.training.train_config import MAX_LR
@@ -71,6 +72,7 @@ __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "i
 
 ADAPT_COLUMNS = ("epoch", "loss", "grad", "drift", "lr", "seconds")
 ADAPT_TOOL = "uhrnet adapt"
+MAX_TORCH_SEED = 2**64 - 1  # --seed seeds a torch.Generator, which refuses more (a traceback mid-run before)
 
 
 @dataclass
@@ -128,8 +130,7 @@ class AdaptConfig:
         if not self.min_reliability < 1:
             raise UsageError(f"--min-reliability must be in [0, 1) (reliabilities lie in [0, 1]), got "
                              f"{self.min_reliability!r}")
-        if int(self.seed) != self.seed or self.seed < 0:
-            raise UsageError(f"--seed must be an integer >= 0, got {self.seed!r}")
+        check_seed(self.seed, error=UsageError, most=MAX_TORCH_SEED)
         if self.device not in ("auto", "cpu", "cuda"):
             raise UsageError(f"--device must be auto, cpu or cuda, got {self.device!r}")
         if self.w_grad == 0:
