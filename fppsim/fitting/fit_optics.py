@@ -49,7 +49,8 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.errors import InputError, RigError, UsageError, check_seed
-from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
+from fppsim.files import (JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text,
+                          starts_with)
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
@@ -624,7 +625,7 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     atomic_write_text(out, ranges_yaml(fit))
     say(f"optics ranges: {out}")
     if config.json:
-        atomic_write_text(config.json, json.dumps(fit.to_dict(), indent=1))
+        atomic_write_text(config.json, json_text(fit.to_dict(), indent=1))
     comparison = None
     if config.compare and not any(im.height_mm is not None for im in images):
         say(f"--compare skipped: the images carry no height labels ({layout}), which compare-real's statistics need")

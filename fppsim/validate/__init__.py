@@ -61,7 +61,7 @@ from typing import Sequence
 from fppsim.errors import ConfigError, ValidateError, ValidateUsageError, check_seed
 from fppsim.dataio.formats import SETTINGS_FILE, sample_id
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.owned import claim, forget, output_folder
 from fppsim.validate.report import (VALIDATE_TOOL, format_sweep_table, format_table, own_report_files, read_dataset_settings,
                                     read_records, report_files, resolve_dataset, validate_dataset, write_error_map)
@@ -219,7 +219,7 @@ def _render_and_validate(config: ValidateConfig, out: Path, settings, synth, mes
             "config": synth.to_dict(), "rig": synth.rig.to_dict(),
             "rows": rows,
         }
-        atomic_write_text(out / "report.json", json.dumps(sweep_report, indent=1, default=json_default))
+        atomic_write_text(out / "report.json", json_text(sweep_report, indent=1, default=json_default))
         return sweep_report
     finally:
         if tmp is not None:

@@ -55,7 +55,7 @@ import torch
 import torch.nn.functional as F
 
 from fppsim.dataio.encoding import as_image_stack, encode_fringe, json_default, load_npy
-from fppsim.files import atomic_path, atomic_write_text
+from fppsim.files import atomic_path, atomic_write_text, json_text
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from fppsim.dataio.readers import IMAGE_EXTS, PSPMatError, open_source, read_fringe_image
@@ -490,7 +490,7 @@ def _write_refine_json(out: Path, refine: dict, unrefined: list[str]) -> None:
     if not merged:
         remove_own(out, PREDICT_TOOL, ["refine.json"])  # as a folder predicted without refinement: no refine.json
     elif refine or len(merged) < len(old):
-        atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
+        atomic_write_text(path, json_text(merged, indent=2, default=json_default))
         stamp(out, ["refine.json"])
 
 

@@ -62,7 +62,7 @@ from uhrnet.inference.prediction import fringe_phase, labels_at_input_size, read
 from fppsim.owned import output_folder
 from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.training.tb_log import RunLog, TB_FOLDER, check_event_files, remove_own_event_files, require_tensorboard
@@ -357,7 +357,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     with torch.no_grad():
         afters = [heights(batch(im)[0]) for im in images]
     _compare_images(result, images, sources, afters, before, layer.cpu(), cfg.figures)
-    atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
+    atomic_write_text(out / IMAGES_JSON, json_text(result.images, indent=2, default=json_default))
     return result
 
 
