@@ -57,8 +57,8 @@ def test_no_tool_writes_json_dumps_to_a_file_without_refusing_nan():
                 for inner in ast.walk(node):
                     if isinstance(inner, ast.Call) and isinstance(inner.func, ast.Attribute) \
                             and inner.func.attr == "dumps" and getattr(inner.func.value, "id", "") == "json":
-                        strict = any(k.arg == "allow_nan" and isinstance(k.value, ast.Constant) and k.value.value is False
-                                     for k in inner.keywords)
+                        strict = any(k.arg == "allow_nan" and isinstance(k.value, ast.Constant)
+                                     and k.value.value is False for k in inner.keywords)
                         if not strict:
                             offenders.append(f"{path.relative_to(ROOT)}:{inner.lineno}")
     assert not offenders, offenders
