@@ -3,13 +3,16 @@
 Every message is one line that names the culprit (a file, a flag value, a sample). The command line
 maps :class:`UsageError` (an option value that is wrong on its own) to exit status 2, like argparse's
 own errors, and every other :class:`FppsimError` to exit status 1. No library module imports the CLI.
+:func:`check_seed` lives here, below every stage, because both packages' configs check ``--seed`` with it.
 """
 
 from __future__ import annotations
 
+import numbers
+
 __all__ = ["FppsimError", "InputError", "DatasetError", "RigError", "MeshError", "PlyError", "GenerateError", "SampleError",
            "ValidateError", "ValidateUsageError", "ConfigError", "UsageError", "PSPMatError", "BackendError", "FolderBusy",
-           "ForeignFiles"]
+           "ForeignFiles", "check_seed"]
 
 
 class FppsimError(Exception):
@@ -81,3 +84,14 @@ class FolderBusy(FppsimError, RuntimeError):
 
 class ForeignFiles(DatasetError):
     """An output path a tool would write already holds a file it did not write (:mod:`fppsim.owned`)."""
+
+
+def check_seed(seed, what: str = "--seed", error: type[Exception] = InputError, most: int | None = None) -> int:
+    """``seed`` as an int when it is a whole number >= 0 (at most ``most`` where given), else ``error``, one line (a
+    command's config passes its usage error). numpy's ``SeedSequence`` takes any integer >= 0 and refuses a negative
+    one deep inside a run; torch's generators take at most 2**64 - 1 (``most``). bool and float are refused."""
+    if isinstance(seed, bool) or not isinstance(seed, numbers.Integral) or int(seed) < 0 \
+            or (most is not None and int(seed) > most):
+        bound = ">= 0" if most is None else f"from 0 to {most}"
+        raise error(f"{what} must be an integer {bound}, got {seed!r}")
+    return int(seed)

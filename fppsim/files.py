@@ -13,6 +13,7 @@ Rules this module implements:
 * SIGTERM (e.g. a Slurm timeout) is turned into :class:`Interrupted`, a ``KeyboardInterrupt``, so the
   same clean-up path as Ctrl-C runs (worker pools terminated, temp files removed) and the command exits
   ``128 + signum`` with one line.
+* Every JSON file either package writes is strict JSON (:func:`json_text`): a non-finite number is ``null``.
 """
 
 from __future__ import annotations
@@ -20,6 +21,8 @@ from __future__ import annotations
 import ctypes
 import json
 import errno
+import math
+import numbers
 import fcntl
 import os
 import re
@@ -118,6 +121,27 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` through :func:`atomic_path`."""
     return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def finite_or_null(value, default=None):
+    """``value`` with every non-finite float (NaN, +-inf; numpy's too) replaced by None, dicts, lists and tuples
+    walked; an object JSON does not know goes through ``default`` (``json.dumps``'s) first, then is walked."""
+    if value is None or isinstance(value, (str, bool, numbers.Integral)):
+        return value
+    if isinstance(value, numbers.Real):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_null(v, default) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_or_null(v, default) for v in value]
+    return value if default is None else finite_or_null(default(value), default)
+
+
+def json_text(doc, **dumps) -> str:
+    """``json.dumps(doc, **dumps)`` as strict JSON: Python writes a bare ``NaN`` / ``Infinity``, which strict
+    parsers (JavaScript, jq, most other languages) refuse, so a non-finite number comes out as ``null``;
+    ``allow_nan=False`` after that makes any that slips through a ValueError here, not a broken file."""
+    return json.dumps(finite_or_null(doc, dumps.get("default")), allow_nan=False, **dumps)
 
 
 def _owner_pid(name: str) -> int | None:

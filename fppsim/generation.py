@@ -28,16 +28,16 @@ from typing import Sequence
 
 
 from fppsim import __version__
-from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError
+from fppsim.errors import ConfigError, DatasetError, GenerateError, MeshError, SampleError, UsageError, InputError, check_seed
 from fppsim.threads import check_cores
-from fppsim.files import atomic_write_text, die_with_parent, ignore_sigint, signals_raise, tmp_path
+from fppsim.files import atomic_write_text, die_with_parent, json_text, ignore_sigint, signals_raise, tmp_path
 from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, finished_indices,
                                    foreign_sample_folders, manifest_record, read_settings, reconcile, sample_id)
 from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_shards, dataset_files,
                                           discard_empty_dataset, legacy_files)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
-from fppsim.rendering.synth import SynthConfig, check_seed, synthesize
+from fppsim.rendering.synth import SynthConfig, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
                                    write_sample_folder)
 from fppsim.dataio.readers import open_source
@@ -417,7 +417,7 @@ def _settings_diff(folder: Path, settings: dict) -> list[str]:
         old = read_settings(folder)
     except DatasetError:
         raise GenerateError(f"{folder / SETTINGS_FILE} is corrupt: remove it or use a new --out") from None
-    return [k for k in settings if k != "version" and old.get(k) != json.loads(json.dumps(settings[k]))]
+    return [k for k in settings if k != "version" and old.get(k) != json.loads(json_text(settings[k]))]
 
 
 def _claim_dataset(out: Path, native: Path, has_samples: bool, settings: dict, names, what: str) -> list[str]:
@@ -457,7 +457,7 @@ def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, previe
     created = bool(diff) or not (native / SETTINGS_FILE).is_file()
     if created:
         native.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(native / SETTINGS_FILE, json.dumps(settings, indent=1))
+        atomic_write_text(native / SETTINGS_FILE, json_text(settings, indent=1))
     return wanted, done, created
 
 
@@ -613,7 +613,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
                                "these shards into it")
         target.mkdir(parents=True, exist_ok=True)
         if not (target / SETTINGS_FILE).is_file():
-            atomic_write_text(target / SETTINGS_FILE, json.dumps({**settings, "version": __version__}, indent=1))
+            atomic_write_text(target / SETTINGS_FILE, json_text({**settings, "version": __version__}, indent=1))
         return _merge(out, target, natives, settings, fmt, link)
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Callable, Iterable, Iterator
 
 from fppsim.errors import ForeignFiles
-from fppsim.files import atomic_write_text, check_writable_dir, clean_stale_tmp, folder_lock, unlink_quietly
+from fppsim.files import atomic_write_text, check_writable_dir, json_text, clean_stale_tmp, folder_lock, unlink_quietly
 
 __all__ = ["RECORD", "ForeignFiles", "owners", "claim", "stamp", "record_created", "forget", "remove_own", "output_folder",
            "same_folder"]
@@ -78,7 +78,7 @@ def _write(folder: Path, record: dict[str, str], stamps: dict[str, list] | None 
         doc = {"files": dict(sorted(record.items()))}
         if stamps:
             doc["stamps"] = dict(sorted(stamps.items()))
-        atomic_write_text(folder / RECORD, json.dumps(doc, indent=1))
+        atomic_write_text(folder / RECORD, json_text(doc, indent=1))
     else:
         unlink_quietly(folder / RECORD)
 

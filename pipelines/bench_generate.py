@@ -178,7 +178,7 @@ def main(argv=None) -> int:
         print(f"--workers 2 --no-psp --format figshare, {args.workers_count} samples: {rate:.2f} samples/s wall; "
               f"{1000 * cpu:.0f} ms CPU per sample = {2.0 / cpu:.2f} samples/s on two idle cores")
     if args.json:
-        Path(args.json).write_text(json.dumps(result, indent=1))
+        Path(args.json).write_text(json.dumps(result, indent=1, allow_nan=False))  # strict; runs in old trees too
     return 0
 
 

@@ -353,9 +353,10 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
         ax = fig.add_subplot(gs[0, :half] if k == 0 else gs[0, half:])
         vals = [a["results"]["phase"]["rmse_rad"] if key == "phase" else a["results"]["heldout"]["mean"]["object_rmse_mm"]
                 for a in arms]
+        vals = [np.nan if v is None else v for v in vals]  # None: null in the JSON read back, not measured
         ax.bar(range(n), vals, color=[f"C{i}" for i in range(n)])
         flat = arms[0]["results"]["phase"][flat_key] if key == "phase" else arms[0]["results"]["heldout"]["mean"][flat_key]
-        ax.axhline(flat, color="k", ls="--", lw=1, label="plane predictor")
+        ax.axhline(np.nan if flat is None else flat, color="k", ls="--", lw=1, label="plane predictor")
         ax.set_xticks(range(n), names, rotation=20, fontsize=8)
         ax.set_title(title)
         ax.legend(fontsize=8)
@@ -384,7 +385,7 @@ def figure(doc: dict, out: Path, heldout_labels: Path) -> Path:
 
 # ============================================================================================ main
 def run(args, argv: list[str]) -> dict:
-    from fppsim.files import atomic_write_text, folder_lock
+    from fppsim.files import atomic_write_text, folder_lock, json_text
     from uhrnet.checkpoint import checkpoint_file
     from uhrnet.data.datasets import load_sources
 
@@ -474,7 +475,7 @@ def run(args, argv: list[str]) -> dict:
                 a["results"][key] = {"mean": a["results"][key]["mean"], "images": a["results"][key]["images"],
                                      "file": str(Path(a["eval"]) / key / "real_metrics.json")}
         figure(doc, out, heldout_labels)
-        atomic_write_text(out / "report.json", json.dumps(doc, indent=1, default=str, allow_nan=True))
+        atomic_write_text(out / "report.json", json_text(doc, indent=1, default=str))
         atomic_write_text(out / "report.md", markdown(doc))
     return doc
 

@@ -154,7 +154,9 @@ def collect(out: Path) -> dict:
         steps[name] = json.loads(f.read_text()) if f.is_file() else {"skipped": "did not run or failed"}
     report = {"kind": "gpu_bench", "device": device, "tiny_dry_run": TINY, "python": platform.python_version(),
               **versions, "steps": steps}
-    (out / "gpu_bench.json").write_text(json.dumps(report, indent=1) + "\n")
+    from fppsim.files import json_text  # lazily, as uhrnet: the checkout comes on PYTHONPATH
+
+    (out / "gpu_bench.json").write_text(json_text(report, indent=1) + "\n")
     return report
 
 
@@ -171,7 +173,9 @@ def main(argv: list[str]) -> int:
         return 0
     target.mkdir(parents=True, exist_ok=True)
     result = step_bench(target) if step == "bench" else step_epoch(target)
-    (target / f"step_{step}.json").write_text(json.dumps(result, indent=1) + "\n")
+    from fppsim.files import json_text  # lazily, as uhrnet: the checkout comes on PYTHONPATH
+
+    (target / f"step_{step}.json").write_text(json_text(result, indent=1) + "\n")
     print(json.dumps(result, indent=1)[:3000])
     return 0
 

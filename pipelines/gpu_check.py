@@ -41,6 +41,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # fppsim from the checkout (run as a script)
 
+from fppsim.files import json_text  # noqa: E402
+
 PAPER_MS = {"uhrnet": 22.4, "unet": 8.1, "hnet": None}  # Table 3 of the paper, an RTX 2080 Ti
 
 
@@ -187,10 +189,10 @@ def begin(out: Path) -> None:
         kept["work"] = TOOL
     claimed = time.time()  # before the folders are claimed: every path a step writes there changes later
     try:
-        atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted({**kept, **{n: TOOL for n in FILES},
+        atomic_write_text(out / RECORD, json_text({"files": dict(sorted({**kept, **{n: TOOL for n in FILES},
                                                                           **{t: WRITING for t in TREES}}.items()))},
                                                    indent=1))
-        (out / MARKER).write_text(json.dumps({"claimed": claimed}) + "\n")
+        (out / MARKER).write_text(json_text({"claimed": claimed}) + "\n")
     except OSError as exc:
         raise Refused(f"{out}: cannot write there ({exc.strerror})") from None
 
@@ -210,7 +212,7 @@ def settle(out: Path) -> dict[str, str]:
                 new.update({f"{name}/{rel}": TOOL for rel in _walk(out / name)})
         elif tool != TOOL or _exists(out / name):
             new[name] = tool
-    atomic_write_text(out / RECORD, json.dumps({"files": dict(sorted(new.items()))}, indent=1))
+    atomic_write_text(out / RECORD, json_text({"files": dict(sorted(new.items()))}, indent=1))
     return new
 
 
@@ -328,7 +330,7 @@ def env(out: Path, budget: str, tiny: str, gl: str) -> dict:
             "cuda": torch.version.cuda, "python": platform.python_version(), "cpu_cores": os.cpu_count(),
             "gl_platform": gl, "budget_s": int(budget), "tiny_dry_run": tiny not in ("", "0"),
             "started_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime())}
-    (out / "step_env.json").write_text(json.dumps(info, indent=1) + "\n")
+    (out / "step_env.json").write_text(json_text(info, indent=1) + "\n")
     return info
 
 
@@ -338,7 +340,7 @@ def step(out: Path, name: str, rc: str, start: str, limit: str) -> dict:
     log = out / f"{name}.log"
     if log.is_file():
         res["log_tail"] = log.read_text(errors="replace").splitlines()[-4:]
-    (out / f"step_{name}.json").write_text(json.dumps(res, indent=1) + "\n")
+    (out / f"step_{name}.json").write_text(json_text(res, indent=1) + "\n")
     return res
 
 
@@ -410,7 +412,7 @@ def report(out: Path) -> dict:
                          "minutes": [x.get("minutes") for x in a["seeds"]],
                          "pair_object_rmse_mm": a["summary"].get("pair_object_rmse_mm"),
                          "phase_residual_rad": a["summary"].get("phase_residual_rad")} for a in study["arms"]]
-    (out / "gpu_check.json").write_text(json.dumps(res, indent=1) + "\n")
+    (out / "gpu_check.json").write_text(json_text(res, indent=1) + "\n")
     (out / "gpu_check.md").write_text(markdown(res))
     return res
 
@@ -483,9 +485,12 @@ def markdown(res: dict) -> str:
                       f"checkpoint written: {d['checkpoint_written']}."]
     if "sim2real" in res:
         s = res["sim2real"]
-        ph = ", ".join(f"{k} {v:.3f} rad" for k, v in s["phase_residual_rad"].items())
+        def num(x, spec):  # None: not measured (null in the report.json read back)
+            return "n/a" if x is None else format(x, spec)
+
+        ph = ", ".join(f"{k} {num(v, '.3f')} rad" for k, v in s["phase_residual_rad"].items())
         lines += ["", f"Sim-to-real point: {s['model']}, {s['samples']} samples, {s['epochs']} epochs: real pair "
-                      f"object RMSE **{s['pair_object_rmse_mm']:.2f} mm**" + (f"; phase residual {ph}" if ph else "")
+                      f"object RMSE **{num(s['pair_object_rmse_mm'], '.2f')} mm**" + (f"; phase residual {ph}" if ph else "")
                   + "."]
     return "\n".join(lines) + "\n"
 

@@ -42,6 +42,7 @@ sys.path.insert(0, str(ROOT))  # the checkout's uhrnet (run as a script)
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from fppsim.files import json_text  # noqa: E402
 from uhrnet.models import outputs_of  # noqa: E402
 from uhrnet.training import builders  # noqa: E402
 from uhrnet.training.distributed import DistInfo  # noqa: E402
@@ -218,7 +219,7 @@ def main(argv=None) -> int:
                              recipe_amp=args.recipe_amp and name == "after")
     rec = report(runs["before"], runs["after"], commit=commit_of(args.commit), device=device, tiny=args.tiny,
                  sizes=sizes)
-    text = json.dumps(rec, indent=1) + "\n"
+    text = json_text(rec, indent=1) + "\n"
     (args.out / "speed.json").write_text(text)
     args.bench_dir.mkdir(parents=True, exist_ok=True)
     dest = args.bench_dir / bench_name(device, time.time())

@@ -46,7 +46,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
-from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.files import atomic_write_text, json_text  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from uhrnet.data.datasets import parse_size  # noqa: E402
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
                                 out / "pair_first_run.png", title=f"{run}: the pair on black")
             print(f"{run} pair: network {pair_rows[-1]['network']['rmse_mm']:.2f} mm, "
                   f"path {pair_rows[-1]['path']['rmse_mm']:.2f} mm", flush=True)
-    atomic_write_text(out / "noplane_heights.json", json.dumps(
+    atomic_write_text(out / "noplane_heights.json", json_text(
         {"rig": args.rig, "frames": args.frames, "rows": rows, "pair": args.pair,
          "pair_background": args.pair_background, "pair_rows": pair_rows}, indent=1))
     md = (f"# Heights through {args.rig} on {args.frames}\n\n" + table(

@@ -37,7 +37,7 @@ from fppsim.dataio.encoding import encode_fringe  # noqa: E402
 from fppsim.dataio.readers.samples import load_native_sample  # noqa: E402
 from fppsim.dataio.rig_choice import dataset_rig  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
-from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.files import atomic_write_text, json_text  # noqa: E402
 from fppsim.owned import claim, output_folder, same_folder, stamp  # noqa: E402
 from fppsim.geometry.rig import load_rig  # noqa: E402
 from orders_study import network, pair_scores, path  # noqa: E402
@@ -174,7 +174,7 @@ def run(args) -> int:
                 print(f"{run_name} {f.name}: right order {rows[-1]['net_right_order']:.3f} -> "
                       f"{rows[-1]['path_right_order']:.3f}", flush=True)
             result["runs"][run_name] = {"scenes": rows, "summary": summary(rows)}
-        atomic_write_text(out / "rendered.json", json.dumps(result, indent=1))
+        atomic_write_text(out / "rendered.json", json_text(result, indent=1))
         atomic_write_text(out / "rendered.md", report(result))
         stamp(out, ["rendered.json", "rendered.md"])  # edited later, they are no longer this tool's to replace
         print(report(result))

@@ -46,7 +46,7 @@ sys.path.insert(0, str(ROOT))
 
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
-from fppsim.files import atomic_write_text  # noqa: E402
+from fppsim.files import atomic_write_text, json_text  # noqa: E402
 from fppsim.owned import claim, output_folder, same_folder, stamp  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
@@ -295,7 +295,7 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
         results.append(row)
         print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
                           "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}}), flush=True)
-    atomic_write_text(out / "orders.json", json.dumps(results, indent=1, default=float))
+    atomic_write_text(out / "orders.json", json_text(results, indent=1, default=float))
     atomic_write_text(out / "orders.md", markdown(results))
     done += ["orders.json", "orders.md"]
     print(markdown(results))

@@ -12,8 +12,9 @@ import pytest
 
 from uhrnet.workflows.scaling.arms import UsageProblem, arm_key, arm_label, load_arms, select_arms
 from uhrnet.workflows.scaling.ledger import (
-    add_seed, check_finite, definition_conflict, finite, load_ledger, merge_records, write_ledger,
+    add_seed, check_finite, definition_conflict, load_ledger, merge_records, write_ledger,
 )
+from fppsim.files import finite_or_null
 from uhrnet.workflows.scaling.report import TABLE_MARK, markdown
 from uhrnet.workflows.scaling.results import result_line, seed_result, write_seed_record
 from uhrnet.workflows.scaling.stats import compare, mean_std, series_slope, summarise
@@ -119,7 +120,7 @@ def test_add_seed_keeps_every_result_and_refuses_another_definition():
         add_seed(entries, _meta(count=8), {"seed": 2}, "here")
     # another machine's checkout: absolute paths compare by their name
     assert definition_conflict({"generate": ["--rig", "/a/x.json"]}, {"generate": ["--rig", "/b/x.json"]}) is None
-    assert finite({"a": [1.0, float("nan")], "b": float("inf"), "c": "t"}) == {"a": [1.0, None], "b": None, "c": "t"}
+    assert finite_or_null({"a": [1.0, float("nan")], "b": float("inf"), "c": "t"}) == {"a": [1.0, None], "b": None, "c": "t"}
     with pytest.raises(UsageProblem, match="where: holds a non-finite number"):
         check_finite({"x": [1.0, float("nan")]}, "where")
 

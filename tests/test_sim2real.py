@@ -258,6 +258,14 @@ def test_markdown_report_rows():
     report["variants"][0]["synthetic_level"] = {"slope": -0.98, "intercept_mm": 30.4, "prior_level_mm": 31.02}
     row = [line for line in markdown_report(report).splitlines() if line.startswith("| base")][0]
     assert "| -0.98 / 31.0 |" in row
+    # read back from real_metrics.json / synthetic_level.json, a metric that was not measured is null (None): a
+    # blank cell, as NaN was (it was a TypeError on the resumed run's report)
+    report["variants"][0]["real"] = {**real, "object_rmse_mm": None, "true_object_mean_mm": None,
+                                     "pred_object_mean_mm": None, "relief_effect_mm": None}
+    report["variants"][0]["synthetic_level"] = {"slope": None, "prior_level_mm": None}
+    row = [line for line in markdown_report(report).splitlines() if line.startswith("| base")][0]
+    cells = [c.strip() for c in row.split("|")[1:-1]]
+    assert cells[3] == "" and cells[4] == "5.00" and cells[6] == "/" and cells[7] == "" and cells[9] == ""
 
 
 def test_evaluate_real_writes_metrics_predictions_and_figure(tmp_path):
@@ -279,6 +287,22 @@ def test_evaluate_real_writes_metrics_predictions_and_figure(tmp_path):
     assert (tmp_path / "ev" / "real_metrics.json").is_file()
     with pytest.raises(Sim2RealError, match="no labelled real samples"):
         evaluate_real(run / "last.pt", [str(tmp_path)], tmp_path / "ev2")
+    # a pair whose label is the plane alone has no object pixel: its object metrics are not numbers, and the
+    # file holds null for them (strict JSON), the measured ones as numbers
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    np.save(flat / "f1_80.npy", fr[:1])
+    np.save(flat / "Z.npy", np.full_like(z[:1], -97.0))
+    assert not object_mask(np.full(z.shape[1:3], -97.0), np.ones(z.shape[1:3], bool), 6.0, 1.0)[0].any()
+    with pytest.warns(RuntimeWarning):  # nanmean of no number
+        doc = evaluate_real(run / "last.pt", [str(flat)], tmp_path / "evf", figures=False)
+    import json
+
+    text = (tmp_path / "evf" / "real_metrics.json").read_text()
+    back = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    assert np.isnan(doc["mean"]["object_rmse_mm"]) and back["mean"]["object_rmse_mm"] is None
+    assert back["per_image"][0]["object_coverage"] is None and back["per_image"][0]["object_fraction"] == 0.0
+    assert back["mean"]["valid_rmse_mm"] == pytest.approx(doc["mean"]["valid_rmse_mm"]) and "NaN" not in text
 
 
 @pytest.mark.skipif(not (REAL_SAMPLE / "height_map.npy").is_file(), reason="../shared/real-sample absent")

@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Callable
 
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from uhrnet.plots import plot_history  # matplotlib itself loads only when a history is drawn (plots.pyplot)
 from fppsim.geometry.rig import data_path
 from fppsim.owned import ForeignFiles, claim, owners, same_folder
@@ -139,7 +139,7 @@ def default_meshes(shared: str | Path | None = None) -> list[str]:
 # ---------------------------------------------------------------------------------------------- writing a run
 def write_run_config(out: Path, config: dict) -> None:
     """``out/config.json``: the resolved options and what they were resolved to."""
-    atomic_write_text(out / CONFIG_JSON, json.dumps(config, indent=2, default=json_default))
+    atomic_write_text(out / CONFIG_JSON, json_text(config, indent=2, default=json_default))
 
 
 def check_run_folder(out: Path, resume, overwrite: bool) -> str:

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import DatasetError
-from fppsim.files import atomic_write_text, clean_stale_tmp
+from fppsim.files import atomic_write_text, clean_stale_tmp, json_text
 
 __all__ = [
     "psp_freq", "psp_image_name", "LabelTransform", "PRESETS", "DatasetError", "LEGACY_LABEL_KEYS",
@@ -269,7 +269,7 @@ def reconcile(root: str | os.PathLike) -> list[dict]:
             except (ValueError, KeyError, TypeError):
                 continue  # not a finished sample of ours: not counted, never deleted
         records.append(rec)
-    atomic_write_text(root / "manifest.jsonl", "".join(json.dumps(r) + "\n" for r in records))
+    atomic_write_text(root / "manifest.jsonl", "".join(json_text(r) + "\n" for r in records))
     return records
 
 
@@ -317,7 +317,7 @@ def manifest_ids(root: str | os.PathLike) -> list[str]:
 
 def append_manifest(root: Path, record: dict) -> None:
     with open(root / "manifest.jsonl", "a") as fh:
-        fh.write(json.dumps(record) + "\n")
+        fh.write(json_text(record) + "\n")
         fh.flush()
         os.fsync(fh.fileno())
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe, encode_png, save_npz
 from fppsim.errors import DatasetError, PSPMatError, InputError
-from fppsim.files import atomic_path, clean_stale_tmp, tmp_path, write_fully
+from fppsim.files import atomic_path, clean_stale_tmp, json_text, tmp_path, write_fully
 from fppsim.dataio.formats import LabelTransform, is_own_sample, read_manifest
 from fppsim.dataio.readers import FOLDERS, check_convention, load_native_sample, wrapped_from_sums
 
@@ -59,7 +59,7 @@ def write_sample_folder(root: Path, sid: str, images: dict, arrays: dict, meta: 
         for rel, img in images.items():
             (tmp / rel).write_bytes(encode_png(img))
         save_npz(tmp / "arrays.npz", arrays)
-        (tmp / "meta.json").write_text(json.dumps(meta, indent=1))
+        (tmp / "meta.json").write_text(json_text(meta, indent=1))
         if final.exists():
             if not is_own_sample(final):  # never replace (or count) a folder we did not write
                 raise DatasetError(f"{final} exists but is not a finished fppsim sample: move it away")

@@ -49,7 +49,7 @@ import os
 import numpy as np
 
 from fppsim.dataio.encoding import json_default
-from fppsim.files import JSON_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
+from fppsim.files import JSON_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text
 from fppsim.dataio.formats import PRESETS, LabelTransform
 from fppsim.phase.measure import estimate_period, fringe_modulation, fringe_tilt, quarter_periods
 from fppsim.phase.fringe_axis import fringe_orientation
@@ -195,7 +195,7 @@ def compare_real(real_dir, syn_dir, max_samples: int | None = 50, label: LabelTr
     result = {"real": real, "synthetic": syn, "difference": diff,
               "preset": {**label.to_dict(), "object_mm": object_mm}}
     if json_path is not None:
-        atomic_write_text(json_path, json.dumps(result, indent=1, default=json_default))
+        atomic_write_text(json_path, json_text(result, indent=1, default=json_default))
     return result
 
 

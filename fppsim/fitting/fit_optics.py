@@ -48,8 +48,9 @@ from typing import Callable, Sequence
 import numpy as np
 
 from fppsim.commands import ReportLines
-from fppsim.errors import InputError, RigError, UsageError
-from fppsim.files import JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, starts_with
+from fppsim.errors import InputError, RigError, UsageError, check_seed
+from fppsim.files import (JSON_SUFFIXES, YAML_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text,
+                          starts_with)
 from fppsim.rendering.optics import Optics, OpticsRanges, optical_image, projector_radiance
 from fppsim.dataio.readers import check_read_convention, load_fringe_images
 from fppsim.rendering.render import plane_geometry, projector_incidence
@@ -565,6 +566,7 @@ class FitOpticsConfig:
     def __post_init__(self):
         if self.max_images < 1 or self.compare < 0:
             raise UsageError(f"--max-images must be >= 1 and --compare >= 0, got {self.max_images} and {self.compare}")
+        check_seed(self.seed, error=UsageError)  # else a bad seed failed only after the fit, in the compare renders
         check_read_convention(self.convention)
 
 
@@ -623,7 +625,7 @@ def fit_optics_images(config: FitOpticsConfig, echo: Callable[[str], None] | Non
     atomic_write_text(out, ranges_yaml(fit))
     say(f"optics ranges: {out}")
     if config.json:
-        atomic_write_text(config.json, json.dumps(fit.to_dict(), indent=1))
+        atomic_write_text(config.json, json_text(fit.to_dict(), indent=1))
     comparison = None
     if config.compare and not any(im.height_mm is not None for im in images):
         say(f"--compare skipped: the images carry no height labels ({layout}), which compare-real's statistics need")

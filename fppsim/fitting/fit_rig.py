@@ -37,7 +37,7 @@ import numpy as np
 
 from fppsim.commands import ReportLines
 from fppsim.errors import UsageError
-from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, fit_rig_periods, format_fit,
                                         measure_bands)
@@ -276,5 +276,5 @@ def fit_rig_images(config: FitRigConfig, echo: Callable[[str], None] | None = No
     say(f"rig: {out}")
     result = FitRigResult(layout, len(images), fit, bfit, out, list(lines), dfit)
     if config.json:
-        atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
+        atomic_write_text(config.json, json_text(result.to_dict(), indent=1))
     return result

@@ -53,7 +53,7 @@ import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe, json_default
 from fppsim.errors import ConfigError, DatasetError, UsageError
-from fppsim.files import atomic_write_text, tmp_path
+from fppsim.files import atomic_write_text, json_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform
 from fppsim.owned import claim, output_folder, owners, same_folder
 from fppsim.phase.psp import decode_stacks
@@ -630,5 +630,5 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
         warning = _rig_warning(report, cfg)
         if warning:
             report.warnings.append(warning)
-        atomic_write_text(out / REPORT_NAME, json.dumps(report.to_dict("done"), indent=1, default=json_default))
+        atomic_write_text(out / REPORT_NAME, json_text(report.to_dict("done"), indent=1, default=json_default))
     return report

@@ -48,7 +48,7 @@ from fppsim.commands import ReportLines
 from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.readers.samples import pick_evenly
 from fppsim.errors import RigError, UsageError, InputError
-from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys
+from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text
 from fppsim.geometry.rig_files import save_rig
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
@@ -617,5 +617,5 @@ def fit_rig_from_images(config: StartRigConfig, echo=None) -> StartFitResult:
     say(f"rig: {out}")
     result = StartFitResult(start, rig, out, list(lines), fit, bfit, dfit, scenes)
     if config.json:
-        atomic_write_text(config.json, json.dumps(result.to_dict(), indent=1))
+        atomic_write_text(config.json, json_text(result.to_dict(), indent=1))
     return result

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fppsim.errors import RigError
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 
 __all__ = ["checked_matrix", "read_rig_file", "save_rig", "rig_from_opencv_stereo", "rotation_to_plane_frame"]
 
@@ -68,7 +68,7 @@ def save_rig(doc: dict, path: str | os.PathLike) -> None:
         import yaml
         text = yaml.safe_dump(doc, sort_keys=False)
     else:
-        text = json.dumps(doc, indent=2)
+        text = json_text(doc, indent=2)
     atomic_write_text(path, text)
 
 

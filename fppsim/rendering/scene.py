@@ -117,6 +117,9 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     path = str(path)
     if not os.path.isfile(path):
         raise MeshError(f"{path}: not a readable file (a broken link?)")
+    if os.path.getsize(path) == 0:  # trimesh's own reason for one is an IndexError (.glb) or a parse error
+        raise MeshError(f"{path}: an empty file (0 bytes), not a mesh")
+    kind = Path(path).suffix[1:].upper() or "mesh"
     try:
         if path.lower().endswith(".ply") and ply_has_tristrips(path):  # trimesh ignores triangle strips
             v, f = read_ply_tristrips(path)
@@ -126,10 +129,11 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     except PlyError as exc:
         raise MeshError(str(exc)) from None
     except ImportError:  # trimesh guesses the text encoding of undecodable bytes with an optional module
-        raise MeshError(f"{path}: unreadable (not a valid {Path(path).suffix or 'mesh'} file: its content is "
-                        "binary or garbage, not mesh text)") from None
-    except Exception as exc:
-        raise MeshError(f"{path}: unreadable ({type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''})") from None
+        raise MeshError(f"{path}: not a readable {kind} file (its content is binary or garbage, not mesh "
+                        "text)") from None
+    except Exception as exc:  # the reader's own words stay as a detail: they say where it stopped
+        detail = f"{type(exc).__name__}: {str(exc).splitlines()[0]}" if str(exc) else type(exc).__name__
+        raise MeshError(f"{path}: not a readable {kind} file (the reader stopped with {detail})") from None
     if not isinstance(loaded, trimesh.Trimesh):
         raise MeshError(f"{path}: no triangle mesh found")
     return asset_from_arrays(loaded.vertices, loaded.faces, path, flat_ratio)

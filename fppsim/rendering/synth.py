@@ -12,7 +12,7 @@ from dataclasses import dataclass, field, replace as dc_replace
 import numpy as np
 
 from fppsim import __version__
-from fppsim.errors import InputError, SampleError
+from fppsim.errors import SampleError
 from fppsim.rendering.optics import OpticsRanges, form_images, fringe_pixels, noise_source
 from fppsim.rendering.render import DepthRenderer, scene_geometry
 from fppsim.geometry.jitter import RigJitter, jitter_rig
@@ -21,16 +21,7 @@ from fppsim.rendering.scene import MeshAsset, SceneRanges, sample_scene
 from fppsim.phase.psp import decode_stacks
 from fppsim.dataio.formats import psp_freq, psp_image_name
 
-__all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode", "check_seed"]
-
-
-def check_seed(seed, what: str = "--seed", error: type[Exception] = InputError) -> int:
-    """``seed`` as an int when numpy's generators take it, else ``error`` (one line; a command's config passes its
-    usage error): numpy's ``SeedSequence`` takes any integer >= 0 (no upper limit), and refuses a negative one
-    deep inside a run."""
-    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or int(seed) < 0:
-        raise error(f"{what} must be an integer >= 0, got {seed!r}")
-    return int(seed)
+__all__ = ["SynthConfig", "SampleError", "synthesize", "psp_decode"]
 
 
 @dataclass

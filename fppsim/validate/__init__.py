@@ -58,17 +58,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
-from fppsim.errors import ConfigError, ValidateError, ValidateUsageError
+from fppsim.errors import ConfigError, ValidateError, ValidateUsageError, check_seed
 from fppsim.dataio.formats import SETTINGS_FILE, sample_id
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.owned import claim, forget, output_folder
 from fppsim.validate.report import (VALIDATE_TOOL, format_sweep_table, format_table, own_report_files, read_dataset_settings,
                                     read_records, report_files, resolve_dataset, validate_dataset, write_error_map)
 from fppsim.validate.sample import ORDER_ERROR_RAD, evaluate_sample
 from fppsim.validate.sweep import DEFAULT_SWEEP, SWEEP_ALIASES, config_from_settings, parse_sweep, ranges_with, sweep_settings
 from fppsim.generation import GenerateConfig, generate_dataset
-from fppsim.rendering.synth import check_seed
 
 __all__ = [
     "SWEEP_ALIASES", "DEFAULT_SWEEP", "ORDER_ERROR_RAD", "ValidateError", "ValidateUsageError", "VALIDATE_TOOL", "resolve_dataset", "evaluate_sample",
@@ -220,7 +219,7 @@ def _render_and_validate(config: ValidateConfig, out: Path, settings, synth, mes
             "config": synth.to_dict(), "rig": synth.rig.to_dict(),
             "rows": rows,
         }
-        atomic_write_text(out / "report.json", json.dumps(sweep_report, indent=1, default=json_default))
+        atomic_write_text(out / "report.json", json_text(sweep_report, indent=1, default=json_default))
         return sweep_report
     finally:
         if tmp is not None:

@@ -21,7 +21,7 @@ import numpy as np
 from fppsim.fitting.compare import format_value
 from fppsim.errors import DatasetError, ValidateError
 from fppsim.dataio.encoding import json_default, png_size
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import read_manifest, read_settings
 from fppsim.dataio.readers import load_native_sample, open_source, read_native_psp
@@ -318,7 +318,7 @@ def _validate_records(root: Path, records, settings, out: Path, maps, progress, 
         "samples": samples,
         "aggregate": pool.result(len(samples)),
     }
-    atomic_write_text(out / "report.json", json.dumps(report, indent=1, default=json_default))
+    atomic_write_text(out / "report.json", json_text(report, indent=1, default=json_default))
     return report
 
 

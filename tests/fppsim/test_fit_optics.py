@@ -327,3 +327,17 @@ def test_frames_of_another_size_than_the_rig_are_one_line(tmp_path, capsys):
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
     assert len(err) == 1 and "frames: a: image is 300 x 200 px" in err[0] and "--rig" in err[0], err
     assert not (tmp_path / "o.yaml").exists()
+
+
+@pytest.mark.parametrize("seed", [-1, 1.5, True, "3", None])
+def test_fit_optics_refuses_a_bad_seed_before_fitting(tmp_path, seed):
+    """The --compare renders' seed is checked with the fit's other options (as generate checks it), not only
+    after the fit inside the renders; numpy's generators are the truth for -1 and 1.5."""
+    from fppsim.errors import UsageError
+
+    if seed in (-1, 1.5):
+        with pytest.raises((ValueError, TypeError)):
+            np.random.SeedSequence(seed)
+    with pytest.raises(UsageError, match=r"^--seed must be an integer >= 0, got "):
+        fo.FitOpticsConfig(real=tmp_path, out=tmp_path / "o.yaml", seed=seed)
+    assert fo.FitOpticsConfig(real=tmp_path, out=tmp_path / "o.yaml", seed=2**40).seed == 2**40

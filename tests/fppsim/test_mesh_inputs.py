@@ -145,3 +145,34 @@ def test_a_link_into_the_folders_own_tree_changes_no_name_nor_order(tmp_path):
     before = find_meshes([meshes])
     os.symlink(meshes / "sub", meshes / "0link")
     assert find_meshes([meshes]) == before == [str(meshes / "b.obj"), str(meshes / "sub" / "x.obj")]
+
+
+@pytest.mark.parametrize("name", ["empty.glb", "empty.obj", "empty.ply", "empty.stl", "empty.off"])
+def test_a_zero_byte_mesh_is_named_as_empty(tmp_path, name, capsys):
+    """A 0-byte mesh file is named as empty, not by its reader's own IndexError or parse error."""
+    from fppsim.cli import main
+
+    p = tmp_path / name
+    p.write_bytes(b"")
+    assert os.path.getsize(p) == 0
+    if name == "empty.glb":  # the truth behind the old message: trimesh's own reason is an IndexError
+        with pytest.raises(IndexError):
+            trimesh.load(str(p), force="mesh", process=False)
+    with pytest.raises(MeshError, match=rf"^{p}: an empty file \(0 bytes\), not a mesh$"):
+        load_mesh(p)
+    argv = ["generate", "-q", "--no-preview", "--meshes", str(p), "--out", str(tmp_path / "o"), "--count", "1"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == f"fppsim generate: error: no usable mesh ({p}: an empty file (0 bytes), not a mesh)"
+
+
+def test_an_unparsable_mesh_says_it_is_not_a_readable_file_of_its_format(tmp_path):
+    cases = {"bad.glb": b"glTF\x02\x00\x00\x00garbage!", "bad.ply": b"ply\nformat ascii 1.0\nelement vertex 3\n"
+             b"end_header\n1 2\n", "bad.off": b"nonsense\n"}
+    for name, data in cases.items():
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(MeshError) as e:
+            load_mesh(tmp_path / name)
+        kind = name.split(".")[1].upper()
+        assert str(e.value).startswith(f"{tmp_path / name}: not a readable {kind} file (the reader stopped with ")
+        assert "\n" not in str(e.value)

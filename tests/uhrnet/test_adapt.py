@@ -200,3 +200,26 @@ def test_adapt_refuses_a_negative_seed(setup, tmp_path, capsys):
     assert main(["adapt", str(run), "--images", str(tmp / "real"), "--out", str(tmp_path / "o"), "--seed", "-1"]) == 2
     err = capsys.readouterr().err.strip()
     assert "--seed" in err and "\n" not in err and not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("seed", [True, 1.5, "3", 3.0, None, 2**64])
+def test_adapt_refuses_a_seed_that_is_no_torch_seed(setup, tmp_path, seed):
+    """adapt's seed is one torch.Generator's: a whole number from 0 to 2**64 - 1 (the check generate's configs use);
+    True, 3.0, None were taken or failed as a TypeError, 2**64 a ValueError traceback after config.json was written."""
+    tmp, run, rig = setup
+    if isinstance(seed, int) and not isinstance(seed, bool):  # the truth: torch refuses it, and takes one less
+        with pytest.raises((ValueError, RuntimeError)):
+            torch.Generator().manual_seed(seed)
+        torch.Generator().manual_seed(seed - 1)
+    with pytest.raises(ConfigError, match=r"^--seed must be an integer from 0 to 18446744073709551615, got "):
+        _cfg(tmp, run, tmp_path / "o", seed=seed)
+    assert AdaptConfig(checkpoint=run, images=[tmp / "real"], out=tmp_path / "o", seed=2**64 - 1).seed == 2**64 - 1
+
+
+def test_adapt_refuses_a_seed_above_torchs_before_writing(setup, tmp_path, capsys):
+    tmp, run, rig = setup
+    assert main(["adapt", str(run), "--images", str(tmp / "real"), "--out", str(tmp_path / "o"),
+                 "--seed", str(2**64)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("uhrnet adapt: error: --seed must be an integer from 0 to") and "\n" not in err
+    assert not (tmp_path / "o").exists()

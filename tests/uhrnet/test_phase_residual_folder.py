@@ -345,3 +345,29 @@ def test_refine_says_which_regions_it_could_not_decide(setup, tmp_path, capsys, 
                     "decide: the network's heights stay there"]
     rec = {r["id"]: r for r in json.loads((out / "phase_results.json").read_text())["per_image"]}
     assert rec["1"]["undecided"] == {"tiny": {"regions": 2, "fraction": 0.25}} and "undecided" not in rec["0"]
+
+
+def test_the_report_is_strict_json_with_null_where_a_number_cannot_be_computed(setup, tmp_path):
+    """The flat baseline (h = 0) has no height term, so its mm equivalent (residual / |a|) is undefined, and a rig
+    with no plane in view leaves every plane-pixel score unmeasured: null in phase_results.json, never the bare NaN
+    Python writes, which a strict parser refuses (every report held NaN until the report became strict JSON)."""
+    from _helpers import tiny_rig
+    from fppsim.geometry.rig import Rig
+
+    tmp, run, root, truth = setup
+    Rig.from_dict({**tiny_rig().to_dict(), "plane_in_view": False}).save(tmp_path / "np.json")
+    out = tmp_path / "np"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(out), "--figures", "0",
+                 "--device", "cpu", "--refine", "phase", "--rig", str(tmp_path / "np.json")]) == 0
+    text = (out / "phase_results.json").read_text()
+    doc = json.loads(text, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
+    assert "NaN" not in text and "Infinity" not in text
+    for rec in doc["per_image"]:
+        for m in rec["models"].values():
+            assert m["flat"]["a_rad_per_mm"] == 0 and m["flat"]["rmse_mm_equiv"] is None
+            assert m["prediction"]["rmse_mm_equiv"] == pytest.approx(m["prediction"]["rmse_rad"]
+                                                                     / abs(m["prediction"]["a_rad_per_mm"]))
+            assert m["plane"] is None
+    for row in doc["models"]:
+        assert all(row[k] is None for k in ("plane_rmse_rad", "plane_flat_rmse_rad", "plane_ratio")), row
+        assert row["ratio"] > 0 and row["rmse_rad"] > 0

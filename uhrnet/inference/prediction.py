@@ -55,10 +55,10 @@ import torch
 import torch.nn.functional as F
 
 from fppsim.dataio.encoding import as_image_stack, encode_fringe, json_default, load_npy
-from fppsim.files import atomic_path, atomic_write_text
+from fppsim.files import atomic_path, atomic_write_text, json_text
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
-from fppsim.dataio.readers import IMAGE_EXTS, PSPMatError, open_source, read_fringe_image
+from fppsim.dataio.readers import IMAGE_EXTS, PSPMatError, open_source, read_fringe_image, skipped_note, warn_skipped
 from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, DataError, UsageError
@@ -209,7 +209,8 @@ def collect_inputs(items: list[str]) -> list[Path]:
                 mat = open_source(p.parent).is_psp and any(q.suffix.lower() == ".mat" for q in p.iterdir())
                 raise ConfigError(f"{p}: no images ({', '.join(INPUT_EXTS)}) in this folder" + (
                     f"; a phase-shifting folder is read from its root, the folder holding iPattern/ ({p.parent})"
-                    if mat else ""))
+                    if mat else "") + skipped_note(p, INPUT_EXTS))
+            warn_skipped(p, INPUT_EXTS)
             files += found
         elif p.is_file():
             if p.suffix.lower() not in INPUT_EXTS:
@@ -490,7 +491,7 @@ def _write_refine_json(out: Path, refine: dict, unrefined: list[str]) -> None:
     if not merged:
         remove_own(out, PREDICT_TOOL, ["refine.json"])  # as a folder predicted without refinement: no refine.json
     elif refine or len(merged) < len(old):
-        atomic_write_text(path, json.dumps(merged, indent=2, default=json_default))
+        atomic_write_text(path, json_text(merged, indent=2, default=json_default))
         stamp(out, ["refine.json"])
 
 

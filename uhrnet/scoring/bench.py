@@ -31,7 +31,7 @@ from uhrnet.models import ALIASES, ARCHITECTURES, build_model, count_parameters,
 from uhrnet.scoring.timing import peak_memory_bytes, time_call
 from uhrnet.inference.deploy import prepare_for_inference
 from uhrnet.device import select_device
-from fppsim.files import atomic_write_text, check_writable_dir
+from fppsim.files import atomic_write_text, check_writable_dir, json_text
 from uhrnet.inference.export import export_model, onnx_runner
 
 DEFAULT_MODELS = ("uhrnet", "unet", "model_a", "model_b", "hnet")
@@ -386,7 +386,7 @@ def bench(args: BenchConfig, echo: Callable[[str], None] = print) -> dict:
         path = Path(args.json)
         path.parent.mkdir(parents=True, exist_ok=True)
         check_replaceable(path)  # again: the file may have appeared during the timing
-        atomic_write_text(path, json.dumps(report, indent=2) + "\n")
+        atomic_write_text(path, json_text(report, indent=2) + "\n")
         echo(f"wrote {path}")
     return report
 

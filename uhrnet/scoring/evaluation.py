@@ -24,7 +24,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from fppsim.dataio.encoding import json_default, png_size
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.dataio.formats import LabelTransform
 from fppsim.owned import claim, output_folder
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
@@ -100,9 +100,9 @@ class Report:
                     "rmse_mm_real", "ssim_real", "images_real", "rmse_mm_synthetic", "ssim_synthetic",
                     "images_synthetic", "model", "epoch", "checkpoint", "device"])
         _write_csv(out / "per_sample.csv", self.per_sample, ["model", "id", "source", "rmse_mm", "ssim"])
-        atomic_write_text(out / "results.json", json.dumps(
+        atomic_write_text(out / "results.json", json_text(
             {"split": self.split, "images": self.images, "data": self.data, "label_transform": self.label_transform,
-             "models": self.models}, indent=2, default=json_default, allow_nan=True))
+             "models": self.models}, indent=2, default=json_default))
 
 
 def check_name_count(given: Sequence[str] | None, count: int) -> None:

@@ -50,7 +50,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.geometry.rig import check_image_size
 from fppsim.owned import claim, output_folder
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
@@ -642,9 +642,9 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
     for name, on in chosen.items():
         md += f"\nNot held out: {name}'s weights were chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
     atomic_write_text(out / "phase_results.md", md)
-    atomic_write_text(out / "phase_results.json", json.dumps(
+    atomic_write_text(out / "phase_results.json", json_text(
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
          "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image,
          "skipped": skipped, "chosen_on": chosen},
-        indent=1, allow_nan=True))
+        indent=1))
     return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}

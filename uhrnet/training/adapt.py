@@ -51,6 +51,7 @@ import numpy as np
 import torch
 
 from fppsim.phase import circular_mean, wrap
+from fppsim.errors import check_seed
 from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import ConfigError, UsageError
 from uhrnet.training.train_config import MAX_LR
@@ -61,7 +62,7 @@ from uhrnet.inference.prediction import fringe_phase, labels_at_input_size, read
 from fppsim.owned import output_folder
 from uhrnet.checkpoint import checkpoint_kind, load_checkpoint, model_from_checkpoint, rng_state, save_epoch
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import keep_freed_memory, select_device
 from uhrnet.training.tb_log import RunLog, TB_FOLDER, check_event_files, remove_own_event_files, require_tensorboard
@@ -71,6 +72,7 @@ __all__ = ["AdaptConfig", "AdaptResult", "adapt", "adapt_loss", "ImagePhase", "i
 
 ADAPT_COLUMNS = ("epoch", "loss", "grad", "drift", "lr", "seconds")
 ADAPT_TOOL = "uhrnet adapt"
+MAX_TORCH_SEED = 2**64 - 1  # --seed seeds a torch.Generator, which refuses more (a traceback mid-run before)
 
 
 @dataclass
@@ -128,8 +130,7 @@ class AdaptConfig:
         if not self.min_reliability < 1:
             raise UsageError(f"--min-reliability must be in [0, 1) (reliabilities lie in [0, 1]), got "
                              f"{self.min_reliability!r}")
-        if int(self.seed) != self.seed or self.seed < 0:
-            raise UsageError(f"--seed must be an integer >= 0, got {self.seed!r}")
+        check_seed(self.seed, error=UsageError, most=MAX_TORCH_SEED)
         if self.device not in ("auto", "cpu", "cuda"):
             raise UsageError(f"--device must be auto, cpu or cuda, got {self.device!r}")
         if self.w_grad == 0:
@@ -356,7 +357,7 @@ def _adapt(cfg: AdaptConfig, log: Callable[[str], None]) -> AdaptResult:
     with torch.no_grad():
         afters = [heights(batch(im)[0]) for im in images]
     _compare_images(result, images, sources, afters, before, layer.cpu(), cfg.figures)
-    atomic_write_text(out / IMAGES_JSON, json.dumps(result.images, indent=2, default=json_default))
+    atomic_write_text(out / IMAGES_JSON, json_text(result.images, indent=2, default=json_default))
     return result
 
 

@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from fppsim.dataio.readers.listing import skipped_note, warn_skipped
 from fppsim.errors import NoPhaseError, PSPMatError, UsageError
 from fppsim.phase.psp import phase_from_sums
 
@@ -253,12 +254,15 @@ def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos"
         sub = FOLDERS[r][0]
         ids[sub] = {p.stem for p in (root / sub).iterdir() if p.is_file() and p.suffix.lower() == ".mat"}
         if not ids[sub]:
-            raise PSPMatError(f"{root / sub}: no .mat files")
+            raise PSPMatError(f"{root / sub}: no .mat files" + skipped_note(root / sub, (".mat",)))
     every = set.union(*ids.values())
     common = set.intersection(*ids.values())
     if every != common:
         parts = [f"{sub} lacks {_short(sorted(every - s, key=_id_key))}" for sub, s in ids.items() if every - s]
-        raise PSPMatError(f"{root}: ids differ between folders: " + "; ".join(parts))
+        raise PSPMatError(f"{root}: ids differ between folders: " + "; ".join(parts)
+                          + "".join(skipped_note(root / FOLDERS[r][0], (".mat",), within=root) for r in roles))
+    for r in roles:
+        warn_skipped(root / FOLDERS[r][0], (".mat",))
     return sorted(common, key=_id_key)
 
 

@@ -41,13 +41,13 @@ from fppsim.errors import DatasetError, PSPMatError, InputError
 from fppsim.dataio.readers.samples import (check_export_labels, check_psp_available, load_native_sample,
                                             open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
                                             read_native_psp)
+from fppsim.dataio.readers.listing import IMAGE_EXTS, skipped_note, warn_skipped
 from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,
                                            load_psp_folder_sample)
 
 __all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
            "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint"]
 
-IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
 PAIR_KINDS = ("figshare", "real-sample")
 
@@ -476,6 +476,8 @@ class NativeSamples(Source):
             else:
                 self._ids = (sorted(p.name for p in self.path.iterdir() if (p / "arrays.npz").is_file())
                              if self.path.is_dir() else [])
+                if self._ids:
+                    warn_skipped(self.path, (), folders=True)  # a sample folder linked from where it no longer is
         return list(self._ids)
 
     def fringe_images(self) -> Iterator[tuple[str, np.ndarray]]:
@@ -556,7 +558,10 @@ class Folder(Source):
         return path.is_dir()
 
     def _images(self) -> list[Path]:
-        return sorted(q for q in self.path.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS)
+        found = sorted(q for q in self.path.iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS)
+        if found:  # (with none, the caller's error names what was skipped)
+            warn_skipped(self.path, IMAGE_EXTS)
+        return found
 
     def ids(self) -> list[str]:
         return [p.stem for p in self._images()]
@@ -607,7 +612,8 @@ def open_labelled(path: str | os.PathLike, transform: LabelTransform = PRESETS["
     if not src.labelled:
         if not src.path.exists():
             raise DatasetError(f"{src.path}: not a folder (no such path)")
-        raise DatasetError(f"{src.path}: no dataset found ({labelled_hint()})")
+        raise DatasetError(f"{src.path}: no dataset found ({labelled_hint()})"  # a pair's file may be a dead link
+                           + skipped_note(src.path, (), folders=True))
     src.check_samples(transform)
     return src
 

@@ -12,14 +12,14 @@ from pathlib import Path
 from typing import Callable
 
 from fppsim.errors import ForeignFiles
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, finite_or_null
 from fppsim.owned import claim
 from uhrnet.workflows.scaling.arms import SERIES, UsageProblem, arm_key, arm_label, seed_folder, variant_of
 from uhrnet.workflows.scaling.report import TABLE_MARK, markdown, plot_series
 from uhrnet.workflows.scaling.results import arm_meta, seed_result
 from uhrnet.workflows.scaling.stats import summarise
 
-__all__ = ["STUDY", "STUDY_TOOL", "DEFINITION", "load_ledger", "definition_conflict", "check_finite", "finite",
+__all__ = ["STUDY", "STUDY_TOOL", "DEFINITION", "load_ledger", "definition_conflict", "check_finite",
            "add_seed", "add_finished", "merge_records", "claim_beside", "write_ledger"]
 
 STUDY = "sim-to-real scaling (pipelines/scaling.py)"  # the record's "study"
@@ -121,17 +121,6 @@ def check_finite(value, where: str) -> None:
             check_finite(v, where)
 
 
-def finite(value):
-    """``value`` with every non-finite number None (a finished folder's metric that could not be computed)."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: finite(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [finite(v) for v in value]
-    return value
-
-
 def add_seed(entries: dict, meta: dict, new: dict, source: str = "the arms file") -> str:
     """Put one seed's result ``new`` into the arm entry of ``meta`` (its name, resize, device, definition and
     description) in ``entries`` (keyed by :func:`~uhrnet.workflows.scaling.arms.arm_key`): a seed recorded
@@ -185,7 +174,7 @@ def add_finished(entries: dict, out: Path, arms: list[dict], seeds: list[int], c
             found += 1
             for key, value in commands(arm, seed).items():
                 res.setdefault(key, value)
-            add_seed(entries, arm_meta(arm, cfg, var, resize, res["device"]), finite({"seed": seed, **res}),
+            add_seed(entries, arm_meta(arm, cfg, var, resize, res["device"]), finite_or_null({"seed": seed, **res}),
                      f"arm {arm['name']!r} {where}")
     return found, pending
 

@@ -16,7 +16,7 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from uhrnet.run_folder import CONFIG_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.sim2real import run_differences, train_config
 from uhrnet.workflows.sim2real.config import data_key
@@ -146,7 +146,7 @@ def write_seed_record(folder: Path, record: dict) -> None:
         first.setdefault("resumes", []).append({k: record[k] for k in ("commit", "dirty", "torch_threads", "started")})
         record = first
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(record, indent=2))
+    atomic_write_text(path, json_text(record, indent=2))
 
 
 def arm_meta(arm: dict, cfg, variant, resize: str | None, device: str) -> dict:

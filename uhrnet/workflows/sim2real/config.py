@@ -25,7 +25,7 @@ from uhrnet.training.train_config import MAX_EPOCHS, TrainConfig, check_options
 
 MAX_COUNT = 10_000_000  # synthetic samples (fppsim.generation's bound)
 from fppsim.geometry.rig import RigError, data_path, load_rig
-from fppsim.rendering.synth import check_seed
+from fppsim.errors import check_seed
 from uhrnet.physics.refine import REFINE_METHODS
 from uhrnet.data.splits import MIN_REFERENCE_SPLIT
 

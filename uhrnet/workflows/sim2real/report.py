@@ -14,10 +14,9 @@ __all__ = ["markdown_report", "plot_real"]
 
 
 def _level_cell(level: dict | None) -> str:
-    if not level or not np.isfinite(level.get("slope", float("nan"))):
-        return ""
-    prior = level.get("prior_level_mm", float("nan"))
-    return f"{level['slope']:+.2f}" + (f" / {prior:.1f}" if np.isfinite(prior) else "")
+    slope = _fmt((level or {}).get("slope"), "+.2f")  # None: null in a result file read back (was NaN)
+    prior = _fmt((level or {}).get("prior_level_mm"), ".1f")
+    return slope + (f" / {prior}" if slope and prior else "")
 
 
 def markdown_report(report: dict) -> str:
@@ -37,11 +36,11 @@ def markdown_report(report: dict) -> str:
         mins = sum(x for x in v["timing"].values() if isinstance(x, (int, float))) / 60.0
         sv = v.get("synthetic_val_rmse_mm")
         lines.append(f"| {v['name']} | {shlex.join(v['generate']) or '(defaults)'} | "
-                     f"{shlex.join(v['train']) or '(defaults)'} | {r['object_rmse_mm']:.2f} | "
-                     f"{r['valid_rmse_mm']:.2f} | {r['flat_object_rmse_mm']:.2f} | "
-                     f"{r['true_object_mean_mm']:.1f} / {r['pred_object_mean_mm']:.1f} | "
-                     f"{r.get('relief_effect_mm', float('nan')):.1f} | "
-                     f"{'' if sv is None else f'{sv:.2f}'} | {_level_cell(v.get('synthetic_level'))} | {mins:.1f} |")
+                     f"{shlex.join(v['train']) or '(defaults)'} | {_fmt(r.get('object_rmse_mm'), '.2f')} | "
+                     f"{_fmt(r.get('valid_rmse_mm'), '.2f')} | {_fmt(r.get('flat_object_rmse_mm'), '.2f')} | "
+                     f"{_fmt(r.get('true_object_mean_mm'), '.1f')} / {_fmt(r.get('pred_object_mean_mm'), '.1f')} | "
+                     f"{_fmt(r.get('relief_effect_mm'), '.1f')} | "
+                     f"{_fmt(sv, '.2f')} | {_level_cell(v.get('synthetic_level'))} | {mins:.1f} |")
     return "\n".join(lines + _rows_table(report)) + "\n"
 
 
@@ -102,6 +101,7 @@ def _rows_table(report: dict) -> list[str]:
 
 
 def _fmt(x, fmt: str) -> str:
+    """``x`` formatted, blank when it was not measured (None, as a result file read back holds it, or NaN)."""
     return "" if x is None or not np.isfinite(x) else format(x, fmt)
 
 

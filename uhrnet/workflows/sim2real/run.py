@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 from fppsim.errors import FppsimError
 from fppsim.errors import UsageError as FppsimUsageError
 from fppsim.dataio.encoding import json_default
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.geometry.rig import load_rig
 from uhrnet.checkpoint import find_checkpoint
 from uhrnet.device import select_device
@@ -127,7 +127,7 @@ def adapt_config(cfg: Sim2RealConfig, variant: Variant, checkpoint: str | Path, 
 
 
 def _norm(value):
-    return json.loads(json.dumps(value, default=json_default))
+    return json.loads(json_text(value, default=json_default))  # as config.json holds it
 
 
 def run_differences(run: str | Path, tr, count: int | None = None, seed: int | None = None) -> list[str]:
@@ -350,14 +350,15 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         if timing:
             old = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
             old.update(timing)
-            atomic_write_text(timing_file, json.dumps(old, indent=1))
+            atomic_write_text(timing_file, json_text(old, indent=1))
         entry["timing"] = json.loads(timing_file.read_text()) if timing_file.is_file() else timing
         report["variants"].append(entry)
         for r in rows:
-            say(f"[{r['row']}] object RMSE {r['real']['object_rmse_mm']:.2f} mm, valid RMSE "
-                f"{r['real']['valid_rmse_mm']:.2f} mm")
+            obj, val = (r["real"][k] for k in ("object_rmse_mm", "valid_rmse_mm"))  # None: null, read back
+            say(f"[{r['row']}] object RMSE {'n/a' if obj is None else format(obj, '.2f')} mm, valid RMSE "
+                f"{'n/a' if val is None else format(val, '.2f')} mm")
         report["recipe"][var.name] = described
-        atomic_write_text(out / "report.json", json.dumps(report, indent=2, default=json_default))
+        atomic_write_text(out / "report.json", json_text(report, indent=2, default=json_default))
         atomic_write_text(out / "report.md", markdown_report(report))
     return report
 

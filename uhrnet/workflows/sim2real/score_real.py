@@ -24,7 +24,7 @@ from typing import Sequence
 import numpy as np
 
 from fppsim.dataio.encoding import encode_fringe
-from fppsim.files import atomic_write_text
+from fppsim.files import atomic_write_text, json_text
 from fppsim.geometry.rig import RigError, check_image_size
 from uhrnet.errors import DataError, Sim2RealError
 from fppsim.dataio.readers import open_source
@@ -165,7 +165,7 @@ def evaluate_real(checkpoint: str | Path, real: Sequence[str], out: str | Path, 
            "per_image": rows}
     del model
     torch.cuda.empty_cache() if torch.cuda.is_available() else None
-    atomic_write_text(out / "real_metrics.json", json.dumps(doc, indent=2))
+    atomic_write_text(out / "real_metrics.json", json_text(doc, indent=2))
     return doc
 
 
@@ -207,7 +207,7 @@ def evaluate_real_phase(checkpoint: str | Path, folders: Sequence[str], out: str
            "degree": degree, "frames": rows,
            "mean_rmse_rad": float(np.mean([r["rmse_rad"] for r in rows])) if rows else float("nan")}
     Path(out).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(out) / "real_phase.json", json.dumps(doc, indent=2))
+    atomic_write_text(Path(out) / "real_phase.json", json_text(doc, indent=2))
     return doc
 
 
@@ -226,5 +226,5 @@ def evaluate_level(checkpoint: str | Path, synthetic: Sequence[str], out: str | 
         doc = level_response(model, (val[i] for i in range(len(val))), transform.units_per_mm, object_mm, size=size)
     doc = {"checkpoint": str(checkpoint), "epoch": ck.get("epoch"), "object_mm": object_mm, **doc}
     Path(out).mkdir(parents=True, exist_ok=True)
-    atomic_write_text(Path(out) / "synthetic_level.json", json.dumps(doc, indent=1))
+    atomic_write_text(Path(out) / "synthetic_level.json", json_text(doc, indent=1))
     return doc

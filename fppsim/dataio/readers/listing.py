@@ -1,0 +1,72 @@
+"""What a folder listing leaves out: the entries a reader skips although they look meant as its input.
+
+A reader lists a folder for the suffixes it takes (:data:`IMAGE_EXTS`, ``.npy``, ``.mat``) and passes over
+everything else. Two kinds of entry are worth a word, since the user most likely meant them as input: a
+symbolic link whose target is gone (a moved scan), and an image in a format the readers do not take
+(``.webp``, ``.gif``, ``.jp2``, ``.heic``, ...: :data:`OTHER_IMAGE_EXTS`). :func:`skipped_entries` finds them;
+:func:`warn_skipped` prints each once per process (``warning: PATH: skipped: REASON`` on stderr) when the listing
+found something else to read, and :func:`skipped_note` adds them to the error when it found nothing. Hidden
+entries and other files (a README, a ``.json``) are never mentioned.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+__all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "skipped_note"]
+
+IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
+"""The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
+OTHER_IMAGE_EXTS = (".webp", ".gif", ".jp2", ".j2k", ".jpx", ".jpe", ".jfif", ".heic", ".heif", ".avif", ".jxl",
+                    ".pgm", ".ppm", ".pbm", ".pnm", ".pfm", ".exr", ".hdr", ".psd", ".tga", ".ico", ".svg", ".dng",
+                    ".raw", ".cr2", ".nef", ".arw")
+"""Image formats the readers do not take: a file of one in an input folder is skipped with a warning."""
+
+_warned: set[str] = set()
+
+
+def skipped_entries(folder: str | os.PathLike, taken: tuple[str, ...],
+                    folders: bool = False) -> list[tuple[Path, str]]:
+    """``(entry, reason)`` of each entry of ``folder`` that a listing of the suffixes ``taken`` skips although it looks
+    meant as input: a dangling symbolic link named like an input or an image, and a file of an image format not
+    in ``taken``; with ``folders`` (a listing of sample folders), any dangling link and nothing else. Sorted by
+    name; [] when ``folder`` cannot be listed."""
+    try:
+        entries = sorted(Path(folder).iterdir())
+    except OSError:
+        return []
+    images = set(IMAGE_EXTS) | set(OTHER_IMAGE_EXTS)
+    out = []
+    for q in entries:
+        suffix = q.suffix.lower()
+        if q.name.startswith("."):
+            continue
+        if q.is_symlink() and not q.exists():
+            if folders or suffix in taken or suffix in images:
+                out.append((q, f"a symbolic link to {os.readlink(q)}, which does not exist"))
+        elif not folders and suffix in images and suffix not in taken and q.is_file():
+            out.append((q, f"{q.suffix} is not a format read here"))
+    return out
+
+
+def warn_skipped(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False) -> None:
+    """Print ``warning: ENTRY: skipped: REASON`` on stderr for each of :func:`skipped_entries`, once per process
+    (a folder is listed again for every frame it holds)."""
+    for path, reason in skipped_entries(folder, taken, folders):
+        line = f"{path}: skipped: {reason}" + ("" if path.is_symlink() else f" (only {', '.join(taken)})")
+        if line not in _warned:
+            _warned.add(line)
+            print(f"warning: {line}", file=sys.stderr, flush=True)
+
+
+def skipped_note(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False,
+                 within: str | os.PathLike | None = None) -> str:
+    """``"; skipped: NAME (REASON), ..."`` for an error saying ``folder`` holds nothing to read ("" when
+    nothing was skipped); NAME relative to ``within`` (the folder the error names), else the entry's name."""
+    found = skipped_entries(folder, taken, folders)
+    if not found:
+        return ""
+    shown = ", ".join(f"{p.relative_to(within) if within else p.name} ({reason})" for p, reason in found[:4])
+    return f"; skipped: {shown}" + (f", ... ({len(found)} in all)" if len(found) > 4 else "")
