@@ -548,9 +548,9 @@ def _frame_plane(s, degree: int, rig_says_none: bool, record: dict) -> tuple[np.
     else:
         plane, sides = view_plane(s.phase, _scored_pixels(s), degree)
         n = sum(x >= PLANE_SIDE_SHARE for x in sides)
-        why = None if plane is not None else (f"the 'plane' found reaches {n} of the image's 4 sides, a reference plane "
-                                              f"reaching beyond the view {PLANE_SIDES} or more ({PLANE_SIDE_SHARE:.0%} "
-                                              "of a side each)")
+        why = None if plane is not None else (f"the 'plane' found reaches {n} of the image's 4 sides, a reference "
+                                              f"plane reaching beyond the view {PLANE_SIDES} or more "
+                                              f"({PLANE_SIDE_SHARE:.0%} of a side each)")
     record.update(plane_in_view=plane is not None, plane_sides=sides,
                   plane_pixel_fraction=0.0 if plane is None else float(plane.mean()))
     return plane, why
