@@ -32,6 +32,28 @@ def wrap_phase(x):
     return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))
 
 
+def figurine_on_black(period: float, noise: float = 0.0, seed: int = 0, H: int = 448, W: int = 640):
+    """A figurine on black as FP672/541 with its plane blacked out shows it (measured there: 14 % of the view; the
+    side facing the projector at gray 49 with fringes of amplitude 11, the side turned away at 17 with about 1):
+    ``(image uint8, absolute phase, body mask, lit-side period px)``. The lit side's fringes run 0.9 x the plane's
+    ``period`` apart (vertical, bent down the rows), the dark side's 3 x; both sides shaded slowly. ``noise``: a
+    camera's gray noise, and a 0-3 gray background instead of exact black."""
+    rng = np.random.default_rng(seed)
+    r, c = np.mgrid[0:H, 0:W].astype(np.float64)
+    body = ((c - 0.52 * W) / (0.11 * W)) ** 2 + ((r - 0.71 * H) / (0.31 * H)) ** 2 <= 1
+    lit = body & (c >= 0.52 * W)
+    c0 = 0.52 * W  # the sides meet here, their phase continuous (as a scan's absolute phase)
+    phase = 2 * np.pi * c0 / (0.9 * period) + 2 * np.pi * (c - c0) / np.where(lit, 0.9 * period, 3.0 * period)
+    phase += np.where(lit, 3.0 * np.sin(r / 25.0), 0.0)
+    shade = 12 * np.sin(r / 23.0) * np.cos(c / 31.0)  # the surface's slow shading: the outline's spectrum
+    img = np.where(lit, 50 + shade + 11 * np.cos(phase), 17 + shade / 2 + np.cos(phase))
+    img = img + noise * rng.standard_normal(img.shape)
+    img = np.where(body, img, rng.integers(0, 4, img.shape) if noise else 0.0)
+    # the lit side's period: 2 pi over the median gradient of its phase (columns 2 pi / 0.9 P, rows the bend)
+    g = np.hypot(2 * np.pi / (0.9 * period), 3.0 / 25.0 * np.cos(r[lit] / 25.0))
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8), phase, body, float(2 * np.pi / np.median(g))
+
+
 def disc_shadow(obj: np.ndarray, phase: np.ndarray, plane_phase: np.ndarray) -> np.ndarray:
     """The projector shadow beside an object standing on the plane, from the phases alone (fppsim's rigs: the
     phase grows along +columns): a plane pixel left of a row's first object pixel is dark when that edge carries a

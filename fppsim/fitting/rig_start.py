@@ -61,7 +61,7 @@ from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, fin
                                         relief_sign, shadow_side)
 from fppsim.geometry.rig import Device, Rig, rotation
 from fppsim.phase import wrap
-from fppsim.phase.fringe_axis import fringe_orientation, oriented_single_shot_phase
+from fppsim.phase.fringe_axis import fringe_carrier, fringe_orientation, oriented_single_shot_phase
 
 __all__ = ["DEFAULT_FOV_DEG", "DEFAULT_DISTANCE", "BASELINE_RATIO", "PROJECTOR_SIZE", "SIDES", "camera_for",
            "start_rig", "phase_maps_of", "StartRigResult", "rig_from_images", "plane_fits_poorly", "StartRigConfig",
@@ -254,11 +254,18 @@ def _object_relief(fit, maps) -> float:
 def _local_gradient(images, axis: str) -> tuple[float, float]:
     """The fringes' phase gradient (rad/px, growing along +columns / +rows as a single image's phase does by
     convention): the median wrapped step between reliable 4-neighbours of each image's single-shot phase, the median
-    over the images. On objects on black it is the objects' own (FP1523 on black: 11.65 px, the plane's 11.7), where
-    the plane fit of their phase, unwrapped object by object, gave 45.9 px."""
+    over the images. On objects on black it is the objects' own (FP1523 on black: 11.45-11.58 px, the plane's 11.73),
+    where the plane fit of their phase, unwrapped object by object, gave 45.9 px. The phase is demodulated at the
+    carrier :func:`fppsim.phase.fringe_axis.fringe_carrier` reads (within 20 %): the plain spectrum's peak is the
+    outline's on a figurine on black (FP672/541: 34-56 px, then 3-5 x the plane's 10.54 px; now 8.9 px)."""
     steps = []
     for im in images:
-        ssp = oriented_single_shot_phase(np.asarray(im.gray, np.float64), axis, mask=im.valid)
+        gray = np.asarray(im.gray, np.float64)
+        try:
+            period = 1.0 / math.hypot(*fringe_carrier(gray, im.valid))
+        except InputError as exc:
+            raise InputError(f"{im.name}: {exc}") from None
+        ssp = oriented_single_shot_phase(gray, axis, mask=im.valid, period=period)
         ok = ssp.valid & (ssp.reliability >= 0.3)
         w = ssp.wrapped.astype(np.float64)
         du, dv = wrap(np.diff(w, axis=1)), wrap(np.diff(w, axis=0))
@@ -268,6 +275,26 @@ def _local_gradient(images, axis: str) -> tuple[float, float]:
         steps.append((float(np.median(du[pu])), float(np.median(dv[pv]))))
     gu, gv = np.median(np.asarray(steps), axis=0)
     return float(gu), float(gv)
+
+
+def _objects_gradient(images, axis: str, gradient, scans: bool, fringe_period: float | None) -> tuple[float, float]:
+    """The fringes' gradient with no plane in view: the images' own local steps (:func:`_local_gradient`), for scans
+    the way their phase grows (``gradient``'s sign along ``axis``); ``fringe_period`` (px, the plane's) sets the
+    period instead, along the axis with no lean, refused in one line when more than 3 x off the measured one. Not the
+    scans' plane gradient: their phase, fitted over a figurine, gave 18.4 px on FP672/541 on black (the plane's
+    10.54), where a period 4 x the plane's passed the check; the local steps read 8.9 px."""
+    local = _local_gradient(images, axis)
+    if scans and (local[0] if axis == "vertical" else local[1]) * (gradient[0] if axis == "vertical"
+                                                                  else gradient[1]) < 0:
+        local = (-local[0], -local[1])  # a single image's phase grows one way by convention, the scans' is measured
+    if fringe_period is None:
+        return local
+    measured = 2.0 * np.pi / math.hypot(*local)
+    if not 1 / 3 <= float(fringe_period) / measured <= 3:  # objects widen or narrow it, not threefold
+        raise RigError(f"--fringe-period {fringe_period:g} px is {float(fringe_period) / measured:.3g} x the "
+                       f"period the frames show ({measured:.1f} px): give the plane's period in camera pixels")
+    g = 2.0 * np.pi / float(fringe_period)
+    return (math.copysign(g, local[0]), 0.0) if axis == "vertical" else (0.0, math.copysign(g, local[1]))
 
 
 def plain_image_gradient(images, gradient) -> tuple[tuple[float, float], str]:
@@ -393,9 +420,10 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     is needed, unless ``distance``, ``baseline`` and ``projector_side`` are all given; then the rig is the
     start rig at that geometry (projector aimed at the view's centre, the measured fringe period), its pose
     assumed and said so (``StartRigResult.no_plane``). Without a plane the fringes' period and lean are measured
-    on the objects, whose surfaces turned towards or away from the projector widen or narrow them (FP672 with its
-    plane blacked out: 18.5 px on the figurine, 10.5 px on the plane): ``fringe_period`` (px at the image centre,
-    the plane's, e.g. from any frame that shows it) then sets the period, along the measured axis with no lean;
+    on the objects' images (:func:`_objects_gradient`), whose surfaces turned towards or away from the projector
+    widen or narrow them (FP672 with its plane blacked out: 8.9 px on the figurine, 10.54 px on the plane):
+    ``fringe_period`` (px at the image centre, the plane's, e.g. from any frame that shows it) then sets the period,
+    along the measured axis with no lean;
     with a plane in view it is not used (the plane's is measured) and said. RigError / ValueError (one line) for
     unusable inputs."""
     if projector_side is not None and projector_side not in SIDES:
@@ -436,17 +464,8 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
         source = "given (--projector-side; without the plane the scans cannot measure it)"
-        if kind != "phase":  # a single image's phase is unwrapped object by object: its plane gradient means nothing
-            gradient = _local_gradient(images[:max_maps], axis)
-        if fringe_period is not None:  # the plane's period, along the measured axis, no lean
-            measured = 2.0 * np.pi / math.hypot(*gradient)
-            if not 1 / 3 <= float(fringe_period) / measured <= 3:  # objects widen or narrow it, not threefold
-                raise RigError(f"--fringe-period {fringe_period:g} px is {float(fringe_period) / measured:.3g} x the "
-                               f"period the frames show ({measured:.1f} px): give the plane's period in camera pixels")
-            g = 2.0 * np.pi / float(fringe_period)
-            gradient = ((math.copysign(g, gradient[0]), 0.0) if axis == "vertical"
-                        else (0.0, math.copysign(g, gradient[1])))
-        else:
+        gradient = _objects_gradient(images[:max_maps], axis, gradient, kind == "phase", fringe_period)
+        if fringe_period is None:
             assumed["fringe_period"] = "measured on the objects"
         rig = start_rig(W, H, gradient, side, D, baseline, fov, focal)
     else:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from _helpers import SHARED
+from _helpers import SHARED, figurine_on_black
 from fppsim.cli import main
 from fppsim.fitting import rig_start as rs
 
@@ -63,11 +63,43 @@ def test_plain_images_take_the_fringe_direction_from_their_spectrum():
     assert rs.plain_image_gradient([im], (0.5, 0.02)) == ((0.5, 0.02), "vertical")  # agreeing: kept as it is
 
 
+def test_a_figurine_on_black_takes_the_planes_period_and_a_wrong_one_is_refused(tmp_path, capsys):
+    """A figurine on black (FP672/541 without its plane, as fit-rig saw it): the period was measured at the plain
+    spectrum's peak, the outline's (50 px as a PNG, 18 px from the scans' phase, the plane's 10.5 px), so the
+    plane's own --fringe-period was refused on the PNG and 4 x the plane's passed on the scans. Now the fringes'
+    own (the lit side's 9.4 px): the plane's period is taken, 4 x it refused in one line, on both."""
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+    from fppsim.geometry.rig import Rig
+    from fppsim.phase.fringe_axis import rig_phase_gradient
+
+    img, phase, body, lit_period = figurine_on_black(10.5, noise=2.0)
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "a.png"), img)
+    save_psp_folder_sample(tmp_path / "scans", "a", *sums_from_phase(phase, body, 60.0), np.where(body, img, 0))
+    pose = ["--distance", "500", "--baseline", "330", "--projector-side", "right"]
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "imgs"), "--out", str(out), "--fringe-period", "10.5"] + pose) == 0
+    assert 2 * np.pi / np.hypot(*rig_phase_gradient(Rig.load(out))) == pytest.approx(10.5, rel=1e-3)
+    capsys.readouterr()
+    for folder in ("imgs", "scans"):
+        assert main(["fit-rig", str(tmp_path / folder), "--out", str(tmp_path / "wrong.json"),
+                     "--fringe-period", "42"] + pose) == 1
+        err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+        assert len(err) == 1 and "x the period the frames show" in err[0], err
+        measured = float(re.search(r"show \(([\d.]+) px\)", err[0]).group(1))
+        assert measured == pytest.approx(lit_period, rel=0.05), err  # before: 50 px (PNG), 18.1 px (scans)
+        assert not (tmp_path / "wrong.json").exists()
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not (SHARED / "real-phase" / "FP672").is_dir(), reason="../shared/real-phase not present")
 def test_fp672_on_black_as_a_plain_image_reads_vertical_fringes(tmp_path, capsys):
+    """FP672/541 with its plane blacked out, as a PNG and as scans: vertical fringes; the plane's own period (10.54 px,
+    fit-rig on the frame with its plane) is taken from the PNG, where the figurine's measured 56 px refused it, and 4 x
+    it is refused on the scans, where their phase's 18.4 px let it pass. Measured now: 8.9 px on both."""
     import scipy.io as sio
 
+    from fppsim.dataio.writers import save_psp_folder_sample
     from fppsim.phase.plane import phase_plane_masks
 
     root = SHARED / "real-phase" / "FP672"
@@ -76,13 +108,23 @@ def test_fp672_on_black_as_a_plain_image_reads_vertical_fringes(tmp_path, capsys
     phase = np.arctan2(-psin, -pcos) + np.pi + 2 * np.pi * get("Fringe", "Order")
     valid = (psin != 0) | (pcos != 0)
     _, objects = phase_plane_masks(phase, valid)
+    keep = objects & valid
     (tmp_path / "imgs").mkdir()
-    cv2.imwrite(str(tmp_path / "imgs" / "541.png"), np.where(objects & valid, image, 0).astype(np.uint8))
-    rc = main(["fit-rig", str(tmp_path / "imgs"), "--out", str(tmp_path / "rig.json"), "--distance", "500",
-               "--baseline", "330", "--projector-side", "right"])
+    cv2.imwrite(str(tmp_path / "imgs" / "541.png"), np.where(keep, image, 0).astype(np.uint8))
+    save_psp_folder_sample(tmp_path / "scans", "541", np.where(keep, psin, 0), np.where(keep, pcos, 0),
+                           np.where(keep, get("Fringe", "Order"), 0), np.where(keep, image, 0).astype(np.uint8))
+    pose = ["--distance", "500", "--baseline", "330", "--projector-side", "right"]
+    rc = main(["fit-rig", str(tmp_path / "imgs"), "--out", str(tmp_path / "rig.json"), "--fringe-period", "10.54"]
+              + pose)
     text = capsys.readouterr()
     assert rc == 0, text.err
-    assert "fringes    vertical" in text.out
+    assert "fringes    vertical: 10.54 px" in text.out
+    for folder in ("imgs", "scans"):
+        assert main(["fit-rig", str(tmp_path / folder), "--out", str(tmp_path / "wrong.json"),
+                     "--fringe-period", "42.16"] + pose) == 1
+        err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+        assert len(err) == 1 and "x the period the frames show" in err[0], err
+        assert 0.75 * 10.54 <= float(re.search(r"show \(([\d.]+) px\)", err[0]).group(1)) <= 1.25 * 10.54, err
 
 
 @pytest.mark.slow

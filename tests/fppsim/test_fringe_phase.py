@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from _helpers import SHARED
+from _helpers import SHARED, figurine_on_black
 from fppsim.phase.single_shot import SINGLE_SHOT_METHODS, SingleShotPhase, single_shot_phase
 from fppsim.phase import wrap as wrap_phase
 
@@ -221,3 +221,26 @@ def test_local_carrier_reads_period_and_axis_from_the_wrapped_steps_with_objects
     assert abs((np.degrees(got_axis) - angle_deg + 90) % 180 - 90) < 2.0  # the same axis either sign
     assert local_carrier(wrapped, np.zeros_like(rel))[2] == 0
     assert np.isnan(local_carrier(wrapped, np.zeros_like(rel))[0])
+
+
+@pytest.mark.parametrize("period, noise, across", [(8.0, 0.0, False), (10.5, 2.0, False), (14.0, 0.0, True),
+                                                   (20.0, 2.0, True)])
+def test_fringe_carrier_reads_a_figurines_fringes_not_its_outline(period, noise, across):
+    """A figurine on black as FP672/541 without its plane shows it (a bright side with fringes, a dim side, slow
+    shading, exact or noisy black): the plain spectrum's peak, where the single-shot phase demodulates when no period
+    is given, is the outline's and shading's (34-65 px here; 34-56 px on FP672, whose plane's fringes are 10.5 px), so
+    fit-rig refused the plane's period there. fringe_carrier (the spectrum weighted by the frequency squared) gives
+    the lit side's fringes, in either direction (``across``: the image transposed, horizontal fringes)."""
+    from fppsim.errors import InputError
+    from fppsim.phase.fringe_axis import fringe_carrier, oriented_single_shot_phase
+
+    img, _, _, truth = figurine_on_black(period, noise)
+    img = img.T if across else img
+    fx, fy = fringe_carrier(img, img > 0)
+    assert 1.0 / np.hypot(fx, fy) == pytest.approx(truth, rel=0.04)  # measured 0.1-2.6 % off
+    along, other = (fy, fx) if across else (fx, fy)
+    assert abs(other) < 0.1 * abs(along)  # the fringes' direction (sign-free), within 6 deg (measured 0.1-3.0)
+    plain = oriented_single_shot_phase(img.astype(np.float64), "horizontal" if across else "vertical", mask=img > 0)
+    assert plain.period > 2.5 * truth  # what made the image hard
+    with pytest.raises(InputError):
+        fringe_carrier(np.zeros((64, 64)), np.zeros((64, 64), bool))

@@ -134,3 +134,33 @@ def test_folder_mm_equivalent_is_not_dominated_by_an_image_without_a_height_term
     # mean residual 0.5 rad over mean |a| 0.4 rad/mm; the per-image mean would be 3e8 mm
     assert _mm_equiv(rows) == pytest.approx(0.5 / 0.4)
     assert np.isnan(_mm_equiv([{"prediction": {"rmse_rad": 0.5, "a_rad_per_mm": 0.0}}]))
+
+
+def test_a_plane_in_view_reaches_the_image_sides_and_one_found_on_an_object_does_not():
+    """The plane-pixel score's plane (view_plane): the dome on its plane keeps the plane phase_plane_masks finds (it
+    reaches all four sides); the dome alone on black, and a face-like dome filling 64 % of the view, cut by the
+    bottom border near its smooth top (FP147's face on black, worse: its 'plane' along 36 % of the bottom, 10 % of
+    the whole border), leave a 'plane' on the object that covers a third of the image yet reaches at most one side:
+    no plane in view (None)."""
+    from fppsim.phase.plane import phase_plane_masks
+    from uhrnet.scoring.phase_residual import PLANE_SIDE_SHARE, PLANE_SIDES, plane_sides, view_plane
+
+    top = np.zeros((5, 8), bool)
+    top[0, :6] = True
+    assert plane_sides(top) == [0.75, 0.0, 0.2, 0.0]
+    plane_phase, height = _dome_scene()
+    phase = plane_phase - 0.6 * height
+    everywhere = np.ones(phase.shape, bool)
+    plane, sides = view_plane(phase, everywhere, degree=2)
+    assert plane is not None and (plane == phase_plane_masks(phase, everywhere, degree=2)[0]).all()
+    assert min(sides) > 0.9
+    yy, xx = np.mgrid[0:120, 0:160]
+    r2 = ((xx - 80) / 65.0) ** 2 + ((yy - 80) / 72.0) ** 2
+    face = np.where(r2 < 1, 40.0 * np.sqrt(np.clip(1 - r2, 0, 1)), 0.0)
+    assert 0.6 < (face > 0).mean() < 0.66
+    for h in (height, face):
+        on = h > 0
+        ph = np.where(on, plane_phase - 0.6 * h, np.nan)
+        assert phase_plane_masks(ph, on, degree=2)[0].mean() > 0.1  # what the score fitted its plane to before
+        plane, sides = view_plane(ph, on, degree=2)
+        assert plane is None and sum(x >= PLANE_SIDE_SHARE for x in sides) < PLANE_SIDES, sides

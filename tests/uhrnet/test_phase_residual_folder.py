@@ -223,14 +223,60 @@ def test_refine_adds_a_row_on_the_same_pixels(setup, tmp_path, capsys):
     doc = json.loads((tmp_path / "np" / "phase_results.json").read_text())
     assert all(r["plane_pixel_fraction"] == 0 and r["models"]["unet +orders"]["plane"] is None
                for r in doc["per_image"]), doc["per_image"][0]
-    # QA: the report says why its plane-pixel columns are nan
-    assert "Plane-pixel columns nan: the --rig records no reference plane" in (tmp_path / "np" / "phase_results.md").read_text()
+    # QA: the report says why its plane-pixel columns are empty (null in the JSON)
+    assert "No plane in view: no plane-pixel score (0, 1, 2: the --rig records no reference plane" in (
+        tmp_path / "np" / "phase_results.md").read_text()
+    assert all(m["plane_ratio"] is None for m in doc["models"])
+    assert not any(r["plane_in_view"] for r in doc["per_image"])
     capsys.readouterr()
     assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "x"),
                  "--rig", str(tmp_path / "rig.json")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--refine phase" in err[0]
     assert not (tmp_path / "x").exists()
+
+
+def test_a_frame_with_no_plane_in_view_has_no_plane_pixel_score(setup, tmp_path, capsys):
+    """Without --rig, a frame whose objects stand on black: the plane-pixel score fitted its 'plane' to pixels found on
+    the object (FP672's figurine on black: 0.94 of flat), which the plane's share of the image cannot tell from a real
+    plane (FP147's face on black 14 %, with its plane 19 %). A plane reaches beyond the view: the dome on black here
+    leaves a 'plane' on the dome that reaches no side of the image, so the frame has no plane-pixel score (null in the
+    JSON, a line in the report and on screen); the same dome on its plane keeps it."""
+    tmp, run, _, _ = setup
+    yy, xx = np.mgrid[0:120, 0:160]
+    r2 = ((xx - 80) / 67.0) ** 2 + ((yy - 60) / 54.0) ** 2
+    height = np.where(r2 < 1, 40.0 * np.sqrt(np.clip(1 - r2, 0, 1)), 0.0)  # 59 % of the view
+    phase = 0.9 * xx + 0.05 * yy - 0.6 * height
+    img = np.clip(120 + 90 * np.cos(phase), 1, 255).astype(np.uint8)
+    on = height > 0
+    root = tmp_path / "frames"
+    save_psp_folder_sample(root, "plane", *sums_from_phase(phase, None, 30.0), img)
+    save_psp_folder_sample(root, "black", *sums_from_phase(phase, on, 30.0), np.where(on, img, 0))
+    out = tmp_path / "report"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(out), "--figures", "0",
+                 "--device", "cpu", "--degree", "2"]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads((out / "phase_results.json").read_text())
+    rec = {r["id"]: r for r in doc["per_image"]}
+    assert rec["plane"]["plane_in_view"] and min(rec["plane"]["plane_sides"]) > 0.9
+    assert rec["plane"]["models"]["unet"]["plane"] is not None
+    assert not rec["black"]["plane_in_view"] and max(rec["black"]["plane_sides"]) < 0.1
+    assert rec["black"]["models"]["unet"]["plane"] is None  # before: fitted on a 'plane' found on the dome
+    plane_only = rec["plane"]["models"]["unet"]["plane"]
+    assert doc["models"][0]["plane_ratio"] == pytest.approx(plane_only["prediction"]["rmse_rad"]
+                                                            / plane_only["flat"]["rmse_rad"])
+    line = [x for x in text.splitlines() if x.startswith("black: unet residual")]
+    assert len(line) == 1 and "plane-pixel score: no plane in view" in line[0], text
+    assert "No plane in view on 1 of the 2 frames" in (out / "phase_results.md").read_text()
+    # the frame on black alone: no plane-pixel number at all, null in the JSON and '-' in the table
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "r2"), "--figures",
+                 "0", "--device", "cpu", "--degree", "2", "--ids", "black"]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads((tmp_path / "r2" / "phase_results.json").read_text())
+    row = doc["models"][0]
+    assert row["plane_ratio"] is None and row["plane_rmse_rad"] is None and row["plane_flat_rmse_rad"] is None
+    assert "| - | - | - |" in text
+    assert "No plane in view: no plane-pixel score (black: the 'plane' found reaches 0 of" in text
 
 
 def test_val_phase_holds_out_every_second_frame_and_says_when_it_cannot(setup, tmp_path):

@@ -25,7 +25,8 @@ folder evaluation finds them in the real phase, :func:`fppsim.phase.plane.phase_
 with that plane held: when an object covers much of the view the all-pixel plane bows at the object's edge
 (up to +-10 rad seen on a life-size head), which penalises the flat prediction and the network alike. The
 all-pixel score stays the default (it needs no plane in view, and every earlier number is in it); the
-report gives both, each with its flat baseline.
+report gives both, each with its flat baseline. A frame with no plane in view (:func:`view_plane`: the plane found
+reaches fewer than two of the image's sides; or a ``--rig`` recording none) has no second score: null, said.
 
 ``robust=True`` replaces least squares by a few iteratively reweighted (Huber) iterations, which keeps
 shadow edges, wrong fringe orders and prediction outliers from dominating; the reported sums are then
@@ -55,20 +56,21 @@ from fppsim.geometry.rig import check_image_size
 from fppsim.owned import claim, output_folder
 from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
 from uhrnet.errors import ConfigError, DataError, InputError, UsageError
-from uhrnet.plots import pyplot, save_figure
 from fppsim.errors import NoPhaseError, PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
 from uhrnet.scoring.evaluation import check_name_count, model_names
+from uhrnet.scoring.phase_report import frame_line, markdown, plot_phase_residuals
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
 EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
-           "markdown", "plot_phase_residuals", "phase_frames", "PhaseValidation"]
+           "markdown", "plot_phase_residuals", "phase_frames", "PhaseValidation", "PLANE_SIDE_SHARE",
+           "PLANE_SIDES", "plane_sides", "view_plane"]
 
 
 @dataclass
@@ -257,56 +259,30 @@ def _mean(values) -> float:
     return float(v.mean()) if v.size else float("nan")
 
 
-def markdown(summary: list[dict], n: int, root: str, degree: int, robust: bool) -> str:
-    lines = [f"# Calibration-free phase evaluation: {n} image{'s' if n != 1 else ''} of {root}", "",
-             f"Real absolute phase fitted by a degree-{degree} polynomial in (x, y) plus a*h + b*h^2 of the "
-             f"predicted height h (mm), {'Huber IRLS' if robust else 'least squares'} over valid pixels. "
-             "Explained = 1 - SS_residual / SS_relief, relief = phase minus the plane-only fit. "
-             "Flat = the same fit with h = 0 on the same pixels (explains 0 by construction); ratio = residual / flat "
-             "(the default score). Plane-pixel columns: the same with the plane polynomial fitted on the reference "
-             "plane's own pixels only (found in the phase, fppsim.phase.plane.phase_plane_masks), so an object "
-             "covering much of the view cannot bend it. Means over images; Residual (mm equiv.) = mean residual / "
-             "mean |a|.", "",
-             "| Model | Residual RMSE (rad) | Flat RMSE (rad) | Ratio | Explained | Plane-pixel plane: residual "
-             "| flat | ratio | a (rad/mm) | b (rad/mm^2) | Residual (mm equiv.) | Pixels used |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for r in summary:
-        lines.append(f"| {r['name']} | {r['rmse_rad']:.4f} | {r['flat_rmse_rad']:.4f} | {r['ratio']:.3f} | "
-                     f"{r['explained']:.4f} | {r['plane_rmse_rad']:.4f} | {r['plane_flat_rmse_rad']:.4f} | "
-                     f"{r['plane_ratio']:.3f} | {r['a_rad_per_mm']:+.4f} | {r['b_rad_per_mm2']:+.2e} | "
-                     f"{r['rmse_mm_equiv']:.2f} | {r['pixel_fraction']:.1%} |")
-    return "\n".join(lines) + "\n"
+PLANE_SIDE_SHARE, PLANE_SIDES = 0.1, 2
+"""A reference plane reaches beyond the view: the plane pixels :func:`fppsim.phase.plane.phase_plane_masks` finds
+cover at least PLANE_SIDE_SHARE of PLANE_SIDES or more of the image's four sides. Measured (docs/own_rig.md):
+FP1523, FP672, FP147 and the labelled pair with their plane reach 4, 4, 2 and 3 sides (FP147, whose face fills the
+view: 48 % of the top, 73 % of the right); the same frames with every pixel off their objects blacked out none (at
+most 5 % of a side), where the 'plane' found is a smooth part of an object (0.94 of flat on FP672's figurine) and its
+share of the image does not tell (FP147's face on black 14 %, with its plane 19 %). One side is not enough: a face
+cut off by the border at its smooth top leaves a 'plane' along that side."""
 
 
-def plot_phase_residuals(image: np.ndarray, relief: np.ndarray, heights: dict, residuals: dict, path: Path,
-                         title: str = "") -> Path:
-    """One row per model: predicted height (mm) and residual phase (rad); the top row: image and relief."""
-    plt = pyplot()
-    rows = 1 + len(heights)
-    fig, axes = plt.subplots(rows, 2, figsize=(10, 2.9 * rows), squeeze=False)
-    axes[0, 0].imshow(image, cmap="gray", vmin=0, vmax=255)
-    axes[0, 0].set_title("single-shot image (iPattern)")
-    lim = np.nanpercentile(np.abs(relief), 99) if np.isfinite(relief).any() else 1.0
-    im = axes[0, 1].imshow(relief, cmap="coolwarm", vmin=-lim, vmax=lim)
-    axes[0, 1].set_title("relief phase (rad): phase - plane fit")
-    fig.colorbar(im, ax=axes[0, 1], fraction=0.025)
-    rlim = max((np.nanpercentile(np.abs(r), 99) for r in residuals.values() if np.isfinite(r).any()), default=1.0)
-    for k, name in enumerate(heights, start=1):
-        im = axes[k, 0].imshow(heights[name], cmap="viridis")
-        axes[k, 0].set_title(f"{name}: predicted height (mm)")
-        fig.colorbar(im, ax=axes[k, 0], fraction=0.025)
-        im = axes[k, 1].imshow(residuals[name], cmap="coolwarm", vmin=-rlim, vmax=rlim)
-        axes[k, 1].set_title(f"{name}: residual phase (rad)")
-        fig.colorbar(im, ax=axes[k, 1], fraction=0.025)
-    for ax in axes.ravel():
-        ax.set_xticks([])
-        ax.set_yticks([])
-    if title:
-        fig.suptitle(title)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    out = save_figure(fig, path)
-    plt.close(fig)
-    return out
+def plane_sides(plane: np.ndarray) -> list[float]:
+    """The share of each image side (top and bottom rows, left and right columns) in the (H, W) bool ``plane``."""
+    p = np.asarray(plane, bool)
+    return [float(e.mean()) for e in (p[0], p[-1], p[:, 0], p[:, -1])]
+
+
+def view_plane(phase: np.ndarray, pixels: np.ndarray, degree: int = 3) -> tuple[np.ndarray | None, list[float]]:
+    """``(plane pixels, side shares)`` of a frame's reference plane for the plane-pixel score: the pixels
+    :func:`fppsim.phase.plane.phase_plane_masks` finds among ``pixels``, None when they cover
+    :data:`PLANE_SIDE_SHARE` of fewer than :data:`PLANE_SIDES` of the image's sides (:func:`plane_sides`): no plane
+    in view."""
+    plane = phase_plane_masks(phase, pixels, degree=degree)[0]
+    sides = plane_sides(plane)
+    return (plane if sum(x >= PLANE_SIDE_SHARE for x in sides) >= PLANE_SIDES else None), sides
 
 
 def _fringe_input(image: np.ndarray):
@@ -478,6 +454,16 @@ def _mm_equiv(rows) -> float:
     return float(np.mean([e for e, _ in pairs]) / scale) if scale > 0 else float("nan")
 
 
+def _plane_means(planes: list) -> dict:
+    """The plane-pixel columns over the frames with a plane in view; None (null in the JSON) with none."""
+    if not planes:
+        return {"plane_rmse_rad": None, "plane_flat_rmse_rad": None, "plane_ratio": None}
+    return {"plane_rmse_rad": _mean(p["prediction"]["rmse_rad"] for p in planes),
+            "plane_flat_rmse_rad": _mean(p["flat"]["rmse_rad"] for p in planes),
+            "plane_ratio": _mean(p["prediction"]["rmse_rad"] / p["flat"]["rmse_rad"]
+                                 for p in planes if p["flat"]["rmse_rad"] > 0)}
+
+
 def _phase_summary(ckpts, names, per_image: list, args: PhaseEvalConfig) -> list[dict]:
     """One row per model (and per refined model): the per-image numbers averaged over the images."""
     summary = []
@@ -491,10 +477,7 @@ def _phase_summary(ckpts, names, per_image: list, args: PhaseEvalConfig) -> list
             "rmse_mm_equiv": _mm_equiv(rows),
             "flat_rmse_rad": _mean(r["flat"]["rmse_rad"] for r in rows),
             "ratio": _mean(r["prediction"]["rmse_rad"] / r["flat"]["rmse_rad"] for r in rows if r["flat"]["rmse_rad"] > 0),
-            "plane_rmse_rad": _mean(r["plane"]["prediction"]["rmse_rad"] for r in rows if r["plane"]),
-            "plane_flat_rmse_rad": _mean(r["plane"]["flat"]["rmse_rad"] for r in rows if r["plane"]),
-            "plane_ratio": _mean(r["plane"]["prediction"]["rmse_rad"] / r["plane"]["flat"]["rmse_rad"]
-                                 for r in rows if r["plane"] and r["plane"]["flat"]["rmse_rad"] > 0),
+            **_plane_means([r["plane"] for r in rows if r["plane"]]),
             "flat_explained": _mean(r["flat"]["explained"] for r in rows),
             "pixel_fraction": _mean(r["pixel_fraction"] for r in rows),
             "predicted_invalid_fraction": _mean(r["predicted_invalid_fraction"] for r in rows),
@@ -556,11 +539,28 @@ def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size
     return refined
 
 
+def _frame_plane(s, degree: int, rig_says_none: bool, record: dict) -> tuple[np.ndarray | None, str | None]:
+    """Frame ``s``'s plane pixels for the plane-pixel score (:func:`view_plane`), or None and why there is no plane
+    in view; ``record`` (the frame's) gets ``plane_in_view``, ``plane_sides`` and ``plane_pixel_fraction``."""
+    if rig_says_none:
+        plane, sides = None, None
+        why = "the --rig records no reference plane in view (fit-rig found none)"
+    else:
+        plane, sides = view_plane(s.phase, _scored_pixels(s), degree)
+        n = sum(x >= PLANE_SIDE_SHARE for x in sides)
+        why = None if plane is not None else (f"the 'plane' found reaches {n} of the image's 4 sides, a reference "
+                                              f"plane reaching beyond the view {PLANE_SIDES} or more "
+                                              f"({PLANE_SIDE_SHARE:.0%} of a side each)")
+    record.update(plane_in_view=plane is not None, plane_sides=sides,
+                  plane_pixel_fraction=0.0 if plane is None else float(plane.mean()))
+    return plane, why
+
+
 def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo, chosen) -> dict:
     """The body of :func:`evaluate_phase_folder` once ``out`` is open: every frame scored, the report written."""
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
-    per_image, figures, skipped = [], [], []
+    per_image, figures, skipped, without = [], [], [], {}  # without: frame id -> why no plane is in view
     no_plane = any(rig is not None and not rig.plane_in_view for *_, rig in models)
     for k, sid in enumerate(ids):
         try:
@@ -608,16 +608,17 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             if rig is not None:  # the same pixels, the heights after the image's own phase
                 refined = _refined(args, s, sid, name, model, transform, size, rig, h, record, echo)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
-        # a rig fitted with no plane in view: no plane-pixel score (its "plane" would be the objects)
-        plane = (np.zeros(img.shape, bool) if no_plane else
-                 phase_plane_masks(s.phase, _scored_pixels(s), degree=args.degree)[0])
-        record["plane_pixel_fraction"] = float(plane.mean())
+        # no plane in view (the rig says so, or the plane found does not reach the border): no plane-pixel score,
+        # whose "plane" would be the objects
+        plane, why = _frame_plane(s, args.degree, no_plane, record)
+        if why:
+            without[sid] = why
         for name, h, ok, pred_valid in scored:
             try:
                 res = evaluate_phase(s.phase, h, ok, plane_pixels=plane, **fit_kw)
             except ValueError as exc:
                 raise ConfigError(f"{s.path}: {name}: {exc}") from None
-            record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"], "plane": res["plane"],
+            record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"], "plane": res.get("plane"),
                                       "pixel_fraction": float(ok.mean()),
                                       "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
             heights[name] = np.where(ok, h, np.nan)
@@ -626,19 +627,13 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
         if k < args.figures:
             figures.append(plot_phase_residuals(img, relief, heights, residuals, out / "figures" / f"{sid}.png",
                                                 title=f"{sid}: calibration-free phase fit (degree {args.degree})"))
-        echo(f"{sid}: " + ", ".join(f"{n} residual {r['prediction']['rmse_rad']:.3f} rad "
-                                     f"(flat {r['flat']['rmse_rad']:.3f}), explained {r['prediction']['explained']:.3f}"
-                                     + (f"; plane-pixel plane {r['plane']['prediction']['rmse_rad']:.3f} "
-                                        f"(flat {r['plane']['flat']['rmse_rad']:.3f})" if r["plane"] else "")
-                                     for n, r in record["models"].items()))
+        echo(frame_line(sid, record["models"], why))
     if not per_image:
         raise ConfigError(f"{args.phase_root}: no frame has pixels to fit (skipped {', '.join(skipped[:10])})")
     summary = _phase_summary(ckpts, names, per_image, args)
-    md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust)
+    md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust, without)
     if skipped:
         md += f"\nSkipped (no pixel with a valid phase and light to fit): {', '.join(skipped)}.\n"
-    if no_plane:
-        md += "\nPlane-pixel columns nan: the --rig records no reference plane in view (fit-rig found none).\n"
     for name, on in chosen.items():
         md += f"\nNot held out: {name}'s weights were chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
     atomic_write_text(out / "phase_results.md", md)
