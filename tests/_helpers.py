@@ -194,6 +194,37 @@ def rig_fringe(rig, height_mm: np.ndarray, valid: np.ndarray | None = None, offs
     return f8
 
 
+#: three boxes in the default rig's view (world mm: x0, x1, y0, y1, height), each casting a shadow onto the plane
+BOXES = [(-80, -30, -30, 30, 25.0), (20, 70, -45, 5, 35.0), (-5, 25, 30, 55, 15.0)]
+
+
+def box_scene(rig, boxes=BOXES) -> tuple[np.ndarray, np.ndarray]:
+    """``(height_mm, lit)`` of upright boxes standing on the reference plane seen through ``rig``, ray traced: each
+    camera ray meets the highest box top over its cut, else the plane, unless a box wall comes first (unlit); a
+    surface point is lit when its segment to the projector centre misses every box (a shadow otherwise).
+    ``boxes``: ``(x0, x1, y0, y1, height)`` mm in the world frame."""
+    cam = rig.camera
+    uv = cam.pixel_grid()
+    height, top = np.zeros(uv.shape[:2]), np.zeros(uv.shape[:2], bool)
+    for x0, x1, y0, y1, h in sorted(boxes, key=lambda b: -b[4]):
+        X = cam.ray_cut(uv, float(h))[1]
+        on = ~top & (X[..., 0] >= x0) & (X[..., 0] <= x1) & (X[..., 1] >= y0) & (X[..., 1] <= y1)
+        height[on], top = h, top | on
+    X0 = cam.ray_cut(uv, 0.0)[1]
+    lit = ~top & ~np.any([(X0[..., 0] >= b[0]) & (X0[..., 0] <= b[1]) & (X0[..., 1] >= b[2]) & (X0[..., 1] <= b[3])
+                          for b in boxes], axis=0) | top
+    P = cam.ray_cut(uv, height)[1]
+    d = rig.projector.center - P
+    for x0, x1, y0, y1, h in boxes:  # slab test of the segment P + t d, 0 < t <= 1
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = [((lo - P[..., k]) / d[..., k], (hi - P[..., k]) / d[..., k]) for k, lo, hi in
+                 ((0, x0, x1), (1, y0, y1), (2, 0.0, float(h)))]
+        enter = np.max([np.minimum(a, b) for a, b in t], axis=0)
+        leave = np.min([np.maximum(a, b) for a, b in t], axis=0)
+        lit &= ~((enter < leave) & (leave > 1e-6) & (enter < 1.0))
+    return height, lit
+
+
 def write_native_rig(folder, rig, n: int = 6, seed: int = 0) -> list[str]:
     """Native samples of ``rig``'s camera size whose fringe, ``phase_true`` and ``meta.json`` rig are
     consistent (the image is :func:`rig_fringe` of the sample's height): data ``--head phase`` trains on."""

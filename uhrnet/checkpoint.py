@@ -14,8 +14,9 @@ loads with ``weights_only=True``::
     epoch            number of finished epochs
     optimizer, scaler, loss, rng, best, history, args, data   (for --resume)
     train_state_dict, ema {"decay", "updates"}                  (with --ema, for --resume)
-    val_phase_frames [{"root", "id", "held_out"}]                 (with --val-phase: the frames that choose best.pt
-                                                                   and those held out; evaluate-phase warns on the first)
+    val_phase_frames [{"root", "id", "held_out", "digest"}]       (with --val-phase: the frames that choose best.pt
+                                                                   and those held out; evaluate-phase warns on the first,
+                                                                   copies too: digest = fppsim's frame_digest)
 """
 
 from __future__ import annotations

@@ -122,6 +122,35 @@ def test_train_val_phase_picks_best_by_the_real_frames(setup, tmp_path, capsys):
     assert "val_phase_ratio" in history(run)[-1] and np.isfinite(float(history(run)[-1]["val_phase_ratio"]))
 
 
+def test_evaluate_phase_recognises_a_copy_of_the_frames_that_chose_best(setup, tmp_path, capsys):
+    """A copy of the --val-phase folder under another name (a frame renamed in it too) is scored with the warning
+    that the weights were chosen on it; its held-out frame and an unrelated frame are not named."""
+    import shutil
+
+    tmp, _, root, truth = setup
+    run = train_tiny(tmp_path / "vp", "--real", tmp / "real", extra=["--val-phase", root])
+    copy = tmp_path / "moved" / "my_frames"
+    shutil.copytree(root, copy)
+    for sub in ("PSin", "PCos", "Fringe", "iPattern"):
+        (copy / sub / "2.mat").rename(copy / sub / "b.mat")
+    phase, height, valid = truth["0"]
+    save_psp_folder_sample(copy, "new", *sums_from_phase(phase + 0.3 * height, valid, 30.0),
+                           np.full(phase.shape, 120, np.uint8))  # another scene: not a frame of the run
+    capsys.readouterr()
+    out = tmp_path / "ev"
+    assert main(["evaluate-phase", str(run / "best.pt"), "--phase-root", str(copy), "--out", str(out),
+                 "--figures", "0", "--device", "cpu"]) == 0
+    doc = json.loads((out / "phase_results.json").read_text())
+    assert list(doc["chosen_on"].values()) == [["0", "b"]]  # frames 0 and 2 chose best.pt; 1 was held out
+    warn = [line for line in capsys.readouterr().out.splitlines() if line.startswith("warning:")]
+    assert len(warn) == 1 and f"0, b of {copy} (the same frames as 0, 2 of {root.resolve()})" in warn[0]
+    assert "Not held out" in (out / "phase_results.md").read_text()
+    assert main(["evaluate-phase", str(run / "best.pt"), "--phase-root", str(copy), "--out", str(tmp_path / "e2"),
+                 "--figures", "0", "--device", "cpu", "--ids", "1", "new"]) == 0
+    assert json.loads((tmp_path / "e2" / "phase_results.json").read_text())["chosen_on"] == {}
+    assert "weights were chosen" not in capsys.readouterr().out
+
+
 def test_train_val_phase_bad_folder_is_one_line(setup, tmp_path, capsys):
     tmp, _, root, truth = setup
     rc = main(["train", "--real", str(tmp / "real"), "--model", "unet", "--base-channels", "4", "--epochs", "1",

@@ -16,7 +16,7 @@ from uhrnet.inference.prediction import PATH_MARGIN_PX, fringe_mirror_axis, path
 from uhrnet.physics.refine import refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 
-from _helpers import rig_fringe, tiny_rig, train_tiny, wrap_phase, write_figshare
+from _helpers import box_scene, rig_fringe, tiny_rig, train_tiny, wrap_phase, write_figshare
 
 pytestmark = pytest.mark.usefixtures("one_thread")
 
@@ -194,6 +194,41 @@ def test_the_default_path_keeps_the_network_heights_of_an_image_without_fringes(
     assert main(["predict", str(run), str(tmp_path / "flat.npy"), "--out", str(tmp_path / "p"), "--rig",
                  str(tmp_path / "rig.json"), "--refine", "phase", "--no-progress", "--no-ply"]) == 1
     assert len(capsys.readouterr().err.strip().splitlines()) == 1
+
+
+def test_predict_warns_of_an_image_turned_against_its_rig_and_keeps_its_heights(run, tmp_path, capsys, monkeypatch):
+    """Boxes on the plane through the default rig: the image rotated 180 degrees or mirrored across its fringes
+    reads with its relief below the plane (the truth: we turned it); predict says so in one line naming the image,
+    records the check in refine.json, and writes the same heights as without the check."""
+    import cv2
+
+    import uhrnet.inference.prediction as prediction
+    from uhrnet.physics.orientation import OrientationCheck
+
+    rig = make_default_rig()
+    rig.save(tmp_path / "rig.json")
+    img = rig_fringe(rig, *box_scene(rig))
+    for name, im in (("given", img), ("rotated", img[::-1, ::-1]), ("mirrored", img[:, ::-1])):
+        cv2.imwrite(str(tmp_path / f"{name}.png"), np.ascontiguousarray(im))
+    args = [str(tmp_path / f"{n}.png") for n in ("given", "rotated", "mirrored")]
+    capsys.readouterr()
+    assert main(["predict", str(run), *args, "--out", str(tmp_path / "o"), "--rig", str(tmp_path / "rig.json"),
+                 "--no-progress", "--no-ply"]) == 0
+    warned = [line for line in capsys.readouterr().err.splitlines() if "relief below the reference plane" in line]
+    assert len(warned) == 2 and all(f"{n}.png ({n}): relief" in w for n, w in zip(("rotated", "mirrored"), warned))
+    assert all("rotated or mirrored image, or a rig with the projector on the other side?" in w for w in warned)
+    doc = json.loads((tmp_path / "o" / "refine.json").read_text())
+    assert {n: doc[n]["orientation"]["verdict"] for n in doc} == {"given": "as given", "rotated": "flipped",
+                                                                   "mirrored": "flipped"}
+    # only said: the heights are those of a run whose check finds nothing
+    monkeypatch.setattr(prediction, "check_orientation",
+                        lambda *a: OrientationCheck({}, 0, None, "undecided", "not checked"))
+    assert main(["predict", str(run), *args, "--out", str(tmp_path / "p"), "--rig", str(tmp_path / "rig.json"),
+                 "--no-progress", "--no-ply"]) == 0
+    assert "relief below" not in capsys.readouterr().err
+    for n in ("given", "rotated", "mirrored"):
+        np.testing.assert_array_equal(np.load(tmp_path / "o" / f"{n}_height.npy"),
+                                      np.load(tmp_path / "p" / f"{n}_height.npy"))
 
 
 def _conv_model():

@@ -30,7 +30,10 @@ The path starts from the mean of the network's heights on the image and on the i
 and whether it was decided (:attr:`PredictResult.refine`; an earlier call's images into the same folder keep
 their entries, an image predicted again without refinement loses its entry and network copy). Under ``auto`` an image without a readable fringe phase, or whose fringes are not the rig's
 (:func:`fringe_phase`), keeps the network's heights with a warning; under ``"phase"`` it is an error naming it,
-after the images before it were written whole.
+after the images before it were written whole. An image that reads turned against the rig (rotated 180 degrees or
+mirrored across its fringes: its relief below the reference plane, :func:`uhrnet.physics.orientation.check_orientation`
+from its phase and the rig alone) gets a one-line warning and its check in ``refine.json``; its heights are not
+changed. The TIFF, preview and point cloud writers are :mod:`uhrnet.inference.outputs`.
 
 A pixel is invalid when the predicted label is at or below the transform's invalid threshold or the
 input is black (intensity 0, the dataset's marker of shadow); ``--keep-all`` keeps every pixel. A
@@ -61,9 +64,11 @@ from uhrnet.data.datasets import parse_size
 from fppsim.dataio.readers import IMAGE_EXTS, PSPMatError, open_source, read_fringe_image, skipped_note, warn_skipped
 from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
 from uhrnet.device import select_device
+from uhrnet.inference.outputs import points_from_grid, points_from_rig, write_ply, write_preview, write_tiff
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
+from uhrnet.physics.orientation import check_orientation
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 from uhrnet.run_folder import refuse_own_source
@@ -297,61 +302,6 @@ def load_inputs(path: Path, notes: list | None = None) -> list[tuple[str, np.nda
     return frames
 
 
-def points_from_rig(rig, height_mm: np.ndarray) -> np.ndarray:
-    """World points (H, W, 3) where each camera pixel's ray reaches world z = height (mm)."""
-    check_image_size(rig, height_mm.shape, "", who="the rig camera is", error=ConfigError,
-                     template="{who} {camera} but the image is {got}")
-    cam = rig.camera
-    return cam.ray_cut(cam.pixel_grid(), height_mm.astype(np.float64))[1]
-
-
-def points_from_grid(height_mm: np.ndarray, pixel_size: float) -> np.ndarray:
-    h, w = height_mm.shape
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    return np.stack([uu * pixel_size, (h - 1 - vv) * pixel_size, height_mm.astype(np.float64)], axis=-1)
-
-
-def write_ply(path: Path, points: np.ndarray, grey: np.ndarray) -> int:
-    """Binary little-endian PLY with float x, y, z and uchar red, green, blue; returns the point count."""
-    ok = np.isfinite(points).all(axis=-1)
-    pts, g = points[ok].astype(np.float32), grey[ok].astype(np.uint8)
-    rec = np.empty(len(pts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                    ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    rec["x"], rec["y"], rec["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
-    rec["red"] = rec["green"] = rec["blue"] = g
-    header = ("ply\nformat binary_little_endian 1.0\ncomment uhrnet predicted height, millimetres\n"
-              f"element vertex {len(rec)}\nproperty float x\nproperty float y\nproperty float z\n"
-              "property uchar red\nproperty uchar green\nproperty uchar blue\nend_header\n")
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(rec.tobytes())
-    return len(rec)
-
-
-def write_tiff(path: Path, array: np.ndarray) -> None:
-    from PIL import Image
-
-    with atomic_path(path) as tmp:
-        Image.fromarray(np.ascontiguousarray(array, dtype=np.float32)).save(tmp, format="TIFF")
-
-
-def write_preview(path: Path, height_mm: np.ndarray, cmap: str, vrange) -> None:
-    from matplotlib import colormaps  # (colour maps only: no figure, so no backend to set up)
-
-    finite = height_mm[np.isfinite(height_mm)]
-    if vrange is None:
-        vrange = np.percentile(finite, [1, 99]) if finite.size else (0.0, 1.0)
-    lo, hi = float(vrange[0]), float(vrange[1])
-    scaled = np.clip((height_mm - lo) / (hi - lo if hi > lo else 1.0), 0, 1)
-    rgb = (colormaps[cmap](np.nan_to_num(scaled))[..., :3] * 255).round().astype(np.uint8)
-    rgb[~np.isfinite(height_mm)] = 128
-    import cv2
-
-    with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), rgb[..., ::-1]):
-            raise OSError(f"cannot write {path}")
-
-
 def predict(config: PredictConfig) -> PredictResult:
     """Predict every input of ``config`` and write its files (see the module docstring)."""
     from tqdm import tqdm
@@ -453,6 +403,11 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
             result.warnings.append(f"{path} ({name}): no fringe phase to refine with ({reason}): the network's heights")
         if stats.get("regions", 1) == 0:
             result.warnings.append(f"{path} ({name}): no phase region of reliable fringes: the network's heights")
+        orientation = stats.get("orientation") or {}
+        if orientation.get("verdict") == "flipped":  # said, never acted on: the heights stay the path's
+            result.warnings.append(
+                f"{path} ({name}): relief below the reference plane through {rig_name}: rotated or mirrored image, or "
+                f"a rig with the projector on the other side? ({orientation['evidence']})")
         undecided = stats.get("undecided_regions", 0)
         if undecided:
             result.warnings.append(
@@ -620,12 +575,13 @@ def path_estimate(model: torch.nn.Module, transform, fringe: np.ndarray, size, r
 
 
 def order_choice(height_mm: np.ndarray, fringe: np.ndarray, rig, network_mm: np.ndarray | None = None,
-                 name: str = "image"):
+                 name: str = "image", phase=None):
     """THE orders path on one image (:func:`uhrnet.physics.orders.choose_orders` with the rim split): every phase
     region of ``fringe`` (dataset encoding) at one order, from the estimate ``height_mm`` (mm, NaN = none)
     through ``rig``; the pixels it leaves alone keep ``network_mm`` (the network's own map; default the
-    estimate). Returns the :class:`~uhrnet.physics.orders.OrderChoice`."""
-    ssp = fringe_phase(fringe, rig, name)
+    estimate); ``phase``: the image's :func:`fringe_phase` when already read. Returns the
+    :class:`~uhrnet.physics.orders.OrderChoice`."""
+    ssp = fringe_phase(fringe, rig, name) if phase is None else phase
     return choose_orders(height_mm, ssp.wrapped, ssp.reliability, layer_for(rig, np.shape(height_mm)),
                          valid=np.isfinite(height_mm) & ssp.valid, shadow=~ssp.valid,
                          fringe=(np.asarray(fringe, np.float64), ssp.background, ssp.modulation), keep=network_mm)
@@ -635,14 +591,19 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
                       network_mm: np.ndarray | None = None, name: str = "image") -> tuple[np.ndarray, dict]:
     """``height_mm`` (H, W) moved to agree with the single-shot phase of ``fringe`` (dataset encoding)
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics. With ``orders``
-    the pixels the path leaves alone keep ``network_mm`` (default ``height_mm``); ``name`` heads its errors."""
+    the pixels the path leaves alone keep ``network_mm`` (default ``height_mm``); ``name`` heads its errors. The
+    statistics also say whether the image reads flipped through the rig (``orientation``:
+    :func:`uhrnet.physics.orientation.check_orientation`, from the image's phase and the rig alone), which changes
+    no height."""
 
+    ssp = fringe_phase(fringe, rig, name)
     if method == "orders":
-        choice = order_choice(height_mm, fringe, rig, network_mm, name)
+        choice = order_choice(height_mm, fringe, rig, network_mm, name, phase=ssp)
         refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
     else:
-        ssp = fringe_phase(fringe, rig, name)
         refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig,
                                           valid=np.isfinite(height_mm) & ssp.valid)
+    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
+    stats["orientation"] = check_orientation(ssp.wrapped, ssp.reliability, ssp.valid, r).to_dict()
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

@@ -44,7 +44,6 @@ imported only there.
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -61,6 +60,7 @@ from fppsim.dataio.readers import open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
+from uhrnet.scoring.chosen_frames import chosen_frames, chosen_words, phase_frames
 from uhrnet.scoring.evaluation import check_name_count, model_names
 from uhrnet.scoring.phase_report import frame_line, markdown, plot_phase_residuals
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
@@ -69,7 +69,7 @@ from uhrnet.inference.prediction import path_estimate, predict_labels, refine_ri
 EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
 
 __all__ = ["PhaseFit", "fit_phase", "evaluate_phase", "PhaseEvalConfig", "evaluate_phase_folder",
-           "markdown", "plot_phase_residuals", "phase_frames", "PhaseValidation", "PLANE_SIDE_SHARE",
+           "markdown", "plot_phase_residuals", "PhaseValidation", "PLANE_SIDE_SHARE",
            "PLANE_SIDES", "plane_sides", "view_plane"]
 
 
@@ -297,23 +297,6 @@ def _scored_pixels(sample) -> np.ndarray:
     return sample.valid & (sample.image > 0)
 
 
-def phase_frames(roots, what: str = "--val-phase") -> list[tuple]:
-    """``(root, frame id)`` of every frame in the phase-shifting folders ``roots`` (their files are not read);
-    :class:`ConfigError` naming ``what`` (the flag) for a folder that holds none or cannot be listed, as
-    :class:`PhaseValidation` refuses it (and a check before a run that will build one)."""
-    frames = []
-    for root in roots:
-        try:
-            frames += [(root, sid) for sid in open_source(root).scan_ids()]
-        except PSPMatError as exc:
-            raise ConfigError(f"{what}: {exc}") from None
-    # a folder given twice (or through a link) is one frame: its copy must not be "held out"
-    frames = list({(str(Path(r).resolve()), sid): (r, sid) for r, sid in frames}.values())
-    if not frames:
-        raise ConfigError(f"{what}: no frames given")
-    return frames
-
-
 class PhaseValidation:
     """Real phase-shifting frames as an UNLABELLED validation set of a training run (``uhrnet train
     --val-phase``): :meth:`score` predicts every frame's height and returns the calibration-free phase
@@ -351,8 +334,7 @@ class PhaseValidation:
             if shape is not None and tuple(s.image.shape) != tuple(shape):
                 raise ConfigError(f"{what}: {s.path}: the frame is {s.image.shape[1]} x {s.image.shape[0]} px but the "
                                   f"training images are {shape[1]} x {shape[0]}: give frames of the rig the data is of")
-            digest = hashlib.sha1(np.ascontiguousarray(s.image).tobytes()
-                                  + np.ascontiguousarray(s.phase).tobytes()).hexdigest()
+            digest = s.digest()
             if digest in seen:  # a copy of a frame already read (another folder holding the same scan)
                 self.notes.append(f"{s.path} is the same frame as {seen[digest]}: read once")
                 continue
@@ -363,7 +345,7 @@ class PhaseValidation:
             except ValueError as exc:
                 raise ConfigError(f"{what}: {s.path}: {exc}") from None
             self.frames.append({"x": _fringe_input(s.image), "phase": s.phase, "pixels": ok, "flat_rad": flat,
-                                "root": str(Path(root).resolve()), "id": sid})
+                                "root": str(Path(root).resolve()), "id": sid, "digest": digest})
         for k, f in enumerate(self.frames):  # every second frame held out, once the frames are known distinct
             f["held_out"] = len(self.frames) > 1 and k % 2 == 1
         if len(self.frames) == 1:
@@ -371,9 +353,11 @@ class PhaseValidation:
                                  "or more frames (not those the rig was fitted to) for a held-out score")
 
     def record(self) -> list[dict]:
-        """``[{"root", "id", "held_out"}]`` of every frame scored: what a checkpoint keeps of them, so that
-        :func:`chosen_on` can tell evaluate-phase which frames chose ``best.pt``."""
-        return [{"root": f["root"], "id": f["id"], "held_out": bool(f["held_out"])} for f in self.frames]
+        """``[{"root", "id", "held_out", "digest"}]`` of every frame scored: what a checkpoint keeps of them, so
+        that :func:`uhrnet.scoring.chosen_frames.chosen_on` can tell evaluate-phase which frames (or copies of
+        them: ``digest``, :meth:`fppsim.dataio.readers.PspMat.digest`) chose ``best.pt``."""
+        return [{"root": f["root"], "id": f["id"], "held_out": bool(f["held_out"]), "digest": f["digest"]}
+                for f in self.frames]
 
     def score(self, model, transform, size=None) -> dict:
         """``{"val_phase_ratio": mean residual / flat residual, "val_phase_rad": mean residual (rad)}`` of
@@ -395,23 +379,6 @@ class PhaseValidation:
                 ratios[f["held_out"]].append(rad / f["flat_rad"] if f["flat_rad"] > 0 else float("nan"))
         return {"val_phase_ratio": _mean(ratios[False]), "val_phase_rad": _mean(rads[False]),
                 "val_phase_heldout_ratio": _mean(ratios[True]), "val_phase_heldout_rad": _mean(rads[True])}
-
-
-def chosen_on(ckpt: dict, root, ids) -> list[str]:
-    """The ids among ``ids`` of the phase-shifting folder ``root`` on which ``ckpt``, its run's best epoch by
-    ``--val-phase``, was chosen: its record of the frames (:meth:`PhaseValidation.record`; a checkpoint written
-    before it: every frame of its ``--val-phase`` folders). Empty for any other checkpoint."""
-    roots, best = (ckpt.get("args") or {}).get("val_phase") or [], ckpt.get("best") or {}
-    if not roots or best.get("metric") != "val_phase_ratio" or ckpt.get("epoch") != best.get("epoch"):
-        return []
-    record = ckpt.get("val_phase_frames")
-    if record is None:
-        try:
-            record = [{"root": str(Path(r).resolve()), "id": sid, "held_out": False} for r, sid in phase_frames(roots)]
-        except ConfigError:  # its folders moved or are gone: nothing to compare with
-            return []
-    here = str(Path(root).resolve())
-    return [f["id"] for f in record if not f["held_out"] and f["root"] == here and f["id"] in ids]
 
 
 def _own_report(out: Path) -> list[str]:
@@ -510,15 +477,11 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
-    chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_on(ck, args.phase_root, ids))}
-    for name, on in chosen.items():
-        echo(f"warning: {name}: its weights were chosen (train --val-phase, best epoch) on frame(s) {', '.join(on)} "
-             f"of {args.phase_root}: their score is not held out; score frames its run never saw")
     # locked for the run; a failed run drops its claims on what it never wrote, and a folder it made and left empty
     with output_folder(out, EVALUATE_PHASE_TOOL, error=ConfigError):
         claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
               + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
-        return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo, chosen)
+        return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo)
 
 
 def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, h, record: dict, echo):
@@ -556,11 +519,12 @@ def _frame_plane(s, degree: int, rig_says_none: bool, record: dict) -> tuple[np.
     return plane, why
 
 
-def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo, chosen) -> dict:
+def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out: Path, echo) -> dict:
     """The body of :func:`evaluate_phase_folder` once ``out`` is open: every frame scored, the report written."""
     fit_kw = dict(degree=args.degree, robust=args.robust)
 
-    per_image, figures, skipped, without = [], [], [], {}  # without: frame id -> why no plane is in view
+    per_image, figures, skipped, digests = [], [], [], {}
+    without = {}  # frame id -> why no plane is in view
     no_plane = any(rig is not None and not rig.plane_in_view for *_, rig in models)
     for k, sid in enumerate(ids):
         try:
@@ -571,6 +535,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             continue
         except PSPMatError as exc:
             raise ConfigError(str(exc)) from None
+        digests[sid] = s.digest()  # its content: a copy of a frame that chose a checkpoint is that frame
         note = reading_note(s.meta)
         if note:
             echo(f"{sid}: {note}")
@@ -630,16 +595,27 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
         echo(frame_line(sid, record["models"], why))
     if not per_image:
         raise ConfigError(f"{args.phase_root}: no frame has pixels to fit (skipped {', '.join(skipped[:10])})")
+    chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_frames(ck, args.phase_root, ids, digests))}
+    for name, on in chosen.items():
+        echo(f"warning: {name}: its weights were chosen (train --val-phase, best epoch) on frame(s) "
+             f"{chosen_words(args.phase_root, on)}: their score is not held out; score frames its run never saw")
     summary = _phase_summary(ckpts, names, per_image, args)
+    md = _write_report(args, out, summary, per_image, skipped, without, chosen)
+    return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}
+
+
+def _write_report(args: PhaseEvalConfig, out: Path, summary, per_image, skipped, without, chosen) -> str:
+    """Write ``phase_results.md`` / ``.json`` of :func:`evaluate_phase_folder` into ``out``; returns the markdown."""
     md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust, without)
     if skipped:
         md += f"\nSkipped (no pixel with a valid phase and light to fit): {', '.join(skipped)}.\n"
     for name, on in chosen.items():
-        md += f"\nNot held out: {name}'s weights were chosen (train --val-phase) on frame(s) {', '.join(on)} of these.\n"
+        md += (f"\nNot held out: {name}'s weights were chosen (train --val-phase) on frame(s) "
+               f"{chosen_words(args.phase_root, on)}.\n")
     atomic_write_text(out / "phase_results.md", md)
     atomic_write_text(out / "phase_results.json", json_text(
         {"phase_root": str(args.phase_root), "convention": args.convention, "negate_sin": args.negate_sin,
          "degree": args.degree, "robust": args.robust, "models": summary, "per_image": per_image,
-         "skipped": skipped, "chosen_on": chosen},
+         "skipped": skipped, "chosen_on": {name: [sid for sid, _ in on] for name, on in chosen.items()}},
         indent=1))
-    return {"summary": summary, "per_image": per_image, "markdown": md, "figures": figures}
+    return md

@@ -11,7 +11,7 @@ any labelled layout           :func:`open_labelled` (its :class:`Source`, checke
                               :func:`iter_samples` (grey uint8 image + label, e.g. ``compare-real``)
 phase-shifting ``.mat``       :func:`load_psp_mat` (one file), :func:`list_psp_ids`,
                               :func:`load_psp_folder_sample`, :func:`iter_psp_folder` (PSin/PCos/Fringe/
-                              iPattern folders)
+                              iPattern folders), ``PspMat.digest()`` (a frame's content hash)
 real images for fitting       :func:`load_fringe_images` (every layout, through :func:`open_source`)
 which layout a path holds     :func:`open_source` -> the layout's reader, a :class:`Source` (``ids()``,
                               ``fringe_images()``, ``inputs()``, ``sample()``, ``phase()``, ...): THE

@@ -25,6 +25,7 @@ MATLAB v4/v5/v7 files are read with :func:`scipy.io.loadmat`; v7.3 (HDF5) files 
 
 from __future__ import annotations
 
+import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,6 +75,20 @@ class PspMat:
     meta: dict = field(default_factory=dict)
     path: str = ""
     image: np.ndarray | None = None
+
+    def digest(self) -> str:
+        """A content hash of the frame: its sums (the sine as stored, ``negate_sin`` undone), fringe orders and
+        single-shot image, dtypes and shapes included. A copy of its files, in another folder or under another
+        id, hashes the same whatever convention reads it; another frame (the same phase under another image
+        too: another input) does not."""
+        sign = -1.0 if self.meta.get("negate_sin") else 1.0
+        h = hashlib.sha256()
+        for name, a in (("sin", sign * self.psin), ("cos", self.pcos), ("order", self.order), ("image", self.image)):
+            if a is not None:
+                a = np.ascontiguousarray(a)
+                h.update(f"{name}{a.dtype}{a.shape}".encode())
+                h.update(a.tobytes())
+        return h.hexdigest()
 
 
 def _pick(found: dict, wanted: str | None, candidates: tuple, role: str, path: Path) -> str:

@@ -40,7 +40,7 @@ from fppsim.geometry.rig import load_rig
 from uhrnet.checkpoint import find_checkpoint
 from uhrnet.device import select_device
 from uhrnet.errors import ConfigError, Sim2RealError, UhrnetError, UsageError
-from uhrnet.scoring.phase_residual import phase_frames
+from uhrnet.scoring.chosen_frames import phase_frames
 from uhrnet.run_folder import CONFIG_JSON, HISTORY_CSV, IMAGES_JSON, LAST_PT, fresh, read_history, run_done
 from uhrnet.workflows.stages import dataset_count, run_stage
 from uhrnet.workflows.sim2real.config import SCALES, Sim2RealConfig, Variant, data_key, generate_workers

@@ -1,0 +1,164 @@
+"""Is a fringe image the way round its rig sees the scene? A check from the image's own phase and the rig, no
+label and no network (:func:`check_orientation`).
+
+One image cannot tell which way its phase grows, so the single-shot phase is read growing the way the rig's plane
+phase grows (:func:`uhrnet.inference.prediction.fringe_phase`). An image rotated by 180 degrees, or mirrored across
+its fringes, then reads as the image of a scene whose relief is NEGATED through the rig: objects come out below
+the reference plane they stand on. Two things in the image can tell, both measured against the rig alone:
+
+* **shadows** (the physics of :func:`fppsim.phase.unwrap.shadow_bridges` and of fit-rig's projector side): the
+  projector ray that grazes an object's edge lands on the plane at the far side of its shadow, so one ray carries
+  one phase at both ends, and the object end is raised by ``(Phi0(plane end) - Phi0(object end)) / s`` through the
+  rig (``Phi0`` its plane phase, ``s`` its phase per mm). That is positive only when the plane end lies on one side
+  of the shadow, the rig's; in a flipped image it lies on the other. Along the baseline (rows for vertical fringes)
+  every shadow between a stretch of plane and a stretch of object votes;
+* **the plane's fringes** (perspective): the reference plane's phase is the rig's ``Phi0`` up to a constant; a
+  flipped image's plane follows ``Phi0`` flipped (and negated) instead. The share of the reliable pixels within
+  :data:`PLANE_TOL_RAD` of each says which; through a rig whose plane phase is nearly linear (projector and camera
+  axes near parallel) all three fit alike and this says nothing.
+
+The plane pixels the shadows need are those of the best fitting of the three plane phases.
+
+Measured (docs/USAGE.md, predict: every number): the labelled pair and FP1523/1201 through the default rig,
+FP672/541 and FP147/109 through rigs fitted to their own frames, and 40 rendered scenes (the default rig twice, the
+FP147 and FP672 rigs, the parallel rig), each as given, rotated 180 degrees and mirrored across its fringes. With at
+least :data:`MIN_RUNS` runs the shadows agreed with the rig in 0.62-1.00 of them as given and 0.00-0.32 turned; no
+given frame reads flipped, every real frame turned does, and 6 of the 80 turned scene images do not (no plane in
+view; no shadow through a rig whose plane phase is nearly linear): silence does not prove the orientation.
+
+numpy in, numpy out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from fppsim.geometry.rig import Rig
+from fppsim.phase import circular_median, wrap
+from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
+from fppsim.phase.unwrap import shadow_runs
+
+__all__ = ["OrientationCheck", "check_orientation", "plane_phases", "shadow_sides"]
+
+#: a reliable pixel is on a plane phase within this (rad) of it, once the image's phase origin is taken off
+PLANE_TOL_RAD = 0.5
+#: the plane phase that fits a reliable share at least this large, and this many times the other's, decides
+PLANE_MIN_SHARE = 0.5
+PLANE_RATIO = 1.8
+#: the shadows decide with at least this many runs, on a plane found on at least this share of the reliable pixels
+#: (chance alone puts 0.16 of any phase within the tolerance)
+MIN_RUNS = 15
+SHADOW_PLANE_SHARE = 0.35
+#: the share of the runs agreeing with the rig at or below which the image is flipped, at or above which it is not
+SHADOWS_FLIPPED = 0.4
+SHADOWS_AS_GIVEN = 0.6
+MIN_RELIABILITY = 0.5
+
+
+@dataclass
+class OrientationCheck:
+    """What :func:`check_orientation` found. ``plane_fit``: the share of the reliable pixels on the rig's plane phase
+    as given, rotated by 180 degrees and mirrored across the fringes (:func:`plane_phases`); ``shadow_runs``: the
+    shadows that voted; ``shadows_agree``: the share of them whose plane end lies where the rig puts it (None: none);
+    ``verdict``: ``"flipped"`` (the relief reads below the plane), ``"as given"`` or ``"undecided"``; ``evidence``:
+    what decided, in words."""
+
+    plane_fit: dict
+    shadow_runs: int
+    shadows_agree: float | None
+    verdict: str
+    evidence: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def plane_phases(rig: Rig) -> dict:
+    """The rig's reference-plane phase (H, W) as an image shows it: ``as given``, ``rotated 180 deg`` and ``mirrored
+    across its fringes`` (the last two negated, as the phase read growing the rig's way is)."""
+    phi0 = rig.phase_at_height(0.0)
+    across = 1 if fringe_axis(rig_phase_gradient(rig)) == "vertical" else 0
+    return {"as given": phi0, "rotated 180 deg": -phi0[::-1, ::-1], "mirrored across its fringes": -np.flip(phi0, across)}
+
+
+def shadow_sides(plane: np.ndarray, lit: np.ndarray, vertical: bool, side: int, skip: int = 2,
+                 reach: int = 8) -> tuple[float, int]:
+    """``(share, runs)``: of the shadow runs (``~lit``, at least 3 px) along the baseline (rows for ``vertical``
+    fringes, else columns) with all lit pixels ``skip`` to ``reach`` px beyond both ends, one end mostly plane (>= 70 %
+    of them) and the other mostly not, the share whose plane end lies ``side`` (+1: towards growing index) of the
+    other; NaN when none votes."""
+    pl, sh = (plane, ~lit) if vertical else (plane.T, ~lit.T)
+    n = sh.shape[1]
+    agree = runs = 0
+    for r, x0, x1 in shadow_runs(sh):  # x0: last lit before the run, x1: first lit after it
+        if x1 - x0 - 1 < 3 or x0 - reach + 1 < 0 or x1 + reach > n:
+            continue
+        before, after = slice(x0 - reach + 1, x0 - skip + 1), slice(x1 + skip, x1 + reach)
+        if sh[r, before].any() or sh[r, after].any():
+            continue
+        pb, pa = float(pl[r, before].mean()), float(pl[r, after].mean())
+        if pb >= 0.7 and pa <= 0.3:
+            found = -1
+        elif pa >= 0.7 and pb <= 0.3:
+            found = 1
+        else:
+            continue
+        runs += 1
+        agree += found == side
+    return (agree / runs if runs else float("nan")), runs
+
+
+def check_orientation(wrapped: np.ndarray, reliability: np.ndarray, lit: np.ndarray, rig: Rig) -> OrientationCheck:
+    """Whether the image whose single-shot phase is ``wrapped`` (read growing the rig's way; ``reliability``, ``lit``:
+    its reliability and its pixels with fringes, (H, W)) is flipped through ``rig`` (module docstring). A rig with no
+    plane in view: undecided."""
+    if not rig.plane_in_view:
+        return OrientationCheck({}, 0, None, "undecided", "the rig has no reference plane in view")
+    w = np.asarray(wrapped, np.float64)
+    lit = np.asarray(lit, bool)
+    usable = lit & np.isfinite(w) & (np.nan_to_num(np.asarray(reliability, np.float64)) >= MIN_RELIABILITY)
+    if not usable.any():
+        return OrientationCheck({}, 0, None, "undecided", "no reliable fringe phase")
+    on = {}
+    for name, phi in plane_phases(rig).items():
+        d = wrap(w - phi)
+        on[name] = usable & (np.abs(wrap(d - circular_median(d[usable]))) < PLANE_TOL_RAD)
+    fit = {k: float(v.sum() / usable.sum()) for k, v in on.items()}
+    best = max(fit, key=fit.get)  # ties: as given (first)
+    gu, gv = rig_phase_gradient(rig)
+    vertical = fringe_axis((gu, gv)) == "vertical"
+    cam = rig.camera
+    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
+    per_mm = float(rig.phase_at_height(1.0, centre)[0] - rig.phase_at_height(0.0, centre)[0])
+    # raised by (Phi0(plane end) - Phi0(object end)) / per_mm > 0: the plane end lies sign(g / per_mm) of the object's
+    side = int(np.sign((gu if vertical else gv) * per_mm))
+    agree, runs = shadow_sides(on[best], lit, vertical, side)
+    return OrientationCheck({k: round(v, 4) for k, v in fit.items()}, runs, None if runs == 0 else round(agree, 4),
+                            *_verdict(fit, agree, runs))
+
+
+def _verdict(fit: dict, agree: float, runs: int) -> tuple[str, str]:
+    """``(verdict, evidence)`` of the plane fits and the shadows' votes (the thresholds above); flipped or as given
+    only where no evidence says the other."""
+    flip_name = max(list(fit)[1:], key=fit.get)
+    given, flip = fit["as given"], fit[flip_name]
+    said = {"flipped": [], "as given": []}
+    if flip >= PLANE_MIN_SHARE and flip >= PLANE_RATIO * given:
+        said["flipped"].append(f"its plane's fringes follow the rig's plane {flip_name} on {flip:.2f} of the "
+                               f"reliable pixels, as given on {given:.2f}")
+    elif given >= PLANE_MIN_SHARE and given >= PLANE_RATIO * flip:
+        said["as given"].append(f"its plane's fringes follow the rig's plane as given on {given:.2f} of the reliable "
+                                f"pixels, {flip_name} on {flip:.2f}")
+    shadows = runs >= MIN_RUNS and max(fit.values()) >= SHADOW_PLANE_SHARE
+    if shadows and agree <= SHADOWS_FLIPPED:
+        said["flipped"].append(f"{runs - round(agree * runs)} of {runs} shadows lie on the projector's side")
+    elif shadows and agree >= SHADOWS_AS_GIVEN:
+        said["as given"].append(f"{round(agree * runs)} of {runs} shadows lie away from the projector")
+    for verdict, other in (("flipped", "as given"), ("as given", "flipped")):
+        if said[verdict] and not said[other]:
+            return verdict, "; ".join(said[verdict])
+    return "undecided", "; ".join(said["flipped"] + said["as given"]) or (
+        f"plane phase as given {given:.2f}, {flip_name} {flip:.2f}; {runs} shadow runs"
+        + (f", {agree:.2f} away from the projector" if runs else ""))
