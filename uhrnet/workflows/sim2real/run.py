@@ -195,6 +195,13 @@ def _check_training_inputs(var: Variant, tr) -> None:
         raise Sim2RealError(f"variant {var.name!r}: train: {exc}") from None
 
 
+def _row_line(row: dict) -> str:
+    """A row's real-pair result in one log line (a metric read back as null from its file: n/a)."""
+    obj, val = (row["real"][k] for k in ("object_rmse_mm", "valid_rmse_mm"))
+    return (f"[{row['row']}] object RMSE {'n/a' if obj is None else format(obj, '.2f')} mm, valid RMSE "
+            f"{'n/a' if val is None else format(val, '.2f')} mm")
+
+
 def _adapt_done(acfg, source: Path) -> bool:
     out = Path(acfg.out)
     if not all((out / name).is_file() for name in (LAST_PT, IMAGES_JSON, HISTORY_CSV)):
@@ -354,9 +361,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         entry["timing"] = json.loads(timing_file.read_text()) if timing_file.is_file() else timing
         report["variants"].append(entry)
         for r in rows:
-            obj, val = (r["real"][k] for k in ("object_rmse_mm", "valid_rmse_mm"))  # None: null, read back
-            say(f"[{r['row']}] object RMSE {'n/a' if obj is None else format(obj, '.2f')} mm, valid RMSE "
-                f"{'n/a' if val is None else format(val, '.2f')} mm")
+            say(_row_line(r))
         report["recipe"][var.name] = described
         atomic_write_text(out / "report.json", json_text(report, indent=2, default=json_default))
         atomic_write_text(out / "report.md", markdown_report(report))
