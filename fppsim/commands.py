@@ -14,7 +14,7 @@ import sys
 from dataclasses import dataclass
 from typing import Callable
 
-from fppsim.files import signals_raise
+from fppsim.files import command_named, signals_raise
 
 __all__ = ["parse_numbers", "Command", "ReportLines", "build_command_parser", "one_line", "run_commands"]
 
@@ -109,7 +109,8 @@ def run_commands(parser: argparse.ArgumentParser, commands: dict[str, Command], 
         return 2
     where = f"{parser.prog} {args.command}"
     try:
-        with signals_raise():  # SIGTERM stops like Ctrl-C: exit 128 + signum
+        # SIGTERM stops like Ctrl-C: exit 128 + signum; a warning the library prints begins with `where` too
+        with signals_raise(), command_named(where):
             return int(commands[args.command].run(args) or 0)
     except Exception as exc:
         if isinstance(exc, OSError) and exc.strerror:  # disk full, read-only file system, missing file ...

@@ -14,6 +14,8 @@ Rules this module implements:
   same clean-up path as Ctrl-C runs (worker pools terminated, temp files removed) and the command exits
   ``128 + signum`` with one line.
 * Every JSON file either package writes is strict JSON (:func:`json_text`): a non-finite number is ``null``.
+* A warning the library prints itself (:func:`warn`) begins as the running command's own lines do
+  (``fppsim fit-rig: warning: ...``; :func:`command_named`, which the command framework enters).
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ import os
 import re
 import shutil
 import signal
+import sys
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -38,7 +41,7 @@ __all__ = ["TMP_PREFIX", "FolderBusy", "Interrupted", "tmp_path", "pid_alive",
            "clean_stale_tmp", "folder_lock", "signals_raise", "die_with_parent", "ignore_sigint",
            "check_writable_dir", "check_output_file", "Output", "check_outputs", "RIG_SUFFIXES", "JSON_SUFFIXES",
            "YAML_SUFFIXES", "holds_keys", "starts_with", "write_fully", "atomic_path", "atomic_write_text",
-           "atomic_write_bytes", "fsync_dir", "unlink_quietly"]
+           "atomic_write_bytes", "fsync_dir", "unlink_quietly", "finite_or_null", "json_text", "command_named", "warn"]
 
 TMP_PREFIX = ".fppsim-tmp-"
 _TMP_RE = re.compile(r"^\.fppsim-tmp-(\d+)-")
@@ -237,6 +240,26 @@ def signals_raise(signums=(signal.SIGTERM, signal.SIGINT)):
     finally:
         for s, h in old.items():
             signal.signal(s, h)
+
+
+_COMMAND: list[str] = []  # "PROG COMMAND" of the command line running (command_named), innermost last
+
+
+@contextmanager
+def command_named(where: str):
+    """Inside the block, :func:`warn` begins its lines ``WHERE: warning:`` (``where``: ``"uhrnet predict"``), as
+    the command's own warnings and its error line begin (:func:`fppsim.commands.run_commands` enters it)."""
+    _COMMAND.append(where)
+    try:
+        yield
+    finally:
+        _COMMAND.pop()
+
+
+def warn(text: str) -> None:
+    """One warning line on stderr from library code: ``PROG COMMAND: warning: TEXT`` while a command runs
+    (:func:`command_named`), else ``warning: TEXT``."""
+    print(f"{_COMMAND[-1]}: warning: {text}" if _COMMAND else f"warning: {text}", file=sys.stderr, flush=True)
 
 
 def ignore_sigint() -> None:

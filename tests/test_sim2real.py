@@ -481,3 +481,33 @@ def test_dataset_count_of_a_damaged_label_file_is_zero(tmp_path):
     assert dataset_count(tmp_path) == 0
     np.save(tmp_path / "Z.npy", np.zeros((3, 4, 4, 1), np.float32))
     assert dataset_count(tmp_path) == 3
+
+
+def test_a_complete_dataset_of_another_seed_is_refused_before_training(tmp_path, monkeypatch):
+    """A run stopped while training (its dataset complete) and started again with another --seed re-used that
+    dataset, trained on the old seed's samples and reported the new seed ("6 synthetic samples (seed 11)" over seed
+    9's): now refused before the first stage, naming both seeds; the same seed is taken as before."""
+    import json
+
+    from uhrnet.workflows.sim2real import run_sim2real
+
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    out = tmp_path / "o"
+    data = out / "data" / data_key({})
+    write_figshare(data, n=6, h=32, w=64)  # what the stopped run's generate stage left: figshare arrays + native/
+    (data / "native").mkdir()
+    (data / "native" / "dataset.json").write_text(json.dumps({"generator": "fppsim", "seed": 9, "count": 6}))
+
+    def cfg(seed):
+        return Sim2RealConfig(out=str(out), real=[str(tmp_path / "real")], count=6, seed=seed, epochs=1,
+                              base_channels=4, figures=False)
+
+    with pytest.raises(Sim2RealError, match=rf"^variant 'default': {data} holds 6 samples generated with seed 9, "
+                                            rf"not 11: give --seed 9 to continue, or move {data} and .* away$"):
+        run_sim2real(cfg(11), log=None)
+    assert not (out / "default").exists() and not (out / "report.json").exists()
+    import uhrnet.workflows.sim2real.run as stages  # the same seed goes on to train on it (stopped there)
+
+    monkeypatch.setattr(stages, "train", lambda tr: (_ for _ in ()).throw(ValueError(f"trains on {tr.synthetic}")))
+    with pytest.raises(Sim2RealError, match=r"^train failed: trains on \[.*defaults'\]"):
+        run_sim2real(cfg(9), log=None)

@@ -4,16 +4,17 @@ A reader lists a folder for the suffixes it takes (:data:`IMAGE_EXTS`, ``.npy``,
 everything else. Two kinds of entry are worth a word, since the user most likely meant them as input: a
 symbolic link whose target is gone (a moved scan), and an image in a format the readers do not take
 (``.webp``, ``.gif``, ``.jp2``, ``.heic``, ...: :data:`OTHER_IMAGE_EXTS`). :func:`skipped_entries` finds them;
-:func:`warn_skipped` prints each once per process (``warning: PATH: skipped: REASON`` on stderr) when the listing
-found something else to read, and :func:`skipped_note` adds them to the error when it found nothing. Hidden
-entries and other files (a README, a ``.json``) are never mentioned.
+:func:`warn_skipped` prints each once per process (``PROG COMMAND: warning: PATH: skipped: REASON`` on stderr,
+:func:`fppsim.files.warn`) when the listing found something else to read, and :func:`skipped_note` adds them to
+the error when it found nothing. Hidden entries and other files (a README, a ``.json``) are never mentioned.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
+
+from fppsim.files import warn
 
 __all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "skipped_note"]
 
@@ -24,7 +25,8 @@ OTHER_IMAGE_EXTS = (".webp", ".gif", ".jp2", ".j2k", ".jpx", ".jpe", ".jfif", ".
                     ".raw", ".cr2", ".nef", ".arw")
 """Image formats the readers do not take: a file of one in an input folder is skipped with a warning."""
 
-_warned: set[str] = set()
+_listed: set[tuple] = set()  # (folder, taken, folders) already looked through by warn_skipped
+_warned: set[str] = set()  # and the lines it printed: once per entry, however often and however it is listed
 
 
 def skipped_entries(folder: str | os.PathLike, taken: tuple[str, ...],
@@ -52,13 +54,18 @@ def skipped_entries(folder: str | os.PathLike, taken: tuple[str, ...],
 
 
 def warn_skipped(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False) -> None:
-    """Print ``warning: ENTRY: skipped: REASON`` on stderr for each of :func:`skipped_entries`, once per process
-    (a folder is listed again for every frame it holds)."""
+    """Print ``PROG COMMAND: warning: ENTRY: skipped: REASON`` on stderr (:func:`fppsim.files.warn`) for each of
+    :func:`skipped_entries`, once per process: a folder is listed again for every frame read from it, and is
+    looked through only the first time (a second look cost as much as the listing itself)."""
+    key = (os.path.abspath(folder), tuple(taken), folders)
+    if key in _listed:
+        return
+    _listed.add(key)
     for path, reason in skipped_entries(folder, taken, folders):
         line = f"{path}: skipped: {reason}" + ("" if path.is_symlink() else f" (only {', '.join(taken)})")
         if line not in _warned:
             _warned.add(line)
-            print(f"warning: {line}", file=sys.stderr, flush=True)
+            warn(line)
 
 
 def skipped_note(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False,

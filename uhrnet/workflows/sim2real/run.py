@@ -195,6 +195,26 @@ def _check_training_inputs(var: Variant, tr) -> None:
         raise Sim2RealError(f"variant {var.name!r}: train: {exc}") from None
 
 
+def _check_dataset_seed(var: Variant, data: Path, gen, run: Path) -> None:
+    """A complete dataset in ``data`` generated with another seed than ``gen``'s is refused before the first stage:
+    left by a run stopped while training and started again with another ``--seed``, it was re-used as it was (its
+    sample count matched), so the run trained on the old seed's samples while the report named the new seed."""
+    if dataset_count(data) != gen.count:
+        return  # the generate stage makes or completes it, and refuses a dataset of other settings itself
+    samples = open_source(data).fppsim_samples()
+    seed = (read_settings(samples.path) or {}).get("seed") if samples is not None else None
+    if seed not in (None, gen.seed):
+        raise Sim2RealError(f"variant {var.name!r}: {data} holds {gen.count} samples generated with seed {seed}, "
+                            f"not {gen.seed}: give --seed {seed} to continue, or move {data} and {run} away")
+
+
+def _row_line(row: dict) -> str:
+    """A row's real-pair result in one log line (a metric read back as null from its file: n/a)."""
+    obj, val = (row["real"][k] for k in ("object_rmse_mm", "valid_rmse_mm"))
+    return (f"[{row['row']}] object RMSE {'n/a' if obj is None else format(obj, '.2f')} mm, valid RMSE "
+            f"{'n/a' if val is None else format(val, '.2f')} mm")
+
+
 def _adapt_done(acfg, source: Path) -> bool:
     out = Path(acfg.out)
     if not all((out / name).is_file() for name in (LAST_PT, IMAGES_JSON, HISTORY_CSV)):
@@ -289,6 +309,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         trained_on = _finished_run(cfg, var, run, tr, gen)
         if trained_on is None:
             _check_training_inputs(var, tr)
+            _check_dataset_seed(var, data, gen, run)
         plans.append((var, data, run, gen, tr, trained_on))
     out.mkdir(parents=True, exist_ok=True)
 
@@ -354,9 +375,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         entry["timing"] = json.loads(timing_file.read_text()) if timing_file.is_file() else timing
         report["variants"].append(entry)
         for r in rows:
-            obj, val = (r["real"][k] for k in ("object_rmse_mm", "valid_rmse_mm"))  # None: null, read back
-            say(f"[{r['row']}] object RMSE {'n/a' if obj is None else format(obj, '.2f')} mm, valid RMSE "
-                f"{'n/a' if val is None else format(val, '.2f')} mm")
+            say(_row_line(r))
         report["recipe"][var.name] = described
         atomic_write_text(out / "report.json", json_text(report, indent=2, default=json_default))
         atomic_write_text(out / "report.md", markdown_report(report))
