@@ -36,7 +36,7 @@ from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, Labe
                                    foreign_sample_folders, manifest_record, read_settings, reconcile, sample_id)
 from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_shards, dataset_files,
                                           discard_empty_dataset, legacy_files)
-from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh
+from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh, unread_mesh_files
 from fppsim.rendering.synth import SynthConfig, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
                                    write_sample_folder)
@@ -343,6 +343,9 @@ def load_assets(paths) -> tuple[list[MeshAsset], list[tuple[str, str]]]:
         except MeshError as exc:
             skipped.append((p, str(exc)))
             log.warning("skipping mesh: %s", exc)
+    for p, reason in unread_mesh_files(paths):
+        skipped.append((p, reason))
+        log.warning("skipping mesh: %s", reason)
     return assets, skipped
 
 

@@ -24,11 +24,16 @@ from fppsim.rendering.shapes import procedural
 
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
-    "sample_scene", "MESH_EXTENSIONS", "asset_from_arrays", "procedural_asset", "PROCEDURAL_PREFIX",
+    "sample_scene", "MESH_EXTENSIONS", "OTHER_MESH_EXTENSIONS", "unread_mesh_files", "asset_from_arrays",
+    "procedural_asset", "PROCEDURAL_PREFIX",
     "PEDESTAL_PREFIX", "pedestal_prism", "render_faces",
 ]
 
 MESH_EXTENSIONS = (".obj", ".ply", ".stl", ".off", ".glb", ".gltf")
+OTHER_MESH_EXTENSIONS = (".fbx", ".3mf", ".dae", ".blend", ".3ds", ".max", ".usd", ".usda", ".usdc", ".usdz", ".x3d",
+                         ".wrl", ".vrml", ".amf", ".step", ".stp", ".iges", ".igs", ".dxf", ".ifc", ".ma", ".mb",
+                         ".c4d", ".lwo", ".x", ".md2", ".md3", ".ms3d", ".xyz", ".pcd", ".las", ".e57")
+"""Mesh and scan formats the loader does not take: a file of one under ``--meshes`` is reported, not drawn."""
 
 
 @dataclass
@@ -64,16 +69,17 @@ class MeshAsset:
         return self.vertices.max(0) - self.vertices.min(0)
 
 
-def find_meshes(paths) -> list[str]:
-    """Expand files and folders (recursively, by extension) into a sorted, de-duplicated list.
+def find_meshes(paths, extensions=MESH_EXTENSIONS) -> list[str]:
+    """Expand files and folders (recursively, by ``extensions``) into a sorted, de-duplicated list.
 
     Linked folders are followed (each real folder once, so a link loop ends); a broken link named like a
-    mesh is kept, so loading it reports it instead of dropping it without a word."""
+    mesh is kept, so loading it reports it instead of dropping it without a word. A file given by name is
+    kept whatever its suffix (the loader names what it cannot read)."""
     out = []
     for p in paths:
         p = Path(p)
         if p.is_dir():
-            out += _mesh_files(p)
+            out += _mesh_files(p, extensions)
         elif p.is_file():
             out.append(str(p))
         else:
@@ -87,7 +93,15 @@ def find_meshes(paths) -> list[str]:
     return unique
 
 
-def _mesh_files(folder: Path) -> list[str]:
+def unread_mesh_files(paths) -> list[tuple[str, str]]:
+    """``(path, reason)`` for each file under the folders among ``paths`` in a format the loader does not take
+    (:data:`OTHER_MESH_EXTENSIONS`): :func:`find_meshes` leaves them out, and the user most likely meant them."""
+    folders = [p for p in paths if Path(p).is_dir()]
+    return [(p, f"{p}: {Path(p).suffix.lower()} is not a mesh format read here ({' '.join(MESH_EXTENSIONS)})")
+            for p in find_meshes(folders, OTHER_MESH_EXTENSIONS)]
+
+
+def _mesh_files(folder: Path, extensions=MESH_EXTENSIONS) -> list[str]:
     """The mesh files under ``folder``: its own tree's under their own paths (their names and order as before
     links were followed), and each linked folder's once, unless the tree holds it (a link loop ends)."""
     own = {root for root, _, _ in os.walk(folder)}
@@ -100,7 +114,7 @@ def _mesh_files(folder: Path) -> list[str]:
                 continue
             visited.add(real)
         dirs.sort()
-        named = [os.path.join(root, f) for f in files if Path(f).suffix.lower() in MESH_EXTENSIONS]
+        named = [os.path.join(root, f) for f in files if Path(f).suffix.lower() in extensions]
         out += [q for q in named if os.path.isfile(q) or not os.path.exists(q)]  # files, and broken links
     return sorted(out, key=lambda q: Path(q).parts)
 

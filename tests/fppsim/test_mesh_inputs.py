@@ -176,3 +176,32 @@ def test_an_unparsable_mesh_says_it_is_not_a_readable_file_of_its_format(tmp_pat
         kind = name.split(".")[1].upper()
         assert str(e.value).startswith(f"{tmp_path / name}: not a readable {kind} file (the reader stopped with ")
         assert "\n" not in str(e.value)
+
+
+def test_a_folders_mesh_in_a_format_not_read_is_named_not_dropped(tmp_path, capsys):
+    """A .fbx / .3mf beside the meshes was left out of a --meshes folder without a word; it is now a skipped mesh
+    with its reason, and a folder holding only such files says why nothing can be drawn."""
+    from fppsim.cli import main
+    from fppsim.generation import load_assets
+
+    only = tmp_path / "only"
+    only.mkdir()
+    for name in ("statue.fbx", "bust.3mf"):
+        (only / name).write_bytes(b"not read here")
+    (only / "notes.txt").write_text("a note")  # not a mesh: never mentioned
+    assets, skipped = load_assets([only])
+    assert assets == []
+    assert [os.path.basename(p) for p, _ in skipped] == ["bust.3mf", "statue.fbx"]
+    assert all(".obj .ply .stl .off .glb .gltf" in r and "not a mesh format read here" in r for _, r in skipped)
+    argv = ["generate", "-q", "--no-preview", "--meshes", str(only), "--out", str(tmp_path / "o"), "--count", "1"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("fppsim generate: error: no usable mesh (") and "statue.fbx: .fbx is not a mesh format" in err
+    assert not (tmp_path / "o").exists()
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    trimesh.creation.box((10.0, 10.0, 10.0)).export(mixed / "box.obj")
+    (mixed / "statue.fbx").write_bytes(b"not read here")
+    assets, skipped = load_assets([mixed])
+    assert len(assets) == 1 and [os.path.basename(p) for p, _ in skipped] == ["statue.fbx"]
+    assert find_meshes([mixed]) == [str(mixed / "box.obj")]  # what is drawn is unchanged
