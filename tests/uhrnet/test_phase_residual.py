@@ -164,3 +164,25 @@ def test_a_plane_in_view_reaches_the_image_sides_and_one_found_on_an_object_does
         assert phase_plane_masks(ph, on, degree=2)[0].mean() > 0.1  # what the score fitted its plane to before
         plane, sides = view_plane(ph, on, degree=2)
         assert plane is None and sum(x >= PLANE_SIDE_SHARE for x in sides) < PLANE_SIDES, sides
+
+
+def test_a_plane_in_view_is_found_at_the_sides_past_an_invalid_border():
+    """The sides were read on the outermost row and column alone: a frame whose outermost pixels carry no phase (a
+    filter's margin; the labelled pair's first column) lost a plane that reaches them all. FP1523 and FP672 with a
+    1-px invalid border read 0 on every side and had no plane-pixel score. A side now counts the plane within
+    PLANE_SIDE_BAND of the shorter side (at least 2 px) of it; the dome on black still reaches none."""
+    from uhrnet.scoring.phase_residual import plane_sides, view_plane
+
+    ring = np.zeros((120, 160), bool)
+    ring[1:-1, 1:-1] = True  # a 1-px invalid border
+    assert min(plane_sides(ring)) > 0.98  # before: [0, 0, 0, 0] (the corners are off the plane)
+    assert plane_sides(ring, band=1) == [0.0, 0.0, 0.0, 0.0]
+    inner = np.zeros((400, 400), bool)
+    inner[3:-3, 3:-3] = True  # the band: 1 % of 400 = 4 px, a border up to 3 px wide
+    assert min(plane_sides(inner)) > 0.98 and max(plane_sides(np.pad(inner, 1))) == 0  # 4 px: off the band
+    plane_phase, height = _dome_scene()
+    phase = plane_phase - 0.6 * height
+    plane, sides = view_plane(phase, ring, degree=2)
+    assert plane is not None and min(sides) > 0.4, sides  # before: None, [0, 0, 0, 0]
+    on = ring & (height > 0)
+    assert view_plane(np.where(on, phase, np.nan), on, degree=2)[0] is None
