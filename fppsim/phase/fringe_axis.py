@@ -54,13 +54,20 @@ def fringe_carrier(image: np.ndarray, valid: np.ndarray | None = None, near: flo
     then the power-weighted median frequency (and mean direction) within ``near`` of it and 30 deg of its
     direction, which unweighted power decides. The plain spectrum's peak (:func:`fringe_orientation`) is the
     outline's on objects on black: FP672/541's figurine read 34-56 px, the plane's fringes are 10.5 px; this reads
-    0.83-1.01 of the plane's period on the three rigs here, with and without their plane (docs/own_rig.md).
-    InputError without any fringe."""
+    0.83-1.01 of the plane's period on the three rigs here, with and without their plane (docs/own_rig.md). On a
+    few periods it reads short (0.66 / 0.78 / 0.89 / 0.98 of the period across 2 / 2.7 / 4 / 5.5 of them, 32-64 px
+    images). InputError (one line) without any fringe: no valid pixel varies (a blank or saturated image, whose
+    round-off read as a 63 px or 2.8 px carrier), fewer than 64 valid pixels, or an image not 2-D or under 16 px a
+    side."""
     from scipy import ndimage as ndi  # SciPy: only here
 
     x = np.asarray(image, np.float64)
     if x.ndim == 3 and x.shape[-1] == 1:
         x = x[..., 0]
+    if x.ndim != 2 or min(x.shape) < 16 or (valid is not None and np.shape(valid) != x.shape):
+        raise InputError(f"the fringe carrier is read on a 2-D image of 16 px a side or more (and a valid mask of its "
+                         f"shape), got {'x'.join(map(str, np.shape(image)))}"
+                         + ("" if valid is None else f" (mask {'x'.join(map(str, np.shape(valid)))})"))
     ok = np.isfinite(x) if valid is None else (np.asarray(valid, bool) & np.isfinite(x))
     if ok.sum() < 64:
         raise InputError("too few valid pixels to read the fringe carrier")
@@ -68,7 +75,10 @@ def fringe_carrier(image: np.ndarray, valid: np.ndarray | None = None, near: flo
     x = np.where(ok, x, 0.0)
     mean = ndi.gaussian_filter(x * m, 8.0) / np.maximum(ndi.gaussian_filter(m, 8.0), 1e-6)  # a lit-only mean
     h, w = x.shape
-    g = np.where(ok, x - mean, 0.0) * np.outer(np.hanning(h), np.hanning(w))
+    g = np.where(ok, x - mean, 0.0)
+    if not np.abs(g).max() > 1e-9 * max(1.0, float(np.abs(x).max())):  # only the local mean's round-off left
+        raise InputError("no fringes found (the valid pixels are all one level: blank or saturated)")
+    g = g * np.outer(np.hanning(h), np.hanning(w))
     p = ndi.gaussian_filter(np.abs(np.fft.rfft2(g, s=(2 * h, 2 * w))) ** 2, 2.0, mode="wrap")  # 2x padded
     fy, fx = np.fft.fftfreq(2 * h)[:, None], np.fft.rfftfreq(2 * w)[None, :]
     fr = np.hypot(fx, fy)

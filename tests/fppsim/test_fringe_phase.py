@@ -244,3 +244,22 @@ def test_fringe_carrier_reads_a_figurines_fringes_not_its_outline(period, noise,
     assert plain.period > 2.5 * truth  # what made the image hard
     with pytest.raises(InputError):
         fringe_carrier(np.zeros((64, 64)), np.zeros((64, 64), bool))
+
+
+def test_fringe_carrier_says_in_one_line_where_there_are_no_fringes_to_read():
+    """A blank or saturated image has nothing to read, but the round-off of its local mean did: a carrier of 63 px
+    on a constant 3, 200 or 255 and 2.8 px on a saturated disc on black (0 and 128 happened to round to nothing). An
+    image too small or not 2-D (8 x 8, three channels) read a carrier or failed in numpy. Each is now one InputError."""
+    from fppsim.errors import InputError
+    from fppsim.phase.fringe_axis import fringe_carrier
+
+    rr, cc = np.mgrid[0:352, 0:640]
+    disc = np.where(((cc - 320) / 120.0) ** 2 + ((rr - 176) / 100.0) ** 2 < 1, 255.0, 0.0)
+    for img, valid in [(np.full((352, 640), v), None) for v in (0.0, 3.0, 128.0, 200.0, 255.0)] + [(disc, disc > 0)]:
+        with pytest.raises(InputError, match="no fringes found"):
+            fringe_carrier(img, valid)  # before: (4.5e-07, -0.0158) on the constants, 2.8 px on the disc
+    fringes = 120 + 100 * np.cos(2 * np.pi * cc / 11.7)
+    for img, valid in [(fringes[:8, :8], None), (np.dstack([fringes] * 3), None), (fringes, np.ones((10, 10), bool))]:
+        with pytest.raises(InputError, match="2-D image of 16 px a side"):
+            fringe_carrier(img, valid)
+    assert 1 / np.hypot(*fringe_carrier(np.clip(fringes + 100, 0, 255))) == pytest.approx(11.7, rel=0.01)  # half lit

@@ -164,3 +164,47 @@ def test_a_plane_in_view_reaches_the_image_sides_and_one_found_on_an_object_does
         assert phase_plane_masks(ph, on, degree=2)[0].mean() > 0.1  # what the score fitted its plane to before
         plane, sides = view_plane(ph, on, degree=2)
         assert plane is None and sum(x >= PLANE_SIDE_SHARE for x in sides) < PLANE_SIDES, sides
+
+
+def test_a_plane_in_view_is_found_at_the_sides_past_an_invalid_border():
+    """The sides were read on the outermost row and column alone: a frame whose outermost pixels carry no phase (a
+    filter's margin; the labelled pair's first column) lost a plane that reaches them all. FP1523 and FP672 with a
+    1-px invalid border read 0 on every side and had no plane-pixel score. A side now counts the plane within
+    PLANE_SIDE_BAND of the shorter side (at least 2 px) of it; the dome on black still reaches none."""
+    from uhrnet.scoring.phase_residual import plane_sides, view_plane
+
+    ring = np.zeros((120, 160), bool)
+    ring[1:-1, 1:-1] = True  # a 1-px invalid border
+    assert min(plane_sides(ring)) > 0.98  # before: [0, 0, 0, 0] (the corners are off the plane)
+    assert plane_sides(ring, band=1) == [0.0, 0.0, 0.0, 0.0]
+    inner = np.zeros((400, 400), bool)
+    inner[3:-3, 3:-3] = True  # the band: 1 % of 400 = 4 px, a border up to 3 px wide
+    assert min(plane_sides(inner)) > 0.98 and max(plane_sides(np.pad(inner, 1))) == 0  # 4 px: off the band
+    plane_phase, height = _dome_scene()
+    phase = plane_phase - 0.6 * height
+    plane, sides = view_plane(phase, ring, degree=2)
+    assert plane is not None and min(sides) > 0.4, sides  # before: None, [0, 0, 0, 0]
+    on = ring & (height > 0)
+    assert view_plane(np.where(on, phase, np.nan), on, degree=2)[0] is None
+
+
+def test_a_plane_in_view_is_found_where_a_larger_flat_object_wins_the_consensus():
+    """phase_plane_masks takes the surface most pixels follow: an object's smooth top larger than the plane in view
+    wins (FP147/109's face on 5 of 12 draws, and with a 1-3 px invalid border), and reaching fewer than 2 sides it left
+    the frame 'no plane in view'. Here a mesa (a flat top 32 % of the view, smooth shoulders over the left and bottom
+    border) and the plane seen around it (29 %, every side): the first surface is the mesa's top, on one side; set
+    aside, the rest gives the plane."""
+    from fppsim.phase.plane import phase_plane_masks
+    from uhrnet.scoring.phase_residual import PLANE_SIDE_SHARE, plane_sides, view_plane
+
+    yy, xx = np.mgrid[0:120, 0:160].astype(float)
+    r = np.hypot(xx - 60, yy - 80)
+    height = np.where(r <= 45, 20.0, np.where(r < 75, 20.0 * np.cos(np.pi / 2 * (r - 45) / 30) ** 2, 0.0))
+    phase = 0.9 * xx + 0.05 * yy - 0.6 * height
+    everywhere = np.ones(phase.shape, bool)
+    first = phase_plane_masks(phase, everywhere, degree=2)[0]
+    assert (first & (r <= 45)).sum() > 0.8 * first.sum()  # the mesa's top (and its shoulder's first mm)
+    assert sum(x >= PLANE_SIDE_SHARE for x in plane_sides(first)) == 1
+    plane, sides = view_plane(phase, everywhere, degree=2)  # before: None
+    assert plane is not None and min(sides) > 0.2, sides
+    assert (plane & (height < 0.5)).sum() > 0.95 * plane.sum() and (plane & (height == 0)).sum() == (height == 0).sum()
