@@ -16,7 +16,7 @@ loads with ``weights_only=True``::
     train_state_dict, ema {"decay", "updates"}                  (with --ema, for --resume)
     val_phase_frames [{"root", "id", "held_out", "digest"}]       (with --val-phase: the frames that choose best.pt
                                                                    and those held out; evaluate-phase warns on the first,
-                                                                   copies too: digest = fppsim's frame_digest)
+                                                                   copies too: digest = PspMat.digest())
 """
 
 from __future__ import annotations

@@ -183,3 +183,26 @@ def test_an_ipattern_that_is_not_a_2d_image_is_named(tmp_path):
         load_ipattern(tmp_path / "iPattern" / "1.mat")
     scipy.io.savemat(tmp_path / "iPattern" / "1.mat", {"iPattern": grey[None]})  # a singleton axis is squeezed
     assert load_ipattern(tmp_path / "iPattern" / "1.mat").shape == (32, 64)
+
+
+
+def test_a_frames_digest_is_the_same_whichever_way_it_is_read_nan_pixels_too(tmp_path):
+    """PspMat.digest: one frame's files hash alike under every convention and sine sign (negate_sin undone), also
+    when its PSin holds NaN (negating a NaN flips its sign bit; multiplying it by -1 does not flip it back), and the
+    stored dtype of the sums does not matter; another frame hashes otherwise."""
+    phase, valid, img = _truth()
+    _write_benchmark_style(tmp_path / "a", "0", phase, valid, img)
+    for var in ("PSin", "PCos"):  # NaN pixels (another lab's invalid marker), stored as float32
+        path = tmp_path / "a" / var / "0.mat"
+        a = scipy.io.loadmat(path)[var].astype(np.float32)
+        a[:2, :5] = np.nan
+        scipy.io.savemat(path, {var: a})
+    readings = [dict(convention=c, negate_sin=n) for c in ("benchmark", "fppsim", "auto") for n in (False, True)]
+    digests = {str(kw): load_psp_folder_sample(tmp_path / "a", "0", **kw).digest() for kw in readings}
+    assert len(set(digests.values())) == 1, digests
+    for var in ("PSin", "PCos"):  # the same values stored as float64: the same frame
+        path = tmp_path / "a" / var / "0.mat"
+        scipy.io.savemat(path, {var: scipy.io.loadmat(path)[var].astype(np.float64)})
+    assert load_psp_folder_sample(tmp_path / "a", "0", negate_sin=True).digest() in digests.values()
+    _write_benchmark_style(tmp_path / "b", "0", phase + 0.5, valid, img)
+    assert load_psp_folder_sample(tmp_path / "b", "0").digest() not in digests.values()

@@ -46,9 +46,12 @@ def test_boxes_on_the_plane_read_flipped_only_when_turned(rig_file):
     fits = got["given"].plane_fit
     if rig_file == "parallel_rig.json":
         assert max(fits.values()) - min(fits.values()) < 0.01  # no perspective to tell by
+        # the shadows alone: the warning says what else reads so
+        assert all("shadows alone: dark areas that are not shadows" in got[h].evidence for h in ("rotated", "across"))
     else:
         assert fits["as given"] > 0.7 and max(fits["rotated 180 deg"], fits["mirrored across its fringes"]) < 0.5
         assert "follow the rig's plane rotated 180 deg on" in got["rotated"].evidence
+        assert "shadows alone" not in got["rotated"].evidence
 
 
 def test_a_plane_without_shadows_through_a_linear_rig_is_undecided_and_a_rig_without_a_plane_says_nothing():
@@ -77,3 +80,114 @@ def test_the_real_frames_of_the_figshare_rig_read_flipped_only_when_turned():
         assert got["given"].plane_fit["as given"] > 0.8
         for how in ("rotated", "across"):
             assert got[how].verdict == "flipped" and got[how].shadows_agree == 0.0, got[how]
+
+
+def _many_boxes():
+    """18 boxes 25 mm across, 10-45 mm high, in rows across the default rig's view (world mm)."""
+    spots = [(-180, -90, 20), (-120, -90, 35), (-60, -90, 15), (0, -90, 45), (60, -90, 25), (120, -90, 30),
+             (-180, -20, 40), (-120, -20, 10), (-60, -20, 30), (0, -20, 20), (60, -20, 35), (120, -20, 15),
+             (-180, 50, 25), (-120, 50, 45), (-60, 50, 20), (0, 50, 30), (60, 50, 10), (120, 50, 40)]
+    return [(x, x + 25, y, y + 25, float(h)) for x, y, h in spots]
+
+
+def test_dark_areas_that_are_not_shadows_do_not_read_as_a_flipped_image():
+    """Boxes through the parallel rig (its plane phase is the same turned or not: only the shadows can tell) on a
+    plane that is black but for the third of the view on the projector's side: every black stretch between a box
+    and that plane has its plane end on the projector's side, as a shadow of a flipped image would. They are not
+    shadows (the truth: we blackened them), and the image is as given: no warning. Shadows are not read in an image
+    more than MAX_DARK_SHARE of which is dark; as given, the same boxes' own shadows still tell."""
+    rig = load_rig(ASSETS / "parallel_rig.json")
+    height, lit = box_scene(rig, _many_boxes())
+    img = rig_fringe(rig, height, lit)
+    cover = (height == 0) & (np.arange(img.shape[1]) < 2 * img.shape[1] // 3)[None, :]  # the plane left of x = 2/3
+    dark = np.where(cover, 0, img).astype(np.uint8)
+    got = check(dark, rig)
+    assert got.verdict != "flipped", got
+    assert got.dark_share > 0.25 and "dark" in got.evidence
+    whole = {how: check(turned(img, how), rig).verdict for how in ("given", "rotated")}
+    assert whole == {"given": "as given", "rotated": "flipped"}
+
+
+def test_a_rig_that_is_not_the_images_does_not_read_it_as_flipped():
+    """Boxes seen through the default rig, read through rigs of the same kind (projector on the same side, yawed
+    towards the scene) but of another baseline and yaw, whose plane phase curves the other way: the turned plane
+    phases fit the image better than the rig's own (0.38-0.43 against 0.16-0.28 of the reliable pixels), and shadows
+    read on such a plane call it flipped (0 of 107 runs away from the projector). That is the rig's error, not the
+    image's: no warning where no plane phase fits PLANE_FLIP_SHARE of the image, nor shadows read on a plane found on
+    less than SHADOW_PLANE_SHARE of it."""
+    from fppsim.geometry.rig import Rig, projector_for
+
+    rig = make_default_rig()
+    img = rig_fringe(rig, *box_scene(rig, BOXES))
+    for yaw, baseline in ((3.0, 250.0), (4.3, 150.0), (6.0, 100.0)):
+        other = Rig(camera=rig.camera, projector=projector_for(rig.camera, yaw=np.radians(yaw), focal=1310.0,
+                                                               baseline=baseline, roll=np.radians(-1.29)), periods=80.0)
+        got = check(img, other)
+        assert got.verdict != "flipped", (yaw, baseline, got)
+
+
+def test_dark_stretches_beside_the_objects_are_said_to_be_read_as_shadows():
+    """A dark mat 50 px wide on the projector's side of each of 18 boxes, through the parallel rig (only the shadows
+    can tell): the boxes' own shadows agree with the rig (0.38 of the runs), the mats do not; the image is as given
+    and is not called flipped. Under lower boxes (6 mm: their own shadows too short to count) the mats alone vote,
+    and the image reads flipped: the warning then says that the shadows alone called it, and what else reads so."""
+    rig = load_rig(ASSETS / "parallel_rig.json")
+    for boxes, expect in ((_many_boxes(), "not flipped"), ([b[:4] + (6.0,) for b in _many_boxes()], "flipped")):
+        height, lit = box_scene(rig, boxes)
+        img, obj = rig_fringe(rig, height, lit), height > 0
+        mat = np.zeros_like(obj)
+        for s in range(1, 51):  # +x in the image: the projector's side of the parallel rig
+            mat |= np.roll(obj, s, axis=1)
+        got = check(np.where(mat & (height == 0), 0, img).astype(np.uint8), rig)
+        if expect == "not flipped":
+            assert got.verdict != "flipped" and 0.25 < got.shadows_agree <= 0.4, got
+        else:
+            assert got.verdict == "flipped" and "shadows alone: dark areas that are not shadows" in got.evidence, got
+        assert got.dark_share <= 0.25
+
+
+#: the rig fppsim fit-rig fitted to FP147/109 (640 x 480 px, horizontal fringes, projector below the camera)
+FP147_RIG = {"format": "fppsim-rig/1", "units": "mm", "periods": 35.69851055292106,
+             "reference_plane": {"point": [0.0, 0.0, 0.0], "normal": [0.0, 0.0, 1.0]},
+             "camera": {"K": [[1230.0, 0.0, 319.5], [0.0, 1230.0, 239.5], [0.0, 0.0, 1.0]], "dist": [0.0] * 5,
+                        "R": [[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]], "t": [0.0, 0.0, 500.0],
+                        "width": 640, "height": 480},
+             "projector": {"K": [[1479.0462123054474, 0.0, 1385.3961939115038], [0.0, 1479.0462123054474,
+                                                                                  599.5129586757944], [0.0, 0.0, 1.0]],
+                           "dist": [0.0] * 5,
+                           "R": [[0.006584565670783448, -0.9997322066101265, -0.022184646974296816],
+                                 [-0.9998479116507321, -0.006940366687126763, 0.015999527427953273],
+                                 [-0.016149212445093045, 0.022075923008908545, -0.9996258582893441]],
+                           "t": [-318.8193046941933, -10.29008472072847, 507.0979837376119],
+                           "width": 912, "height": 1140}}
+
+
+def test_objects_on_black_are_not_read_flipped_by_their_flat_tops():
+    """Three boxes on a black background (the plane out of view) through FP147's fitted rig, whose plane phase is
+    nearly linear: the box tops, the only fringes, follow the rig's plane mirrored (0.86 of them) better than as
+    given (0.48), by the offsets between three small patches, not by any plane's curvature. No plane in view, no
+    warning: the plane's fringes do not call an image flipped that is more than PLANE_MAX_DARK dark."""
+    from fppsim.geometry.rig import Rig
+
+    rig = Rig.from_dict(FP147_RIG)
+    height, lit = box_scene(rig, BOXES)
+    got = check(np.where(height == 0, 0, rig_fringe(rig, height, lit)).astype(np.uint8), rig)
+    assert got.verdict != "flipped", got
+    assert got.dark_share > 0.7 and got.plane_fit["mirrored across its fringes"] > 1.8 * got.plane_fit["as given"]
+
+
+@pytest.mark.skipif(not (SHARED / "real-phase").is_dir(), reason="../shared/real-phase is absent")
+def test_a_real_frame_through_a_rig_that_is_not_its_own_is_not_read_flipped():
+    """FP1523/1201 (the figshare rig: projector 330 mm to the side, yawed 4.3 deg) read through a rig with the projector
+    on the same side but 250 mm away and yawed 3 deg: the rig's plane curves the other way, and its plane phase
+    rotated 180 degrees fits the frame on 0.50 of the reliable pixels, as given on 0.27; shadows too few to say.
+    The image is as given: no plane phase fitting less than PLANE_FLIP_SHARE calls it flipped."""
+    from fppsim.dataio.readers import load_ipattern
+    from fppsim.geometry.rig import Rig, projector_for
+
+    cam = make_default_rig().camera
+    other = Rig(camera=cam, projector=projector_for(cam, yaw=np.radians(3.0), focal=1310.0, baseline=250.0,
+                                                    roll=np.radians(-1.29)), periods=80.0)
+    got = check(load_ipattern(SHARED / "real-phase" / "FP1523" / "iPattern" / "1201.mat"), other)
+    assert got.plane_fit["rotated 180 deg"] > 0.5 > 0.3 > got.plane_fit["as given"]
+    assert got.verdict != "flipped", got

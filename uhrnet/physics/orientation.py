@@ -44,16 +44,34 @@ __all__ = ["OrientationCheck", "check_orientation", "plane_phases", "shadow_side
 
 #: a reliable pixel is on a plane phase within this (rad) of it, once the image's phase origin is taken off
 PLANE_TOL_RAD = 0.5
-#: the plane phase that fits a reliable share at least this large, and this many times the other's, decides
+#: the plane phase that fits a reliable share at least this large, and this many times the other's, says the image
+#: is as given (PLANE_MIN_SHARE) or flipped (PLANE_FLIP_SHARE: more, as a rig that is not the image's, projector on
+#: the same side but of another baseline or yaw, fitted its turned plane phases to 0.39-0.50 of real frames, its own
+#: to 0.17-0.27), the latter only in an image at most PLANE_MAX_DARK of which has no fringes: with no plane in view
+#: the fit is the objects' flat tops', which may follow any of the three (boxes on black through FP147's rig:
+#: mirrored 0.86, as given 0.48)
 PLANE_MIN_SHARE = 0.5
+PLANE_FLIP_SHARE = 0.6
 PLANE_RATIO = 1.8
+PLANE_MAX_DARK = 0.7
 #: the shadows decide with at least this many runs, on a plane found on at least this share of the reliable pixels
-#: (chance alone puts 0.16 of any phase within the tolerance)
+#: (chance alone puts 0.16 of any phase within the tolerance; on a plane found on 0.35-0.40 of them, a wrong rig's or
+#: the objects' flat tops, the runs voted flipped on images as given), in an image at most MAX_DARK_SHARE of which has
+#: no fringes: a dark area that is not a shadow (a plane black or out of view but for a part of it) votes like a
+#: shadow wherever the plane lies beyond it (0.28-0.84 dark gave unanimous flipped votes on images as given; the
+#: scenes and real frames here are 0.02-0.24 dark)
 MIN_RUNS = 15
-SHADOW_PLANE_SHARE = 0.35
-#: the share of the runs agreeing with the rig at or below which the image is flipped, at or above which it is not
-SHADOWS_FLIPPED = 0.4
+SHADOW_PLANE_SHARE = 0.5
+MAX_DARK_SHARE = 0.25
+#: the share of the runs agreeing with the rig at or below which the image is flipped (0.32-0.38 agreed on images as
+#: given with dark areas beside the objects), at or above which it is not
+SHADOWS_FLIPPED = 0.25
 SHADOWS_AS_GIVEN = 0.6
+#: said of a flip the shadows call alone (the plane's fringes silent, as through a rig whose plane phase is nearly
+#: linear): a dark stretch beside each object on the projector's side, a dark mat or base, votes as a shadow of a
+#: turned image does (ray-traced boxes through the parallel rig, such stretches 25-50 px wide: called flipped)
+SHADOWS_ALONE = (" (shadows alone: dark areas that are not shadows, beside the objects on the projector's side, read "
+                 "so too)")
 MIN_RELIABILITY = 0.5
 
 
@@ -63,13 +81,15 @@ class OrientationCheck:
     as given, rotated by 180 degrees and mirrored across the fringes (:func:`plane_phases`); ``shadow_runs``: the
     shadows that voted; ``shadows_agree``: the share of them whose plane end lies where the rig puts it (None: none);
     ``verdict``: ``"flipped"`` (the relief reads below the plane), ``"as given"`` or ``"undecided"``; ``evidence``:
-    what decided, in words."""
+    what decided, in words; ``dark_share``: the share of the image without fringes (shadows are not read above
+    :data:`MAX_DARK_SHARE`)."""
 
     plane_fit: dict
     shadow_runs: int
     shadows_agree: float | None
     verdict: str
     evidence: str
+    dark_share: float | None = None
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -80,7 +100,8 @@ def plane_phases(rig: Rig) -> dict:
     across its fringes`` (the last two negated, as the phase read growing the rig's way is)."""
     phi0 = rig.phase_at_height(0.0)
     across = 1 if fringe_axis(rig_phase_gradient(rig)) == "vertical" else 0
-    return {"as given": phi0, "rotated 180 deg": -phi0[::-1, ::-1], "mirrored across its fringes": -np.flip(phi0, across)}
+    return {"as given": phi0, "rotated 180 deg": -phi0[::-1, ::-1],
+            "mirrored across its fringes": -np.flip(phi0, across)}
 
 
 def shadow_sides(plane: np.ndarray, lit: np.ndarray, vertical: bool, side: int, skip: int = 2,
@@ -135,25 +156,27 @@ def check_orientation(wrapped: np.ndarray, reliability: np.ndarray, lit: np.ndar
     # raised by (Phi0(plane end) - Phi0(object end)) / per_mm > 0: the plane end lies sign(g / per_mm) of the object's
     side = int(np.sign((gu if vertical else gv) * per_mm))
     agree, runs = shadow_sides(on[best], lit, vertical, side)
+    dark = float(1.0 - lit.mean())
     return OrientationCheck({k: round(v, 4) for k, v in fit.items()}, runs, None if runs == 0 else round(agree, 4),
-                            *_verdict(fit, agree, runs))
+                            *_verdict(fit, agree, runs, dark), dark_share=round(dark, 4))
 
 
-def _verdict(fit: dict, agree: float, runs: int) -> tuple[str, str]:
-    """``(verdict, evidence)`` of the plane fits and the shadows' votes (the thresholds above); flipped or as given
-    only where no evidence says the other."""
+def _verdict(fit: dict, agree: float, runs: int, dark: float = 0.0) -> tuple[str, str]:
+    """``(verdict, evidence)`` of the plane fits, the shadows' votes and the image's dark share (the thresholds
+    above); flipped or as given only where no evidence says the other."""
     flip_name = max(list(fit)[1:], key=fit.get)
     given, flip = fit["as given"], fit[flip_name]
     said = {"flipped": [], "as given": []}
-    if flip >= PLANE_MIN_SHARE and flip >= PLANE_RATIO * given:
+    if flip >= PLANE_FLIP_SHARE and flip >= PLANE_RATIO * given and dark <= PLANE_MAX_DARK:
         said["flipped"].append(f"its plane's fringes follow the rig's plane {flip_name} on {flip:.2f} of the "
                                f"reliable pixels, as given on {given:.2f}")
     elif given >= PLANE_MIN_SHARE and given >= PLANE_RATIO * flip:
         said["as given"].append(f"its plane's fringes follow the rig's plane as given on {given:.2f} of the reliable "
                                 f"pixels, {flip_name} on {flip:.2f}")
-    shadows = runs >= MIN_RUNS and max(fit.values()) >= SHADOW_PLANE_SHARE
+    shadows = runs >= MIN_RUNS and max(fit.values()) >= SHADOW_PLANE_SHARE and dark <= MAX_DARK_SHARE
     if shadows and agree <= SHADOWS_FLIPPED:
-        said["flipped"].append(f"{runs - round(agree * runs)} of {runs} shadows lie on the projector's side")
+        said["flipped"].append(f"{runs - round(agree * runs)} of {runs} shadows lie on the projector's side"
+                               + ("" if said["flipped"] else SHADOWS_ALONE))
     elif shadows and agree >= SHADOWS_AS_GIVEN:
         said["as given"].append(f"{round(agree * runs)} of {runs} shadows lie away from the projector")
     for verdict, other in (("flipped", "as given"), ("as given", "flipped")):
@@ -161,4 +184,5 @@ def _verdict(fit: dict, agree: float, runs: int) -> tuple[str, str]:
             return verdict, "; ".join(said[verdict])
     return "undecided", "; ".join(said["flipped"] + said["as given"]) or (
         f"plane phase as given {given:.2f}, {flip_name} {flip:.2f}; {runs} shadow runs"
-        + (f", {agree:.2f} away from the projector" if runs else ""))
+        + (f", {agree:.2f} away from the projector" if runs else "")
+        + (f" (not read: {dark:.2f} of the image dark)" if runs and dark > MAX_DARK_SHARE else ""))

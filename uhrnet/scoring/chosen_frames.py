@@ -3,7 +3,7 @@
 weights (:func:`chosen_frames`, :func:`chosen_on`): a score on them is not held out.
 
 A checkpoint records its frames (``val_phase_frames``: root, id, held out or not, and a content hash,
-:func:`fppsim.dataio.readers.frame_digest`); a frame is the same when its content is, so a copied or renamed
+:meth:`fppsim.dataio.readers.PspMat.digest`); a frame is the same when its content is, so a copied or renamed
 folder is recognised. Checkpoints written before the hash compare by folder and id; those written before the
 record take every frame of their ``--val-phase`` folders. numpy only (no torch).
 """

@@ -81,9 +81,10 @@ class PspMat:
         single-shot image, dtypes and shapes included. A copy of its files, in another folder or under another
         id, hashes the same whatever convention reads it; another frame (the same phase under another image
         too: another input) does not."""
-        sign = -1.0 if self.meta.get("negate_sin") else 1.0
+        # undone by negation, which flips every sign bit back (a NaN's too: -1.0 * NaN keeps its sign on x86)
+        sin = np.negative(self.psin) if self.meta.get("negate_sin") else self.psin
         h = hashlib.sha256()
-        for name, a in (("sin", sign * self.psin), ("cos", self.pcos), ("order", self.order), ("image", self.image)):
+        for name, a in (("sin", sin), ("cos", self.pcos), ("order", self.order), ("image", self.image)):
             if a is not None:
                 a = np.ascontiguousarray(a)
                 h.update(f"{name}{a.dtype}{a.shape}".encode())
