@@ -56,7 +56,9 @@ from fppsim.errors import ConfigError, DatasetError, UsageError
 from fppsim.files import atomic_write_text, json_text, tmp_path
 from fppsim.dataio.formats import FIGSHARE_PAIRS, LabelTransform
 from fppsim.owned import claim, output_folder, owners, same_folder
+from fppsim.phase import wrap
 from fppsim.phase.psp import decode_stacks
+from fppsim.phase.reference_check import order_slips, slips_words
 from fppsim.dataio.readers import check_read_convention, reading_note, open_source
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
@@ -321,7 +323,8 @@ def _label_scan(cfg: LabelRealConfig, scan: Scan, policy: str | float, cache: di
     else:
         offset, source = float(policy), "given"
     height = height_from_phase(scan.rig, scan.phase + offset, periods=scan.periods, mask=scan.valid)
-    valid = scan.valid & np.isfinite(height)
+    slips = order_slips(wrap(scan.phase), scan.phase, scan.valid)  # an order in doubt gets no label, not a guess
+    valid = scan.valid & np.isfinite(height) & ~slips.mask
     if not valid.any():
         raise DatasetError(f"{scan.source}: none of its {int(scan.valid.sum())} phase pixels triangulates through "
                            "the rig (the phase lies outside the projector's columns): check --rig, --periods and "
@@ -348,6 +351,7 @@ def _label_scan(cfg: LabelRealConfig, scan: Scan, policy: str | float, cache: di
                    "max_mm": float(hv.max()) if n_valid else None},
         "below_plane_share": float((valid & (height < -w)).sum() / max(n_valid, 1)),
         "read_as_invalid_share": float(read_invalid.sum() / max(n_valid, 1)),
+        "order_slips": {"pixels": slips.pixels, "patches": slips.patches},
     }
     problems = []
     if plane.share == 0 or not math.isfinite(plane.rms_mm):
@@ -597,6 +601,11 @@ def label_real(cfg: LabelRealConfig) -> LabelRealReport:
                         raise DatasetError(f"{scan.source}: image size {scan.image.shape} differs from the first "
                                            f"scan's {(H, W)}")
                     height, (rec, plane) = _label_scan(cfg, scan, policy, cache)
+                    if rec["order_slips"]["pixels"]:
+                        report.warnings.append(f"{scan.source}: its phase-shifting order slips "
+                                               f"{slips_words(rec['order_slips']['patches'])} where its wrapped phase "
+                                               "and gradient run on (temporal unwrapping wrong there, likely): "
+                                               "left unlabelled")
                     if scan.note:  # every scan's in the report, the first one's as the run's warning
                         if not any("read_as" in r for r in report.scans):
                             report.warnings.append(scan.note)

@@ -388,3 +388,31 @@ def test_a_full_disk_while_labelling_names_the_array_and_keeps_the_earlier_resul
     rc, err = _cli_error([public, "--out", out, "--rig", PARALLEL], capsys)
     assert rc == 1 and str(out / "f1_80.npy") in err and "No space left on device" in err
     assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
+def test_a_patch_whose_order_slipped_is_left_unlabelled_and_said(public, rendered, tmp_path):
+    """A reference whose temporal orders are 3 periods off in a patch of the plane (its wrapped phase right, as
+    real frames show beside shadows): those pixels get the invalid label and a warning, every other label is the
+    clean scan's."""
+    sid = manifest_ids(rendered)[0]
+    s = load_native_sample(rendered / sid, keys=("phase_true", "mask", "height"), meta=False)
+    phase = s["phase_true"].astype(np.float64) - OFFSET
+    valid = s["mask"] > 0
+    flat = valid & (np.abs(s["height"]) < 1e-6)
+    yy, xx = np.mgrid[:flat.shape[0], :flat.shape[1]]
+    cy, cx = next((y, x) for y in range(10, flat.shape[0] - 10, 4) for x in range(10, flat.shape[1] - 10, 4)
+                  if flat[y - 6:y + 7, x - 6:x + 7].all())
+    blob = (yy - cy) ** 2 + (xx - cx) ** 2 <= 25
+    psin, pcos, order = sums_from_phase(phase, valid, 100.0)
+    save_psp_folder_sample(tmp_path / "slipped", sid, psin, pcos, order + 3 * blob.astype(np.int32), s["fringe"])
+    save_psp_folder_sample(tmp_path / "clean", sid, psin, pcos, order, s["fringe"])
+    reps = {k: label_real(LabelRealConfig(root=tmp_path / k, out=tmp_path / f"o{k}", rig=PARALLEL, previews=False))
+            for k in ("clean", "slipped")}
+    assert reps["clean"].warnings == [] and reps["clean"].scans[0]["order_slips"]["pixels"] == 0
+    rec = reps["slipped"].scans[0]
+    assert rec["order_slips"]["pixels"] == int(blob.sum()) and rec["order_slips"]["patches"][0]["shift_periods"] == -3
+    assert len(reps["slipped"].warnings) == 1 and "left unlabelled" in reps["slipped"].warnings[0]
+    assert f"{int(blob.sum())} px" in reps["slipped"].warnings[0]
+    z = {k: np.load(tmp_path / f"o{k}" / "Z.npy")[0, ..., 0] for k in reps}
+    assert np.all(z["slipped"][blob] == FIG.invalid_value)
+    np.testing.assert_array_equal(z["slipped"][~blob], z["clean"][~blob])

@@ -446,3 +446,41 @@ def test_the_report_is_strict_json_with_null_where_a_number_cannot_be_computed(s
     for row in doc["models"]:
         assert all(row[k] is None for k in ("plane_rmse_rad", "plane_flat_rmse_rad", "plane_ratio")), row
         assert row["ratio"] > 0 and row["rmse_rad"] > 0
+
+
+def test_a_reference_whose_order_slipped_is_said_and_scored_without_it(setup, tmp_path, capsys):
+    """A patch of the reference's temporal orders 3 periods off (its wrapped phase right): every score still counts
+    it; evaluate-phase names it in one line and scores each model and flat again without those pixels."""
+    tmp, run, root, truth = setup
+    phase, height, valid = truth["0"]
+    yy, xx = np.mgrid[:32, :64]
+    plane = valid & (height == 0)
+    cy, cx = next((y, x) for y in range(4, 28) for x in range(4, 60) if plane[y - 3:y + 4, x - 3:x + 4].all())
+    blob = (yy - cy) ** 2 + (xx - cx) ** 2 <= 6
+    psin, pcos, order = sums_from_phase(phase, valid, 30.0)
+    slipped = tmp_path / "slipped"
+    save_psp_folder_sample(slipped, "0", psin, pcos, order + 3 * blob.astype(np.int32),
+                           _image(root, "0"))
+    save_psp_folder_sample(slipped, "1", *sums_from_phase(*truth["1"][::2], 30.0), _image(root, "1"))
+    out = tmp_path / "out"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(slipped), "--out", str(out), "--figures", "0",
+                 "--names", "tiny", "--device", "cpu", "--degree", "2"]) == 0
+    text = capsys.readouterr().out
+    notes = [line for line in text.splitlines() if "note: the reference" in line]
+    doc = json.loads((out / "phase_results.json").read_text())
+    first, second = doc["per_image"]
+    assert len(notes) == 1 and notes[0].startswith("0: note:") and "(-3)" in notes[0]
+    assert first["reference_slips"]["patches"][0]["pixels"] == int(blob.sum())  # the scored ones counted in the line
+    assert f"{first['reference_slips']['pixels']} px" in notes[0] and 0 < first["reference_slips"]["pixels"] <= blob.sum()
+    assert first["reference_slips"]["patches"][0]["shift_periods"] == -3
+    assert "reference_slips" not in second and "without_slips" not in second["models"]["tiny"]
+    m = first["models"]["tiny"]
+    # the pixels 3 periods off weigh on the score with them, not without them
+    assert m["without_slips"]["flat"] < m["flat"]["rmse_rad"]
+    assert m["without_slips"]["prediction"] < m["prediction"]["rmse_rad"]
+    assert "| 0 | " in (out / "phase_results.md").read_text().split("Reference order slips")[1]
+
+
+def _image(root, sid):
+    from fppsim.dataio.readers.psp_mat import load_ipattern
+    return load_ipattern(root / "iPattern" / f"{sid}.mat")

@@ -63,6 +63,7 @@ from uhrnet.device import select_device
 from uhrnet.scoring.chosen_frames import chosen_frames, chosen_words, phase_frames
 from uhrnet.scoring.evaluation import check_name_count, model_names
 from uhrnet.scoring.phase_report import frame_line, markdown, plot_phase_residuals
+from uhrnet.scoring.reference_slips import frame_slips, slip_line, slip_markdown, slip_scores
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
@@ -566,6 +567,9 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             _, relief = fit_phase(s.phase, np.zeros(img.shape), s.valid, return_residual=True, **fit_kw)
         except ValueError as exc:
             raise ConfigError(f"{s.path}: {exc}") from None
+        slips, found = frame_slips(s, _scored_pixels(s))  # the reference's own order errors: said, still scored
+        if found:
+            record["reference_slips"] = found
         heights, residuals, scored = {}, {}, []
         for (model, transform, size, rig), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
@@ -591,6 +595,8 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             record["models"][name] = {"prediction": res["prediction"], "flat": res["flat"], "plane": res.get("plane"),
                                       "pixel_fraction": float(ok.mean()),
                                       "predicted_invalid_fraction": float((s.valid & ~pred_valid).mean())}
+            if slips is not None:
+                record["models"][name]["without_slips"] = slip_scores(fit_phase, s.phase, h, ok, slips, **fit_kw)
             heights[name] = np.where(ok, h, np.nan)
             residuals[name] = res["residual"]
         per_image.append(record)
@@ -598,6 +604,8 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             figures.append(plot_phase_residuals(img, relief, heights, residuals, out / "figures" / f"{sid}.png",
                                                 title=f"{sid}: calibration-free phase fit (degree {args.degree})"))
         echo(frame_line(sid, record["models"], why))
+        if found:
+            echo(slip_line(sid, found, record["models"]))
     if not per_image:
         raise ConfigError(f"{args.phase_root}: no frame has pixels to fit (skipped {', '.join(skipped[:10])})")
     chosen = {name: on for ck, name in zip(ckpts, names) if (on := chosen_frames(ck, args.phase_root, ids, digests))}
@@ -612,6 +620,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
 def _write_report(args: PhaseEvalConfig, out: Path, summary, per_image, skipped, without, chosen) -> str:
     """Write ``phase_results.md`` / ``.json`` of :func:`evaluate_phase_folder` into ``out``; returns the markdown."""
     md = markdown(summary, len(per_image), args.phase_root, args.degree, args.robust, without)
+    md += slip_markdown(per_image)
     if skipped:
         md += f"\nSkipped (no pixel with a valid phase and light to fit): {', '.join(skipped)}.\n"
     for name, on in chosen.items():
