@@ -25,7 +25,7 @@ from fppsim.rendering.shapes import procedural
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
     "sample_scene", "MESH_EXTENSIONS", "OTHER_MESH_EXTENSIONS", "unread_mesh_files", "asset_from_arrays",
-    "procedural_asset", "PROCEDURAL_PREFIX",
+    "changed_meshes", "procedural_asset", "PROCEDURAL_PREFIX",
     "PEDESTAL_PREFIX", "pedestal_prism", "render_faces",
 ]
 
@@ -99,6 +99,25 @@ def unread_mesh_files(paths) -> list[tuple[str, str]]:
     folders = [p for p in paths if Path(p).is_dir()]
     return [(p, f"{p}: {Path(p).suffix.lower()} is not a mesh format read here ({' '.join(MESH_EXTENSIONS)})")
             for p in find_meshes(folders, OTHER_MESH_EXTENSIONS)]
+
+
+def changed_meshes(recorded, paths) -> tuple[list[str], list[str]]:
+    """How the mesh files a dataset was made from (``recorded``: ``dataset.json``'s ``meshes``, the absolute paths of
+    those generate loaded) differ from what ``paths`` (files and folders, as ``--meshes``) give now, by real path:
+    ``(recorded but not given, the first given but not recorded)``; both empty: the same meshes. A given file that
+    does not load is none (generate skipped it, so the record lacks it); only files not recorded are loaded, until
+    one does. Paths are compared, not contents. :class:`MeshError` for a path that is not there."""
+    had = {os.path.realpath(p): p for p in recorded}
+    found = {os.path.realpath(p): p for p in find_meshes(paths)}
+    gone = [p for key, p in had.items() if key not in found]
+    for key, p in found.items():
+        if key not in had:
+            try:
+                load_mesh(p)
+            except MeshError:
+                continue
+            return gone, [p]
+    return gone, []
 
 
 def _mesh_files(folder: Path, extensions=MESH_EXTENSIONS) -> list[str]:
