@@ -373,7 +373,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
                 say(f"[{var.name}] adapt on {len(acfg.images)} unlabelled real input(s) -> {acfg.out}")
                 timing["adapt_s"] = run_stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
                                            _header("adapt", described) if "adapt" in described else
-                                           f"# adapt: {json.dumps(acfg.record(), default=json_default)}")
+                                           f"# adapt: {json_text(acfg.record(), default=json_default)}")
             adapted = Path(acfg.out) / LAST_PT
             hist = read_history(acfg.out)
             adapt_entry = {"run": str(acfg.out), "images": [str(i) for i in acfg.images], "labels_read": False,
@@ -410,4 +410,4 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
 def _header(stage: str, described: dict) -> str:
     """First line(s) a stage writes to its log: what runs (command line or config)."""
     what = described[stage]
-    return f"$ {what}" if isinstance(what, str) else f"# {stage}: {json.dumps(what, default=json_default)}"
+    return f"$ {what}" if isinstance(what, str) else f"# {stage}: {json_text(what, default=json_default)}"
