@@ -160,23 +160,31 @@ def collect(out: Path) -> dict:
     return report
 
 
+def shown(doc, limit: int | None = None, **dumps) -> str:
+    """``doc`` as printed to stdout: strict JSON as the step files (a NaN timing is null, not a bare NaN), cut to
+    ``limit`` characters (a preview in the step's log)."""
+    from fppsim.files import json_text  # lazily, as uhrnet: the checkout comes on PYTHONPATH
+
+    return json_text(doc, **dumps)[:limit]
+
+
 def main(argv: list[str]) -> int:
     if len(argv) != 2 or argv[0] not in ("bench", "epoch", "data", "collect"):
         print(__doc__, file=sys.stderr)
         return 2
     step, target = argv[0], Path(argv[1])
     if step == "collect":
-        print(json.dumps(collect(target), indent=1)[:4000])
+        print(shown(collect(target), 4000, indent=1))
         return 0
     if step == "data":
-        print(json.dumps(step_data(target)))
+        print(shown(step_data(target)))
         return 0
     target.mkdir(parents=True, exist_ok=True)
     result = step_bench(target) if step == "bench" else step_epoch(target)
     from fppsim.files import json_text  # lazily, as uhrnet: the checkout comes on PYTHONPATH
 
     (target / f"step_{step}.json").write_text(json_text(result, indent=1) + "\n")
-    print(json.dumps(result, indent=1)[:3000])
+    print(shown(result, 3000, indent=1))
     return 0
 
 

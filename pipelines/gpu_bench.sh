@@ -63,14 +63,15 @@ if [ "$CUDA" = 1 ] || [ "$TINY" != 0 ]; then
       >"$OUT/torchrun.log" 2>&1; then
     rc=0; else rc=$?; fi
   "$PY" - "$OUT" "$rc" "$(( $(date +%s) - start ))" "$CUDA" <<'PYEOF'
-import json, sys
+import sys
 from pathlib import Path
+from fppsim.files import json_text
 from uhrnet.run_folder import LAST_PT
 out, rc, secs, cuda = Path(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4] == "1"
 log = (out / "torchrun.log").read_text(errors="replace")
 res = {"exit_code": rc, "seconds": secs, "backend": "nccl" if cuda else "gloo", "world_size": 1,
        "checkpoint_written": (out / "torchrun_run" / LAST_PT).is_file(), "log_tail": log.splitlines()[-5:]}
-(out / "step_torchrun.json").write_text(json.dumps(res, indent=1) + "\n")
+(out / "step_torchrun.json").write_text(json_text(res, indent=1) + "\n")
 PYEOF
   [ "$rc" = 0 ] || log "torchrun step failed (exit $rc, see $OUT/torchrun.log)"
 else

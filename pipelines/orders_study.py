@@ -293,13 +293,18 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
             done.append(figure)
         results.append(row)
-        print(json.dumps({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
-                          "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}}), flush=True)
+        print(progress_line(seed, row), flush=True)
     atomic_write_text(out / "orders.json", json_text(results, indent=1, default=float))
     atomic_write_text(out / "orders.md", markdown(results))
     done += ["orders.json", "orders.md"]
     print(markdown(results))
     return 0
+
+
+def progress_line(seed: int, row: dict) -> str:
+    """One seed's line on stdout: strict JSON (a ratio of a zero residual, NaN or inf, is null)."""
+    return json_text({"seed": seed, "pair_depth": row["pair"]["depth"]["orders"],
+                      "frames": {f: round(v["ratio"], 3) for f, v in row["frames"].items()}})
 
 
 def _ms(values) -> str:

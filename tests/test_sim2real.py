@@ -511,3 +511,54 @@ def test_a_complete_dataset_of_another_seed_is_refused_before_training(tmp_path,
     monkeypatch.setattr(stages, "train", lambda tr: (_ for _ in ()).throw(ValueError(f"trains on {tr.synthetic}")))
     with pytest.raises(Sim2RealError, match=r"^train failed: trains on \[.*defaults'\]"):
         run_sim2real(cfg(9), log=None)
+
+
+def test_a_complete_dataset_of_other_meshes_is_refused_before_training(tmp_path, monkeypatch, capsys):
+    """As a dataset of another seed: one made from other meshes (its dataset.json's ``meshes``, the files generate
+    loaded) was re-used by a run started again with other --meshes, which trained on the old meshes' samples. Now
+    refused in one line (exit 1) naming both sides; the same meshes resume, given through a link or beside a file
+    generate skipped (it does not load, so it was never recorded)."""
+    import json
+    import shutil
+
+    import uhrnet.workflows.sim2real.run as stages
+    from uhrnet.cli import main
+    from uhrnet.workflows.sim2real import run_sim2real
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for name in ("vase_s0.ply", "mask_s0.ply"):
+        shutil.copy(Path(__file__).resolve().parents[1] / "assets" / "meshes" / name, meshes / name)
+    (tmp_path / "other").mkdir()
+    shutil.copy(meshes / "vase_s0.ply", tmp_path / "other" / "c.ply")
+    write_figshare(tmp_path / "real", n=2, h=32, w=64, seed=2)
+    out = tmp_path / "o"
+    data = out / "data" / data_key({})
+    write_figshare(data, n=6, h=32, w=64)
+    (data / "native").mkdir()
+    recorded = sorted(str(p) for p in meshes.iterdir())
+    (data / "native" / "dataset.json").write_text(json.dumps({"generator": "fppsim", "seed": 9, "meshes": recorded}))
+
+    def cfg(*given):
+        return Sim2RealConfig(out=str(out), real=[str(tmp_path / "real")], count=6, seed=9, epochs=1,
+                              base_channels=4, figures=False, meshes=[str(g) for g in given])
+
+    for given, says in (([meshes / "vase_s0.ply"], f"1 not among --meshes, e.g. {meshes / 'mask_s0.ply'}"),
+                        ([meshes, tmp_path / "other"], f"not {tmp_path / 'other' / 'c.ply'}, which --meshes gives")):
+        with pytest.raises(Sim2RealError, match=rf"^variant 'default': {data} holds 6 samples generated from 2 mesh "
+                                                rf"file\(s\) \(listed in its dataset.json; .* away$") as exc:
+            run_sim2real(cfg(*given), log=None)
+        assert says in str(exc.value) and "give the --meshes it was made from to continue" in str(exc.value)
+    assert not (out / "default").exists() and not (out / "report.json").exists()
+    capsys.readouterr()
+    assert main(["sim2real", "--real", str(tmp_path / "real"), "--out", str(out), "--count", "6", "--seed", "9",
+                 "--meshes", str(tmp_path / "other"), "--epochs", "1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "generated from 2 mesh file(s)" in err and "--meshes " in err, err
+    # the same meshes (through a link to their folder, beside a garbage file generate skipped) go on to train
+    (meshes / "junk.stl").write_bytes(b"not a mesh at all")
+    (tmp_path / "link").symlink_to(meshes)
+    monkeypatch.setattr(stages, "train", lambda tr: (_ for _ in ()).throw(ValueError(f"trains on {tr.synthetic}")))
+    for given in ([meshes], [tmp_path / "link"]):
+        with pytest.raises(Sim2RealError, match=r"^train failed: trains on \[.*defaults'\]"):
+            run_sim2real(cfg(*given), log=None)

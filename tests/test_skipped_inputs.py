@@ -158,6 +158,29 @@ def test_a_folder_is_looked_through_once_however_often_it_is_listed(tmp_path, mo
     _assert_named_once(_warnings(capsys.readouterr().err), d, ["c.webp", "e.GIF", "d.png"])
 
 
+def test_a_folder_changed_since_is_looked_through_again_and_the_memory_can_be_cleared(tmp_path, capsys):
+    """The once-per-process memory could not be reset, so a long-lived process (a notebook, a test session) that
+    read a folder again after adding a stray .webp to it was never told. A changed folder (its mtime) is looked
+    through again and says what is new, not what it said; forget_skipped() makes it say everything again."""
+    from fppsim.dataio.readers.listing import forget_skipped
+
+    d = _folder(tmp_path / "imgs", usable=True)
+    load_fringe_images(d)
+    _assert_named_once(_warnings(capsys.readouterr().err), d, ["c.webp", "e.GIF", "d.png"])
+    load_fringe_images(d)
+    assert _warnings(capsys.readouterr().err) == []
+    (d / "f.heic").write_bytes(b"x")
+    st = os.stat(d)
+    os.utime(d, ns=(st.st_atime_ns, st.st_mtime_ns + 10**9))  # a coarse clock could leave it unchanged
+    load_fringe_images(d)
+    _assert_named_once(_warnings(capsys.readouterr().err), d, ["f.heic"])
+    forget_skipped()
+    load_fringe_images(d)
+    _assert_named_once(_warnings(capsys.readouterr().err), d, ["c.webp", "e.GIF", "d.png", "f.heic"])
+    load_fringe_images(d)
+    assert _warnings(capsys.readouterr().err) == []
+
+
 def test_under_a_command_the_warning_begins_as_its_other_lines_do(tmp_path, capsys):
     """`fppsim fit-rig: warning: ...`, as the command's error line and the other commands' warnings (`uhrnet predict:
     warning: ...`) begin; a bare `warning:` from library code called outside a command line."""

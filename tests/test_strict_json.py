@@ -43,11 +43,12 @@ def test_a_value_that_slips_through_fails_loudly():
 
 def _writes(call: ast.Call) -> bool:
     name = getattr(call.func, "attr", getattr(call.func, "id", None))
-    return name in ("atomic_write_text", "write_text", "write")
+    return name in ("atomic_write_text", "write_text", "write", "print")
 
 
 def test_no_tool_writes_json_dumps_to_a_file_without_refusing_nan():
-    """A json.dumps handed to a file write must pass allow_nan=False (json_text does, after turning NaN into null)."""
+    """A json.dumps handed to a file write, or printed (pipelines print JSON lines that other tools parse), must pass
+    allow_nan=False (json_text does, after turning NaN into null)."""
     offenders = []
     for pkg in ("fppsim", "uhrnet", "pipelines"):
         for path in sorted((ROOT / pkg).rglob("*.py")):
@@ -62,3 +63,17 @@ def test_no_tool_writes_json_dumps_to_a_file_without_refusing_nan():
                         if not strict:
                             offenders.append(f"{path.relative_to(ROOT)}:{inner.lineno}")
     assert not offenders, offenders
+
+
+def test_the_pipelines_json_on_stdout_is_strict():
+    """gpu_bench.py's step previews and orders_study.py's line per seed were plain json.dumps: a NaN timing, or the
+    ratio of a zero network residual, came out as a bare NaN / Infinity."""
+    from _helpers import load_pipeline
+
+    shown = load_pipeline("gpu_bench").shown
+    assert shown({"ms": float("nan"), "ok": 1.5}) == '{"ms": null, "ok": 1.5}'
+    assert strict_loads(shown({"steps": {"fp16": {"ms": np.float32("inf")}}}, 4000, indent=1)) == {
+        "steps": {"fp16": {"ms": None}}}
+    row = {"pair": {"depth": {"orders": float("nan")}}, "frames": {"1201": {"ratio": math.inf}, "541": {"ratio": 0.5}}}
+    line = load_pipeline("orders_study").progress_line(3, row)
+    assert strict_loads(line) == {"seed": 3, "pair_depth": None, "frames": {"1201": None, "541": 0.5}}

@@ -8,6 +8,7 @@ scaled so that its footprint and relief match the real figshare data.
 
 from __future__ import annotations
 
+import json
 import os
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -25,7 +26,7 @@ from fppsim.rendering.shapes import procedural
 __all__ = [
     "MeshError", "MeshAsset", "PlacedObject", "Scene", "SceneRanges", "load_mesh", "find_meshes",
     "sample_scene", "MESH_EXTENSIONS", "OTHER_MESH_EXTENSIONS", "unread_mesh_files", "asset_from_arrays",
-    "procedural_asset", "PROCEDURAL_PREFIX",
+    "changed_meshes", "procedural_asset", "PROCEDURAL_PREFIX",
     "PEDESTAL_PREFIX", "pedestal_prism", "render_faces",
 ]
 
@@ -101,6 +102,25 @@ def unread_mesh_files(paths) -> list[tuple[str, str]]:
             for p in find_meshes(folders, OTHER_MESH_EXTENSIONS)]
 
 
+def changed_meshes(recorded, paths) -> tuple[list[str], list[str]]:
+    """How the mesh files a dataset was made from (``recorded``: ``dataset.json``'s ``meshes``, the absolute paths of
+    those generate loaded) differ from what ``paths`` (files and folders, as ``--meshes``) give now, by real path:
+    ``(recorded but not given, the first given but not recorded)``; both empty: the same meshes. A given file that
+    does not load is none (generate skipped it, so the record lacks it); only files not recorded are loaded, until
+    one does. Paths are compared, not contents. :class:`MeshError` for a path that is not there."""
+    had = {os.path.realpath(p): p for p in recorded}
+    found = {os.path.realpath(p): p for p in find_meshes(paths)}
+    gone = [p for key, p in had.items() if key not in found]
+    for key, p in found.items():
+        if key not in had:
+            try:
+                load_mesh(p)
+            except MeshError:
+                continue
+            return gone, [p]
+    return gone, []
+
+
 def _mesh_files(folder: Path, extensions=MESH_EXTENSIONS) -> list[str]:
     """The mesh files under ``folder``: its own tree's under their own paths (their names and order as before
     links were followed), and each linked folder's once, unless the tree holds it (a link loop ends)."""
@@ -134,6 +154,8 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
     if os.path.getsize(path) == 0:  # trimesh's own reason for one is an IndexError (.glb) or a parse error
         raise MeshError(f"{path}: an empty file (0 bytes), not a mesh")
     kind = Path(path).suffix[1:].upper() or "mesh"
+    if kind == "GLTF":
+        check_gltf_json(path)
     try:
         if path.lower().endswith(".ply") and ply_has_tristrips(path):  # trimesh ignores triangle strips
             v, f = read_ply_tristrips(path)
@@ -149,8 +171,27 @@ def load_mesh(path: str | os.PathLike, flat_ratio: float = 1e-3) -> MeshAsset:
         detail = f"{type(exc).__name__}: {str(exc).splitlines()[0]}" if str(exc) else type(exc).__name__
         raise MeshError(f"{path}: not a readable {kind} file (the reader stopped with {detail})") from None
     if not isinstance(loaded, trimesh.Trimesh):
-        raise MeshError(f"{path}: no triangle mesh found")
-    return asset_from_arrays(loaded.vertices, loaded.faces, path, flat_ratio)
+        raise MeshError(f"{path}: no triangle mesh found in this {kind} file")
+    try:
+        return asset_from_arrays(loaded.vertices, loaded.faces, path, flat_ratio)
+    except MeshError as exc:  # text that is not a mesh reads as no triangle (.stl, .obj), garbage bytes as NaN
+        if len(loaded.faces) == 0:
+            raise MeshError(f"{path}: not a readable {kind} file (no triangle in it: empty, or not {kind} "
+                            "content)") from None
+        raise MeshError(f"{path}: unusable mesh in this {kind} file: {str(exc).removeprefix(f'{path}: ')}") from None
+
+
+def check_gltf_json(path: str) -> None:
+    """:class:`MeshError` for a ``.gltf`` that is not a JSON object: trimesh then looks for a ``model.gltf`` inside it
+    as in a zip and names that missing file instead."""
+    try:
+        doc = json.loads(Path(path).read_bytes())
+    except json.JSONDecodeError as exc:
+        raise MeshError(f"{path}: not a readable GLTF file (not JSON text: {exc})") from None
+    except ValueError:  # bytes in no Unicode encoding
+        raise MeshError(f"{path}: not a readable GLTF file (its content is binary or garbage, not JSON text)") from None
+    if not isinstance(doc, dict):
+        raise MeshError(f"{path}: not a readable GLTF file (its JSON is a {type(doc).__name__}, not an object)")
 
 
 def asset_from_arrays(vertices, faces, path: str, flat_ratio: float = 1e-3) -> MeshAsset:

@@ -178,6 +178,41 @@ def test_an_unparsable_mesh_says_it_is_not_a_readable_file_of_its_format(tmp_pat
         assert "\n" not in str(e.value)
 
 
+GARBAGE = {"bytes": np.random.default_rng(5).bytes(4096), "text": b"hello, this is not a mesh\nsecond line 1 2 3\n"}
+
+
+@pytest.mark.parametrize("ext", ["stl", "gltf", "glb", "ply", "obj"])
+@pytest.mark.parametrize("what", list(GARBAGE))
+def test_a_garbage_mesh_file_is_one_line_naming_the_file_and_its_format(tmp_path, ext, what, capsys):
+    """Random bytes or text that is not a mesh, under a mesh's name: `fppsim generate` exits 1 with one error line
+    naming the file and its format, whatever the reader raised. Text in an .stl / .obj read as a mesh of no triangle
+    ('empty mesh (no faces)', no format named); any .gltf that is not JSON as trimesh's search for a 'model.gltf'
+    inside it ('FileNotFoundError: model.gltf', naming a file the user never gave)."""
+    from fppsim.cli import main
+
+    p = tmp_path / f"bad.{ext}"
+    p.write_bytes(GARBAGE[what])
+    argv = ["generate", "-q", "--no-preview", "--meshes", str(p), "--out", str(tmp_path / "o"), "--count", "1"]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"fppsim generate: error: no usable mesh ({p}: not a readable {ext.upper()} file (")
+    assert "model.gltf" not in err[-1] and not any("Traceback" in line for line in err)
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_mesh_read_from_garbage_names_its_format_with_what_is_wrong(tmp_path):
+    """Bytes a reader takes for a mesh whose vertices are NaN, or whose faces point past its vertices."""
+    nan = tmp_path / "nan.stl"  # a binary STL: 80-byte header, 3 triangles of 0xff bytes (NaN floats)
+    nan.write_bytes(bytes(80) + (3).to_bytes(4, "little") + b"\xff" * 150)
+    with pytest.raises(MeshError, match=rf"^{nan}: unusable mesh in this STL file: vertices contain NaN or inf$"):
+        load_mesh(nan)
+    far = tmp_path / "far.ply"
+    far.write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+                   "element face 1\nproperty list uchar int vertex_indices\nend_header\n0 0 0\n1 0 0\n0 1 0\n3 0 1 9\n")
+    with pytest.raises(MeshError, match=rf"^{far}: unusable mesh in this PLY file: face indices out of range$"):
+        load_mesh(far)
+
+
 def test_a_folders_mesh_in_a_format_not_read_is_named_not_dropped(tmp_path, capsys):
     """A .fbx / .3mf beside the meshes was left out of a --meshes folder without a word; it is now a skipped mesh
     with its reason, and a folder holding only such files says why nothing can be drawn."""

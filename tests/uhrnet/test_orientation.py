@@ -191,3 +191,43 @@ def test_a_real_frame_through_a_rig_that_is_not_its_own_is_not_read_flipped():
     got = check(load_ipattern(SHARED / "real-phase" / "FP1523" / "iPattern" / "1201.mat"), other)
     assert got.plane_fit["rotated 180 deg"] > 0.5 > 0.3 > got.plane_fit["as given"]
     assert got.verdict != "flipped", got
+
+
+@pytest.mark.skipif(not (SHARED / "real-phase").is_dir(), reason="../shared/real-phase is absent")
+def test_evaluate_phase_warns_of_a_real_frame_turned_against_its_rig_and_keeps_its_scores(tmp_path, capsys,
+                                                                                           monkeypatch, one_thread):
+    """FP1523/1201 as given and rotated 180 degrees (image, sums and orders alike) scored by `uhrnet evaluate-phase
+    --refine phase --rig` through the default rig: the turned frame gets predict's sentence once (per model) and its
+    check under ``flipped`` in phase_results.json; the frame as given none; the scores are those of a run whose check
+    finds nothing (said, never acted on). About 10 s on one thread."""
+    import json
+
+    import scipy.io as sio
+
+    import uhrnet.inference.prediction as prediction
+    from _helpers import train_tiny, write_figshare
+    from fppsim.dataio.writers import save_psp_folder_sample
+    from uhrnet.cli import main
+    from uhrnet.physics.orientation import OrientationCheck
+
+    write_figshare(tmp_path / "real", n=8, h=32, w=64, seed=1)
+    run = train_tiny(tmp_path / "unet", "--real", tmp_path / "real")
+    src = SHARED / "real-phase" / "FP1523"
+    a = [sio.loadmat(src / q / "1201.mat")[v] for q, v in (("PSin", "PSin"), ("PCos", "PCos"), ("Fringe", "Order"),
+                                                            ("iPattern", "iPattern"))]
+    for sid, turn in (("given", lambda x: x), ("rotated", lambda x: np.ascontiguousarray(x[::-1, ::-1]))):
+        save_psp_folder_sample(tmp_path / "frames", sid, turn(a[0]), turn(a[1]), turn(a[2]).astype(np.int32), turn(a[3]))
+    args = ["evaluate-phase", str(run), "--phase-root", str(tmp_path / "frames"), "--figures", "0", "--names", "tiny",
+            "--device", "cpu", "--refine", "phase", "--rig", str(ASSETS / "default_rig.json")]
+    capsys.readouterr()
+    assert main([*args, "--out", str(tmp_path / "o")]) == 0
+    said = [line for line in capsys.readouterr().out.splitlines() if "relief below the reference plane" in line]
+    assert len(said) == 1 and said[0].startswith("rotated: warning: tiny: relief below the reference plane through ")
+    assert "rotated or mirrored image, or a rig with the projector on the other side? (" in said[0]
+    rec = {r["id"]: r for r in json.loads((tmp_path / "o" / "phase_results.json").read_text())["per_image"]}
+    assert "flipped" not in rec["given"] and rec["rotated"]["flipped"]["tiny"]["verdict"] == "flipped"
+    monkeypatch.setattr(prediction, "check_orientation", lambda *a: OrientationCheck({}, 0, None, "undecided", "-"))
+    assert main([*args, "--out", str(tmp_path / "p"), "--ids", "rotated"]) == 0
+    assert "relief below" not in capsys.readouterr().out
+    quiet = json.loads((tmp_path / "p" / "phase_results.json").read_text())["per_image"][0]
+    assert quiet["models"] == rec["rotated"]["models"] and "flipped" not in quiet

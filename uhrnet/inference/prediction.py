@@ -68,7 +68,7 @@ from uhrnet.inference.outputs import points_from_grid, points_from_rig, write_pl
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
-from uhrnet.physics.orientation import check_orientation
+from uhrnet.physics.orientation import check_orientation, flipped_warning
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 from uhrnet.run_folder import refuse_own_source
@@ -403,11 +403,9 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
             result.warnings.append(f"{path} ({name}): no fringe phase to refine with ({reason}): the network's heights")
         if stats.get("regions", 1) == 0:
             result.warnings.append(f"{path} ({name}): no phase region of reliable fringes: the network's heights")
-        orientation = stats.get("orientation") or {}
-        if orientation.get("verdict") == "flipped":  # said, never acted on: the heights stay the path's
-            result.warnings.append(
-                f"{path} ({name}): relief below the reference plane through {rig_name}: rotated or mirrored image, or "
-                f"a rig with the projector on the other side? ({orientation['evidence']})")
+        flipped = flipped_warning(stats.get("orientation"), rig_name)
+        if flipped:  # said, never acted on: the heights stay the path's
+            result.warnings.append(f"{path} ({name}): {flipped}")
         undecided = stats.get("undecided_regions", 0)
         if undecided:
             result.warnings.append(

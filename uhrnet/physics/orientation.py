@@ -49,7 +49,7 @@ from fppsim.phase import circular_median, wrap
 from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
 from fppsim.phase.unwrap import shadow_runs
 
-__all__ = ["OrientationCheck", "check_orientation", "plane_phases", "shadow_sides"]
+__all__ = ["OrientationCheck", "check_orientation", "flipped_warning", "plane_phases", "shadow_sides"]
 
 #: a reliable pixel is on a plane phase within this (rad) of it, once the image's phase origin is taken off
 PLANE_TOL_RAD = 0.5
@@ -168,6 +168,17 @@ def check_orientation(wrapped: np.ndarray, reliability: np.ndarray, lit: np.ndar
     dark = float(1.0 - lit.mean())
     return OrientationCheck({k: round(v, 4) for k, v in fit.items()}, runs, None if runs == 0 else round(agree, 4),
                             *_verdict(fit, agree, runs, dark), dark_share=round(dark, 4))
+
+
+def flipped_warning(orientation: dict | None, rig_name: str) -> str | None:
+    """The sentence said of an image that reads flipped (``orientation``: :meth:`OrientationCheck.to_dict`, as the
+    refine statistics carry it) through the rig named ``rig_name``, else None: one owner for predict's and
+    evaluate-phase's warning, which never changes a height."""
+    o = orientation or {}
+    if o.get("verdict") != "flipped":
+        return None
+    return (f"relief below the reference plane through {rig_name}: rotated or mirrored image, or a rig with the "
+            f"projector on the other side? ({o['evidence']})")
 
 
 def _verdict(fit: dict, agree: float, runs: int, dark: float = 0.0) -> tuple[str, str]:

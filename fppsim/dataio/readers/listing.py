@@ -7,6 +7,11 @@ symbolic link whose target is gone (a moved scan), and an image in a format the 
 :func:`warn_skipped` prints each once per process (``PROG COMMAND: warning: PATH: skipped: REASON`` on stderr,
 :func:`fppsim.files.warn`) when the listing found something else to read, and :func:`skipped_note` adds them to
 the error when it found nothing. Hidden entries and other files (a README, a ``.json``) are never mentioned.
+
+The memory behind "once" is per process: a folder is looked through again once its modification time changed (an
+entry added, removed or renamed: a notebook reading a folder again after changing it hears of the new entries,
+not of those it was told about), and :func:`forget_skipped` clears it all (a long-lived process, a test, that
+wants every warning again). A link whose target went away since changes no folder time: not looked at again.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from pathlib import Path
 
 from fppsim.files import warn
 
-__all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "skipped_note"]
+__all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -25,7 +30,7 @@ OTHER_IMAGE_EXTS = (".webp", ".gif", ".jp2", ".j2k", ".jpx", ".jpe", ".jfif", ".
                     ".raw", ".cr2", ".nef", ".arw")
 """Image formats the readers do not take: a file of one in an input folder is skipped with a warning."""
 
-_listed: set[tuple] = set()  # (folder, taken, folders) already looked through by warn_skipped
+_listed: set[tuple] = set()  # (folder, its mtime, taken, folders) already looked through by warn_skipped
 _warned: set[str] = set()  # and the lines it printed: once per entry, however often and however it is listed
 
 
@@ -56,8 +61,13 @@ def skipped_entries(folder: str | os.PathLike, taken: tuple[str, ...],
 def warn_skipped(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False) -> None:
     """Print ``PROG COMMAND: warning: ENTRY: skipped: REASON`` on stderr (:func:`fppsim.files.warn`) for each of
     :func:`skipped_entries`, once per process: a folder is listed again for every frame read from it, and is
-    looked through only the first time (a second look cost as much as the listing itself)."""
-    key = (os.path.abspath(folder), tuple(taken), folders)
+    looked through only the first time (a second look cost as much as the listing itself), or again once it changed
+    (module docstring)."""
+    try:
+        mtime = os.stat(folder).st_mtime_ns
+    except OSError:
+        mtime = None
+    key = (os.path.abspath(folder), mtime, tuple(taken), folders)
     if key in _listed:
         return
     _listed.add(key)
@@ -66,6 +76,13 @@ def warn_skipped(folder: str | os.PathLike, taken: tuple[str, ...], folders: boo
         if line not in _warned:
             _warned.add(line)
             warn(line)
+
+
+def forget_skipped() -> None:
+    """Forget which folders :func:`warn_skipped` looked through and what it said: each is looked through, and each
+    skipped entry warned of, again."""
+    _listed.clear()
+    _warned.clear()
 
 
 def skipped_note(folder: str | os.PathLike, taken: tuple[str, ...], folders: bool = False,

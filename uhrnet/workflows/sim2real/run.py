@@ -32,7 +32,7 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Callable, Sequence
 
-from fppsim.errors import FppsimError
+from fppsim.errors import FppsimError, MeshError
 from fppsim.errors import UsageError as FppsimUsageError
 from fppsim.dataio.encoding import json_default
 from fppsim.files import atomic_write_text, json_text
@@ -50,6 +50,7 @@ from uhrnet.workflows.sim2real.score_real import (
 from uhrnet.workflows.sim2real.report import markdown_report
 from fppsim.dataio.formats import PRESETS, read_settings
 from fppsim.generation import GenerateConfig, generate
+from fppsim.rendering.scene import changed_meshes
 from uhrnet.training.train_config import DEFAULTS, LEGACY, LOCKED, TrainConfig
 from uhrnet.training.adapt import AdaptConfig, adapt
 from fppsim.dataio.readers import open_source
@@ -195,17 +196,41 @@ def _check_training_inputs(var: Variant, tr) -> None:
         raise Sim2RealError(f"variant {var.name!r}: train: {exc}") from None
 
 
-def _check_dataset_seed(var: Variant, data: Path, gen, run: Path) -> None:
-    """A complete dataset in ``data`` generated with another seed than ``gen``'s is refused before the first stage:
-    left by a run stopped while training and started again with another ``--seed``, it was re-used as it was (its
-    sample count matched), so the run trained on the old seed's samples while the report named the new seed."""
+def _check_dataset(var: Variant, data: Path, gen, run: Path) -> None:
+    """A complete dataset in ``data`` generated with another seed or from other meshes than ``gen``'s is refused
+    before the first stage: left by a run stopped while training and started again with another ``--seed`` or
+    ``--meshes``, it was re-used as it was (its sample count matched, so generate, which compares both, never ran),
+    and the run trained on the old samples while the report named the new options."""
     if dataset_count(data) != gen.count:
         return  # the generate stage makes or completes it, and refuses a dataset of other settings itself
     samples = open_source(data).fppsim_samples()
-    seed = (read_settings(samples.path) or {}).get("seed") if samples is not None else None
+    settings = (read_settings(samples.path) or {}) if samples is not None else {}
+    seed = settings.get("seed")
     if seed not in (None, gen.seed):
         raise Sim2RealError(f"variant {var.name!r}: {data} holds {gen.count} samples generated with seed {seed}, "
                             f"not {gen.seed}: give --seed {seed} to continue, or move {data} and {run} away")
+    other = _mesh_difference(settings, gen)
+    if other:
+        raise Sim2RealError(f"variant {var.name!r}: {data} holds {gen.count} samples generated from {other}: give "
+                            f"the --meshes it was made from to continue, or move {data} and {run} away")
+
+
+def _mesh_difference(settings: dict, gen) -> str | None:
+    """Where the meshes a dataset's ``settings`` record (``dataset.json``'s ``meshes``; none recorded: no check)
+    differ from ``gen``'s ``--meshes`` (:func:`fppsim.rendering.scene.changed_meshes`), in words; None: the same."""
+    recorded = settings.get("meshes")
+    if not isinstance(recorded, list):
+        return None
+    try:
+        gone, new = changed_meshes(recorded, gen.mesh_paths)
+    except MeshError as exc:
+        raise Sim2RealError(f"--meshes: {exc}") from None
+    if not gone and not new:
+        return None
+    given = " ".join(gen.mesh_paths) or "none (procedural)"
+    return (f"{len(recorded)} mesh file(s) (listed in its dataset.json"
+            + (f"; {len(gone)} not among --meshes, e.g. {gone[0]}" if gone else "")
+            + (f"; not {new[0]}, which --meshes gives" if new else "") + f"), not from --meshes {given}")
 
 
 def _row_line(row: dict) -> str:
@@ -309,7 +334,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
         trained_on = _finished_run(cfg, var, run, tr, gen)
         if trained_on is None:
             _check_training_inputs(var, tr)
-            _check_dataset_seed(var, data, gen, run)
+            _check_dataset(var, data, gen, run)
         plans.append((var, data, run, gen, tr, trained_on))
     out.mkdir(parents=True, exist_ok=True)
 
@@ -348,7 +373,7 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
                 say(f"[{var.name}] adapt on {len(acfg.images)} unlabelled real input(s) -> {acfg.out}")
                 timing["adapt_s"] = run_stage("adapt", lambda a=acfg: adapt(a, log=print), out / var.name / "adapt.log",
                                            _header("adapt", described) if "adapt" in described else
-                                           f"# adapt: {json.dumps(acfg.record(), default=json_default)}")
+                                           f"# adapt: {json_text(acfg.record(), default=json_default)}")
             adapted = Path(acfg.out) / LAST_PT
             hist = read_history(acfg.out)
             adapt_entry = {"run": str(acfg.out), "images": [str(i) for i in acfg.images], "labels_read": False,
@@ -385,4 +410,4 @@ def run_sim2real(cfg: Sim2RealConfig, log: Callable[[str], None] | None = print,
 def _header(stage: str, described: dict) -> str:
     """First line(s) a stage writes to its log: what runs (command line or config)."""
     what = described[stage]
-    return f"$ {what}" if isinstance(what, str) else f"# {stage}: {json.dumps(what, default=json_default)}"
+    return f"$ {what}" if isinstance(what, str) else f"# {stage}: {json_text(what, default=json_default)}"
