@@ -12,7 +12,8 @@ For each training run given (one seed each) and on real frames only:
   orders`` through the rig. The order choice uses no label.
 * real phase-shifting frames (``--phase``, default the three folders of ../shared/real-phase): the calibration-free
   phase residual ``uhrnet evaluate-phase`` computes (degree-3 plane + a h + b h^2 over pixels with real phase
-  and a lit input), network and path on the same pixels, and its ratio; for FP1523 (the pair's rig) through the
+  and a lit input), network and path on the same pixels, and its ratio (also without the pixels where the
+  reference's own temporal order slipped, ``fppsim.phase.reference_check``: the score counts them); for FP1523 (the pair's rig) through the
   depth-fitted rig, for the other rigs through a rig ``fppsim fit-rig`` builds from the frame itself (no
   ``--base``, written to OUT/rigs/). Also the share of the path's moved pixels whose absolute phase sits at the
   phase-shifting data's own order (the plane as reference).
@@ -48,6 +49,7 @@ from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: 
 from fppsim.errors import FppsimError  # noqa: E402
 from fppsim.files import atomic_write_text, json_text  # noqa: E402
 from fppsim.owned import claim, output_folder, same_folder, stamp  # noqa: E402
+from fppsim.phase.reference_check import order_slips  # noqa: E402
 from fppsim.geometry.rig import load_rig, make_default_rig  # noqa: E402
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint  # noqa: E402
 from uhrnet.errors import UhrnetError  # noqa: E402
@@ -255,7 +257,8 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             rig = fitted_rig(folder, out / "rigs" / f"{folder.name}.json", out)
             done.append(f"rigs/{folder.name}.json")
         for sid in frame_ids:
-            frames.append((f"{folder.name}/{sid}", load_psp_folder_sample(folder, sid), rig))
+            s = load_psp_folder_sample(folder, sid)
+            frames.append((f"{folder.name}/{sid}", s, rig, order_slips(s.wrapped, s.phase, s.valid).mask))
     results = []
     for k, (run, (ck, model, transform)) in enumerate(models.items()):
         seed, tag = ck.get("args", {}).get("seed", k), tags[k]
@@ -276,7 +279,7 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
                                   f"{row['pair'][name]['orders']['object_rmse_mm']:.2f} mm (network "
                                   f"{row['pair'][name]['network']['object_rmse_mm']:.2f})")
                 done.append(figure)
-        for fname, s, rig in frames:
+        for fname, s, rig, slipped in frames:
             img = s.image.astype(np.float32) / 127.5 - 1.0
             hn = network(model, transform, img, mask_invalid=False)  # as evaluate-phase scores it
             choice = path(hn, img, rig, *mirror, name=f"{fname} ({s.path})")
@@ -285,8 +288,12 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             path_res = fit_phase(s.phase, choice.height.astype(np.float64), scored).rmse_rad
             flat_res = fit_phase(s.phase, np.zeros(hn.shape), scored).rmse_rad
             layer = layer_for(rig, hn.shape)
+            keep = scored & ~slipped  # the reference's own order slips left out (fppsim.phase.reference_check)
             row["frames"][fname] = {"network_rad": net_res, "orders_rad": path_res, "flat_rad": flat_res,
                                     "ratio": path_res / net_res, "right_order_moved": order_share(choice, layer, s.phase, scored),
+                                    "slipped_px": int((scored & slipped).sum()),
+                                    "ratio_without_slips": fit_phase(s.phase, choice.height.astype(np.float64),
+                                                                     keep).rmse_rad / fit_phase(s.phase, hn, keep).rmse_rad,
                                     "stats": choice.stats}
             figure = figure_name(fname, tag)
             plot_orders(img, hn, choice, out / figure,
@@ -327,19 +334,22 @@ def markdown(results: list[dict]) -> str:
             lines.append(f"| mean ± sd | {rig} | {what} | {_ms([v['object_rmse_mm'] for v in vals])} | "
                          f"{_ms([v['median_abs_mm'] for v in vals])} | {_ms([100 * v['within_1mm'] for v in vals])} % | "
                          f"{_ms([100 * v['right_order'] for v in vals])} % |")
-    lines += ["", "| seed | frame | network (rad) | orders (rad) | flat (rad) | orders / network | moved pixels at the PSP order |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines += ["", "| seed | frame | network (rad) | orders (rad) | flat (rad) | orders / network | moved pixels at the PSP order "
+              "| orders / network without the reference's slips (px) |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     frames = list(results[0]["frames"]) if results else []
     for r in results:
         for f in frames:
             d = r["frames"][f]
             lines.append(f"| {r['seed']} | {f} | {d['network_rad']:.3f} | {d['orders_rad']:.3f} | {d['flat_rad']:.3f} | "
-                         f"{d['ratio']:.3f} | {d['right_order_moved']:.1%} |")
+                         f"{d['ratio']:.3f} | {d['right_order_moved']:.1%} | {d['ratio_without_slips']:.3f} "
+                         f"({d['slipped_px']}) |")
     for f in frames:
         vals = [r["frames"][f] for r in results]
         lines.append(f"| mean ± sd | {f} | {_ms([v['network_rad'] for v in vals])} | {_ms([v['orders_rad'] for v in vals])} | "
                      f"{_ms([v['flat_rad'] for v in vals])} | {_ms([v['ratio'] for v in vals])} | "
-                     f"{_ms([100 * v['right_order_moved'] for v in vals])} % |")
+                     f"{_ms([100 * v['right_order_moved'] for v in vals])} % | "
+                     f"{_ms([v['ratio_without_slips'] for v in vals])} |")
     return "\n".join(lines) + "\n"
 
 
