@@ -129,7 +129,8 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
     patches = []
     if len(votes):
         keys, counts = np.unique(votes, axis=0, return_counts=True)
-        for comp in np.argsort(-size, kind="stable"):
+        cands = np.unique(keys[:, 0])  # components with a slip on their border, largest first
+        for comp in cands[np.argsort(-size[cands], kind="stable")]:
             if not 0 < size[comp] <= max_fraction * valid.sum():
                 continue
             mine = (keys[:, 0] == comp) & (size[keys[:, 1]] > size[comp])
