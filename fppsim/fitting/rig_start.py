@@ -54,7 +54,7 @@ from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
 from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.frame_scenes import frame_scenes, scenes_line
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
-from fppsim.fitting.start_result import (StartRigResult, first_lines, plane_fits_poorly, plane_image_share,
+from fppsim.fitting.start_result import (StartRigResult, first_lines, plane_fits_poorly, poor_plane_words,
                                          start_lines)
 from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, find_plane,
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
@@ -415,8 +415,9 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     that follow the frames at that scale (``result.scenes``, :func:`scenes_of`); ``convention`` / ``negate_sin`` as
     :func:`phase_maps_of`. ``say`` receives each report line (:func:`fppsim.fitting.start_result.start_lines`).
 
-    Scans whose plane model fits poorly (:func:`plane_fits_poorly`: no reference plane in view, e.g. busts on
-    a black background, or a phase read the wrong way) cannot pin the projector's pose: a RigError names what
+    Scans whose plane model fits poorly (:func:`plane_fits_poorly`: too few pixels, too large a residual, or pixels
+    that reach fewer than 2 of the image's sides: no reference plane in view, e.g. busts on a black background, or a
+    phase read the wrong way) cannot pin the projector's pose: a RigError names what
     is needed, unless ``distance``, ``baseline`` and ``projector_side`` are all given; then the rig is the
     start rig at that geometry (projector aimed at the view's centre, the measured fringe period), its pose
     assumed and said so (``StartRigResult.no_plane``). Without a plane the fringes' period and lean are measured
@@ -449,18 +450,16 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     params, lens = PLANE_PARAMS, None
     if kind == "phase":  # before the plane is judged: a lens bends it
         params, fit, lens = _lens(fit, maps, W, H, gradient, side, D, baseline, fov, focal)
-    no_plane = plane_fits_poorly(fit)  # single images too: a bust filling 62 % of FP147's view, on black, was taken for the plane
+    no_plane = plane_fits_poorly(fit)  # single images too: FP147's face on black (62 % of the view) was a 'plane'
     if no_plane:
         missing = [f"--{k.replace('_', '-')}" for k, v in (("distance", distance), ("baseline", baseline),
                                                          ("projector_side", projector_side)) if v is None]
         if missing:
-            raise RigError(f"{path}: the plane model fits the scans poorly ({fit.median_rad:.2f} rad on "
-                           f"{np.mean(fit.plane_share):.0%} of the valid pixels, {plane_image_share(fit):.0%} of the "
-                           "image): no reference plane in view (or the "
-                           "phase is written another way: --convention, --negate-sin), so the projector's pose cannot "
-                           f"be fitted; give scans that show the plane, or {', '.join(missing)} for a rig whose "
-                           "projector pose is assumed (and --fringe-period PX if you know the plane's fringe period: "
-                           "the objects' own is used otherwise)")
+            raise RigError(f"{path}: the plane model fits the scans poorly ({poor_plane_words(fit)}): no reference "
+                           "plane in view (or the phase is written another way: --convention, --negate-sin), so the "
+                           f"projector's pose cannot be fitted; give scans that show the plane, or {', '.join(missing)} "
+                           "for a rig whose projector pose is assumed (and --fringe-period PX if you know the "
+                           "plane's fringe period: the objects' own is used otherwise)")
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
         source = "given (--projector-side; without the plane the scans cannot measure it)"

@@ -14,15 +14,21 @@ from fppsim.fitting.frame_scenes import scenes_line
 from fppsim.fitting.plane_phase import PlanePhaseFit
 from fppsim.geometry.rig import Rig
 from fppsim.phase.fringe_axis import rig_phase_gradient
+from fppsim.phase.plane import PLANE_SIDES, plane_sides, sides_reached
 
 __all__ = ["StartRigResult", "POOR_PLANE_SHARE", "POOR_PLANE_RAD", "plane_fits_poorly", "plane_image_share",
-           "first_lines", "start_lines"]
+           "plane_side_shares", "poor_plane_words", "first_lines", "start_lines"]
 
 # the plane model fits scans poorly (no plane in view, or a phase read the wrong way) on less than this share of
-# the IMAGE or beyond this median residual (rad): the real frames with a plane fit to 0.03-0.13 rad on 19-74 % of
+# the IMAGE or beyond this median residual (rad): the real frames with a plane fit to 0.03-0.15 rad on 19-76 % of
 # the image (FP147's face fills the view: 19 %); FP1523 and FP672 with their plane blacked out leave a plane model
 # 6 % (a figurine's smooth front fits it to 0.15 rad on 42 % of the valid pixels, which share of the valid
-# pixels alone would take for a plane)
+# pixels alone would take for a plane). Both margins are thin (FP147's face on black, 62 % of the view: 0.31 rad,
+# 40 % of the image), and a smooth object on black passes both (a tilted slab, 37 % of the image, 0.00 rad), so the
+# plane pixels must also reach beyond the view as a reference plane does (fppsim.phase.plane.PLANE_SIDES sides,
+# evaluate-phase's rule): frames with their plane reach 3-4 sides (FP147's plane beside its face: 2), FP1523, FP672
+# and the pair on black 0-1; an object the borders cut reaches them too (FP147's face on black: 2-3 sides), which
+# only its residual refuses
 POOR_PLANE_SHARE = 0.1
 POOR_PLANE_RAD = 0.25
 
@@ -73,15 +79,35 @@ class StartRigResult:
 
 def plane_fits_poorly(fit: PlanePhaseFit) -> bool:
     """The plane model explains the scans' phase poorly: on under :data:`POOR_PLANE_SHARE` of the image
-    (:func:`plane_image_share`), or with a median residual above :data:`POOR_PLANE_RAD`: no reference plane in
-    view (a smooth object on black can follow the model on most of the few valid pixels), or a phase written
-    another way than it was read."""
-    return plane_image_share(fit) < POOR_PLANE_SHARE or fit.median_rad > POOR_PLANE_RAD
+    (:func:`plane_image_share`), with a median residual above :data:`POOR_PLANE_RAD`, or on pixels that reach fewer
+    than :data:`fppsim.phase.plane.PLANE_SIDES` of the image's sides (:func:`plane_side_shares`): no reference plane
+    in view (a smooth object on black can follow the model on most of the few valid pixels, or on a third of the
+    image inside it), or a phase written another way than it was read."""
+    return (plane_image_share(fit) < POOR_PLANE_SHARE or fit.median_rad > POOR_PLANE_RAD
+            or sides_reached(plane_side_shares(fit)) < PLANE_SIDES)
 
 
 def plane_image_share(fit: PlanePhaseFit) -> float:
     """The plane pixels' share of the whole image, mean over the maps."""
     return float(np.mean([np.mean(p) for p in fit.planes]))
+
+
+def plane_side_shares(fit: PlanePhaseFit) -> list[float]:
+    """The share of each image side (top, bottom, left, right) the plane pixels reach
+    (:func:`fppsim.phase.plane.plane_sides`), mean over the maps, as :func:`plane_image_share`: the maps share one
+    plane fit, and an object hiding a side in one map hides it in the mean only in part. The masks hold only pixels
+    with a phase: an invalid border narrower than the band (1 % of the shorter side, at least 2 px) is crossed; a
+    plain image's single-shot phase, ragged at the borders, loses some (FP1523 as a PNG: 31 % of its left side, 9 %
+    at the edge itself)."""
+    return [float(x) for x in np.mean([plane_sides(p) for p in fit.planes], axis=0)]
+
+
+def poor_plane_words(fit: PlanePhaseFit) -> str:
+    """How the plane model fits, as the lines that call it poor say it."""
+    return (f"{fit.median_rad:.2f} rad on {np.mean(fit.plane_share):.0%} of the valid pixels, "
+            f"{plane_image_share(fit):.0%} of the image, reaching {sides_reached(plane_side_shares(fit))} of its 4 "
+            f"sides; a reference plane: {POOR_PLANE_SHARE:.0%} of the image or more, within {POOR_PLANE_RAD:g} rad, "
+            f"reaching {PLANE_SIDES} or more")
 
 
 
@@ -143,8 +169,8 @@ def _plane_and_lens(r: StartRigResult) -> list[str]:
     fit, rig, params, lens = r.fit, r.rig, r.params, r.lens
     share = float(np.mean(fit.plane_share))
     if r.no_plane:
-        return [f"plane fit  none: the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the valid "
-                f"pixels, {plane_image_share(fit):.0%} of the image), no reference plane in view; the projector's "
+        return [f"plane fit  none: the plane model fits poorly ({poor_plane_words(fit)}), no reference plane in "
+                "view; the projector's "
                 "pose is ASSUMED (aimed at the view's centre from the given distance, baseline and side), "
                 f"{rig.periods:.2f} periods across it from the "
                 + ("objects' fringe period" if "fringe_period" in r.assumed else "given fringe period"),
@@ -157,10 +183,8 @@ def _plane_and_lens(r: StartRigResult) -> list[str]:
     if not r.absolute:
         lines.append("           (from single-shot phase: phase-shifting scans pin the plane's phase better)")
     elif plane_fits_poorly(fit):
-        lines.append(f"           the plane model fits poorly ({fit.median_rad:.2f} rad on {share:.0%} of the "
-                     f"pixels, {plane_image_share(fit):.0%} of the image): check that the scans show the reference "
-                     "plane and how their phase is written "
-                     "(--convention, --negate-sin)")
+        lines.append(f"           the plane model fits poorly ({poor_plane_words(fit)}): check that the scans show "
+                     "the reference plane and how their phase is written (--convention, --negate-sin)")
     if "k1" in params:
         lines.append(f"lens       the camera's radial distortion k1 {fit.params['k1']:+.4f} (OpenCV, for the focal "
                      f"length above): the plane's phase fits {lens[0]:.3f} rad as a pinhole, {lens[1]:.3f} with it")

@@ -3,8 +3,9 @@ packages, and the plane / object pixels of a real phase map.
 
 :func:`plane_level` (the level of the reference plane in a height or label map), :func:`poly_basis` /
 :func:`poly_terms` (the polynomial in pixel coordinates every plane fit uses) and
-:func:`phase_plane_masks` (plane and object pixels of a real absolute phase map without labels); numpy
-only.
+:func:`phase_plane_masks` (plane and object pixels of a real absolute phase map without labels) and
+:func:`plane_sides` / :func:`sides_reached` (whether plane pixels reach beyond the view, as a reference plane does:
+the one rule of ``fppsim fit-rig`` and ``uhrnet evaluate-phase``); numpy only.
 
 Units: those of the map (mm, label units, radians); pixels for coordinates.
 """
@@ -14,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 from fppsim.errors import InputError
 
-__all__ = ["plane_level", "poly_basis", "poly_terms", "phase_plane_masks"]
+__all__ = ["plane_level", "poly_basis", "poly_terms", "phase_plane_masks", "PLANE_SIDE_SHARE", "PLANE_SIDES",
+           "PLANE_SIDE_BAND", "plane_sides", "sides_reached"]
 
 
 def plane_level(label: np.ndarray, valid: np.ndarray, bin_width: float = 0.5, window: float = 6.0) -> float:
@@ -115,3 +117,24 @@ def phase_plane_masks(phase: np.ndarray, valid: np.ndarray, degree: int = 3, pla
         sel = use & (np.abs(r) <= max(3 * s, grow_rad))
     r = np.where(use, r, np.inf).reshape(h, w)
     return valid & (np.abs(r) <= plane_rad), valid & (np.abs(r) > object_rad)
+
+
+PLANE_SIDE_SHARE, PLANE_SIDES, PLANE_SIDE_BAND = 0.1, 2, 0.01
+"""A reference plane reaches beyond the view: its pixels reach PLANE_SIDE_SHARE or more of PLANE_SIDES or more of the
+image's sides, each within PLANE_SIDE_BAND of the shorter side (at least 2 px: FP1523 and FP672 with a 1-px invalid
+border reach none at the edge itself). Measured (docs/own_rig.md): frames with their plane 2-4 sides; on black none
+(the 'plane' found is a smooth part of an object); one side is not enough (a face cut off at its top)."""
+
+
+def plane_sides(plane: np.ndarray, band: int | None = None) -> list[float]:
+    """The share of each image side (top, bottom, left, right) along which the (H, W) bool ``plane`` has a pixel
+    within ``band`` px of it (default :data:`PLANE_SIDE_BAND` of the shorter side, at least 2 px)."""
+    p = np.asarray(plane, bool)
+    k = band or max(2, round(PLANE_SIDE_BAND * min(p.shape)))
+    return [float(e.any(axis=a).mean()) for e, a in ((p[:k], 0), (p[-k:], 0), (p[:, :k], 1), (p[:, -k:], 1))]
+
+
+def sides_reached(sides) -> int:
+    """How many of the :func:`plane_sides` shares reach :data:`PLANE_SIDE_SHARE`: a reference plane in view reaches
+    :data:`PLANE_SIDES` or more."""
+    return sum(float(x) >= PLANE_SIDE_SHARE for x in sides)

@@ -480,6 +480,10 @@ def test_real_frames_of_other_rigs(frame, sid, axis, where):
     res = rs.rig_from_images(root)
     assert res.axis == axis and where in res.where
     assert res.fit.median_rad < (0.2 if frame == "FP672" else 0.05)
+    # the plane reaches beyond the view (FP672: 100 / 44 / 100 / 100 % of the top / bottom / left / right side,
+    # FP147 beside its face: 48 / 0 / 0 / 72 %)
+    from fppsim.fitting.start_result import plane_side_shares
+    assert sum(x >= 0.4 for x in plane_side_shares(res.fit)) >= 2
     assert "NOT identifiable" in "\n".join(res.lines)
     # the depth scale is the physics' default (500 mm, 0.66 x it), not bent to fit the scenes: the scenes follow
     # the frames instead. FP672's figurine (87 rad of relief) is about 90 mm high at this angle, so its scenes
@@ -566,6 +570,47 @@ def test_a_smooth_object_on_black_is_not_taken_for_the_plane(tmp_path, capsys):
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
     assert len(err) == 1 and "no reference plane in view" in err[0] and "of the image" in err[0], err
     assert not out.exists()
+
+
+def test_a_large_smooth_slab_on_black_is_not_taken_for_the_plane(tmp_path, capsys):
+    """A tilted smooth slab on black, 37 % of the image in its centre: its phase follows the plane model to 0.00 rad
+    (scans; 0.02 rad as a plain image) on all of it, so the image share and the residual alone took it for the
+    reference plane and fitted the projector to it (before: rc 0, a rig fitted to the slab: 0.001 rad on 37 % of the
+    image, 23.9 periods across the projector for the truth's 23). A
+    reference plane reaches beyond the view; the slab reaches none of the image's sides, so fit-rig refuses it in
+    one line, as scans and as a PNG, and with the pose given records no plane in view."""
+    import cv2
+
+    from fppsim.cli import main
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+    from fppsim.fitting.start_result import POOR_PLANE_RAD, POOR_PLANE_SHARE, plane_image_share, plane_side_shares
+
+    truth = truth_rig("vertical", 1, size=(200, 150))
+    H, W = truth.camera.height, truth.camera.width
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    slab = ((x - 0.5 * W) / (0.33 * W)) ** 2 + ((y - 0.5 * H) / (0.36 * H)) ** 2 < 1
+    phase, valid, image = analytic_scan(truth, np.where(slab, 30.0 + 10.0 * x / W + 8.0 * y / H, 0.0))
+    valid &= slab
+    assert 0.3 < valid.mean() < 0.45
+    save_psp_folder_sample(tmp_path / "scans", "a", *sums_from_phase(np.nan_to_num(phase), valid, 60.0),
+                           np.where(valid, image, 0).astype(np.uint8))
+    (tmp_path / "png").mkdir()
+    cv2.imwrite(str(tmp_path / "png" / "a.png"), np.where(valid, image, 0).astype(np.uint8))
+    pose = dict(distance=420.0, baseline=260.0, projector_side="right")
+    for folder in ("scans", "png"):
+        res = rs.rig_from_images(tmp_path / folder, **pose)
+        # the two rules of before pass: only the sides tell
+        assert plane_image_share(res.fit) > 3 * POOR_PLANE_SHARE and res.fit.median_rad < 0.1 * POOR_PLANE_RAD
+        assert max(plane_side_shares(res.fit)) == 0.0 and res.no_plane and res.rig.plane_in_view is False
+        out = tmp_path / f"{folder}.json"
+        assert main(["fit-rig", str(tmp_path / folder), "--out", str(out)]) == 1  # before: 0, a rig fitted
+        err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+        assert len(err) == 1 and "no reference plane in view" in err[0] and "reaching 0 of its 4 sides" in err[0], err
+        assert not out.exists()
+        assert main(["fit-rig", str(tmp_path / folder), "--out", str(out), "--distance", "420", "--baseline", "260",
+                     "--projector-side", "right"]) == 0
+        assert "reaching 0 of its 4 sides" in capsys.readouterr().out
+        assert json.loads(out.read_text())["plane_in_view"] is False
 
 
 def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):

@@ -136,6 +136,17 @@ def test_folder_mm_equivalent_is_not_dominated_by_an_image_without_a_height_term
     assert np.isnan(_mm_equiv([{"prediction": {"rmse_rad": 0.5, "a_rad_per_mm": 0.0}}]))
 
 
+def test_the_side_rule_has_one_owner_that_fit_rig_and_evaluate_phase_share():
+    """evaluate-phase's "a reference plane reaches 2 of the image's sides" and fit-rig's plane judge (plane_fits_poorly)
+    are one rule: fppsim.phase.plane owns it, uhrnet's names are the same objects (re-exported)."""
+    import fppsim.phase.plane as owner
+    import uhrnet.scoring.phase_residual as pr
+
+    for name in ("PLANE_SIDE_SHARE", "PLANE_SIDES", "PLANE_SIDE_BAND", "plane_sides", "sides_reached"):
+        assert getattr(pr, name) is getattr(owner, name), name
+    assert owner.sides_reached([0.1, 0.0999, 1.0, 0.0]) == 2 == owner.PLANE_SIDES
+
+
 def test_a_plane_in_view_reaches_the_image_sides_and_one_found_on_an_object_does_not():
     """The plane-pixel score's plane (view_plane): the dome on its plane keeps the plane phase_plane_masks finds (it
     reaches all four sides); the dome alone on black, and a face-like dome filling 64 % of the view, cut by the

@@ -53,7 +53,9 @@ import numpy as np
 from fppsim.files import atomic_write_text, json_text
 from fppsim.geometry.rig import check_image_size
 from fppsim.owned import claim, output_folder
-from fppsim.phase.plane import phase_plane_masks, poly_basis, poly_terms
+# the side rule's one owner is fppsim (fit-rig judges the same way); re-exported here under its old names
+from fppsim.phase.plane import (PLANE_SIDE_BAND, PLANE_SIDE_SHARE, PLANE_SIDES, phase_plane_masks, plane_sides,
+                                poly_basis, poly_terms, sides_reached)
 from uhrnet.errors import ConfigError, DataError, InputError, UsageError
 from fppsim.errors import NoPhaseError, PSPMatError, RigError
 from fppsim.dataio.readers import open_source, reading_note
@@ -261,21 +263,6 @@ def _mean(values) -> float:
     return float(v.mean()) if v.size else float("nan")
 
 
-PLANE_SIDE_SHARE, PLANE_SIDES, PLANE_SIDE_BAND = 0.1, 2, 0.01
-"""A reference plane reaches beyond the view: the plane found reaches PLANE_SIDE_SHARE or more of PLANE_SIDES or more
-of the image's sides, each within PLANE_SIDE_BAND of the shorter side (at least 2 px: FP1523 and FP672 with a 1-px
-invalid border reach none at the edge itself). Measured (docs/own_rig.md): frames with their plane 2-4 sides; on
-black none (the 'plane' found is a smooth part of an object); one side is not enough (a face cut off at its top)."""
-
-
-def plane_sides(plane: np.ndarray, band: int | None = None) -> list[float]:
-    """The share of each image side (top, bottom, left, right) along which the (H, W) bool ``plane`` has a pixel
-    within ``band`` px of it (default :data:`PLANE_SIDE_BAND` of the shorter side, at least 2 px)."""
-    p = np.asarray(plane, bool)
-    k = band or max(2, round(PLANE_SIDE_BAND * min(p.shape)))
-    return [float(e.any(axis=a).mean()) for e, a in ((p[:k], 0), (p[-k:], 0), (p[:, :k], 1), (p[:, -k:], 1))]
-
-
 def view_plane(phase: np.ndarray, pixels: np.ndarray, degree: int = 3) -> tuple[np.ndarray | None, list[float]]:
     """``(plane pixels, side shares)`` of a frame's reference plane for the plane-pixel score: the pixels
     :func:`fppsim.phase.plane.phase_plane_masks` finds among ``pixels``, None when they reach fewer than
@@ -286,7 +273,7 @@ def view_plane(phase: np.ndarray, pixels: np.ndarray, degree: int = 3) -> tuple[
     for _ in range(2):
         plane = phase_plane_masks(phase, pixels, degree=degree)[0]
         sides = sides or plane_sides(plane)
-        if sum(x >= PLANE_SIDE_SHARE for x in plane_sides(plane)) >= PLANE_SIDES:
+        if sides_reached(plane_sides(plane)) >= PLANE_SIDES:
             return plane, plane_sides(plane)
         pixels = pixels & ~plane
     return None, sides
@@ -521,7 +508,7 @@ def _frame_plane(s, degree: int, rig_says_none: bool, record: dict) -> tuple[np.
         why = "the --rig records no reference plane in view (fit-rig found none)"
     else:
         plane, sides = view_plane(s.phase, _scored_pixels(s), degree)
-        n = sum(x >= PLANE_SIDE_SHARE for x in sides)
+        n = sides_reached(sides)
         why = None if plane is not None else (f"the 'plane' found reaches {n} of the image's 4 sides, a reference "
                                               f"plane reaching beyond the view {PLANE_SIDES} or more "
                                               f"({PLANE_SIDE_SHARE:.0%} of a side each)")
