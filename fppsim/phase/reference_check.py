@@ -16,8 +16,8 @@ Between 4-neighbours ``a, b`` (both valid), along each image axis (rad)::
 An *ordinary* step has ``n == 0`` and ``|dw| < max_step``; ordinary steps join pixels into components. A *slip*
 has ``n != 0``, ``|dw| < max_step`` and ``bend < max_bend``: the reference's order jumps where its phase and
 gradient continue. A component no larger than ``max_fraction`` of the valid pixels is flagged when at least
-``min_seams`` slips join it to one larger component, they are at least ``min_share`` of its border steps and at
-least ``agree`` of them say the same ``n``; its shift (periods) makes it continue that neighbour (after the
+``min_seams`` slips join it to one larger component, they are at least ``min_share`` of its border steps (less those to
+a smaller component inside it alone: that one is judged against it) and at least ``agree`` of them say the same ``n``; its shift (periods) makes it continue that neighbour (after the
 neighbour's own shift, largest components first).
 
 Measured (2026-11-30): on FP1523/1201 ordinary steps bend by 0.012 rad (median; 90 % under 0.035); slips with a
@@ -121,8 +121,11 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
     lab = connected_components(graph, directed=False)[1]
     size = np.bincount(lab[valid.ravel()], minlength=lab.max() + 1)
     between = lab[a] != lab[b]
-    edge &= between
-    border = np.bincount(np.r_[lab[a[edge]], lab[b[edge]]], minlength=size.size)
+    la, lb = lab[a[edge & between]], lab[b[edge & between]]
+    pairs = np.unique(np.c_[np.r_[la, lb], np.r_[lb, la]], axis=0)
+    inside = np.bincount(pairs[:, 0], minlength=size.size) == 1  # one neighbour all round: judged against it, its
+    border = np.bincount(np.r_[la[~inside[lb] | (size[lb] >= size[la])],  # steps do not dilute that one's share
+                               lb[~inside[la] | (size[la] >= size[lb])]], minlength=size.size)
     s = slip & between  # each slip read from both sides: (component, neighbour, periods to add to the component)
     votes = np.c_[np.r_[lab[b[s]], lab[a[s]]], np.r_[lab[a[s]], lab[b[s]]], np.r_[-n[s], n[s]]]
     shift = np.zeros(size.size, dtype=np.int64)
@@ -141,6 +144,8 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
             total = counts[mine & (keys[:, 1] == nbr)].sum()
             if v >= min_seams and v >= min_share * border[comp] and v >= agree * total:
                 shift[comp] = k + shift[nbr]
+                if not shift[comp]:  # right after all: inside a patch, as far off as the patch around it
+                    continue
                 rows, cols = np.divmod(np.flatnonzero(lab == comp), valid.shape[1])
                 patches.append({"pixels": int(size[comp]), "shift_periods": int(shift[comp]), "slips": int(v),
                                 "border_steps": int(border[comp]), "rows": [int(rows.min()), int(rows.max())],

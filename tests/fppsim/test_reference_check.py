@@ -75,6 +75,17 @@ def test_large_patches_are_left_alone():
     assert order_slips(wrap(truth), given, np.ones((H, W), bool)).pixels == 0
 
 
+@pytest.mark.parametrize("inner", [6, 12])
+def test_a_slipped_ring_is_found_and_the_right_surface_inside_it_is_not_moved(inner):
+    """A ring of orders 3 periods off around a right disk: the ring is the slip (its steps to the smaller disk inside
+    are that disk's to judge, not a border against the ring); the disk, right, is neither masked nor listed."""
+    truth = smooth_phase(5)
+    ring = disk(60, 100, 20) & ~disk(60, 100, inner)
+    slips = order_slips(wrap(truth), truth + TWO_PI * 3 * ring, np.ones((H, W), bool))
+    assert np.array_equal(slips.mask, ring) and np.all(slips.shift[ring] == -3)
+    assert [p["pixels"] for p in slips.patches] == [int(ring.sum())]
+
+
 def test_bad_shapes_raise():
     with pytest.raises(ValueError, match="one 2-D shape"):
         order_slips(np.zeros((4, 5)), np.zeros((4, 6)), np.ones((4, 5), bool))
