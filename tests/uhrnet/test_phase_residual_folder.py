@@ -484,3 +484,13 @@ def test_a_reference_whose_order_slipped_is_said_and_scored_without_it(setup, tm
 def _image(root, sid):
     from fppsim.dataio.readers.psp_mat import load_ipattern
     return load_ipattern(root / "iPattern" / f"{sid}.mat")
+
+
+def test_the_slip_line_names_a_model_whose_fit_without_the_slips_failed():
+    """One model scored without the slipped pixels, another with too few left: the line names both."""
+    from uhrnet.scoring.reference_slips import slip_line
+    record = {"pixels": 2, "fraction": 0.4, "patches": [{"pixels": 2, "shift_periods": -3}]}
+    models = {"a": {"without_slips": None}, "b": {"without_slips": {"prediction": 1.0, "flat": 2.0}}}
+    line = slip_line("x", record, models)
+    assert line.endswith("without them: a: too few pixels left to fit, b 1.000 rad (flat 2.000)")
+    assert slip_line("x", record, {"a": {"without_slips": None}}).endswith("without them: a: too few pixels left to fit")

@@ -46,11 +46,12 @@ def _shifts(record: dict) -> str:
 
 def slip_line(sid: str, record: dict, models: dict) -> str:
     """One line: where the reference slipped, and each model's residual (and flat's) without those pixels."""
-    scores = ", ".join(f"{name} {r['without_slips']['prediction']:.3f} rad (flat {r['without_slips']['flat']:.3f})"
-                       for name, r in models.items() if r.get("without_slips"))
+    scores = ", ".join(f"{name} {w['prediction']:.3f} rad (flat {w['flat']:.3f})" if (w := r.get("without_slips"))
+                       else f"{name}: too few pixels left to fit" for name, r in models.items()
+                       if "without_slips" in r)
     return (f"{sid}: note: the reference's fringe order slips {slips_words(record['patches'], record['pixels'])} "
-            f"({record['fraction']:.2%} of the scored), where its own wrapped phase and gradient run on (temporal unwrapping wrong there, likely); the scores "
-            f"count them; without them: {scores or 'too few pixels left to fit'}")
+            f"({record['fraction']:.2%} of the scored), where its own wrapped phase and gradient run on (temporal "
+            f"unwrapping wrong there, likely); the scores count them; without them: {scores}")
 
 
 def slip_markdown(per_image: list[dict]) -> str:
