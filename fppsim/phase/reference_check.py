@@ -13,23 +13,25 @@ Between 4-neighbours ``a, b`` (both valid), along each image axis (rad)::
     n    = round((P_b - P_a - dw) / 2 pi)           the order jump beyond the wrap
     bend = |dw - g|,  g = median of the ordinary steps within 2 px along the same axis (both sides)
 
-An *ordinary* step has ``n == 0`` and ``|dw| < max_step``; ordinary steps join pixels into components. A *slip*
-has ``n != 0``, ``|dw| < max_step`` and ``bend < max_bend``: the reference's order jumps where its phase and
-gradient continue. A component no larger than ``max_fraction`` of the valid pixels is flagged when at least
-``min_seams`` slips join it to one larger component, they are at least ``min_share`` of its border steps (less those to
-a smaller component inside it alone: that one is judged against it) and at least ``agree`` of them say the same ``n``; its shift (periods) makes it continue that neighbour (after the
-neighbour's own shift, largest components first).
+An *ordinary* step has ``n == 0`` and ``|dw| < max_step``; ordinary steps join pixels into components. A *slip* has
+``n != 0``, ``|dw| < max_step`` and ``bend < max_bend``: the reference's order jumps where its phase and gradient
+continue. A component no larger than ``max_fraction`` of the valid pixels is flagged when at least ``min_seams`` slips
+join it to one larger component, they are at least ``min_share`` of its border steps (less those to a smaller
+component inside it alone: that one is judged against it) and at least ``agree`` of them say the same ``n``; its shift
+(periods) makes it continue that neighbour (after the neighbour's own shift, largest components first).
 
-Measured (2026-11-30): on FP1523/1201 ordinary steps bend by 0.012 rad (median; 90 % under 0.035); slips with a
-bend under 0.15 rad are 188 of 544 order jumps along the rows where a step of random height would give about 45.
-The flagged patch (213 px in 8 components, a band 4 periods off beside the right figurine's shadow, its modulation
+Measured (2026-11-30): on FP1523/1201 ordinary steps bend by 0.012 rad (median; 90 % under 0.035); slips with a bend
+under 0.15 rad are 188 of 544 order jumps along the rows where a step of random height would give about 45. The
+flagged patch (213 px in 8 components, a band 4 periods off beside the right figurine's shadow, its modulation
 0.37-0.44 of the frame's) is the band stop 65 found 3-4 orders above the surface beside it; its patches' borders are
 slips on 80-100 % of their steps. FP672/541 and FP147/109: nothing flagged. Rendered scenes decoded by fppsim's own
 phase-shifting chain (64 frames, noise 1-10 gray levels, ladders 1,4,80 / 1,80 / 1,8,80; its temporal errors there are
 isolated pixels among rejected ones): nothing flagged; a 5-px sliver beside a real cliff of 3.06 periods (its border
-half slips, half a steep slope) was, at ``min_share`` 0.5, hence 0.75. Limits: a real step of a whole number of periods (to within ``max_bend``) all along a patch's
-border reads as a slip; a slip seam that does not close around a patch (the component stays joined elsewhere)
-is not flagged.
+half slips, half a steep slope) was, at ``min_share`` 0.5, hence 0.75. Limits: a real step of a whole number of
+periods (to within ``max_bend``) all along a patch's border reads as a slip (exact rendered phase, 180 default
+scenes: once, 198 px of floor between a pedestal's edge 1.02 periods high, a shadow and the image's edge); a slip seam
+that does not close around a patch (the component stays joined elsewhere) is not flagged, nor a slipped ring with
+fewer pixels than the right patch it surrounds.
 """
 
 from __future__ import annotations

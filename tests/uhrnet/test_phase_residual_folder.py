@@ -493,4 +493,5 @@ def test_the_slip_line_names_a_model_whose_fit_without_the_slips_failed():
     models = {"a": {"without_slips": None}, "b": {"without_slips": {"prediction": 1.0, "flat": 2.0}}}
     line = slip_line("x", record, models)
     assert line.endswith("without them: a: too few pixels left to fit, b 1.000 rad (flat 2.000)")
-    assert slip_line("x", record, {"a": {"without_slips": None}}).endswith("without them: a: too few pixels left to fit")
+    alone = slip_line("x", record, {"a": {"without_slips": None}})
+    assert alone.endswith("without them: a: too few pixels left to fit")

@@ -61,7 +61,8 @@ def slip_markdown(per_image: list[dict]) -> str:
         return ""
     md = ("\nReference order slips (patches whose phase-shifting order is whole periods off while its wrapped phase "
           "and gradient run on; `fppsim.phase.reference_check`). The scores above count them; residual (rad) "
-          "without them:\n\n| frame | pixels | periods | model | residual | flat |\n| --- | --- | --- | --- | --- | --- |\n")
+          "without them:\n\n| frame | pixels | periods | model | residual | flat |\n"
+          "| --- | --- | --- | --- | --- | --- |\n")
     for r in rows:
         rec = r["reference_slips"]
         for name, m in r["models"].items():
