@@ -41,6 +41,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy import ndimage
 from scipy.sparse.csgraph import connected_components
 
 from fppsim.phase import TWO_PI, wrap
@@ -102,6 +103,34 @@ def _axis_steps(wrapped, phase, valid, axis: int, max_step: float, max_bend: flo
     return idx[lo].ravel(), idx[hi].ravel(), ordinary.ravel(), (ok & ~ordinary).ravel(), slip.ravel(), n.ravel()
 
 
+def _judge(votes, size, border, room, min_seams, min_share, agree):
+    """Each component's shift (periods) and the flagged ones ``[(component, slips)]``, from the slips' ``votes``
+    (component, neighbour, periods), largest components first."""
+    shift = np.zeros(size.size, dtype=np.int64)
+    flagged = []
+    if not len(votes):
+        return shift, flagged
+    keys, counts = np.unique(votes, axis=0, return_counts=True)  # sorted by component: each one's rows a slice
+    cands, first = np.unique(keys[:, 0], return_index=True)  # components with a slip on their border
+    last = np.r_[first[1:], len(keys)]
+    for i in np.argsort(-size[cands], kind="stable"):
+        comp = cands[i]
+        if not 0 < size[comp] <= room:
+            continue
+        kk, cc = keys[first[i]:last[i]], counts[first[i]:last[i]]
+        mine = size[kk[:, 1]] > size[comp]
+        if not mine.any():
+            continue
+        best = np.flatnonzero(mine)[np.argmax(cc[mine])]
+        nbr, k, v = kk[best, 1], kk[best, 2], cc[best]
+        total = cc[mine & (kk[:, 1] == nbr)].sum()
+        if v >= min_seams and v >= min_share * border[comp] and v >= agree * total:
+            shift[comp] = k + shift[nbr]
+            if shift[comp]:  # else right after all: inside a patch, as far off as the patch around it
+                flagged.append((comp, v))
+    return shift, flagged
+
+
 def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, max_step: float = 1.0,
                 max_bend: float = 0.15, min_seams: int = 5, min_share: float = 0.75, agree: float = 0.8,
                 max_fraction: float = 0.05) -> OrderSlips:
@@ -130,28 +159,13 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
                                lb[~inside[la] | (size[la] >= size[lb])]], minlength=size.size)
     s = slip & between  # each slip read from both sides: (component, neighbour, periods to add to the component)
     votes = np.c_[np.r_[lab[b[s]], lab[a[s]]], np.r_[lab[a[s]], lab[b[s]]], np.r_[-n[s], n[s]]]
-    shift = np.zeros(size.size, dtype=np.int64)
-    patches = []
-    if len(votes):
-        keys, counts = np.unique(votes, axis=0, return_counts=True)
-        cands = np.unique(keys[:, 0])  # components with a slip on their border, largest first
-        for comp in cands[np.argsort(-size[cands], kind="stable")]:
-            if not 0 < size[comp] <= max_fraction * valid.sum():
-                continue
-            mine = (keys[:, 0] == comp) & (size[keys[:, 1]] > size[comp])
-            if not mine.any():
-                continue
-            best = np.flatnonzero(mine)[np.argmax(counts[mine])]
-            nbr, k, v = keys[best, 1], keys[best, 2], counts[best]
-            total = counts[mine & (keys[:, 1] == nbr)].sum()
-            if v >= min_seams and v >= min_share * border[comp] and v >= agree * total:
-                shift[comp] = k + shift[nbr]
-                if not shift[comp]:  # right after all: inside a patch, as far off as the patch around it
-                    continue
-                rows, cols = np.divmod(np.flatnonzero(lab == comp), valid.shape[1])
-                patches.append({"pixels": int(size[comp]), "shift_periods": int(shift[comp]), "slips": int(v),
-                                "border_steps": int(border[comp]), "rows": [int(rows.min()), int(rows.max())],
-                                "cols": [int(cols.min()), int(cols.max())]})
+    shift, flagged = _judge(votes, size, border, max_fraction * valid.sum(), min_seams, min_share, agree)
+    tags = np.zeros(size.size, dtype=np.int64)
+    tags[np.array([comp for comp, _ in flagged], dtype=np.int64)] = np.arange(1, len(flagged) + 1)
+    boxes = ndimage.find_objects(np.where(valid.ravel(), tags[lab], 0).reshape(valid.shape), max_label=len(flagged))
+    patches = [{"pixels": int(size[comp]), "shift_periods": int(shift[comp]), "slips": int(v),
+                "border_steps": int(border[comp]), "rows": [box[0].start, box[0].stop - 1],
+                "cols": [box[1].start, box[1].stop - 1]} for (comp, v), box in zip(flagged, boxes)]
     per_pixel = np.where(valid.ravel(), shift[lab], 0).reshape(valid.shape)
     patches.sort(key=lambda p: -p["pixels"])
     return OrderSlips(mask=per_pixel != 0, shift=per_pixel, patches=patches)
