@@ -32,6 +32,9 @@ periods (to within ``max_bend``) all along a patch's border reads as a slip (exa
 scenes: once, 198 px of floor between a pedestal's edge 1.02 periods high, a shadow and the image's edge); a slip seam
 that does not close around a patch (the component stays joined elsewhere) is not flagged, nor a slipped ring with
 fewer pixels than the right patch it surrounds.
+
+Time (2 shared cores, 2026-11-30): FP1523/1201 about 0.6 s; a 5-MP frame 3-9 s (30 % of its pixels invalid, or 1 %
+of its orders wrong, at random); 2 % of a 1.4-MP frame's orders wrong at random about 2 s.
 """
 
 from __future__ import annotations
