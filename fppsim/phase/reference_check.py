@@ -49,7 +49,7 @@ from scipy.sparse.csgraph import connected_components
 
 from fppsim.phase import TWO_PI, wrap
 
-__all__ = ["OrderSlips", "order_slips", "slips_words"]
+__all__ = ["OrderSlips", "order_slips", "slip_periods", "slips_words"]
 
 
 @dataclass
@@ -177,6 +177,10 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
 def slips_words(patches: list, pixels: int | None = None) -> str:
     """``"by whole periods (4) in 8 patch(es), 213 px"``: the words every tool uses for :attr:`OrderSlips.patches`
     (``pixels``: the count to say, e.g. the scored ones; default all the patches')."""
-    shifts = "/".join(str(k) for k in sorted({p["shift_periods"] for p in patches}))
     pixels = sum(p["pixels"] for p in patches) if pixels is None else pixels
-    return f"by whole periods ({shifts}) in {len(patches)} patch(es), {pixels} px"
+    return f"by whole periods ({slip_periods(patches)}) in {len(patches)} patch(es), {pixels} px"
+
+
+def slip_periods(patches: list) -> str:
+    """The patches' shifts, ``"-3/4"``: each distinct ``shift_periods`` once, in order."""
+    return "/".join(str(k) for k in sorted({p["shift_periods"] for p in patches}))

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from fppsim.phase.reference_check import OrderSlips, order_slips, slips_words
+from fppsim.phase.reference_check import OrderSlips, order_slips, slip_periods, slips_words
 
 __all__ = ["frame_slips", "slip_scores", "slip_line", "slip_markdown"]
 
@@ -40,10 +40,6 @@ def slip_scores(fit, phase: np.ndarray, h: np.ndarray, ok: np.ndarray, slips: Or
         return None
 
 
-def _shifts(record: dict) -> str:
-    return "/".join(str(k) for k in sorted({p["shift_periods"] for p in record["patches"]}))
-
-
 def slip_line(sid: str, record: dict, models: dict) -> str:
     """One line: where the reference slipped, and each model's residual (and flat's) without those pixels."""
     scores = ", ".join(f"{name} {w['prediction']:.3f} rad (flat {w['flat']:.3f})" if (w := r.get("without_slips"))
@@ -68,5 +64,5 @@ def slip_markdown(per_image: list[dict]) -> str:
         for name, m in r["models"].items():
             w = m.get("without_slips")
             cells = (f"{w['prediction']:.3f} | {w['flat']:.3f}" if w else "- | -")
-            md += f"| {r['id']} | {rec['pixels']} | {_shifts(rec)} | {name} | {cells} |\n"
+            md += f"| {r['id']} | {rec['pixels']} | {slip_periods(rec['patches'])} | {name} | {cells} |\n"
     return md
