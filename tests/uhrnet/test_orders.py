@@ -81,6 +81,42 @@ def test_a_seam_of_unreliable_phase_joins_two_halves_into_one_vote(scene):
     assert a.component == b.component  # ... one component
 
 
+def test_a_wall_the_network_puts_across_a_smooth_surface_is_crossed_where_the_phase_runs_on(scene):
+    """The disc's right part (x >= 395) sits 1.3-1.7 periods off in the estimate, a sharp false step: the estimate's
+    step becomes a wall, and the right part, tied to nothing, rounds its own level one or two orders off. Across the
+    wall the image's phase runs on (the truth is smooth there): the wall link ties it to the bridged left part."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    rel = np.where(shadow, 0.0, 1.0)
+    right = disc & (xx > 402) & (np.hypot(xx - 360, yy - 176) < 60)
+    for off, orders_off in ((-1.3, 1), (1.6, 2)):
+        estimate = h + np.where(disc & (xx >= 395), off * period, np.where(disc, 0.1 * period, 0.0))
+        cut = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow, walls_crossed=None)
+        assert np.median(_errors(cut.height, h, right)) == pytest.approx(orders_off * period, rel=0.1)
+        got = choose_orders(estimate, wrapped, rel, layer, valid=~shadow, shadow=shadow)
+        assert got.stats["links"]["wall"] == 1 and got.stats["refused_links"] == 0
+        assert np.percentile(_errors(got.height, h, right), 99) < 0.05
+        wall = [lk for lk in got.links if lk.via == "wall"][0]
+        assert wall.votes >= 10 and wall.agreement >= 0.7
+
+
+@pytest.mark.parametrize("step", [0.62, 1.37])
+def test_a_real_cliff_the_network_sees_is_not_crossed(scene, step):
+    """The disc's right part truly stands ``step`` periods higher (not whole: the phase does not continue across)
+    and the estimate sees it: no wall link, and each part keeps its own right order."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    plane = surface_phase(rig, np.zeros_like(h))
+    cliff = h + np.where(disc & (xx >= 395), step * period, 0.0)
+    phase = surface_phase(rig, cliff)
+    dark = disc_shadow(disc, phase, plane)
+    w = wrap_phase(phase + 72.0)
+    w[dark] = np.nan
+    got = choose_orders(cliff + np.where(disc, 0.1 * period, 0.0), w, np.where(dark, 0.0, 1.0), layer, valid=~dark,
+                        shadow=dark)
+    assert got.stats["links"]["wall"] == 0
+    right = disc & (xx > 402) & (np.hypot(xx - 360, yy - 176) < 60)
+    assert np.percentile(_errors(got.height, cliff, right), 99) < 0.05
+
+
 def test_seam_links_vote_the_order_difference_and_skip_blocked_gaps():
     """Two halves of a linear phase ramp, 3 px apart, unwrapped with orders 2 apart: the seam says so; a gap
     that is blocked (a shadow, a wall) links nothing."""

@@ -16,7 +16,13 @@ together without the network:
   object's edge lands on the plane at the far side of its shadow; both carry one phase;
 * **seams** (:func:`seam_links`): two regions separated by a few pixels whose phase is merely unreliable
   (low modulation, a dark patch, an FTP edge), not by a shadow nor by a step the network sees as a wall:
-  the phase continues across, so extrapolating each side's phase over the gap gives their order difference.
+  the phase continues across, so extrapolating each side's phase over the gap gives their order difference;
+* **walls the phase crosses** (:func:`seam_links` with ``through``): the same vote across a wall, where the network's
+  estimate steps and the image's phase does not, taken only when nearly every line continues the phase (a real
+  cliff's step is random; a network that puts a false cliff across a smooth surface floats the far side alone).
+  Stop 71 (docs/experiments/orders.md): a recipe network's false step of about 2 periods across the pair's lower
+  right had left it floating two orders low, 4.75 -> 1.64 mm; the other networks' pair, FP1523 / FP672 / FP147 and
+  96 rendered scene-network pairs the same to the digit, and 0.03-0.15 period or 5-30 votes change nothing there.
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
 region's order relative to its component's root and skips a link that contradicts the ones taken, or one
@@ -53,6 +59,7 @@ from fppsim.phase import circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
 from uhrnet.physics.islands import continue_islands, continued_components, wrapped_steps
 from uhrnet.errors import InputError
+from uhrnet.physics.links import Link, seam_links
 from uhrnet.physics.refine import estimate_phases
 from uhrnet.physics.rims import split_rims
 
@@ -64,25 +71,6 @@ TWO_PI = 2.0 * math.pi
 # route across a cliff the phase does not show. 0.4 / 0.3 / 0.2 and 0.1 / 0 until stop 60.
 GROW_LEVELS = (0.475, 0.45, 0.425, 0.4, 0.375, 0.35, 0.325, 0.3, 0.275, 0.25, 0.225, 0.2)
 FILL_LEVELS = (0.175, 0.15, 0.125, 0.1, 0.075, 0.05, 0.025, 0.0)
-
-
-@dataclass(frozen=True)
-class Link:
-    """Region ``b``'s order is region ``a``'s plus ``delta`` (absolute phase ``U - 2 pi k`` equal across the link).
-
-    ``via``: ``"bridge"`` (across a projector shadow) or ``"seam"`` (across unreliable pixels);
-    ``votes``: lines that crossed; ``agreement``: share of them within the tolerance of ``delta``."""
-
-    a: int
-    b: int
-    delta: int
-    votes: int
-    agreement: float
-    via: str
-
-    @property
-    def strength(self) -> float:
-        return self.votes * self.agreement
 
 
 @dataclass(frozen=True)
@@ -134,71 +122,6 @@ class OrderChoice:
         """(H, W) float, each region's confidence (NaN outside the regions)."""
         table = np.r_[np.nan, [r.confidence for r in self.regions]]
         return table[self.labels]
-
-
-def _local_slope(wrapped: np.ndarray, usable: np.ndarray, axis: int, size: int = 7) -> np.ndarray:
-    """Phase slope (rad / px) along ``axis``, averaged over the usable pixels of a ``size`` window."""
-    d = wrap(np.diff(wrapped, axis=axis, append=np.take(wrapped, [-1], axis=axis)))
-    ok = usable & np.roll(usable, -1, axis=axis) & np.isfinite(d)
-    num = ndi.uniform_filter(np.where(ok, d, 0.0), size)
-    den = ndi.uniform_filter(ok.astype(np.float64), size)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(den > 0, num / den, np.nan)
-
-
-def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, blocked: np.ndarray,
-               max_gap: int = 8, tolerance: float = 0.25, min_votes: int = 5,
-               min_agreement: float = 0.7) -> list[Link]:
-    """Order differences across thin seams of unreliable phase, voted along rows and columns.
-
-    A seam crossing is a pair of region pixels ``p < q`` on one row (or column), of different regions,
-    with 1 to ``max_gap`` pixels between them that belong to no region and none of which is ``blocked``
-    (a shadow, an invalid pixel, or a step the network sees as a wall: across those the phase does not
-    continue). Its vote is ``(U[p] + s (q - p) - U[q]) / 2 pi`` periods, ``s`` the mean local phase slope
-    of both ends; a pair of regions is linked when at least ``min_votes`` crossings vote and
-    ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
-
-    Returns :class:`Link` s with ``via="seam"`` and ``b``'s order = ``a``'s + ``delta``.
-    """
-    lab, U = regions.labels, regions.unwrapped
-    w = np.asarray(wrapped, np.float64)
-    votes: dict[tuple[int, int], list[np.ndarray]] = {}
-    for axis in (1, 0):
-        L = lab if axis == 1 else lab.T
-        B = np.asarray(blocked, bool) if axis == 1 else np.asarray(blocked, bool).T
-        UU = U if axis == 1 else U.T
-        S = _local_slope(w, usable, axis) if axis == 1 else _local_slope(w, usable, axis).T
-        rows, cols = np.nonzero(L > 0)  # row-major: consecutive entries of one row are its labelled pixels
-        same_row = rows[1:] == rows[:-1]
-        p, q = cols[:-1], cols[1:]
-        gap = q - p - 1
-        la, lb = L[rows[:-1], p], L[rows[1:], q]
-        pick = same_row & (gap <= max_gap) & (la != lb)
-        if not pick.any():
-            continue
-        cb = np.cumsum(B, axis=1)  # blocked pixels strictly between p and q: cb[q-1] - cb[p]
-        r, p, q, la, lb = rows[:-1][pick], p[pick], q[pick], la[pick], lb[pick]
-        clear = (cb[r, q - 1] - cb[r, p]) == 0
-        r, p, q, la, lb = r[clear], p[clear], q[clear], la[clear], lb[clear]
-        s = 0.5 * (S[r, p] + S[r, q])
-        WW = w if axis == 1 else w.T
-        step = np.where(q - p == 1, wrap(WW[r, q] - WW[r, p]), s * (q - p))  # touching: the exact wrapped step
-        v = (UU[r, p] + step - UU[r, q]) / TWO_PI
-        fin = np.isfinite(v)
-        lo, hi = np.minimum(la, lb), np.maximum(la, lb)
-        sign = np.where(la == lo, 1.0, -1.0)  # v is a's order minus b's in periods, stored for (lo, hi)
-        for key in set(zip(lo[fin].tolist(), hi[fin].tolist())):
-            m = fin & (lo == key[0]) & (hi == key[1])
-            votes.setdefault(key, []).append(v[m] * sign[m])
-    out = []
-    for (a, b), parts in votes.items():
-        v = np.concatenate(parts)
-        k = int(np.round(np.median(v)))
-        agree = float(np.mean(np.abs(v - k) <= tolerance))
-        if len(v) >= min_votes and agree >= min_agreement:
-            # v = (U_a - U_b) / 2 pi across the seam: k_b = k_a - v (absolute U - 2 pi k equal)
-            out.append(Link(a, b, -k, int(len(v)), agree, "seam"))
-    return out
 
 
 def _components(n: int, links: list[Link], prior: np.ndarray, sizes: np.ndarray,
@@ -308,7 +231,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
                   min_confidence: float = 0.6, flat_mm: float = 1.0, spread_px: float = 10.0,
                   max_move_fraction: float = 2.0, max_local_misfit: float | None = 1.0, max_link_misfit: float = 2.0,
                   join_min_moved: int | None = 50, fringe=None, islands: bool = True,
-                  keep: np.ndarray | None = None) -> OrderChoice:
+                  keep: np.ndarray | None = None, walls_crossed: tuple | None = (0.05, 10)) -> OrderChoice:
     """Heights whose every phase region sits at one whole fringe order (module docstring).
 
     Steps: (1) regions of reliable, continuous phase (reliability >= ``min_reliability``; boundaries where the
@@ -317,9 +240,9 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     grown into less reliable pixels (thresholds ``grow``, :func:`grow_regions`), which brings them close
     enough to shadows and to each other to link; (3) links: shadow bridges (votes agreeing within a quarter
     period of their median once the image's common vote offset is removed, the median within ``bridge_offset``
-    periods of a whole order: :func:`fppsim.phase.unwrap.shadow_bridges`) and seams
-    (:func:`seam_links`); (4) components and one order each; (5) the regions grown further (``fill``: these
-    pixels take their region's order, they tie nothing); (6) heights from the phase at the chosen orders (a
+    periods of a whole order: :func:`fppsim.phase.unwrap.shadow_bridges`), seams (:func:`seam_links`) and walls
+    the phase crosses; (4) components and one order each; (5) the regions grown further (``fill``: these pixels take
+    their region's order, they tie nothing); (6) heights from the phase at the chosen orders (a
     pixel whose move exceeds ``max_move_fraction`` moves all the same when it agrees with its moved neighbours',
     ``max_local_misfit``, or the fringes run on to them, ``join_min_moved``); the pixels still left out (edges,
     walls, dark patches, lit pixels without a usable phase) take the network's height plus the level correction of
@@ -366,21 +289,21 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
         a height step of whole periods). A safeguard: on FP147 through its own rig (3 seeds) 0.443 +- 0.191 ->
         0.370 +- 0.031 of flat, one seed losing a right link (0.06); the pair and FP1523 do not move.
     fringe : ``(image, background, modulation)``, the fringe image and its single-shot ``A`` and ``B``
-        (:class:`fppsim.phase.single_shot.SingleShotPhase`): step (7). None: no rim split.
-    islands : step (8) (False: off).
+        (:class:`fppsim.phase.single_shot.SingleShotPhase`): step (7). None: no rim split. ``islands``: step (8).
     keep : (H, W) mm, the heights the pixels the path leaves alone keep (undecided regions, pixels no moved pixel
         reaches); default ``height_mm``. ``uhrnet predict`` passes the network's own map there, while
         ``height_mm`` is the estimate the orders are chosen from (:func:`uhrnet.inference.prediction.path_estimate`).
+    walls_crossed : ``(tolerance, votes)``: walls of step (1) linked across by at least ``votes`` lines, 0.7 of them
+        continuing the image's phase within ``tolerance`` periods (module docstring); None: none.
 
-    Measured (docs/experiments/orders.md, where each step's numbers are): the defaults were chosen on the labelled
-    pair and FP1523/1201; on the pair through the depth-fitted rig the recipe's network goes from 5.4-8.2 mm object
-    RMSE to 1.59 +- 0.06 mm, median 0.13-0.16 mm, and FP1523/1201's residual to 0.727 +- 0.045 of the network's
-    (6 seeds, stop 63).
+    Measured (docs/experiments/orders.md, each step's numbers): defaults chosen on the labelled pair and FP1523/1201;
+    the pair through the depth-fitted rig 5.4-8.2 mm object RMSE (the recipe's network) -> 1.59 +- 0.06 mm, median
+    0.13-0.16 mm, FP1523/1201 0.727 +- 0.045 of the network's residual (6 seeds, stop 63).
     """
     h_in = np.asarray(height_mm)
     e = estimate_phases(h_in, wrapped_phase, reliability, layer, valid, min_reliability, smooth_px)
     g = _linked_regions(e, layer, shadow, max_step, min_region, flat_mm, grow, bridges, bridge_offset, seams,
-                        max_link_misfit)
+                        max_link_misfit, walls_crossed)
     n = g.n
     order, post = _component_orders(n, g.roots, g.offs, g.prior, g.core_sizes, sigma)
     decided = post >= min_confidence
@@ -427,9 +350,9 @@ class _Linked:
 
 
 def _linked_regions(e, layer, shadow, max_step, min_region, flat_mm, grow, bridges, bridge_offset, seams,
-                    max_link_misfit) -> _Linked:
+                    max_link_misfit, crossed=None) -> _Linked:
     """Steps (1)-(4) of :func:`choose_orders` on the estimate's phases ``e``
-    (:func:`uhrnet.physics.refine.estimate_phases`)."""
+    (:func:`uhrnet.physics.refine.estimate_phases`); ``crossed``: the wall links' ``(tolerance, votes)`` or None."""
     plane_px = _plane_pixels(e.h, e.usable, flat_mm)  # the origin is fitted there, and a region on it anchors its group
     offset = _origin(layer, e.w, e.phi, plane_px, e.usable)
     walls = step_conflicts(e.w, e.expected, max_step)
@@ -454,6 +377,9 @@ def _linked_regions(e, layer, shadow, max_step, min_region, flat_mm, grow, bridg
                   for b in shadow_bridges(regions, unlit, max_offset=bridge_offset)]
     if n and seams:
         links += seam_links(regions, e.w, usable, blocked=unlit | walls | ~e.finite)
+        if crossed is not None:
+            links += seam_links(regions, e.w, usable, blocked=unlit | ~e.finite, tolerance=crossed[0],
+                                min_votes=crossed[1], through=walls)
     roots, offs, taken, conflicts, refused = _components(n, links, prior, core_sizes, max_link_misfit)
     return _Linked(n, offset, walls, unlit, core, usable, regions.labels, regions.unwrapped, regions.sizes, prior,
                    core_sizes, anchors, roots, offs, taken, conflicts, refused)
@@ -609,7 +535,7 @@ def _choice_stats(finite, moved, core, usable, roots, n, decided, sizes, taken, 
         "components": int(len(np.unique(roots[1:]))) if n else 0,
         "undecided_regions": int((~decided).sum()),
         "undecided_fraction": float(sizes[~decided].sum() / npx) if npx else 0.0,
-        "links": {"bridge": sum(lk.via == "bridge" for lk in taken), "seam": sum(lk.via == "seam" for lk in taken)},
+        "links": {via: sum(lk.via == via for lk in taken) for via in ("bridge", "seam", "wall")},
         "conflicts": conflicts,
         "refused_links": refused,
         "carried_fraction": float(carried.sum() / npx) if npx else 0.0,

@@ -1,0 +1,52 @@
+"""uhrnet.physics.links.seam_links across walls (``through``): a linear phase ramp, unwrapped in two regions cut
+by a band of wall pixels, the order difference known from the ramp itself."""
+
+import numpy as np
+
+from _helpers import wrap_phase
+from fppsim.phase.unwrap import phase_regions
+from uhrnet.physics.links import seam_links
+
+H, W = 40, 120
+
+
+def _two_halves(phi):
+    usable = np.ones((H, W), bool)
+    usable[:, 60:64] = False
+    walls = ~usable
+    reg = phase_regions(wrap_phase(phi), usable)
+    assert reg.count == 2
+    return reg, usable, walls
+
+
+def _true_delta(reg, phi):
+    return round(((reg.unwrapped[0, 100] - phi[0, 100]) - (reg.unwrapped[0, 10] - phi[0, 10])) / (2 * np.pi))
+
+
+def test_a_wall_the_phase_runs_on_across_links_the_halves_at_their_order_difference():
+    phi = np.tile(0.55 * np.arange(W, dtype=float), (H, 1))
+    reg, usable, walls = _two_halves(phi)
+    blocked = np.zeros((H, W), bool)
+    links = seam_links(reg, wrap_phase(phi), usable, blocked, tolerance=0.05, min_votes=10, through=walls)
+    assert len(links) == 1 and links[0].via == "wall"
+    lk = links[0]
+    left, right = int(reg.labels[0, 10]), int(reg.labels[0, 100])
+    assert (lk.delta if (lk.a, lk.b) == (left, right) else -lk.delta) == _true_delta(reg, phi)
+    assert lk.votes == H and lk.agreement == 1.0
+    # without ``through`` the same gap is a seam; a gap of no wall pixel is not a wall crossing
+    assert [x.via for x in seam_links(reg, wrap_phase(phi), usable, blocked)] == ["seam"]
+    assert seam_links(reg, wrap_phase(phi), usable, blocked, through=np.zeros((H, W), bool)) == []
+    # a shadow in the gap blocks it as it blocks a seam
+    shade = np.zeros((H, W), bool)
+    shade[:, 61] = True
+    assert seam_links(reg, wrap_phase(phi), usable, shade, tolerance=0.05, through=walls) == []
+
+
+def test_a_real_step_inside_the_wall_is_not_crossed():
+    """A step of 0.3 periods inside the band on every row: the phase does not continue (votes 0.3 off a whole
+    order), so no link at the wall's tolerance."""
+    x = np.arange(W, dtype=float)
+    phi = np.tile(0.55 * x + np.where(x >= 62, 0.3 * 2 * np.pi, 0.0), (H, 1))
+    reg, usable, walls = _two_halves(phi)
+    assert seam_links(reg, wrap_phase(phi), usable, np.zeros((H, W), bool), tolerance=0.05, min_votes=10,
+                      through=walls) == []
