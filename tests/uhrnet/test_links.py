@@ -2,6 +2,7 @@
 by a band of wall pixels, the order difference known from the ramp itself."""
 
 import numpy as np
+import pytest
 
 from _helpers import wrap_phase
 from fppsim.phase.unwrap import phase_regions
@@ -48,5 +49,21 @@ def test_a_real_step_inside_the_wall_is_not_crossed():
     x = np.arange(W, dtype=float)
     phi = np.tile(0.55 * x + np.where(x >= 62, 0.3 * 2 * np.pi, 0.0), (H, 1))
     reg, usable, walls = _two_halves(phi)
+    assert seam_links(reg, wrap_phase(phi), usable, np.zeros((H, W), bool), tolerance=0.05, min_votes=10,
+                      through=walls) == []
+
+
+@pytest.mark.parametrize("fraction", [0.12, -0.12, 0.15])
+def test_a_real_step_inside_the_wall_does_not_bend_the_slopes_the_votes_extrapolate_with(fraction):
+    """A step of 0.12-0.15 period inside the band: the votes are that far off a whole order, outside 0.05. As in
+    choose_orders the wall's own pixels are usable (a wall is a cut between regions, not unreliable phase): a slope
+    averaged over a window reaching into the band took the step in, and the votes came out 2/7 of it off."""
+    x = np.arange(W, dtype=float)
+    phi = np.tile(0.55 * x + np.where(x >= 62, fraction * 2 * np.pi, 0.0), (H, 1))
+    usable = np.ones((H, W), bool)
+    walls = np.zeros((H, W), bool)
+    walls[:, 60:64] = True
+    reg = phase_regions(wrap_phase(phi), usable, cut=walls)
+    assert reg.count == 2
     assert seam_links(reg, wrap_phase(phi), usable, np.zeros((H, W), bool), tolerance=0.05, min_votes=10,
                       through=walls) == []

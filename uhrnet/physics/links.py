@@ -60,8 +60,8 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     with 1 to ``max_gap`` pixels between them that belong to no region and none of which is ``blocked``
     (a shadow, an invalid pixel, or a step the network sees as a wall: across those the phase does not
     continue). Its vote is ``(U[p] + s (q - p) - U[q]) / 2 pi`` periods, ``s`` the mean local phase slope
-    of both ends; a pair of regions is linked when at least ``min_votes`` crossings vote and
-    ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
+    of both ends (over ``usable`` pixels, never ``through`` ones); a pair of regions is linked when at least
+    ``min_votes`` crossings vote and ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
 
     With ``through`` ((H, W) bool, the network's walls) only the crossings whose gap holds at least one
     ``through`` pixel vote, and the links are ``via="wall"``: where the network sees a step of whole periods
@@ -73,12 +73,15 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     """
     lab, U = regions.labels, regions.unwrapped
     w = np.asarray(wrapped, np.float64)
+    # the slopes from each side's own phase: a wall's pixels are usable (a cut, not unreliable phase), and a real
+    # cliff inside the band would bend a slope averaged across it towards continuing the phase
+    sloped = np.asarray(usable, bool) if through is None else np.asarray(usable, bool) & ~np.asarray(through, bool)
     votes: dict[tuple[int, int], list[np.ndarray]] = {}
     for axis in (1, 0):
         L = lab if axis == 1 else lab.T
         B = np.asarray(blocked, bool) if axis == 1 else np.asarray(blocked, bool).T
         UU = U if axis == 1 else U.T
-        S = _local_slope(w, usable, axis) if axis == 1 else _local_slope(w, usable, axis).T
+        S = _local_slope(w, sloped, axis) if axis == 1 else _local_slope(w, sloped, axis).T
         rows, cols = np.nonzero(L > 0)  # row-major: consecutive entries of one row are its labelled pixels
         same_row = rows[1:] == rows[:-1]
         p, q = cols[:-1], cols[1:]
