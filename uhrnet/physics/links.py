@@ -45,6 +45,9 @@ def _local_slope(wrapped: np.ndarray, usable: np.ndarray, axis: int, size: int =
     """Phase slope (rad / px) along ``axis``, averaged over the usable pixels of a ``size`` window."""
     d = wrap(np.diff(wrapped, axis=axis, append=np.take(wrapped, [-1], axis=axis)))
     ok = usable & np.roll(usable, -1, axis=axis) & np.isfinite(d)
+    last = [slice(None)] * ok.ndim
+    last[axis] = -1
+    ok[tuple(last)] = False  # the last pixel has no step forward (its 0 above, its roll the first pixel's)
     num = ndi.uniform_filter(np.where(ok, d, 0.0), size)
     den = ndi.uniform_filter(ok.astype(np.float64), size)
     with np.errstate(invalid="ignore", divide="ignore"):
