@@ -68,9 +68,11 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
 
     With ``through`` ((H, W) bool, the network's walls) only the crossings whose gap holds at least one
     ``through`` pixel vote, and the links are ``via="wall"``: where the network sees a step of whole periods
-    and the image's fringes run on across it, a real cliff's phase step is random (it continues the phase
-    within ``tolerance`` periods on about ``2 tolerance`` of the lines), a false wall's continues it on nearly
-    every line. The caller passes a tight ``tolerance`` and more ``min_votes`` there.
+    and the image's fringes run on across it, a false wall continues the phase on nearly every line; a real
+    cliff breaks it by one fraction of a period along its length, so one of random height is crossed with
+    about ``2 tolerance`` chance, on nearly every line too, and then at a wrong order difference (by its whole
+    periods): only the caller's misfit rule against the network's levels can refuse it. The caller passes a
+    tight ``tolerance`` and more ``min_votes`` there. Walls wider than ``max_gap`` are never crossed.
 
     Returns :class:`Link` s (``via="seam"``, or ``"wall"`` with ``through``), ``b``'s order = ``a``'s + ``delta``.
     """
