@@ -45,6 +45,9 @@ def _local_slope(wrapped: np.ndarray, usable: np.ndarray, axis: int, size: int =
     """Phase slope (rad / px) along ``axis``, averaged over the usable pixels of a ``size`` window."""
     d = wrap(np.diff(wrapped, axis=axis, append=np.take(wrapped, [-1], axis=axis)))
     ok = usable & np.roll(usable, -1, axis=axis) & np.isfinite(d)
+    last = [slice(None)] * ok.ndim
+    last[axis] = -1
+    ok[tuple(last)] = False  # the last pixel has no step forward (its 0 above, its roll the first pixel's)
     num = ndi.uniform_filter(np.where(ok, d, 0.0), size)
     den = ndi.uniform_filter(ok.astype(np.float64), size)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -60,25 +63,30 @@ def seam_links(regions: PhaseRegions, wrapped: np.ndarray, usable: np.ndarray, b
     with 1 to ``max_gap`` pixels between them that belong to no region and none of which is ``blocked``
     (a shadow, an invalid pixel, or a step the network sees as a wall: across those the phase does not
     continue). Its vote is ``(U[p] + s (q - p) - U[q]) / 2 pi`` periods, ``s`` the mean local phase slope
-    of both ends; a pair of regions is linked when at least ``min_votes`` crossings vote and
-    ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
+    of both ends (over ``usable`` pixels, never ``through`` ones); a pair of regions is linked when at least
+    ``min_votes`` crossings vote and ``min_agreement`` of them lie within ``tolerance`` periods of the rounded median.
 
     With ``through`` ((H, W) bool, the network's walls) only the crossings whose gap holds at least one
     ``through`` pixel vote, and the links are ``via="wall"``: where the network sees a step of whole periods
-    and the image's fringes run on across it, a real cliff's phase step is random (it continues the phase
-    within ``tolerance`` periods on about ``2 tolerance`` of the lines), a false wall's continues it on nearly
-    every line. The caller passes a tight ``tolerance`` and more ``min_votes`` there.
+    and the image's fringes run on across it, a false wall continues the phase on nearly every line; a real
+    cliff breaks it by one fraction of a period along its length, so one of random height is crossed with
+    about ``2 tolerance`` chance, on nearly every line too, and then at a wrong order difference (by its whole
+    periods): only the caller's misfit rule against the network's levels can refuse it. The caller passes a
+    tight ``tolerance`` and more ``min_votes`` there. Walls wider than ``max_gap`` are never crossed.
 
     Returns :class:`Link` s (``via="seam"``, or ``"wall"`` with ``through``), ``b``'s order = ``a``'s + ``delta``.
     """
     lab, U = regions.labels, regions.unwrapped
     w = np.asarray(wrapped, np.float64)
+    # the slopes from each side's own phase: a wall's pixels are usable (a cut, not unreliable phase), and a real
+    # cliff inside the band would bend a slope averaged across it towards continuing the phase
+    sloped = np.asarray(usable, bool) if through is None else np.asarray(usable, bool) & ~np.asarray(through, bool)
     votes: dict[tuple[int, int], list[np.ndarray]] = {}
     for axis in (1, 0):
         L = lab if axis == 1 else lab.T
         B = np.asarray(blocked, bool) if axis == 1 else np.asarray(blocked, bool).T
         UU = U if axis == 1 else U.T
-        S = _local_slope(w, usable, axis) if axis == 1 else _local_slope(w, usable, axis).T
+        S = _local_slope(w, sloped, axis) if axis == 1 else _local_slope(w, sloped, axis).T
         rows, cols = np.nonzero(L > 0)  # row-major: consecutive entries of one row are its labelled pixels
         same_row = rows[1:] == rows[:-1]
         p, q = cols[:-1], cols[1:]

@@ -9,7 +9,7 @@ gives every region a continuous order estimate (its *prior*, in periods):
 
 (``U`` the region's unwrapped phase, ``Phi`` the rig's phase of a height, ``o`` the image's phase origin).
 Rounding each ``m_r`` alone puts a region whose network level is more than half a fringe period of height
-off (about 3.6 mm on the figshare rig) a whole order wrong. Two kinds of *link* tie regions' orders
+off (about 3.6 mm on the figshare rig) a whole order wrong. Three kinds of *link* tie regions' orders
 together without the network:
 
 * **shadow bridges** (:func:`fppsim.phase.unwrap.shadow_bridges`): the projector ray that grazes an
@@ -18,11 +18,19 @@ together without the network:
   (low modulation, a dark patch, an FTP edge), not by a shadow nor by a step the network sees as a wall:
   the phase continues across, so extrapolating each side's phase over the gap gives their order difference;
 * **walls the phase crosses** (:func:`seam_links` with ``through``): the same vote across a wall, where the network's
-  estimate steps and the image's phase does not, taken only when nearly every line continues the phase (a real
-  cliff's step is random; a network that puts a false cliff across a smooth surface floats the far side alone).
-  Stop 71 (docs/experiments/orders.md): a recipe network's false step of about 2 periods across the pair's lower
-  right had left it floating two orders low, 4.75 -> 1.64 mm; the other networks' pair, FP1523 / FP672 / FP147 and
-  96 rendered scene-network pairs the same to the digit, and 0.03-0.15 period or 5-30 votes change nothing there.
+  estimate steps and the image's phase does not, taken when at least 10 lines cross and 0.7 of them continue the
+  phase within 0.05 period (a network that puts a false cliff across a smooth surface floats the far side alone).
+  A real cliff's fractional step is random, but a real cliff of whole periods (within 0.05) looks just the same: on
+  the rendered disc (``tests/uhrnet/test_orders.py``'s scene) 3 of 150 random cliffs of 0.3-3 periods the
+  network sees were linked, each with a phase step of 2.03-2.04 periods the network saw 0.19-0.27 period too low,
+  their far side then 2 orders (12 mm) off; the misfit rule below refuses it only where the network's levels
+  differ by over 2 periods across it. The same rule bounds what a wall link mends: a false step more than 2
+  periods off the group it would join is refused (on that disc +2.0 periods stays off, -2.0 is mended), and one
+  of about 3 periods makes a wall wider than the vote's 8 px gap.
+  Stop 71 (its section in docs/experiments/orders.md is not written yet): a recipe network's false step of about 2
+  periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; the other networks'
+  pair, FP1523 / FP672 / FP147 and 96 rendered scene-network pairs the same to the digit, and 0.03-0.15 period or
+  5-30 votes change nothing there (measured before the wall votes' slopes left the wall band out).
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
 region's order relative to its component's root and skips a link that contradicts the ones taken, or one
