@@ -27,10 +27,10 @@ together without the network:
   differ by over 2 periods across it. The same rule bounds what a wall link mends: a false step more than 2
   periods off the group it would join is refused (on that disc +2.0 periods stays off, -2.0 is mended), and one
   of about 3 periods makes a wall wider than the vote's 8 px gap.
-  Stop 71 (its section in docs/experiments/orders.md is not written yet): a recipe network's false step of about 2
-  periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; the other networks'
-  pair, FP1523 / FP672 / FP147 and 96 rendered scene-network pairs the same to the digit, and 0.03-0.15 period or
-  5-30 votes change nothing there (measured before the wall votes' slopes left the wall band out).
+  Stop 71 (docs/experiments/orders.md, "A wall the network put across a smooth surface"): a recipe network's false
+  step of about 2 periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; the
+  other networks' pair, FP1523 / FP672 / FP147 and 96 rendered scene-network pairs the same to the digit, and
+  0.03-0.15 period or 5-30 votes change nothing there.
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
 region's order relative to its component's root and skips a link that contradicts the ones taken, or one
