@@ -28,9 +28,9 @@ together without the network:
   periods off the group it would join is refused (on that disc +2.0 periods stays off, -2.0 is mended), and one
   of about 3 periods makes a wall wider than the vote's 8 px gap.
   Stop 71 (docs/experiments/orders.md, "A wall the network put across a smooth surface"): a recipe network's false
-  step of about 2 periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; the
-  other networks' pair, FP1523 / FP672 / FP147 and 96 rendered scene-network pairs the same to the digit, and
-  0.03-0.15 period or 5-30 votes change nothing there.
+  step of about 2 periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; a
+  three-object rendered scene 0.25 -> 0.97 of its object pixels at the right order, FP147 (seed 3) 0.741 -> 0.690;
+  the pair through the 3 other networks, FP1523 / FP672 through all 4 and 95 rendered scene-network pairs the same.
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
 region's order relative to its component's root and skips a link that contradicts the ones taken, or one
