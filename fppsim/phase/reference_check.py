@@ -59,11 +59,13 @@ class OrderSlips:
     mask : bool (H, W), the pixels of flagged patches. shift : int64 (H, W), whole periods to add to the
     reference's order there (0 elsewhere). patches : one dict per flagged component (``pixels``,
     ``shift_periods``, ``slips``, ``border_steps``, ``rows``, ``cols``: inclusive bounding box), largest first.
+    labels : int32 (H, W), ``i + 1`` on the pixels of ``patches[i]``, 0 elsewhere (None: not given).
     """
 
     mask: np.ndarray
     shift: np.ndarray
     patches: list = field(default_factory=list)
+    labels: np.ndarray | None = None
 
     @property
     def pixels(self) -> int:
@@ -170,8 +172,11 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
                 "border_steps": int(border[comp]), "rows": [box[0].start, box[0].stop - 1],
                 "cols": [box[1].start, box[1].stop - 1]} for (comp, v), box in zip(flagged, boxes)]
     per_pixel = np.where(valid.ravel(), shift[lab], 0).reshape(valid.shape)
-    patches.sort(key=lambda p: -p["pixels"])
-    return OrderSlips(mask=per_pixel != 0, shift=per_pixel, patches=patches)
+    order = sorted(range(len(patches)), key=lambda i: -patches[i]["pixels"])  # largest first, ties as found
+    rank = np.zeros(len(patches) + 1, dtype=np.int32)
+    rank[np.array(order, dtype=np.int64) + 1] = np.arange(1, len(patches) + 1)
+    labels = np.where(valid.ravel(), rank[tags[lab]], 0).reshape(valid.shape).astype(np.int32)
+    return OrderSlips(mask=per_pixel != 0, shift=per_pixel, patches=[patches[i] for i in order], labels=labels)
 
 
 def slips_words(patches: list, pixels: int | None = None) -> str:

@@ -40,6 +40,15 @@ def test_a_patch_whose_orders_slipped_is_found_and_repaired_exactly(periods):
     assert slips.patches[0]["rows"] == [43, 57] and slips.patches[0]["cols"] == [113, 127]
 
 
+def test_the_labels_name_each_patch_largest_first():
+    truth = smooth_phase()
+    small, large = disk(50, 120, 5), disk(100, 60, 8)
+    slips = order_slips(wrap(truth), truth + TWO_PI * (2 * small - 3 * large), np.ones((H, W), bool))
+    assert [p["pixels"] for p in slips.patches] == [int(large.sum()), int(small.sum())]
+    assert np.array_equal(slips.labels == 1, large) and np.array_equal(slips.labels == 2, small)
+    assert np.array_equal(slips.labels > 0, slips.mask) and slips.labels.dtype == np.int32
+
+
 def test_a_right_reference_has_no_slips():
     truth = smooth_phase(1)
     valid = np.ones((H, W), bool)

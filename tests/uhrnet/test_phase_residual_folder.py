@@ -481,6 +481,30 @@ def test_a_reference_whose_order_slipped_is_said_and_scored_without_it(setup, tm
     assert "| 0 | " in (out / "phase_results.md").read_text().split("Reference order slips")[1]
 
 
+def test_a_slipped_patch_no_score_counts_is_not_listed(setup, tmp_path):
+    """Two slipped patches, the image black on one of them (not scored): the record lists the scored one, with its
+    scored pixels, and counts only those."""
+    tmp, run, root, truth = setup
+    phase, height, valid = truth["0"]
+    yy, xx = np.mgrid[:32, :64]
+    plane = valid & (height == 0)
+    spots = [(y, x) for y in range(4, 28) for x in range(4, 60) if plane[y - 3:y + 4, x - 3:x + 4].all()]
+    (ay, ax), (by, bx) = spots[0], next(p for p in spots if abs(p[0] - spots[0][0]) + abs(p[1] - spots[0][1]) > 12)
+    seen, dark = ((yy - ay) ** 2 + (xx - ax) ** 2 <= 6), ((yy - by) ** 2 + (xx - bx) ** 2 <= 6)
+    psin, pcos, order = sums_from_phase(phase, valid, 30.0)
+    image = _image(root, "0").copy()
+    image[dark] = 0
+    folder = tmp_path / "slipped"
+    save_psp_folder_sample(folder, "0", psin, pcos, order + 3 * (seen | dark).astype(np.int32), image)
+    out = tmp_path / "out"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(folder), "--out", str(out), "--figures", "0",
+                 "--names", "tiny", "--device", "cpu", "--degree", "2"]) == 0
+    record = json.loads((out / "phase_results.json").read_text())["per_image"][0]["reference_slips"]
+    assert len(record["patches"]) == 1 and record["patches"][0]["pixels"] == int(seen.sum())
+    scored = (image > 0) & seen  # the fringe's own dark pixels are not scored either
+    assert record["patches"][0]["scored_pixels"] == record["pixels"] == int(scored.sum()) > 0
+
+
 def _image(root, sid):
     from fppsim.dataio.readers.psp_mat import load_ipattern
     return load_ipattern(root / "iPattern" / f"{sid}.mat")

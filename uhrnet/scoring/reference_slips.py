@@ -20,13 +20,15 @@ __all__ = ["frame_slips", "slip_scores", "slip_line", "slip_markdown"]
 
 def frame_slips(s, scored: np.ndarray) -> tuple[OrderSlips | None, dict | None]:
     """The slips of frame ``s`` (a :class:`fppsim.dataio.readers.PspMat`) among its ``scored`` pixels, and their
-    record (None, None where there are none)."""
+    record (None, None where there are none): the patches holding scored pixels, each with its ``scored_pixels``."""
     slips = order_slips(s.wrapped, s.phase, s.valid)
     mask = slips.mask & scored
     if not mask.any():
         return None, None
+    counts = np.bincount(slips.labels[mask], minlength=len(slips.patches) + 1)[1:]
+    patches = [{**p, "scored_pixels": int(c)} for p, c in zip(slips.patches, counts) if c]
     return slips, {"pixels": int(mask.sum()), "fraction": float(mask.sum() / max(int(scored.sum()), 1)),
-                   "patches": slips.patches}
+                   "patches": patches}
 
 
 def slip_scores(fit, phase: np.ndarray, h: np.ndarray, ok: np.ndarray, slips: OrderSlips, **fit_kw) -> dict | None:
