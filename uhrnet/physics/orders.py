@@ -29,8 +29,9 @@ together without the network:
   of about 3 periods makes a wall wider than the vote's 8 px gap.
   Stop 71 (docs/experiments/orders.md, "A wall the network put across a smooth surface"): a recipe network's false
   step of about 2 periods across the pair's lower right had left it floating two orders low, 4.75 -> 1.64 mm; a
-  three-object rendered scene 0.25 -> 0.97 of its object pixels at the right order, FP147 (seed 3) 0.741 -> 0.690;
-  the pair through the 3 other networks, FP1523 / FP672 through all 4 and 95 rendered scene-network pairs the same.
+  three-object rendered scene 0.25 -> 0.97 of its object pixels at the right order, FP147 0.741 -> 0.690 and
+  0.979 -> 0.938 (2 of 5 networks); the pair through the 4 others, FP1523 / FP672 through all 5 and 95 rendered
+  scene-network pairs the same.
 
 Links are voted line by line and taken strongest first into components (a union-find that records each
 region's order relative to its component's root and skips a link that contradicts the ones taken, or one
