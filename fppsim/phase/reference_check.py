@@ -165,18 +165,16 @@ def order_slips(wrapped: np.ndarray, phase: np.ndarray, valid: np.ndarray, *, ma
     s = slip & between  # each slip read from both sides: (component, neighbour, periods to add to the component)
     votes = np.c_[np.r_[lab[b[s]], lab[a[s]]], np.r_[lab[a[s]], lab[b[s]]], np.r_[-n[s], n[s]]]
     shift, flagged = _judge(votes, size, border, max_fraction * valid.sum(), min_seams, min_share, agree)
-    tags = np.zeros(size.size, dtype=np.int64)
+    flagged.sort(key=lambda f: -size[f[0]])  # largest first, ties as found
+    tags = np.zeros(size.size, dtype=np.int32)
     tags[np.array([comp for comp, _ in flagged], dtype=np.int64)] = np.arange(1, len(flagged) + 1)
-    boxes = ndimage.find_objects(np.where(valid.ravel(), tags[lab], 0).reshape(valid.shape), max_label=len(flagged))
+    labels = np.where(valid.ravel(), tags[lab], 0).reshape(valid.shape).astype(np.int32)
+    boxes = ndimage.find_objects(labels, max_label=len(flagged))
     patches = [{"pixels": int(size[comp]), "shift_periods": int(shift[comp]), "slips": int(v),
                 "border_steps": int(border[comp]), "rows": [box[0].start, box[0].stop - 1],
                 "cols": [box[1].start, box[1].stop - 1]} for (comp, v), box in zip(flagged, boxes)]
     per_pixel = np.where(valid.ravel(), shift[lab], 0).reshape(valid.shape)
-    order = sorted(range(len(patches)), key=lambda i: -patches[i]["pixels"])  # largest first, ties as found
-    rank = np.zeros(len(patches) + 1, dtype=np.int32)
-    rank[np.array(order, dtype=np.int64) + 1] = np.arange(1, len(patches) + 1)
-    labels = np.where(valid.ravel(), rank[tags[lab]], 0).reshape(valid.shape).astype(np.int32)
-    return OrderSlips(mask=per_pixel != 0, shift=per_pixel, patches=[patches[i] for i in order], labels=labels)
+    return OrderSlips(mask=per_pixel != 0, shift=per_pixel, patches=patches, labels=labels)
 
 
 def slips_words(patches: list, pixels: int | None = None) -> str:

@@ -13,12 +13,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from fppsim.phase import wrap
+from fppsim.phase import TWO_PI, wrap
 from fppsim.phase.unwrap import PhaseRegions
 
 __all__ = ["Link", "seam_links"]
-
-TWO_PI = 2.0 * np.pi
 
 
 @dataclass(frozen=True)
