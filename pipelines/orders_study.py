@@ -44,6 +44,7 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "pipelines"))
 
 from fppsim.dataio.readers import list_psp_ids, load_psp_folder_sample  # noqa: E402
 from fppsim.errors import FppsimError  # noqa: E402
@@ -58,6 +59,7 @@ from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
+from orders_ceiling import frame_ceiling, pair_ceiling  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 MD_HEADER = "| seed | rig | prediction | object RMSE (mm) | median (mm) | within 1 mm | right order |"  # orders.md's first line
@@ -270,7 +272,9 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
             layer = layer_for(rig, h.shape)
             choice = path(h, fringe, rig, *mirror, name=f"the pair ({args.pair})")
             row["pair"][name] = {"network": pair_scores(h, truth, obj, layer),
-                                 "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats}
+                                 "orders": pair_scores(choice.height, truth, obj, layer), "stats": choice.stats,
+                                 "ceiling": pair_scores(pair_ceiling(choice.height, choice.labels, truth, obj, layer),
+                                                        truth, obj, layer)}
             if name == "depth":
                 figure = figure_name("pair", tag)
                 plot_orders(fringe, h, choice, out / figure,
@@ -294,7 +298,8 @@ def _study(args, models: dict, tags: list[str], pair, depth_rig, ids: dict, out:
                                     "slipped_px": int((scored & slipped).sum()),
                                     "ratio_without_slips": fit_phase(s.phase, choice.height.astype(np.float64),
                                                                      keep).rmse_rad / fit_phase(s.phase, hn, keep).rmse_rad,
-                                    "stats": choice.stats}
+                                    "stats": choice.stats,
+                                    "ceiling": frame_ceiling(choice, s.phase, scored, slipped, layer)}
             figure = figure_name(fname, tag)
             plot_orders(img, hn, choice, out / figure,
                         title=f"{fname}, seed {seed}: residual {path_res:.3f} rad (network {net_res:.3f}, flat {flat_res:.3f})")
@@ -350,7 +355,24 @@ def markdown(results: list[dict]) -> str:
                      f"{_ms([v['flat_rad'] for v in vals])} | {_ms([v['ratio'] for v in vals])} | "
                      f"{_ms([100 * v['right_order_moved'] for v in vals])} % | "
                      f"{_ms([v['ratio_without_slips'] for v in vals])} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + ceiling_markdown(results)) + "\n"
+
+
+def ceiling_markdown(results: list[dict]) -> list[str]:
+    """The ceiling of a perfect per-region order choice (pipelines/orders_ceiling.py) and the parts of the residual."""
+    lines = ["", "| seed | pair RMSE (mm): orders / every region at the label's order | frame | orders / network: path | "
+             "every region at the reference's order | without no-region px | without rim split's order errors | "
+             "without region px a whole order off | without the reference's slips |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in results:
+        pair = r["pair"]["depth"]
+        for f, d in r["frames"].items():
+            c, net = d["ceiling"], d["network_rad"]
+            parts = " | ".join(f"{c['parts'][p]['rad_without'] / net:.3f} ({c['parts'][p]['share']:.0%})"
+                               for p in ("no_region", "rim_split_order_off", "region_order_off", "reference_slipped"))
+            lines.append(f"| {r['seed']} | {pair['orders']['object_rmse_mm']:.2f} / {pair['ceiling']['object_rmse_mm']:.2f} "
+                         f"| {f} | {d['ratio']:.3f} | {c['ceiling_rad'] / net:.3f} ({c['regions_moved']} regions) | {parts} |")
+    return lines
 
 
 if __name__ == "__main__":

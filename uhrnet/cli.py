@@ -304,21 +304,31 @@ def run_predict(args) -> int:
     for line in result.warnings:
         print(f"uhrnet predict: warning: {line}", file=sys.stderr)
     for name, st in result.refine.items():
-        regions = (f", {st['regions']} phase regions in {st['components']} linked groups, {st['undecided_regions']} undecided"
-                   + (f", {st['floating_regions']} floating (tied to no piece of the plane: the network's level alone,"
-                      f" {st['floating_fraction']:.2%} of the pixels)" if st.get("floating_regions") else "")
-                   + (f", {st['refused_links']} links refused by the network's levels" if st["refused_links"] else "")
-                   + (f", {st['beyond_margin_moved']} px beyond the move margin moved with their neighbours"
-                      if st.get("beyond_margin_moved") else "")
-                   + (f", rims: {st['rim_to_object']} px to the objects ({st.get('rim_lowered', 0)} a fall read as a"
-                      f" rise, one order lower) and {st['rim_to_plane']} to the plane" if st.get("rim_runs") else "")
-                   if st["method"] == "orders" else "")
-        print(f"refine {name}: {st['moved_fraction']:.1%} of the pixels moved ({st['method']}, mean move "
-              f"{st['mean_abs_move_mm']:.2f} mm, phase origin {st['offset_rad']:+.2f} rad{regions}, {st['rig']})")
+        print(refine_line(name, st))
     print(f"predict: {len(result.names)} height map(s) from {len(result.files)} input file(s) -> {args.out} "
           f"(NAME_height.npy/.tif in mm, NAME_height.png{'' if args.no_ply else ', NAME.ply'}"
           f"{', x/y from rig ' + str(args.rig) if args.rig else ''})")
     return 0
+
+
+def refine_line(name: str, st: dict) -> str:
+    """predict's one line on the refinement of image ``name`` from its refine.json entry ``st``."""
+    links = st.get("links") or {}
+    taken = ", ".join(f"{n} {what}{'s' if n != 1 else ''}" for what, n in
+                      (("shadow bridge", links.get("bridge", 0)), ("seam", links.get("seam", 0)),
+                       ("wall link", links.get("wall", 0))) if n)
+    regions = (f", {st['regions']} phase regions in {st['components']} linked groups, {st['undecided_regions']} undecided"
+               + (f" (links taken: {taken})" if taken else "")
+               + (f", {st['floating_regions']} floating (tied to no piece of the plane: the network's level alone,"
+                  f" {st['floating_fraction']:.2%} of the pixels)" if st.get("floating_regions") else "")
+               + (f", {st['refused_links']} links refused by the network's levels" if st["refused_links"] else "")
+               + (f", {st['beyond_margin_moved']} px beyond the move margin moved with their neighbours"
+                  if st.get("beyond_margin_moved") else "")
+               + (f", rims: {st['rim_to_object']} px to the objects ({st.get('rim_lowered', 0)} a fall read as a"
+                  f" rise, one order lower) and {st['rim_to_plane']} to the plane" if st.get("rim_runs") else "")
+               if st["method"] == "orders" else "")
+    return (f"refine {name}: {st['moved_fraction']:.1%} of the pixels moved ({st['method']}, mean move "
+            f"{st['mean_abs_move_mm']:.2f} mm, phase origin {st['offset_rad']:+.2f} rad{regions}, {st['rig']})")
 
 
 # ============================================================================ bench

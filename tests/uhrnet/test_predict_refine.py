@@ -425,3 +425,15 @@ def test_a_foreign_images_fringes_are_described_in_the_images_own_terms():
         with pytest.raises(DataError, match="not an image of this rig") as err:
             fringe_phase(img, rig, "x")
         assert re.search(said, str(err.value)) and "(90 deg apart)" in str(err.value), str(err.value)
+
+
+def test_predicts_refine_line_counts_each_kind_of_link_taken():
+    from uhrnet.cli import refine_line
+    st = {"method": "orders", "moved_fraction": 0.5, "mean_abs_move_mm": 1.0, "offset_rad": 0.1, "regions": 9,
+          "components": 3, "undecided_regions": 0, "refused_links": 2, "rig": "rig.json",
+          "links": {"bridge": 1, "seam": 4, "wall": 2}}
+    line = refine_line("a", st)
+    assert "links taken: 1 shadow bridge, 4 seams, 2 wall links" in line and "2 links refused" in line
+    assert "links taken" not in refine_line("a", {**st, "links": {"bridge": 0, "seam": 0, "wall": 0}})
+    assert "links taken: 1 wall link)" in refine_line("a", {**st, "links": {"bridge": 0, "seam": 0, "wall": 1}})
+    assert "phase regions" not in refine_line("a", {**st, "method": "relief"})

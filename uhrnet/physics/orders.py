@@ -57,14 +57,13 @@ numpy in, numpy out (the rig's float64 :class:`~uhrnet.physics.rig_layer.RigLaye
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from scipy import ndimage as ndi
 
-from fppsim.phase import circular_median, wrap
+from fppsim.phase import TWO_PI, circular_median, wrap
 from fppsim.phase.unwrap import PhaseRegions, phase_regions, shadow_bridges, step_conflicts
 from uhrnet.physics.islands import continue_islands, continued_components, wrapped_steps
 from uhrnet.errors import InputError
@@ -74,7 +73,6 @@ from uhrnet.physics.rims import split_rims
 
 __all__ = ["Link", "RegionOrder", "OrderChoice", "seam_links", "choose_orders"]
 
-TWO_PI = 2.0 * math.pi
 # The growth's reliability levels, most reliable first, a fortieth apart: within one level the regions grow by
 # distance, so finer levels reach each pixel along the more reliable way (quality-guided unwrapping), before a
 # route across a cliff the phase does not show. 0.4 / 0.3 / 0.2 and 0.1 / 0 until stop 60.
