@@ -127,6 +127,18 @@ def test_resume_refuses_different_settings(tmp_path, meshes, capsys):
     assert "different seed" in capsys.readouterr().err
 
 
+def test_resume_takes_the_same_meshes_through_a_link_and_refuses_other_ones(tmp_path, meshes, capsys):
+    out, link = tmp_path / "ds", tmp_path / "linked"
+    link.symlink_to(meshes, target_is_directory=True)
+    assert _gen(["--meshes", str(meshes), "--count", "1", "--seed", "1", "--no-psp", "--out", str(out)]) == 0
+    # the same folder through a link resumes (sim2real, which checks the meshes first, compares real paths too)
+    assert _gen(["--meshes", str(link), "--count", "2", "--seed", "1", "--no-psp", "--out", str(out)]) == 0
+    assert [r["id"] for r in read_manifest(out)] == ["000000", "000001"]
+    capsys.readouterr()
+    assert _gen(["--meshes", str(meshes / "capsule.ply"), "--count", "3", "--seed", "1", "--no-psp", "--out", str(out)]) == 1
+    assert "different meshes" in capsys.readouterr().err
+
+
 def test_figshare_format(tmp_path, meshes):
     out = tmp_path / "fig"
     assert _gen(["--meshes", str(meshes), "--count", "2", "--seed", "2", "--no-psp", "--format", "figshare",
