@@ -9,9 +9,15 @@ pixels in no region left as they are.
 * :func:`frame_ceiling`: a phase-shifting frame; the truth is the reference phase, read through the rig (each
   region's median order against the reference, relative to the plane's), the result scored as the issue scores it
   (phase regressed on a degree-3 plane plus ``a h + b h^2``, :func:`uhrnet.scoring.phase_residual.fit_phase`). It
-  also splits the path's squared residual into the pixels in no region, the rim split's pixels, region pixels a whole order off
-  (|residual| > pi) and the pixels where the reference's own temporal order slipped, with the ratio each part
-  alone would leave if its residual were zero (an upper bound on what any rule acting only there can win).
+  also splits the path's squared residual into the pixels in no region, the rim split's pixels a whole order off,
+  region pixels a whole order off (|residual| > pi; the rim's left out) and the pixels where the reference's own
+  temporal order slipped, with the residual each part would leave if its residual were zero and the fit kept (not
+  refitted: a rule that put those pixels right would let the fit move too, so not a strict bound on what it can
+  win; on FP1523/1201 the refit is lower by at most 0.008 of the network's residual, each part alone, 4 seeds).
+
+The orders are read through the rig: where its phase does not follow the reference's at the objects' heights (a
+rig fitted to the frame alone, FP672/541: its objects read 5-8 orders off), right regions read whole orders off
+and the "ceiling" can lie above the path's residual. Pixels without a height keep none.
 
 Used by ``pipelines/orders_study.py`` (keys ``ceiling`` in its orders.json).
 """
@@ -40,7 +46,7 @@ def pair_ceiling(height: np.ndarray, labels: np.ndarray, truth: np.ndarray, obj:
     """The path's heights (mm, (H, W)) with each region (``labels`` 1..n) at the label's order: shifted by the median
     over its object pixels (``obj``, finite ``truth``) of ``round((Phi(truth) - Phi(height)) / 2 pi)`` periods of
     the rig (``layer``: :class:`uhrnet.physics.rig_layer.RigLayer` on this grid). A region without object pixels,
-    and every pixel in no region, keeps its height."""
+    and every pixel in no region, keeps its height (NaN stays NaN)."""
     phi = _rig_phase(layer, height)
     k = np.round((_rig_phase(layer, truth) - phi) / TWO_PI)
     out = np.array(height, dtype=np.float64)
@@ -48,7 +54,7 @@ def pair_ceiling(height: np.ndarray, labels: np.ndarray, truth: np.ndarray, obj:
     for r in np.unique(labels[counted]):
         shift = np.round(np.median(k[counted & (labels == r)]))
         if shift:
-            region = labels == r
+            region = (labels == r) & np.isfinite(height)
             out[region] = _rig_height(layer, phi + TWO_PI * shift)[region]
     return out
 
@@ -65,9 +71,13 @@ def frame_ceiling(choice, phase: np.ndarray, scored: np.ndarray, slipped: np.nda
     A region's whole-order offset is read in the rig's phase, as the study's ``right_order_moved``: the reference
     minus the rig phase of the path's height and its origin, in periods, relative to the median over the moved
     pixels the path puts on the plane (within ``flat_mm``), then the median over the region's scored pixels. (The
-    calibration-free fit would take part of a region's offset up in its plane and ``a h + b h^2``.)
+    calibration-free fit would take part of a region's offset up in its plane and ``a h + b h^2``.) Those plane
+    pixels (``plane_px``) must be at least a tenth of the scored moved pixels, as the path's own origin asks
+    (:mod:`uhrnet.physics.orders`): else there is no order to read against, and ``ceiling_rad`` is NaN and
+    ``regions_moved`` None.
 
-    Returns ``{"residual_rad", "ceiling_rad", "regions_moved", "parts": {part: {"pixels", "share", "rad_without"}}}``:
+    Returns ``{"residual_rad", "ceiling_rad", "regions_moved", "plane_px",
+    "parts": {part: {"pixels", "share", "rad_without"}}}``:
     ``share`` of the squared residual, ``rad_without`` the residual with that part's set to zero (the parts may
     overlap: a slipped reference pixel is often also a region pixel a whole order off).
     """
@@ -78,24 +88,24 @@ def frame_ceiling(choice, phase: np.ndarray, scored: np.ndarray, slipped: np.nda
     r = (np.asarray(phase, np.float64) - phi - choice.offset_rad) / TWO_PI
     ok_r = scored & np.isfinite(r) & np.isfinite(h)
     plane = ok_r & choice.moved & (np.abs(h) < flat_mm)
-    moved = 0
-    out = h.copy()
-    if plane.any():
+    moved, ceiling = None, float("nan")
+    if plane.any() and plane.sum() >= 0.1 * (ok_r & choice.moved).sum():
+        moved, out = 0, h.copy()
         k = np.round(r - np.median(r[plane]))
         for reg in np.unique(labels[ok_r & (labels > 0)]):
             shift = np.round(np.median(k[ok_r & (labels == reg)]))
             if shift:
-                region = labels == reg
+                region = (labels == reg) & np.isfinite(h)
                 out[region] = _rig_height(layer, phi + TWO_PI * shift)[region]
                 moved += 1
-    ceiling = fit_phase(phase, out, scored).rmse_rad
+        ceiling = fit_phase(phase, out, scored).rmse_rad
     ok = np.isfinite(res)
     rim = np.zeros(ok.shape, bool) if choice.rim is None else np.asarray(choice.rim, bool)
     off = ok & (np.abs(np.where(ok, res, 0.0)) > np.pi)
     parts = {"no_region": ok & (labels == 0) & ~rim, "rim_split_order_off": off & rim,
              "region_order_off": off & (labels > 0) & ~rim, "reference_slipped": ok & np.asarray(slipped, bool)}
     total, n = float(np.sum(res[ok] ** 2)), int(ok.sum())
-    return {"residual_rad": fit.rmse_rad, "ceiling_rad": ceiling, "regions_moved": moved,
+    return {"residual_rad": fit.rmse_rad, "ceiling_rad": ceiling, "regions_moved": moved, "plane_px": int(plane.sum()),
             "parts": {name: {"pixels": int(m.sum()), "share": float(np.sum(res[m] ** 2) / total) if total else 0.0,
                              "rad_without": float(np.sqrt(max(total - np.sum(res[m] ** 2), 0.0) / n))}
                       for name, m in parts.items()}}

@@ -368,10 +368,12 @@ def ceiling_markdown(results: list[dict]) -> list[str]:
         pair = r["pair"]["depth"]
         for f, d in r["frames"].items():
             c, net = d["ceiling"], d["network_rad"]
+            ceiling = ("no plane to read the orders against" if c["regions_moved"] is None
+                       else f"{c['ceiling_rad'] / net:.3f} ({c['regions_moved']} regions)")
             parts = " | ".join(f"{c['parts'][p]['rad_without'] / net:.3f} ({c['parts'][p]['share']:.0%})"
                                for p in ("no_region", "rim_split_order_off", "region_order_off", "reference_slipped"))
             lines.append(f"| {r['seed']} | {pair['orders']['object_rmse_mm']:.2f} / {pair['ceiling']['object_rmse_mm']:.2f} "
-                         f"| {f} | {d['ratio']:.3f} | {c['ceiling_rad'] / net:.3f} ({c['regions_moved']} regions) | {parts} |")
+                         f"| {f} | {d['ratio']:.3f} | {ceiling} | {parts} |")
     return lines
 
 
