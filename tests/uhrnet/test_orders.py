@@ -337,3 +337,20 @@ def test_the_growth_takes_the_reliable_way_round_a_cliff_the_wrapped_phase_hides
     lab, U = grow_regions(labels, start, wrapped, rel, ~core, max_steps=200)
     assert (lab == 1).all()
     np.testing.assert_allclose(U, truth, atol=1e-9)
+
+
+def test_the_undecided_share_counts_the_pixels_the_region_table_gives_them(scene):
+    """``undecided_fraction`` (predict's warning: "N phase region(s), X % of the pixels") is the share of the
+    undecided regions' pixels as the region table counts them (grown into less reliable pixels), as
+    ``floating_fraction`` is: it once counted their reliable cores alone (the real pair saturated: 1.6 % said,
+    4.1 % in the table)."""
+    rig, layer, h, disc, shadow, wrapped, (xx, yy), period = scene
+    w = wrap_phase(surface_phase(rig, h) + 72.0)
+    sens = np.abs(layer.sensitivity(torch.as_tensor(h)).numpy())
+    estimate = h + np.where(disc, np.pi / sens, 0.0)  # half a period off: the disc is undecided
+    rel = np.where(disc & (xx > 380), 0.3, 1.0)  # part of the disc below the reliable grade: grown, not core
+    got = choose_orders(estimate, w, rel, layer)
+    undecided = [r for r in got.regions if not r.decided]
+    assert undecided
+    share = sum(r.pixels for r in undecided) / np.isfinite(estimate).sum()
+    assert got.stats["undecided_fraction"] == pytest.approx(share)

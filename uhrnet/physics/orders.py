@@ -324,7 +324,7 @@ def choose_orders(height_mm: np.ndarray, wrapped_phase: np.ndarray, reliability:
     refined = refined.astype(out_dtype, copy=False)
     table = _region_table(g, lab, order, conf, decided, anchored, moved, move)
     floating = decided & ~anchored
-    stats = {**_choice_stats(e.finite, moved, g.core, usable, g.roots, n, decided, g.core_sizes, g.taken, g.conflicts,
+    stats = {**_choice_stats(e.finite, moved, g.core, usable, g.roots, n, decided, g.sizes, g.taken, g.conflicts,
                              g.refused, carried, move, g.offset), "beyond_margin_moved": beyond,
              "floating_regions": int(floating.sum()),
              "floating_fraction": float(g.sizes[floating].sum() / max(int(e.finite.sum()), 1)) if n else 0.0,
