@@ -231,3 +231,59 @@ def test_evaluate_phase_warns_of_a_real_frame_turned_against_its_rig_and_keeps_i
     assert "relief below" not in capsys.readouterr().out
     quiet = json.loads((tmp_path / "p" / "phase_results.json").read_text())["per_image"][0]
     assert quiet["models"] == rec["rotated"]["models"] and "flipped" not in quiet
+
+
+def test_plane_lean_measures_a_ramp_of_the_path_against_a_flat_estimate_and_skips_other_orders():
+    from uhrnet.physics.orientation import LEAN_MIN_SHARE, plane_lean
+    rig = make_default_rig()
+    H, W = rig.camera.height, rig.camera.width
+    cam = rig.camera
+    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
+    period = 2 * np.pi / abs(float(rig.phase_at_height(1.0, centre)[0] - rig.phase_at_height(0.0, centre)[0]))
+    rows = np.arange(H)[:, None] * np.ones((1, W))
+    estimate = np.zeros((H, W))
+    path = 6.0 * rows / (H - 1)  # rises 6 mm from the top row to the bottom one
+    moved = np.ones((H, W), bool)
+    got = plane_lean(path, moved, estimate, rig)
+    assert got["mm"] == pytest.approx(6.0, abs=1e-3) and got["periods"] == pytest.approx(6.0 / period, abs=1e-3)
+    # a patch the path put a whole period higher (another order, not a lean) is left out of the fit
+    other = path.copy()
+    other[100:200, 100:300] += period
+    assert plane_lean(other, moved, estimate, rig)["mm"] == pytest.approx(6.0, abs=1e-3)
+    # pixels the estimate does not see flat, or the path did not move, do not count
+    raised = np.where(rows < H // 2, 30.0, 0.0)
+    assert plane_lean(path, moved, raised, rig)["pixels"] == moved.sum() - (rows < H // 2).sum()
+    few = np.zeros((H, W), bool)
+    few[:int(LEAN_MIN_SHARE * H) - 1] = True
+    assert plane_lean(path, few, estimate, rig)["periods"] is None
+
+
+def test_lean_warning_needs_the_lean_and_a_plane_phase_that_does_not_fit():
+    from uhrnet.physics.orientation import LEAN_PERIODS, LEAN_PLANE_FIT, lean_warning
+    stats = {"plane_lean": {"mm": 13.7, "periods": 1.6, "pixels": 9}, "orientation": {"plane_fit": {"as given": 0.24}}}
+    assert "leans 1.6 fringe periods (13.7 mm)" in lean_warning(stats, "rig.json")
+    assert lean_warning({**stats, "orientation": {"plane_fit": {"as given": LEAN_PLANE_FIT}}}, "r") is None
+    assert lean_warning({**stats, "plane_lean": {"mm": 1.0, "periods": LEAN_PERIODS, "pixels": 9}}, "r") is None
+    assert lean_warning({**stats, "plane_lean": {"mm": None, "periods": None, "pixels": 0}}, "r") is None
+    assert lean_warning({}, "r") is None and lean_warning(None, "r") is None
+
+
+@pytest.mark.skipif(not (SHARED / "real-sample").is_dir(), reason="../shared/real-sample is absent")
+def test_the_pair_upside_down_is_said_to_lean_and_as_given_is_not():
+    # a perfect network (the label itself as the estimate) on the pair, as given and mirrored along its fringes
+    from fppsim.geometry.rig import load_rig
+    from uhrnet.inference.prediction import refine_with_phase
+    from uhrnet.physics.orientation import lean_warning
+    from uhrnet.workflows.sim2real.real_metrics import object_mask
+    rig = load_rig(ASSETS / "figshare_depth_rig.json")
+    fringe = np.load(SHARED / "real-sample" / "fringe_pattern.npy").astype(np.float32)
+    label = np.load(SHARED / "real-sample" / "height_map.npy").astype(np.float64)
+    _, plane = object_mask(label, label > -100)
+    truth = np.where(label > -100, (label - plane) / 6.0, np.nan)
+    said = {}
+    for how in ("given", "along"):
+        est = turned(truth, how)
+        _, stats = refine_with_phase(est, turned(fringe, how), rig, "orders", network_mm=est)
+        said[how] = lean_warning(stats, "the depth rig")
+    assert said["given"] is None
+    assert said["along"] is not None and "mirrored along its fringes" in said["along"]

@@ -68,7 +68,7 @@ from uhrnet.inference.outputs import points_from_grid, points_from_rig, write_pl
 from uhrnet.errors import ConfigError, DataError, UsageError
 from uhrnet.models import HEADS, prediction_of
 from uhrnet.physics.orders import choose_orders
-from uhrnet.physics.orientation import check_orientation, flipped_warning
+from uhrnet.physics.orientation import check_orientation, flipped_warning, lean_warning, plane_lean
 from uhrnet.physics.refine import REFINE_METHODS, layer_for, refine_relief
 from uhrnet.physics.rig_layer import RigLayer
 from uhrnet.run_folder import refuse_own_source
@@ -404,8 +404,9 @@ def _predict_one(config, model, transform, size, rig, refine_rig, rig_name, auto
         if stats.get("regions", 1) == 0:
             result.warnings.append(f"{path} ({name}): no phase region of reliable fringes: the network's heights")
         flipped = flipped_warning(stats.get("orientation"), rig_name)
-        if flipped:  # said, never acted on: the heights stay the path's
-            result.warnings.append(f"{path} ({name}): {flipped}")
+        for said in (flipped, lean_warning(stats, rig_name)):  # said, never acted on: the heights stay the path's
+            if said:
+                result.warnings.append(f"{path} ({name}): {said}")
         undecided = stats.get("undecided_regions", 0)
         if undecided:
             result.warnings.append(
@@ -598,6 +599,8 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
     if method == "orders":
         choice = order_choice(height_mm, fringe, rig, network_mm, name, phase=ssp)
         refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
+        stats["plane_lean"] = plane_lean(choice.height, choice.moved, height_mm, rig if isinstance(rig, Rig)
+                                         else Rig.from_dict(rig))
     else:
         refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig,
                                           valid=np.isfinite(height_mm) & ssp.valid)

@@ -49,7 +49,8 @@ from fppsim.phase import circular_median, wrap
 from fppsim.phase.fringe_axis import fringe_axis, rig_phase_gradient
 from fppsim.phase.unwrap import shadow_runs
 
-__all__ = ["OrientationCheck", "check_orientation", "flipped_warning", "plane_phases", "shadow_sides"]
+__all__ = ["OrientationCheck", "check_orientation", "flipped_warning", "lean_warning", "plane_lean", "plane_phases",
+           "shadow_sides"]
 
 #: a reliable pixel is on a plane phase within this (rad) of it, once the image's phase origin is taken off
 PLANE_TOL_RAD = 0.5
@@ -82,6 +83,18 @@ SHADOWS_AS_GIVEN = 0.6
 SHADOWS_ALONE = (" (shadows alone: dark areas that are not shadows, beside the objects on the projector's side, read "
                  "so too)")
 MIN_RELIABILITY = 0.5
+#: the plane the orders path reads leans against the network's by more than this many fringe periods of height (at
+#: the image centre) across the image (:func:`plane_lean`), and the rig's plane phase as given explains less than
+#: LEAN_PLANE_FIT of the reliable pixels (:func:`check_orientation`), both: then it is said. Images as given: 0.03-0.09
+#: period on the real pair, FP1523/1201 and FP672/541 (5 networks), at most 0.03 on 32 rendered scenes (3 networks),
+#: plane fits 0.53-0.98; FP147/109 through a network of another rig 1.19 periods (the network sees the face flat, the
+#: path lifts it), its fit 0.53 (a nearly linear plane phase: every orientation fits about alike). The pair and FP1523
+#: upside down (mirrored ALONG their fringes, which the checks above cannot see): 1.56 and 1.37 periods, fits 0.24-0.25
+LEAN_PERIODS = 0.5
+LEAN_PLANE_FIT = 0.4
+#: the lean is read only where the network's estimate puts at least this share of the image on the plane and the
+#: path moved it
+LEAN_MIN_SHARE = 0.1
 
 
 @dataclass
@@ -179,6 +192,51 @@ def flipped_warning(orientation: dict | None, rig_name: str) -> str | None:
         return None
     return (f"relief below the reference plane through {rig_name}: rotated or mirrored image, or a rig with the "
             f"projector on the other side? ({o['evidence']})")
+
+
+def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray, rig: Rig,
+               flat_mm: float = 1.0) -> dict:
+    """How far the plane the orders path reads leans against the network's: a plane ``a + b row + c col`` fitted to
+    ``height_mm - estimate_mm`` (mm, (H, W)) over the ``moved`` pixels the estimate puts within ``flat_mm`` of the
+    reference plane, fitted again without the pixels more than half a fringe period off the first fit (a region the
+    path put at another order). Returns ``{"mm": its rise across the image, "periods": the same in fringe periods of
+    height at the image centre through ``rig``, "pixels": the pixels it was fitted on}``; ``mm`` and ``periods`` are
+    None where those pixels are fewer than :data:`LEAN_MIN_SHARE` of the image (no plane the network sees)."""
+    h, e = np.asarray(height_mm, np.float64), np.asarray(estimate_mm, np.float64)
+    on = np.asarray(moved, bool) & np.isfinite(h) & np.isfinite(e) & (np.abs(e) < flat_mm)
+    out = {"mm": None, "periods": None, "pixels": int(on.sum())}
+    if on.sum() < max(3, LEAN_MIN_SHARE * on.size):
+        return out
+    cam = rig.camera
+    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
+    per_mm = abs(float(rig.phase_at_height(1.0, centre)[0] - rig.phase_at_height(0.0, centre)[0]))
+    period = 2.0 * np.pi / per_mm if per_mm > 0 else np.inf
+    rows, cols = np.nonzero(on)
+    A = np.stack([np.ones(rows.size), rows, cols], axis=1).astype(np.float64)
+    d = (h - e)[on]
+    keep = np.ones(d.size, bool)
+    for _ in range(2):
+        coef = np.linalg.lstsq(A[keep], d[keep], rcond=None)[0]
+        keep = np.abs(d - A @ coef) < 0.5 * period
+        if keep.sum() < 3:
+            break
+    rise = abs(coef[1]) * (on.shape[0] - 1) + abs(coef[2]) * (on.shape[1] - 1)
+    return {**out, "mm": round(float(rise), 3), "periods": round(float(rise / period), 3)}
+
+
+def lean_warning(stats: dict | None, rig_name: str) -> str | None:
+    """The sentence said of an image whose plane leans more than :data:`LEAN_PERIODS` through the rig named
+    ``rig_name`` while the rig's plane phase as given fits under :data:`LEAN_PLANE_FIT` of it (``stats``: the refine
+    statistics, ``plane_lean`` from :func:`plane_lean` and ``orientation`` from :func:`check_orientation`), else None;
+    one owner for predict's and evaluate-phase's warning, which never changes a height."""
+    lean = (stats or {}).get("plane_lean") or {}
+    fit = ((stats or {}).get("orientation") or {}).get("plane_fit", {}).get("as given")
+    if lean.get("periods") is None or lean["periods"] <= LEAN_PERIODS or fit is None or fit >= LEAN_PLANE_FIT:
+        return None
+    return (f"the plane the phase reads through {rig_name} leans {lean['periods']:.1f} fringe periods "
+            f"({lean['mm']:.1f} mm) across the image where the network sees it flat, and the rig's plane fringes "
+            f"follow the image's on {fit:.2f} of it: an image mirrored along its fringes, or not of this rig? "
+            "(the path's heights are kept)")
 
 
 def _verdict(fit: dict, agree: float, runs: int, dark: float = 0.0) -> tuple[str, str]:

@@ -66,7 +66,7 @@ from uhrnet.scoring.chosen_frames import chosen_frames, chosen_words, phase_fram
 from uhrnet.scoring.evaluation import check_name_count, model_names
 from uhrnet.scoring.phase_report import frame_line, markdown, plot_phase_residuals
 from uhrnet.scoring.reference_slips import frame_slips, slip_line, slip_markdown, slip_scores
-from uhrnet.physics.orientation import flipped_warning
+from uhrnet.physics.orientation import flipped_warning, lean_warning
 from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
@@ -492,6 +492,10 @@ def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size
     if flipped:  # said as predict says it, never acted on: the heights stay the path's
         record.setdefault("flipped", {})[name] = stats["orientation"]
         echo(f"{sid}: warning: {name}: {flipped}")
+    leaning = lean_warning(stats, str(args.rig or "the checkpoint or default rig"))
+    if leaning:  # said as predict says it, never acted on
+        record.setdefault("leaning", {})[name] = stats["plane_lean"]
+        echo(f"{sid}: warning: {name}: {leaning}")
     if stats.get("undecided_regions"):  # said as predict says it: those pixels keep the network's heights
         undecided = {"regions": stats["undecided_regions"], "fraction": stats["undecided_fraction"]}
         record.setdefault("undecided", {})[name] = undecided
