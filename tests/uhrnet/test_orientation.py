@@ -271,6 +271,9 @@ def test_lean_warning_needs_the_lean_and_a_plane_phase_that_does_not_fit():
     assert lean_warning({**stats, "plane_lean": {"mm": 1.0, "periods": LEAN_PERIODS, "pixels": 9}}, "r") is None
     assert lean_warning({**stats, "plane_lean": {"mm": None, "periods": None, "pixels": 0}}, "r") is None
     assert lean_warning({}, "r") is None and lean_warning(None, "r") is None
+    # an image that reads flipped gets the flipped sentence alone (the pair mirrored across: 1.9 periods, fit 0.18)
+    flipped = {"plane_fit": {"as given": 0.18}, "verdict": "flipped"}
+    assert lean_warning({**stats, "orientation": flipped}, "r") is None
 
 
 @pytest.mark.skipif(not (SHARED / "real-sample").is_dir(), reason="../shared/real-sample is absent")

@@ -234,10 +234,14 @@ def lean_warning(stats: dict | None, rig_name: str) -> str | None:
     """The sentence said of an image whose plane leans more than :data:`LEAN_PERIODS` through the rig named
     ``rig_name`` while the rig's plane phase as given fits under :data:`LEAN_PLANE_FIT` of it (``stats``: the refine
     statistics, ``plane_lean`` from :func:`plane_lean` and ``orientation`` from :func:`check_orientation`), else None;
-    one owner for predict's and evaluate-phase's warning, which never changes a height."""
+    None too for an image that reads flipped: :func:`flipped_warning` names that (the pair mirrored across its fringes
+    leans 1.9 periods, and "mirrored along its fringes" would send the reader the wrong way). One owner for predict's
+    and evaluate-phase's warning, which never changes a height."""
     lean = (stats or {}).get("plane_lean") or {}
-    fit = ((stats or {}).get("orientation") or {}).get("plane_fit", {}).get("as given")
-    if lean.get("periods") is None or lean["periods"] <= LEAN_PERIODS or fit is None or fit >= LEAN_PLANE_FIT:
+    orientation = (stats or {}).get("orientation") or {}
+    fit = orientation.get("plane_fit", {}).get("as given")
+    if (lean.get("periods") is None or lean["periods"] <= LEAN_PERIODS or fit is None or fit >= LEAN_PLANE_FIT
+            or orientation.get("verdict") == "flipped"):
         return None
     return (f"the plane the phase reads through {rig_name} leans {lean['periods']:.1f} fringe periods "
             f"({lean['mm']:.1f} mm) across the image where the network sees it flat, and the rig's plane fringes "
