@@ -250,6 +250,11 @@ def test_plane_lean_measures_a_ramp_of_the_path_against_a_flat_estimate_and_skip
     other = path.copy()
     other[100:200, 100:300] += period
     assert plane_lean(other, moved, estimate, rig)["mm"] == pytest.approx(6.0, abs=1e-3)
+    # so is one that holds two fifths of the pixels beside a plane that leans little (a plane fitted to them all
+    # tilts enough to keep the step: FP1523 cropped to its bottom half read 1.3 periods so, as given)
+    wide = path / 4.0
+    wide[:, :2 * W // 5] += period
+    assert plane_lean(wide, moved, estimate, rig)["mm"] == pytest.approx(1.5, abs=1e-3)
     # pixels the estimate does not see flat, or the path did not move, do not count
     raised = np.where(rows < H // 2, 30.0, 0.0)
     assert plane_lean(path, moved, raised, rig)["pixels"] == moved.sum() - (rows < H // 2).sum()
@@ -266,6 +271,9 @@ def test_lean_warning_needs_the_lean_and_a_plane_phase_that_does_not_fit():
     assert lean_warning({**stats, "plane_lean": {"mm": 1.0, "periods": LEAN_PERIODS, "pixels": 9}}, "r") is None
     assert lean_warning({**stats, "plane_lean": {"mm": None, "periods": None, "pixels": 0}}, "r") is None
     assert lean_warning({}, "r") is None and lean_warning(None, "r") is None
+    # an image that reads flipped gets the flipped sentence alone (the pair mirrored across: 1.9 periods, fit 0.18)
+    flipped = {"plane_fit": {"as given": 0.18}, "verdict": "flipped"}
+    assert lean_warning({**stats, "orientation": flipped}, "r") is None
 
 
 @pytest.mark.skipif(not (SHARED / "real-sample").is_dir(), reason="../shared/real-sample is absent")

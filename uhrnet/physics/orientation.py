@@ -87,7 +87,7 @@ MIN_RELIABILITY = 0.5
 #: the image centre) across the image (:func:`plane_lean`), and the rig's plane phase as given explains less than
 #: LEAN_PLANE_FIT of the reliable pixels (:func:`check_orientation`), both: then it is said. Images as given: 0.03-0.09
 #: period on the real pair, FP1523/1201 and FP672/541 (5 networks), at most 0.03 on 32 rendered scenes (3 networks),
-#: plane fits 0.53-0.98; FP147/109 through a network of another rig 1.19 periods (the network sees the face flat, the
+#: plane fits 0.53-0.98; FP147/109 through a network of another rig 1.26 periods (the network sees the face flat, the
 #: path lifts it), its fit 0.53 (a nearly linear plane phase: every orientation fits about alike). The pair and FP1523
 #: upside down (mirrored ALONG their fringes, which the checks above cannot see): 1.56 and 1.37 periods, fits 0.24-0.25
 LEAN_PERIODS = 0.5
@@ -198,10 +198,12 @@ def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray
                flat_mm: float = 1.0) -> dict:
     """How far the plane the orders path reads leans against the network's: a plane ``a + b row + c col`` fitted to
     ``height_mm - estimate_mm`` (mm, (H, W)) over the ``moved`` pixels the estimate puts within ``flat_mm`` of the
-    reference plane, fitted again without the pixels more than half a fringe period off the first fit (a region the
-    path put at another order). Returns ``{"mm": its rise across the image, "periods": the same in fringe periods of
-    height at the image centre through ``rig``, "pixels": the pixels it was fitted on}``; ``mm`` and ``periods`` are
-    None where those pixels are fewer than :data:`LEAN_MIN_SHARE` of the image (no plane the network sees)."""
+    reference plane, on those within half a fringe period of their median and then again on those within half a
+    period of the last fit, until these no longer change (at most 10 fits): a region the path put at another order is
+    left out (a large one only where the plane leans well under half a period across the rest). Returns ``{"mm": its rise across the image (corner to corner), "periods": the same
+    in fringe periods of height at the image centre through ``rig``, "pixels": those moved flat pixels, before any
+    is left out}``; ``mm`` and ``periods`` are None where they are fewer than :data:`LEAN_MIN_SHARE` of the image
+    (no plane the network sees)."""
     h, e = np.asarray(height_mm, np.float64), np.asarray(estimate_mm, np.float64)
     on = np.asarray(moved, bool) & np.isfinite(h) & np.isfinite(e) & (np.abs(e) < flat_mm)
     out = {"mm": None, "periods": None, "pixels": int(on.sum())}
@@ -214,12 +216,16 @@ def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray
     rows, cols = np.nonzero(on)
     A = np.stack([np.ones(rows.size), rows, cols], axis=1).astype(np.float64)
     d = (h - e)[on]
-    keep = np.ones(d.size, bool)
-    for _ in range(2):
+    # started from the median level, not from a plane fitted to every pixel: a region one order off that holds a
+    # large share of them (a third of FP1523 cropped to its bottom half) tilts such a plane enough to keep it, and
+    # the step then read as a lean of 1.3 periods
+    keep = np.abs(d - np.median(d)) < 0.5 * period
+    for _ in range(10):
         coef = np.linalg.lstsq(A[keep], d[keep], rcond=None)[0]
-        keep = np.abs(d - A @ coef) < 0.5 * period
-        if keep.sum() < 3:
+        again = np.abs(d - A @ coef) < 0.5 * period
+        if again.sum() < 3 or (again == keep).all():
             break
+        keep = again
     rise = abs(coef[1]) * (on.shape[0] - 1) + abs(coef[2]) * (on.shape[1] - 1)
     return {**out, "mm": round(float(rise), 3), "periods": round(float(rise / period), 3)}
 
@@ -228,10 +234,14 @@ def lean_warning(stats: dict | None, rig_name: str) -> str | None:
     """The sentence said of an image whose plane leans more than :data:`LEAN_PERIODS` through the rig named
     ``rig_name`` while the rig's plane phase as given fits under :data:`LEAN_PLANE_FIT` of it (``stats``: the refine
     statistics, ``plane_lean`` from :func:`plane_lean` and ``orientation`` from :func:`check_orientation`), else None;
-    one owner for predict's and evaluate-phase's warning, which never changes a height."""
+    None too for an image that reads flipped: :func:`flipped_warning` names that (the pair mirrored across its fringes
+    leans 1.9 periods, and "mirrored along its fringes" would send the reader the wrong way). One owner for predict's
+    and evaluate-phase's warning, which never changes a height."""
     lean = (stats or {}).get("plane_lean") or {}
-    fit = ((stats or {}).get("orientation") or {}).get("plane_fit", {}).get("as given")
-    if lean.get("periods") is None or lean["periods"] <= LEAN_PERIODS or fit is None or fit >= LEAN_PLANE_FIT:
+    orientation = (stats or {}).get("orientation") or {}
+    fit = orientation.get("plane_fit", {}).get("as given")
+    if (lean.get("periods") is None or lean["periods"] <= LEAN_PERIODS or fit is None or fit >= LEAN_PLANE_FIT
+            or orientation.get("verdict") == "flipped"):
         return None
     return (f"the plane the phase reads through {rig_name} leans {lean['periods']:.1f} fringe periods "
             f"({lean['mm']:.1f} mm) across the image where the network sees it flat, and the rig's plane fringes "
