@@ -592,8 +592,9 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
     through ``rig`` (module docstring); returns the refined map (NaN kept) and the statistics. With ``orders``
     the pixels the path leaves alone keep ``network_mm`` (default ``height_mm``); ``name`` heads its errors. The
     statistics also say whether the image reads flipped through the rig (``orientation``:
-    :func:`uhrnet.physics.orientation.check_orientation`, from the image's phase and the rig alone), which changes
-    no height."""
+    :func:`uhrnet.physics.orientation.check_orientation`, from the image's phase and the rig alone) and, with
+    ``orders``, how far the plane it reads leans against the estimate's (``plane_lean``:
+    :func:`uhrnet.physics.orientation.plane_lean`); neither changes a height."""
 
     ssp = fringe_phase(fringe, rig, name)
     if method == "orders":

@@ -200,10 +200,11 @@ def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray
     ``height_mm - estimate_mm`` (mm, (H, W)) over the ``moved`` pixels the estimate puts within ``flat_mm`` of the
     reference plane, on those within half a fringe period of their median and then again on those within half a
     period of the last fit, until these no longer change (at most 10 fits): a region the path put at another order is
-    left out (a large one only where the plane leans well under half a period across the rest). Returns ``{"mm": its rise across the image (corner to corner), "periods": the same
-    in fringe periods of height at the image centre through ``rig``, "pixels": those moved flat pixels, before any
-    is left out}``; ``mm`` and ``periods`` are None where they are fewer than :data:`LEAN_MIN_SHARE` of the image
-    (no plane the network sees)."""
+    left out (a large one only where the plane leans well under half a period across the rest). Returns
+    ``{"mm": its rise across the image (corner to corner), "periods": the same in fringe periods of height at the
+    image centre through ``rig``, "pixels": those moved flat pixels, before any is left out}``; ``mm`` and
+    ``periods`` are None where they are fewer than :data:`LEAN_MIN_SHARE` of the image (no plane the network sees),
+    ``periods`` also where the rig's phase does not change with height at the image centre."""
     h, e = np.asarray(height_mm, np.float64), np.asarray(estimate_mm, np.float64)
     on = np.asarray(moved, bool) & np.isfinite(h) & np.isfinite(e) & (np.abs(e) < flat_mm)
     out = {"mm": None, "periods": None, "pixels": int(on.sum())}
@@ -227,7 +228,8 @@ def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray
             break
         keep = again
     rise = abs(coef[1]) * (on.shape[0] - 1) + abs(coef[2]) * (on.shape[1] - 1)
-    return {**out, "mm": round(float(rise), 3), "periods": round(float(rise / period), 3)}
+    periods = round(float(rise / period), 3) if np.isfinite(period) else None
+    return {**out, "mm": round(float(rise), 3), "periods": periods}
 
 
 def lean_warning(stats: dict | None, rig_name: str) -> str | None:
