@@ -42,21 +42,38 @@ def _rig_height(layer, phase: np.ndarray) -> np.ndarray:
         return layer.height_from_phase(torch.as_tensor(phase, dtype=torch.float64)).numpy()
 
 
+def reference_orders(choice, layer, phase: np.ndarray, flat_mm: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(r, plane)`` of a path's ``choice`` (:class:`uhrnet.physics.orders.OrderChoice`) against a reference's absolute
+    ``phase`` (rad, (H, W)): ``r`` the reference minus the rig phase of the path's height and its origin, in periods
+    (NaN where the reference is), and ``plane`` the moved pixels of finite ``r`` the path puts within ``flat_mm`` of
+    the plane, against whose median ``r`` reads whole orders (``layer``: the rig's RigLayer on this grid)."""
+    h = np.asarray(choice.height, np.float64)
+    r = (np.asarray(phase, np.float64) - _rig_phase(layer, h) - choice.offset_rad) / TWO_PI
+    return r, np.asarray(choice.moved, bool) & np.isfinite(r) & (np.abs(h) < flat_mm)
+
+
+def _regions_shifted(layer, height: np.ndarray, labels: np.ndarray, k: np.ndarray, counted: np.ndarray):
+    """``(heights, regions moved)``: each region of ``labels`` with ``counted`` pixels shifted by the median of their
+    whole orders ``k`` through the rig (one conversion for all); the rest, and pixels without a height, as they are."""
+    h = np.array(height, dtype=np.float64)
+    table = np.zeros(int(labels.max()) + 1 if labels.size else 1)
+    for reg in np.unique(labels[counted]):
+        table[reg] = np.round(np.median(k[counted & (labels == reg)]))
+    shift = table[labels]
+    move = (shift != 0) & np.isfinite(h)
+    if move.any():
+        h[move] = _rig_height(layer, _rig_phase(layer, h) + TWO_PI * shift)[move]
+    return h, int(np.count_nonzero(table))
+
+
 def pair_ceiling(height: np.ndarray, labels: np.ndarray, truth: np.ndarray, obj: np.ndarray, layer) -> np.ndarray:
     """The path's heights (mm, (H, W)) with each region (``labels`` 1..n) at the label's order: shifted by the median
     over its object pixels (``obj``, finite ``truth``) of ``round((Phi(truth) - Phi(height)) / 2 pi)`` periods of
     the rig (``layer``: :class:`uhrnet.physics.rig_layer.RigLayer` on this grid). A region without object pixels,
     and every pixel in no region, keeps its height (NaN stays NaN)."""
-    phi = _rig_phase(layer, height)
-    k = np.round((_rig_phase(layer, truth) - phi) / TWO_PI)
-    out = np.array(height, dtype=np.float64)
+    k = np.round((_rig_phase(layer, truth) - _rig_phase(layer, height)) / TWO_PI)
     counted = obj & np.isfinite(truth) & np.isfinite(height) & (labels > 0)
-    for r in np.unique(labels[counted]):
-        shift = np.round(np.median(k[counted & (labels == r)]))
-        if shift:
-            region = (labels == r) & np.isfinite(height)
-            out[region] = _rig_height(layer, phi + TWO_PI * shift)[region]
-    return out
+    return _regions_shifted(layer, height, labels, k, counted)[0]
 
 
 def frame_ceiling(choice, phase: np.ndarray, scored: np.ndarray, slipped: np.ndarray, layer,
@@ -68,13 +85,13 @@ def frame_ceiling(choice, phase: np.ndarray, scored: np.ndarray, slipped: np.nda
     score counts; slipped : (H, W) bool, where the reference's temporal order slipped; layer : the rig's
     :class:`uhrnet.physics.rig_layer.RigLayer` on this grid.
 
-    A region's whole-order offset is read in the rig's phase, as the study's ``right_order_moved``: the reference
-    minus the rig phase of the path's height and its origin, in periods, relative to the median over the moved
-    pixels the path puts on the plane (within ``flat_mm``), then the median over the region's scored pixels. (The
-    calibration-free fit would take part of a region's offset up in its plane and ``a h + b h^2``.) Those plane
-    pixels (``plane_px``) must be at least a tenth of the scored moved pixels, as the path's own origin asks
-    (:mod:`uhrnet.physics.orders`): else there is no order to read against, and ``ceiling_rad`` is NaN and
-    ``regions_moved`` None.
+    A region's whole-order offset is read in the rig's phase, as the study's ``right_order_moved``
+    (:func:`reference_orders`): the reference minus the rig phase of the path's height and its origin, in periods,
+    relative to the median over the moved pixels the path puts on the plane (within ``flat_mm``), then the median
+    over the region's scored pixels. (The calibration-free fit would take part of a region's offset up in its plane
+    and ``a h + b h^2``.) Those plane pixels (``plane_px``) must be at least a tenth of the scored moved pixels, as
+    the path's own origin asks (:mod:`uhrnet.physics.orders`): else there is no order to read against, and
+    ``ceiling_rad`` is NaN and ``regions_moved`` None.
 
     Returns ``{"residual_rad", "ceiling_rad", "regions_moved", "plane_px",
     "parts": {part: {"pixels", "share", "rad_without"}}}``:
@@ -84,20 +101,12 @@ def frame_ceiling(choice, phase: np.ndarray, scored: np.ndarray, slipped: np.nda
     h = np.array(choice.height, dtype=np.float64)
     labels = choice.labels
     fit, res = fit_phase(phase, h, scored, return_residual=True)
-    phi = _rig_phase(layer, h)
-    r = (np.asarray(phase, np.float64) - phi - choice.offset_rad) / TWO_PI
+    r, plane = reference_orders(choice, layer, phase, flat_mm)
     ok_r = scored & np.isfinite(r) & np.isfinite(h)
-    plane = ok_r & choice.moved & (np.abs(h) < flat_mm)
+    plane &= scored
     moved, ceiling = None, float("nan")
     if plane.any() and plane.sum() >= 0.1 * (ok_r & choice.moved).sum():
-        moved, out = 0, h.copy()
-        k = np.round(r - np.median(r[plane]))
-        for reg in np.unique(labels[ok_r & (labels > 0)]):
-            shift = np.round(np.median(k[ok_r & (labels == reg)]))
-            if shift:
-                region = (labels == reg) & np.isfinite(h)
-                out[region] = _rig_height(layer, phi + TWO_PI * shift)[region]
-                moved += 1
+        out, moved = _regions_shifted(layer, h, labels, np.round(r - np.median(r[plane])), ok_r & (labels > 0))
         ceiling = fit_phase(phase, out, scored).rmse_rad
     ok = np.isfinite(res)
     rim = np.zeros(ok.shape, bool) if choice.rim is None else np.asarray(choice.rim, bool)

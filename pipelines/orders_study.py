@@ -59,7 +59,7 @@ from uhrnet.physics.refine import layer_for  # noqa: E402
 from uhrnet.plots import plot_orders  # noqa: E402
 from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
-from orders_ceiling import frame_ceiling, pair_ceiling  # noqa: E402
+from orders_ceiling import frame_ceiling, pair_ceiling, reference_orders  # noqa: E402
 
 SHARED = ROOT.parent / "shared"
 MD_HEADER = "| seed | rig | prediction | object RMSE (mm) | median (mm) | within 1 mm | right order |"  # orders.md's first line
@@ -97,12 +97,11 @@ def pair_scores(pred: np.ndarray, truth: np.ndarray, obj: np.ndarray, layer) -> 
 
 def order_share(choice, layer, psp_phase: np.ndarray, scored: np.ndarray, flat_mm: float = 1.0) -> float:
     """Share of the moved pixels whose absolute phase (rig phase of the chosen height + origin) is at the PSP
-    phase's order, relative to the plane's (the moved pixels the path puts within ``flat_mm`` of 0)."""
-    with torch.no_grad():
-        A = layer.phase_from_height(torch.as_tensor(np.nan_to_num(choice.height), dtype=torch.float64)).numpy()
-    r = (psp_phase - A - choice.offset_rad) / (2 * np.pi)
+    phase's order, relative to the plane's (the moved pixels the path puts within ``flat_mm`` of 0; the reading:
+    :func:`orders_ceiling.reference_orders`)."""
+    r, plane = reference_orders(choice, layer, psp_phase, flat_mm)
     m = choice.moved & scored & np.isfinite(r)
-    plane = m & (np.abs(choice.height) < flat_mm)
+    plane &= scored
     if not plane.any() or not m.any():
         return float("nan")
     return float(np.mean(np.abs(r[m] - np.median(r[plane])) < 0.5))

@@ -597,15 +597,14 @@ def refine_with_phase(height_mm: np.ndarray, fringe: np.ndarray, rig, method: st
     :func:`uhrnet.physics.orientation.plane_lean`); neither changes a height."""
 
     ssp = fringe_phase(fringe, rig, name)
+    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
     if method == "orders":
         choice = order_choice(height_mm, fringe, rig, network_mm, name, phase=ssp)
-        refined, stats = choice.height, {**choice.stats, "per_region": [asdict(r) for r in choice.regions]}
-        stats["plane_lean"] = plane_lean(choice.height, choice.moved, height_mm, rig if isinstance(rig, Rig)
-                                         else Rig.from_dict(rig))
+        refined, stats = choice.height, {**choice.stats, "per_region": [asdict(reg) for reg in choice.regions]}
+        stats["plane_lean"] = plane_lean(choice.height, choice.moved, height_mm, r)
     else:
         refined, _, stats = refine_relief(height_mm, ssp.wrapped, ssp.reliability, rig,
                                           valid=np.isfinite(height_mm) & ssp.valid)
-    r = rig if isinstance(rig, Rig) else Rig.from_dict(rig)
     stats["orientation"] = check_orientation(ssp.wrapped, ssp.reliability, ssp.valid, r).to_dict()
     refined = np.where(np.isfinite(height_mm), refined, np.nan).astype(np.float32)
     return refined, stats

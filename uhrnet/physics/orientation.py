@@ -172,9 +172,7 @@ def check_orientation(wrapped: np.ndarray, reliability: np.ndarray, lit: np.ndar
     best = max(fit, key=fit.get)  # ties: as given (first)
     gu, gv = rig_phase_gradient(rig)
     vertical = fringe_axis((gu, gv)) == "vertical"
-    cam = rig.camera
-    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
-    per_mm = float(rig.phase_at_height(1.0, centre)[0] - rig.phase_at_height(0.0, centre)[0])
+    per_mm = _centre_per_mm(rig)
     # raised by (Phi0(plane end) - Phi0(object end)) / per_mm > 0: the plane end lies sign(g / per_mm) of the object's
     side = int(np.sign((gu if vertical else gv) * per_mm))
     agree, runs = shadow_sides(on[best], lit, vertical, side)
@@ -210,9 +208,7 @@ def plane_lean(height_mm: np.ndarray, moved: np.ndarray, estimate_mm: np.ndarray
     out = {"mm": None, "periods": None, "pixels": int(on.sum())}
     if on.sum() < max(3, LEAN_MIN_SHARE * on.size):
         return out
-    cam = rig.camera
-    centre = np.array([[(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]])
-    per_mm = abs(float(rig.phase_at_height(1.0, centre)[0] - rig.phase_at_height(0.0, centre)[0]))
+    per_mm = abs(_centre_per_mm(rig))
     period = 2.0 * np.pi / per_mm if per_mm > 0 else np.inf
     rows, cols = np.nonzero(on)
     A = np.stack([np.ones(rows.size), rows, cols], axis=1).astype(np.float64)
@@ -249,6 +245,13 @@ def lean_warning(stats: dict | None, rig_name: str) -> str | None:
             f"({lean['mm']:.1f} mm) across the image where the network sees it flat, and the rig's plane fringes "
             f"follow the image's on {fit:.2f} of it: an image mirrored along its fringes, or not of this rig? "
             "(the path's heights are kept)")
+
+
+def _centre_per_mm(rig: Rig) -> float:
+    """The rig's phase per mm of height (rad / mm; :meth:`fppsim.geometry.rig.Rig.sensitivity`) at the pixel
+    centre of the image."""
+    cam = rig.camera
+    return float(rig.sensitivity(0.0, 1.0, np.array([(cam.width - 1) / 2.0, (cam.height - 1) / 2.0]))[()])
 
 
 def _verdict(fit: dict, agree: float, runs: int, dark: float = 0.0) -> tuple[str, str]:
