@@ -126,3 +126,20 @@ def test_an_island_follows_its_largest_neighbour_where_it_ends_up(scene):
     got, shifted, stats = continue_islands(path, np.ones(h.shape, bool), wrapped, layer)
     assert np.array_equal(shifted, half | hole)
     np.testing.assert_allclose(got, h, atol=1e-6)
+
+
+def test_a_patch_whose_steps_jump_only_inside_itself_stays(scene):
+    rig, layer, h, wrapped, (xx, yy) = scene
+    # a square cut off from the view by a ring of pixels not moved; in its lower half the path's phase climbs one
+    # whole period over 8 px (continued: under half a period a step), so the lower right sits an order above the
+    # upper right, one component joined around the climb: its 20 jumping steps (row 199 -> 200, x >= 308) jump
+    # inside it, off no neighbour. Shifting it by them moved the whole patch a whole order (the half-grey pair).
+    square = (np.abs(xx - 300) < 25) & (np.abs(yy - 200) < 25)
+    ring = (np.abs(xx - 300) < 27) & (np.abs(yy - 200) < 27) & ~square
+    climb = np.clip((xx - 300) / 8.0, 0.0, 1.0) * (yy >= 200) * square
+    path = _off_by(layer, h, square, torch.as_tensor(climb))
+    comp = continued_components(layer.phase_from_height(torch.as_tensor(path)).numpy(), wrapped, ~ring)
+    assert len(np.unique(comp[square])) == 1  # one component, joined around the climb
+    got, shifted, stats = continue_islands(path, ~ring, wrapped, layer)
+    assert not shifted.any() and stats["island_pixels"] == 0
+    np.testing.assert_array_equal(got, path)
