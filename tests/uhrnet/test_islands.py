@@ -131,8 +131,8 @@ def test_an_island_follows_its_largest_neighbour_where_it_ends_up(scene):
 def test_a_patch_whose_steps_jump_only_inside_itself_stays(scene):
     rig, layer, h, wrapped, (xx, yy) = scene
     # a square cut off from the view by a ring of pixels not moved; in its lower half the path's phase climbs one
-    # whole period over 8 px (continued: under half a period a step), so the lower right sits an order above the
-    # upper right, one component joined around the climb: its 20 jumping steps (row 199 -> 200, x >= 308) jump
+    # whole period over 8 px (continued: under half a period a step), so the lower right sits an order off the
+    # upper right, one component joined around the climb: its 21 jumping steps (row 199 -> 200, x >= 304) jump
     # inside it, off no neighbour. Shifting it by them moved the whole patch a whole order (the half-grey pair).
     square = (np.abs(xx - 300) < 25) & (np.abs(yy - 200) < 25)
     ring = (np.abs(xx - 300) < 27) & (np.abs(yy - 200) < 27) & ~square
