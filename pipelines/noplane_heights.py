@@ -15,7 +15,10 @@ mirrored along the fringes, every phase region at one order); on the pixels with
 input: the error's RMS (with any sub-period offset between the rig's phase origin and the frame's), standard
 deviation (level-free), the standard deviation within 3 px of the unscored pixels (the rims) and further in, the
 share within half a fringe period of height of the truth (after the mean; all pixels and the rims), and
-evaluate-phase's residual / flat, as it is and with the pixels half a period off or more put at the truth.
+evaluate-phase's residual / flat, as it is and with the pixels half a period off or more put at the truth. A third
+row, ``path_truth_estimate``, runs the path with the frame's own phase-shifting heights (through the rig, at the
+path's level) as its estimate: what the path would leave with a network that knew the answer, so the part of the
+error that is the network's estimate and the part that is the path's.
 
 With ``--pair`` (a labelled figshare pair: fringe_pattern.npy + height_map.npy) also a frame no choice was made
 on: the pair with every pixel off its objects (valid, more than 1 mm above the plane) blacked out, as a frame of
@@ -57,6 +60,7 @@ from uhrnet.scoring.phase_residual import fit_phase  # noqa: E402
 from uhrnet.workflows.sim2real.real_metrics import object_mask  # noqa: E402
 
 RIM_PX = 3.0
+KINDS = ("network", "path", "path_truth_estimate")
 KEYS = ("rmse_mm", "sd_mm", "rim_sd_mm", "inner_sd_mm", "within_half_period", "rim_within_half_period",
         "phase_ratio", "phase_ratio_orders_true")
 PAIR_KEYS = ("rmse_mm", "rim_rmse_mm", "inner_rmse_mm", "within_1mm", "alpha")
@@ -78,6 +82,17 @@ class Network:
         return net, refine_with_phase(est, fringe, rig, "orders", network_mm=net)[0].astype(np.float64)
 
 
+def truth_heights(h: np.ndarray, psp_phase: np.ndarray, m: np.ndarray, layer) -> tuple[np.ndarray, np.ndarray]:
+    """(the rig's heights of the phase-shifting phase shifted by the whole periods nearest ``h`` over ``m``, half a
+    fringe period of height at each pixel), both (H, W) float64 mm."""
+    t = lambda a: torch.as_tensor(np.nan_to_num(a), dtype=torch.float64)  # noqa: E731
+    with torch.no_grad():
+        orders = np.round(np.median(((psp_phase - layer.phase_from_height(t(h)).numpy()) / (2 * np.pi))[m]))
+        truth = layer.height_from_phase(t(psp_phase - 2 * np.pi * orders)).numpy()
+        half = np.pi / np.abs(layer.sensitivity(t(truth)).numpy())
+    return truth, half
+
+
 def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim: np.ndarray) -> dict:
     """The error of ``h`` against the rig's heights of the phase-shifting phase shifted by the whole periods nearest
     ``h`` (a sub-period offset between the rig's phase origin and the frame's stays in ``rmse_mm``; ``sd_mm`` and
@@ -87,14 +102,11 @@ def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim:
     m = scored & np.isfinite(h)
     if m.sum() < MIN_PIXELS:
         raise SystemExit(f"only {int(m.sum())} pixels have both a phase and a height: nothing to score")
-    t = lambda a: torch.as_tensor(np.nan_to_num(a), dtype=torch.float64)  # noqa: E731
-    with torch.no_grad():
-        orders = np.round(np.median(((psp_phase - layer.phase_from_height(t(h)).numpy()) / (2 * np.pi))[m]))
-        truth = layer.height_from_phase(t(psp_phase - 2 * np.pi * orders)).numpy()
-        half = np.pi / np.abs(layer.sensitivity(t(truth)).numpy())
+    truth, half = truth_heights(h, psp_phase, m, layer)
     e = h - truth
     c = e - e[m].mean()
     off = m & (np.abs(c) >= half)
+    level = e[m & ~off].mean() if (m & ~off).any() else e[m].mean()
     flat = fit_phase(psp_phase, np.zeros_like(h), m).rmse_rad
     ratio = lambda x: fit_phase(psp_phase, x, m).rmse_rad / flat  # noqa: E731
     return {"rmse_mm": float(np.sqrt(np.mean(e[m] ** 2))), "sd_mm": float(c[m].std()),
@@ -102,7 +114,8 @@ def scores(h: np.ndarray, psp_phase: np.ndarray, scored: np.ndarray, layer, rim:
             "within_half_period": float(1.0 - off.sum() / m.sum()),
             "rim_within_half_period": float(1.0 - off[rim].sum() / max((m & rim).sum(), 1)),
             "phase_ratio": float(ratio(np.where(m, h, 0.0))),
-            "phase_ratio_orders_true": float(ratio(np.where(off, truth + e[m].mean(), np.where(m, h, 0.0)))),
+            # at the level of the pixels in order (the mean over all would carry the off pixels' own periods)
+            "phase_ratio_orders_true": float(ratio(np.where(off, truth + level, np.where(m, h, 0.0)))),
             "pixels": int(m.sum())}
 
 
@@ -141,8 +154,9 @@ def pair_scores(h: np.ndarray, truth: np.ndarray, obj: np.ndarray, rim: np.ndarr
 def per_run(rows: list[dict]) -> list[dict]:
     """One row per run: its frames' scores averaged, so the spread in the tables is over runs (seeds)."""
     runs = list(dict.fromkeys(r["run"] for r in rows))
+    kinds = [k for k in KINDS if k in rows[0]]
     return [{kind: {k: float(np.mean([r[kind][k] for r in rows if r["run"] == run])) for k in rows[0][kind]}
-             for kind in ("network", "path")} for run in runs]
+             for kind in kinds} for run in runs]
 
 
 def table(rows: list[dict], keys, head) -> str:
@@ -150,7 +164,7 @@ def table(rows: list[dict], keys, head) -> str:
     rows = per_run(rows)
     out = ["| " + " | ".join(["estimate", "runs"] + head) + " |", "|" + "---|" * (len(head) + 2)]
     fmt = lambda a: f"{a.mean():.3g} ± {a.std(ddof=1) if len(a) > 1 else 0:.2g}"  # noqa: E731
-    for kind in ("network", "path"):
+    for kind in [k for k in KINDS if k in rows[0]]:
         out.append(f"| {kind} | {len(rows)} | " + " | ".join(fmt(np.array([r[kind][k] for r in rows])) for k in keys)
                    + " |")
     return "\n".join(out)
@@ -184,9 +198,14 @@ def main(argv=None) -> int:
             rim = ndi.distance_transform_edt(scored) <= RIM_PX
             layer = layer_for(rig, fringe.shape)
             net, pth = network.heights(fringe, rig)
+            known = np.where(scored, truth_heights(pth, s.phase, scored & np.isfinite(pth), layer)[0], net)
+            ideal = refine_with_phase(known, fringe, rig, "orders", network_mm=known)[0].astype(np.float64)
             rows.append({"run": run, "id": sid, "network": scores(net, s.phase, scored, layer, rim),
-                         "path": scores(pth, s.phase, scored, layer, rim)})
-            print(f"{run} {sid}: network sd {rows[-1]['network']['sd_mm']:.2f} mm, path {rows[-1]['path']['sd_mm']:.2f} mm",
+                         "path": scores(pth, s.phase, scored, layer, rim),
+                         "path_truth_estimate": scores(ideal, s.phase, scored, layer, rim)})
+            r = rows[-1]
+            print(f"{run} {sid}: evaluate-phase ratio network {r['network']['phase_ratio']:.3f}, path "
+                  f"{r['path']['phase_ratio']:.3f}, path from the truth {r['path_truth_estimate']['phase_ratio']:.3f}",
                   flush=True)
     pair_rows = []
     if args.pair:
