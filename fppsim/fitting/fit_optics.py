@@ -413,6 +413,9 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
     if across:
         model = {k: (v.T if isinstance(v, np.ndarray) else v) for k, v in model.items()}
     per, tables = [], {}
+    # objects on black: the gray image's spectral peak is their outline's (FP672/541's figurine: 31 px, its fringes
+    # 8.9-10.5 px), which measured the contrast at that period and clamped the blur to 0: the rig's period instead
+    rig_period = float(2 * np.pi / np.hypot(*rig_phase_gradient(rig)))
     for im in images:
         check_image_size(rig, im.gray.shape, im.name, error=InputError, sep=" x ",
                          template="{what}: image is {got} px but {who} {camera}{hint}",
@@ -422,17 +425,20 @@ def fit_optics(images, rig: Rig, ambient: float | None = None, albedo_plane: flo
             im = dc_replace(im, plane=plane, obj=obj)
         if across:
             im = _transposed(im)
-        period = estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
+        no_plane = not rig.plane_in_view
+        period = rig_period if no_plane else estimate_period(im.gray.astype(np.float64), im.plane_or_valid)
         if not np.isfinite(period):
             per.append({"name": im.name, "plane_from": source} | {k: float("nan") for k in FITTED})
             continue
-        key = round(period, 1)  # one contrast table per period (to 0.1 px)
-        if key not in tables:
-            tables[key] = contrast_table(rig, key, model=model)
         unlit = unlit_share(im.gray, period)
         # before the phase's plane: its constant offset finds one on any flat top; a rig fitted without a plane in
         # view says so itself (a bust filling 62 % of the view leaves less than NO_PLANE_SHARE without fringes)
-        if unlit >= NO_PLANE_SHARE or not rig.plane_in_view:
+        if unlit >= NO_PLANE_SHARE and not no_plane:
+            no_plane, period = True, rig_period
+        key = round(period, 1)  # one contrast table per period (to 0.1 px)
+        if key not in tables:
+            tables[key] = contrast_table(rig, key, model=model)
+        if no_plane:
             per.append({"name": im.name, "plane_from": NO_PLANE, "unlit_share": unlit}
                        | object_estimates(im, rig, tables[key], period, amb, ao))
             continue

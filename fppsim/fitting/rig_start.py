@@ -318,6 +318,16 @@ def _maps_and_size(path, max_maps, convention, negate_sin):
     return maps, kind, images, W, H
 
 
+def _maps_gradient(path, maps) -> tuple[float, float]:
+    """The median plane phase gradient of ``maps``, naming a map with too few phase pixels (an all-black iPattern)."""
+    try:
+        return tuple(float(v) for v in np.median([plane_phase_gradient(m.phase, m.valid) for m in maps], axis=0))
+    except RigError as exc:
+        bad = next(m.name for m in maps if (m.valid & np.isfinite(m.phase)).sum() < 50)
+        raise RigError(f"{path}: {bad}: {exc} (a scan's pixel has one where PSin, PCos are not both 0 and its "
+                       "iPattern image is not black)") from None
+
+
 def _first_plane_fit(maps, W, H, gradient, D, baseline, fov, focal):
     """Plane pixels per map from a provisional start (the side does not change the plane's phase), then the
     plane fit on the side most maps prefer: ``(fit, side, maps)`` (single-shot maps unwrapped on the plane).
@@ -436,7 +446,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     D = DEFAULT_DISTANCE if distance is None else float(distance)
     assumed = {k: v for k, v, given in (("distance_mm", D, distance), ("baseline_mm", BASELINE_RATIO * D, baseline),
                                        ("fov_deg", DEFAULT_FOV_DEG, fov if focal is None else focal)) if given is None}
-    gradient = tuple(float(v) for v in np.median([plane_phase_gradient(m.phase, m.valid) for m in maps], axis=0))
+    gradient = _maps_gradient(path, maps)
     axis = fringe_axis(gradient)
     if kind != "phase":
         gradient, axis = plain_image_gradient(images[:max_maps], gradient)
@@ -455,14 +465,15 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
         missing = [f"--{k.replace('_', '-')}" for k, v in (("distance", distance), ("baseline", baseline),
                                                          ("projector_side", projector_side)) if v is None]
         if missing:
-            raise RigError(f"{path}: the plane model fits the scans poorly ({poor_plane_words(fit)}): no reference "
-                           "plane in view (or the phase is written another way: --convention, --negate-sin), so the "
-                           f"projector's pose cannot be fitted; give scans that show the plane, or {', '.join(missing)} "
-                           "for a rig whose projector pose is assumed (and --fringe-period PX if you know the "
-                           "plane's fringe period: the objects' own is used otherwise)")
+            what, read = ("scans", " (or the phase is written another way: --convention, --negate-sin)") if kind == \
+                "phase" else ("images", "")  # plain images have no --convention to read them by
+            raise RigError(f"{path}: the plane model fits the {what} poorly ({poor_plane_words(fit)}): no reference "
+                           f"plane in view{read}, so the projector's pose cannot be fitted; give {what} that show the "
+                           f"plane, or {', '.join(missing)} for a rig whose projector pose is assumed (and --fringe-period "
+                           "PX if you know the plane's fringe period: the objects' own is used otherwise)")
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
-        source = "given (--projector-side; without the plane the scans cannot measure it)"
+        source = f"given (--projector-side; without the plane the {'scans' if kind == 'phase' else 'images'} cannot measure it)"
         gradient = _objects_gradient(images[:max_maps], axis, gradient, kind == "phase", fringe_period)
         if fringe_period is None:
             assumed["fringe_period"] = "measured on the objects"

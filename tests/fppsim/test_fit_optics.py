@@ -341,3 +341,34 @@ def test_fit_optics_refuses_a_bad_seed_before_fitting(tmp_path, seed):
     with pytest.raises(UsageError, match=r"^--seed must be an integer >= 0, got "):
         fo.FitOpticsConfig(real=tmp_path, out=tmp_path / "o.yaml", seed=seed)
     assert fo.FitOpticsConfig(real=tmp_path, out=tmp_path / "o.yaml", seed=2**40).seed == 2**40
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (SHARED / "real-phase" / "FP672").is_dir(), reason="../shared/real-phase not present")
+def test_fp672_on_black_measures_the_objects_fringes_at_the_rigs_period(tmp_path, capsys):
+    """FP672/541 with its plane blacked out (the guide's no-calibration path: fit-rig with an assumed pose, then
+    fit-optics): the gray image's spectral peak is the figurine's outline (31 px; its fringes 8.9 px, the plane's
+    10.54 px), at which the contrast read 0.10 and the blur was clamped to 0 with ambient 0, silently. The rig's
+    period is used instead: the blur is the objects' (no sharper than the same frame's plane, 1.7 / 0.7 px)."""
+    import scipy.io as sio
+
+    from fppsim.cli import main
+    from fppsim.dataio.writers import save_psp_folder_sample
+    from fppsim.phase.plane import phase_plane_masks
+
+    root = SHARED / "real-phase" / "FP672"
+    get = lambda folder, key: sio.loadmat(str(root / folder / "541.mat"))[key]  # noqa: E731
+    psin, pcos, image, order = get("PSin", "PSin"), get("PCos", "PCos"), get("iPattern", "iPattern"), get("Fringe", "Order")
+    valid = (psin != 0) | (pcos != 0)
+    _, objects = phase_plane_masks(np.arctan2(-psin, -pcos) + np.pi + 2 * np.pi * order, valid)
+    keep = objects & valid
+    save_psp_folder_sample(tmp_path / "scans", "541", np.where(keep, psin, 0), np.where(keep, pcos, 0),
+                           np.where(keep, order, 0), np.where(keep, image, 0).astype(np.uint8))
+    rig = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(rig), "--distance", "500", "--baseline", "330",
+                 "--projector-side", "right", "--fringe-period", "10.54"]) == 0, capsys.readouterr().err
+    fit = fo.fit_optics(readers.load_fringe_images(tmp_path / "scans")[0], load_rig(rig))
+    p = fit.per_image[0]
+    assert p["plane_from"] == fo.NO_PLANE
+    assert 0.75 * 10.54 <= p["period_px"] <= 1.25 * 10.54, p["period_px"]  # before: 31 px
+    assert p["projector_blur"] > 1.0 and p["camera_blur"] > 0.3, p  # before: 0 and 0

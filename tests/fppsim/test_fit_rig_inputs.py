@@ -48,6 +48,23 @@ def test_fit_rig_names_the_image_without_fringes(tmp_path, capsys):
     assert not (tmp_path / "rig.json").exists()
 
 
+
+def test_fit_rig_names_the_scan_whose_image_is_black(tmp_path, capsys):
+    """A scan whose iPattern image is all black (pixels count where it is not) among scans with a phase: the error was
+    'too few pixels with a phase to measure the fringe direction', neither the folder nor the frame named."""
+    from fppsim.dataio.writers import save_psp_folder_sample
+
+    rig = _horizontal_rig()
+    phase = rig.phase_at_height(0.0)
+    image = (127 + 100 * np.cos(phase)).astype(np.uint8)
+    for sid, img in (("1", image), ("2", np.zeros_like(image))):
+        save_psp_folder_sample(tmp_path / "scans", sid, -np.sin(phase), -np.cos(phase),
+                               np.floor(phase / (2 * np.pi)), img)
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(tmp_path / "rig.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{tmp_path / 'scans'}: 2: too few pixels with a phase" in err[0], err
+    assert "iPattern image is not black" in err[0] and not (tmp_path / "rig.json").exists()
+
 def test_plain_images_take_the_fringe_direction_from_their_spectrum():
     """Plain fringe images of objects on black: their phase, unwrapped piece by piece, can give a plane gradient
     across the fringes' true direction (FP672/541 with its plane blacked out, as a PNG: 'the fringes are horizontal',

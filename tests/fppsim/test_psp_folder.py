@@ -206,3 +206,25 @@ def test_a_frames_digest_is_the_same_whichever_way_it_is_read_nan_pixels_too(tmp
     assert load_psp_folder_sample(tmp_path / "a", "0", negate_sin=True).digest() in digests.values()
     _write_benchmark_style(tmp_path / "b", "0", phase + 0.5, valid, img)
     assert load_psp_folder_sample(tmp_path / "b", "0").digest() not in digests.values()
+
+
+def test_a_wrapped_phase_with_one_order_everywhere_is_named(tmp_path, capsys):
+    """A lab with wrapped phase only writes Order 0 everywhere: fit-rig called it 'no reference plane in view' (FP672/541
+    with Order 0: 'the plane model fits the scans poorly ... give --distance, --baseline, --projector-side'; given
+    those, 'the fringes are horizontal'), and evaluate-phase scored the wrapped phase. Now one line naming the Fringe
+    file, exit 1; a phase of less than one period with Order 0 everywhere is still read."""
+    from fppsim.cli import main
+
+    phase, valid, img = _truth()
+    _write_benchmark_style(tmp_path / "wrapped", "1", phase, valid, img)
+    scipy.io.savemat(tmp_path / "wrapped" / "Fringe" / "1.mat", {"Order": np.zeros(phase.shape)})
+    with pytest.raises(PSPMatError, match=r"Fringe/1\.mat: Order is 0 at every valid pixel .* a wrapped phase"):
+        load_psp_folder_sample(tmp_path / "wrapped", "1")
+    assert main(["fit-rig", str(tmp_path / "wrapped"), "--out", str(tmp_path / "rig.json")]) == 1
+    err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
+    assert len(err) == 1 and "Fringe/1.mat: Order is 0 at every valid pixel" in err[0], err
+    assert not (tmp_path / "rig.json").exists()
+    slow = 0.3 + 0.9 * TWO_PI * np.mgrid[0:24, 0:40][1] / 39.0  # under one period: one order is right
+    _write_benchmark_style(tmp_path / "one", "1", slow, valid, img)
+    s = load_psp_folder_sample(tmp_path / "one", "1")
+    assert np.allclose(s.phase[valid], slow[valid])

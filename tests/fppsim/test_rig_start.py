@@ -676,10 +676,12 @@ def test_scans_without_a_plane_in_view_say_what_they_need(tmp_path, capsys):
     assert main(["fit-rig", str(tmp_path / "images"), "--out", str(tmp_path / "r3.json")]) == 1
     err = [x for x in capsys.readouterr().err.splitlines() if x.strip()]
     assert len(err) == 1 and "no reference plane in view" in err[0], err
+    # worded for images: no --convention / --negate-sin to suggest (they read scans only), no 'scans'
+    assert "fits the images poorly" in err[0] and "--convention" not in err[0] and "give scans" not in err[0], err
     # with the geometry given, the fringes come from the image's own local steps, not from a plane fitted to its
     # phase unwrapped object by object (which put 45.9 px on FP1523 on black, whose fringes run every 11.7 px)
     assert main(["fit-rig", str(tmp_path / "images"), "--out", str(tmp_path / "r3.json"), "--distance", "420",
                  "--baseline", "260", "--projector-side", "right", "--fov", "34"]) == 0
-    capsys.readouterr()
+    assert "without the plane the images cannot measure it" in capsys.readouterr().out
     period = 2 * np.pi / np.hypot(*rig_phase_gradient(Rig.load(tmp_path / "r3.json")))
     assert period == pytest.approx(true_period, rel=0.1) and Rig.load(tmp_path / "r3.json").plane_in_view is False
