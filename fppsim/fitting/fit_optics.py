@@ -500,12 +500,17 @@ def format_optics_fit(fit: OpticsFit) -> str:
             lines.append(f"{k:<16}{_fmt_range(d[k]):>20}{'n/a':>15}{'(not measured)':>22}")
             continue
         note = "  (fixed)" if k in fit.fixed else ""
-        lines.append(f"{k:<16}{_fmt_range(d[k]):>20}{fit.centre[k]:>15.4g}{_fmt_range(r[k]):>22}{note}")
+        lines.append(f"{k:<16}{_fmt_range(d[k]):>20} {_num(fit.centre[k]):>14} {_fmt_range(r[k]):>21}{note}")
     return "\n".join(lines)
 
 
+def _num(x: float) -> str:
+    """4 significant digits; a fit's rounding noise (below 1e-12, e.g. a shot noise of 1e-17) reads 0."""
+    return "0" if abs(x) < 1e-12 else f"{x:.4g}"
+
+
 def _fmt_range(v) -> str:
-    return f"[{v[0]:.4g}, {v[1]:.4g}]"
+    return f"[{_num(v[0])}, {_num(v[1])}]"
 
 
 def compare_before_after(real_dir, fit: OpticsFit, rig: Rig, count: int = 4, meshes=None, seed: int = 0,

@@ -1,5 +1,7 @@
 """fppsim.fitting.fit_optics: optics ranges fitted to fringe images made with known optics."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -372,3 +374,11 @@ def test_fp672_on_black_measures_the_objects_fringes_at_the_rigs_period(tmp_path
     assert p["plane_from"] == fo.NO_PLANE
     assert 0.75 * 10.54 <= p["period_px"] <= 1.25 * 10.54, p["period_px"]  # before: 31 px
     assert p["projector_blur"] > 1.0 and p["camera_blur"] > 0.3, p  # before: 0 and 0
+
+
+def test_the_fit_table_reads_rounding_noise_as_zero_and_keeps_its_columns_apart():
+    ranges = dataclasses.replace(OpticsRanges(), shot_noise=(1.353e-17, 1.6543e-17), gain=(123.456789, 234.5678912))
+    fit = fo.OpticsFit(per_image=[], centre={"shot_noise": 1.504e-17, "gain": 200.123456}, ranges=ranges, n_images=1)
+    rows = {line.split()[0]: line for line in fo.format_optics_fit(fit).splitlines()[1:]}
+    assert rows["shot_noise"].split()[-3:] == ["0", "[0,", "0]"]
+    assert rows["gain"].split()[-3:] == ["200.1", "[123.5,", "234.6]"]
