@@ -228,3 +228,13 @@ def test_a_wrapped_phase_with_one_order_everywhere_is_named(tmp_path, capsys):
     _write_benchmark_style(tmp_path / "one", "1", slow, valid, img)
     s = load_psp_folder_sample(tmp_path / "one", "1")
     assert np.allclose(s.phase[valid], slow[valid])
+
+
+def test_a_folder_of_plain_images_is_told_it_needs_the_scans(tmp_path):
+    import cv2
+
+    for i in range(2):
+        cv2.imwrite(str(tmp_path / f"frame{i}.png"), np.zeros((8, 8), np.uint8))
+    with pytest.raises(PSPMatError, match=r"missing folder\(s\) PSin, PCos, Fringe, iPattern \(found: none\).*"
+                                          r"holds 2 plain image\(s\), which carry no phase-shifting phase"):
+        list_psp_ids(tmp_path)
