@@ -238,3 +238,14 @@ def test_a_folder_of_plain_images_is_told_it_needs_the_scans(tmp_path):
     with pytest.raises(PSPMatError, match=r"missing folder\(s\) PSin, PCos, Fringe, iPattern \(found: none\).*"
                                           r"holds 2 plain image\(s\), which carry no phase-shifting phase"):
         list_psp_ids(tmp_path)
+
+
+def test_one_order_under_one_period_read_the_wrong_way_is_a_misreading_not_a_wrapped_phase(tmp_path):
+    """Order 0 everywhere and a phase under one period is absolute; read with the wrong --convention it wraps once
+    (2.7 % of the steps), while the way it is written does not: that is the misreading note (--convention
+    benchmark), not 'Fringe/ must hold each pixel's fringe order' (which only a phase that wraps every way read is)."""
+    phase, valid, img = _truth()
+    slow = 0.3 + 0.9 * TWO_PI * np.mgrid[0:24, 0:40][1] / 39.0
+    _write_benchmark_style(tmp_path, "1", slow, valid, img)
+    s = load_psp_folder_sample(tmp_path, "1", convention="fppsim")
+    assert s.meta["misread"]["best"][0] == "benchmark"

@@ -396,7 +396,8 @@ def load_psp_folder_sample(root: str | os.PathLike, sid: str, convention: str = 
     conv, neg = s.meta["convention"], s.meta["negate_sin"]
     check = reading_check(s, conv, neg)
     s.meta["jump_share"] = check["given"]
-    if check["given"] >= WRAPPED_SHARE and np.ptp(order[valid]) == 0:  # every reading wraps: Order is no order
+    # every reading wraps (one that does not is a misreading, noted below): Order is no order
+    if min(check["given"], check["best_share"]) >= WRAPPED_SHARE and np.ptp(order[valid]) == 0:
         raise PSPMatError(f"{paths['order']}: Order is {int(order[valid][0])} at every valid pixel and the phase jumps "
                           f"by more than pi between {check['given']:.1%} of neighbouring pixels: a wrapped phase, "
                           "not an absolute one: Fringe/ must hold each pixel's fringe order (temporal unwrapping)")
