@@ -324,8 +324,8 @@ def _maps_gradient(path, maps) -> tuple[float, float]:
         return tuple(float(v) for v in np.median([plane_phase_gradient(m.phase, m.valid) for m in maps], axis=0))
     except RigError as exc:
         bad = next(m.name for m in maps if (m.valid & np.isfinite(m.phase)).sum() < 50)
-        raise RigError(f"{path}: {bad}: {exc} (a scan's pixel has one where PSin, PCos are not both 0 and its "
-                       "iPattern image is not black)") from None
+        raise RigError(f"{path}: {bad}: {exc} (a pixel has one where its phase-shifting sums are not both 0 "
+                       "and its image is not black)") from None
 
 
 def _first_plane_fit(maps, W, H, gradient, D, baseline, fov, focal):

@@ -63,7 +63,7 @@ def test_fit_rig_names_the_scan_whose_image_is_black(tmp_path, capsys):
     assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(tmp_path / "rig.json")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{tmp_path / 'scans'}: 2: too few pixels with a phase" in err[0], err
-    assert "iPattern image is not black" in err[0] and not (tmp_path / "rig.json").exists()
+    assert "its image is not black" in err[0] and not (tmp_path / "rig.json").exists()
 
 def test_plain_images_take_the_fringe_direction_from_their_spectrum():
     """Plain fringe images of objects on black: their phase, unwrapped piece by piece, can give a plane gradient

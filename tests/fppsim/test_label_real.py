@@ -237,7 +237,11 @@ def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
     assert rc == 1 and "nowhere: no such folder" in err
     (tmp_path / "empty").mkdir()
     rc, err = _cli_error([tmp_path / "empty", "--out", tmp_path / "o"], capsys)
-    assert rc == 1 and "no scans found" in err
+    assert rc == 1 and "no scans found" in err and "plain image" not in err
+    (tmp_path / "empty" / "frame.png").write_bytes(b"")  # plain images: told they carry no phase-shifting phase
+    rc, err = _cli_error([tmp_path / "empty", "--out", tmp_path / "o"], capsys)
+    assert rc == 1 and "no scans found" in err and "it holds 1 plain image(s)" in err
+    (tmp_path / "empty" / "frame.png").unlink()
     root = _small_public(tmp_path / "pub")
     rc, err = _cli_error([tmp_path, "--out", tmp_path / "o"], capsys)  # a folder of scan folders
     assert rc == 1 and "holds scan folders (pub)" in err and "pass one of them" in err
