@@ -55,7 +55,7 @@ from fppsim.fitting.fit_periods import format_fit, measure_bands
 from fppsim.fitting.frame_scenes import frame_scenes, scenes_line
 from fppsim.fitting.fit_rig import check_fit_options, fit_baseline, format_baseline_fit, unused_label_options
 from fppsim.fitting.start_result import (StartRigResult, first_lines, plane_fits_poorly, poor_plane_words,
-                                         start_lines)
+                                         saturation_words, start_lines)
 from fppsim.fitting.plane_phase import (LENS_PARAMS, PLANE_PARAMS, PhaseMap, find_plane,
                                         fit_plane_phase, fringe_axis, image_phase_map, plane_phase_gradient,
                                         relief_sign, shadow_side)
@@ -470,7 +470,7 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
             raise RigError(f"{path}: the plane model fits the {what} poorly ({poor_plane_words(fit)}): no reference "
                            f"plane in view{read}, so the projector's pose cannot be fitted; give {what} that show the "
                            f"plane, or {', '.join(missing)} for a rig whose projector pose is assumed (and --fringe-period "
-                           "PX if you know the plane's fringe period: the objects' own is used otherwise)")
+                           "PX if you know the plane's fringe period: the objects' own is used otherwise)" + saturation_words(images))
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
         source = f"given (--projector-side; without the plane the {'scans' if kind == 'phase' else 'images'} cannot measure it)"

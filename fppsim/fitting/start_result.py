@@ -112,6 +112,20 @@ def poor_plane_words(fit: PlanePhaseFit) -> str:
 
 
 
+SATURATED_SHARE = 0.1
+"""An image with this share of its pixels at its own maximum or more is over-exposed (a camera image has a few)."""
+
+
+def saturation_words(images) -> str:
+    """``''``, or the clause that names an over-exposed image among ``images`` (objects with ``gray`` and ``name``):
+    a saturated plane shows no fringes, so the plane model cannot find it (a frame with 48 % of its pixels at 255 was
+    refused as having no plane in view, without a word of why)."""
+    shares = [(float(np.mean(g >= g.max())), im.name) for im in images  # a black or flat image has no bright end
+              if (g := np.asarray(im.gray, np.float64)).size and np.isfinite(g.max()) and g.max() > max(g.min(), 0)]
+    share, name = max(shares, default=(0.0, ""))
+    return (f"; {name} has {share:.0%} of its pixels saturated (at its maximum, no fringes there): lower the "
+            "exposure" if share >= SATURATED_SHARE else "")
+
 def first_lines(path, maps, kind: str, images) -> list[str]:
     """What was read: how many maps of which kind, their size, and how the scans' files were read."""
     H, W = maps[0].phase.shape

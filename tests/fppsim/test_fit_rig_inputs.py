@@ -177,3 +177,34 @@ def test_the_largest_object_of_a_plain_image_is_all_of_its_lit_pixels(tmp_path):
     assert not res.no_plane
     cols = np.nonzero(body.any(0))[0]
     assert abs(res.extent_px - (cols.max() - cols.min() + 1)) <= 0.05 * 221, res.extent_px
+
+
+def test_an_over_exposed_image_is_named_when_no_plane_is_found():
+    from fppsim.fitting.start_result import saturation_words
+
+    class Image:
+        def __init__(self, gray, name):
+            self.gray, self.name = gray, name
+
+    rng = np.random.default_rng(0)
+    fine = rng.integers(0, 240, (60, 80)).astype(np.uint8)
+    burnt = np.where(np.arange(80) < 40, 255, fine).astype(np.uint8)  # half the view at 255
+    assert saturation_words([Image(fine, "a")]) == ""
+    assert saturation_words([Image(np.zeros((60, 80), np.uint8), "black")]) == ""  # dark, not burnt
+    words = saturation_words([Image(fine, "a"), Image(burnt, "b")])
+    assert words.startswith("; b has 50% of its pixels saturated") and "lower the exposure" in words
+
+
+@pytest.mark.skipif(not (SHARED / "real-phase" / "FP1523").is_dir(), reason="../shared absent")
+def test_fit_rig_says_an_image_is_saturated_when_it_finds_no_plane(tmp_path, capsys):
+    """QA: FP1523/1201's image 8 x brighter (57 % of its pixels at 255) was refused as 'no reference plane in view'
+    without a word about the exposure."""
+    import scipy.io
+
+    gray = scipy.io.loadmat(SHARED / "real-phase" / "FP1523" / "iPattern" / "1201.mat")["iPattern"].astype(float)
+    (tmp_path / "imgs").mkdir()
+    cv2.imwrite(str(tmp_path / "imgs" / "bright.png"), np.clip(8.0 * gray, 0, 255).astype(np.uint8))
+    assert main(["fit-rig", str(tmp_path / "imgs"), "--out", str(tmp_path / "rig.json")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no reference plane in view" in err[0], err
+    assert "bright has 57% of its pixels saturated" in err[0] and not (tmp_path / "rig.json").exists()
