@@ -59,8 +59,7 @@ from fppsim.owned import claim, output_folder, owners, same_folder
 from fppsim.phase import wrap
 from fppsim.phase.psp import decode_stacks
 from fppsim.phase.reference_check import order_slips, slips_words
-from fppsim.dataio.readers import check_read_convention, reading_note, open_source
-from fppsim.dataio.readers.psp_mat import PLAIN_IMAGES
+from fppsim.dataio.readers import check_read_convention, plain_images_note, reading_note, open_source
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -222,10 +221,9 @@ def detect_layout(root: str | os.PathLike) -> str:
     if inner:  # a folder of scan folders: their ids may repeat, so one ROOT at a time
         raise DatasetError(f"{root}: holds scan folders ({', '.join(inner[:4])}{', ...' if len(inner) > 4 else ''}), "
                            f"not scans: pass one of them as ROOT (e.g. {root / inner[0]})")
-    plain = sum(1 for q in root.iterdir() if q.is_file() and q.suffix.lower() in PLAIN_IMAGES)
     raise DatasetError(f"{root}: no scans found (expected PSin/ PCos/ Fringe/ iPattern/ folders of <id>.mat, or an "
                        "fppsim dataset generated with phase-shifting images: manifest.jsonl + <id>/psp/)"
-                       + (f"; it holds {plain} plain image(s), which carry no phase-shifting phase" if plain else ""))
+                       + plain_images_note(root))
 
 
 def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:

@@ -464,16 +464,16 @@ def rig_from_images(path, *, fov: float | None = None, focal: float | None = Non
     if no_plane:
         missing = [f"--{k.replace('_', '-')}" for k, v in (("distance", distance), ("baseline", baseline),
                                                          ("projector_side", projector_side)) if v is None]
-        if missing:
-            what, read = ("scans", " (or the phase is written another way: --convention, --negate-sin)") if kind == \
-                "phase" else ("images", "")  # plain images have no --convention to read them by
+        what = "scans" if kind == "phase" else "images"
+        if missing:  # plain images have no --convention to read them by
+            read = " (or the phase is written another way: --convention, --negate-sin)" if kind == "phase" else ""
             raise RigError(f"{path}: the plane model fits the {what} poorly ({poor_plane_words(fit)}): no reference "
                            f"plane in view{read}, so the projector's pose cannot be fitted; give {what} that show the "
                            f"plane, or {', '.join(missing)} for a rig whose projector pose is assumed (and --fringe-period "
-                           "PX if you know the plane's fringe period: the objects' own is used otherwise)" + saturation_words(images))
+                           f"PX if you know the plane's fringe period: the objects' own is used otherwise){saturation_words(images)}")
         # the side is the given one; the relief and shadows it was checked against were read off a "plane" fitted
         # to the objects, so they measure nothing here
-        source = f"given (--projector-side; without the plane the {'scans' if kind == 'phase' else 'images'} cannot measure it)"
+        source = f"given (--projector-side; without the plane the {what} cannot measure it)"
         gradient = _objects_gradient(images[:max_maps], axis, gradient, kind == "phase", fringe_period)
         if fringe_period is None:
             assumed["fringe_period"] = "measured on the objects"

@@ -110,8 +110,6 @@ def poor_plane_words(fit: PlanePhaseFit) -> str:
             f"reaching {PLANE_SIDES} or more")
 
 
-
-
 SATURATED_SHARE = 0.1
 """An image with this share of its pixels at its own maximum or more is over-exposed (a camera image has a few)."""
 
@@ -125,6 +123,7 @@ def saturation_words(images) -> str:
     share, name = max(shares, default=(0.0, ""))
     return (f"; {name} has {share:.0%} of its pixels saturated (at its maximum, no fringes there): lower the "
             "exposure" if share >= SATURATED_SHARE else "")
+
 
 def first_lines(path, maps, kind: str, images) -> list[str]:
     """What was read: how many maps of which kind, their size, and how the scans' files were read."""

@@ -21,7 +21,8 @@ from pathlib import Path
 
 from fppsim.files import warn
 
-__all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note"]
+__all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note",
+           "plain_images_note"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -94,3 +95,13 @@ def skipped_note(folder: str | os.PathLike, taken: tuple[str, ...], folders: boo
         return ""
     shown = ", ".join(f"{p.relative_to(within) if within else p.name} ({reason})" for p, reason in found[:4])
     return f"; skipped: {shown}" + (f", ... ({len(found)} in all)" if len(found) > 4 else "")
+
+
+def plain_images_note(folder: str | os.PathLike) -> str:
+    """``''``, or the clause an error ends with when ``folder``, given where phase-shifting scans are needed, holds
+    plain fringe images (:data:`IMAGE_EXTS`): they carry no phase-shifting phase. ``''`` too when it cannot be listed."""
+    try:
+        n = sum(1 for q in Path(folder).iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS)
+    except OSError:
+        return ""
+    return f"; it holds {n} plain image(s), which carry no phase-shifting phase: this needs the scans" if n else ""

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.dataio.readers.listing import skipped_note, warn_skipped
+from fppsim.dataio.readers.listing import plain_images_note, skipped_note, warn_skipped
 from fppsim.errors import NoPhaseError, PSPMatError, UsageError
 from fppsim.phase.psp import phase_from_sums
 
@@ -251,9 +251,6 @@ def _short(items, n: int = 8) -> str:
     return ", ".join(items[:n]) + (f", ... ({len(items)} in all)" if len(items) > n else "")
 
 
-PLAIN_IMAGES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-
-
 def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos", "order", "image")) -> list[str]:
     """Sample ids present in every sub-folder of ``roles`` (sorted; numeric names in numeric order).
 
@@ -266,11 +263,8 @@ def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos"
     missing = [FOLDERS[r][0] for r in roles if not (root / FOLDERS[r][0]).is_dir()]
     if missing:
         found = sorted(p.name for p in root.iterdir() if p.is_dir())
-        plain = sum(1 for q in root.iterdir() if q.is_file() and q.suffix.lower() in PLAIN_IMAGES)
-        note = (f" (it holds {plain} plain image(s), which carry no phase-shifting phase: this needs the scans)"
-                if plain else "")
         raise PSPMatError(f"{root}: missing folder(s) {', '.join(missing)} (found: {', '.join(found) or 'none'}); "
-                          f"expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each{note}")
+                          f"expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each{plain_images_note(root)}")
     ids = {}
     for r in roles:
         sub = FOLDERS[r][0]
