@@ -185,6 +185,21 @@ def test_an_image_not_shaped_like_the_training_images_is_said():
     assert shape_note({}, (352, 640)) is None  # an old checkpoint without the record: nothing to say
 
 
+def test_an_image_of_another_size_through_a_network_without_resize_is_said():
+    """Without --resize a network reads every image at its own size: a 320 x 240 frame through one trained on
+    640 x 480 px shows it fringes half as far apart as it learned them (evaluate-phase scored such frames without a
+    word); within 15 % of the size, or through a network with --resize, nothing is said."""
+    from uhrnet.inference.prediction import shape_note
+
+    ck = {"image_shape": [480, 640], "args": {"resize": None}}
+    note = shape_note(ck, (240, 320))
+    assert "320x240 px but the network was trained on 640x480 px images at their own size" in note
+    assert "0.50 x as far apart" in note
+    assert "2.00 x as far apart" in shape_note(ck, (960, 1280))
+    assert shape_note(ck, (480, 640)) is None and shape_note(ck, (500, 660)) is None
+    assert shape_note({"image_shape": [480, 640], "args": {"resize": "240x320"}}, (240, 320)) is None
+
+
 def test_predict_refuses_the_checkpoints_run_folder_as_out(ckpt, tmp_path, capsys):
     """predict once wrote its maps into the training run it read (and into the run's ownership record) when --out
     named that folder; it is refused as adapt refuses it: one line, exit 1, nothing written."""
