@@ -34,8 +34,8 @@ from fppsim.files import atomic_write_text, die_with_parent, json_text, ignore_s
 from fppsim.owned import claim, output_folder
 from fppsim.dataio.formats import (psp_freq, FIGSHARE_PAIRS, SETTINGS_FILE, LabelTransform, append_manifest, finished_indices,
                                    foreign_sample_folders, manifest_record, read_settings, reconcile, sample_id)
-from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_shards, dataset_files,
-                                          discard_empty_dataset, legacy_files)
+from fppsim.dataio.dataset_folder import (DATASET_TOOL, PREVIEW_NAME, check_format, check_no_frames, check_shards,
+                                          dataset_files, discard_empty_dataset, legacy_files)
 from fppsim.rendering.scene import MeshAsset, SceneRanges, find_meshes, load_mesh, unread_mesh_files
 from fppsim.rendering.synth import SynthConfig, synthesize
 from fppsim.dataio.writers import (BackgroundWriter, FigshareRows, export_figshare, figshare_rows, samples_folder,
@@ -371,6 +371,7 @@ def _open_dataset(out: Path, fmt: str, count: int, shard, settings: dict, previe
     """Check ``out`` for this run, then claim its fixed files and write its settings: ``(wanted indices,
     finished ones, whether this run wrote dataset.json)``. Every refusal comes before anything is written."""
     check_format(out, fmt)
+    check_no_frames(out, dataset_files(fmt, preview))  # the user's own frames: never a dataset beside them
     native = samples_folder(out, fmt)
     wanted = shard_indices(count, shard)
     done = finished_indices(native)
@@ -541,6 +542,7 @@ def merge(out, shard_dirs, link: bool = True) -> tuple[int, str | None, list[int
     check_shards(out, shard_dirs, natives)  # OUT none of them, no damaged sample: before anything is written
     with output_folder(out, "fppsim merge", error=DatasetError):
         check_format(out, fmt)
+        check_no_frames(out, dataset_files(fmt), "OUT", DatasetError)
         target = samples_folder(out, fmt)
         diff = _claim_dataset(out, target, bool(finished_indices(target)), settings, dataset_files(fmt),
                               "output folder")

@@ -7,7 +7,10 @@ beside the samples (``--out`` itself, or ``--out/native`` for the figshare forma
 then resumes with ``generate``, and shards merge into a folder ``generate`` wrote. A folder generated before
 the record existed is adopted when its ``dataset.json`` is fppsim's (:func:`legacy_files`: only the names it
 can show are fppsim's). Sample folders are not recorded: each proves itself (``meta.json``,
-:func:`fppsim.dataio.formats.is_own_sample`), and a foreign one is refused up front by the run.
+:func:`fppsim.dataio.formats.is_own_sample`), and a foreign one is refused up front by the run. A folder holding
+the user's own fringe frames (plain images, a scan in the public layout, or such scans one level down) is refused
+whole (:func:`check_no_frames`): a dataset written beside them would mix with them, and the readers would then
+take the folder for generate's dataset.
 """
 
 from __future__ import annotations
@@ -20,13 +23,15 @@ import numpy as np
 
 from fppsim.errors import DatasetError, GenerateError, UsageError
 from fppsim.dataio.encoding import load_npy, png_size
-from fppsim.files import unlink_quietly
-from fppsim.owned import same_folder
-from fppsim.dataio.formats import FIGSHARE_PAIRS, SETTINGS_FILE, finished_indices, read_settings, sample_id
+from fppsim.files import TMP_PREFIX, unlink_quietly
+from fppsim.owned import owners, same_folder
+from fppsim.dataio.formats import (FIGSHARE_PAIRS, SAMPLE_ID_RE, SETTINGS_FILE, finished_indices, read_settings,
+                                   sample_id)
+from fppsim.dataio.readers import open_source, plain_images
 from fppsim.dataio.writers import samples_folder
 
 __all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
-           "check_shards", "discard_empty_dataset"]
+           "check_no_frames", "check_shards", "discard_empty_dataset"]
 
 DATASET_TOOL = "fppsim generate"  # the record's name for a dataset's files, whether generate or merge wrote them
 MANIFEST = "manifest.jsonl"
@@ -127,6 +132,39 @@ def check_format(out: str | os.PathLike, fmt: str) -> None:
             raise GenerateError(f"{out} holds a dataset generated with --format {other} "
                                 f"({out / _samples_rel(other) / SETTINGS_FILE}): re-run with --format {other} to "
                                 f"resume it, or use another --out for --format {fmt}")
+
+
+def _names(names: list[str]) -> str:
+    return ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+
+
+def check_no_frames(out: str | os.PathLike, claimed, flag: str = "--out",
+                    error: type[Exception] = GenerateError) -> None:
+    """Refuse (``error``, one line naming ``out`` and what it found) to write a dataset into ``out`` when it holds
+    fringe frames fppsim did not write: plain images (:func:`fppsim.dataio.readers.plain_images`), a scan in the
+    public layout, or such scans one level down (each recognised by :func:`fppsim.dataio.readers.open_source`).
+    The dataset would be written beside them, and the readers would then take the folder for generate's dataset
+    (``fit-rig DIR`` read the samples, not the frames). ``claimed``: the names this run claims
+    (:func:`fppsim.owned.claim` rules on those); an image the folder's record (or, in a folder from before the
+    record, :func:`legacy_files`) gives to fppsim is its own. Other files (a README, a ``.json``) are no frames:
+    they stay, and the dataset is written beside them as before."""
+    out = Path(out)
+    src = open_source(out)
+    record = owners(out)
+    own = set(claimed) | ({n for n, tool in record.items() if tool == DATASET_TOOL} if record is not None
+                          else set(legacy_files(out)))
+    found = ["a scan in the public layout (PSin/ PCos/ Fringe/ iPattern/)"] if src.is_psp else []
+    with os.scandir(out) as entries:  # generate's own sample folders are not looked into (a resume of 100,000)
+        inner = sorted(e.name for e in entries if e.is_dir() and not SAMPLE_ID_RE.match(e.name)
+                       and open_source(e.path).is_psp)
+    if inner:
+        found.append(f"{len(inner)} scan folder(s) one level down ({_names([f'{n}/' for n in inner])})")
+    images = [p.name for p in plain_images(out) if p.name not in own and not p.name.startswith(TMP_PREFIX)]
+    if images:
+        found.append(f"{len(images)} fringe image(s) ({_names(images)})")
+    if found:
+        raise error(f"{flag} {out} already holds {' and '.join(found)} that {DATASET_TOOL} did not write: "
+                    "choose another folder")
 
 
 def discard_empty_dataset(folder: str | os.PathLike, folder_too: bool = False) -> None:

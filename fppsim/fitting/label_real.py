@@ -59,7 +59,7 @@ from fppsim.owned import claim, output_folder, owners, same_folder
 from fppsim.phase import wrap
 from fppsim.phase.psp import decode_stacks
 from fppsim.phase.reference_check import order_slips, slips_words
-from fppsim.dataio.readers import check_read_convention, plain_images_note, reading_note, open_source
+from fppsim.dataio.readers import check_read_convention, plain_images_note, reading_note, open_source, scan_folders_note
 from fppsim.fitting.reference_plane import PlaneFit, fit_phase_offset, plane_flatness, reference_plane_phase
 from fppsim.geometry.rig import Rig, RigError, check_image_size, usable_rig
 from fppsim.dataio.rig_choice import resolve_rig
@@ -217,13 +217,10 @@ def detect_layout(root: str | os.PathLike) -> str:
         return PUBLIC
     if src.has_manifest:
         return NATIVE
-    inner = src.scan_folders()
-    if inner:  # a folder of scan folders: their ids may repeat, so one ROOT at a time
-        raise DatasetError(f"{root}: holds scan folders ({', '.join(inner[:4])}{', ...' if len(inner) > 4 else ''}), "
-                           f"not scans: pass one of them as ROOT (e.g. {root / inner[0]})")
+    # a folder of scan folders is named (their ids may repeat: one ROOT at a time), never read as one
     raise DatasetError(f"{root}: no scans found (expected PSin/ PCos/ Fringe/ iPattern/ folders of <id>.mat, or an "
                        "fppsim dataset generated with phase-shifting images: manifest.jsonl + <id>/psp/)"
-                       + plain_images_note(root))
+                       + scan_folders_note(root, src.scan_folders()) + plain_images_note(root))
 
 
 def _scan_ids(cfg: LabelRealConfig, layout: str) -> list[str]:

@@ -62,6 +62,51 @@ def test_its_own_folder_resumes_and_a_merged_one_too(tmp_path):
     assert _gen(merged, "--format", "figshare", "--no-preview", count=2) == 0  # merge claims what generate claims
 
 
+def _users_frames(out: Path, what: str) -> str:
+    """``out`` holding the user's own fringe frames (``what``), with a README beside them; the words the refusal
+    names them by."""
+    out.mkdir(parents=True)
+    (out / "README.txt").write_text("my frames\n")
+    if what == "images":
+        for name in ("frame0.png", "frame1.png", "frame2.TIF"):
+            (out / name).write_bytes(b"frame")
+        return "3 fringe image(s) (frame0.png, frame1.png, frame2.TIF)"
+    for sub in ("PSin", "PCos", "Fringe", "iPattern"):
+        (out / ("scan" if what == "nested" else "") / sub).mkdir(parents=True)
+        (out / ("scan" if what == "nested" else "") / sub / "1.mat").write_bytes(b"mat")
+    return "1 scan folder(s) one level down (scan/)" if what == "nested" else "a scan in the public layout"
+
+
+@pytest.mark.parametrize("fmt", ["native", "figshare"])
+@pytest.mark.parametrize("what", ["images", "scan", "nested"])
+def test_a_folder_of_the_users_frames_is_refused_before_anything_is_written(tmp_path, capsys, fmt, what):
+    """QA: `generate --out DIR` beside the user's own frames (plain images, or a scan in the public layout) wrote its
+    dataset among them; `fit-rig DIR` then read generate's samples instead of the frames. Refused up front."""
+    out = tmp_path / "frames"
+    found = _users_frames(out, what)
+    before = _tree(out)
+    assert _gen(out, "--format", fmt) == 1
+    one_line(capsys, f"--out {out} already holds {found}", "that fppsim generate did not write: choose another folder")
+    assert _tree(out) == before  # not one byte written, not even the ownership record
+
+
+def test_a_readme_is_no_frame_and_its_own_preview_is_no_users_image(tmp_path, capsys):
+    """Files that are no frames (a README, a .json) stay as they were and generate writes beside them, as before;
+    generate's own preview.png, recorded or from before the record, never blocks a re-run, with --no-preview too."""
+    out = tmp_path / "g"
+    out.mkdir()
+    (out / "README.txt").write_text("notes\n")
+    (out / "notes.json").write_text("{}")
+    assert _gen(out, count=1) == 0
+    assert (out / "README.txt").read_text() == "notes\n" and (out / "preview.png").is_file()
+    assert _gen(out, "--no-preview", count=2) == 0 and len(read_manifest(out)) == 2
+    _as_before_the_record(out)
+    assert _gen(out, "--no-preview", count=2) == 0  # the legacy preview is recognised by its form
+    (out / "mine.png").write_bytes(b"frame")
+    assert _gen(out, count=2) == 1
+    one_line(capsys, f"--out {out} already holds 1 fringe image(s) (mine.png)")
+
+
 def _as_before_the_record(out: Path, sub: str = "") -> None:
     """What fppsim wrote before the ownership record: no record, manifest lines without ``pedestals``."""
     (out / RECORD).unlink()

@@ -244,7 +244,8 @@ def test_bad_inputs_give_one_line_errors(tmp_path, capsys):
     (tmp_path / "empty" / "frame.png").unlink()
     root = _small_public(tmp_path / "pub")
     rc, err = _cli_error([tmp_path, "--out", tmp_path / "o"], capsys)  # a folder of scan folders
-    assert rc == 1 and "holds scan folders (pub)" in err and "pass one of them" in err
+    assert rc == 1 and "no scans found" in err and err.endswith(
+        f"; it holds 1 scan folder(s) one level down (pub/): give one of them, e.g. {root}")
     # a rig whose camera is not the images' size
     rc, err = _cli_error([root, "--out", tmp_path / "o"], capsys)
     assert rc == 1 and "rig camera is 640x352 but images are 64x32" in err

@@ -21,7 +21,7 @@ from fppsim.errors import PSPMatError, InputError
 from fppsim.phase.plane import phase_plane_masks, plane_level
 from fppsim.dataio.readers.samples import pick_evenly
 from fppsim.dataio.readers.psp_mat import reading_note
-from fppsim.dataio.readers.listing import IMAGE_EXTS, skipped_note
+from fppsim.dataio.readers.listing import IMAGE_EXTS, scan_folders_note, skipped_note
 from fppsim.dataio.readers.source import Source, grey_sample, open_labelled, open_source
 
 __all__ = ["FringeImage", "load_fringe_images"]
@@ -98,7 +98,8 @@ def load_fringe_images(path, max_images: int | None = 20, plane_mm: float = 2.0,
             raise InputError(f"{path}: not a folder or image file")
         raise InputError(f"{path}: no fringe images (figshare f1_80.npy + Z.npy, fringe_pattern.npy + "
                          "height_map.npy, native manifest.jsonl, PSin/PCos/Fringe/iPattern folders, or "
-                         f"{'/'.join(IMAGE_EXTS)} files)" + skipped_note(path, IMAGE_EXTS))
+                         f"{'/'.join(IMAGE_EXTS)} files)" + scan_folders_note(path, src.scan_folders())
+                         + skipped_note(path, IMAGE_EXTS))
     return out, src.layout
 
 

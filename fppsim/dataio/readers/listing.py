@@ -8,6 +8,10 @@ symbolic link whose target is gone (a moved scan), and an image in a format the 
 :func:`fppsim.files.warn`) when the listing found something else to read, and :func:`skipped_note` adds them to
 the error when it found nothing. Hidden entries and other files (a README, a ``.json``) are never mentioned.
 
+The other clauses of those "nothing to read" errors live here too, one owner each: :func:`plain_images_note` (plain
+images where scans are needed; :func:`plain_images` lists them) and :func:`scan_folders_note` (scan folders one
+level down where one scan folder is needed).
+
 The memory behind "once" is per process: a folder is looked through again once its modification time changed (an
 entry added, removed or renamed: a notebook reading a folder again after changing it hears of the new entries,
 not of those it was told about), and :func:`forget_skipped` clears it all (a long-lived process, a test, that
@@ -22,7 +26,7 @@ from pathlib import Path
 from fppsim.files import warn
 
 __all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note",
-           "plain_images_note"]
+           "plain_images", "plain_images_note", "scan_folders_note"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -97,11 +101,28 @@ def skipped_note(folder: str | os.PathLike, taken: tuple[str, ...], folders: boo
     return f"; skipped: {shown}" + (f", ... ({len(found)} in all)" if len(found) > 4 else "")
 
 
+def plain_images(folder: str | os.PathLike) -> list[Path]:
+    """The plain image files (:data:`IMAGE_EXTS`, any case) directly in ``folder``, sorted; [] when it cannot
+    be listed."""
+    try:
+        return sorted(q for q in Path(folder).iterdir() if q.suffix.lower() in IMAGE_EXTS and q.is_file())
+    except OSError:
+        return []
+
+
 def plain_images_note(folder: str | os.PathLike) -> str:
     """``''``, or the clause an error ends with when ``folder``, given where phase-shifting scans are needed, holds
     plain fringe images (:data:`IMAGE_EXTS`): they carry no phase-shifting phase. ``''`` too when it cannot be listed."""
-    try:
-        n = sum(1 for q in Path(folder).iterdir() if q.is_file() and q.suffix.lower() in IMAGE_EXTS)
-    except OSError:
-        return ""
+    n = len(plain_images(folder))
     return f"; it holds {n} plain image(s), which carry no phase-shifting phase: this needs the scans" if n else ""
+
+
+def scan_folders_note(folder: str | os.PathLike, inner: list[str]) -> str:
+    """``''``, or the clause an error ends with when ``folder``, given where ONE scan folder is needed, holds scan
+    folders one level down: ``inner``, their names (:meth:`fppsim.dataio.readers.Source.scan_folders`, the one
+    recognition of them). Each is read on its own, never the folder of them as one scan."""
+    if not inner:
+        return ""
+    shown = ", ".join(f"{name}/" for name in inner[:4]) + (", ..." if len(inner) > 4 else "")
+    return (f"; it holds {len(inner)} scan folder(s) one level down ({shown}): give one of them, "
+            f"e.g. {Path(folder) / inner[0]}")

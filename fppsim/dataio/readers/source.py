@@ -41,7 +41,7 @@ from fppsim.errors import DatasetError, PSPMatError, InputError
 from fppsim.dataio.readers.samples import (check_export_labels, check_psp_available, load_native_sample,
                                             open_figshare_pair, pick_evenly, read_native_pair, read_native_phase,
                                             read_native_psp)
-from fppsim.dataio.readers.listing import IMAGE_EXTS, skipped_note, warn_skipped
+from fppsim.dataio.readers.listing import IMAGE_EXTS, scan_folders_note, skipped_note, warn_skipped
 from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,
                                            load_psp_folder_sample)
 
@@ -110,11 +110,12 @@ class Source:
         else None."""
         return None
 
-    def scan_folders(self) -> list[str]:
-        """Names of the sub-folders (sorted) that are scan folders themselves (phase-shifting or native)."""
+    def scan_folders(self, phase_shifting: bool = False) -> list[str]:
+        """Names of the sub-folders (sorted) that are scan folders themselves: phase-shifting (whole or damaged) or
+        fppsim's native samples; with ``phase_shifting``, the phase-shifting ones only."""
         if not self.path.is_dir():
             return []
-        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and _is_scan(open_source(d)))
+        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and _is_scan(open_source(d), phase_shifting))
 
     def ipattern_file(self, sid: str) -> Path:
         """The single-shot image file of scan ``sid`` of a scan folder."""
@@ -178,8 +179,15 @@ class Source:
 
     def scan_ids(self) -> list[str]:
         """The ids of the phase-shifting scans :meth:`scan` reads. A path without them raises
-        :class:`fppsim.errors.PSPMatError`, one line naming what a scan folder would need and what it holds."""
-        return list_psp_ids(self.path)
+        :class:`fppsim.errors.PSPMatError`, one line naming what a scan folder would need and what it holds (and
+        the scan folders one level down, when it holds them: :func:`fppsim.dataio.readers.scan_folders_note`)."""
+        try:
+            return list_psp_ids(self.path)
+        except PSPMatError as exc:
+            note = "" if self.is_psp else scan_folders_note(self.path, self.scan_folders(phase_shifting=True))
+            if not note:
+                raise
+            raise PSPMatError(f"{exc}{note}") from None
 
     def scan(self, sid: str, convention: str = "benchmark", negate_sin: bool = False) -> PspMat:
         """Phase-shifting scan ``sid`` as a :class:`fppsim.dataio.readers.PspMat`: ``image`` (the single-shot
@@ -214,8 +222,8 @@ class Source:
         return phase, valid
 
 
-def _is_scan(src: Source) -> bool:
-    return src.is_psp or src.has_manifest
+def _is_scan(src: Source, phase_shifting: bool = False) -> bool:
+    return src.is_psp or (src.has_manifest and not phase_shifting)
 
 
 def describe_layouts() -> str:
