@@ -38,7 +38,8 @@ from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER
                       load_psp_mat, phase_jump_share, read_mat_variable, reading_check, reading_note, reading_words,
                       wrapped_from_sums, check_read_convention, AUTO, READINGS, READ_CONVENTIONS)
 from fppsim.dataio.readers.source import (LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, describe_layouts, grey_sample,
-                                          iter_samples, labelled_hint, open_labelled, open_source, register_layout)
+                                          iter_samples, is_scan_folder, labelled_hint, open_labelled, open_source,
+                                          register_layout)
 
 __all__ = [
     # native, figshare, any layout
@@ -52,7 +53,7 @@ __all__ = [
     "READINGS", "READ_CONVENTIONS",
     "load_psp_folder_sample", "iter_psp_folder",
     # which layout a path holds
-    "Source", "open_source", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
+    "Source", "open_source", "is_scan_folder", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
     # any labelled layout, as grey images and labels
     "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint",
     # real images for fitting
