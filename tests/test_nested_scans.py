@@ -50,6 +50,14 @@ def test_the_clause_has_one_owner_and_says_nothing_without_scan_folders(tmp_path
     assert scan_folders_note(root, open_source(root).scan_folders()) == _clause(root)
     assert open_source(root).scan_folders(phase_shifting=True) == ["a", "b"]
     assert scan_folders_note(root, []) == ""
+    # review: generate's refusal of such a folder named them in words of its own; now in the clause's words
+    from fppsim.dataio.dataset_folder import check_no_frames
+    from fppsim.dataio.readers import scan_folders_words
+    from fppsim.errors import GenerateError
+    with pytest.raises(GenerateError) as e:
+        check_no_frames(root, [])
+    assert scan_folders_words(["a", "b"]) == "2 scan folder(s) one level down (a/, b/)"
+    assert f"already holds {scan_folders_words(['a', 'b'])} that" in str(e.value)
     many = [f"s{k}" for k in range(6)]
     assert scan_folders_note(root, many).startswith(
         "; it holds 6 scan folder(s) one level down (s0/, s1/, s2/, s3/, ...): give one of them, e.g. ")

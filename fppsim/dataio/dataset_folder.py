@@ -27,7 +27,7 @@ from fppsim.files import TMP_PREFIX, unlink_quietly
 from fppsim.owned import owners, same_folder
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, SAMPLE_ID_RE, SETTINGS_FILE, finished_indices, read_settings,
                                    sample_id)
-from fppsim.dataio.readers import is_scan_folder, plain_images
+from fppsim.dataio.readers import is_scan_folder, plain_images, scan_folders_words
 from fppsim.dataio.writers import samples_folder
 
 __all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
@@ -158,7 +158,7 @@ def check_no_frames(out: str | os.PathLike, claimed, flag: str = "--out",
         inner = sorted(e.name for e in entries if e.is_dir() and not SAMPLE_ID_RE.match(e.name)
                        and is_scan_folder(e.path, True))
     if inner:
-        found.append(f"{len(inner)} scan folder(s) one level down ({_names([f'{n}/' for n in inner])})")
+        found.append(scan_folders_words(inner))
     images = [p.name for p in plain_images(out) if p.name not in own and not p.name.startswith(TMP_PREFIX)]
     if images:
         found.append(f"{len(images)} fringe image(s) ({_names(images)})")
