@@ -27,6 +27,28 @@ def one_line(capsys, *parts) -> str:
     return err
 
 
+def unreadable(monkeypatch, folder) -> None:
+    """``folder`` as the file system shows another user's folder of mode 700 (``lost+found`` on a disk's root):
+    listed in its parent, but nothing in it can be listed or looked at (PermissionError). Simulated, since root,
+    running these tests, ignores permission bits."""
+    import errno
+    import os
+
+    folder = os.path.abspath(folder)
+
+    def denied(real, inside: bool):
+        def call(path=".", *args, **kwargs):
+            p = os.path.abspath(os.fsdecode(path)) if isinstance(path, (str, bytes, os.PathLike)) else ""
+            if p.startswith(folder + os.sep) if inside else p == folder:
+                raise PermissionError(errno.EACCES, "Permission denied", p)
+            return real(path, *args, **kwargs)
+        return call
+
+    monkeypatch.setattr(os, "stat", denied(os.stat, True))
+    monkeypatch.setattr(os, "listdir", denied(os.listdir, False))
+    monkeypatch.setattr(os, "scandir", denied(os.scandir, False))
+
+
 def wrap_phase(x):
     """Wrap rad into (-pi, pi] (independent of the code under test)."""
     return np.angle(np.exp(1j * np.asarray(x, dtype=np.float64)))

@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from _helpers import SHARED, scene, write_figshare
+from _helpers import SHARED, one_line, scene, unreadable, write_figshare
 from fppsim.dataio.readers import load_fringe_images, open_source
 from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from fppsim.errors import InputError, PSPMatError
@@ -50,6 +50,14 @@ def test_the_clause_has_one_owner_and_says_nothing_without_scan_folders(tmp_path
     assert scan_folders_note(root, open_source(root).scan_folders()) == _clause(root)
     assert open_source(root).scan_folders(phase_shifting=True) == ["a", "b"]
     assert scan_folders_note(root, []) == ""
+    # review: generate's refusal of such a folder named them in words of its own; now in the clause's words
+    from fppsim.dataio.dataset_folder import check_no_frames
+    from fppsim.dataio.readers import scan_folders_words
+    from fppsim.errors import GenerateError
+    with pytest.raises(GenerateError) as e:
+        check_no_frames(root, [])
+    assert scan_folders_words(["a", "b"]) == "2 scan folder(s) one level down (a/, b/)"
+    assert f"already holds {scan_folders_words(['a', 'b'])} that" in str(e.value)
     many = [f"s{k}" for k in range(6)]
     assert scan_folders_note(root, many).startswith(
         "; it holds 6 scan folder(s) one level down (s0/, s1/, s2/, s3/, ...): give one of them, e.g. ")
@@ -107,6 +115,34 @@ def test_every_command_that_needs_one_scan_folder_names_them(tmp_path, capsys):
     assert line.startswith(f"uhrnet train: error: --val-phase: {root}: missing folder(s)")
     assert line.endswith(_clause(root))
     assert _tree(root) == before  # nothing written there, nothing read as one scan
+
+
+def test_a_folder_it_may_not_look_into_beside_them(tmp_path, capsys, monkeypatch):
+    """Review: a folder it may not look into beside the scan folders (`lost+found`) turned every command's error into
+    `ROOT/lost+found/arrays.npz: Permission denied`; it holds no scan anyone could read: the scan folders are named."""
+    from fppsim.cli import main
+
+    root = _root(tmp_path)
+    (root / "lost+found").mkdir()
+    unreadable(monkeypatch, root / "lost+found")
+    assert main(["fit-rig", str(root), "--out", str(tmp_path / "rig.json")]) == 1
+    one_line(capsys, f"{root}: no fringe images (", _clause(root))
+    with pytest.raises(PSPMatError, match="one level down"):
+        open_source(root).scan_ids()
+
+
+def test_hundreds_of_sub_folders_keep_the_line_short(tmp_path):
+    """Review: `evaluate-phase --phase-root ROOT` (and `--val-phase`) listed every sub-folder of ROOT in its error's
+    "found:" (300 scan folders: a line of 3,000 characters)."""
+    root = tmp_path / "many"
+    _scan(root / "s000")
+    for k in range(1, 300):
+        (root / f"s{k:03d}").symlink_to(root / "s000")
+    with pytest.raises(PSPMatError) as e:
+        open_source(root).scan_ids()
+    assert "(found: s000, s001, s002, s003, s004, s005, s006, s007, ... (300 in all))" in str(e.value)
+    assert str(e.value).endswith(f"300 scan folder(s) one level down (s000/, s001/, s002/, s003/, ...): give one of "
+                                 f"them, e.g. {root / 's000'}") and len(str(e.value).replace(str(root), "R")) < 300
 
 
 @pytest.mark.skipif(not FP1523.is_dir(), reason="needs ../shared/real-phase/FP1523")

@@ -27,7 +27,7 @@ from fppsim.files import TMP_PREFIX, unlink_quietly
 from fppsim.owned import owners, same_folder
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, SAMPLE_ID_RE, SETTINGS_FILE, finished_indices, read_settings,
                                    sample_id)
-from fppsim.dataio.readers import open_source, plain_images
+from fppsim.dataio.readers import is_scan_folder, plain_images, scan_folders_words
 from fppsim.dataio.writers import samples_folder
 
 __all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
@@ -142,23 +142,23 @@ def check_no_frames(out: str | os.PathLike, claimed, flag: str = "--out",
                     error: type[Exception] = GenerateError) -> None:
     """Refuse (``error``, one line naming ``out`` and what it found) to write a dataset into ``out`` when it holds
     fringe frames fppsim did not write: plain images (:func:`fppsim.dataio.readers.plain_images`), a scan in the
-    public layout, or such scans one level down (each recognised by :func:`fppsim.dataio.readers.open_source`).
+    public layout, or such scans one level down (each recognised by :func:`fppsim.dataio.readers.is_scan_folder`:
+    a folder it may not look into, such as ``lost+found``, holds none).
     The dataset would be written beside them, and the readers would then take the folder for generate's dataset
     (``fit-rig DIR`` read the samples, not the frames). ``claimed``: the names this run claims
     (:func:`fppsim.owned.claim` rules on those); an image the folder's record (or, in a folder from before the
     record, :func:`legacy_files`) gives to fppsim is its own. Other files (a README, a ``.json``) are no frames:
     they stay, and the dataset is written beside them as before."""
     out = Path(out)
-    src = open_source(out)
     record = owners(out)
     own = set(claimed) | ({n for n, tool in record.items() if tool == DATASET_TOOL} if record is not None
                           else set(legacy_files(out)))
-    found = ["a scan in the public layout (PSin/ PCos/ Fringe/ iPattern/)"] if src.is_psp else []
+    found = ["a scan in the public layout (PSin/ PCos/ Fringe/ iPattern/)"] if is_scan_folder(out, True) else []
     with os.scandir(out) as entries:  # generate's own sample folders are not looked into (a resume of 100,000)
         inner = sorted(e.name for e in entries if e.is_dir() and not SAMPLE_ID_RE.match(e.name)
-                       and open_source(e.path).is_psp)
+                       and is_scan_folder(e.path, True))
     if inner:
-        found.append(f"{len(inner)} scan folder(s) one level down ({_names([f'{n}/' for n in inner])})")
+        found.append(scan_folders_words(inner))
     images = [p.name for p in plain_images(out) if p.name not in own and not p.name.startswith(TMP_PREFIX)]
     if images:
         found.append(f"{len(images)} fringe image(s) ({_names(images)})")

@@ -12,7 +12,7 @@ from fppsim.cli import main
 from fppsim.dataio.formats import manifest_record, read_manifest, reconcile
 from fppsim.errors import SampleError, UsageError
 from fppsim.owned import RECORD
-from _helpers import one_line
+from _helpers import one_line, unreadable
 
 MESH = Path(__file__).resolve().parents[2] / "assets" / "meshes" / "bust_s0.ply"
 
@@ -105,6 +105,28 @@ def test_a_readme_is_no_frame_and_its_own_preview_is_no_users_image(tmp_path, ca
     (out / "mine.png").write_bytes(b"frame")
     assert _gen(out, count=2) == 1
     one_line(capsys, f"--out {out} already holds 1 fringe image(s) (mine.png)")
+
+
+def test_a_folder_it_cannot_look_into_is_no_frames(tmp_path, capsys, monkeypatch):
+    """Review: `generate --out DIR` beside a folder it may not look into (`lost+found` on a disk's root) was refused
+    with `DIR/lost+found/arrays.npz: Permission denied` by the look for the user's frames; it was written before.
+    Such a folder holds no frame a reader could take: the dataset is written, and merge's OUT is taken too; a scan
+    beside it is still refused."""
+    out = tmp_path / "disk"
+    (out / "lost+found").mkdir(parents=True)
+    unreadable(monkeypatch, out / "lost+found")
+    assert _gen(out, "--no-preview", count=1) == 0 and len(read_manifest(out)) == 1
+    merged = tmp_path / "disk2"
+    (merged / "lost+found").mkdir(parents=True)
+    unreadable(monkeypatch, merged / "lost+found")
+    assert main(["merge", str(merged), str(out)]) == 0 and len(read_manifest(merged)) == 1
+    capsys.readouterr()
+    scans = tmp_path / "scans"
+    _users_frames(scans, "nested")
+    (scans / "lost+found").mkdir()
+    unreadable(monkeypatch, scans / "lost+found")
+    assert _gen(scans, count=1) == 1
+    one_line(capsys, f"--out {scans} already holds 1 scan folder(s) one level down (scan/)")
 
 
 def _as_before_the_record(out: Path, sub: str = "") -> None:

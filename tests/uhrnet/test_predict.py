@@ -195,6 +195,8 @@ def test_an_image_of_another_size_through_a_network_without_resize_is_said():
     note = shape_note(ck, (240, 320))
     assert "320x240 px but the network was trained on 640x480 px images at their own size" in note
     assert "0.50 x as far apart" in note
+    # review: a crop of the same view keeps its fringes' period: the spacing is said of the same view only
+    assert "own size: if it shows the view they did, it sees the fringes 0.50 x as far apart" in note
     assert "2.00 x as far apart" in shape_note(ck, (960, 1280))
     assert shape_note(ck, (480, 640)) is None and shape_note(ck, (500, 660)) is None
     assert shape_note({"image_shape": [480, 640], "args": {"resize": "240x320"}}, (240, 320)) is None

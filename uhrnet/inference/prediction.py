@@ -364,8 +364,9 @@ def predict(config: PredictConfig) -> PredictResult:
 def shape_note(ckpt: dict, shape) -> str | None:
     """A warning when an image of ``shape`` (H, W) is not shaped like the images ``ckpt`` was trained on (aspect
     ratio more than 15 % off: another rig's, a rotated or a cropped image, which the network would read squashed;
-    or, for a network trained without ``--resize``, a size more than 15 % off: its fringes reach the network at
-    another period in px), else None (also for an adapted network: its record is its source's)."""
+    or, for a network trained without ``--resize``, a size more than 15 % off: the same view at another size brings
+    its fringes to the network at another period in px; a crop would not), else None (also for an adapted network:
+    its record is its source's)."""
     trained = ckpt.get("image_shape")
     if ckpt.get("adapt") or not trained or len(trained) != 2 or min(trained) <= 0 or min(shape) <= 0:
         return None
@@ -376,8 +377,8 @@ def shape_note(ckpt: dict, shape) -> str | None:
         if resized or abs(math.log(scale)) <= math.log(1.15):  # with --resize every image reaches it at one size
             return None
         return (f"{shape[1]}x{shape[0]} px but the network was trained on {trained[1]}x{trained[0]} px images at their "
-                f"own size: it sees the fringes {scale:.2f} x as far apart as it learned them (another rig's or a "
-                "rescaled image?): its heights may mean little")
+                f"own size: if it shows the view they did, it sees the fringes {scale:.2f} x as far apart as it "
+                "learned them (another rig's or a rescaled image?): its heights may mean little")
     how = " (after its --resize)" if resized else ""
     return (f"{shape[1]}x{shape[0]} px (aspect {a:.2f}) but the network was trained on {trained[1]}x{trained[0]} px "
             f"images{how} (aspect {a0:.2f}): another rig's, a rotated or a cropped image? its heights may mean little")

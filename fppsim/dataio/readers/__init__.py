@@ -32,13 +32,14 @@ from fppsim.dataio.readers.samples import (LABEL_SOURCES, READ_ERRORS, check_exp
                        read_native_phase, read_native_psp)
 from fppsim.dataio.readers.fringe_images import FringeImage, load_fringe_images
 from fppsim.dataio.readers.listing import (IMAGE_EXTS, OTHER_IMAGE_EXTS, plain_images, plain_images_note, scan_folders_note,
-                                          skipped_note, warn_skipped)
+                                          scan_folders_words, skipped_note, warn_skipped)
 from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER_KEYS, SIN_KEYS, PspMat, PSPMatError, check_convention,
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, phase_jump_share, read_mat_variable, reading_check, reading_note, reading_words,
                       wrapped_from_sums, check_read_convention, AUTO, READINGS, READ_CONVENTIONS)
 from fppsim.dataio.readers.source import (LAYOUTS, PAIR_KINDS, PSP_KINDS, Source, describe_layouts, grey_sample,
-                                          iter_samples, labelled_hint, open_labelled, open_source, register_layout)
+                                          iter_samples, is_scan_folder, labelled_hint, open_labelled, open_source,
+                                          register_layout)
 
 __all__ = [
     # native, figshare, any layout
@@ -52,11 +53,12 @@ __all__ = [
     "READINGS", "READ_CONVENTIONS",
     "load_psp_folder_sample", "iter_psp_folder",
     # which layout a path holds
-    "Source", "open_source", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
+    "Source", "open_source", "is_scan_folder", "register_layout", "LAYOUTS", "PSP_KINDS", "PAIR_KINDS",
     # any labelled layout, as grey images and labels
     "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint",
     # real images for fitting
     "FringeImage", "IMAGE_EXTS", "load_fringe_images",
     # what a folder listing skips that looks meant as input
-    "OTHER_IMAGE_EXTS", "plain_images", "plain_images_note", "scan_folders_note", "skipped_note", "warn_skipped",
+    "OTHER_IMAGE_EXTS", "plain_images", "plain_images_note", "scan_folders_note", "scan_folders_words", "skipped_note",
+    "warn_skipped",
 ]

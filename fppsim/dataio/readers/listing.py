@@ -10,7 +10,7 @@ the error when it found nothing. Hidden entries and other files (a README, a ``.
 
 The other clauses of those "nothing to read" errors live here too, one owner each: :func:`plain_images_note` (plain
 images where scans are needed; :func:`plain_images` lists them) and :func:`scan_folders_note` (scan folders one
-level down where one scan folder is needed).
+level down where one scan folder is needed; :func:`scan_folders_words`, the words they are named by).
 
 The memory behind "once" is per process: a folder is looked through again once its modification time changed (an
 entry added, removed or renamed: a notebook reading a folder again after changing it hears of the new entries,
@@ -26,7 +26,7 @@ from pathlib import Path
 from fppsim.files import warn
 
 __all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note",
-           "plain_images", "plain_images_note", "scan_folders_note"]
+           "plain_images", "plain_images_note", "scan_folders_note", "scan_folders_words"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -123,6 +123,11 @@ def scan_folders_note(folder: str | os.PathLike, inner: list[str]) -> str:
     recognition of them). Each is read on its own, never the folder of them as one scan."""
     if not inner:
         return ""
+    return f"; it holds {scan_folders_words(inner)}: give one of them, e.g. {Path(folder) / inner[0]}"
+
+
+def scan_folders_words(inner: list[str]) -> str:
+    """``'2 scan folder(s) one level down (a/, b/)'`` (four names at most): the words :func:`scan_folders_note`
+    and :func:`fppsim.dataio.dataset_folder.check_no_frames` name scan folders one level down by."""
     shown = ", ".join(f"{name}/" for name in inner[:4]) + (", ..." if len(inner) > 4 else "")
-    return (f"; it holds {len(inner)} scan folder(s) one level down ({shown}): give one of them, "
-            f"e.g. {Path(folder) / inner[0]}")
+    return f"{len(inner)} scan folder(s) one level down ({shown})"

@@ -263,7 +263,7 @@ def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos"
     missing = [FOLDERS[r][0] for r in roles if not (root / FOLDERS[r][0]).is_dir()]
     if missing:
         found = sorted(p.name for p in root.iterdir() if p.is_dir())
-        raise PSPMatError(f"{root}: missing folder(s) {', '.join(missing)} (found: {', '.join(found) or 'none'}); "
+        raise PSPMatError(f"{root}: missing folder(s) {', '.join(missing)} (found: {_short(found) or 'none'}); "
                           f"expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each{plain_images_note(root)}")
     ids = {}
     for r in roles:

@@ -45,8 +45,8 @@ from fppsim.dataio.readers.listing import IMAGE_EXTS, scan_folders_note, skipped
 from fppsim.dataio.readers.psp_mat import (FOLDERS, PspMat, is_psp_folder, list_psp_ids, load_ipattern,
                                            load_psp_folder_sample)
 
-__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "register_layout",
-           "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint"]
+__all__ = ["IMAGE_EXTS", "PSP_KINDS", "PAIR_KINDS", "LAYOUTS", "Source", "open_source", "is_scan_folder",
+           "register_layout", "open_labelled", "grey_sample", "iter_samples", "describe_layouts", "labelled_hint"]
 
 PSP_KINDS = ("psp", "ipattern", "psp-partial")  # a phase-shifting scan folder, whole or in part
 PAIR_KINDS = ("figshare", "real-sample")
@@ -115,7 +115,7 @@ class Source:
         fppsim's native samples; with ``phase_shifting``, the phase-shifting ones only."""
         if not self.path.is_dir():
             return []
-        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and _is_scan(open_source(d), phase_shifting))
+        return sorted(d.name for d in self.path.iterdir() if d.is_dir() and is_scan_folder(d, phase_shifting))
 
     def ipattern_file(self, sid: str) -> Path:
         """The single-shot image file of scan ``sid`` of a scan folder."""
@@ -222,7 +222,12 @@ class Source:
         return phase, valid
 
 
-def _is_scan(src: Source, phase_shifting: bool = False) -> bool:
+def is_scan_folder(path: str | os.PathLike, phase_shifting: bool = False) -> bool:
+    """Whether ``path`` is a scan folder (:meth:`Source.scan_folders`); False for one it may not look into."""
+    try:
+        src = open_source(path)
+    except OSError:  # another user's folder (lost+found on a disk's root): no scan anyone here could read
+        return False
     return src.is_psp or (src.has_manifest and not phase_shifting)
 
 
@@ -550,7 +555,7 @@ class NativeFolders(NativeSamples):
 
     @classmethod
     def recognise(cls, path: Path) -> bool:
-        return path.is_dir() and any((p / "arrays.npz").is_file() for p in path.iterdir())
+        return path.is_dir() and any(os.path.isfile(p / "arrays.npz") for p in path.iterdir())  # (False unreadable)
 
 
 class Folder(Source):
