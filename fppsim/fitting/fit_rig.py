@@ -39,8 +39,8 @@ from fppsim.commands import ReportLines
 from fppsim.errors import UsageError
 from fppsim.files import JSON_SUFFIXES, RIG_SUFFIXES, Output, atomic_write_text, check_outputs, holds_keys, json_text
 from fppsim.fitting.fit_depth import fit_depth, format_depth_fit
-from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, fit_rig_periods, format_fit,
-                                        measure_bands)
+from fppsim.fitting.fit_periods import (PARAMETERS, BandPeriods, RigFit, adjust_rig, base_values, fit_rig_periods,
+                                        format_fit, measure_bands)
 from fppsim.fitting.height_sensitivity import centre_sensitivity, sensitivity_check
 from fppsim.dataio.readers import FringeImage, check_read_convention, load_fringe_images
 from fppsim.geometry.rig import Rig, RigError, check_image_size, load_rig
@@ -74,7 +74,9 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
     For each candidate baseline (mm, default 120..480 in steps of 15) the rig's other ``params`` are
     refitted to the measured band periods (:func:`fit_rig`, so the plane's period map stays the real
     one; ``yaw`` when none is left besides the baseline), then :func:`sensitivity_check` scores every labelled image; the score is the object-pixel
-    weighted mean coherence. The best grid point is refined in steps of ``refine`` mm. Returns None when
+    weighted mean coherence. The best grid point is refined in steps of ``refine`` mm. The baselines are
+    distances: the projector stays on the base rig's side of the camera (a projector left of it, world -x,
+    stays left; placing every candidate at +x turned such a rig's height sensitivity round). Returns None when
     no image has height labels with enough object pixels (plain images, phase-only folders).
     """
     labelled = [im for im in images if im.height_mm is not None]
@@ -82,6 +84,7 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
         return None
     params = tuple(p for p in params if p != "baseline") or ("yaw",)  # the period map needs one to fit
     grid = np.arange(120.0, 481.0, 15.0) if baselines is None else np.asarray(baselines, dtype=np.float64)
+    side = -1.0 if base_values(base)["baseline"] < 0 else 1.0  # the projector's side of the camera (world x)
 
     cache: dict = {}
 
@@ -89,7 +92,7 @@ def fit_baseline(images: list[FringeImage], measured: BandPeriods, base: Rig,
         b = round(float(b), 3)
         if b not in cache:
             try:
-                fit = fit_rig_periods(measured, adjust_rig(base, baseline=b), params)
+                fit = fit_rig_periods(measured, adjust_rig(base, baseline=side * b), params)
             except RigError:
                 cache[b] = (-1.0, None, [])
                 return cache[b]

@@ -174,7 +174,9 @@ def _depth(r: StartRigResult) -> list[str]:
                      "frames at any scale")
     lines.append(f"           a raised surface shifts the phase by {s:+.3f} rad/mm at the image centre "
                  f"(one fringe period per {2 * math.pi / abs(s):.1f} mm of height)")
-    lines.append(f"scenes     {scenes_line(r.scenes)}: the rig file's scenes, which fppsim generate renders")
+    where = ("the rig file's scenes, which fppsim generate renders" if r.scenes is not None else
+             "the rig file records none, so fppsim generate renders the default ones")  # (it said 'the rig file's')
+    lines.append(f"scenes     {scenes_line(r.scenes)}: {where}")
     return lines
 
 

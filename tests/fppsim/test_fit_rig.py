@@ -239,6 +239,28 @@ def test_fit_baseline_recovers_the_rendering_rig(tmp_path):
     assert fit_baseline(plain, measured, make_parallel_rig()) is None
 
 
+def test_fit_baseline_keeps_a_projector_left_of_the_camera(tmp_path):
+    """A rig with its projector LEFT of the camera (world -x; raised surfaces raise the phase): the scanned
+    baselines are distances on that side. Every candidate used to be placed at +x, so fit-rig without --base
+    on labelled frames (fppsim's own PSP output) wrote the projector on the other side from the one its
+    report measured, and the rig's height sensitivity the wrong way round."""
+    import math
+
+    from fppsim.fitting.rig_start import start_rig
+
+    true = start_rig(200, 150, (2 * math.pi / 9.0, 0.0), -1, distance=450.0, baseline=280.0)
+    true = fr.adjust_rig(true, periods=round(true.periods))
+    assert true.projector.center[0] < 0 < height_sensitivity.centre_sensitivity(true)
+    out = _rendered(tmp_path, true, count=2)
+    images, _ = readers.load_fringe_images(out)
+    base = start_rig(200, 150, (2 * math.pi / 9.0, 0.0), -1, distance=450.0, baseline=200.0)
+    fit = fit_baseline(images, fr.measure_bands(images), base, params=("yaw", "periods"),
+                       baselines=np.arange(160.0, 400.0, 40.0), refine=10.0)
+    assert fit is not None and fit.baseline == pytest.approx(280.0, abs=20.0)
+    assert fit.fit.rig.projector.center[0] < 0, "the projector moved to the other side of the camera"
+    assert fit.sensitivity == pytest.approx(height_sensitivity.centre_sensitivity(true), rel=0.1)
+
+
 @pytest.mark.skipif(not REAL.is_dir(), reason="../shared/real-sample not present")
 def test_real_pair_sensitivity_matches_the_default_rig_not_the_parallel_one():
     from fppsim.geometry.rig import make_default_rig

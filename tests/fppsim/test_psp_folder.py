@@ -240,6 +240,18 @@ def test_a_folder_of_plain_images_is_told_it_needs_the_scans(tmp_path):
         list_psp_ids(tmp_path)
 
 
+def test_a_folder_of_fppsims_own_psp_samples_is_told_how_to_write_them(tmp_path):
+    """QA: fppsim's own PSP output (``<id>/psp/``, what fit-rig reads) given to evaluate-phase / train --val-phase,
+    which read the public layout only, said 'missing folder(s)' and no more; now it names the samples and the
+    writer of the public layout."""
+    for sid in ("000002", "000003"):
+        (tmp_path / sid / "psp").mkdir(parents=True)
+        (tmp_path / sid / "arrays.npz").write_bytes(b"")
+    with pytest.raises(PSPMatError, match=r"missing folder\(s\) PSin.*it holds 2 of fppsim's own phase-shifting "
+                                          r"sample\(s\) \(<id>/psp/\).*export_psp_folders"):
+        list_psp_ids(tmp_path)
+
+
 def test_one_order_under_one_period_read_the_wrong_way_is_a_misreading_not_a_wrapped_phase(tmp_path):
     """Order 0 everywhere and a phase under one period is absolute; read with the wrong --convention it wraps once
     (2.7 % of the steps), while the way it is written does not: that is the misreading note (--convention

@@ -265,6 +265,21 @@ def test_fit_rig_without_base_on_phase_shifting_scans(tmp_path, capsys):
     assert 36.0 < scenes["max_relief"][1] / 1.8 <= 40.5
 
 
+def test_frames_with_no_object_say_the_rig_file_records_no_scenes(tmp_path, capsys):
+    """QA: frames of the bare plane measure no object, so the rig file holds no ``scenes`` and generate renders the
+    default ones; the report's scenes line said 'the rig file's scenes, which fppsim generate renders'."""
+    from fppsim.cli import main
+
+    truth = truth_rig("vertical", 1)
+    H, W = truth.camera.height, truth.camera.width
+    _psp_folder(tmp_path / "scans", truth, np.zeros((H, W)))
+    out = tmp_path / "rig.json"
+    assert main(["fit-rig", str(tmp_path / "scans"), "--out", str(out)]) == 0
+    line = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("scenes "))
+    assert "scenes" not in json.loads(out.read_text())
+    assert "no object measured" in line and "the rig file records none" in line and "rig file's scenes" not in line
+
+
 def test_a_projector_that_leaves_a_strip_of_the_view_dark_is_still_fitted(tmp_path, capsys):
     """A projector turned so far that one side of the camera's view gets no light (the strip is dark and has
     no phase, as on many real rigs): the lit part identifies the plane phase, and the fitted rig's projector

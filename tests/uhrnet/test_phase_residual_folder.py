@@ -394,6 +394,22 @@ def test_a_users_report_a_black_frame_and_a_rig_of_another_size(setup, tmp_path,
     assert (tmp_path / "r48" / "phase_results.md").read_text() == "mine"
 
 
+def test_refine_without_rig_names_the_rig_it_took_and_asks_for_rig(setup, tmp_path, capsys):
+    """QA: --refine phase without --rig, from a run trained without one, took fppsim's default rig and refused the
+    frames as '(the checkpoint or default rig)', neither saying which nor what to give; now it names the rig it
+    took and asks for --rig, in one line."""
+    _, run, root, _ = setup
+    assert main(["evaluate-phase", str(run), "--phase-root", str(root), "--out", str(tmp_path / "ev"), "--refine",
+                 "phase", "--device", "cpu"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "(fppsim's default rig) sees 640x352" in err[0] and "give --rig" in err[0], err
+    # predict says it the same way
+    assert main(["predict", str(run / "best.pt"), str(root), "--out", str(tmp_path / "pred"), "--refine", "phase",
+                 "--device", "cpu", "--no-progress"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "(fppsim's default rig) sees 640x352" in err[0] and "give --rig" in err[0], err
+
+
 def test_refine_says_which_regions_it_could_not_decide(setup, tmp_path, capsys, monkeypatch):
     """QA: under --refine phase a frame whose path left regions undecided (their pixels keep the network's heights)
     was scored without a word, where predict warns; now a warning line per frame and model, and ``undecided`` in

@@ -327,7 +327,8 @@ def predict(config: PredictConfig) -> PredictResult:
     head_rig = ckpt["model"]["config"].get("rig") if HEADS[ckpt["model"]["config"].get("head", "height")].needs_rig else None
     checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
               (rig if config.ply else None, f"the rig camera ({config.rig}) is", ""),
-              (refine_rig, f"the rig used by --refine ({rig_name}) sees", "")]
+              (refine_rig, f"the rig used by --refine ({rig_name}) sees",
+               "" if config.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)")]
     for name, fringe, path in inputs:  # every size is checked before anything is written
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "

@@ -391,18 +391,19 @@ def _own_report(out: Path) -> list[str]:
 
 
 def _phase_models(ckpts, args: PhaseEvalConfig) -> list:
-    """``(model, transform, size, rig)`` per checkpoint; ``rig``: what ``--refine phase`` refines through, else None."""
+    """``(model, transform, size, rig, rig_name)`` per checkpoint; ``rig``: what ``--refine phase`` refines through,
+    else None; ``rig_name``: where it came from (the --rig file, the checkpoint's rig or fppsim's default rig)."""
     device = select_device(args.device)
     models = []
     for ck in ckpts:
         model, transform = model_from_checkpoint(ck, device)
-        rig = None
+        rig, rig_name = None, None
         if args.refine == "phase":
             try:
-                rig = refine_rig_for(ck, args.rig, args.rig)[0]
+                rig, rig_name = refine_rig_for(ck, args.rig, args.rig)
             except (RigError, OSError) as exc:
                 raise ConfigError(f"--rig {args.rig}: {exc}") from None
-        models.append((model, transform, parse_size(ck.get("args", {}).get("resize")), rig))
+        models.append((model, transform, parse_size(ck.get("args", {}).get("resize")), rig, rig_name))
     return models
 
 
@@ -478,7 +479,8 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo)
 
 
-def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, h, record: dict, echo):
+def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, rig_name: str, h, record: dict,
+             echo):
     """``name``'s heights ``h`` after frame ``s``'s own phase, the network's where it cannot (said, in ``record``)."""
     fringe = s.image.astype(np.float32) / 127.5 - 1.0
     try:
@@ -488,11 +490,11 @@ def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size
         echo(f"{sid}: warning: no fringe phase to refine with ({exc}): {name}'s heights")
         refined, stats = h, {}
         record.setdefault("not_refined", {})[name] = str(exc)
-    flipped = flipped_warning(stats.get("orientation"), str(args.rig or "the checkpoint or default rig"))
+    flipped = flipped_warning(stats.get("orientation"), str(rig_name))
     if flipped:  # said as predict says it, never acted on: the heights stay the path's
         record.setdefault("flipped", {})[name] = stats["orientation"]
         echo(f"{sid}: warning: {name}: {flipped}")
-    leaning = lean_warning(stats, str(args.rig or "the checkpoint or default rig"))
+    leaning = lean_warning(stats, str(rig_name))
     if leaning:  # said as predict says it, never acted on
         record.setdefault("leaning", {})[name] = stats["plane_lean"]
         echo(f"{sid}: warning: {name}: {leaning}")
@@ -527,7 +529,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
 
     per_image, figures, skipped, digests = [], [], [], {}
     without = {}  # frame id -> why no plane is in view
-    no_plane = any(rig is not None and not rig.plane_in_view for *_, rig in models)
+    no_plane = any(rig is not None and not rig.plane_in_view for _, _, _, rig, _ in models)
     for k, sid in enumerate(ids):
         try:
             s = src.scan(sid, convention=args.convention, negate_sin=args.negate_sin)
@@ -552,11 +554,11 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             note = shape_note(ck, img.shape)
             if note:
                 echo(f"{sid}: warning: {name}: {s.path}: {note}")
-        for *_, rig in models:
-            if rig is not None:
-                check_image_size(rig, img.shape, str(s.path), who="the rig used by --refine "
-                                 f"({args.rig or 'the checkpoint or default rig'}) sees",
-                                 error=ConfigError)
+        for _, _, _, rig, rig_name in models:
+            if rig is not None:  # which rig, and, where none was given, what to give
+                hint = "" if args.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)"
+                check_image_size(rig, img.shape, str(s.path), who=f"the rig used by --refine ({rig_name}) sees",
+                                 hint=hint, error=ConfigError)
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:
@@ -567,7 +569,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
         if found:
             record["reference_slips"] = found
         heights, residuals, scored = {}, {}, []
-        for (model, transform, size, rig), name in zip(models, names):
+        for (model, transform, size, rig, rig_name), name in zip(models, names):
             label = predict_labels(model, x, size)[0, 0].cpu().numpy().astype(np.float64)
             h = transform.height_mm(label)
             pred_valid = np.asarray(transform.valid(label))
@@ -576,7 +578,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
                 ok &= pred_valid
             scored.append((name, h, ok, pred_valid))
             if rig is not None:  # the same pixels, the heights after the image's own phase
-                refined = _refined(args, s, sid, name, model, transform, size, rig, h, record, echo)
+                refined = _refined(args, s, sid, name, model, transform, size, rig, rig_name, h, record, echo)
                 scored.append((f"{name} +{args.refine_method}", refined.astype(np.float64), ok, pred_valid))
         # no plane in view (the rig says so, or the plane found does not reach the border): no plane-pixel score,
         # whose "plane" would be the objects

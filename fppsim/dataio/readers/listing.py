@@ -26,7 +26,7 @@ from pathlib import Path
 from fppsim.files import warn
 
 __all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note",
-           "plain_images", "plain_images_note", "scan_folders_note", "scan_folders_words"]
+           "plain_images", "plain_images_note", "native_samples_note", "scan_folders_note", "scan_folders_words"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -115,6 +115,20 @@ def plain_images_note(folder: str | os.PathLike) -> str:
     plain fringe images (:data:`IMAGE_EXTS`): they carry no phase-shifting phase. ``''`` too when it cannot be listed."""
     n = len(plain_images(folder))
     return f"; it holds {n} plain image(s), which carry no phase-shifting phase: this needs the scans" if n else ""
+
+
+def native_samples_note(folder: str | os.PathLike) -> str:
+    """``''``, or the clause an error ends with when ``folder``, given where the public layout (PSin/ PCos/ Fringe/
+    iPattern/) is needed, holds fppsim's own phase-shifting samples (``<id>/psp/``): fit-rig, fit-optics and
+    label-real read those, evaluate-phase and train's --val-phase read the public layout only, which said no more
+    than 'missing folder(s)'. ``''`` too when it cannot be listed."""
+    try:
+        n = sum(1 for q in Path(folder).iterdir() if (q / "psp").is_dir() and (q / "arrays.npz").is_file())
+    except OSError:
+        return ""
+    return (f"; it holds {n} of fppsim's own phase-shifting sample(s) (<id>/psp/), which this does not read: write "
+            "them in the public layout (fppsim.dataio.writers.export_psp_folders(DATASET, OUT), DATASET the folder "
+            "fppsim generate wrote)") if n else ""
 
 
 def scan_folders_note(folder: str | os.PathLike, inner: list[str]) -> str:

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from fppsim.dataio.readers.listing import plain_images_note, skipped_note, warn_skipped
+from fppsim.dataio.readers.listing import native_samples_note, plain_images_note, skipped_note, warn_skipped
 from fppsim.errors import NoPhaseError, PSPMatError, UsageError
 from fppsim.phase.psp import phase_from_sums
 
@@ -264,7 +264,8 @@ def list_psp_ids(root: str | os.PathLike, roles: tuple[str, ...] = ("sin", "cos"
     if missing:
         found = sorted(p.name for p in root.iterdir() if p.is_dir())
         raise PSPMatError(f"{root}: missing folder(s) {', '.join(missing)} (found: {_short(found) or 'none'}); "
-                          f"expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each{plain_images_note(root)}")
+                          f"expected PSin/, PCos/, Fringe/, iPattern/ with one <id>.mat each{plain_images_note(root)}"
+                          f"{native_samples_note(root)}")
     ids = {}
     for r in roles:
         sub = FOLDERS[r][0]
