@@ -347,3 +347,17 @@ def adapt_setup(tmp_path):
     real.mkdir()
     np.save(real / "f1_80.npy", (np.stack([rig_fringe(rig, b) for b in bumps]) / 127.5 - 1)[..., None].astype(np.float32))
     return source, tmp_path / "rig.json", real
+
+
+def tiny_psp_root(root, n: int = 1):
+    """A tiny scan folder in the public layout (PSin/ PCos/ Fringe/ iPattern/) at ``root``: ``n`` frames of 64 x 32
+    px (:func:`scene`, vertical fringes 11.6 px apart), ids ``0``..``n-1``. Returns ``root``."""
+    from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
+
+    rng = np.random.default_rng(7)
+    xx = np.arange(64)[None, :] * np.ones((32, 1))
+    for i in range(n):
+        img, height, valid = scene(rng, 32, 64)
+        save_psp_folder_sample(root, f"{i}", *sums_from_phase(1.0 + 2 * np.pi * xx / 11.6 - 0.45 * height, valid, 30.0),
+                               img)
+    return root

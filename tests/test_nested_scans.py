@@ -5,32 +5,20 @@ as if they were one scan: each command reads one scan folder at a time."""
 
 import shutil
 
-import numpy as np
 import pytest
 
-from _helpers import SHARED, one_line, scene, unreadable, write_figshare
+from _helpers import SHARED, one_line, tiny_psp_root, unreadable, write_figshare
 from fppsim.dataio.readers import load_fringe_images, open_source
-from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from fppsim.errors import InputError, PSPMatError
 
 FP1523 = SHARED / "real-phase" / "FP1523"
 
 
-def _scan(root, n: int = 1):
-    """A tiny scan folder in the public layout (PSin/ PCos/ Fringe/ iPattern/), ``n`` frames of 64 x 32 px."""
-    rng = np.random.default_rng(7)
-    xx = np.arange(64)[None, :] * np.ones((32, 1))
-    for i in range(n):
-        img, height, valid = scene(rng, 32, 64)
-        save_psp_folder_sample(root, f"{i}", *sums_from_phase(1.0 + 2 * np.pi * xx / 11.6 - 0.45 * height, valid, 30.0),
-                               img)
-    return root
-
 
 def _root(tmp_path):
     root = tmp_path / "scans"
     for name in ("b", "a"):
-        _scan(root / name)
+        tiny_psp_root(root / name)
     (root / "README.txt").write_text("two sessions\n")
     return root
 
@@ -135,7 +123,7 @@ def test_hundreds_of_sub_folders_keep_the_line_short(tmp_path):
     """Review: `evaluate-phase --phase-root ROOT` (and `--val-phase`) listed every sub-folder of ROOT in its error's
     "found:" (300 scan folders: a line of 3,000 characters)."""
     root = tmp_path / "many"
-    _scan(root / "s000")
+    tiny_psp_root(root / "s000")
     for k in range(1, 300):
         (root / f"s{k:03d}").symlink_to(root / "s000")
     with pytest.raises(PSPMatError) as e:

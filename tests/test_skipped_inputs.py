@@ -7,10 +7,9 @@ import os
 import numpy as np
 import pytest
 
-from _helpers import scene
+from _helpers import scene, tiny_psp_root
 from fppsim.dataio.encoding import encode_png
 from fppsim.dataio.readers import load_fringe_images, open_labelled, open_source, skipped_note
-from fppsim.dataio.writers import save_psp_folder_sample, sums_from_phase
 from fppsim.errors import InputError, DatasetError, PSPMatError
 
 OTHER = ("README", "notes.json", ".hidden.webp", "model.mat")  # never mentioned
@@ -84,20 +83,11 @@ def test_predicts_folder_warns_and_its_no_images_error_says_what_was_skipped(tmp
     assert "skipped" not in str(e.value)
 
 
-def _psp_root(root, n=2):
-    rng = np.random.default_rng(7)
-    xx = np.arange(64)[None, :] * np.ones((32, 1))
-    for i in range(n):
-        img, height, valid = scene(rng, 32, 64)
-        save_psp_folder_sample(root, f"{i}", *sums_from_phase(1.0 + 2 * np.pi * xx / 11.6 - 0.45 * height, valid, 30.0),
-                               img)
-    return root
-
 
 def test_a_phase_shifting_root_names_its_skipped_frames(tmp_path, capsys):
     """What evaluate-phase --phase-root and label-real list (Source.scan_ids): a frame moved away (its links left
     behind) and an iPattern saved as PNG are named, once per entry though the folder is listed again."""
-    root = _psp_root(tmp_path / "scans")
+    root = tiny_psp_root(tmp_path / "scans", 2)
     for sub in ("PSin", "PCos", "Fringe", "iPattern"):
         os.symlink(tmp_path / "moved" / "7.mat", root / sub / "7.mat")
     (root / "iPattern" / "8.png").write_bytes(b"x")
@@ -115,7 +105,7 @@ def test_a_phase_shifting_root_names_its_skipped_frames(tmp_path, capsys):
                             f"{tmp_path / 'moved' / '7.mat'}, which does not exist), 8.png (.png is not a format "
                             "read here)")
     # ids that differ because one folder's frame is a dangling link: the error names the link too
-    root2 = _psp_root(tmp_path / "scans2")
+    root2 = tiny_psp_root(tmp_path / "scans2", 2)
     (root2 / "Fringe" / "1.mat").unlink()
     os.symlink(tmp_path / "moved" / "1.mat", root2 / "Fringe" / "1.mat")
     with pytest.raises(PSPMatError, match=r"ids differ between folders: Fringe lacks 1; skipped: Fringe/1\.mat \(a "
