@@ -535,3 +535,26 @@ def test_the_slip_line_names_a_model_whose_fit_without_the_slips_failed():
     assert line.endswith("without them: a: too few pixels left to fit, b 1.000 rad (flat 2.000)")
     alone = slip_line("x", record, {"a": {"without_slips": None}})
     assert alone.endswith("without them: a: too few pixels left to fit")
+
+
+def test_a_frame_of_another_size_under_refine_is_refused_before_anything_is_written(setup, tmp_path, capsys):
+    """QA (stop 74): under --refine phase a folder whose third frame is another size than the rig's camera was
+    scored frame by frame, so the first frames' figures were written before the one-line refusal, and no report.
+    Every frame's size is now checked first: the refusal names the frame (and how many others), nothing is written."""
+    import shutil
+
+    from _helpers import tiny_rig
+
+    tmp, run, root, truth = setup
+    mixed = tmp_path / "mixed"
+    shutil.copytree(root, mixed)
+    phase, height, valid = truth["0"]
+    save_psp_folder_sample(mixed, "7", *sums_from_phase(phase[:, :48], valid[:, :48], 30.0),
+                           np.full((32, 48), 120, np.uint8))
+    tiny_rig().save(tmp_path / "rig.json")
+    out = tmp_path / "ev"
+    assert main(["evaluate-phase", str(run), "--phase-root", str(mixed), "--out", str(out), "--refine", "phase",
+                 "--rig", str(tmp_path / "rig.json"), "--figures", "8", "--device", "cpu"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "7.mat: image is 48x32 but the rig used by --refine" in err[0], err
+    assert not out.exists() or not any(out.rglob("*.png")), sorted(out.rglob("*"))

@@ -58,7 +58,7 @@ from fppsim.phase.plane import (PLANE_SIDE_BAND, PLANE_SIDE_SHARE, PLANE_SIDES, 
                                 poly_basis, poly_terms, sides_reached)
 from uhrnet.errors import ConfigError, DataError, InputError, UsageError
 from fppsim.errors import NoPhaseError, PSPMatError, RigError
-from fppsim.dataio.readers import open_source, reading_note
+from fppsim.dataio.readers import load_ipattern, open_source, reading_note
 from uhrnet.checkpoint import load_checkpoint, model_from_checkpoint
 from uhrnet.data.datasets import parse_size
 from uhrnet.device import select_device
@@ -469,6 +469,11 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = model_names(ckpts, args.names)
     models = _phase_models(ckpts, args)
+    for sid in ids if any(m[3] is not None for m in models) else ():  # every frame, before anything is written
+        try:
+            _rig_sees(args, models, load_ipattern(src.ipattern_file(sid)).shape, src.ipattern_file(sid))
+        except (PSPMatError, OSError):  # unreadable: the scoring says how
+            pass
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file, not a folder")
@@ -477,6 +482,16 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
         claim(out, EVALUATE_PHASE_TOOL, ["phase_results.md", "phase_results.json"]
               + [f"figures/{sid}.png" for sid in ids[: max(0, args.figures)]], legacy=lambda: _own_report(out))
         return _evaluate_frames(args, src, ids, ckpts, names, models, out, echo)
+
+
+def _rig_sees(args: PhaseEvalConfig, models, shape, path) -> None:
+    """:class:`ConfigError` when a rig of ``--refine phase`` does not see images of ``shape`` (frame ``path``): which
+    rig, and, where none was given, what to give."""
+    for _, _, _, rig, rig_name in models:
+        if rig is not None:
+            hint = "" if args.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)"
+            check_image_size(rig, shape, str(path), who=f"the rig used by --refine ({rig_name}) sees", hint=hint,
+                             error=ConfigError)
 
 
 def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, rig_name: str, h, record: dict,
@@ -554,11 +569,7 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             note = shape_note(ck, img.shape)
             if note:
                 echo(f"{sid}: warning: {name}: {s.path}: {note}")
-        for _, _, _, rig, rig_name in models:
-            if rig is not None:  # which rig, and, where none was given, what to give
-                hint = "" if args.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)"
-                check_image_size(rig, img.shape, str(s.path), who=f"the rig used by --refine ({rig_name}) sees",
-                                 hint=hint, error=ConfigError)
+        _rig_sees(args, models, img.shape, s.path)
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:
