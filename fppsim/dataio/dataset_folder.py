@@ -27,7 +27,7 @@ from fppsim.files import TMP_PREFIX, unlink_quietly
 from fppsim.owned import owners, same_folder
 from fppsim.dataio.formats import (FIGSHARE_PAIRS, SAMPLE_ID_RE, SETTINGS_FILE, finished_indices, read_settings,
                                    sample_id)
-from fppsim.dataio.readers import is_scan_folder, plain_images, scan_folders_words
+from fppsim.dataio.readers import is_scan_folder, name_list, plain_images, scan_folders_words
 from fppsim.dataio.writers import samples_folder
 
 __all__ = ["DATASET_TOOL", "MANIFEST", "PREVIEW_NAME", "dataset_files", "legacy_files", "check_format",
@@ -134,10 +134,6 @@ def check_format(out: str | os.PathLike, fmt: str) -> None:
                                 f"resume it, or use another --out for --format {fmt}")
 
 
-def _names(names: list[str]) -> str:
-    return ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
-
-
 def check_no_frames(out: str | os.PathLike, claimed, flag: str = "--out",
                     error: type[Exception] = GenerateError) -> None:
     """Refuse (``error``, one line naming ``out`` and what it found) to write a dataset into ``out`` when it holds
@@ -161,7 +157,7 @@ def check_no_frames(out: str | os.PathLike, claimed, flag: str = "--out",
         found.append(scan_folders_words(inner))
     images = [p.name for p in plain_images(out) if p.name not in own and not p.name.startswith(TMP_PREFIX)]
     if images:
-        found.append(f"{len(images)} fringe image(s) ({_names(images)})")
+        found.append(f"{len(images)} fringe image(s) ({name_list(images)})")
     if found:
         raise error(f"{flag} {out} already holds {' and '.join(found)} that {DATASET_TOOL} did not write: "
                     "choose another folder")

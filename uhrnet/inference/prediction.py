@@ -79,7 +79,7 @@ from fppsim.phase.fringe_axis import fringe_axis, local_carrier, oriented_single
 __all__ = ["PredictConfig", "PredictResult", "predict", "predict_labels", "network_heights", "label_heights",
            "labels_at_input_size", "pad_to_multiple", "collect_inputs", "load_inputs", "read_inputs", "refine_rig_for",
            "refine_with_phase", "fringe_phase", "fringe_mirror_axis", "path_estimate", "order_choice", "points_from_rig",
-           "points_from_grid", "write_ply", "shape_note"]
+           "points_from_grid", "write_ply", "shape_note", "NO_RIG_HINT"]
 
 INPUT_EXTS = IMAGE_EXTS + (".npy",)  # the image files fppsim reads, and dataset-encoded arrays
 PREDICT_TOOL = "uhrnet predict"
@@ -328,7 +328,7 @@ def predict(config: PredictConfig) -> PredictResult:
     checks = [(head_rig, "the checkpoint's phase head sees", " (its rig's camera)"),
               (rig if config.ply else None, f"the rig camera ({config.rig}) is", ""),
               (refine_rig, f"the rig used by --refine ({rig_name}) sees",
-               "" if config.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)")]
+               "" if config.rig else NO_RIG_HINT)]
     for name, fringe, path in inputs:  # every size is checked before anything is written
         if min(fringe.shape) < MIN_SIDE:
             raise ConfigError(f"{path}: image is {fringe.shape[1]}x{fringe.shape[0]}; the model needs at least "
@@ -360,6 +360,10 @@ def predict(config: PredictConfig) -> PredictResult:
         finally:  # what was done is described, also when a later image fails
             _write_refine_json(out, result.refine, [] if refine_rig is not None else result.names)
     return result
+
+
+NO_RIG_HINT = ": give --rig with your rig's file (e.g. fit-rig's rig.json)"
+"""How a size refusal of ``--refine phase`` ends when no ``--rig`` was given (predict, evaluate-phase)."""
 
 
 def shape_note(ckpt: dict, shape) -> str | None:

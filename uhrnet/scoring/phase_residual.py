@@ -67,7 +67,8 @@ from uhrnet.scoring.evaluation import check_name_count, model_names
 from uhrnet.scoring.phase_report import frame_line, markdown, plot_phase_residuals
 from uhrnet.scoring.reference_slips import frame_slips, slip_line, slip_markdown, slip_scores
 from uhrnet.physics.orientation import flipped_warning, lean_warning
-from uhrnet.inference.prediction import path_estimate, predict_labels, refine_rig_for, refine_with_phase, shape_note
+from uhrnet.inference.prediction import (NO_RIG_HINT, path_estimate, predict_labels, refine_rig_for,
+                                        refine_with_phase, shape_note)
 
 #: the name evaluate-phase's files carry in their folder's ownership record (:mod:`fppsim.owned`)
 EVALUATE_PHASE_TOOL = "uhrnet evaluate-phase"
@@ -469,9 +470,10 @@ def evaluate_phase_folder(args: PhaseEvalConfig, echo=print) -> dict:
     ckpts = [load_checkpoint(p) for p in args.checkpoints]
     names = model_names(ckpts, args.names)
     models = _phase_models(ckpts, args)
-    for sid in ids if any(m[3] is not None for m in models) else ():  # every frame, before anything is written
+    # every frame's size through the rigs of --refine phase, before anything is written (its image is the scan's)
+    for image in [src.ipattern_file(sid) for sid in ids] if any(m[3] is not None for m in models) else ():
         try:
-            _rig_sees(args, models, load_ipattern(src.ipattern_file(sid)).shape, src.ipattern_file(sid))
+            _rig_sees(args, models, load_ipattern(image).shape, image)
         except (PSPMatError, OSError):  # unreadable: the scoring says how
             pass
     out = Path(args.out)
@@ -489,9 +491,8 @@ def _rig_sees(args: PhaseEvalConfig, models, shape, path) -> None:
     rig, and, where none was given, what to give."""
     for _, _, _, rig, rig_name in models:
         if rig is not None:
-            hint = "" if args.rig else ": give --rig with your rig's file (e.g. fit-rig's rig.json)"
-            check_image_size(rig, shape, str(path), who=f"the rig used by --refine ({rig_name}) sees", hint=hint,
-                             error=ConfigError)
+            check_image_size(rig, shape, str(path), who=f"the rig used by --refine ({rig_name}) sees",
+                             hint="" if args.rig else NO_RIG_HINT, error=ConfigError)
 
 
 def _refined(args: PhaseEvalConfig, s, sid: str, name: str, net, transform, size, rig, rig_name: str, h, record: dict,
@@ -569,7 +570,6 @@ def _evaluate_frames(args: PhaseEvalConfig, src, ids, ckpts, names, models, out:
             note = shape_note(ck, img.shape)
             if note:
                 echo(f"{sid}: warning: {name}: {s.path}: {note}")
-        _rig_sees(args, models, img.shape, s.path)
         x = _fringe_input(img)
         record = {"id": sid, "valid_phase_fraction": float(s.valid.mean()), "models": {}}
         try:

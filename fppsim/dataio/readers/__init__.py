@@ -31,8 +31,8 @@ from fppsim.dataio.readers.samples import (LABEL_SOURCES, READ_ERRORS, check_exp
                        check_psp_available, load_native_sample, open_figshare_pair, pick_evenly, read_fringe_image, read_native_label, read_native_pair,
                        read_native_phase, read_native_psp)
 from fppsim.dataio.readers.fringe_images import FringeImage, load_fringe_images
-from fppsim.dataio.readers.listing import (IMAGE_EXTS, OTHER_IMAGE_EXTS, plain_images, plain_images_note, scan_folders_note,
-                                          scan_folders_words, skipped_note, warn_skipped)
+from fppsim.dataio.readers.listing import (IMAGE_EXTS, OTHER_IMAGE_EXTS, name_list, plain_images, plain_images_note,
+                                          scan_folders_note, scan_folders_words, skipped_note, warn_skipped)
 from fppsim.dataio.readers.psp_mat import (CONVENTIONS, COS_KEYS, FOLDERS, ORDER_KEYS, SIN_KEYS, PspMat, PSPMatError, check_convention,
                       is_psp_folder, iter_psp_folder, list_psp_ids, load_ipattern, load_psp_folder_sample,
                       load_psp_mat, phase_jump_share, read_mat_variable, reading_check, reading_note, reading_words,
@@ -59,6 +59,6 @@ __all__ = [
     # real images for fitting
     "FringeImage", "IMAGE_EXTS", "load_fringe_images",
     # what a folder listing skips that looks meant as input
-    "OTHER_IMAGE_EXTS", "plain_images", "plain_images_note", "scan_folders_note", "scan_folders_words", "skipped_note",
+    "OTHER_IMAGE_EXTS", "name_list", "plain_images", "plain_images_note", "scan_folders_note", "scan_folders_words", "skipped_note",
     "warn_skipped",
 ]

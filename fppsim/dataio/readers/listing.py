@@ -26,7 +26,8 @@ from pathlib import Path
 from fppsim.files import warn
 
 __all__ = ["IMAGE_EXTS", "OTHER_IMAGE_EXTS", "skipped_entries", "warn_skipped", "forget_skipped", "skipped_note",
-           "plain_images", "plain_images_note", "native_samples_note", "scan_folders_note", "scan_folders_words"]
+           "plain_images", "plain_images_note", "native_samples_note", "scan_folders_note", "scan_folders_words",
+           "name_list"]
 
 IMAGE_EXTS = (".png", ".tif", ".tiff", ".bmp", ".jpg", ".jpeg")
 """The image files the readers take (:func:`fppsim.dataio.encoding.read_gray_image`)."""
@@ -143,5 +144,9 @@ def scan_folders_note(folder: str | os.PathLike, inner: list[str]) -> str:
 def scan_folders_words(inner: list[str]) -> str:
     """``'2 scan folder(s) one level down (a/, b/)'`` (four names at most): the words :func:`scan_folders_note`
     and :func:`fppsim.dataio.dataset_folder.check_no_frames` name scan folders one level down by."""
-    shown = ", ".join(f"{name}/" for name in inner[:4]) + (", ..." if len(inner) > 4 else "")
-    return f"{len(inner)} scan folder(s) one level down ({shown})"
+    return f"{len(inner)} scan folder(s) one level down ({name_list([f'{name}/' for name in inner])})"
+
+
+def name_list(names: list[str], n: int = 4) -> str:
+    """``'a, b, c, d, ...'``: the first ``n`` of ``names``, as the clauses here name what a folder holds."""
+    return ", ".join(names[:n]) + (", ..." if len(names) > n else "")
